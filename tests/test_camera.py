@@ -1,0 +1,102 @@
+"""PinholeCamera against OpenCV, with distortion."""
+
+import cv2
+import numpy as np
+import pytest
+
+from toolkit.camera import PinholeCamera
+
+DIST = np.array([0.11418, 0.19343, -0.00268, 0.00372, -1.09540])  # a real lens (ACFR)
+
+
+@pytest.fixture
+def cam() -> PinholeCamera:
+    return PinholeCamera(640, 480, 519.268, 518.894, 331.112, 229.434, DIST)
+
+
+def points_in_view(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.5, 8.0, n)
+    x = rng.uniform(-0.5, 0.5, n) * z
+    y = rng.uniform(-0.4, 0.4, n) * z
+    return np.stack([x, y, z], -1)
+
+
+def test_project_matches_cv2(cam):
+    P = points_in_view(500)
+    uv, z = cam.project(P)
+    ref, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), cam.K, cam.dist)
+    assert np.max(np.abs(uv - ref.reshape(-1, 2))) < 1e-6
+    assert np.allclose(z, P[:, 2])
+
+
+def test_undistort_matches_cv2(cam):
+    uv, _ = cam.project(points_in_view(500, 1))
+    ours = cam.undistort_pixels(uv)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    ref = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist, None, None, cam.K, crit)
+    assert np.max(np.abs(ours - ref.reshape(-1, 2))) < 1e-6
+
+
+def test_project_backproject_round_trip(cam):
+    P = points_in_view(500, 2)
+    uv, z = cam.project(P)
+    assert np.max(np.abs(cam.backproject(uv, z) - P)) < 1e-6
+    # And pixel -> ray -> pixel.
+    uv2, _ = cam.project(cam.backproject(uv, np.ones(len(uv))))
+    assert np.max(np.abs(uv2 - uv)) < 1e-6
+
+
+def test_behind_camera_is_nan_and_in_image(cam):
+    uv, _ = cam.project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 2.0], [100.0, 0.0, 1.0]]))
+    assert np.all(np.isnan(uv[0]))
+    assert cam.in_image(uv).tolist() == [False, True, False]
+
+
+def test_undistort_image_agrees_with_cv2(cam):
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    ref = cv2.undistort(img, cam.K, cam.dist, None, cam.K)
+    assert np.array_equal(cam.undistort_image(img), ref)
+    # A point seen through the lens lands, after undistortion, where the ideal camera puts it.
+    ideal = cam.undistorted()
+    P = points_in_view(20, 3)
+    uv_d, _ = cam.project(P)
+    uv_i, _ = ideal.project(P)
+    assert np.max(np.abs(cam.undistort_pixels(uv_d) - uv_i)) < 1e-6
+
+
+def test_backproject_depth_image_plane():
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    depth = np.full((48, 64), 2.0, np.float32)
+    pts = cam.backproject_depth(depth)
+    assert np.allclose(pts[..., 2], 2.0)
+    assert np.allclose(pts[23, 31], [(31 - 31.5) / 50 * 2, (23 - 23.5) / 50 * 2, 2.0])
+
+
+def test_conversions(cam):
+    model, params = cam.to_colmap()
+    assert model == "FULL_OPENCV" and params[:4] == [cam.fx, cam.fy, cam.cx, cam.cy]
+    assert cam.undistorted().to_colmap()[0] == "PINHOLE"
+    no_k3 = PinholeCamera(640, 480, 500, 500, 320, 240, [0.1, -0.05, 0.001, 0.002, 0.0])
+    assert no_k3.to_colmap() == ("OPENCV", [500.0, 500.0, 320.0, 240.0, 0.1, -0.05, 0.001, 0.002])
+    assert cam.colmap_line(3).startswith("3 FULL_OPENCV 640 480 519.268")
+    o3d_cam = cam.to_open3d()
+    assert np.allclose(np.asarray(o3d_cam.intrinsic_matrix), cam.K)
+    assert PinholeCamera.from_dict(cam.to_dict()) == cam
+
+
+def test_scaled_camera_projects_consistently(cam):
+    half = cam.undistorted().scaled(320, 240)
+    P = points_in_view(50, 4)
+    uv_full, _ = cam.undistorted().project(P)
+    uv_half, _ = half.project(P)
+    # Pixel centres: u_half + 0.5 = (u_full + 0.5) / 2.
+    assert np.allclose(uv_half + 0.5, (uv_full + 0.5) / 2, atol=1e-9)
+
+
+def test_rejects_bad_intrinsics():
+    with pytest.raises(ValueError, match="focal"):
+        PinholeCamera(640, 480, 0.0, 500, 320, 240)
+    with pytest.raises(ValueError, match="size"):
+        PinholeCamera(0, 480, 500, 500, 320, 240)

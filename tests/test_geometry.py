@@ -1,0 +1,121 @@
+"""Known-answer and property tests for toolkit.geometry."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from toolkit import geometry as g
+
+angles = st.floats(-np.pi, np.pi, allow_nan=False)
+coords = st.floats(-50, 50, allow_nan=False)
+seeds = st.integers(0, 2**31 - 1)
+
+
+def random_pose(rng: np.random.Generator, t_scale: float = 5.0) -> np.ndarray:
+    return g.se3(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * t_scale)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seeds)
+def test_inverse_composes_to_identity(seed):
+    rng = np.random.default_rng(seed)
+    T = random_pose(rng)
+    assert np.allclose(g.compose(T, g.inv_se3(T)), np.eye(4), atol=1e-12)
+    assert np.allclose(g.inv_se3(T), np.linalg.inv(T), atol=1e-12)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seeds)
+def test_compose_is_associative_and_maps_points(seed):
+    rng = np.random.default_rng(seed)
+    A, B, C = (random_pose(rng) for _ in range(3))
+    assert np.allclose(g.compose(g.compose(A, B), C), g.compose(A, g.compose(B, C)), atol=1e-9)
+    p = rng.normal(size=(7, 3))
+    assert np.allclose(g.transform_points(g.compose(A, B), p),
+                       g.transform_points(A, g.transform_points(B, p)), atol=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(coords, coords, angles, coords, coords, angles)
+def test_se2_compose_matches_matrices(x1, y1, t1, x2, y2, t2):
+    a, b = np.array([x1, y1, t1]), np.array([x2, y2, t2])
+    M = g.se2_to_matrix(*a) @ g.se2_to_matrix(*b)
+    c = g.se2_compose(a, b)
+    assert np.allclose(g.se2_to_matrix(*c), M, atol=1e-9)
+    assert np.allclose(g.se2_compose(g.se2_inverse(a), a)[:2], 0, atol=1e-9)
+    assert abs(g.wrap_angle(g.se2_compose(g.se2_inverse(a), a)[2])) < 1e-9
+    # SE(2) embeds in SE(3) and projects back.
+    assert np.allclose(g.se3_to_se2(g.se2_to_se3(*c)), c, atol=1e-9)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seeds, st.floats(0.0, 1.0))
+def test_interpolation_is_slerp_and_lerp(seed, alpha):
+    rng = np.random.default_rng(seed)
+    A, B = random_pose(rng), random_pose(rng)
+    T = g.interpolate_poses(np.array([0.0, 2.0]), np.stack([A, B]), np.array([2.0 * alpha]))[0]
+    assert np.allclose(T[:3, 3], (1 - alpha) * A[:3, 3] + alpha * B[:3, 3], atol=1e-9)
+    # The rotation lies on the geodesic: angle(A->T) = alpha * angle(A->B).
+    ang_ab = g.rotation_angle(A[:3, :3].T @ B[:3, :3])
+    ang_at = g.rotation_angle(A[:3, :3].T @ T[:3, :3])
+    ang_tb = g.rotation_angle(T[:3, :3].T @ B[:3, :3])
+    assert np.isclose(ang_at, alpha * ang_ab, atol=1e-7)
+    assert np.isclose(ang_at + ang_tb, ang_ab, atol=1e-7)
+
+
+def test_interpolation_hits_knots_and_rejects_outside():
+    rng = np.random.default_rng(0)
+    P = np.stack([random_pose(rng) for _ in range(4)])
+    st_ = np.array([0.0, 1.0, 2.5, 3.0])
+    assert np.allclose(g.interpolate_poses(st_, P, st_), P, atol=1e-12)
+    with pytest.raises(ValueError, match="outside the trajectory span"):
+        g.interpolate_poses(st_, P, np.array([3.5]))
+    # A small tolerance clamps to the end pose rather than extrapolating.
+    assert np.allclose(g.interpolate_poses(st_, P, np.array([3.05]), extrapolate_s=0.1)[0], P[-1])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seeds, st.floats(-1e4, 1e9))
+def test_tum_line_round_trip(seed, stamp):
+    rng = np.random.default_rng(seed)
+    T = random_pose(rng)
+    t2, T2 = g.tum_line_to_pose(g.pose_to_tum_line(stamp, T))
+    assert t2 == stamp
+    assert np.allclose(T2, T, atol=1e-12)
+
+
+def test_tum_line_rejects_bad_input():
+    with pytest.raises(ValueError, match="8 numbers"):
+        g.tum_line_to_pose("1 2 3")
+    with pytest.raises(ValueError, match="non-finite"):
+        g.tum_line_to_pose("0 nan 0 0 0 0 0 1")
+
+
+@settings(max_examples=30, deadline=None)
+@given(seeds, st.booleans())
+def test_umeyama_recovers_random_sim3_exactly(seed, with_scale):
+    rng = np.random.default_rng(seed)
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = rng.normal(size=3) * 10
+    s = float(rng.uniform(0.1, 10.0)) if with_scale else 1.0
+    src = rng.normal(size=(20, 3)) * 3
+    dst = s * src @ R.T + t
+    R2, t2, s2 = g.umeyama_alignment(src, dst, with_scale=with_scale)
+    assert np.allclose(R2, R, atol=1e-9)
+    assert np.allclose(t2, t, atol=1e-8)
+    assert np.isclose(s2, s, rtol=1e-9)
+
+
+def test_align_trajectory_sim3():
+    rng = np.random.default_rng(3)
+    P = np.stack([random_pose(rng) for _ in range(10)])
+    ref = g.Trajectory(np.arange(10.0), P)
+    S = g.sim3(Rotation.from_euler("z", 0.7).as_matrix(), np.array([1.0, -2.0, 0.5]), 2.5)
+    est_P = P.copy()
+    est_P[:, :3, 3] = (P[:, :3, 3] - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
+    est_P[:, :3, :3] = Rotation.from_euler("z", -0.7).as_matrix() @ P[:, :3, :3]
+    aligned, S_found = g.align_trajectory(g.Trajectory(np.arange(10.0), est_P), ref, True)
+    assert np.allclose(aligned.poses, P, atol=1e-9)
+    assert np.allclose(S_found, S, atol=1e-9)

@@ -1,0 +1,202 @@
+"""Sequence folder: exact round trip and errors that name the file and field."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, se2_to_se3, se3
+from toolkit.io.depth import read_depth, write_depth
+from toolkit.io.sequence import (
+    SequenceFormatError,
+    SequenceWriter,
+    read_sequence,
+    write_sequence,
+)
+from toolkit.io.tum import read_tum, write_tum
+from toolkit.sensors import LaserScan, Rig
+
+W, H = 32, 24
+
+
+def make_rig() -> Rig:
+    cam = PinholeCamera(W, H, 30.0, 31.0, 15.5, 11.5, [0.01, -0.002, 0.0, 0.0, 0.0])
+    R_base_optical = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)
+    return Rig(cam, se3(R_base_optical, [0.1, 0.0, 0.4]), se3(np.eye(3), [0.05, 0, 0.2]))
+
+
+def write_small(root: Path, n_frames: int = 4, n_scans: int = 6, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    w = SequenceWriter(root, make_rig(), name="tiny", depth_format="npy")
+    images, depths, masks = [], [], []
+    for i in range(n_frames):
+        img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+        d = rng.uniform(0.5, 10, (H, W)).astype(np.float32)
+        d[0, 0] = 0.0
+        m = rng.random((H, W)) > 0.8
+        w.add_frame(0.1 * i + 0.013, img, d, m)
+        images.append(img)
+        depths.append(d)
+        masks.append(m)
+    scans = []
+    for k in range(n_scans):
+        r = rng.uniform(0.2, 10, 90).astype(np.float32)
+        r[3] = np.inf
+        r[5] = np.nan
+        s = LaserScan(0.1 * k, r, -np.pi / 2, -np.pi / 89, 0.12, 12.0)
+        dyn = rng.random(90) > 0.9
+        w.add_scan(s, dyn)
+        scans.append((s, dyn))
+    stamps = np.arange(10) * 0.05
+    poses = np.stack([se2_to_se3(0.1 * i, 0.02 * i, 0.01 * i) for i in range(10)])
+    w.groundtruth_poses = Trajectory(stamps, poses, "world", "base_link")
+    w.odometry = Trajectory(stamps, poses @ se2_to_se3(0.01, 0, 0.001), "odom", "base_link")
+    w.add_heldout(0.5, se3(np.eye(3), [1.0, 2.0, 0.4]), images[0], depths[0])
+    w.close()
+    return {"images": images, "depths": depths, "masks": masks, "scans": scans, "poses": poses}
+
+
+def test_round_trip_is_exact(tmp_path):
+    truth = write_small(tmp_path / "a")
+    seq = read_sequence(tmp_path / "a")
+    assert seq.name == "tiny"
+    assert len(seq.frames) == 4 and len(seq.scans) == 6
+    for i, f in enumerate(seq.frames):
+        assert np.array_equal(f.image, truth["images"][i])
+        assert np.array_equal(seq.groundtruth.depth(i), truth["depths"][i])
+        assert np.array_equal(seq.groundtruth.mask(i), truth["masks"][i])
+    for s, (s0, _dyn) in zip(seq.scans, truth["scans"], strict=True):
+        assert np.array_equal(s.ranges, s0.ranges, equal_nan=True)
+        assert (s.stamp, s.angle_min, s.angle_increment) == (s0.stamp, s0.angle_min,
+                                                             s0.angle_increment)
+    assert np.array_equal(seq.groundtruth.scan_dynamic, np.stack([d for _, d in truth["scans"]]))
+    assert np.array_equal(seq.groundtruth.poses_base.poses.round(12), truth["poses"].round(12))
+    assert seq.rig.camera == make_rig().camera
+    assert np.array_equal(seq.rig.T_base_camera, make_rig().T_base_camera)
+    assert seq.groundtruth.heldout is not None and len(seq.groundtruth.heldout.image_paths) == 1
+
+    # Writing what was read and reading it again changes nothing.
+    write_sequence(seq, tmp_path / "b", depth_format="npy")
+    seq2 = read_sequence(tmp_path / "b")
+    for a, b in zip(seq.frames, seq2.frames, strict=True):
+        assert a.stamp == b.stamp and np.array_equal(a.image, b.image)
+    for i in range(4):
+        assert np.array_equal(seq.groundtruth.depth(i), seq2.groundtruth.depth(i))
+    # Poses pass through quaternions in TUM files: equal to float64 rounding.
+    assert np.max(np.abs(seq.odometry.poses - seq2.odometry.poses)) < 1e-15
+    assert np.array_equal(seq.groundtruth.poses_base.stamps, seq2.groundtruth.poses_base.stamps)
+
+
+def test_time_indexed_access(tmp_path):
+    write_small(tmp_path / "a")
+    seq = read_sequence(tmp_path / "a")
+    assert seq.frame_index_at(0.12) == 1  # frames at 0.013, 0.113, 0.213, ...
+    assert seq.scan_at(0.26).stamp == pytest.approx(0.3)
+    assert [s.stamp for s in seq.scans_between(0.1, 0.3)] == pytest.approx([0.1, 0.2])
+    # Images load lazily: a frame holds a path, not pixels.
+    assert seq.frames[0]._image is None and seq.frames[0].path.exists()
+
+
+def test_laser_scan_points_drop_invalid_and_follow_negative_increment():
+    r = np.array([1.0, np.inf, 2.0, 0.05, np.nan, 3.0], np.float32)
+    s = LaserScan(0.0, r, np.pi / 2, -np.pi / 2, 0.1, 10.0)
+    p = s.points()
+    # Beams at 90, 0, -90, -180, -270, -360 degrees; valid: 0, 2, 5.
+    assert np.allclose(p, [[0, 1], [0, -2], [3, 0]], atol=1e-6)
+    assert s.valid_mask().tolist() == [True, False, True, False, False, True]
+
+
+def test_depth_png_round_trip(tmp_path):
+    d = (np.arange(12, dtype=np.float32).reshape(3, 4) * 1.2345).astype(np.float32)
+    d[0, 0] = np.nan
+    write_depth(tmp_path / "d.png", d)
+    once = read_depth(tmp_path / "d.png")
+    # NaN and depths beyond the format's 13.1 m become invalid (0), never a wrong value.
+    assert once[0, 0] == 0 and once[2, 3] == 0
+    ok = np.isfinite(d) & (d < 13.1)
+    assert np.max(np.abs(once[ok] - d[ok])) <= 0.5 / 5000 + 1e-6
+    write_depth(tmp_path / "e.png", once)
+    assert np.array_equal(read_depth(tmp_path / "e.png"), once)
+
+
+def test_missing_rig_is_named(tmp_path):
+    write_small(tmp_path / "a")
+    (tmp_path / "a" / "rig.yaml").unlink()
+    with pytest.raises(SequenceFormatError, match=r"rig\.yaml.*not found"):
+        read_sequence(tmp_path / "a")
+
+
+def test_rig_missing_field_is_named(tmp_path):
+    write_small(tmp_path / "a")
+    p = tmp_path / "a" / "rig.yaml"
+    d = yaml.safe_load(p.read_text())
+    del d["T_base_laser"]
+    p.write_text(yaml.safe_dump(d))
+    with pytest.raises(SequenceFormatError, match="T_base_laser"):
+        read_sequence(tmp_path / "a")
+
+
+def test_image_count_mismatch(tmp_path):
+    write_small(tmp_path / "a")
+    (tmp_path / "a" / "camera" / "images" / "000002.png").unlink()
+    with pytest.raises(SequenceFormatError, match=r"frames\.csv.*'image'.*does not exist"):
+        read_sequence(tmp_path / "a")
+    write_small(tmp_path / "b")
+    extra = tmp_path / "b" / "camera" / "images" / "000099.png"
+    extra.write_bytes((tmp_path / "b" / "camera" / "images" / "000000.png").read_bytes())
+    with pytest.raises(SequenceFormatError, match="lists 4 images but"):
+        read_sequence(tmp_path / "b")
+
+
+def test_nan_pose(tmp_path):
+    write_small(tmp_path / "a")
+    p = tmp_path / "a" / "groundtruth" / "poses_base.tum"
+    lines = p.read_text().splitlines()
+    parts = lines[5].split()
+    parts[2] = "nan"
+    lines[5] = " ".join(parts)
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"poses_base\.tum:6: .*non-finite"):
+        read_sequence(tmp_path / "a")
+
+
+def test_non_monotonic_stamps(tmp_path):
+    write_small(tmp_path / "a")
+    p = tmp_path / "a" / "camera" / "frames.csv"
+    lines = p.read_text().splitlines()
+    f2, f3 = lines[3].split(","), lines[4].split(",")
+    f2[1], f3[1] = f3[1], f2[1]
+    lines[3], lines[4] = ",".join(f2), ",".join(f3)
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(SequenceFormatError, match=r"frames\.csv:5: field 'stamp' not strictly"):
+        read_sequence(tmp_path / "a")
+    # Scans too.
+    write_small(tmp_path / "b")
+    sp = tmp_path / "b" / "scans.npz"
+    with np.load(sp) as z:
+        data = {k: z[k] for k in z.files}
+    data["stamps"][3] = data["stamps"][1]
+    np.savez(sp, **data)
+    with pytest.raises(SequenceFormatError, match=r"scans\.npz.*'stamps' not strictly increasing"):
+        read_sequence(tmp_path / "b")
+
+
+def test_image_size_disagreeing_with_rig(tmp_path):
+    write_small(tmp_path / "a")
+    p = tmp_path / "a" / "rig.yaml"
+    d = yaml.safe_load(p.read_text())
+    d["camera"]["width"] = 64
+    p.write_text(yaml.safe_dump(d))
+    with pytest.raises(SequenceFormatError, match="32x24 but .*rig.yaml"):
+        read_sequence(tmp_path / "a")
+
+
+def test_tum_file_round_trip_and_header(tmp_path):
+    traj = Trajectory(np.array([1.0, 2.0]), np.stack([np.eye(4), se2_to_se3(1, 2, 0.3)]),
+                      "world", "camera")
+    write_tum(tmp_path / "t.tum", traj)
+    back = read_tum(tmp_path / "t.tum")
+    assert (back.frame, back.child) == ("world", "camera")
+    assert np.allclose(back.poses, traj.poses, atol=1e-15)

@@ -1,0 +1,327 @@
+"""Rigid and similarity transforms, pose interpolation and trajectory alignment.
+
+Conventions (ARCHITECTURE.md): ``T_a_b`` maps points from frame b into frame a,
+stored as 4x4 float64 (3x3 for SE(2)); quaternions are scipy's xyzw, as in TUM files.
+Rotation maths goes through ``scipy.spatial.transform`` rather than hand-written code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+# ---------------------------------------------------------------------------- SE(3)
+
+
+def se3(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+    """Build a 4x4 transform from a rotation matrix [3, 3] and a translation [3]."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def inv_se3(T: np.ndarray) -> np.ndarray:
+    """Inverse of one [4, 4] or a batch [N, 4, 4] of rigid transforms (exact, no LU)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def compose(*Ts: np.ndarray) -> np.ndarray:
+    """Chain transforms left to right: ``compose(T_a_b, T_b_c) == T_a_c`` (batches broadcast)."""
+    out = np.asarray(Ts[0], dtype=np.float64)
+    for T in Ts[1:]:
+        out = out @ np.asarray(T, dtype=np.float64)
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply [4, 4] ``T`` to points [N, 3] (or [N, 2] with a [3, 3] SE(2) ``T``)."""
+    points = np.asarray(points, dtype=np.float64)
+    d = points.shape[-1]
+    return points @ T[:d, :d].T + T[:d, d]
+
+
+def pose_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """[4, 4] (or [N, 4, 4]) from positions [.., 3] and xyzw quaternions [.., 4]."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    quat = np.asarray(quat_xyzw, dtype=np.float64)
+    batch = xyz.ndim == 2
+    xyz2, quat2 = np.atleast_2d(xyz), np.atleast_2d(quat)
+    T = np.tile(np.eye(4), (len(xyz2), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(quat2).as_matrix()
+    T[:, :3, 3] = xyz2
+    return T if batch else T[0]
+
+
+def pose_to_xyz_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [.., 3] and xyzw quaternions [.., 4] (w >= 0) of transforms [.., 4, 4]."""
+    T = np.asarray(T, dtype=np.float64)
+    batch = T.ndim == 3
+    T2 = T if batch else T[None]
+    q = Rotation.from_matrix(T2[:, :3, :3]).as_quat()
+    # Canonical sign so that written files are reproducible.
+    q = np.where(q[:, 3:4] < 0, -q, q)
+    xyz = T2[:, :3, 3].copy()
+    return (xyz, q) if batch else (xyz[0], q[0])
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle in radians of rotation matrices [.., 3, 3], robust near 0 and pi."""
+    R = np.asarray(R, dtype=np.float64)
+    return np.linalg.norm(Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec(), axis=-1).reshape(
+        R.shape[:-2]
+    )
+
+
+# ---------------------------------------------------------------------------- SE(2)
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi if np.ndim(a) else float(
+        (a + np.pi) % (2.0 * np.pi) - np.pi
+    )
+
+
+def se2_to_matrix(x: float, y: float, theta: float) -> np.ndarray:
+    """[3, 3] homogeneous SE(2) matrix."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def matrix_to_se2(T: np.ndarray) -> tuple[float, float, float]:
+    """(x, y, theta) of a [3, 3] SE(2) matrix or the planar part of a [4, 4] SE(3) one."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape == (4, 4):
+        return float(T[0, 3]), float(T[1, 3]), float(np.arctan2(T[1, 0], T[0, 0]))
+    return float(T[0, 2]), float(T[1, 2]), float(np.arctan2(T[1, 0], T[0, 0]))
+
+
+def se2_to_se3(x: float, y: float, theta: float, z: float = 0.0) -> np.ndarray:
+    """[4, 4] transform of a planar pose (rotation about +z)."""
+    T = np.eye(4)
+    c, s = np.cos(theta), np.sin(theta)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def se3_to_se2(T: np.ndarray) -> np.ndarray:
+    """[.., 3] (x, y, yaw) of transforms [.., 4, 4]: the planar projection."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.stack([T[..., 0, 3], T[..., 1, 3], np.arctan2(T[..., 1, 0], T[..., 0, 0])], -1)
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Compose (x, y, theta) poses [.., 3]: a * b."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack(
+        [
+            a[..., 0] + c * b[..., 0] - s * b[..., 1],
+            a[..., 1] + s * b[..., 0] + c * b[..., 1],
+            wrap_angle(a[..., 2] + b[..., 2]),
+        ],
+        -1,
+    )
+
+
+def se2_inverse(a: np.ndarray) -> np.ndarray:
+    """Inverse of (x, y, theta) poses [.., 3]."""
+    a = np.asarray(a, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack(
+        [-c * a[..., 0] - s * a[..., 1], s * a[..., 0] - c * a[..., 1], wrap_angle(-a[..., 2])], -1
+    )
+
+
+def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Relative pose a^-1 * b of (x, y, theta) poses [.., 3]."""
+    return se2_compose(se2_inverse(a), b)
+
+
+# ---------------------------------------------------------------------------- interpolation
+
+
+def interpolate_poses(
+    stamps: np.ndarray, poses: np.ndarray, query: np.ndarray, extrapolate_s: float = 0.0
+) -> np.ndarray:
+    """Poses [M, 4, 4] at ``query`` stamps: slerp on rotation, lerp on translation.
+
+    ``stamps`` [N] must be strictly increasing. Queries up to ``extrapolate_s`` outside
+    the covered span are clamped to the end poses; further ones raise ``ValueError``
+    (a camera frame before the first scan has no trustworthy pose).
+    """
+    stamps = np.asarray(stamps, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    query = np.atleast_1d(np.asarray(query, dtype=np.float64))
+    if len(stamps) == 0:
+        raise ValueError("cannot interpolate an empty trajectory")
+    if np.any(np.diff(stamps) <= 0):
+        raise ValueError("trajectory stamps must be strictly increasing")
+    lo, hi = stamps[0] - extrapolate_s, stamps[-1] + extrapolate_s
+    bad = (query < lo - 1e-9) | (query > hi + 1e-9)
+    if np.any(bad):
+        raise ValueError(
+            f"{int(bad.sum())} query stamps lie outside the trajectory span "
+            f"[{stamps[0]:.6f}, {stamps[-1]:.6f}] s (+-{extrapolate_s} s allowed), "
+            f"first offender {query[bad][0]:.6f}"
+        )
+    if len(stamps) == 1:
+        return np.repeat(poses[:1], len(query), axis=0)
+    q = np.clip(query, stamps[0], stamps[-1])
+    slerp = Slerp(stamps, Rotation.from_matrix(poses[:, :3, :3]))
+    out = np.tile(np.eye(4), (len(q), 1, 1))
+    out[:, :3, :3] = slerp(q).as_matrix()
+    for k in range(3):
+        out[:, k, 3] = np.interp(q, stamps, poses[:, k, 3])
+    return out
+
+
+@dataclass
+class Trajectory:
+    """Time-stamped poses: ``poses[i]`` is ``T_<frame>_<child>`` at ``stamps[i]``.
+
+    ``frame``/``child`` name what the poses map between (e.g. world / base_link), so a
+    file written from it says which transform it holds.
+    """
+
+    stamps: np.ndarray  # [N] seconds, strictly increasing
+    poses: np.ndarray  # [N, 4, 4]
+    frame: str = "world"
+    child: str = "base_link"
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.stamps) != len(self.poses):
+            raise ValueError(f"{len(self.stamps)} stamps but {len(self.poses)} poses")
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """[N, 3] translations."""
+        return self.poses[:, :3, 3]
+
+    def interpolate(self, query: np.ndarray, extrapolate_s: float = 0.0) -> Trajectory:
+        """The trajectory at other stamps (see ``interpolate_poses``)."""
+        query = np.atleast_1d(np.asarray(query, dtype=np.float64))
+        return Trajectory(
+            query,
+            interpolate_poses(self.stamps, self.poses, query, extrapolate_s),
+            self.frame,
+            self.child,
+        )
+
+    def transform(self, T_left: np.ndarray | None = None, T_right: np.ndarray | None = None) -> (
+        Trajectory
+    ):
+        """``T_left @ pose @ T_right`` for every pose (re-rooting or changing the child)."""
+        P = self.poses
+        if T_left is not None:
+            P = np.asarray(T_left) @ P
+        if T_right is not None:
+            P = P @ np.asarray(T_right)
+        return Trajectory(self.stamps.copy(), P, self.frame, self.child)
+
+    def slice(self, index: np.ndarray | slice) -> Trajectory:
+        """Subset by index array, boolean mask or slice."""
+        return Trajectory(self.stamps[index], self.poses[index], self.frame, self.child)
+
+
+# ---------------------------------------------------------------------------- TUM lines
+
+
+def pose_to_tum_line(stamp: float, T: np.ndarray) -> str:
+    """``t tx ty tz qx qy qz qw`` with enough digits for an exact float64 round trip."""
+    xyz, q = pose_to_xyz_quat(T)
+    vals = [stamp, *xyz, *q]
+    return " ".join(repr(float(v)) for v in vals)
+
+
+def tum_line_to_pose(line: str) -> tuple[float, np.ndarray]:
+    """Parse one TUM line into (stamp, [4, 4])."""
+    parts = line.split()
+    if len(parts) != 8:
+        raise ValueError(f"TUM line needs 8 numbers (t tx ty tz qx qy qz qw), got {len(parts)}")
+    v = np.array([float(p) for p in parts])
+    if not np.all(np.isfinite(v)):
+        raise ValueError("TUM line holds a non-finite value")
+    q = v[4:8]
+    n = np.linalg.norm(q)
+    if not 0.5 < n < 2.0:
+        raise ValueError(f"TUM quaternion norm {n:.3g} is far from 1")
+    return float(v[0]), pose_from_xyz_quat(v[1:4], q / n)
+
+
+# ---------------------------------------------------------------------------- alignment
+
+
+def umeyama_alignment(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares (R, t, s) with ``dst ~= s * R @ src + t`` (Umeyama 1991).
+
+    ``src``, ``dst``: [N, d] corresponding points (d = 2 or 3). With ``with_scale`` False
+    this is the SE(d) alignment and ``s`` is 1.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2:
+        raise ValueError(f"point sets must have the same [N, d] shape, got {src.shape} {dst.shape}")
+    n, d = src.shape
+    if n < d:
+        raise ValueError(f"need at least {d} point pairs to align, got {n}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    sigma_s = (xs**2).sum() / n
+    cov = xd.T @ xs / n  # [d, d]
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(d)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[-1, -1] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / sigma_s) if with_scale else 1.0
+    if with_scale and sigma_s <= 0:
+        raise ValueError("degenerate source points: all identical")
+    t = mu_d - s * R @ mu_s
+    return R, t, s
+
+
+def sim3(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
+    """[4, 4] similarity ``x -> s R x + t``."""
+    T = np.eye(4)
+    T[:3, :3] = s * np.asarray(R)
+    T[:3, 3] = t
+    return T
+
+
+def align_trajectory(
+    est: Trajectory, ref: Trajectory, with_scale: bool = False
+) -> tuple[Trajectory, np.ndarray]:
+    """Align ``est`` onto ``ref`` (same length, associated) by SE(3) or Sim(3) Umeyama.
+
+    Returns the aligned trajectory (rotations stay orthonormal; positions scaled) and the
+    [4, 4] similarity that was applied.
+    """
+    R, t, s = umeyama_alignment(est.positions, ref.positions, with_scale)
+    S = sim3(R, t, s)
+    P = est.poses.copy()
+    P[:, :3, :3] = R @ P[:, :3, :3]
+    P[:, :3, 3] = s * est.positions @ R.T + t
+    return Trajectory(est.stamps.copy(), P, ref.frame, est.child), S

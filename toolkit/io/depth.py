@@ -1,0 +1,49 @@
+"""Depth map files: float32 metres as ``.npy`` (exact) or 16-bit ``.png`` (TUM scale).
+
+PNG depth follows the TUM RGB-D convention (5000 units per metre, 0 = invalid, up to
+13.1 m): compact and what other tools read. ``.npy`` keeps float32 exactly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from toolkit.io.atomic import atomic_path
+
+PNG_DEPTH_SCALE = 5000.0
+
+
+def write_depth(path: Path | str, depth: np.ndarray) -> None:
+    """Write [H, W] metres; NaN/inf/negative become 0 (invalid). Atomic."""
+    path = Path(path)
+    d = np.asarray(depth, dtype=np.float32)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    with atomic_path(path) as tmp:
+        if path.suffix == ".npy":
+            np.save(tmp, d)
+        elif path.suffix == ".png":
+            q = np.round(d * PNG_DEPTH_SCALE)
+            q[q > 65535] = 0  # beyond the format's range: invalid, not clipped to a wrong value
+            if not cv2.imwrite(str(tmp), q.astype(np.uint16)):
+                raise OSError(f"{path}: could not write depth PNG")
+        else:
+            raise ValueError(f"{path}: depth files must end in .npy or .png")
+
+
+def read_depth(path: Path | str) -> np.ndarray:
+    """[H, W] float32 metres, 0 where invalid."""
+    path = Path(path)
+    if path.suffix == ".npy":
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: depth file not found")
+        return np.load(path).astype(np.float32, copy=False)
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise FileNotFoundError(f"{path}: missing or unreadable depth PNG")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ValueError(f"{path}: depth PNG must be single-channel 16-bit, got {raw.dtype} "
+                         f"with shape {raw.shape}")
+    return (raw.astype(np.float32) / np.float32(PNG_DEPTH_SCALE)).astype(np.float32)

@@ -1,0 +1,482 @@
+"""The project's sequence folder: one recording on disk (format in datasets/README.md).
+
+    <root>/meta.yaml                     format name + version, sequence name, source, counts
+    <root>/rig.yaml                      camera intrinsics, T_base_camera, T_base_laser
+    <root>/camera/frames.csv             index,stamp,image[,gt_depth][,gt_mask]
+    <root>/camera/images/000000.png      RGB images (paths relative to camera/)
+    <root>/scans.npz                     stamps, ranges [S, B], per-scan angle/range limits
+    <root>/odometry.tum                  optional, T_odom_base
+    <root>/groundtruth/poses_base.tum    optional, T_world_base at sensor stamps
+    <root>/groundtruth/depth/*.png|npy   optional, per frame (listed in frames.csv)
+    <root>/groundtruth/masks/*.png       optional, dynamic pixels per frame
+    <root>/groundtruth/scan_dynamic.npz  optional, [S, B] beams that hit moving obstacles
+    <root>/groundtruth/mesh.ply          optional, static scene mesh with colours
+    <root>/groundtruth/heldout/          optional, frames.csv + images/ + depth/ + poses_camera.tum
+
+``SequenceWriter`` streams frames to disk (a long recording never sits in memory) and
+writes the index files last, atomically, so a folder is readable only once complete.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import shutil
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory
+from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from toolkit.io.depth import write_depth
+from toolkit.io.tum import read_tum, write_tum
+from toolkit.sensors import CameraFrame, GroundTruth, HeldOutViews, LaserScan, Rig, Sequence
+
+FORMAT_NAME = "lidarcam-sequence"
+FORMAT_VERSION = 1
+
+
+class SequenceFormatError(ValueError):
+    """A sequence folder is malformed; the message names the file and the field."""
+
+
+# ---------------------------------------------------------------------------- rig YAML
+
+
+def rig_to_dict(rig: Rig) -> dict[str, Any]:
+    return {
+        "camera": rig.camera.to_dict(),
+        "T_base_camera": [[float(v) for v in row] for row in rig.T_base_camera],
+        "T_base_laser": [[float(v) for v in row] for row in rig.T_base_laser],
+        "frames": {"base": "base_link", "camera": "camera_optical (x right, y down, z forward)",
+                   "laser": "laser"},
+        "convention": "T_a_b maps points from frame b into frame a (p_a = T_a_b @ p_b)",
+    }
+
+
+def rig_from_dict(d: Any, source: str = "rig.yaml") -> Rig:
+    """Parse a rig mapping; errors name ``source`` and the field."""
+    if not isinstance(d, dict):
+        raise SequenceFormatError(f"{source}: expected a mapping with camera, T_base_camera, "
+                                  "T_base_laser")
+    if "camera" not in d:
+        raise SequenceFormatError(f"{source}: missing field 'camera' (intrinsics)")
+    try:
+        cam = PinholeCamera.from_dict(d["camera"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise SequenceFormatError(f"{source}: field 'camera': {e}") from None
+    mats = {}
+    for key in ("T_base_camera", "T_base_laser"):
+        if key not in d:
+            raise SequenceFormatError(f"{source}: missing field '{key}' (4x4 list of rows)")
+        M = np.asarray(d[key], dtype=np.float64)
+        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+            raise SequenceFormatError(f"{source}: field '{key}' must be a finite 4x4 matrix, "
+                                      f"got shape {M.shape}")
+        mats[key] = M
+    try:
+        return Rig(cam, mats["T_base_camera"], mats["T_base_laser"])
+    except ValueError as e:
+        raise SequenceFormatError(f"{source}: {e}") from None
+
+
+def write_rig(path: Path, rig: Rig) -> None:
+    atomic_write_text(path, yaml.safe_dump(rig_to_dict(rig), sort_keys=False))
+
+
+def read_rig(path: Path) -> Rig:
+    if not path.exists():
+        raise SequenceFormatError(f"{path}: rig file not found (camera intrinsics and "
+                                  "T_base_camera / T_base_laser are required)")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise SequenceFormatError(f"{path}: not valid YAML: {e}") from None
+    return rig_from_dict(data, str(path))
+
+
+# ---------------------------------------------------------------------------- scans
+
+
+def scans_to_arrays(scans: list[LaserScan], source: str = "scans") -> dict[str, np.ndarray]:
+    if not scans:
+        return {"stamps": np.zeros(0), "ranges": np.zeros((0, 0), np.float32)}
+    nb = {len(s) for s in scans}
+    if len(nb) != 1:
+        raise SequenceFormatError(f"{source}: scans have different beam counts {sorted(nb)}; "
+                                  "resample them to one count")
+    out = {
+        "stamps": np.array([s.stamp for s in scans], dtype=np.float64),
+        "ranges": np.stack([s.ranges for s in scans]).astype(np.float32),
+        "angle_min": np.array([s.angle_min for s in scans], dtype=np.float64),
+        "angle_increment": np.array([s.angle_increment for s in scans], dtype=np.float64),
+        "range_min": np.array([s.range_min for s in scans], dtype=np.float64),
+        "range_max": np.array([s.range_max for s in scans], dtype=np.float64),
+    }
+    if any(s.intensities is not None for s in scans):
+        out["intensities"] = np.stack([
+            s.intensities if s.intensities is not None else np.zeros(len(s), np.float32)
+            for s in scans
+        ]).astype(np.float32)
+    return out
+
+
+def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
+    for key in ("stamps", "ranges", "angle_min", "angle_increment", "range_min", "range_max"):
+        if key not in data:
+            raise SequenceFormatError(f"{source}: missing array '{key}'")
+    stamps = np.asarray(data["stamps"], dtype=np.float64)
+    ranges = np.asarray(data["ranges"], dtype=np.float32)
+    n = len(stamps)
+    if ranges.ndim != 2 or len(ranges) != n:
+        raise SequenceFormatError(f"{source}: 'ranges' must be [S, B] with S = {n} stamps, got "
+                                  f"{ranges.shape}")
+    if not np.all(np.isfinite(stamps)):
+        raise SequenceFormatError(f"{source}: 'stamps' holds non-finite values")
+    if n > 1 and np.any(np.diff(stamps) <= 0):
+        i = int(np.argmax(np.diff(stamps) <= 0)) + 1
+        raise SequenceFormatError(f"{source}: 'stamps' not strictly increasing at scan {i} "
+                                  f"({stamps[i - 1]!r} then {stamps[i]!r})")
+    per = {}
+    for key in ("angle_min", "angle_increment", "range_min", "range_max"):
+        a = np.broadcast_to(np.asarray(data[key], dtype=np.float64), (n,))
+        per[key] = a
+    if np.any(per["angle_increment"] == 0):
+        raise SequenceFormatError(f"{source}: 'angle_increment' is zero for some scans")
+    inten = np.asarray(data["intensities"], np.float32) if "intensities" in data else None
+    return [
+        LaserScan(float(stamps[i]), ranges[i], float(per["angle_min"][i]),
+                  float(per["angle_increment"][i]), float(per["range_min"][i]),
+                  float(per["range_max"][i]), None if inten is None else inten[i])
+        for i in range(n)
+    ]
+
+
+def write_scans(path: Path, scans: list[LaserScan]) -> None:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **scans_to_arrays(scans, str(path)))
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def read_scans(path: Path) -> list[LaserScan]:
+    if not path.exists():
+        raise SequenceFormatError(f"{path}: scan file not found")
+    try:
+        with np.load(path) as data:
+            return scans_from_arrays({k: data[k] for k in data.files}, str(path))
+    except (OSError, ValueError) as e:
+        if isinstance(e, SequenceFormatError):
+            raise
+        raise SequenceFormatError(f"{path}: not a readable npz scan file: {e}") from None
+
+
+# ---------------------------------------------------------------------------- frames.csv
+
+
+def _read_frames_csv(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        raise SequenceFormatError(f"{path}: frame index not found")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if rows and not {"stamp", "image"} <= set(rows[0]):
+        raise SequenceFormatError(f"{path}: header must contain 'stamp' and 'image', got "
+                                  f"{list(rows[0])}")
+    return rows
+
+
+def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) -> (
+    tuple[list[CameraFrame], list[Path] | None, list[Path] | None]
+):
+    frames: list[CameraFrame] = []
+    depth: list[Path] = []
+    masks: list[Path] = []
+    prev = -np.inf
+    for i, row in enumerate(rows):
+        line = i + 2  # header is line 1
+        try:
+            stamp = float(row["stamp"])
+        except (TypeError, ValueError):
+            raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' is not a number: "
+                                      f"{row['stamp']!r}") from None
+        if not np.isfinite(stamp):
+            raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' is not finite")
+        if stamp <= prev:
+            raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' not strictly increasing "
+                                      f"({prev!r} then {stamp!r})")
+        prev = stamp
+        img = base / row["image"]
+        if not img.exists():
+            raise SequenceFormatError(f"{csv_path}:{line}: field 'image' names {img}, which "
+                                      "does not exist")
+        frames.append(CameraFrame(stamp=stamp, path=img, index=i))
+        if row.get("gt_depth"):
+            depth.append(base / row["gt_depth"])
+        if row.get("gt_mask"):
+            masks.append(base / row["gt_mask"])
+    for name, lst in (("gt_depth", depth), ("gt_mask", masks)):
+        if lst and len(lst) != len(frames):
+            raise SequenceFormatError(f"{csv_path}: field '{name}' is given for {len(lst)} of "
+                                      f"{len(frames)} frames; give it for all or none")
+    return frames, (depth or None), (masks or None)
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+def read_sequence(root: Path | str) -> Sequence:
+    """Load a sequence folder (images stay on disk until used)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise SequenceFormatError(f"{root}: sequence folder not found")
+    meta: dict[str, Any] = {}
+    meta_path = root / "meta.yaml"
+    if meta_path.exists():
+        meta = yaml.safe_load(meta_path.read_text()) or {}
+        if meta.get("format", FORMAT_NAME) != FORMAT_NAME:
+            raise SequenceFormatError(f"{meta_path}: field 'format' is {meta.get('format')!r}, "
+                                      f"expected {FORMAT_NAME!r}")
+        if int(meta.get("version", FORMAT_VERSION)) > FORMAT_VERSION:
+            raise SequenceFormatError(f"{meta_path}: field 'version' {meta['version']} is newer "
+                                      f"than this toolkit reads ({FORMAT_VERSION}); upgrade it")
+    rig = read_rig(root / "rig.yaml")
+    cam_dir = root / "camera"
+    frames_csv = cam_dir / "frames.csv"
+    frames: list[CameraFrame] = []
+    gt_depth = gt_mask = None
+    if frames_csv.exists():
+        frames, gt_depth, gt_mask = _frames_from_rows(_read_frames_csv(frames_csv), cam_dir,
+                                                      frames_csv)
+        images_dir = cam_dir / "images"
+        if images_dir.is_dir():
+            on_disk = sum(1 for p in images_dir.iterdir() if not p.name.startswith("."))
+            if on_disk != len(frames):
+                raise SequenceFormatError(
+                    f"{frames_csv}: lists {len(frames)} images but {images_dir} holds {on_disk}; "
+                    "the index and the folder disagree (an interrupted copy?)")
+    scans = read_scans(root / "scans.npz") if (root / "scans.npz").exists() else []
+    if not frames and not scans:
+        raise SequenceFormatError(f"{root}: neither camera/frames.csv nor scans.npz found; "
+                                  "a sequence needs images, scans or both")
+    odom = read_tum(root / "odometry.tum", "odom", "base_link") if (
+        root / "odometry.tum").exists() else None
+    gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans))
+    seq = Sequence(rig=rig, frames=frames, scans=scans, odometry=odom, groundtruth=gt,
+                   name=str(meta.get("name", root.name)), root=root, meta=meta)
+    w, h = rig.camera.size
+    if frames and meta.get("check_image_size", True):
+        first = cv2.imread(str(frames[0].path), cv2.IMREAD_UNCHANGED)
+        if first is None:
+            raise SequenceFormatError(f"{frames[0].path}: unreadable image")
+        if first.shape[1] != w or first.shape[0] != h:
+            raise SequenceFormatError(
+                f"{frames[0].path}: image is {first.shape[1]}x{first.shape[0]} but "
+                f"{root / 'rig.yaml'} field 'camera' says {w}x{h}")
+    return seq
+
+
+def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | None,
+                      n_scans: int) -> GroundTruth | None:
+    gdir = root / "groundtruth"
+    if not gdir.is_dir() and depth is None and masks is None:
+        return None
+    gt = GroundTruth(depth_paths=depth, mask_paths=masks)
+    if (gdir / "poses_base.tum").exists():
+        gt.poses_base = read_tum(gdir / "poses_base.tum", "world", "base_link")
+    if (gdir / "scan_dynamic.npz").exists():
+        with np.load(gdir / "scan_dynamic.npz") as d:
+            if "dynamic" not in d.files:
+                raise SequenceFormatError(f"{gdir / 'scan_dynamic.npz'}: missing array 'dynamic'")
+            dyn = d["dynamic"].astype(bool)
+        if len(dyn) != n_scans:
+            raise SequenceFormatError(f"{gdir / 'scan_dynamic.npz'}: 'dynamic' has {len(dyn)} "
+                                      f"rows for {n_scans} scans")
+        gt.scan_dynamic = dyn
+    if (gdir / "mesh.ply").exists():
+        gt.mesh_path = gdir / "mesh.ply"
+    hdir = gdir / "heldout"
+    if (hdir / "frames.csv").exists():
+        rows = _read_frames_csv(hdir / "frames.csv")
+        frames, hdepth, _ = _frames_from_rows(rows, hdir, hdir / "frames.csv")
+        poses = read_tum(hdir / "poses_camera.tum", "world", "camera")
+        if len(poses) != len(frames):
+            raise SequenceFormatError(f"{hdir / 'poses_camera.tum'}: {len(poses)} poses for "
+                                      f"{len(frames)} held-out images")
+        gt.heldout = HeldOutViews(poses, [f.path for f in frames], hdepth or [])
+    return gt
+
+
+# ---------------------------------------------------------------------------- writing
+
+
+class SequenceWriter:
+    """Stream a recording into a sequence folder.
+
+    Images and depth maps are written as they come (each atomically); the index files
+    (frames.csv, scans.npz, trajectories, meta.yaml) are written by ``close()``, meta.yaml
+    last, so a folder without meta.yaml is an unfinished one.
+    """
+
+    def __init__(self, root: Path | str, rig: Rig, name: str = "sequence",
+                 source: str = "", depth_format: str = "png") -> None:
+        if depth_format not in ("png", "npy"):
+            raise ValueError("depth_format must be 'png' (16-bit, 0.2 mm) or 'npy' (float32)")
+        self.root = Path(root)
+        self.rig = rig
+        self.name = name
+        self.source = source
+        self.depth_format = depth_format
+        self.root.mkdir(parents=True, exist_ok=True)
+        (self.root / "meta.yaml").unlink(missing_ok=True)
+        self._rows: list[dict[str, str]] = []
+        self._scans: list[LaserScan] = []
+        self._dynamic: list[np.ndarray] = []
+        self._held_rows: list[dict[str, str]] = []
+        self._held_poses: list[tuple[float, np.ndarray]] = []
+        self.odometry: Trajectory | None = None
+        self.groundtruth_poses: Trajectory | None = None
+        self.extra_meta: dict[str, Any] = {}
+
+    def add_frame(self, stamp: float, image: np.ndarray, gt_depth: np.ndarray | None = None,
+                  gt_mask: np.ndarray | None = None, image_path: Path | None = None) -> int:
+        """Write one RGB image [H, W, 3] (or copy ``image_path``) with optional ground truth."""
+        i = len(self._rows)
+        if self._rows and stamp <= float(self._rows[-1]["stamp"]):
+            raise ValueError(f"frame {i}: stamp {stamp!r} not after the previous frame")
+        rel = f"images/{i:06d}.png"
+        dst = self.root / "camera" / rel
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if image_path is not None and Path(image_path).suffix.lower() == ".png":
+            with atomic_path(dst) as tmp:
+                shutil.copyfile(image_path, tmp)
+        else:
+            if image is None:
+                raise ValueError(f"frame {i}: neither pixels nor an image path")
+            _write_rgb(dst, image)
+        row = {"index": str(i), "stamp": repr(float(stamp)), "image": rel}
+        if gt_depth is not None:
+            row["gt_depth"] = f"../groundtruth/depth/{i:06d}.{self.depth_format}"
+            p = self.root / "camera" / row["gt_depth"]
+            p.parent.mkdir(parents=True, exist_ok=True)
+            write_depth(p, gt_depth)
+        if gt_mask is not None:
+            row["gt_mask"] = f"../groundtruth/masks/{i:06d}.png"
+            p = self.root / "camera" / row["gt_mask"]
+            p.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(p) as tmp:
+                cv2.imwrite(str(tmp), (np.asarray(gt_mask) > 0).astype(np.uint8) * 255)
+        self._rows.append(row)
+        return i
+
+    def add_scan(self, scan: LaserScan, dynamic: np.ndarray | None = None) -> None:
+        self._scans.append(scan)
+        if dynamic is not None:
+            self._dynamic.append(np.asarray(dynamic, dtype=bool))
+
+    def add_heldout(self, stamp: float, T_world_camera: np.ndarray, image: np.ndarray,
+                    depth: np.ndarray) -> None:
+        i = len(self._held_rows)
+        hdir = self.root / "groundtruth" / "heldout"
+        (hdir / "images").mkdir(parents=True, exist_ok=True)
+        (hdir / "depth").mkdir(parents=True, exist_ok=True)
+        _write_rgb(hdir / f"images/{i:06d}.png", image)
+        write_depth(hdir / f"depth/{i:06d}.{self.depth_format}", depth)
+        self._held_rows.append({"index": str(i), "stamp": repr(float(stamp)),
+                                "image": f"images/{i:06d}.png",
+                                "gt_depth": f"depth/{i:06d}.{self.depth_format}"})
+        self._held_poses.append((stamp, np.asarray(T_world_camera, dtype=np.float64)))
+
+    def mesh_path(self) -> Path:
+        """Where to write the ground-truth mesh (PLY)."""
+        p = self.root / "groundtruth" / "mesh.ply"
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def close(self) -> Path:
+        write_rig(self.root / "rig.yaml", self.rig)
+        if self._rows:
+            _write_csv(self.root / "camera" / "frames.csv", self._rows)
+        if self._scans:
+            write_scans(self.root / "scans.npz", self._scans)
+        if self._dynamic:
+            if len(self._dynamic) != len(self._scans):
+                raise ValueError("dynamic beam masks given for some scans only")
+            buf = io.BytesIO()
+            np.savez_compressed(buf, dynamic=np.stack(self._dynamic))
+            (self.root / "groundtruth").mkdir(exist_ok=True)
+            atomic_write_bytes(self.root / "groundtruth" / "scan_dynamic.npz", buf.getvalue())
+        if self.odometry is not None:
+            write_tum(self.root / "odometry.tum", self.odometry, "wheel odometry")
+        if self.groundtruth_poses is not None:
+            (self.root / "groundtruth").mkdir(exist_ok=True)
+            write_tum(self.root / "groundtruth" / "poses_base.tum", self.groundtruth_poses,
+                      "ground truth")
+        if self._held_rows:
+            hdir = self.root / "groundtruth" / "heldout"
+            _write_csv(hdir / "frames.csv", self._held_rows)
+            st = np.array([s for s, _ in self._held_poses])
+            write_tum(hdir / "poses_camera.tum",
+                      Trajectory(st, np.stack([T for _, T in self._held_poses]), "world",
+                                 "camera"), "held-out views (not on the driven path)")
+        meta = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "name": self.name,
+                "source": self.source, "frames": len(self._rows), "scans": len(self._scans),
+                **self.extra_meta}
+        atomic_write_text(self.root / "meta.yaml", yaml.safe_dump(meta, sort_keys=False))
+        return self.root
+
+
+def _write_rgb(path: Path, image: np.ndarray) -> None:
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"{path}: images must be RGB uint8 [H, W, 3], got {img.dtype} "
+                         f"{img.shape}")
+    with atomic_path(path) as tmp:
+        # Fast PNG compression: the simulator writes 20+ frames/s.
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
+                           [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise OSError(f"{path}: could not write image")
+
+
+def _write_csv(path: Path, rows: list[dict[str, str]]) -> None:
+    fields: list[str] = []
+    for r in rows:
+        fields += [k for k in r if k not in fields]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, buf.getvalue())
+
+
+def write_sequence(seq: Sequence, root: Path | str, depth_format: str = "png") -> Path:
+    """Write a whole in-memory or on-disk ``Sequence`` to ``root`` (copying image files)."""
+    w = SequenceWriter(root, seq.rig, seq.name, str(seq.meta.get("source", "")), depth_format)
+    gt = seq.groundtruth
+    for i, f in enumerate(seq.frames):
+        depth = gt.depth(i) if gt is not None and gt.depth_paths else None
+        mask = gt.mask(i) if gt is not None and gt.mask_paths else None
+        if f.path is not None and f._image is None:
+            w.add_frame(f.stamp, None, depth, mask, image_path=f.path)  # type: ignore[arg-type]
+        else:
+            w.add_frame(f.stamp, f.image, depth, mask)
+    dyn = gt.scan_dynamic if gt is not None else None
+    for k, s in enumerate(seq.scans):
+        w.add_scan(s, None if dyn is None else dyn[k])
+    w.odometry = seq.odometry
+    if gt is not None:
+        w.groundtruth_poses = gt.poses_base
+        if gt.mesh_path is not None:
+            shutil.copyfile(gt.mesh_path, w.mesh_path())
+        if gt.heldout is not None:
+            from toolkit.io.depth import read_depth
+            from toolkit.sensors import load_rgb
+
+            h = gt.heldout
+            for j, T in enumerate(h.poses_camera.poses):
+                w.add_heldout(h.poses_camera.stamps[j], T, load_rgb(h.image_paths[j]),
+                              read_depth(h.depth_paths[j]))
+    return w.close()

@@ -1,0 +1,106 @@
+"""The contract between the recipe runner and the stages it runs.
+
+A stage is a class with a pydantic ``Config`` (one per stage type, unknown keys
+rejected), a one-line docstring shown by ``python -m toolkit.recipe list``, the
+artifacts it ``requires`` from earlier stages and the ones it ``provides``, and a
+``run(ctx)`` that does the work inside ``ctx.stage_dir``.
+
+Artifacts are named paths inside a stage's folder ("sequence", "trajectory",
+"depth", "map", ...). The runner resolves ``ctx.artifact(name)`` to the path the
+nearest earlier stage provided, and caches a stage by hashing its settings together
+with the cache keys of the stages it drew artifacts from (and the fingerprints of the
+external files it names in ``external_inputs``), so changing one stage reruns exactly
+what depends on it.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar
+
+from pydantic import BaseModel, ConfigDict
+
+T = TypeVar("T")
+
+
+class StageConfig(BaseModel):
+    """Base of every stage's settings. Unknown keys are errors, not silently ignored."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    stage: str
+    # Folder and --set name of this stage in the run; defaults to the stage type, set it
+    # when a recipe runs one stage type twice (e.g. two scale estimators side by side).
+    id: str | None = None
+
+
+class StageContext(ABC):
+    """What a running stage may use: its folder, upstream artifacts, metrics, report."""
+
+    run_dir: Path
+    stage_dir: Path
+    stage_id: str
+    recipe_name: str
+    log: logging.Logger
+
+    @abstractmethod
+    def artifact(self, name: str) -> Path:
+        """Path of artifact ``name`` provided by the nearest earlier stage.
+
+        Raises a ``StageError`` naming the artifact and which stage types provide it.
+        """
+
+    @abstractmethod
+    def has_artifact(self, name: str) -> bool:
+        """Whether an earlier stage of this run provides ``name``."""
+
+    @abstractmethod
+    def provide(self, name: str, path: Path) -> None:
+        """Publish ``path`` (inside ``stage_dir``) as artifact ``name`` for later stages."""
+
+    @abstractmethod
+    def add_metrics(self, metrics: dict[str, Any]) -> None:
+        """Merge figures into ``metrics.json`` under this stage's id (units in key names)."""
+
+    @abstractmethod
+    def report(self, markdown: str) -> None:
+        """Append markdown to this stage's section of ``report.md``.
+
+        Paths to images should be relative to the run directory (``stage_id/plot.png``).
+        """
+
+    @abstractmethod
+    def progress(
+        self, iterable: Iterable[T], total: int | None = None, description: str = ""
+    ) -> Iterator[T]:
+        """Wrap a long loop in a progress bar (quiet when not on a terminal)."""
+
+
+class StageError(RuntimeError):
+    """A stage cannot run: bad input, missing artifact. The message says what to fix."""
+
+
+class Stage(ABC):
+    """One step of a recipe. Subclasses set ``name``, ``Config``, ``requires``, ``provides``."""
+
+    name: ClassVar[str]
+    Config: ClassVar[type[StageConfig]]
+    requires: ClassVar[tuple[str, ...]] = ()
+    # Artifacts needed only when present upstream (e.g. "trajectory" for fuse may come
+    # from slam2d or from ground truth); they join the cache key when they exist.
+    optional_requires: ClassVar[tuple[str, ...]] = ()
+    provides: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, config: StageConfig) -> None:
+        self.config = config
+
+    def external_inputs(self) -> list[Path]:
+        """Files outside the run (a log, a model) whose change must rerun the stage."""
+        return []
+
+    @abstractmethod
+    def run(self, ctx: StageContext) -> None:
+        """Do the work, writing only inside ``ctx.stage_dir`` (atomically)."""

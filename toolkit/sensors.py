@@ -1,0 +1,246 @@
+"""Sensor data of a recording: laser scans, camera frames, the rig, and the sequence.
+
+These are plain containers with the conventions of ROS messages (REP 103/105,
+``sensor_msgs/LaserScan``) so that data from bags, logs and the simulator look alike.
+Images load lazily from disk so a long recording never sits in memory.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, inv_se3
+
+
+@dataclass
+class LaserScan:
+    """One planar scan, as ``sensor_msgs/LaserScan``.
+
+    Beam i points at ``angle_min + i * angle_increment`` (counter-clockwise about +z from
+    +x; the increment may be negative). Non-finite ranges and ranges outside
+    [range_min, range_max] are invalid; they are never stored as zero.
+    """
+
+    stamp: float
+    ranges: np.ndarray  # [B] float32 metres
+    angle_min: float
+    angle_increment: float
+    range_min: float = 0.0
+    range_max: float = float("inf")
+    intensities: np.ndarray | None = None  # [B]
+
+    def __post_init__(self) -> None:
+        self.ranges = np.asarray(self.ranges, dtype=np.float32).reshape(-1)
+        if self.intensities is not None:
+            self.intensities = np.asarray(self.intensities, dtype=np.float32).reshape(-1)
+            if len(self.intensities) != len(self.ranges):
+                raise ValueError(
+                    f"scan at {self.stamp}: {len(self.intensities)} intensities for "
+                    f"{len(self.ranges)} ranges"
+                )
+        if self.angle_increment == 0:
+            raise ValueError(f"scan at {self.stamp}: angle_increment is zero")
+
+    def __len__(self) -> int:
+        return len(self.ranges)
+
+    @property
+    def angle_max(self) -> float:
+        return self.angle_min + (len(self.ranges) - 1) * self.angle_increment
+
+    def angles(self) -> np.ndarray:
+        """[B] beam angles in radians."""
+        return self.angle_min + np.arange(len(self.ranges)) * self.angle_increment
+
+    def valid_mask(self) -> np.ndarray:
+        """[B] bool: finite ranges inside [range_min, range_max]."""
+        r = self.ranges
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+
+    def points(self) -> np.ndarray:
+        """[N, 2] float64 beam end points in the laser frame, invalid beams dropped."""
+        m = self.valid_mask()
+        a = self.angles()[m]
+        r = self.ranges[m].astype(np.float64)
+        return np.stack([r * np.cos(a), r * np.sin(a)], -1)
+
+    def points_3d(self) -> np.ndarray:
+        """[N, 3] end points in the laser frame (z = 0), invalid beams dropped."""
+        p = self.points()
+        return np.concatenate([p, np.zeros((len(p), 1))], -1)
+
+
+@dataclass
+class CameraFrame:
+    """One camera image with its stamp; pixels load from ``path`` on first use."""
+
+    stamp: float
+    path: Path | None = None
+    index: int = 0
+    _image: np.ndarray | None = field(default=None, repr=False)
+
+    @classmethod
+    def from_array(cls, stamp: float, image: np.ndarray, index: int = 0) -> CameraFrame:
+        return cls(stamp=stamp, path=None, index=index, _image=np.asarray(image))
+
+    @property
+    def image(self) -> np.ndarray:
+        """[H, W, 3] RGB uint8 (not cached: a sequence of 10k frames must not pile up)."""
+        if self._image is not None:
+            return self._image
+        if self.path is None:
+            raise ValueError(f"frame {self.index} at {self.stamp} has neither pixels nor a path")
+        return load_rgb(self.path)
+
+
+def load_rgb(path: Path) -> np.ndarray:
+    """Read an image file as RGB uint8 [H, W, 3], with an error naming the file."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"{path}: missing or not a readable image")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+@dataclass
+class Rig:
+    """The sensor mounts on the robot base (REP 105 ``base_link``)."""
+
+    camera: PinholeCamera
+    T_base_camera: np.ndarray = field(default_factory=lambda: np.eye(4))  # [4, 4] optical frame
+    T_base_laser: np.ndarray = field(default_factory=lambda: np.eye(4))  # [4, 4]
+
+    def __post_init__(self) -> None:
+        for name in ("T_base_camera", "T_base_laser"):
+            T = np.asarray(getattr(self, name), dtype=np.float64)
+            if T.shape != (4, 4):
+                raise ValueError(f"{name} must be 4x4, got {T.shape}")
+            if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(
+                T[3], [0, 0, 0, 1]
+            ):
+                raise ValueError(f"{name} is not a rigid transform (rotation not orthonormal)")
+            setattr(self, name, T)
+
+    @property
+    def T_camera_laser(self) -> np.ndarray:
+        """[4, 4] maps laser points into the camera optical frame."""
+        return inv_se3(self.T_base_camera) @ self.T_base_laser
+
+    def with_T_camera_laser(self, T_camera_laser: np.ndarray) -> Rig:
+        """A rig with the laser re-mounted so that ``T_camera_laser`` holds (calibration)."""
+        return Rig(self.camera, self.T_base_camera.copy(), self.T_base_camera @ T_camera_laser)
+
+
+@dataclass
+class HeldOutViews:
+    """Camera views off the driven path for novel-view evaluation (simulator)."""
+
+    poses_camera: Trajectory  # T_world_camera
+    image_paths: list[Path]
+    depth_paths: list[Path]
+
+
+@dataclass
+class GroundTruth:
+    """Optional ground truth of a recording; every member may be absent."""
+
+    poses_base: Trajectory | None = None  # T_world_base at sensor stamps
+    depth_paths: list[Path] | None = None  # per camera frame
+    mask_paths: list[Path] | None = None  # per camera frame, dynamic pixels
+    scan_dynamic: np.ndarray | None = None  # [S, B] bool: beam hit a moving obstacle
+    mesh_path: Path | None = None
+    heldout: HeldOutViews | None = None
+
+    def depth(self, index: int) -> np.ndarray:
+        """[H, W] float32 metres of frame ``index`` (0 where invalid)."""
+        if self.depth_paths is None:
+            raise ValueError("this sequence has no ground-truth depth")
+        from toolkit.io.depth import read_depth
+
+        return read_depth(self.depth_paths[index])
+
+    def mask(self, index: int) -> np.ndarray:
+        """[H, W] bool of dynamic pixels of frame ``index``."""
+        if self.mask_paths is None:
+            raise ValueError("this sequence has no ground-truth masks")
+        m = cv2.imread(str(self.mask_paths[index]), cv2.IMREAD_UNCHANGED)
+        if m is None:
+            raise FileNotFoundError(f"{self.mask_paths[index]}: missing or unreadable mask")
+        return m > 0
+
+
+@dataclass
+class Sequence:
+    """A recording: camera frames, laser scans, rig, optional odometry and ground truth."""
+
+    rig: Rig
+    frames: list[CameraFrame]
+    scans: list[LaserScan]
+    odometry: Trajectory | None = None  # T_odom_base
+    groundtruth: GroundTruth | None = None
+    name: str = "sequence"
+    root: Path | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._frame_stamps = np.array([f.stamp for f in self.frames], dtype=np.float64)
+        self._scan_stamps = np.array([s.stamp for s in self.scans], dtype=np.float64)
+
+    @property
+    def frame_stamps(self) -> np.ndarray:
+        """[F] camera stamps."""
+        return self._frame_stamps
+
+    @property
+    def scan_stamps(self) -> np.ndarray:
+        """[S] scan stamps."""
+        return self._scan_stamps
+
+    @property
+    def time_span(self) -> tuple[float, float]:
+        stamps = np.concatenate([self._frame_stamps, self._scan_stamps])
+        if len(stamps) == 0:
+            raise ValueError("empty sequence")
+        return float(stamps.min()), float(stamps.max())
+
+    def iter_frames(self) -> Iterator[CameraFrame]:
+        return iter(self.frames)
+
+    @staticmethod
+    def _nearest(stamps: np.ndarray, t: float) -> int:
+        if len(stamps) == 0:
+            raise IndexError("no data to look up")
+        i = bisect.bisect_left(stamps.tolist(), t) if len(stamps) < 64 else int(
+            np.searchsorted(stamps, t)
+        )
+        if i == 0:
+            return 0
+        if i == len(stamps):
+            return len(stamps) - 1
+        return i if stamps[i] - t < t - stamps[i - 1] else i - 1
+
+    def frame_index_at(self, t: float) -> int:
+        """Index of the camera frame nearest in time to ``t``."""
+        return self._nearest(self._frame_stamps, t)
+
+    def scan_index_at(self, t: float) -> int:
+        """Index of the scan nearest in time to ``t``."""
+        return self._nearest(self._scan_stamps, t)
+
+    def frame_at(self, t: float) -> CameraFrame:
+        return self.frames[self.frame_index_at(t)]
+
+    def scan_at(self, t: float) -> LaserScan:
+        return self.scans[self.scan_index_at(t)]
+
+    def scans_between(self, t0: float, t1: float) -> list[LaserScan]:
+        """Scans with t0 <= stamp < t1."""
+        i0, i1 = np.searchsorted(self._scan_stamps, [t0, t1])
+        return self.scans[i0:i1]
