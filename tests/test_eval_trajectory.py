@@ -1,0 +1,103 @@
+"""Trajectory metrics: hand-computed answers and evo's reference values."""
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from toolkit.eval.trajectory import (
+    ErrorStats,
+    ape,
+    associate,
+    pairs_by_frames,
+    pairs_by_path,
+    per_axis_errors,
+    rpe,
+    trajectory_report,
+)
+from toolkit.geometry import Trajectory, se2_to_se3, se3, sim3
+from toolkit.io.kitti import read_kitti
+from toolkit.io.tum import read_tum
+
+
+def line_traj(n: int = 5) -> Trajectory:
+    return Trajectory(np.arange(n, dtype=float), np.stack([se2_to_se3(i, 0, 0) for i in range(n)]))
+
+
+def test_error_stats_hand_computed():
+    s = ErrorStats.of(np.array([3.0, 4.0]))
+    assert s.rmse == pytest.approx(np.sqrt(12.5)) and s.mean == 3.5 and s.max == 4.0
+
+
+def test_ape_without_alignment_is_offset():
+    ref = line_traj()
+    est = ref.transform(T_left=se2_to_se3(0.0, 0.3, 0.0))
+    stats, _ = ape(est, ref, align="none")
+    assert stats.rmse == pytest.approx(0.3) and stats.std == pytest.approx(0.0, abs=1e-12)
+    # SE(3) alignment removes a rigid offset completely.
+    assert ape(est, ref, align="se3")[0].rmse == pytest.approx(0.0, abs=1e-9)
+
+
+def test_sim3_alignment_removes_scale():
+    rng = np.random.default_rng(0)
+    P = np.stack([se3(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
+                  for _ in range(12)])
+    ref = Trajectory(np.arange(12.0), P)
+    S = sim3(Rotation.from_euler("xyz", [0.1, 0.2, 0.3]).as_matrix(), [1, 2, 3], 0.5)
+    est_P = P.copy()
+    est_P[:, :3, 3] = P[:, :3, 3] @ S[:3, :3].T + S[:3, 3]
+    est = Trajectory(np.arange(12.0), est_P)
+    assert ape(est, ref, "se3")[0].rmse > 0.1
+    assert ape(est, ref, "sim3")[0].rmse == pytest.approx(0.0, abs=1e-9)
+
+
+def test_rpe_of_constant_drift_per_step():
+    ref = line_traj(6)
+    # Each step of the estimate is 1.1 m instead of 1 m: relative error 0.1 m per step.
+    est = Trajectory(ref.stamps, np.stack([se2_to_se3(1.1 * i, 0, 0) for i in range(6)]))
+    s = rpe(est, ref, pairs_by_frames(6, 1, all_pairs=True))
+    assert s.mean == pytest.approx(0.1) and s.count == 5
+    assert pairs_by_path(ref.positions, 2.0) == [(2, 4)]
+
+
+def test_per_axis_errors():
+    ref = line_traj()
+    est = ref.transform(T_right=se3(Rotation.from_euler("z", 2, degrees=True).as_matrix(),
+                                    [0, 0, 0.05]))
+    e = per_axis_errors(est, ref)
+    assert e["z_rmse_m"] == pytest.approx(0.05) and e["x_rmse_m"] == pytest.approx(0.0)
+    assert e["yaw_rmse_deg"] == pytest.approx(2.0) and e["orientation_rmse_deg"] == pytest.approx(2)
+
+
+def test_associate_one_to_one():
+    a = Trajectory(np.array([0.0, 1.0, 1.003, 2.0]), np.tile(np.eye(4), (4, 1, 1)))
+    b = Trajectory(np.array([0.005, 1.002, 3.0]), np.tile(np.eye(4), (3, 1, 1)))
+    i, j = associate(a, b, max_diff=0.01)
+    assert i.tolist() == [0, 2] and j.tolist() == [0, 1]
+
+
+def test_evo_reference_kitti(shared_data):
+    d = shared_data / "eval" / "evo-reference"
+    gt = read_kitti(d / "KITTI_00_gt.txt", d / "KITTI_00_gt_times.txt")
+    orb = read_kitti(d / "KITTI_00_ORB.txt", d / "KITTI_00_gt_times.txt")
+    stats, _ = ape(orb, gt, align="se3")
+    ref_ape = json.loads(zipfile.ZipFile(d / "res_files" / "orb_ape.zip").read("stats.json"))
+    assert stats.rmse == pytest.approx(1.3034497, abs=1e-4)
+    assert stats.rmse == pytest.approx(ref_ape["rmse"], abs=1e-6)
+    assert stats.mean == pytest.approx(1.1569971, abs=1e-4)
+    assert stats.max == pytest.approx(3.5879491, abs=1e-4)
+    # evo walks the estimate's path to choose the pairs.
+    r = rpe(orb, gt, pairs_by_path(orb.positions, 10.0))
+    ref_rpe = json.loads(zipfile.ZipFile(d / "res_files" / "orb_rpe.zip").read("stats.json"))
+    assert r.rmse == pytest.approx(0.2262613, abs=1e-4)
+    assert r.rmse == pytest.approx(ref_rpe["rmse"], abs=1e-6)
+
+
+def test_tum_reference_files_parse_and_report(shared_data):
+    d = shared_data / "eval" / "evo-reference"
+    gt = read_tum(d / "freiburg1_xyz-groundtruth.txt")
+    est = read_tum(d / "freiburg1_xyz-rgbdslam.txt")
+    rep = trajectory_report(est, gt, align="se3", max_diff=0.01)
+    assert rep["ate_count"] > 500 and 0.0 < rep["ate_rmse_m"] < 0.1

@@ -1,0 +1,1 @@
+"""Pure metric functions (no plotting, no CLI): trajectory, relations, depth, geometry, image."""
