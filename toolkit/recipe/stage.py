@@ -93,6 +93,8 @@ class Stage(ABC):
     # from slam2d or from ground truth); they join the cache key when they exist.
     optional_requires: ClassVar[tuple[str, ...]] = ()
     provides: ClassVar[tuple[str, ...]] = ()
+    # Bump when a code change alters what the stage writes, so cached results rerun.
+    version: ClassVar[int] = 1
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config

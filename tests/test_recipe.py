@@ -1,0 +1,545 @@
+"""Recipe runner: validation messages, caching, --set/--force/--from/--only, resume, outputs.
+
+The stages here are tiny test stages that count their real runs in a file outside the run
+directory, so "was it cached?" is answered by a side effect, not by the runner's own word.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_json, atomic_write_text
+from toolkit.recipe import (
+    RecipeError,
+    Stage,
+    StageConfig,
+    StageContext,
+    StageError,
+    load_recipe,
+    registry,
+    run_recipe,
+)
+from toolkit.recipe.schema import format_validation_error
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# --- test stages --------------------------------------------------------------------------
+
+
+def _count(counter: str, stage_id: str) -> None:
+    with open(counter, "a", encoding="utf-8") as fh:
+        fh.write(stage_id + "\n")
+
+
+class SourceConfig(StageConfig):
+    counter: str
+    value: int = 1
+    label: str = "numbers"
+
+
+class Source(Stage):
+    """Write a number to a file (test stage).
+
+    Second docstring line that `list` must not show.
+    """
+
+    name = "t_source"
+    Config = SourceConfig
+    provides = ("number",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        out = ctx.stage_dir / "number.txt"
+        atomic_write_text(out, str(cfg.value))
+        ctx.provide("number", out)
+        ctx.add_metrics({"value": cfg.value})
+        ctx.report(f"The {cfg.label} start at {cfg.value}.")
+
+
+class DoubleConfig(StageConfig):
+    counter: str
+    factor: int = 2
+
+
+class Double(Stage):
+    """Multiply the upstream number (test stage)."""
+
+    name = "t_double"
+    Config = DoubleConfig
+    requires = ("number",)
+    provides = ("doubled",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        value = int(ctx.artifact("number").read_text()) * cfg.factor
+        total = 0
+        for i in ctx.progress(range(20), description="doubling"):
+            total += i
+        atomic_write_text(ctx.stage_dir / "doubled.txt", str(value))
+        ctx.provide("doubled", Path("doubled.txt"))  # relative to stage_dir is fine
+        ctx.add_metrics({"doubled": value, "nested": {"a": 1}})
+        ctx.add_metrics({"nested": {"b": float("nan")}})
+        ctx.report(f"Doubled: **{value}**.")
+
+
+class SinkConfig(StageConfig):
+    counter: str
+    fail_marker: str | None = None  # fails while this file does not exist, then creates it
+    kill_marker: str | None = None  # same, but SIGKILLs its own process
+    stage_error: bool = False
+
+
+class Sink(Stage):
+    """Read the doubled number, optionally failing once (test stage)."""
+
+    name = "t_sink"
+    Config = SinkConfig
+    requires = ("doubled",)
+    optional_requires = ("number", "never_provided")
+    provides = ("result",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        assert ctx.has_artifact("number") and not ctx.has_artifact("never_provided")
+        (ctx.stage_dir / "checkpoint.txt").write_text("partial work survives a rerun")
+        if cfg.stage_error:
+            raise StageError("the doubled number is odd; fix the source value")
+        if cfg.fail_marker and not Path(cfg.fail_marker).exists():
+            Path(cfg.fail_marker).write_text("failed once")
+            raise RuntimeError("simulated crash on the first call")
+        if cfg.kill_marker and not Path(cfg.kill_marker).exists():
+            Path(cfg.kill_marker).write_text("killed once")
+            os.kill(os.getpid(), signal.SIGKILL)
+        value = int(ctx.artifact("doubled").read_text()) + int(ctx.artifact("number").read_text())
+        atomic_write_json(ctx.stage_dir / "result.json", {"sum": value})
+        ctx.provide("result", ctx.stage_dir / "result.json")
+        ctx.add_metrics({"sum": value})
+        ctx.report(f"Sum: {value}.")
+
+
+class ExternalConfig(StageConfig):
+    counter: str
+    source_file: str
+
+
+class External(Stage):
+    """Read a file outside the run (test stage)."""
+
+    name = "t_external"
+    Config = ExternalConfig
+
+    def external_inputs(self) -> list[Path]:
+        return [Path(self.config.source_file)]  # type: ignore[attr-defined]
+
+    def run(self, ctx: StageContext) -> None:
+        _count(self.config.counter, ctx.stage_id)  # type: ignore[attr-defined]
+
+
+TEST_STAGES: dict[str, type[Stage]] = {
+    "t_source": Source,
+    "t_double": Double,
+    "t_sink": Sink,
+    "t_external": External,
+}
+
+
+@pytest.fixture(autouse=True)
+def test_stages() -> Iterator[None]:
+    for name, cls in TEST_STAGES.items():
+        registry.register(name, cls)
+    yield
+    for name in TEST_STAGES:
+        registry.unregister(name)
+
+
+# --- helpers ------------------------------------------------------------------------------
+
+
+def _recipe_data(tmp_path: Path, **sink: Any) -> dict[str, Any]:
+    counter = str(tmp_path / "calls.txt")
+    return {
+        "name": "chain",
+        "output": str(tmp_path / "run"),
+        "stages": [
+            {"stage": "t_source", "counter": counter, "value": 3},
+            {"stage": "t_double", "counter": counter},
+            {"stage": "t_sink", "counter": counter, **sink},
+        ],
+    }
+
+
+def _write_recipe(tmp_path: Path, data: dict[str, Any], name: str = "chain.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _calls(tmp_path: Path) -> dict[str, int]:
+    path = tmp_path / "calls.txt"
+    lines = path.read_text().split() if path.exists() else []
+    return {k: lines.count(k) for k in dict.fromkeys(lines)}
+
+
+def _run(path: Path, *overrides: str, **options: Any) -> Any:
+    return run_recipe(load_recipe(path, list(overrides)), **options)
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ)
+    # The subprocess finds the test stages by importing this very file as a module.
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(Path(__file__).parent)])
+    env[registry.ENV_VAR] = ",".join(
+        f"{name}=test_recipe:{cls.__name__}" for name, cls in TEST_STAGES.items()
+    )
+    return subprocess.run(
+        [sys.executable, "-m", "toolkit.recipe", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+# --- validation ---------------------------------------------------------------------------
+
+
+def test_cli_bad_key_exits_2_naming_the_path(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    data["stages"][1]["factr"] = 3
+    path = _write_recipe(tmp_path, data)
+    proc = _cli("run", str(path), cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert "stages[1] (t_double): unknown key 'factr'" in proc.stderr
+    assert "did you mean 'factor'?" in proc.stderr
+    assert "allowed keys: id, counter, factor" in proc.stderr
+    assert not (tmp_path / "run").exists(), "nothing may run when validation fails"
+
+
+def test_cli_unknown_stage_type_exits_2(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    data["stages"][1]["stage"] = "t_dubble"
+    proc = _cli("validate", str(_write_recipe(tmp_path, data)), cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "stages[1] (t_dubble): unknown stage type 't_dubble'" in proc.stderr
+    assert "did you mean 't_double'?" in proc.stderr
+
+
+def test_cli_validate_good_recipe_and_list(tmp_path: Path) -> None:
+    proc = _cli("validate", str(_write_recipe(tmp_path, _recipe_data(tmp_path))), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "is valid: 3 stage(s)" in proc.stdout
+    assert "doubled <- t_double" in proc.stdout
+    listing = _cli("list", cwd=tmp_path)
+    assert listing.returncode == 0, listing.stderr
+    assert "Write a number to a file (test stage)." in listing.stdout
+    assert "Second docstring line" not in listing.stdout
+
+
+def test_cli_run_relative_output_and_stage_failure_exit_1(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path, stage_error=True)
+    data["output"] = "runs/chain"  # relative to the working directory
+    proc = _cli("run", str(_write_recipe(tmp_path, data)), cwd=tmp_path)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    out = " ".join(proc.stdout.split())  # rich may wrap long lines
+    assert "stage 't_sink' failed: the doubled number is odd" in out
+    assert "Traceback" not in proc.stdout + proc.stderr
+    run_dir = tmp_path / "runs" / "chain"
+    assert list(json.loads((run_dir / "metrics.json").read_text())) == ["t_source", "t_double"]
+    assert "Traceback" not in (run_dir / "run.log").read_text()
+
+
+def test_unknown_top_level_key_and_type_error(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    data["outptu"] = "x"
+    data["stages"][0]["value"] = "three"
+    with pytest.raises(RecipeError) as err:
+        load_recipe(_write_recipe(tmp_path, data))
+    text = str(err.value)
+    assert "unknown top-level key 'outptu' (did you mean 'output'?)" in text
+    assert "stages[0] (t_source): value: Input should be a valid integer" in text
+
+
+def test_missing_artifact_and_duplicate_id(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    del data["stages"][0]
+    with pytest.raises(RecipeError, match=r"stages\[0\] \(t_double\): requires artifact 'number'"):
+        load_recipe(_write_recipe(tmp_path, data))
+    data = _recipe_data(tmp_path)
+    data["stages"].insert(1, dict(data["stages"][0]))
+    with pytest.raises(RecipeError, match=r"stages\[1\] \(t_source\): duplicate id 't_source'"):
+        load_recipe(_write_recipe(tmp_path, data))
+    data["stages"][1]["id"] = "second_source"
+    recipe = load_recipe(_write_recipe(tmp_path, data))
+    assert [s.id for s in recipe.stages] == ["t_source", "second_source", "t_double", "t_sink"]
+    # the nearest earlier provider wins
+    assert recipe.stages[2].sources == {"number": "second_source"}
+
+
+def test_nested_and_union_errors_name_the_user_path() -> None:
+    class Matcher(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        window_m: float = 0.5
+
+    class NestedConfig(StageConfig):
+        matcher: Matcher | None = None
+        levels: list[Matcher] = []
+        size: int | str = 1
+
+    raw = {
+        "stage": "x",
+        "matcher": {"windw_m": 1},
+        "levels": [{}, {"window_m": "wide"}],
+        "size": [3],
+    }
+    with pytest.raises(ValidationError) as err:
+        NestedConfig.model_validate(raw)
+    lines = format_validation_error(err.value, "stages[2] (x)", NestedConfig)
+    assert lines[0] == (
+        "stages[2] (x): unknown key 'matcher.windw_m' (did you mean 'window_m'?); "
+        "allowed keys: window_m"
+    )
+    assert lines[1].startswith("stages[2] (x): levels[1].window_m: Input should be a valid number")
+    assert lines[2].startswith("stages[2] (x): size: Input should be a valid integer")
+    assert "; or Input should be a valid string" in lines[2]
+
+
+def test_set_overrides_are_validated(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError, match="no stage with id 't_dubble' \\(did you mean"):
+        load_recipe(path, ["t_dubble.factor=3"])
+    with pytest.raises(RecipeError, match="unknown key 'factr'"):
+        load_recipe(path, ["t_double.factr=3"])
+    with pytest.raises(RecipeError, match="expected KEY=VALUE"):
+        load_recipe(path, ["t_double.factor"])
+    recipe = load_recipe(path, ["t_double.factor=5", "name=renamed", "output=elsewhere"])
+    assert recipe.stages[1].config.factor == 5  # type: ignore[attr-defined]
+    assert (recipe.name, recipe.output) == ("renamed", Path("elsewhere"))
+
+
+# --- caching, --set, --force, --only, --from ----------------------------------------------
+
+
+def test_second_run_is_cached(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    first = _run(path)
+    assert first.ok and set(first.statuses.values()) == {"ran"}
+    second = _run(path)
+    assert set(second.statuses.values()) == {"cached"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
+    assert second.metrics == first.metrics
+    assert second.metrics["t_sink"] == {"sum": 9}
+    # the resolved recipe is itself a valid recipe describing exactly this run
+    resolved = load_recipe(tmp_path / "run" / "recipe.resolved.yaml")
+    assert set(run_recipe(resolved).statuses.values()) == {"cached"}
+
+
+def test_set_reruns_stage_and_downstream_only(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    result = _run(path, "t_double.factor=10")
+    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "ran"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 2, "t_sink": 2}
+    assert result.metrics["t_sink"] == {"sum": 33}
+    resolved = yaml.safe_load((tmp_path / "run" / "recipe.resolved.yaml").read_text())
+    assert resolved["stages"][1] == {
+        "stage": "t_double",
+        "id": "t_double",
+        "counter": str(tmp_path / "calls.txt"),
+        "factor": 10,
+    }
+    assert resolved["stages"][0]["label"] == "numbers"  # defaults filled in
+
+
+def test_force_reruns_everything(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    result = _run(path, force=True)
+    assert set(result.statuses.values()) == {"ran"}
+    assert _calls(tmp_path) == {"t_source": 2, "t_double": 2, "t_sink": 2}
+
+
+def test_only_runs_one_stage(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):
+        _run(path, only="t_double")
+    assert _calls(tmp_path) == {}
+    _run(path)
+    result = _run(path, only="t_double")
+    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "cached"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 2, "t_sink": 1}
+    # with changed settings the downstream stage is stale and --only leaves it alone
+    result = _run(path, "t_double.factor=4", only="t_double")
+    assert result.statuses["t_sink"] == "not run"
+    assert "t_sink" not in result.metrics
+    with pytest.raises(RecipeError, match="--only 'nope': no such stage id"):
+        _run(path, only="nope")
+
+
+def test_from_reruns_from_stage(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError, match="earlier stage 't_source' has not finished"):
+        _run(path, from_stage="t_double")
+    _run(path)
+    result = _run(path, from_stage="t_double")
+    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "ran"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 2, "t_sink": 2}
+
+
+def test_missing_output_or_external_change_reruns(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    (tmp_path / "run" / "t_double" / "doubled.txt").unlink()
+    result = _run(path)
+    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "cached"}
+
+    source = tmp_path / "input.log"
+    source.write_text("v1")
+    counter = str(tmp_path / "ext_calls.txt")
+    data = {
+        "name": "ext",
+        "output": str(tmp_path / "ext"),
+        "stages": [
+            {"stage": "t_external", "counter": counter, "source_file": str(source)},
+        ],
+    }
+    ext = _write_recipe(tmp_path, data, "ext.yaml")
+    assert _run(ext).statuses == {"t_external": "ran"}
+    assert _run(ext).statuses == {"t_external": "cached"}
+    source.write_text("version 2")
+    assert _run(ext).statuses == {"t_external": "ran"}
+
+
+# --- failure and resume -------------------------------------------------------------------
+
+
+def test_resume_after_exception(tmp_path: Path) -> None:
+    marker = tmp_path / "failed_once"
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path, fail_marker=str(marker)))
+    first = _run(path)
+    assert not first.ok and first.failed_stage == "t_sink"
+    assert first.statuses == {"t_source": "ran", "t_double": "ran", "t_sink": "failed"}
+    assert "RuntimeError: simulated crash" in (first.error or "")
+    run_dir = tmp_path / "run"
+    assert not (run_dir / "t_sink" / ".stage.json").exists()
+    assert "Traceback" in (run_dir / "run.log").read_text()
+    assert list(json.loads((run_dir / "metrics.json").read_text())) == ["t_source", "t_double"]
+    assert "**Failed:** stage 't_sink' failed" in (run_dir / "report.md").read_text()
+
+    second = _run(path)
+    assert second.ok
+    assert second.statuses == {"t_source": "cached", "t_double": "cached", "t_sink": "ran"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 2}
+    # the stage folder was not wiped: its own partial files survive
+    assert (run_dir / "t_sink" / "checkpoint.txt").exists()
+
+
+def test_resume_after_sigkill(tmp_path: Path) -> None:
+    marker = tmp_path / "killed_once"
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path, kill_marker=str(marker)))
+    proc = _cli("run", str(path), cwd=tmp_path)
+    assert proc.returncode == -signal.SIGKILL, proc.stdout + proc.stderr
+    assert marker.exists()
+    proc = _cli("run", str(path), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 2}
+
+
+def test_rerun_removes_old_marker_first(tmp_path: Path) -> None:
+    marker = tmp_path / "failed_once"
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    stage_file = tmp_path / "run" / "t_sink" / ".stage.json"
+    assert stage_file.exists()
+    # A forced rerun that crashes must not leave the old, complete-looking marker behind.
+    result = _run(path, f"t_sink.fail_marker={marker}", only="t_sink")
+    assert result.statuses["t_sink"] == "failed"
+    assert not stage_file.exists()
+
+
+# --- outputs ------------------------------------------------------------------------------
+
+
+def test_metrics_and_report_contents(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    _run(path, "t_sink.stage_error=false", force=True)
+    run_dir = tmp_path / "run"
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert list(metrics) == ["t_source", "t_double", "t_sink"]
+    assert metrics["t_double"] == {"doubled": 6, "nested": {"a": 1, "b": None}}  # NaN -> null
+    report = (run_dir / "report.md").read_text()
+    assert report.startswith("# chain\n")
+    assert report.count("The numbers start at 3.") == 1, "reruns must not duplicate sections"
+    assert report.index("## t_source") < report.index("## t_double") < report.index("## t_sink")
+    assert report.index("## t_sink") < report.index("## Timing")
+    assert "| t_double | ran |" in report
+    stored = json.loads((run_dir / "t_double" / ".stage.json").read_text())
+    assert stored["provides"] == {"doubled": "doubled.txt"}
+    assert set(stored) >= {"key", "provides", "metrics", "report", "seconds", "finished_at"}
+    log = (run_dir / "run.log").read_text()
+    assert "doubling: 20/20 (100%)" in log  # progress off a terminal is logged
+
+
+def test_import_is_light() -> None:
+    code = "import sys, toolkit.recipe; print(sorted({'torch', 'open3d'} & set(sys.modules)))"
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True
+    )
+    assert out.stdout.strip() == "[]"
+
+
+def test_registry_entries_are_well_formed() -> None:
+    assert list(registry.STAGES) == sorted(registry.STAGES)
+    for name, target in registry.STAGES.items():
+        module, _, cls = target.partition(":")
+        assert module and cls, f"{name}: {target!r} is not 'module.path:ClassName'"
+
+
+# --- atomic writes ------------------------------------------------------------------------
+
+
+def test_atomic_writes(tmp_path: Path) -> None:
+    target = tmp_path / "sub" / "data.json"
+    atomic_write_json(target, {"b": 1, "a": float("inf"), "p": tmp_path, "t": (1, 2)})
+    assert json.loads(target.read_text()) == {"b": 1, "a": None, "p": str(tmp_path), "t": [1, 2]}
+    assert list(json.loads(target.read_text())) == ["b", "a", "p", "t"]  # order kept
+    atomic_write_bytes(tmp_path / "x.bin", b"\x00\x01", fsync=True)
+    assert (tmp_path / "x.bin").read_bytes() == b"\x00\x01"
+
+    image = tmp_path / "frame.png"
+    image.write_text("old")
+    with atomic_path(image) as tmp:
+        assert tmp.parent == image.parent and tmp.suffix == ".png" and not tmp.exists()
+        tmp.write_text("new")
+    assert image.read_text() == "new"
+
+    with pytest.raises(RuntimeError), atomic_path(image) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("writer crashed")
+    assert image.read_text() == "new"
+    with pytest.raises(FileNotFoundError), atomic_path(tmp_path / "never.png"):
+        pass  # a writer that silently wrote nothing (cv2.imwrite returning False)
+    with pytest.raises(TypeError):
+        atomic_write_json(tmp_path / "bad.json", {"x": object()})
+    assert sorted(p.name for p in tmp_path.rglob("*")) == [
+        "data.json",
+        "frame.png",
+        "sub",
+        "x.bin",
+    ], "no temporary files may be left behind"

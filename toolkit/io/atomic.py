@@ -1,0 +1,117 @@
+"""Atomic file writes: a reader (or a resumed run) sees the old file or the new one, never half.
+
+Every writer goes to a temporary name in the target's own directory and is moved into
+place with ``os.replace``, which is atomic on POSIX and Windows as long as source and
+target share a filesystem - hence the same directory, never ``/tmp``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import secrets
+import shutil
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "atomic_path",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "atomic_write_text",
+    "to_jsonable",
+]
+
+
+def _temp_name(path: Path) -> Path:
+    # Hidden (leading dot) so globs such as "*.png" in the same folder skip a leftover from a
+    # killed process; the real suffix stays last so writers that pick the format from the
+    # extension (cv2.imwrite, np.save, open3d) still do the right thing.
+    token = f"{os.getpid()}.{secrets.token_hex(4)}"
+    return path.with_name(f".{path.stem}.{token}.tmp{path.suffix}")
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success move it onto ``path``.
+
+    The temporary file does not exist yet; the caller's writer creates it. If the block
+    raises, the temporary file (or folder) is removed and ``path`` is left untouched. If
+    the block ends without having written anything (``cv2.imwrite`` returns False instead
+    of raising), ``FileNotFoundError`` is raised rather than silently keeping no file.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_name(target)
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise FileNotFoundError(f"nothing was written for {target} (temporary path {tmp})")
+        os.replace(tmp, target)
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, *, fsync: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically.
+
+    ``fsync=True`` also survives power loss, not just a killed process; it costs a disk
+    flush per file, so it is left to callers writing commit markers rather than every frame.
+    """
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+
+
+def atomic_write_text(
+    path: str | os.PathLike[str], text: str, *, encoding: str = "utf-8", fsync: bool = False
+) -> None:
+    """Write ``text`` to ``path`` atomically (UTF-8 by default, no newline translation)."""
+    atomic_write_bytes(path, text.encode(encoding), fsync=fsync)
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Plain JSON types from ``obj``: NaN and infinities become None (JSON has no such
+    numbers and ``float('nan')`` as bare ``NaN`` breaks strict parsers), numpy scalars and
+    arrays become numbers and lists, paths become strings, tuples and sets become lists."""
+    if obj is None or isinstance(obj, bool | int | str):
+        return obj
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Mapping):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, set | frozenset):
+        return [to_jsonable(v) for v in sorted(obj, key=repr)]
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    # numpy (and torch) scalars/arrays, recognised by duck typing so this module never
+    # imports numpy.
+    if hasattr(obj, "tolist"):
+        return to_jsonable(obj.tolist())
+    if hasattr(obj, "model_dump"):
+        return to_jsonable(obj.model_dump(mode="json"))
+    raise TypeError(f"cannot write {type(obj).__name__} as JSON: {obj!r}")
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, fsync: bool = False) -> None:
+    """Write ``obj`` as indented JSON (key order kept, NaN/inf as null) atomically."""
+    text = json.dumps(
+        to_jsonable(obj), indent=2, sort_keys=False, ensure_ascii=False, allow_nan=False
+    )
+    atomic_write_text(path, text + "\n", fsync=fsync)

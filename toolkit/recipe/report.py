@@ -1,0 +1,99 @@
+"""Assembly of a run's ``report.md``, ``metrics.json`` and timing table.
+
+Both files are rebuilt whole from per-stage parts each time, never appended to, so a
+rerun or a resumed run cannot duplicate a section.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rich.table import Table
+
+from toolkit.io.atomic import atomic_write_json, atomic_write_text
+
+REPORT_FILE = "report.md"
+METRICS_FILE = "metrics.json"
+
+
+@dataclass(frozen=True)
+class StageSummary:
+    """What the report and the timing table show about one stage."""
+
+    id: str
+    type: str
+    status: str  # ran | cached | failed | pending | not run
+    seconds: float | None = None
+    markdown: str = ""
+
+
+def stage_heading(stage_id: str, stage_type: str) -> str:
+    """Section heading: the id, plus the type when a recipe renamed the stage."""
+    return stage_id if stage_id == stage_type else f"{stage_id} ({stage_type})"
+
+
+def _seconds(value: float | None) -> str:
+    return "" if value is None else f"{value:.1f}"
+
+
+def timing_rows(stages: Sequence[StageSummary]) -> list[tuple[str, str, str]]:
+    """(stage, status, seconds) rows, with a total over the stages that have a time."""
+    rows = [(s.id, s.status, _seconds(s.seconds)) for s in stages]
+    total = sum(s.seconds for s in stages if s.seconds is not None)
+    rows.append(("total", "", _seconds(total)))
+    return rows
+
+
+def build_report(
+    title: str,
+    stages: Sequence[StageSummary],
+    description: str = "",
+    error: str | None = None,
+) -> str:
+    """The whole ``report.md``: title, finished stages' sections in order, timing table."""
+    parts = [f"# {title}"]
+    if description:
+        parts.append(description.strip())
+    parts.append("Settings: [recipe.resolved.yaml](recipe.resolved.yaml) · log: [run.log](run.log)")
+    for stage in stages:
+        if stage.status in ("ran", "cached") and stage.markdown.strip():
+            parts.append(f"## {stage_heading(stage.id, stage.type)}\n\n{stage.markdown.strip()}")
+    table = ["| stage | status | seconds |", "|---|---|---:|"]
+    table += [f"| {a} | {b} | {c} |" for a, b, c in timing_rows(stages)]
+    timing = "## Timing\n\n" + "\n".join(table)
+    timing += "\n\nCached stages show the time of the run that computed them."
+    parts.append(timing)
+    if error:
+        parts.append(f"**Failed:** {error} (details in run.log)")
+    return "\n\n".join(parts) + "\n"
+
+
+def write_report(run_dir: Path, text: str) -> None:
+    """Replace ``run_dir/report.md``."""
+    atomic_write_text(run_dir / REPORT_FILE, text)
+
+
+def write_metrics(run_dir: Path, metrics: Mapping[str, Mapping[str, Any]]) -> None:
+    """Replace ``run_dir/metrics.json`` with ``{stage_id: {...}}`` in recipe order."""
+    atomic_write_json(run_dir / METRICS_FILE, dict(metrics))
+
+
+_STYLES = {"ran": "green", "cached": "cyan", "failed": "bold red", "not run": "dim"}
+
+
+def timing_table(stages: Sequence[StageSummary], title: str = "Timing") -> Table:
+    """The timing table for the terminal."""
+    table = Table(title=title, title_justify="left")
+    table.add_column("stage")
+    table.add_column("status")
+    table.add_column("seconds", justify="right")
+    rows = timing_rows(stages)
+    for index, (stage, status, seconds) in enumerate(rows):
+        if index == len(rows) - 1:
+            table.add_section()
+        style = _STYLES.get(status, "")
+        table.add_row(stage, f"[{style}]{status}[/]" if style else status, seconds)
+    return table

@@ -1,0 +1,535 @@
+"""Runs a validated recipe: run directory, per-stage cache, resume, logging and progress.
+
+A stage is complete when ``<stage_dir>/.stage.json`` exists with the stage's current cache
+key and its provided paths exist. The marker is written atomically after ``run`` returns
+and deleted before a rerun starts, so a stage killed at any point (exception, Ctrl-C,
+SIGKILL) is simply incomplete and the next run resumes there.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import math
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.markup import escape
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from toolkit.io.atomic import atomic_write_json, atomic_write_text, to_jsonable
+from toolkit.recipe import registry, report
+from toolkit.recipe.schema import Recipe, RecipeError, StageSpec
+from toolkit.recipe.stage import Stage, StageContext, StageError
+
+try:
+    import fcntl
+except ImportError:  # Windows: runs are not locked against each other there
+    fcntl = None  # type: ignore[assignment]
+
+T = TypeVar("T")
+
+STAGE_FILE = ".stage.json"
+RESOLVED_FILE = "recipe.resolved.yaml"
+LOG_FILE = "run.log"
+LOCK_FILE = ".lock"
+
+# Log records carrying this go to run.log only (tracebacks, lines already printed nicely).
+_FILE_ONLY = {"console": False}
+
+
+@dataclass
+class RunResult:
+    """Outcome of ``run_recipe``: per-stage status and seconds, merged metrics, run dir."""
+
+    run_dir: Path
+    statuses: dict[str, str]  # stage id -> ran | cached | failed | not run
+    metrics: dict[str, dict[str, Any]]
+    seconds: dict[str, float | None]
+    error: str | None = None
+    failed_stage: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """True when no stage failed."""
+        return self.failed_stage is None
+
+
+@dataclass
+class _Record:
+    spec: StageSpec
+    status: str = "pending"
+    reason: str = ""
+    key: str | None = None
+    seconds: float | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)
+    report: list[str] = field(default_factory=list)
+    provides: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def finished(self) -> bool:
+        return self.status in ("ran", "cached")
+
+    def summary(self) -> report.StageSummary:
+        return report.StageSummary(
+            id=self.spec.id,
+            type=self.spec.type,
+            status=self.status,
+            seconds=self.seconds,
+            markdown="\n\n".join(self.report),
+        )
+
+
+def run_recipe(
+    recipe: Recipe,
+    force: bool = False,
+    from_stage: str | None = None,
+    only: str | None = None,
+    console: Console | None = None,
+) -> RunResult:
+    """Run ``recipe`` in its output folder, reusing every stage that is already complete.
+
+    ``force`` reruns every selected stage; ``from_stage`` reruns that stage and all after it
+    (the ones before must be complete); ``only`` reruns just that stage (the stages it takes
+    artifacts from must be complete). A recipe or option problem raises ``RecipeError``; a
+    failing stage does not raise but is reported in the result (``result.ok`` is False).
+    """
+    if from_stage is not None and only is not None:
+        raise RecipeError("--from and --only cannot be combined")
+    from_index = recipe.index_of(from_stage, "--from") if from_stage is not None else None
+    only_index = recipe.index_of(only, "--only") if only is not None else None
+    console = console or Console()
+    run_dir = recipe.output if recipe.output.is_absolute() else Path.cwd() / recipe.output
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with _exclusive(run_dir), _run_logging(run_dir, console) as log:
+        resolved = yaml.safe_dump(recipe.resolved(), sort_keys=False, allow_unicode=True)
+        atomic_write_text(run_dir / RESOLVED_FILE, resolved)
+        run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
+        return run.execute()
+
+
+class _Run:
+    def __init__(
+        self,
+        recipe: Recipe,
+        run_dir: Path,
+        console: Console,
+        log: logging.Logger,
+        force: bool,
+        from_index: int | None,
+        only_index: int | None,
+    ) -> None:
+        self.recipe = recipe
+        self.run_dir = run_dir
+        self.console = console
+        self.log = log
+        self.force = force
+        self.from_index = from_index
+        self.only_index = only_index
+        # --from and --only name stages the user wants run, so they rerun even if cached.
+        self.rerun = force or from_index is not None or only_index is not None
+        self.records = {spec.id: _Record(spec) for spec in recipe.stages}
+        self.error: str | None = None
+        self.failed_stage: str | None = None
+        self.bar_active = False
+
+    def selected(self, index: int) -> bool:
+        if self.only_index is not None:
+            return index == self.only_index
+        return self.from_index is None or index >= self.from_index
+
+    def option(self) -> str:
+        if self.only_index is not None:
+            return f"--only {self.recipe.stages[self.only_index].id}"
+        if self.from_index is not None:
+            return f"--from {self.recipe.stages[self.from_index].id}"
+        return ""
+
+    def execute(self) -> RunResult:
+        options = " ".join(filter(None, [self.option(), "--force" if self.force else ""]))
+        self.log.info(
+            "=== run of recipe %r in %s%s",
+            self.recipe.name,
+            self.run_dir,
+            f" ({options})" if options else "",
+            extra=_FILE_ONLY,
+        )
+        self.console.print(
+            f"recipe [bold]{escape(self.recipe.name)}[/] -> {escape(str(self.run_dir))}"
+        )
+        for spec in self.recipe.stages:
+            if not self.process(self.records[spec.id]):
+                break
+        for record in self.records.values():
+            if record.status == "pending":
+                record.status = "not run"
+        self.write_outputs()
+        self.console.print(report.timing_table([r.summary() for r in self.records.values()]))
+        return RunResult(
+            run_dir=self.run_dir,
+            statuses={i: r.status for i, r in self.records.items()},
+            metrics=self.finished_metrics(),
+            seconds={i: r.seconds for i, r in self.records.items()},
+            error=self.error,
+            failed_stage=self.failed_stage,
+        )
+
+    def process(self, record: _Record) -> bool:
+        """Reuse, run or skip one stage; False stops the run (the stage failed)."""
+        spec = record.spec
+        selected = self.selected(spec.index)
+        waiting = [s for s in dict.fromkeys(spec.sources.values()) if not self.records[s].finished]
+        if waiting:
+            if selected:
+                upstream = self.records[waiting[0]]
+                raise RecipeError(
+                    f"{self.option()}: stage {spec.id!r} needs the output of stage "
+                    f"{upstream.spec.id!r}, which has not finished ({upstream.reason}); "
+                    f"run it first, e.g. --from {upstream.spec.id}"
+                )
+            record.status, record.reason = "not run", "an earlier stage has not finished"
+            return True
+        start = time.perf_counter()
+        try:
+            stage = spec.cls(spec.config)
+            record.key = _cache_key(
+                spec, stage, {n: self.records[s].key for n, s in spec.sources.items()}
+            )
+        except Exception as exc:
+            if not selected:
+                record.status, record.reason = "not run", f"cannot check its inputs: {exc}"
+                return True
+            self.fail(record, exc, start)
+            return False
+        stored, record.reason = _read_marker(self.run_dir / spec.id, record.key, spec.cls.provides)
+        if not selected:
+            if stored is not None:
+                self.reuse(record, stored)
+            elif self.from_index is not None:
+                raise RecipeError(
+                    f"{self.option()}: earlier stage {spec.id!r} has not finished "
+                    f"({record.reason}); run it first, e.g. --from {spec.id}"
+                )
+            else:
+                record.status = "not run"
+            return True
+        if stored is not None and not self.rerun:
+            self.reuse(record, stored)
+            return True
+        if stored is not None:
+            record.reason = self.option() or "--force"
+        ok = self.run_stage(record, stage)
+        self.write_outputs()
+        return ok
+
+    def reuse(self, record: _Record, stored: Mapping[str, Any]) -> None:
+        stage_dir = self.run_dir / record.spec.id
+        record.status = "cached"
+        record.seconds = stored.get("seconds")
+        record.metrics = dict(stored.get("metrics") or {})
+        text = stored.get("report") or ""
+        record.report = [text] if text else []
+        record.provides = {n: stage_dir / rel for n, rel in stored["provides"].items()}
+        self.console.print(f"[cyan]{record.spec.id}[/] cached")
+        self.log.info("stage %s cached (key %s)", record.spec.id, record.key, extra=_FILE_ONLY)
+
+    def run_stage(self, record: _Record, stage: Stage) -> bool:
+        spec = record.spec
+        stage_dir = self.run_dir / spec.id
+        stage_dir.mkdir(parents=True, exist_ok=True)
+        # The folder is kept (stages may keep checkpoints there), but the old marker goes
+        # first: a rerun killed halfway must not look complete next time.
+        (stage_dir / STAGE_FILE).unlink(missing_ok=True)
+        record.metrics, record.report, record.provides = {}, [], {}
+        self.console.print(f"[bold]{spec.id}[/] running ({escape(record.reason)})")
+        self.log.info(
+            "stage %s (%s) started: %s", spec.id, spec.type, record.reason, extra=_FILE_ONLY
+        )
+        ctx = _Context(self, record)
+        start = time.perf_counter()
+        try:
+            stage.run(ctx)
+            ctx.check_provided()
+            record.seconds = time.perf_counter() - start
+            marker = {
+                "key": record.key,
+                "stage": spec.type,
+                "provides": {n: _relative(p, stage_dir) for n, p in record.provides.items()},
+                "metrics": record.metrics,
+                "report": "\n\n".join(record.report),
+                "seconds": record.seconds,
+                "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
+            }
+            atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
+        except Exception as exc:
+            self.fail(record, exc, start)
+            return False
+        except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
+            self.fail(record, KeyboardInterrupt("interrupted"), start)
+            self.write_outputs()
+            raise
+        record.status = "ran"
+        self.console.print(f"[green]{spec.id}[/] ran in {record.seconds:.1f} s")
+        self.log.info("stage %s finished in %.2f s", spec.id, record.seconds, extra=_FILE_ONLY)
+        return True
+
+    def fail(self, record: _Record, exc: BaseException, start: float) -> None:
+        record.status = "failed"
+        record.seconds = time.perf_counter() - start
+        sid = record.spec.id
+        if isinstance(exc, StageError | KeyboardInterrupt):
+            # A StageError message already says what to fix; a traceback would bury it.
+            message = str(exc)
+            self.log.error("stage %s failed: %s", sid, message, extra=_FILE_ONLY)
+            hint = ""
+        else:
+            lines = str(exc).strip().splitlines()
+            message = f"{type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+            self.log.error("stage %s failed", sid, exc_info=exc, extra=_FILE_ONLY)
+            hint = f" (traceback in {self.run_dir / LOG_FILE})"
+        self.error = f"stage {sid!r} failed: {message}"
+        self.failed_stage = sid
+        self.console.print(f"[bold red]error:[/] {escape(self.error + hint)}", soft_wrap=True)
+
+    def finished_metrics(self) -> dict[str, dict[str, Any]]:
+        # As plain JSON values, so a fresh run and a cached one compare equal (NaN -> None).
+        return to_jsonable({i: r.metrics for i, r in self.records.items() if r.finished})
+
+    def write_outputs(self) -> None:
+        report.write_metrics(self.run_dir, self.finished_metrics())
+        text = report.build_report(
+            self.recipe.name,
+            [r.summary() for r in self.records.values()],
+            description=self.recipe.description,
+            error=self.error,
+        )
+        report.write_report(self.run_dir, text)
+
+
+class _Context(StageContext):
+    def __init__(self, run: _Run, record: _Record) -> None:
+        spec = record.spec
+        self.run_dir = run.run_dir
+        self.stage_dir = run.run_dir / spec.id
+        self.stage_id = spec.id
+        self.recipe_name = run.recipe.name
+        self.log = logging.getLogger(f"toolkit.run.{spec.id}")
+        self._run = run
+        self._record = record
+        self._spec = spec
+
+    def artifact(self, name: str) -> Path:
+        cls = self._spec.cls
+        if name not in (*cls.requires, *cls.optional_requires):
+            # Reading an undeclared artifact would hide a dependency from the cache key.
+            raise StageError(
+                f"stage {self.stage_id!r} asked for artifact {name!r} without declaring it; "
+                f"add it to {cls.__name__}.requires or optional_requires"
+            )
+        source = self._spec.sources.get(name)
+        if source is None:
+            makers = registry.providers_of(name)
+            raise StageError(
+                f"stage {self.stage_id!r} needs artifact {name!r}, which no earlier stage "
+                f"provides"
+                + (f"; stage types that provide it: {', '.join(makers)}" if makers else "")
+            )
+        return self._run.records[source].provides[name]
+
+    def has_artifact(self, name: str) -> bool:
+        return name in self._spec.available
+
+    def provide(self, name: str, path: Path) -> None:
+        cls = self._spec.cls
+        if name not in cls.provides:
+            raise StageError(
+                f"stage {self.stage_id!r} provides {name!r}, which {cls.__name__}.provides "
+                f"does not declare ({', '.join(cls.provides) or 'nothing'})"
+            )
+        full = (self.stage_dir / path).resolve()
+        home = self.stage_dir.resolve()
+        if full != home and home not in full.parents:
+            raise StageError(
+                f"stage {self.stage_id!r}: artifact {name!r} at {path} is outside {self.stage_dir}"
+            )
+        self._record.provides[name] = self.stage_dir / full.relative_to(home)
+
+    def check_provided(self) -> None:
+        for name in self._spec.cls.provides:
+            path = self._record.provides.get(name)
+            if path is None:
+                raise StageError(f"stage {self.stage_id!r} finished without providing {name!r}")
+            if not path.exists():
+                raise StageError(
+                    f"stage {self.stage_id!r} provided {name!r} as {path}, which does not exist"
+                )
+
+    def add_metrics(self, metrics: dict[str, Any]) -> None:
+        _deep_merge(self._record.metrics, metrics)
+
+    def report(self, markdown: str) -> None:
+        self._record.report.append(markdown.strip("\n"))
+
+    def progress(
+        self, iterable: Iterable[T], total: int | None = None, description: str = ""
+    ) -> Iterator[T]:
+        if total is None:
+            try:
+                total = len(iterable)  # type: ignore[arg-type]
+            except TypeError:
+                total = None
+        label = description or self.stage_id
+        if self._run.bar_active:  # rich allows one live display; inner loops go quiet
+            yield from iterable
+        elif self._run.console.is_terminal:
+            yield from self._bar(iterable, total, label)
+        else:
+            yield from self._logged(iterable, total, label)
+
+    def _bar(self, iterable: Iterable[T], total: int | None, label: str) -> Iterator[T]:
+        columns = (
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+        )
+        self._run.bar_active = True
+        try:
+            with Progress(*columns, console=self._run.console, transient=True) as bar:
+                task = bar.add_task(label, total=total)
+                for item in iterable:
+                    yield item
+                    bar.advance(task)
+        finally:
+            self._run.bar_active = False
+
+    def _logged(self, iterable: Iterable[T], total: int | None, label: str) -> Iterator[T]:
+        # Off a terminal a redrawn bar is noise in a log file; a line per ~10% is enough.
+        step = max(1, math.ceil(total / 10)) if total else 0
+        last = time.monotonic()
+        count = 0
+        for item in iterable:
+            yield item
+            count += 1
+            if step and total and (count % step == 0 or count == total):
+                self.log.info("%s: %d/%d (%d%%)", label, count, total, 100 * count // total)
+            elif not step and time.monotonic() - last >= 10.0:
+                last = time.monotonic()
+                self.log.info("%s: %d done", label, count)
+
+
+def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None]) -> str:
+    payload = {
+        "stage": spec.type,
+        "version": getattr(stage, "version", 1),
+        "config": spec.config.model_dump(mode="json"),
+        "upstream": dict(sorted(upstream.items())),
+        "external": [_fingerprint(Path(p)) for p in stage.external_inputs()],
+    }
+    text = json.dumps(payload, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _fingerprint(path: Path) -> dict[str, Any]:
+    """Size and mtime of a file (every file, for a folder): cheap, unlike hashing a bag."""
+    path = path.absolute()
+    if path.is_dir():
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+        entries = [[p.relative_to(path).as_posix(), *_stat(p)] for p in files]
+        return {"path": str(path), "files": entries}
+    if path.exists():
+        return {"path": str(path), "file": _stat(path)}
+    return {"path": str(path), "missing": True}
+
+
+def _stat(path: Path) -> list[int]:
+    st = path.stat()
+    return [st.st_size, st.st_mtime_ns]
+
+
+def _read_marker(
+    stage_dir: Path, key: str, provides: tuple[str, ...]
+) -> tuple[dict[str, Any] | None, str]:
+    """The stored ``.stage.json`` if it proves the stage complete, else None; and why."""
+    marker = stage_dir / STAGE_FILE
+    if not marker.exists():
+        return None, "did not finish last time" if stage_dir.exists() else "never ran"
+    try:
+        data = json.loads(marker.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None, f"unreadable {STAGE_FILE}"
+    if not isinstance(data, dict) or data.get("key") != key:
+        return None, "settings or inputs changed"
+    stored = data.get("provides")
+    if not isinstance(stored, dict) or not set(provides) <= set(stored):
+        return None, "settings or inputs changed"
+    missing = [name for name, rel in stored.items() if not (stage_dir / rel).exists()]
+    if missing:
+        return None, f"output {missing[0]!r} is missing"
+    return data, "up to date"
+
+
+def _relative(path: Path, stage_dir: Path) -> str:
+    return path.relative_to(stage_dir).as_posix() or "."
+
+
+def _deep_merge(into: dict[str, Any], new: Mapping[str, Any]) -> None:
+    for key, value in new.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _deep_merge(into[key], value)
+        else:
+            into[key] = dict(value) if isinstance(value, Mapping) else value
+
+
+@contextlib.contextmanager
+def _exclusive(run_dir: Path) -> Iterator[None]:
+    """Hold a lock on the run folder so two runs of one recipe cannot interleave."""
+    if fcntl is None:
+        yield
+        return
+    with open(run_dir / LOCK_FILE, "a") as handle:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise RecipeError(f"{run_dir} is in use by another run; wait for it to end") from None
+        yield
+
+
+@contextlib.contextmanager
+def _run_logging(run_dir: Path, console: Console) -> Iterator[logging.Logger]:
+    """Send the ``toolkit`` loggers to run.log and the console for the length of a run."""
+    base = logging.getLogger("toolkit")
+    to_file = logging.FileHandler(run_dir / LOG_FILE, encoding="utf-8")
+    to_file.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(name)s: %(message)s"))
+    to_console = RichHandler(console=console, show_path=False, markup=False)
+    to_console.setLevel(logging.INFO)
+    to_console.addFilter(lambda record: getattr(record, "console", True))
+    old_level = base.level
+    if base.getEffectiveLevel() > logging.INFO:
+        base.setLevel(logging.INFO)
+    base.addHandler(to_file)
+    base.addHandler(to_console)
+    try:
+        yield logging.getLogger("toolkit.recipe.runner")
+    finally:
+        base.removeHandler(to_console)
+        base.removeHandler(to_file)
+        to_file.close()
+        base.setLevel(old_level)

@@ -1,0 +1,418 @@
+"""Recipe files: YAML parsing, ``--set`` overrides, and validation whose messages name the path.
+
+Everything that can be checked without running anything is checked here, so that a typo
+in the last stage of a long recipe fails in a second instead of after an hour of SLAM.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import re
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from toolkit.recipe import registry
+from toolkit.recipe.stage import Stage, StageConfig
+
+TOP_LEVEL_KEYS = ("name", "output", "description", "stages")
+# Keys that --set may change at the top of a recipe (``stages`` is edited per stage id).
+_TOP_LEVEL_SETTABLE = ("name", "output", "description")
+# An id names a folder and is the first part of a --set key, so no dots or slashes.
+_ID_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+class RecipeError(Exception):
+    """The recipe or the command line is wrong and nothing ran (CLI exit code 2)."""
+
+    def __init__(self, problems: str | Sequence[str]) -> None:
+        self.problems = [problems] if isinstance(problems, str) else list(problems)
+        super().__init__("\n".join(self.problems))
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One validated stage of a recipe."""
+
+    index: int
+    id: str
+    type: str
+    cls: type[Stage]
+    config: StageConfig
+    # Artifact name -> id of the nearest earlier stage that provides it, for the names in
+    # ``requires`` and those in ``optional_requires`` that some earlier stage provides.
+    sources: Mapping[str, str] = field(default_factory=dict)
+    # Every artifact an earlier stage provides (what ``ctx.has_artifact`` answers).
+    available: frozenset[str] = frozenset()
+
+    @property
+    def label(self) -> str:
+        """How messages name this stage: ``stages[1] (slam2d)``."""
+        return f"stages[{self.index}] ({self.id})"
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A validated recipe: every stage's settings checked, defaults filled."""
+
+    name: str
+    output: Path
+    stages: tuple[StageSpec, ...]
+    description: str = ""
+    source: Path | None = None
+
+    def index_of(self, stage_id: str, option: str = "stage") -> int:
+        """Position of stage ``stage_id``; a ``RecipeError`` with a suggestion otherwise."""
+        ids = [s.id for s in self.stages]
+        if stage_id in ids:
+            return ids.index(stage_id)
+        raise RecipeError(
+            f"{option} {stage_id!r}: no such stage id{_suggest(stage_id, ids)}; "
+            f"stage ids: {', '.join(ids)}"
+        )
+
+    def resolved(self) -> dict[str, Any]:
+        """The recipe as plain data with every default filled in (recipe.resolved.yaml)."""
+        out: dict[str, Any] = {"name": self.name, "output": self.output.as_posix()}
+        if self.description:
+            out["description"] = self.description
+        out["stages"] = [s.config.model_dump(mode="json") for s in self.stages]
+        return out
+
+
+def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
+    """Read and validate a recipe file; ``overrides`` are ``--set`` items (``KEY=VALUE``)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise RecipeError(f"{path}: no such recipe file") from None
+    except OSError as exc:
+        raise RecipeError(f"{path}: cannot read it: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise RecipeError(f"{path}: not valid YAML: {exc}") from None
+    return parse_recipe(data, overrides, source=path)
+
+
+def parse_recipe(
+    data: Any, overrides: Sequence[str] = (), source: str | Path | None = None
+) -> Recipe:
+    """Validate recipe data already loaded from YAML (or built in code)."""
+    where = str(source) if source is not None else "recipe"
+    if not isinstance(data, dict):
+        raise RecipeError(
+            f"{where}: a recipe is a mapping with keys {', '.join(TOP_LEVEL_KEYS)}; "
+            f"got {type(data).__name__}"
+        )
+    data = copy.deepcopy(data)
+    apply_overrides(data, overrides)
+
+    problems: list[str] = []
+    for key in data:
+        if key not in TOP_LEVEL_KEYS:
+            problems.append(
+                f"{where}: unknown top-level key {key!r}{_suggest(str(key), TOP_LEVEL_KEYS)}; "
+                f"allowed keys: {', '.join(TOP_LEVEL_KEYS)}"
+            )
+    default_name = Path(source).stem if source is not None else None
+    name = data.get("name", default_name)
+    if not isinstance(name, str) or not name:
+        problems.append(f"{where}: 'name' must be a non-empty string (got {name!r})")
+        name = "recipe"
+    output = data.get("output", f"runs/{name}")
+    if not isinstance(output, str) or not output:
+        problems.append(f"{where}: 'output' must be a folder path (got {output!r})")
+        output = f"runs/{name}"
+    description = data.get("description", "") or ""
+    if not isinstance(description, str):
+        problems.append(f"{where}: 'description' must be a string (got {description!r})")
+        description = ""
+
+    raw_stages = data.get("stages")
+    if not isinstance(raw_stages, list) or not raw_stages:
+        problems.append(f"{where}: 'stages' must be a non-empty list of '- stage: TYPE' entries")
+        raw_stages = []
+    specs: list[StageSpec] = []
+    seen: dict[str, int] = {}
+    for index, raw in enumerate(raw_stages):
+        spec = _parse_stage(index, raw, problems)
+        if spec is None:
+            continue
+        if spec.id in seen:
+            problems.append(
+                f"{spec.label}: duplicate id {spec.id!r} (also stages[{seen[spec.id]}]); "
+                f"give one of them a distinct 'id:'"
+            )
+        seen.setdefault(spec.id, index)
+        specs.append(spec)
+    # Artifact wiring is judged only on an otherwise valid recipe: a stage that failed to
+    # parse would make every stage after it report a missing artifact.
+    if not problems:
+        specs = _wire_artifacts(specs, problems)
+    if problems:
+        raise RecipeError(problems)
+    return Recipe(
+        name=name,
+        output=Path(output),
+        stages=tuple(specs),
+        description=description,
+        source=Path(source) if source is not None else None,
+    )
+
+
+def _parse_stage(index: int, raw: Any, problems: list[str]) -> StageSpec | None:
+    where = f"stages[{index}]"
+    known = registry.stage_names()
+    if not isinstance(raw, dict):
+        problems.append(f"{where}: expected a mapping such as '- stage: slam2d', got {raw!r}")
+        return None
+    stage_type = raw.get("stage")
+    if not isinstance(stage_type, str) or not stage_type:
+        problems.append(
+            f"{where}: missing 'stage: TYPE' (known types: {', '.join(known) or 'none'})"
+        )
+        return None
+    stage_id = raw.get("id") or stage_type
+    if not isinstance(stage_id, str) or not _ID_RE.match(stage_id):
+        problems.append(
+            f"{where} ({stage_type}): id {stage_id!r} may hold only letters, digits, '_' "
+            f"and '-' (it names the stage's folder and its --set keys)"
+        )
+        return None
+    label = f"{where} ({stage_id})"
+    try:
+        cls = registry.load_stage(stage_type)
+    except KeyError:
+        problems.append(
+            f"{label}: unknown stage type {stage_type!r}{_suggest(stage_type, known)}; "
+            f"known types: {', '.join(known) or 'none'}"
+        )
+        return None
+    except ImportError as exc:
+        problems.append(f"{label}: {exc}")
+        return None
+    try:
+        config = cls.Config.model_validate({**raw, "id": stage_id})
+    except ValidationError as exc:
+        problems.extend(format_validation_error(exc, label, cls.Config))
+        return None
+    return StageSpec(index=index, id=stage_id, type=stage_type, cls=cls, config=config)
+
+
+def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSpec]:
+    provided: dict[str, str] = {}
+    wired = []
+    for spec in specs:
+        sources = {}
+        for name in spec.cls.requires:
+            if name in provided:
+                sources[name] = provided[name]
+                continue
+            makers = registry.providers_of(name)
+            hint = f"; add a stage that provides it before this one ({', '.join(makers)})"
+            problems.append(
+                f"{spec.label}: requires artifact {name!r}, which no earlier stage provides"
+                + (hint if makers else "")
+            )
+        for name in spec.cls.optional_requires:
+            if name in provided:
+                sources[name] = provided[name]
+        wired.append(
+            StageSpec(
+                index=spec.index,
+                id=spec.id,
+                type=spec.type,
+                cls=spec.cls,
+                config=spec.config,
+                sources=sources,
+                available=frozenset(provided),
+            )
+        )
+        for name in spec.cls.provides:
+            provided[name] = spec.id
+    return wired
+
+
+def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
+    """Apply ``--set`` items to raw recipe data in place.
+
+    ``<stage id>.<key>[.<subkey>...]=VALUE`` sets a stage setting and ``name=``, ``output=``
+    or ``description=`` the top-level field; VALUE is read with ``yaml.safe_load`` so
+    ``0.5``, ``true``, ``[1, 2]`` and ``null`` mean what they do in the recipe file.
+    """
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise RecipeError(f"--set {item!r}: expected KEY=VALUE, e.g. slam2d.window_m=0.5")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise RecipeError(f"--set {item!r}: value is not valid YAML: {exc}") from None
+        parts = key.split(".")
+        if any(not p for p in parts):
+            raise RecipeError(f"--set {item!r}: empty part in key {key!r}")
+        if len(parts) == 1:
+            if key not in _TOP_LEVEL_SETTABLE:
+                raise RecipeError(
+                    f"--set {item!r}{_suggest(key, _TOP_LEVEL_SETTABLE)}: "
+                    f"expected <stage id>.<key>=VALUE, or one of "
+                    f"{', '.join(p + '=' for p in _TOP_LEVEL_SETTABLE)}"
+                )
+            data[key] = value
+            continue
+        stage_id, *path = parts
+        if path[0] in ("stage", "id"):
+            raise RecipeError(f"--set {item!r}: a stage's '{path[0]}' is fixed by the recipe")
+        target = _stage_mapping(data, stage_id, item)
+        for depth, part in enumerate(path[:-1]):
+            child = target.get(part)
+            if child is None:
+                child = target[part] = {}
+            elif not isinstance(child, dict):
+                inner = ".".join([stage_id, *path[: depth + 1]])
+                raise RecipeError(f"--set {item!r}: {inner} is {child!r}, not a mapping")
+            target = child
+        target[path[-1]] = value
+
+
+def _stage_mapping(data: dict[str, Any], stage_id: str, item: str) -> dict[str, Any]:
+    stages = data.get("stages")
+    ids = []
+    for raw in stages if isinstance(stages, list) else []:
+        if isinstance(raw, dict):
+            raw_id = raw.get("id") or raw.get("stage")
+            if raw_id == stage_id:
+                return raw
+            ids.append(str(raw_id))
+    raise RecipeError(
+        f"--set {item!r}: no stage with id {stage_id!r}{_suggest(stage_id, ids)}; "
+        f"stage ids: {', '.join(ids) or 'none'}"
+    )
+
+
+def format_validation_error(
+    error: ValidationError, label: str, model: type[BaseModel]
+) -> list[str]:
+    """One readable line per problem, each starting with ``label`` and the key path."""
+    lines: list[str] = []
+    merged: dict[str, list[str]] = {}
+    for item in error.errors():
+        loc = tuple(item["loc"])
+        kind = item["type"]
+        if kind == "extra_forbidden" and loc:
+            parent, parent_type = _resolve_loc(model, loc[:-1])
+            key = _fmt_loc((*parent, loc[-1]))
+            allowed = _allowed_keys(parent_type, top=not parent)
+            line = f"{label}: unknown key {key!r}{_suggest(str(loc[-1]), allowed)}"
+            if allowed:
+                line += f"; allowed keys: {', '.join(allowed)}"
+            lines.append(line)
+        elif kind == "missing" and loc:
+            parent, _ = _resolve_loc(model, loc[:-1])
+            lines.append(f"{label}: missing required key {_fmt_loc((*parent, loc[-1]))!r}")
+        else:
+            path, _ = _resolve_loc(model, loc)
+            where = f"{label}: {_fmt_loc(path)}" if path else label
+            got = _short(repr(item.get("input")))
+            merged.setdefault(f"{where}: ", []).append(f"{item['msg']} (got {got})")
+    for where, messages in merged.items():
+        lines.append(where + "; or ".join(dict.fromkeys(messages)))
+    return list(dict.fromkeys(lines))
+
+
+def _resolve_loc(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[tuple[Any, ...], Any]:
+    """Strip pydantic's union tags (``'int'``, ``'MatcherConfig'``) from an error location.
+
+    Returns the location as the user wrote it and the type found there (None when lost),
+    so messages read ``matcher.window_m`` and can list the allowed keys of ``matcher``.
+    """
+    clean: list[Any] = []
+    current: Any = model
+    for part in loc:
+        current = _unwrap(current)
+        members = _union_members(current)
+        if members is not None:
+            match = [m for m in members if getattr(m, "__name__", None) == part]
+            if match:  # a union tag: not part of the user's path
+                current = match[0]
+                continue
+            models = [m for m in members if _is_model(m) and part in _field_types(m)]
+            current = models[0] if models else None
+            if current is None:
+                clean.append(part)
+                continue
+        if _is_model(current) and isinstance(part, str):
+            clean.append(part)
+            current = _field_types(current).get(part)
+        elif typing.get_origin(current) in (list, tuple, set, frozenset) and isinstance(part, int):
+            clean.append(part)
+            args = typing.get_args(current)
+            current = args[0] if args else None
+        elif typing.get_origin(current) is dict:
+            clean.append(part)
+            args = typing.get_args(current)
+            current = args[1] if len(args) == 2 else None
+        else:
+            clean.append(part)
+            current = None
+    return tuple(clean), _unwrap(current)
+
+
+def _unwrap(tp: Any) -> Any:
+    while typing.get_origin(tp) is typing.Annotated:
+        tp = typing.get_args(tp)[0]
+    members = _union_members(tp)
+    if members is not None:
+        rest = [m for m in members if m is not type(None)]
+        if len(rest) == 1:
+            return _unwrap(rest[0])
+    return tp
+
+
+def _union_members(tp: Any) -> tuple[Any, ...] | None:
+    origin = typing.get_origin(tp)
+    if origin is typing.Union or origin is types.UnionType:
+        return typing.get_args(tp)
+    return None
+
+
+def _is_model(tp: Any) -> bool:
+    return isinstance(tp, type) and issubclass(tp, BaseModel)
+
+
+def _field_types(model: type[BaseModel]) -> dict[str, Any]:
+    return {(f.alias or name): f.annotation for name, f in model.model_fields.items()}
+
+
+def _allowed_keys(tp: Any, top: bool) -> list[str]:
+    if not _is_model(tp):
+        return []
+    keys = list(_field_types(tp))
+    # 'stage' is always present in a stage entry; listing it as an option is noise.
+    return [k for k in keys if not (top and k == "stage")]
+
+
+def _fmt_loc(loc: Sequence[Any]) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+def _suggest(word: str, options: Sequence[str]) -> str:
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _short(text: str, limit: int = 60) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
