@@ -15,12 +15,16 @@
 
 ``SequenceWriter`` streams frames to disk (a long recording never sits in memory) and
 writes the index files last, atomically, so a folder is readable only once complete.
+Until then each written frame is also noted in ``<root>/.frames.journal.jsonl``, so a
+writer opened with ``resume=True`` keeps the frames of one that was killed half way.
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import json
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -318,10 +322,18 @@ class SequenceWriter:
     Images and depth maps are written as they come (each atomically); the index files
     (frames.csv, scans.npz, trajectories, meta.yaml) are written by ``close()``, meta.yaml
     last, so a folder without meta.yaml is an unfinished one.
+
+    Every frame is also appended to a journal once its files are in place. ``resume=True``
+    reads the journal of an earlier, unfinished writer on the same folder and continues
+    after its last frame (``resumed_frames``, ``last_frame_stamp``); files of frames the
+    journal does not list are removed. Only camera frames are journaled: scans,
+    trajectories, held-out views and ``extra_meta`` live in memory until ``close()`` and
+    must be given again. The caller must make sure the earlier writer converted the same
+    input with the same settings.
     """
 
     def __init__(self, root: Path | str, rig: Rig, name: str = "sequence",
-                 source: str = "", depth_format: str = "png") -> None:
+                 source: str = "", depth_format: str = "png", resume: bool = False) -> None:
         if depth_format not in ("png", "npy"):
             raise ValueError("depth_format must be 'png' (16-bit, 0.2 mm) or 'npy' (float32)")
         self.root = Path(root)
@@ -339,6 +351,26 @@ class SequenceWriter:
         self.odometry: Trajectory | None = None
         self.groundtruth_poses: Trajectory | None = None
         self.extra_meta: dict[str, Any] = {}
+        self._journal_path = self.root / JOURNAL_NAME
+        if resume:
+            self._rows = _read_journal(self._journal_path, self.root / "camera")
+            _remove_unlisted_frames(self.root, len(self._rows))
+        else:
+            self._journal_path.unlink(missing_ok=True)
+        # Rewritten (atomically) from the rows kept, which drops a torn last line.
+        atomic_write_text(self._journal_path, "".join(json.dumps(r) + "\n" for r in self._rows))
+        self._journal = self._journal_path.open("a", encoding="utf-8")
+        self.resumed_frames = len(self._rows)
+
+    @property
+    def num_frames(self) -> int:
+        """Camera frames written so far (including resumed ones)."""
+        return len(self._rows)
+
+    @property
+    def last_frame_stamp(self) -> float | None:
+        """Stamp of the last frame written, None before the first."""
+        return float(self._rows[-1]["stamp"]) if self._rows else None
 
     def add_frame(self, stamp: float, image: np.ndarray, gt_depth: np.ndarray | None = None,
                   gt_mask: np.ndarray | None = None, image_path: Path | None = None) -> int:
@@ -369,6 +401,10 @@ class SequenceWriter:
             with atomic_path(p) as tmp:
                 cv2.imwrite(str(tmp), (np.asarray(gt_mask) > 0).astype(np.uint8) * 255)
         self._rows.append(row)
+        # After the files: a journaled frame is always complete on disk. Flushed, not
+        # fsynced: this guards against a killed process, not against power loss.
+        self._journal.write(json.dumps(row) + "\n")
+        self._journal.flush()
         return i
 
     def add_scan(self, scan: LaserScan, dynamic: np.ndarray | None = None) -> None:
@@ -425,7 +461,45 @@ class SequenceWriter:
                 "source": self.source, "frames": len(self._rows), "scans": len(self._scans),
                 **self.extra_meta}
         atomic_write_text(self.root / "meta.yaml", yaml.safe_dump(meta, sort_keys=False))
+        self._journal.close()
+        self._journal_path.unlink(missing_ok=True)
         return self.root
+
+
+JOURNAL_NAME = ".frames.journal.jsonl"
+_INDEXED = re.compile(r"^(\d{6})\.[a-z]+$")
+
+
+def _read_journal(path: Path, camera_dir: Path) -> list[dict[str, str]]:
+    """Frame rows of an unfinished writer, up to the first torn line or missing file."""
+    rows: list[dict[str, str]] = []
+    if not path.exists():
+        return rows
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            row = json.loads(line)
+        except ValueError:
+            break  # killed mid-line: everything before it is whole
+        if not isinstance(row, dict) or row.get("index") != str(len(rows)):
+            break
+        files = [row.get("image"), row.get("gt_depth"), row.get("gt_mask")]
+        if not all((camera_dir / f).exists() for f in files if f):
+            break
+        rows.append({str(k): str(v) for k, v in row.items()})
+    return rows
+
+
+def _remove_unlisted_frames(root: Path, n: int) -> None:
+    """Delete per-frame files with index >= n (written after the last journaled frame),
+    which would otherwise make the folder disagree with its index."""
+    for sub in ("camera/images", "groundtruth/depth", "groundtruth/masks"):
+        d = root / sub
+        if not d.is_dir():
+            continue
+        for p in d.iterdir():
+            m = _INDEXED.match(p.name)
+            if m and int(m.group(1)) >= n:
+                p.unlink()
 
 
 def _write_rgb(path: Path, image: np.ndarray) -> None:

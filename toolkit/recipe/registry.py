@@ -13,7 +13,9 @@ import os
 from toolkit.recipe.stage import Stage
 
 # Stage type name -> "module.path:ClassName". One line per stage, alphabetical.
-STAGES: dict[str, str] = {}
+STAGES: dict[str, str] = {
+    "ingest": "toolkit.ingest.stage:IngestStage",
+}
 
 # Extra stages outside the toolkit (plugins, and the test suite's own tiny stages when it
 # drives the CLI in a subprocess): "name=module:Class,name2=module:Class2".

@@ -1,0 +1,547 @@
+"""ROS 1 / ROS 2 (sqlite3, mcap) bags written here with the rosbags writer, converted by the
+``ingest`` path, and compared exactly with what was written."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from toolkit.geometry import pose_from_xyz_quat
+from toolkit.ingest.convert import convert
+from toolkit.ingest.recording import IngestError
+from toolkit.ingest.sync import DecimateOptions, SyncOptions
+from toolkit.io.rosbag import (
+    BagError,
+    MissingTransformError,
+    RosbagOptions,
+    camera_info_to_camera,
+    image_to_rgb,
+    read_rosbag,
+)
+from toolkit.io.sequence import read_sequence
+
+T0 = 1_700_000_000  # seconds: real bags carry Unix time
+W, H = 32, 24
+K = np.array([[40.0, 0.0, 15.5], [0.0, 41.0, 11.5], [0.0, 0.0, 1.0]])
+D = np.array([0.1, -0.05, 0.001, -0.002, 0.01])
+Q_OPTICAL = [0.5, -0.5, 0.5, -0.5]  # camera_link (x forward) <- optical (z forward)
+
+# The rig the bags describe in tf_static.
+T_BASE_CAMLINK = pose_from_xyz_quat(np.array([0.2, 0.05, 0.4]), np.array([0, 0.0998, 0, 0.995]))
+T_CAMLINK_OPT = pose_from_xyz_quat(np.zeros(3), np.array(Q_OPTICAL))
+T_BASE_LASER = pose_from_xyz_quat(np.array([0.1, 0.0, 0.25]), np.array([0, 0, 0.3827, 0.9239]))
+
+
+def ns(t: float) -> int:
+    return int(round(t * 1e9))
+
+
+@dataclass
+class BagContent:
+    """What a test bag holds: the truth the conversion is compared with."""
+
+    scan_t: list[float] = field(default_factory=list)
+    ranges: list[np.ndarray] = field(default_factory=list)
+    intensities: list[np.ndarray] = field(default_factory=list)
+    image_t: list[float] = field(default_factory=list)
+    images: list[np.ndarray] = field(default_factory=list)  # RGB
+    depth_t: list[float] = field(default_factory=list)
+    depth_mm: list[np.ndarray] = field(default_factory=list)
+    odom_t: list[float] = field(default_factory=list)
+    odom_xy: list[tuple[float, float]] = field(default_factory=list)
+
+
+def make_content(n_scans: int = 20, n_images: int = 8, seed: int = 0) -> BagContent:
+    rng = np.random.default_rng(seed)
+    c = BagContent()
+    for i in range(n_scans):
+        c.scan_t.append(T0 + 0.1 * i)
+        r = rng.uniform(0.2, 9.0, 90).astype(np.float32)
+        r[::17] = np.nan
+        r[5] = np.inf
+        c.ranges.append(r)
+        c.intensities.append(rng.uniform(0, 100, 90).astype(np.float32))
+    for i in range(n_images):
+        c.image_t.append(T0 + 0.013 + 0.2 * i)
+        c.images.append(rng.integers(0, 256, (H, W, 3), dtype=np.uint8))
+        c.depth_t.append(T0 + 0.016 + 0.2 * i)
+        c.depth_mm.append(rng.integers(0, 9000, (H, W), dtype=np.uint16))
+    for i in range(2 * n_scans):
+        c.odom_t.append(T0 + 0.05 * i)
+        c.odom_xy.append((0.1 * i, 0.02 * i))
+    return c
+
+
+class BagBuilder:
+    """Serialise messages for one typestore (ROS 1 noetic or ROS 2 humble)."""
+
+    def __init__(self, ros1: bool) -> None:
+        self.ros1 = ros1
+        self.ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        if "tf2_msgs/msg/TFMessage" not in self.ts.types:  # noetic's store lacks tf2_msgs
+            self.ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                                "tf2_msgs/msg/TFMessage"))
+        self.T = self.ts.types
+
+    def header(self, t: float, frame: str):
+        stamp = self.T["builtin_interfaces/msg/Time"](sec=int(ns(t) // 10**9),
+                                                      nanosec=int(ns(t) % 10**9))
+        if self.ros1:
+            return self.T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
+        return self.T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def serialize(self, msg, msgtype: str) -> bytes:
+        if self.ros1:
+            return self.ts.serialize_ros1(msg, msgtype)
+        return self.ts.serialize_cdr(msg, msgtype)
+
+    def scan(self, t, ranges, inten, frame="laser"):
+        return self.T["sensor_msgs/msg/LaserScan"](
+            header=self.header(t, frame), angle_min=-1.5, angle_max=-1.5 + 89 * 0.0349,
+            angle_increment=0.0349, time_increment=0.0, scan_time=0.1, range_min=0.1,
+            range_max=10.0, ranges=ranges, intensities=inten)
+
+    def image(self, t, pixels: np.ndarray, encoding: str, frame="camera_optical",
+              width=None, height=None, step=None):
+        h, w = pixels.shape[:2]
+        row = pixels.reshape(h, -1).shape[1] * pixels.itemsize
+        return self.T["sensor_msgs/msg/Image"](
+            header=self.header(t, frame), height=height or h, width=width or w,
+            encoding=encoding, is_bigendian=0, step=step or row,
+            data=np.frombuffer(pixels.tobytes(), np.uint8).copy())
+
+    def compressed(self, t, data: bytes, fmt: str, frame="camera_optical"):
+        return self.T["sensor_msgs/msg/CompressedImage"](
+            header=self.header(t, frame), format=fmt, data=np.frombuffer(data, np.uint8).copy())
+
+    def camera_info(self, t, w=W, h=H, frame="camera_optical", model="plumb_bob", d=D):
+        roi = self.T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0,
+                                                         width=0, do_rectify=False)
+        P = np.zeros(12)
+        P[[0, 2, 5, 6, 10]] = [K[0, 0], K[0, 2], K[1, 1], K[1, 2], 1.0]
+        fields = dict(header=self.header(t, frame), height=h, width=w, distortion_model=model,
+                      binning_x=0, binning_y=0, roi=roi)
+        mats = {"D": np.asarray(d, float), "K": K.reshape(-1), "R": np.eye(3).reshape(-1),
+                "P": P}
+        for key, v in mats.items():
+            fields[key if self.ros1 else key.lower()] = v
+        return self.T["sensor_msgs/msg/CameraInfo"](**fields)
+
+    def transform(self, t, parent, child, T):
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        V = self.T["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3])
+        Q = self.T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])
+        return self.T["geometry_msgs/msg/TransformStamped"](
+            header=self.header(t, parent), child_frame_id=child,
+            transform=self.T["geometry_msgs/msg/Transform"](translation=V, rotation=Q))
+
+    def tf(self, transforms):
+        return self.T["tf2_msgs/msg/TFMessage"](transforms=transforms)
+
+    def odom(self, t, x, y):
+        P = self.T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0)
+        Q = self.T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+        pose = self.T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=self.T["geometry_msgs/msg/Pose"](position=P, orientation=Q),
+            covariance=np.zeros(36))
+        V = self.T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+        tw = self.T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=self.T["geometry_msgs/msg/Twist"](linear=V, angular=V), covariance=np.zeros(36))
+        return self.T["nav_msgs/msg/Odometry"](header=self.header(t, "odom"),
+                                               child_frame_id="base_link", pose=pose, twist=tw)
+
+
+SCAN_T = "sensor_msgs/msg/LaserScan"
+IMAGE_T = "sensor_msgs/msg/Image"
+COMP_T = "sensor_msgs/msg/CompressedImage"
+INFO_T = "sensor_msgs/msg/CameraInfo"
+TF_T = "tf2_msgs/msg/TFMessage"
+ODOM_T = "nav_msgs/msg/Odometry"
+
+
+def standard_messages(b: BagBuilder, c: BagContent, *, image="raw", depth=True, tf=True,
+                      info=True, odom=True, encoding="rgb8"):
+    """(topic, type, bag time, message) of a bag with everything the reader handles."""
+    out = []
+    if tf:
+        out.append(("/tf_static", TF_T, T0 - 1.0, b.tf([
+            b.transform(T0, "base_link", "camera_link", T_BASE_CAMLINK),
+            b.transform(T0, "camera_link", "camera_optical", T_CAMLINK_OPT),
+            b.transform(T0, "/base_link", "laser", T_BASE_LASER)])))
+    for t, r, inten in zip(c.scan_t, c.ranges, c.intensities, strict=True):
+        out.append(("/scan", SCAN_T, t + 0.004, b.scan(t, r, inten)))
+    for i, t in enumerate(c.image_t):
+        rgb = c.images[i]
+        if image == "raw":
+            px = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": rgb[..., :1]}[encoding]
+            out.append(("/camera/color/image_raw", IMAGE_T, t + 0.03,
+                        b.image(t, np.ascontiguousarray(px), encoding)))
+        else:
+            ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            assert ok
+            out.append(("/camera/color/image_raw/compressed", COMP_T, t + 0.03,
+                        b.compressed(t, buf.tobytes(), "rgb8; png compressed bgr8")))
+        if info:
+            out.append(("/camera/color/camera_info", INFO_T, t + 0.031, b.camera_info(t)))
+    if depth:
+        for t, d in zip(c.depth_t, c.depth_mm, strict=True):
+            out.append(("/camera/aligned_depth_to_color/image_raw", IMAGE_T, t + 0.035,
+                        b.image(t, d, "16UC1")))
+    if odom:
+        for t, (x, y) in zip(c.odom_t, c.odom_xy, strict=True):
+            out.append(("/odom", ODOM_T, t + 0.001, b.odom(t, x, y)))
+            out.append(("/tf", TF_T, t + 0.001, b.tf([b.transform(
+                t, "odom", "base_link", pose_from_xyz_quat(np.array([x, y, 0.0]),
+                                                           np.array([0, 0, 0, 1.0])))])))
+    return sorted(out, key=lambda m: m[2])
+
+
+def write_bag(path: Path, fmt: str, messages) -> Path:
+    """Write ``messages`` as a ROS 1 bag or a ROS 2 bag (sqlite3 / mcap) at ``path``."""
+    b = BagBuilder(fmt == "ros1")
+    if fmt == "ros1":
+        path = path.with_suffix(".bag")
+        with Writer1(path) as w:
+            conns = {}
+            for topic, msgtype, t, msg in messages:
+                if topic not in conns:
+                    conns[topic] = w.add_connection(topic, msgtype, typestore=b.ts)
+                w.write(conns[topic], ns(t), b.serialize(msg, msgtype))
+        return path
+    plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
+    with Writer2(path, version=9, storage_plugin=plugin) as w:
+        conns = {}
+        for topic, msgtype, t, msg in messages:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=b.ts)
+            w.write(conns[topic], ns(t), b.serialize(msg, msgtype))
+    return path
+
+
+def make_bag(tmp_path: Path, fmt: str, content: BagContent | None = None, name="run",
+             **kw) -> tuple[Path, BagContent]:
+    c = content or make_content()
+    b = BagBuilder(fmt == "ros1")
+    return write_bag(tmp_path / name, fmt, standard_messages(b, c, **kw)), c
+
+
+FORMATS = ["ros1", "sqlite3", "mcap"]
+
+
+# ---------------------------------------------------------------------------- exact round trip
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_bag_converts_exactly(tmp_path, fmt):
+    bag, c = make_bag(tmp_path, fmt)
+    rec = read_rosbag(bag)
+    result = convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+
+    # scans: stamps and ranges bit for bit, intensities, angles
+    assert len(seq.scans) == len(c.scan_t)
+    for s, t, r, inten in zip(seq.scans, c.scan_t, c.ranges, c.intensities, strict=True):
+        assert s.stamp == ns(t) / 1e9
+        assert s.ranges.tobytes() == r.tobytes()
+        assert s.intensities.tobytes() == inten.tobytes()
+        assert s.angle_min == np.float32(-1.5) and s.angle_increment == np.float32(0.0349)
+        assert (s.range_min, s.range_max) == (np.float32(0.1), np.float32(10.0))
+    # images bit for bit, stamps exact
+    assert len(seq.frames) == len(c.image_t) == result.frames
+    for f, t, rgb in zip(seq.frames, c.image_t, c.images, strict=True):
+        assert f.stamp == ns(t) / 1e9
+        assert np.array_equal(f.image, rgb)
+    # registered depth -> reference depth, exact in millimetres
+    for i, mm in enumerate(c.depth_mm):
+        got = seq.groundtruth.depth(i)
+        assert np.array_equal(np.round(got * 1000).astype(np.uint16), mm)
+    # intrinsics and distortion
+    cam = seq.rig.camera
+    assert np.array_equal(cam.K, K) and np.array_equal(cam.dist, D)
+    assert cam.size == (W, H)
+    # extrinsics from tf_static (through camera_link -> camera_optical)
+    np.testing.assert_allclose(seq.rig.T_base_camera, T_BASE_CAMLINK @ T_CAMLINK_OPT,
+                               atol=1e-12)
+    np.testing.assert_allclose(seq.rig.T_base_laser, T_BASE_LASER, atol=1e-12)
+    # odometry
+    assert seq.odometry is not None and len(seq.odometry) == len(c.odom_t)
+    np.testing.assert_allclose(seq.odometry.positions[:, :2], np.array(c.odom_xy), atol=1e-12)
+    assert seq.meta["has_camera"] is True
+    assert seq.meta["topics"]["image"] == "/camera/color/image_raw"
+    assert result.plan.dropped == {"no_scan": 0, "no_depth": 0}
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_compressed_images_and_summary(tmp_path, fmt, caplog):
+    bag, c = make_bag(tmp_path, fmt, image="compressed", depth=False)
+    with caplog.at_level(logging.INFO, logger="toolkit"):
+        rec = read_rosbag(bag)
+    table = caplog.text
+    assert "/camera/color/image_raw/compressed" in table and "image (rgb8; png" in table
+    assert "/scan" in table and "20" in table and "rate Hz" in table
+    convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    for f, rgb in zip(seq.frames, c.images, strict=True):
+        assert np.array_equal(f.image, rgb)  # png is lossless
+    assert seq.groundtruth is None or seq.groundtruth.depth_paths is None
+
+
+@pytest.mark.parametrize("encoding", ["bgr8", "mono8"])
+def test_other_encodings(tmp_path, encoding):
+    bag, c = make_bag(tmp_path, "sqlite3", depth=False, encoding=encoding)
+    convert(read_rosbag(bag), tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    want = c.images[0] if encoding == "bgr8" else np.repeat(c.images[0][..., :1], 3, axis=2)
+    assert np.array_equal(seq.frames[0].image, want)
+
+
+def test_image_row_padding_and_camera_info_fields():
+    b = BagBuilder(ros1=False)
+    rgb = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3)
+    padded = np.zeros((4, 16), np.uint8)
+    padded[:, :15] = rgb.reshape(4, 15)
+    msg = b.image(0.0, padded, "rgb8", width=5, height=4, step=16)
+    assert np.array_equal(image_to_rgb(msg), rgb)
+    cam = camera_info_to_camera(b.camera_info(0.0))
+    assert np.array_equal(cam.K, K) and np.array_equal(cam.dist, D)
+    rect = camera_info_to_camera(b.camera_info(0.0), rectified=True)
+    assert not rect.has_distortion and rect.fx == K[0, 0]
+
+
+def test_lidar_only_bag(tmp_path):
+    c = make_content()
+    b = BagBuilder(ros1=True)
+    msgs = [m for m in standard_messages(b, c, depth=False, info=False)
+            if not m[0].startswith("/camera")]
+    bag = write_bag(tmp_path / "lidar", "ros1", msgs)
+    convert(read_rosbag(bag), tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert seq.frames == [] and len(seq.scans) == 20
+    assert seq.meta["has_camera"] is False
+
+
+# ---------------------------------------------------------------------------- sync, decimation
+
+
+def test_sync_drops_frames_without_partner_and_decimates(tmp_path):
+    c = make_content(n_scans=10, n_images=8)  # scans cover [T0, T0 + 0.9]
+    bag, _ = make_bag(tmp_path, "sqlite3", content=c)
+    rec = read_rosbag(bag)
+    res = convert(rec, tmp_path / "a", sync=SyncOptions(tolerance_s=0.05))
+    # images at T0 + 0.013 + 0.2 i: those after the last scan (+0.05) have no partner
+    assert res.plan.dropped["no_scan"] == 3 and res.frames == 5
+    seq = read_sequence(tmp_path / "a")
+    assert seq.meta["ingest"]["dropped_no_scan"] == 3
+    assert "dropped for lack of a scan within tolerance: 3" in res.summary()
+
+    res = convert(rec, tmp_path / "b", sync=SyncOptions(tolerance_s=0.05, depth_tolerance_s=0.001))
+    assert res.plan.dropped["no_depth"] == 5 and res.frames == 0
+
+    res = convert(rec, tmp_path / "c", decimate=DecimateOptions(by="time", min_interval_s=0.35))
+    assert res.frames == 3 and res.plan.decimated == 2  # keeps 0.013, 0.413, 0.813
+    # odometry moves 0.1 m per 0.05 s = 2 m/s: 0.2 s between frames is 0.4 m
+    res = convert(rec, tmp_path / "d",
+                  decimate=DecimateOptions(by="motion", min_translation_m=0.7,
+                                           min_rotation_deg=90))
+    assert res.frames == 3
+
+
+def test_resume_keeps_converted_frames(tmp_path):
+    bag, c = make_bag(tmp_path, "mcap")
+    rec = read_rosbag(bag)
+    out = tmp_path / "seq"
+
+    class Stop(Exception):
+        pass
+
+    def stop_after(n):
+        def progress(it, total=None, description=""):
+            for k, x in enumerate(it):
+                if k == n:
+                    raise Stop
+                yield x
+        return progress
+
+    with pytest.raises(Stop):
+        convert(rec, out, progress=stop_after(3))
+    assert not (out / "meta.yaml").exists()
+    assert len(list((out / "camera" / "images").glob("*.png"))) == 3
+
+    decoded = []
+    real_load = rec.load
+
+    def counting(pairs):
+        decoded.append(len(pairs))
+        return real_load(pairs)
+
+    rec.load = counting
+    res = convert(rec, out)
+    assert decoded == [len(c.image_t) - 3] and res.frames_resumed == 3
+    seq = read_sequence(out)
+    assert [f.stamp for f in seq.frames] == [ns(t) / 1e9 for t in c.image_t]
+    for f, rgb in zip(seq.frames, c.images, strict=True):
+        assert np.array_equal(f.image, rgb)
+
+
+# ---------------------------------------------------------------------------- errors
+
+
+def test_missing_transform_names_frames_and_fix(tmp_path):
+    c = make_content()
+    b = BagBuilder(ros1=False)
+    msgs = [m for m in standard_messages(b, c) if m[0] != "/tf_static"]
+    bag = write_bag(tmp_path / "notf", "sqlite3", msgs)
+    with pytest.raises(MissingTransformError) as e:
+        read_rosbag(bag)
+    msg = str(e.value)
+    assert "'base_link'" in msg and "'camera_optical'" in msg and "calibration" in msg
+    assert "T_base_camera" in msg and "quat_xyzw" in msg
+
+    # the fix it names works: tf style and matrix style
+    calib = tmp_path / "calib.yaml"
+    q = [float(v) for v in __import__("toolkit.geometry", fromlist=["x"]).pose_to_xyz_quat(
+        T_BASE_CAMLINK @ T_CAMLINK_OPT)[1]]
+    calib.write_text(yaml.safe_dump({
+        "T_base_camera": {"parent": "base_link", "child": "camera_optical",
+                          "xyz": (T_BASE_CAMLINK @ T_CAMLINK_OPT)[:3, 3].tolist(),
+                          "quat_xyzw": q},
+        "T_base_laser": T_BASE_LASER.tolist()}))
+    rec = read_rosbag(bag, RosbagOptions(calibration=str(calib)))
+    np.testing.assert_allclose(rec.rig.T_base_camera, T_BASE_CAMLINK @ T_CAMLINK_OPT, atol=1e-9)
+    np.testing.assert_allclose(rec.rig.T_base_laser, T_BASE_LASER, atol=1e-12)
+
+    # a rig.yaml written by the toolkit is a calibration file too
+    from toolkit.io.sequence import write_rig
+
+    write_rig(tmp_path / "rig.yaml", rec.rig)
+    rec2 = read_rosbag(bag, RosbagOptions(calibration=str(tmp_path / "rig.yaml")))
+    np.testing.assert_array_equal(rec2.rig.T_base_laser, rec.rig.T_base_laser)
+    assert rec2.rig.camera == rec.rig.camera
+
+    # a reversed tf-style entry is caught
+    calib.write_text(yaml.safe_dump({
+        "T_base_laser": {"parent": "laser", "child": "base_link", "xyz": [0, 0, 0],
+                         "quat_xyzw": [0, 0, 0, 1]},
+        "T_base_camera": T_BASE_CAMLINK.tolist()}))
+    with pytest.raises(BagError, match="reversed"):
+        read_rosbag(bag, RosbagOptions(calibration=str(calib)))
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_truncated_bag_is_named_with_repair_hint(tmp_path, fmt):
+    bag, _ = make_bag(tmp_path, fmt)
+    target = bag if fmt == "ros1" else next(p for p in bag.iterdir()
+                                            if p.suffix in (".db3", ".mcap"))
+    data = target.read_bytes()
+    target.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BagError) as e:
+        rec = read_rosbag(bag)
+        convert(rec, tmp_path / "seq")
+    msg = str(e.value)
+    assert str(bag) in msg
+    assert {"ros1": "rosbag reindex", "sqlite3": ".recover", "mcap": "mcap recover"}[fmt] in msg
+
+
+def test_garbage_and_missing_metadata(tmp_path):
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"not a bag at all" * 50)
+    with pytest.raises(BagError, match="cannot open"):
+        read_rosbag(junk)
+    bag, _ = make_bag(tmp_path, "sqlite3")
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(BagError, match="ros2 bag reindex"):
+        read_rosbag(bag)
+
+
+def test_unknown_encoding(tmp_path):
+    c = make_content(n_images=2)
+    b = BagBuilder(ros1=False)
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/camera/color/image_raw"]
+    msgs += [("/camera/color/image_raw", IMAGE_T, c.image_t[0] + 0.03,
+              b.image(c.image_t[0], np.zeros((H, W * 2), np.uint8), "yuv422"))]
+    bag = write_bag(tmp_path / "yuv", "sqlite3", sorted(msgs, key=lambda m: m[2]))
+    with pytest.raises(BagError) as e:
+        read_rosbag(bag)
+    assert "/camera/color/image_raw" in str(e.value) and "'encoding'" in str(e.value)
+    assert "yuv422" in str(e.value) and "rgb8" in str(e.value)
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "sqlite3"])
+def test_non_monotonic_stamps(tmp_path, fmt):
+    c = make_content()
+    b = BagBuilder(fmt == "ros1")
+    msgs = standard_messages(b, c)
+    # scans 7 and 8 recorded in order, but with their header stamps swapped
+    at = [i for i, m in enumerate(msgs) if m[0] == "/scan"][7:9]
+    (t7, m7), (t8, m8) = [(msgs[i][2], msgs[i][3]) for i in at]
+    msgs[at[0]] = ("/scan", SCAN_T, t7, m8)
+    msgs[at[1]] = ("/scan", SCAN_T, t8, m7)
+    bag = write_bag(tmp_path / "nm", fmt, msgs)
+    with pytest.raises(IngestError) as e:
+        read_rosbag(bag)
+    msg = str(e.value)
+    assert "/scan" in msg and "message 8" in msg and "on_non_monotonic: drop" in msg
+    rec = read_rosbag(bag, on_non_monotonic="drop")
+    assert len(rec.scans) == 19 and rec.dropped["/scan"] == 1
+    res = convert(rec, tmp_path / "seq")
+    assert res.metrics()["messages_dropped_non_monotonic"] == 1
+    # the recording time is monotonic by construction
+    assert len(read_rosbag(bag, RosbagOptions(stamps="bag")).scans) == 20
+
+
+def test_image_size_differs_from_camera_info(tmp_path):
+    c = make_content(n_images=3)
+    b = BagBuilder(ros1=True)
+    msgs = [m if m[1] != INFO_T else (m[0], m[1], m[2], b.camera_info(c.image_t[0], w=64, h=48))
+            for m in standard_messages(b, c)]
+    bag = write_bag(tmp_path / "size", "ros1", msgs)
+    with pytest.raises(BagError) as e:
+        read_rosbag(bag)
+    msg = str(e.value)
+    assert "32x24" in msg and "64x48" in msg and "/camera/color/camera_info" in msg
+    assert "width/height" in msg and "calibration" in msg
+
+
+def test_ambiguous_topics_are_listed(tmp_path):
+    c = make_content(n_images=2)
+    b = BagBuilder(ros1=False)
+    msgs = standard_messages(b, c)
+    msgs += [("/scan_rear", SCAN_T, t + 0.005, b.scan(t, r, i))
+             for t, r, i in zip(c.scan_t, c.ranges, c.intensities, strict=True)]
+    bag = write_bag(tmp_path / "two", "sqlite3", sorted(msgs, key=lambda m: m[2]))
+    # "/scan" is the conventional name and wins
+    assert read_rosbag(bag).meta["topics"]["scan"] == "/scan"
+    rec = read_rosbag(bag, RosbagOptions(topics={"scan": "/scan_rear"}))
+    assert rec.meta["topics"]["scan"] == "/scan_rear"
+    with pytest.raises(BagError, match="not in the bag"):
+        read_rosbag(bag, RosbagOptions(topics={"scan": "/nope"}))
+    shutil.rmtree(bag)
+
+
+def test_depth_encodings():
+    from toolkit.io.rosbag import compressed_to_depth, image_to_depth
+
+    b = BagBuilder(ros1=False)
+    m = np.array([[0.0, 1.5], [np.nan, 2.25]], np.float32)
+    d = image_to_depth(b.image(0.0, m, "32FC1"))
+    assert d.dtype == np.float32 and d.tolist() == [[0.0, 1.5], [0.0, 2.25]]
+    mm = np.array([[0, 1234], [65535, 7]], np.uint16)
+    ok, png = cv2.imencode(".png", mm)
+    header = np.array([0], "<i4").tobytes() + np.array([0.0, 0.0], "<f4").tobytes()
+    msg = b.compressed(0.0, header + png.tobytes(), "16UC1; compressedDepth png")
+    np.testing.assert_array_equal(compressed_to_depth(msg), mm.astype(np.float32) / 1000)
+    with pytest.raises(BagError, match="'format'"):
+        compressed_to_depth(b.compressed(0.0, png.tobytes(), "16UC1; compressedDepth rvl"))

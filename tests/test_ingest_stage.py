@@ -1,0 +1,257 @@
+"""The ``ingest`` recipe stage end to end, the CARMEN / sequence sources, and the pure sync
+helpers."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from test_ingest_rosbag import make_bag, ns
+
+from toolkit.ingest.convert import convert
+from toolkit.ingest.recording import IngestError, uniform_scans
+from toolkit.ingest.stage import IngestConfig, IngestStage, read_sequence_recording
+from toolkit.ingest.sync import (
+    DecimateOptions,
+    SyncOptions,
+    decimate_by_time,
+    match_nearest,
+    plan_frames,
+    stamps_keep,
+)
+from toolkit.io.carmen_ingest import CarmenOptions, read_carmen_recording
+from toolkit.io.rosbag import read_rosbag
+from toolkit.io.sequence import SequenceWriter, read_sequence
+from toolkit.recipe import RecipeError, load_recipe, registry, run_recipe
+from toolkit.sensors import LaserScan
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def ingest_registered() -> Iterator[None]:
+    # The lead adds "ingest" to registry.STAGES; until then the tests register it.
+    registry.register("ingest", IngestStage)
+    yield
+    registry.unregister("ingest")
+
+
+def recipe(tmp_path: Path, **ingest) -> Path:
+    data = {"name": "ingest_test", "output": str(tmp_path / "out"),
+            "stages": [{"stage": "ingest", **ingest}]}
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+# ---------------------------------------------------------------------------- the stage
+
+
+def test_stage_converts_caches_and_reruns_on_a_changed_bag(tmp_path):
+    bag, c = make_bag(tmp_path, "sqlite3")
+    path = recipe(tmp_path, source="rosbag", path=str(bag))
+    res = run_recipe(load_recipe(path))
+    assert res.ok, res.error
+    m = res.metrics["ingest"]
+    assert m["frames"] == len(c.image_t) and m["scans"] == len(c.scan_t)
+    assert m["frames_dropped_no_scan"] == 0
+    seq = read_sequence(res.run_dir / "ingest" / "sequence")
+    assert len(seq.frames) == len(c.image_t)
+    report = (res.run_dir / "report.md").read_text()
+    assert "dropped: no scan within tolerance" in report
+    log = (res.run_dir / "run.log").read_text()
+    assert "/camera/color/image_raw" in log and "rate Hz" in log and "sync plan" in log
+
+    assert run_recipe(load_recipe(path)).statuses == {"ingest": "cached"}
+    db = next(bag.glob("*.db3"))
+    st = db.stat()
+    os.utime(db, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert run_recipe(load_recipe(path)).statuses == {"ingest": "ran"}
+
+
+def test_stage_resumes_after_a_failure(tmp_path, monkeypatch):
+    bag, c = make_bag(tmp_path, "ros1")
+    path = recipe(tmp_path, source="rosbag", path=str(bag))
+    real = SequenceWriter.add_frame
+
+    def failing(self, *a, **kw):
+        if self.num_frames == 3:
+            raise OSError("disk full")
+        return real(self, *a, **kw)
+
+    monkeypatch.setattr(SequenceWriter, "add_frame", failing)
+    res = run_recipe(load_recipe(path))
+    assert not res.ok and "disk full" in res.error
+    monkeypatch.setattr(SequenceWriter, "add_frame", real)
+    res = run_recipe(load_recipe(path))
+    assert res.ok and res.metrics["ingest"]["frames_resumed"] == 3
+    seq = read_sequence(res.run_dir / "ingest" / "sequence")
+    assert [f.stamp for f in seq.frames] == [ns(t) / 1e9 for t in c.image_t]
+    for f, img in zip(seq.frames, c.images, strict=True):
+        assert np.array_equal(f.image, img)
+
+    # other settings: the partial folder is not resumed into
+    res = run_recipe(load_recipe(path, ["ingest.decimate.by=time"]))
+    assert res.ok and res.metrics["ingest"]["frames_resumed"] == 0
+
+
+def test_stage_errors_are_readable(tmp_path):
+    bag, _ = make_bag(tmp_path, "mcap", tf=False)
+    res = run_recipe(load_recipe(recipe(tmp_path, source="rosbag", path=str(bag))))
+    assert not res.ok
+    assert "T_base_camera" in res.error and "calibration" in res.error
+
+    with pytest.raises(RecipeError, match="'tum_rgbd' options are given but source is"):
+        load_recipe(recipe(tmp_path, source="rosbag", path="x.bag", tum_rgbd={}))
+    with pytest.raises(RecipeError, match="decimate"):
+        load_recipe(recipe(tmp_path, source="rosbag", path="x.bag", decimate={"by": "space"}))
+
+
+def test_from_rosbag_recipe_documents_a_valid_ingest_stage():
+    data = yaml.safe_load((REPO / "recipes" / "from_rosbag.yaml").read_text())
+    ingest = next(s for s in data["stages"] if s["stage"] == "ingest")
+    cfg = IngestConfig.model_validate(ingest)
+    assert cfg.source == "rosbag" and cfg.rosbag is not None
+
+
+# ---------------------------------------------------------------------------- other sources
+
+
+def write_flaser_log(path: Path, n: int = 6, beams: int = 180) -> list[np.ndarray]:
+    rng = np.random.default_rng(3)
+    lines, ranges = ["# CARMEN log", "PARAM robot_frontlaser_offset 0.1 nohost 0 0"], []
+    for i in range(n):
+        r = np.round(rng.uniform(0.5, 20.0, beams), 2)
+        r[4] = 0.0  # CARMEN's "no reading"
+        ranges.append(r)
+        t = 1000.0 + 0.2 * i
+        lines.append(f"ODOM {0.1 * i} 0 0 0 0 0 {t - 0.05} host {t}")
+        values = " ".join(f"{v:g}" for v in r)
+        lines.append(f"FLASER {beams} {values} {0.1 * i + 0.1:g} 0 0 {0.1 * i:g} 0 0 {t!r} "
+                     f"host {t!r}")
+    path.write_text("\n".join(lines) + "\n")
+    return ranges
+
+
+def test_carmen_log_is_a_lidar_only_sequence(tmp_path):
+    log = tmp_path / "intel.log"
+    ranges = write_flaser_log(log)
+    rec = read_carmen_recording(log)
+    res = convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert seq.frames == [] and seq.meta["has_camera"] is False and res.frames == 0
+    assert len(seq.scans) == 6
+    for s, r in zip(seq.scans, ranges, strict=True):
+        want = r.astype(np.float32)
+        want[want <= 0] = np.nan
+        np.testing.assert_array_equal(s.ranges, want)
+        assert s.angle_min == pytest.approx(-np.pi / 2)
+    assert seq.odometry is not None and len(seq.odometry) == 6  # raw log: scan odometry
+    assert seq.groundtruth is None or seq.groundtruth.poses_base is None
+
+    corrected = tmp_path / "intel-corrected.log"
+    corrected.write_text(log.read_text())
+    rec = read_carmen_recording(corrected)
+    assert rec.odometry is None and rec.groundtruth is not None
+    assert "not surveyed" in rec.meta["groundtruth"]
+    rec = read_carmen_recording(corrected, CarmenOptions(odometry="odom_lines"))
+    assert len(rec.odometry) == 6
+
+
+def test_carmen_stage(tmp_path):
+    log = tmp_path / "aces.log"
+    write_flaser_log(log)
+    res = run_recipe(load_recipe(recipe(tmp_path, source="carmen", path=str(log))))
+    assert res.ok, res.error
+    assert res.metrics["ingest"]["scans"] == 6 and res.metrics["ingest"]["frames"] == 0
+
+
+def test_sequence_source_decimates_a_copy(tmp_path):
+    bag, c = make_bag(tmp_path, "sqlite3")
+    convert(read_rosbag(bag), tmp_path / "a")
+    rec = read_sequence_recording(tmp_path / "a")
+    res = convert(rec, tmp_path / "b", decimate=DecimateOptions(by="time", min_interval_s=0.39))
+    a, b = read_sequence(tmp_path / "a"), read_sequence(tmp_path / "b")
+    assert res.frames == 4 and [f.stamp for f in b.frames] == [f.stamp for f in a.frames[::2]]
+    for fa, fb in zip(a.frames[::2], b.frames, strict=True):
+        assert np.array_equal(fa.image, fb.image)
+    assert np.array_equal(b.groundtruth.depth(1), a.groundtruth.depth(2))
+    assert np.stack([s.ranges for s in a.scans]).tobytes() == \
+        np.stack([s.ranges for s in b.scans]).tobytes()
+    assert b.meta["has_camera"] is True and b.meta["topics"] == a.meta["topics"]
+
+
+# ---------------------------------------------------------------------------- sync helpers
+
+
+def test_match_nearest_and_tolerance():
+    ref = np.array([0.0, 1.0, 2.0])
+    q = np.array([-0.2, 0.4, 0.5, 0.6, 2.04, 3.0])
+    assert match_nearest(q, ref, 0.1).tolist() == [-1, -1, -1, -1, 2, -1]
+    assert match_nearest(q, ref, 0.5).tolist() == [0, 0, 0, 1, 2, -1]  # tie -> earlier
+    assert match_nearest(q, np.array([]), 1.0).tolist() == [-1] * 6
+    assert match_nearest(np.array([5.0]), np.array([4.9]), 0.2).tolist() == [0]
+
+
+def test_stamps_keep_and_decimation():
+    st = np.array([0.0, 0.1, 0.1, 0.05, 0.3])
+    with pytest.raises(IngestError, match=r"topic /x: stamps are not monotonic: message 2 "):
+        stamps_keep(st, "topic /x", "error")
+    assert stamps_keep(st, "x", "drop").tolist() == [True, True, False, False, True]
+    assert decimate_by_time(np.arange(0, 1.01, 0.1), 0.25).tolist() == [
+        True, False, False, True, False, False, True, False, False, True, False]
+
+
+def test_plan_counts_each_reason():
+    frames = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    scans = np.array([0.01, 1.02, 1.49, 2.0])
+    depth = np.array([0.0, 1.0, 1.6])
+    p = plan_frames(frames, scans, depth, SyncOptions(tolerance_s=0.05, depth_tolerance_s=0.02),
+                    DecimateOptions())
+    assert p.frames.tolist() == [0, 2] and p.depth.tolist() == [0, 1]
+    assert p.dropped == {"no_scan": 1, "no_depth": 2}
+    with pytest.raises(IngestError, match="decimate.by: motion needs poses"):
+        plan_frames(frames, scans, None, SyncOptions(), DecimateOptions(by="motion"))
+
+
+def test_uniform_scans_resamples_odd_layouts():
+    a = LaserScan(0.0, np.arange(5, dtype=np.float32), -1.0, 0.5)
+    b = LaserScan(1.0, np.arange(3, dtype=np.float32) + 10, -0.5, 0.5)  # narrower layout
+    c = LaserScan(2.0, np.arange(5, dtype=np.float32), -1.0, 0.5)
+    out, n = uniform_scans([a, b, c])
+    assert n == 1 and [len(s) for s in out] == [5, 5, 5]
+    # bearings -1 and 1 lie outside b's span: no return there, never an invented range
+    np.testing.assert_array_equal(out[1].ranges, [np.nan, 10, 11, 12, np.nan])
+    assert out[0] is a and out[2] is c
+
+
+def test_sequence_writer_resume_mode(tmp_path):
+    from toolkit.camera import PinholeCamera
+    from toolkit.io.sequence import JOURNAL_NAME
+    from toolkit.sensors import Rig
+
+    rig = Rig(PinholeCamera.from_fov(8, 6, 60.0))
+    img = np.zeros((6, 8, 3), np.uint8)
+    w = SequenceWriter(tmp_path / "s", rig)
+    for k in range(3):
+        w.add_frame(float(k), img + k, gt_depth=np.full((6, 8), 1.0 + k, np.float32))
+    w._journal.close()  # killed: no close(); then a torn line and a frame never journaled
+    with open(tmp_path / "s" / JOURNAL_NAME, "a") as fh:
+        fh.write('{"index": "3", "sta')
+    (tmp_path / "s/camera/images/000003.png").write_bytes(b"half a png")
+
+    w = SequenceWriter(tmp_path / "s", rig, resume=True)
+    assert w.resumed_frames == 3 and w.last_frame_stamp == 2.0
+    assert not (tmp_path / "s/camera/images/000003.png").exists()
+    w.add_frame(3.0, img + 3, gt_depth=np.full((6, 8), 4.0, np.float32))
+    w.add_scan(LaserScan(0.0, np.ones(4, np.float32), -1.0, 0.5))
+    w.close()
+    assert not (tmp_path / "s" / JOURNAL_NAME).exists()
+    seq = read_sequence(tmp_path / "s")
+    assert [f.stamp for f in seq.frames] == [0.0, 1.0, 2.0, 3.0]
+    assert [float(seq.groundtruth.depth(k)[0, 0]) for k in range(4)] == [1.0, 2.0, 3.0, 4.0]
+    assert np.array_equal(seq.frames[1].image, img + 1)

@@ -1,0 +1,203 @@
+"""Streaming conversion of a ``Recording`` into a sequence folder, resumable.
+
+The converter plans the frames from stamps (``sync.plan_frames``), then streams the
+kept frames through a ``SequenceWriter`` opened in resume mode: frames an interrupted
+run already wrote stay on disk and are skipped, so only what is missing gets decoded.
+Scans, trajectories and meta are cheap and are written again at the end.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import numpy as np
+
+from toolkit.ingest.recording import IngestError, Recording, uniform_scans
+from toolkit.ingest.sync import DecimateOptions, FramePlan, SyncOptions, plan_frames
+from toolkit.io.sequence import SequenceWriter
+
+T = TypeVar("T")
+Progress = Callable[..., Iterator[Any]]  # ctx.progress(iterable, total=, description=)
+
+_log = logging.getLogger("toolkit.ingest")
+
+
+def no_progress(iterable: Iterable[T], total: int | None = None,
+                description: str = "") -> Iterator[T]:
+    """The default progress wrapper outside a recipe run: none."""
+    del total, description
+    yield from iterable
+
+
+@dataclass
+class ConvertResult:
+    """What a conversion wrote, for the log, metrics.json and the report."""
+
+    root: Path
+    plan: FramePlan
+    frames: int  # frames in the folder
+    frames_resumed: int  # of which an earlier, interrupted run had written
+    scans: int
+    scans_resampled: int
+    seconds: float
+    has_camera: bool
+    has_depth: bool
+    has_odometry: bool
+    has_groundtruth: bool
+    dropped_indexing: dict[str, int] = field(default_factory=dict)
+
+    def metrics(self) -> dict[str, Any]:
+        """Figures for metrics.json (units in the names)."""
+        return {
+            "frames": self.frames,
+            "frames_candidates": self.plan.candidates,
+            "frames_dropped_no_scan": self.plan.dropped.get("no_scan", 0),
+            "frames_dropped_no_depth": self.plan.dropped.get("no_depth", 0),
+            "frames_decimated": self.plan.decimated,
+            "frames_resumed": self.frames_resumed,
+            "scans": self.scans,
+            "scans_resampled": self.scans_resampled,
+            "messages_dropped_non_monotonic": sum(self.dropped_indexing.values()),
+            "convert_s": round(self.seconds, 3),
+        }
+
+    def summary(self) -> str:
+        """Human-readable account of what was converted."""
+        p = self.plan
+        lines = [f"converted into {self.root}:"]
+        if self.has_camera:
+            lines.append(
+                f"  camera frames: {self.frames} written of {p.candidates} in the recording"
+                + (f" ({self.frames_resumed} kept from an interrupted run)"
+                   if self.frames_resumed else ""))
+            lines.append(f"    dropped for lack of a scan within tolerance: "
+                         f"{p.dropped.get('no_scan', 0)}")
+            if self.has_depth:
+                lines.append(f"    dropped for lack of a depth image within tolerance: "
+                             f"{p.dropped.get('no_depth', 0)}")
+            lines.append(f"    decimated: {p.decimated}")
+        else:
+            lines.append("  camera frames: none (lidar-only recording; the rig camera is a "
+                         "placeholder)")
+        lines.append(f"  scans: {self.scans}" + (
+            f" ({self.scans_resampled} resampled to the common beam layout)"
+            if self.scans_resampled else ""))
+        for what, n in self.dropped_indexing.items():
+            if n:
+                lines.append(f"  messages dropped for non-monotonic stamps on {what}: {n}")
+        lines.append(f"  odometry: {'yes' if self.has_odometry else 'no'}, ground truth: "
+                     f"{'yes' if self.has_groundtruth else 'no'}, depth: "
+                     f"{'yes' if self.has_depth else 'no'}")
+        return "\n".join(lines)
+
+
+def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = None,
+            decimate: DecimateOptions | None = None,
+            depth_format: Literal["png", "npy"] = "png", resume: bool = True,
+            progress: Progress = no_progress,
+            log: logging.Logger | None = None) -> ConvertResult:
+    """Write ``recording`` as a sequence folder at ``out``.
+
+    With ``resume`` (the default) frames written by an interrupted earlier conversion
+    into ``out`` are kept; the caller must make sure it converted the same input with the
+    same settings (the ``ingest`` stage checks a fingerprint). If what is on disk does not
+    match the plan, the folder is started afresh rather than mixed.
+    """
+    log = log or _log
+    sync = sync or SyncOptions()
+    decimate = decimate or DecimateOptions()
+    out = Path(out)
+    start = time.perf_counter()
+    scans, resampled = uniform_scans(recording.scans)
+    if resampled:
+        log.warning("%d of %d scans had another beam layout and were resampled by nearest "
+                    "angle to %d beams", resampled, len(scans), len(scans[0]))
+    scan_stamps = np.array([s.stamp for s in scans], dtype=np.float64)
+    if len(scan_stamps) > 1 and np.any(np.diff(scan_stamps) <= 0):
+        raise IngestError(f"{recording.source}: scan stamps are not strictly increasing; "
+                          "the reader should have caught this")
+    poses = recording.odometry if recording.odometry is not None else recording.groundtruth
+    plan = plan_frames(recording.frame_stamps, scan_stamps, recording.depth_stamps, sync,
+                       decimate, poses)
+    pairs = plan.pairs()
+    stamps = recording.frame_stamps[plan.frames] if len(pairs) else np.zeros(0)
+    if plan.candidates and plan.dropped.get("no_scan") == plan.candidates:
+        fs = recording.frame_stamps
+        raise IngestError(
+            f"{recording.source}: none of the {plan.candidates} camera frames has a scan "
+            f"within {sync.tolerance_s} s (frames span {fs[0]:.3f}..{fs[-1]:.3f} s, scans "
+            f"{scan_stamps[0]:.3f}..{scan_stamps[-1]:.3f} s): the sensors' clocks disagree. "
+            "Fix: 'rosbag.stamps: bag' (recording time) for a bag, a larger "
+            "'sync.tolerance_s', or 'sync.require_scan: false'")
+    if recording.has_camera:
+        log.info("sync plan: %d of %d camera frames kept; dropped %d without a scan within "
+                 "%g s, %d without a depth image within %g s; %d decimated (%s)",
+                 len(pairs), plan.candidates, plan.dropped.get("no_scan", 0), sync.tolerance_s,
+                 plan.dropped.get("no_depth", 0), sync.depth_tolerance_s, plan.decimated,
+                 decimate.by)
+
+    if (out / "meta.yaml").exists():
+        # A finished sequence is no partial conversion to resume; its optional files
+        # (ground truth, held-out views) must not outlive it into the new one.
+        log.warning("replacing the finished sequence in %s", out)
+        shutil.rmtree(out)
+    writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
+                            depth_format, resume=resume)
+    done = writer.num_frames
+    if done and (done > len(pairs) or writer.last_frame_stamp != float(stamps[done - 1])):
+        log.warning("%s holds %d frames that do not match this conversion's plan; "
+                    "starting it afresh", out, done)
+        shutil.rmtree(out)
+        writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
+                                depth_format)
+        done = 0
+    if done:
+        log.info("resuming: %d of %d frames already converted", done, len(pairs))
+    todo = pairs[done:]
+    if todo:
+        frames = recording.load(todo)
+        for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
+            expected = float(stamps[done + k])
+            if fd.stamp != expected:
+                raise IngestError(f"{recording.source}: loader returned frame at {fd.stamp!r} "
+                                  f"where {expected!r} was planned")
+            writer.add_frame(fd.stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path)
+        if writer.num_frames != len(pairs):
+            raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "
+                              "planned frames could be read (the input ended early: "
+                              "truncated?)")
+    dynamic = recording.scan_dynamic
+    for k, s in enumerate(scans):
+        writer.add_scan(s, None if dynamic is None else dynamic[k])
+    writer.odometry = recording.odometry
+    writer.groundtruth_poses = recording.groundtruth
+    if recording.finish is not None:
+        recording.finish(writer)
+    writer.extra_meta.update({
+        "has_camera": recording.has_camera,
+        **recording.meta,
+        "ingest": {
+            "candidates": plan.candidates,
+            "dropped_no_scan": plan.dropped.get("no_scan", 0),
+            "dropped_no_depth": plan.dropped.get("no_depth", 0),
+            "decimated": plan.decimated,
+            "sync_tolerance_s": sync.tolerance_s,
+            "decimate": decimate.model_dump(),
+            "scans_resampled": resampled,
+            "dropped_non_monotonic": dict(recording.dropped),
+        },
+    })
+    root = writer.close()
+    return ConvertResult(
+        root=root, plan=plan, frames=len(pairs), frames_resumed=done, scans=len(scans),
+        scans_resampled=resampled, seconds=time.perf_counter() - start,
+        has_camera=recording.has_camera, has_depth=recording.depth_stamps is not None,
+        has_odometry=recording.odometry is not None,
+        has_groundtruth=recording.groundtruth is not None,
+        dropped_indexing=dict(recording.dropped))

@@ -1,0 +1,117 @@
+"""What a reader hands the converter: a recording indexed but not yet loaded.
+
+A reader (``toolkit.io.rosbag``, ``toolkit.io.tum_rgbd``, ``toolkit.io.carmen_ingest``,
+or a sequence folder) makes one cheap pass over its input and returns a ``Recording``:
+the rig, all scans (small), the stamps of every candidate camera frame and depth image,
+odometry and ground truth. Pixels are loaded later, only for the frames the sync plan
+keeps, through ``Recording.load`` - so a recording never sits in memory whole, and a
+resumed conversion reads only what is still missing.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory
+from toolkit.sensors import LaserScan, Rig
+
+
+class IngestError(ValueError):
+    """An input cannot be converted. The message names the file, topic or field, and the fix."""
+
+
+@dataclass
+class FrameData:
+    """Pixels of one kept camera frame, as the converter writes them."""
+
+    stamp: float
+    image: np.ndarray | None = None  # [H, W, 3] RGB uint8
+    image_path: Path | None = None  # a PNG copied verbatim instead of ``image``
+    depth: np.ndarray | None = None  # [H, W] float32 metres, 0 = invalid
+    mask: np.ndarray | None = None  # [H, W] bool, dynamic pixels
+
+
+# (frame index, depth index or -1) pairs in stamp order -> their pixels in the same order.
+FrameLoader = Callable[[Sequence[tuple[int, int]]], Iterator[FrameData]]
+
+
+@dataclass
+class Recording:
+    """A recording after the reader's index pass (see the module docstring)."""
+
+    name: str
+    source: str  # what it came from, for meta.yaml ("rosbag run.bag", ...)
+    rig: Rig
+    scans: list[LaserScan]
+    frame_stamps: np.ndarray  # [F] candidate camera frames, strictly increasing
+    load: FrameLoader
+    depth_stamps: np.ndarray | None = None  # [D] depth images, strictly increasing
+    odometry: Trajectory | None = None  # T_odom_base
+    groundtruth: Trajectory | None = None  # T_world_base
+    has_camera: bool = True
+    meta: dict[str, Any] = field(default_factory=dict)  # goes into meta.yaml
+    dropped: dict[str, int] = field(default_factory=dict)  # messages dropped while indexing
+    scan_dynamic: np.ndarray | None = None  # [S, B] bool (sequence folders only)
+    finish: Callable[[Any], None] | None = None  # extra writes on the SequenceWriter
+
+
+def placeholder_camera() -> PinholeCamera:
+    """Nominal intrinsics for lidar-only recordings (the rig format requires a camera);
+    meta.yaml then says ``has_camera: false`` so no stage mistakes it for a real one."""
+    return PinholeCamera.from_fov(640, 480, 90.0)
+
+
+# Base (x forward, y left, z up) <- camera optical (x right, y down, z forward), REP 103.
+R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def optical_mount(t: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """[4, 4] T_base_camera of a level, forward-looking camera at ``t``."""
+    T = np.eye(4)
+    T[:3, :3] = R_BASE_OPTICAL
+    T[:3, 3] = t
+    return T
+
+
+def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
+    """Give every scan the beam count and angles of the most common layout.
+
+    The sequence format stores scans as one [S, B] array, but cheap lidars (RPLidar and
+    the like) vary the count from turn to turn. Scans of another layout are resampled by
+    nearest angle onto the common one, which never invents a range between two surfaces
+    (interpolation would). Returns the scans and how many were resampled.
+    """
+    if not scans:
+        return scans, 0
+    def layout(s: LaserScan) -> tuple[int, float, float]:
+        return len(s), round(s.angle_min, 9), round(s.angle_increment, 12)
+
+    common = Counter(layout(s) for s in scans).most_common(1)[0][0]
+    ref = next(s for s in scans if layout(s) == common)
+    target = ref.angles()  # [B]
+    out: list[LaserScan] = []
+    changed = 0
+    for s in scans:
+        if layout(s) == common:  # the format keeps per-scan angles: float noise is fine
+            out.append(s)
+            continue
+        changed += 1
+        src = s.angles()
+        # Nearest source beam of each target angle; beyond the scan's own span: no return.
+        j = np.clip(np.round((target - s.angle_min) / s.angle_increment).astype(np.int64), 0,
+                    len(s) - 1)
+        inside = np.abs(src[j] - target) <= abs(s.angle_increment) / 2 + 1e-9
+        r = np.where(inside, s.ranges[j], np.nan).astype(np.float32)
+        inten = None
+        if s.intensities is not None:
+            inten = np.where(inside, s.intensities[j], 0.0).astype(np.float32)
+        out.append(LaserScan(s.stamp, r, ref.angle_min, ref.angle_increment, s.range_min,
+                             s.range_max, inten))
+    return out, changed

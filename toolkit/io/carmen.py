@@ -1,0 +1,313 @@
+"""CARMEN logs (``FLASER``, ``ROBOTLASER1``, ``ODOM``; gzip or plain) and g2o files with
+``ROBOTLASER1`` lines (``VERTEX_SE2`` / ``EDGE_SE2``), as in the Radish and Freiburg
+collections.
+
+Line formats (CARMEN ``logger`` documentation):
+
+- ``FLASER n r1..rn x y theta odom_x odom_y odom_theta timestamp host logger_timestamp``;
+  the beams span 180 deg from -90 deg (n = 180/181: 1 deg steps, 360/361: 0.5 deg).
+- ``ROBOTLASER1 type start_angle fov resolution max_range accuracy remission_mode n
+  r1..rn n_remissions rem1..remk laser_x laser_y laser_theta robot_x robot_y robot_theta
+  tv rv forward_safety side_safety turn_axis timestamp host logger_timestamp``.
+- ``ODOM x y theta tv rv accel timestamp host logger_timestamp``.
+
+Which poses may be used is the caller's business: the poses stored in corrected logs
+(Radish ``*-corrected``) and a g2o file's ``VERTEX_SE2`` are a finished SLAM solution,
+never an input to a SLAM under test (see ``G2OLog.odometry``).
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.geometry import Trajectory, se2_compose, se2_to_se3
+from toolkit.sensors import LaserScan
+
+
+class CarmenFormatError(ValueError):
+    """A malformed line; the message names the file and the line number."""
+
+
+def _open_text(path: Path) -> Iterator[str]:
+    """Lines of a plain, gzip or zip (first .g2o/.log/.clf member) text file."""
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic[:2] == b"\x1f\x8b":
+        with gzip.open(path, "rt", encoding="latin-1") as fh:
+            yield from fh
+    elif magic == b"PK\x03\x04":
+        with zipfile.ZipFile(path) as zf:
+            names = [n for n in zf.namelist() if not n.startswith("__MACOSX")
+                     and n.lower().endswith((".g2o", ".log", ".clf", ".txt", ".gz"))]
+            if not names:
+                raise CarmenFormatError(f"{path}: zip holds no .g2o/.log/.clf member")
+            with zf.open(names[0]) as raw:
+                data = raw.read()
+            if data[:2] == b"\x1f\x8b":
+                data = gzip.decompress(data)
+            yield from io.StringIO(data.decode("latin-1"))
+    else:
+        with open(path, encoding="latin-1") as fh:
+            yield from fh
+
+
+def _ranges(values: list[str]) -> np.ndarray:
+    r = np.array(values, dtype=np.float32)
+    # CARMEN has no invalid marker but zero/negative readings; the project's LaserScan
+    # marks invalid as non-finite, never zero.
+    r[~(r > 0)] = np.nan
+    return r
+
+
+def flaser_angles(n: int) -> tuple[float, float]:
+    """(angle_min, angle_increment) of an n-beam FLASER line (180 deg field of view)."""
+    inc = np.pi / (n - 1) if n % 2 == 1 else np.pi / n
+    return -np.pi / 2, float(inc)
+
+
+@dataclass
+class CarmenLog:
+    """The laser scans and odometry of a CARMEN log, in file order."""
+
+    path: Path
+    scans: list[LaserScan]
+    scan_poses: np.ndarray  # [S, 3] pose stored with each scan (laser pose; may be corrected)
+    scan_odometry: np.ndarray  # [S, 3] odometry (robot) pose stored with each scan
+    odom_stamps: np.ndarray  # [K] ODOM line stamps
+    odom_poses: np.ndarray  # [K, 3] ODOM line poses
+    T_base_laser: np.ndarray  # [4, 4]
+    params: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def duration_s(self) -> float:
+        st = [s.stamp for s in self.scans]
+        return float(max(st) - min(st)) if st else 0.0
+
+    def reference(self) -> Trajectory:
+        """The poses stored with the scans as T_world_base (for corrected logs: the
+        reference solution to evaluate against, not an input). Out-of-order and duplicate
+        stamps are dropped, keeping the first."""
+        stamps = np.array([s.stamp for s in self.scans])
+        keep = _increasing(stamps)
+        poses = np.stack([se2_to_se3(*p) for p in self.scan_poses[keep]]) @ np.linalg.inv(
+            self.T_base_laser) if keep.any() else np.zeros((0, 4, 4))
+        return Trajectory(stamps[keep], poses, "world", "base_link")
+
+
+def _increasing(stamps: np.ndarray) -> np.ndarray:
+    """[N] bool: stamps strictly after every earlier kept stamp."""
+    keep = np.zeros(len(stamps), bool)
+    last = -np.inf
+    for i, t in enumerate(stamps):
+        if t > last:
+            keep[i] = True
+            last = t
+    return keep
+
+
+def _parse_robotlaser1(f: list[str]) -> tuple[LaserScan, np.ndarray, np.ndarray]:
+    start, fov, res, max_range = (float(v) for v in f[2:6])
+    n = int(f[8])
+    ranges = _ranges(f[9 : 9 + n])
+    k = 9 + n
+    n_rem = int(f[k])
+    k += 1 + n_rem
+    laser = np.array([float(v) for v in f[k : k + 3]])
+    robot = np.array([float(v) for v in f[k + 3 : k + 6]])
+    stamp = float(f[k + 11])
+    if len(ranges) != n:
+        raise ValueError(f"{len(ranges)} ranges, expected {n}")
+    del fov
+    scan = LaserScan(stamp=stamp, ranges=ranges, angle_min=start, angle_increment=res,
+                     range_min=0.0, range_max=max_range)
+    return scan, laser, robot
+
+
+def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
+    """Read FLASER / ROBOTLASER1 / ODOM lines (other messages are skipped).
+
+    ``max_range``: range_max given to FLASER scans (the line does not carry it); readings
+    at or past it are beams without return (SICK reports 81.9 m, logs often 50 m).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: CARMEN log not found")
+    scans: list[LaserScan] = []
+    poses: list[np.ndarray] = []
+    odoms: list[np.ndarray] = []
+    o_t: list[float] = []
+    o_p: list[list[float]] = []
+    params: dict[str, str] = {}
+    laser_offsets: list[np.ndarray] = []
+    for lineno, line in enumerate(_open_text(path), 1):
+        f = line.split()
+        if not f or f[0].startswith("#"):
+            continue
+        try:
+            if f[0] == "FLASER":
+                n = int(f[1])
+                ranges = _ranges(f[2 : 2 + n])
+                if len(ranges) != n:
+                    raise ValueError(f"{len(ranges)} ranges, expected {n}")
+                rest = f[2 + n :]
+                amin, inc = flaser_angles(n)
+                scans.append(LaserScan(stamp=float(rest[6]), ranges=ranges, angle_min=amin,
+                                       angle_increment=inc, range_min=0.0,
+                                       range_max=max_range))
+                poses.append(np.array([float(v) for v in rest[0:3]]))
+                odoms.append(np.array([float(v) for v in rest[3:6]]))
+            elif f[0] == "ROBOTLASER1":
+                scan, laser, robot = _parse_robotlaser1(f)
+                scans.append(scan)
+                poses.append(laser)
+                odoms.append(robot)
+                laser_offsets.append(_laser_offset(laser, robot))
+            elif f[0] == "ODOM":
+                o_p.append([float(v) for v in f[1:4]])
+                o_t.append(float(f[7]))
+            elif f[0] == "PARAM" and len(f) >= 3:
+                params[f[1]] = f[2]
+        except (ValueError, IndexError) as e:
+            raise CarmenFormatError(f"{path}:{lineno}: bad {f[0]} line: {e}") from None
+    T_base_laser = np.eye(4)
+    if laser_offsets:
+        T_base_laser = se2_to_se3(*np.median(np.array(laser_offsets), axis=0))
+    elif "robot_frontlaser_offset" in params:
+        T_base_laser[0, 3] = float(params["robot_frontlaser_offset"])
+    return CarmenLog(
+        path=path,
+        scans=scans,
+        scan_poses=np.array(poses).reshape(-1, 3),
+        scan_odometry=np.array(odoms).reshape(-1, 3),
+        odom_stamps=np.array(o_t, dtype=np.float64),
+        odom_poses=np.array(o_p, dtype=np.float64).reshape(-1, 3),
+        T_base_laser=T_base_laser,
+        params=params,
+    )
+
+
+def _laser_offset(laser: np.ndarray, robot: np.ndarray) -> np.ndarray:
+    """Laser pose in the robot frame from the two world poses of a ROBOTLASER1 line."""
+    c, s = np.cos(robot[2]), np.sin(robot[2])
+    d = laser[:2] - robot[:2]
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1],
+                     (laser[2] - robot[2] + np.pi) % (2 * np.pi) - np.pi])
+
+
+# ---------------------------------------------------------------------------- g2o
+
+
+@dataclass
+class G2OLog:
+    """A g2o pose graph with laser scans attached to (some of) its vertices."""
+
+    path: Path
+    vertex_ids: np.ndarray  # [V]
+    vertex_poses: np.ndarray  # [V, 3] as written: for killian.g2o a corrected solution
+    edges: np.ndarray  # [E, 2] int (i, j)
+    edge_measurements: np.ndarray  # [E, 3] (x, y, theta) of j in i
+    edge_information: np.ndarray  # [E, 6] upper triangle of the information matrix
+    scans: list[LaserScan]
+    scan_vertex: np.ndarray  # [S] vertex id each scan belongs to
+    scan_laser_poses: np.ndarray  # [S, 3] ROBOTLASER1 laser pose (corrected too)
+    T_base_laser: np.ndarray  # [4, 4]
+
+    @property
+    def duration_s(self) -> float:
+        st = [s.stamp for s in self.scans]
+        return float(max(st) - min(st)) if st else 0.0
+
+    def sequential_edges(self) -> np.ndarray:
+        """[E] bool: edges i -> i+1 (odometry); the others are someone's loop closures."""
+        return self.edges[:, 1] == self.edges[:, 0] + 1
+
+    def odometry(self) -> Trajectory:
+        """T_odom_base at the scan stamps: the sequential ``EDGE_SE2`` chain dead-reckoned
+        from the identity. This, not ``vertex_poses``, is the raw odometry input."""
+        seq = self.sequential_edges()
+        step = {int(i): z for (i, _), z in zip(self.edges[seq], self.edge_measurements[seq],
+                                               strict=True)}
+        order = np.argsort(self.scan_vertex)
+        vids = self.scan_vertex[order]
+        pose = {int(vids[0]): np.zeros(3)}
+        cur = np.zeros(3)
+        for v in range(int(vids[0]), int(vids[-1])):
+            if v not in step:
+                raise CarmenFormatError(f"{self.path}: no odometry edge {v} -> {v + 1}")
+            cur = se2_compose(cur, step[v])
+            pose[v + 1] = cur
+        stamps = np.array([s.stamp for s in self.scans])
+        P = np.stack([se2_to_se3(*pose[int(v)]) for v in self.scan_vertex])
+        o = np.argsort(stamps, kind="stable")
+        keep = _increasing(stamps[o])
+        return Trajectory(stamps[o][keep], P[o][keep], "odom", "base_link")
+
+    def reference(self) -> Trajectory:
+        """The written vertex poses at the scan stamps (a corrected solution)."""
+        idx = {int(v): k for k, v in enumerate(self.vertex_ids)}
+        stamps = np.array([s.stamp for s in self.scans])
+        P = np.stack([se2_to_se3(*self.vertex_poses[idx[int(v)]]) for v in self.scan_vertex])
+        o = np.argsort(stamps, kind="stable")
+        keep = _increasing(stamps[o])
+        return Trajectory(stamps[o][keep], P[o][keep], "world", "base_link")
+
+
+def read_g2o(path: Path | str) -> G2OLog:
+    """Read ``VERTEX_SE2``, ``EDGE_SE2`` and ``ROBOTLASER1`` lines (plain, gzip or zip).
+
+    A ``ROBOTLASER1`` line belongs to the ``VERTEX_SE2`` line before it.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: g2o file not found")
+    vids: list[int] = []
+    vposes: list[list[float]] = []
+    eij: list[tuple[int, int]] = []
+    ez: list[list[float]] = []
+    einfo: list[list[float]] = []
+    scans: list[LaserScan] = []
+    svert: list[int] = []
+    slaser: list[np.ndarray] = []
+    offsets: list[np.ndarray] = []
+    for lineno, line in enumerate(_open_text(path), 1):
+        f = line.split()
+        if not f or f[0].startswith("#"):
+            continue
+        try:
+            if f[0] == "VERTEX_SE2":
+                vids.append(int(f[1]))
+                vposes.append([float(v) for v in f[2:5]])
+            elif f[0] == "EDGE_SE2":
+                eij.append((int(f[1]), int(f[2])))
+                ez.append([float(v) for v in f[3:6]])
+                einfo.append([float(v) for v in f[6:12]])
+            elif f[0] == "ROBOTLASER1":
+                if not vids:
+                    raise ValueError("ROBOTLASER1 before any VERTEX_SE2")
+                scan, laser, robot = _parse_robotlaser1(f)
+                scans.append(scan)
+                svert.append(vids[-1])
+                slaser.append(laser)
+                offsets.append(_laser_offset(laser, robot))
+        except (ValueError, IndexError) as e:
+            raise CarmenFormatError(f"{path}:{lineno}: bad {f[0]} line: {e}") from None
+    T_base_laser = se2_to_se3(*np.median(np.array(offsets), axis=0)) if offsets else np.eye(4)
+    return G2OLog(
+        path=path,
+        vertex_ids=np.array(vids, dtype=np.int64),
+        vertex_poses=np.array(vposes, dtype=np.float64).reshape(-1, 3),
+        edges=np.array(eij, dtype=np.int64).reshape(-1, 2),
+        edge_measurements=np.array(ez, dtype=np.float64).reshape(-1, 3),
+        edge_information=np.array(einfo, dtype=np.float64).reshape(-1, 6),
+        scans=scans,
+        scan_vertex=np.array(svert, dtype=np.int64),
+        scan_laser_poses=np.array(slaser).reshape(-1, 3),
+        T_base_laser=T_base_laser,
+    )

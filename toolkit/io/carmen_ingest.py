@@ -1,0 +1,148 @@
+"""CARMEN logs and g2o ROBOTLASER1 files as a lidar-only ``Recording`` for ``ingest``.
+
+``toolkit.io.carmen`` parses the files; this adapter decides which of their poses may
+enter the sequence and as what:
+
+- odometry (``odometry.tum``, an input to SLAM): the raw robot odometry stored with each
+  scan (CARMEN log) or the sequential ``EDGE_SE2`` chain (g2o). A corrected log (Radish
+  ``*-corrected``) has SLAM-made poses in those fields, so by default it gets none.
+- ground truth (``groundtruth/poses_base.tum``, for evaluation only): the corrected
+  poses of a corrected log or the g2o vertices. They are a SLAM solution, not a survey;
+  meta.yaml says so.
+
+The sequence has no camera frames; its rig carries a nominal placeholder camera (the
+format requires one) and meta.yaml has ``has_camera: false``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from toolkit.geometry import Trajectory, se2_to_se3
+from toolkit.ingest.recording import (
+    FrameData,
+    IngestError,
+    Recording,
+    optical_mount,
+    placeholder_camera,
+)
+from toolkit.ingest.sync import stamps_keep
+from toolkit.io.carmen import CarmenFormatError, read_carmen, read_g2o
+from toolkit.sensors import Rig
+
+_log = logging.getLogger("toolkit.io.carmen_ingest")
+
+
+class CarmenOptions(BaseModel):
+    """Settings of the CARMEN / g2o reader (``ingest`` key ``carmen:``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    format: Literal["auto", "log", "g2o"] = "auto"  # auto: g2o if the name says so
+    # auto: g2o -> edges; log -> odometry stored with the scans, none if "corrected"
+    odometry: Literal["auto", "none", "scans", "odom_lines", "edges"] = "auto"
+    # auto: g2o vertices, or the poses of a "corrected" log; else none
+    groundtruth: Literal["auto", "none", "reference"] = "auto"
+    max_range_m: float = Field(50.0, gt=0)  # range_max of FLASER scans (not in the line)
+
+
+def _is_g2o(path: Path, fmt: str) -> bool:
+    if fmt != "auto":
+        return fmt == "g2o"
+    return ".g2o" in path.name.lower()
+
+
+def _trajectory(stamps: np.ndarray, xyt: np.ndarray, frame: str, where: str,
+                policy: Literal["error", "drop"]) -> tuple[Trajectory, int]:
+    keep = stamps_keep(stamps, where, policy)
+    P = np.stack([se2_to_se3(*p) for p in xyt[keep]]) if keep.any() else np.zeros((0, 4, 4))
+    return Trajectory(stamps[keep], P, frame, "base_link"), int((~keep).sum())
+
+
+def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None,
+                          on_non_monotonic: Literal["error", "drop"] = "error",
+                          log: logging.Logger | None = None,
+                          name: str | None = None) -> Recording:
+    """Read a CARMEN log or g2o file into a lidar-only ``Recording``."""
+    opts = options or CarmenOptions()
+    log = log or _log
+    path = Path(path)
+    if not path.exists():
+        raise IngestError(f"{path}: CARMEN log / g2o file not found")
+    corrected = "corrected" in path.name.lower()
+    g2o = _is_g2o(path, opts.format)
+    try:
+        data = read_g2o(path) if g2o else read_carmen(path, max_range=opts.max_range_m)
+    except CarmenFormatError as e:
+        raise IngestError(str(e)) from None
+    if not data.scans:
+        raise IngestError(f"{path}: no laser scans (FLASER / ROBOTLASER1 lines) found")
+    where = f"{path}: scans"
+    stamps = np.array([s.stamp for s in data.scans], dtype=np.float64)
+    keep = stamps_keep(stamps, where, on_non_monotonic)
+    scans = [s for s, k in zip(data.scans, keep, strict=True) if k]
+    dropped = {"scans": int((~keep).sum())}
+
+    mode = opts.odometry
+    if mode == "auto":
+        mode = "edges" if g2o else ("none" if corrected else "scans")
+        if corrected and not g2o:
+            log.info("%s is a corrected log: its odometry fields hold SLAM-made poses, so "
+                     "they are not used as odometry (set carmen.odometry to override)",
+                     path.name)
+    odometry: Trajectory | None = None
+    if mode == "edges":
+        if not g2o:
+            raise IngestError(f"{path}: carmen.odometry: edges needs a g2o file")
+        odometry = data.odometry()
+    elif mode == "scans":
+        if g2o:
+            raise IngestError(f"{path}: carmen.odometry: scans - a g2o file's ROBOTLASER1 "
+                              "poses are corrected ones; use edges (the raw odometry chain)")
+        odometry, n = _trajectory(stamps[keep], data.scan_odometry[keep], "odom", where,
+                                  "drop")
+        dropped["odometry"] = n
+    elif mode == "odom_lines":
+        if g2o or len(data.odom_stamps) == 0:
+            raise IngestError(f"{path}: carmen.odometry: odom_lines but the file has no ODOM "
+                              "lines")
+        odometry, n = _trajectory(data.odom_stamps, data.odom_poses, "odom",
+                                  f"{path}: ODOM lines", on_non_monotonic)
+        dropped["odom_lines"] = n
+    if odometry is not None:
+        odometry.frame = "odom"
+
+    gmode = opts.groundtruth
+    if gmode == "auto":
+        gmode = "reference" if (g2o or corrected) else "none"
+    groundtruth = data.reference() if gmode == "reference" else None
+
+    rig = Rig(placeholder_camera(), optical_mount(), data.T_base_laser)
+    span = scans[-1].stamp - scans[0].stamp if scans else 0.0
+    log.info("%s %s: %d scans of %d beams over %.1f s (%.1f Hz), odometry: %s, ground "
+             "truth: %s, no camera", "g2o" if g2o else "CARMEN log", path, len(scans),
+             len(scans[0]), span, (len(scans) - 1) / span if span > 0 else 0.0, mode,
+             "reference poses" if groundtruth is not None else "none")
+    meta = {
+        "source_kind": "g2o ROBOTLASER1" if g2o else "CARMEN log",
+        "odometry_from": mode,
+        "groundtruth": ("SLAM-corrected reference poses stored in the file (not surveyed "
+                        "ground truth)" if groundtruth is not None else None),
+    }
+
+    def load(pairs: Sequence[tuple[int, int]]) -> Iterator[FrameData]:
+        if pairs:
+            raise IngestError(f"{path}: a lidar-only recording has no camera frames")
+        return iter(())
+
+    return Recording(
+        name=name or path.name.split(".")[0], source=f"{'g2o' if g2o else 'carmen'} {path}",
+        rig=rig, scans=scans, frame_stamps=np.zeros(0), load=load,
+        odometry=odometry, groundtruth=groundtruth, has_camera=False, meta=meta,
+        dropped={k: v for k, v in dropped.items() if v})

@@ -1,0 +1,1196 @@
+"""ROS 1 bags and ROS 2 bags (sqlite3 or mcap) through ``rosbags``, without ROS.
+
+Reads ``sensor_msgs/LaserScan``, ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8,
+and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
+``compressedDepth``), ``sensor_msgs/CameraInfo`` (plumb_bob distortion),
+``nav_msgs/Odometry`` and ``tf`` / ``tf_static`` into a ``Recording``
+(``toolkit.ingest.recording``) that the ``ingest`` stage streams into a sequence folder.
+
+Two passes over the bag: ``read_rosbag`` indexes it (scans, odometry, tf and
+CameraInfo are read whole - they are small - while of the images only stamps and sizes
+are kept), and ``Recording.load`` then decodes just the images the sync plan keeps.
+
+Topics are found by message type (one LaserScan topic, one colour image topic, ...);
+where a bag has several of a kind the error lists them and names the option that picks
+one. The rig comes from tf: ``T_base_camera`` is base frame <- the image messages'
+``header.frame_id`` (an optical frame: x right, y down, z forward), ``T_base_laser`` is
+base frame <- the scans' ``header.frame_id``. A calibration YAML fills in or overrides
+what tf lacks (see ``load_calibration``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, inv_se3, pose_from_xyz_quat, rotation_angle
+from toolkit.ingest.recording import (
+    FrameData,
+    IngestError,
+    Recording,
+    optical_mount,
+    placeholder_camera,
+)
+from toolkit.ingest.sync import stamps_keep
+from toolkit.sensors import LaserScan, Rig
+
+_log = logging.getLogger("toolkit.io.rosbag")
+
+# Message types as rosbags names them for ROS 1 and ROS 2 alike.
+SCAN = "sensor_msgs/msg/LaserScan"
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+
+# Encoding -> (bytes per pixel, channels). cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8.
+COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1,
+                   "8UC1": 1}
+DEPTH_ENCODINGS = {"16UC1": 2, "32FC1": 4}  # millimetres / metres (REP 118)
+
+
+_CALIB_EXAMPLE = """  T_base_camera:          # maps camera optical-frame points into the base frame
+    parent: {base}
+    child: {camera}
+    xyz: [0.10, 0.0, 0.30]
+    quat_xyzw: [0.5, -0.5, 0.5, -0.5]   # a level camera looking forward
+  T_base_laser:           # maps laser points into the base frame
+    parent: {base}
+    child: {laser}
+    xyz: [0.20, 0.0, 0.15]
+    quat_xyzw: [0.0, 0.0, 0.0, 1.0]
+(each may also be a 4x4 matrix given as a list of rows)"""
+
+
+class BagError(IngestError):
+    """A bag cannot be read or converted; the message names the bag, topic or field."""
+
+
+class MissingTransformError(BagError):
+    """tf does not connect the base frame to the camera or laser frame."""
+
+
+# ---------------------------------------------------------------------------- options
+
+
+class RosbagTopics(BaseModel):
+    """Topic overrides; omitted means found by type, ``none`` means do not use."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scan: str | None = None
+    image: str | None = None  # sensor_msgs/Image or CompressedImage, colour
+    depth: str | None = None  # registered depth (same size as the colour image)
+    camera_info: str | None = None
+    odometry: str | None = None
+
+
+class RosbagFrames(BaseModel):
+    """tf frame names of the rig."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    base: str = "base_link"
+    camera: str | None = None  # default: header.frame_id of the image messages
+    laser: str | None = None  # default: header.frame_id of the scans
+    # "optical": the camera frame is x right, y down, z forward (ROS *_optical_frame).
+    # "body": it is x forward, y left, z up (camera_link); the optical rotation is added.
+    camera_convention: Literal["optical", "body"] = "optical"
+
+
+class RosbagOptions(BaseModel):
+    """Settings of the rosbag reader (``ingest`` key ``rosbag:``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    topics: RosbagTopics = RosbagTopics()
+    frames: RosbagFrames = RosbagFrames()
+    calibration: str | None = None  # YAML with camera / T_base_camera / T_base_laser
+    stamps: Literal["header", "bag"] = "header"  # bag: the time the message was recorded
+    # Images already undistorted (image_rect): intrinsics from CameraInfo P, no distortion.
+    # Default: true when the image topic's name contains "rect".
+    rectified: bool | None = None
+
+
+# ---------------------------------------------------------------------------- the bag
+
+
+def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
+    """Normalise what a user names: one ROS 2 bag folder or storage file, or ROS 1 ``.bag``
+    files (several for a split recording)."""
+    items = [Path(path)] if isinstance(path, str | Path) else [Path(p) for p in path]
+    if not items:
+        raise BagError("no bag given")
+    for p in items:
+        if not p.exists():
+            raise BagError(f"{p}: bag not found")
+    ros1 = [p.suffix == ".bag" for p in items]
+    if any(ros1) and not all(ros1):
+        raise BagError(f"{', '.join(map(str, items))}: mix of ROS 1 .bag files and other "
+                       "paths; give either ROS 1 .bag files or one ROS 2 bag folder")
+    if not all(ros1) and len(items) > 1:
+        raise BagError(f"{', '.join(map(str, items))}: a ROS 2 recording is one folder "
+                       "(with metadata.yaml); give that folder")
+    return items
+
+
+def _text(e: BaseException) -> str:
+    return str(e).strip().rstrip(".")
+
+
+def _storage_kind(paths: list[Path]) -> str:
+    if paths[0].suffix == ".bag":
+        return "ROS 1"
+    p = paths[0]
+    files = [p] if p.is_file() else list(p.iterdir())
+    if any(f.suffix == ".mcap" for f in files):
+        return "ROS 2 mcap"
+    return "ROS 2 sqlite3"
+
+
+def _repair_hint(kind: str) -> str:
+    if kind == "ROS 1":
+        return ("If the recording was cut off (no index at the end), rebuild the index with "
+                "'rosbag reindex FILE.bag' (ROS 1 tools) and convert the reindexed bag.")
+    if kind == "ROS 2 mcap":
+        return ("A cut-off mcap file is rebuilt by 'mcap recover FILE.mcap -o fixed.mcap' "
+                "(mcap CLI); a missing metadata.yaml by 'ros2 bag reindex FOLDER'.")
+    return ("A damaged sqlite3 file can often be rescued with "
+            "'sqlite3 FILE.db3 .recover | sqlite3 fixed.db3'; a missing metadata.yaml is "
+            "rebuilt by 'ros2 bag reindex FOLDER'.")
+
+
+@dataclass
+class TopicInfo:
+    name: str
+    msgtype: str
+    count: int
+
+
+class Bag:
+    """An open bag whose read errors name the bag and say how to repair it."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.paths = paths
+        self.kind = _storage_kind(paths)
+        self.name = ", ".join(str(p) for p in paths)
+        # Only used when a ROS 2 bag stores no message definitions (Foxy era).
+        default = None if self.kind == "ROS 1" else get_typestore(Stores.ROS2_FOXY)
+        try:
+            self.reader = AnyReader(paths, default_typestore=default)
+            self.reader.open()
+        except Exception as e:  # rosbags raises its own, sqlite's, mcap's and OS errors
+            raise BagError(f"{self.name}: cannot open this {self.kind} bag: "
+                           f"{type(e).__name__}: {_text(e)}. {_repair_hint(self.kind)}") from e
+        self.topics = {name: TopicInfo(name, info.msgtype or "?", info.msgcount)
+                       for name, info in self.reader.topics.items()}
+        self.start_ns = self.reader.start_time if self.reader.message_count else 0
+        self.end_ns = self.reader.end_time if self.reader.message_count else 0
+
+    def close(self) -> None:
+        self.reader.close()
+
+    def __enter__(self) -> Bag:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def of_type(self, *msgtypes: str) -> list[str]:
+        """Topics carrying one of ``msgtypes`` with at least one message, sorted."""
+        return sorted(t.name for t in self.topics.values()
+                      if t.msgtype in msgtypes and t.count > 0)
+
+    def messages(self, topics: Sequence[str], start_ns: int | None = None) -> (
+        Iterator[tuple[str, int, Any]]
+    ):
+        """(topic, bag time ns, message) in recording order, errors wrapped."""
+        conns = [c for c in self.reader.connections if c.topic in set(topics)]
+        if not conns:
+            return
+        it = self.reader.messages(connections=conns, start=start_ns)
+        n = 0
+        while True:
+            try:
+                conn, ns, raw = next(it)
+            except StopIteration:
+                return
+            except Exception as e:
+                raise BagError(
+                    f"{self.name}: reading failed after {n} messages of "
+                    f"{', '.join(topics)}: {type(e).__name__}: {_text(e)}. The bag is truncated or "
+                    f"corrupt. {_repair_hint(self.kind)}") from e
+            try:
+                msg = self.reader.deserialize(raw, conn.msgtype)
+            except Exception as e:
+                raise BagError(
+                    f"{self.name}: topic {conn.topic}: the message recorded at "
+                    f"{ns / 1e9:.9f} s does not decode as {conn.msgtype} "
+                    f"({type(e).__name__}: {_text(e)}); the bag is corrupt. "
+                    f"{_repair_hint(self.kind)}") from e
+            n += 1
+            yield conn.topic, ns, msg
+
+    def first(self, topic: str) -> Any | None:
+        gen = self.messages([topic])
+        try:
+            return next(gen)[2]
+        except StopIteration:
+            return None
+        finally:
+            gen.close()
+
+
+# ---------------------------------------------------------------------------- decoding
+
+
+def _frame(name: str) -> str:
+    # ROS 1 tf allowed a leading slash ("/base_link"); tf2 and ROS 2 do not.
+    return name.lstrip("/")
+
+
+def header_ns(msg: Any) -> int:
+    """header.stamp in integer nanoseconds (exact, unlike float seconds)."""
+    st = msg.header.stamp
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
+
+
+def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
+    """[H, W, 3] RGB uint8 of a ``sensor_msgs/Image`` in a colour encoding."""
+    enc = str(msg.encoding)
+    if enc not in COLOR_ENCODINGS:
+        hint = ("it is a depth encoding: give it as rosbag.topics.depth" if enc in
+                DEPTH_ENCODINGS else "republish the images as rgb8 or bgr8 (e.g. with "
+                "image_proc / cv_bridge) or name another topic with rosbag.topics.image")
+        raise BagError(f"{where}: field 'encoding' is {enc!r}, which this reader does not "
+                       f"decode (colour: {', '.join(COLOR_ENCODINGS)}); {hint}")
+    a = _pixels(msg, np.dtype(np.uint8), COLOR_ENCODINGS[enc], where)  # [H, W, C]
+    if enc in ("rgb8",):
+        return np.ascontiguousarray(a)
+    if enc in ("bgr8", "8UC3"):
+        return np.ascontiguousarray(a[..., ::-1])
+    if enc == "rgba8":
+        return np.ascontiguousarray(a[..., :3])
+    if enc == "bgra8":
+        return np.ascontiguousarray(a[..., 2::-1])
+    return np.ascontiguousarray(np.repeat(a, 3, axis=2))  # mono8 / 8UC1
+
+
+def image_to_depth(msg: Any, where: str = "depth") -> np.ndarray:
+    """[H, W] float32 metres of a 16UC1 (mm) or 32FC1 (m) image; 0 where invalid."""
+    enc = str(msg.encoding)
+    if enc not in DEPTH_ENCODINGS:
+        raise BagError(f"{where}: field 'encoding' is {enc!r}; depth images must be 16UC1 "
+                       "(millimetres) or 32FC1 (metres). Name the depth topic with "
+                       "rosbag.topics.depth, or 'none' to convert without depth")
+    endian = ">" if msg.is_bigendian else "<"
+    dt = np.dtype(f"{endian}u2") if enc == "16UC1" else np.dtype(f"{endian}f4")
+    a = _pixels(msg, dt, 1, where)[..., 0]  # [H, W]
+    if enc == "16UC1":
+        return (a.astype(np.float32) / np.float32(1000.0)).astype(np.float32)
+    d = a.astype(np.float32)
+    return np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0)).astype(np.float32)
+
+
+def _pixels(msg: Any, dtype: np.dtype, channels: int, where: str) -> np.ndarray:
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    row = w * channels * dtype.itemsize
+    if h <= 0 or w <= 0:
+        raise BagError(f"{where}: image is {w}x{h} (fields 'width'/'height'); the message is "
+                       "empty or corrupt")
+    if step < row or len(data) < step * (h - 1) + row:
+        raise BagError(f"{where}: {len(data)} bytes of data for a {w}x{h} {msg.encoding} "
+                       f"image with step {step} (fields 'data'/'step'); the message is "
+                       "truncated or corrupt")
+    if len(data) < step * h:  # some drivers omit the last row's padding
+        data = np.concatenate([data, np.zeros(step * h - len(data), np.uint8)])
+    rows = data[: step * h].reshape(h, step)[:, :row]
+    return rows.copy().view(dtype).reshape(h, w, channels)
+
+
+def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
+    """[H, W, 3] RGB uint8 of a ``sensor_msgs/CompressedImage`` (jpeg or png)."""
+    fmt = str(msg.format)
+    if "compresseddepth" in fmt.lower():
+        raise BagError(f"{where}: field 'format' is {fmt!r}, a depth image; give it as "
+                       "rosbag.topics.depth")
+    img = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BagError(f"{where}: the {fmt!r} data (field 'data', {len(msg.data)} bytes) does "
+                       "not decode; the message is corrupt or the format unknown "
+                       "(jpeg and png are read)")
+    if img.dtype != np.uint8:
+        raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
+                       "colour images must be 8-bit")
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    # OpenCV decodes to BGR, and image_transport compresses rgb8 images as bgr8.
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+_PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def compressed_to_depth(msg: Any, where: str = "depth") -> np.ndarray:
+    """[H, W] float32 metres of a ``compressedDepth`` CompressedImage (png)."""
+    fmt = str(msg.format)
+    raw = bytes(np.asarray(msg.data, dtype=np.uint8))
+    # image_transport_plugins' compressed_depth codec: a 12-byte ConfigHeader
+    # (int32 format, float32 depthQuantA, depthQuantB) before the PNG; older ones none.
+    off = raw.find(_PNG, 0, 64)
+    if "compresseddepth" not in fmt.lower() or "rvl" in fmt.lower() or off < 0:
+        raise BagError(f"{where}: field 'format' is {fmt!r}; depth CompressedImages must be "
+                       "'16UC1; compressedDepth png' or '32FC1; compressedDepth png' "
+                       "(rvl is not read). Republish raw depth or set rosbag.topics.depth: none")
+    img = cv2.imdecode(np.frombuffer(raw[off:], np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        raise BagError(f"{where}: compressedDepth data (field 'data') does not decode to a "
+                       "16-bit single-channel PNG; the message is corrupt")
+    if fmt.split(";")[0].strip() == "32FC1":
+        if off < 12:
+            raise BagError(f"{where}: 32FC1 compressedDepth without its quantisation header")
+        qa, qb = np.frombuffer(raw[4:12], "<f4")
+        with np.errstate(divide="ignore"):
+            d = np.where(img > 0, qa / (img.astype(np.float32) - qb), 0.0)
+        return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    return (img.astype(np.float32) / np.float32(1000.0)).astype(np.float32)
+
+
+def _field(msg: Any, *names: str) -> Any:
+    # ROS 1 CameraInfo spells K, D, P; ROS 2 spells k, d, p.
+    for n in names:
+        if hasattr(msg, n):
+            return getattr(msg, n)
+    raise AttributeError(names[0])
+
+
+def camera_info_to_camera(msg: Any, where: str = "camera_info",
+                          rectified: bool = False) -> PinholeCamera:
+    """A ``PinholeCamera`` from ``sensor_msgs/CameraInfo`` (plumb_bob or 5-term rational).
+
+    ``rectified``: the images are already undistorted (``image_rect``), so the projection
+    matrix P holds their intrinsics and there is no distortion.
+    """
+    w, h = int(msg.width), int(msg.height)
+    K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
+    P = np.asarray(_field(msg, "p", "P"), dtype=np.float64).reshape(3, 4)
+    D = np.asarray(_field(msg, "d", "D"), dtype=np.float64).reshape(-1)
+    model = str(msg.distortion_model)
+    fix = ("give the intrinsics in the calibration YAML ('camera: {width, height, fx, fy, "
+           "cx, cy, distortion}') and set rosbag.calibration")
+    if w <= 0 or h <= 0:
+        raise BagError(f"{where}: fields 'width'/'height' are {w}x{h}; {fix}")
+    if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
+        raise BagError(f"{where}: fields 'binning_x'/'binning_y' are {msg.binning_x}/"
+                       f"{msg.binning_y}; binned images are not supported: {fix}")
+    if rectified:
+        if not np.any(P[:, :3]):
+            raise BagError(f"{where}: field 'P' is all zero, but the images are rectified "
+                           f"and need it; {fix}")
+        return PinholeCamera(w, h, P[0, 0], P[1, 1], P[0, 2], P[1, 2])
+    if not np.any(K):
+        raise BagError(f"{where}: field 'K' is all zero (the camera was not calibrated); {fix}")
+    if model in ("plumb_bob", "rational_polynomial", "") or (model == "none" and not D.any()):
+        if model == "rational_polynomial" and np.any(D[5:] != 0):
+            raise BagError(f"{where}: distortion_model rational_polynomial with k4..k6 = "
+                           f"{list(D[5:8])}; only the 5-term (plumb_bob) model is supported. "
+                           "Convert the rectified images (image_rect) instead, or " + fix)
+        if model == "" and D.any():
+            raise BagError(f"{where}: field 'D' has {len(D)} coefficients but "
+                           f"'distortion_model' is empty; {fix}")
+        return PinholeCamera.from_K(K, w, h, D[:5])
+    raise BagError(f"{where}: field 'distortion_model' is {model!r}; only plumb_bob (OpenCV "
+                   "k1 k2 p1 p2 k3) is supported. Use the rectified image topic (image_rect, "
+                   "with rosbag.rectified: true) or " + fix)
+
+
+def transform_to_matrix(tf: Any) -> np.ndarray:
+    """[4, 4] of a ``geometry_msgs/Transform`` (or Pose: position / orientation)."""
+    t = getattr(tf, "translation", None) or tf.position
+    q = getattr(tf, "rotation", None) or tf.orientation
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    n = np.linalg.norm(quat)
+    if not np.isfinite(n) or n < 1e-6:
+        raise ValueError(f"quaternion {quat.tolist()} is not a rotation")
+    return pose_from_xyz_quat(np.array([t.x, t.y, t.z], dtype=np.float64), quat / n)
+
+
+# ---------------------------------------------------------------------------- tf
+
+
+class TfTree:
+    """Transforms from tf / tf_static (and a calibration file) as a graph of frames.
+
+    Static transforms and /tf transforms that never change are fixed mounts; /tf
+    transforms that move (odom -> base_link) are kept apart, so an extrinsic is never
+    read off a moving joint by accident.
+    """
+
+    def __init__(self) -> None:
+        self.fixed: dict[tuple[str, str], np.ndarray] = {}
+        self.source: dict[tuple[str, str], str] = {}
+        self._static: set[tuple[str, str]] = set()
+        self._first: dict[tuple[str, str], np.ndarray] = {}
+        self.moving: set[tuple[str, str]] = set()
+
+    def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str) -> None:
+        key = (_frame(parent), _frame(child))
+        if static:  # the latest static transform wins, over /tf too
+            self.fixed[key] = T
+            self.source[key] = source
+            self._static.add(key)
+            self.moving.discard(key)
+            return
+        if key in self._static:
+            return
+        first = self._first.setdefault(key, T)
+        if key in self.moving:
+            return
+        dt = np.linalg.norm(T[:3, 3] - first[:3, 3])
+        dr = float(rotation_angle(first[:3, :3].T @ T[:3, :3]))
+        if dt > 1e-6 or dr > 1e-6:
+            self.moving.add(key)
+            self.fixed.pop(key, None)
+        else:
+            self.fixed[key] = first
+            self.source[key] = source
+
+    def frames(self) -> set[str]:
+        return {f for k in (*self.fixed, *self.moving) for f in k}
+
+    def lookup(self, target: str, source: str, include_moving: bool = False) -> (
+        tuple[np.ndarray, list[str]] | None
+    ):
+        """(T_target_source, frames on the path) through fixed edges, None if unconnected.
+
+        With ``include_moving`` the path may use moving edges too (only to explain errors;
+        the transform is then the first one seen).
+        """
+        target, source = _frame(target), _frame(source)
+        edges = dict(self.fixed)
+        if include_moving:
+            edges.update({k: self._first[k] for k in self.moving if k in self._first})
+        adj: dict[str, list[tuple[str, np.ndarray]]] = {}
+        for (p, c), T in edges.items():
+            adj.setdefault(p, []).append((c, T))  # T_p_c: c -> p
+            adj.setdefault(c, []).append((p, inv_se3(T)))
+        best: dict[str, tuple[np.ndarray, list[str]]] = {target: (np.eye(4), [target])}
+        queue = deque([target])
+        while queue:
+            f = queue.popleft()
+            T_tf, path = best[f]
+            for nxt, T_f_n in adj.get(f, []):
+                if nxt not in best:
+                    best[nxt] = (T_tf @ T_f_n, [*path, nxt])
+                    queue.append(nxt)
+        return best.get(source)
+
+
+# ---------------------------------------------------------------------------- calibration
+
+
+@dataclass
+class Calibration:
+    """What a calibration YAML gives; every member may be absent."""
+
+    path: Path
+    camera: PinholeCamera | None = None
+    T_base_camera: np.ndarray | None = None
+    T_base_laser: np.ndarray | None = None
+    T_camera_laser: np.ndarray | None = None
+    transforms: list[tuple[str, str, np.ndarray]] = field(default_factory=list)
+    # key -> (parent, child) where a T_* entry was given tf style, to check its direction
+    names: dict[str, tuple[str | None, str | None]] = field(default_factory=dict)
+
+    def check_direction(self, key: str, parent: str, child: str) -> None:
+        """Fail if a tf-style entry names its frames the other way round (a likely mix-up:
+        the key, not the order, fixes the direction)."""
+        given = self.names.get(key)
+        if given is None or given == (None, None):
+            return
+        gp, gc = (_frame(n) if n else None for n in given)
+        if (gp, gc) == (child, parent) or (gp == child and gp is not None):
+            raise BagError(
+                f"{self.path}: field '{key}' has parent {gp!r} and child {gc!r}, which is "
+                f"reversed: {key} maps {child} points into {parent}, so parent: {parent} and "
+                f"child: {child} (swap them, or invert the transform)")
+        if gp is not None and gp != parent:
+            raise BagError(f"{self.path}: field '{key}' has parent {gp!r}, but the frame it "
+                           f"must map into is {parent!r} (rosbag.frames)")
+
+
+def parse_transform(value: Any, where: str) -> tuple[np.ndarray, str | None, str | None]:
+    """A 4x4 list of rows, or tf style ``{parent, child, xyz, quat_xyzw}``.
+
+    Returns (T_parent_child, parent, child); parent/child are None for a matrix.
+    """
+    if isinstance(value, dict):
+        unknown = set(value) - {"parent", "child", "xyz", "quat_xyzw"}
+        if unknown:
+            raise BagError(f"{where}: unknown keys {sorted(unknown)}; a tf-style transform "
+                           "has parent, child, xyz, quat_xyzw")
+        try:
+            xyz = np.asarray(value["xyz"], dtype=np.float64).reshape(3)
+            q = np.asarray(value["quat_xyzw"], dtype=np.float64).reshape(4)
+        except KeyError as e:
+            raise BagError(f"{where}: missing field {e.args[0]!r} (tf style needs xyz and "
+                           "quat_xyzw)") from None
+        except (TypeError, ValueError):
+            raise BagError(f"{where}: xyz must be 3 numbers and quat_xyzw 4") from None
+        n = np.linalg.norm(q)
+        if not np.all(np.isfinite(xyz)) or not np.isfinite(n) or n < 1e-6:
+            raise BagError(f"{where}: xyz / quat_xyzw must be finite with a non-zero "
+                           "quaternion")
+        parent, child = value.get("parent"), value.get("child")
+        return pose_from_xyz_quat(xyz, q / n), (str(parent) if parent else None), (
+            str(child) if child else None)
+    try:
+        T = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        T = np.zeros(0)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise BagError(f"{where}: expected a 4x4 matrix (list of 4 rows) or a mapping with "
+                       f"parent, child, xyz, quat_xyzw; got {value!r}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise BagError(f"{where}: not a rigid transform (rotation not orthonormal or last "
+                       "row not 0 0 0 1)")
+    return T, None, None
+
+
+def load_calibration(path: Path | str) -> Calibration:
+    """Read a calibration YAML.
+
+    Keys (all optional): ``camera`` (intrinsics as in rig.yaml), ``T_base_camera``
+    (optical frame -> base), ``T_base_laser``, ``T_camera_laser`` (laser -> optical, what
+    ``python -m calibration`` estimates), ``transforms`` (a list of tf-style entries with
+    parent and child, added to the bag's tf tree). A rig.yaml written by this toolkit is
+    a valid calibration file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"{path}: calibration file not found (rosbag.calibration)")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise BagError(f"{path}: not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise BagError(f"{path}: expected a mapping with camera / T_base_camera / "
+                       "T_base_laser / T_camera_laser / transforms")
+    known = {"camera", "T_base_camera", "T_base_laser", "T_camera_laser", "transforms",
+             "frames", "convention"}
+    unknown = set(data) - known
+    if unknown:
+        raise BagError(f"{path}: unknown keys {sorted(unknown)}; allowed: {sorted(known)}")
+    cal = Calibration(path)
+    if data.get("camera") is not None:
+        try:
+            cal.camera = PinholeCamera.from_dict(data["camera"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise BagError(f"{path}: field 'camera': {e}") from None
+    for key in ("T_base_camera", "T_base_laser", "T_camera_laser"):
+        if data.get(key) is None:
+            continue
+        T, parent, child = parse_transform(data[key], f"{path}: field '{key}'")
+        setattr(cal, key, T)
+        cal.names[key] = (parent, child)
+    for i, entry in enumerate(data.get("transforms") or []):
+        where = f"{path}: transforms[{i}]"
+        if not isinstance(entry, dict) or not entry.get("parent") or not entry.get("child"):
+            raise BagError(f"{where}: each entry needs parent, child, xyz, quat_xyzw")
+        T, parent, child = parse_transform(entry, where)
+        assert parent and child
+        cal.transforms.append((parent, child, T))
+    return cal
+
+
+# ---------------------------------------------------------------------------- topics
+
+
+@dataclass
+class TopicChoice:
+    """The topics a conversion reads, and why."""
+
+    scan: str | None = None
+    image: str | None = None
+    image_compressed: bool = False
+    depth: str | None = None
+    depth_compressed: bool = False
+    camera_info: str | None = None
+    odometry: str | None = None
+    tf: list[str] = field(default_factory=list)
+    image_size: tuple[int, int] | None = None  # (w, h) of the first image
+    image_encoding: str = ""
+    image_frame: str = ""
+    scan_frame: str = ""
+    notes: list[str] = field(default_factory=list)
+
+    def role(self, topic: str) -> str:
+        roles = {self.scan: "scan", self.image: "image", self.depth: "depth",
+                 self.camera_info: "camera_info", self.odometry: "odometry"}
+        if topic in roles:
+            return roles[topic]
+        return "tf" if topic in self.tf else ""
+
+
+def _override(bag: Bag, key: str, value: str | None, types: Sequence[str]) -> (
+    tuple[bool, str | None]
+):
+    """(given, topic) for an override; 'none' disables; unknown topics are errors."""
+    if value is None:
+        return False, None
+    if value.strip().lower() in ("none", ""):
+        return True, None
+    if value not in bag.topics:
+        have = bag.of_type(*types)
+        raise BagError(f"{bag.name}: rosbag.topics.{key} is {value!r}, which is not in the bag"
+                       f"; {' / '.join(t.split('/')[-1] for t in types)} topics in it: "
+                       f"{', '.join(have) or 'none'}")
+    if bag.topics[value].msgtype not in types:
+        raise BagError(f"{bag.name}: rosbag.topics.{key} is {value!r}, which carries "
+                       f"{bag.topics[value].msgtype}, not {' or '.join(types)}")
+    return True, value
+
+
+def _one(bag: Bag, key: str, kind: str, cands: list[str], preferred: Sequence[str]) -> (
+    str | None
+):
+    if len(cands) <= 1:
+        return cands[0] if cands else None
+    for p in preferred:
+        if p in cands:
+            return p
+    raise BagError(f"{bag.name}: several {kind} topics ({', '.join(cands)}); choose one with "
+                   f"rosbag.topics.{key}")
+
+
+def _strip_transport(topic: str) -> str:
+    for suffix in ("/compressed", "/compressedDepth"):
+        if topic.endswith(suffix):
+            return topic[: -len(suffix)]
+    return topic
+
+
+def _namespace(topic: str) -> str:
+    return _strip_transport(topic).rsplit("/", 1)[0]
+
+
+def _base_name(topic: str) -> str:
+    return _strip_transport(topic).rsplit("/", 1)[-1]
+
+
+def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
+    """Find the topics by type (see the module docstring), honouring overrides."""
+    ch = TopicChoice()
+    given, ch.scan = _override(bag, "scan", topics.scan, (SCAN,))
+    if not given:
+        ch.scan = _one(bag, "scan", "sensor_msgs/LaserScan", bag.of_type(SCAN), ("/scan",))
+    if ch.scan is None:
+        raise BagError(f"{bag.name}: no sensor_msgs/LaserScan topic with messages; this "
+                       "toolkit needs a 2D lidar. Topics in the bag: "
+                       + ", ".join(f"{t.name} ({t.msgtype})" for t in bag.topics.values()))
+
+    # Sort image topics into colour and depth by their first message.
+    peek: dict[str, Any] = {}
+    color: list[str] = []
+    depth: list[str] = []
+    other: list[str] = []
+    for t in bag.of_type(IMAGE, COMPRESSED):
+        msg = bag.first(t)
+        if msg is None:
+            continue
+        peek[t] = msg
+        if bag.topics[t].msgtype == IMAGE:
+            (color if msg.encoding in COLOR_ENCODINGS else depth if msg.encoding in
+             DEPTH_ENCODINGS else other).append(t)
+        else:
+            (depth if "compresseddepth" in str(msg.format).lower() else color).append(t)
+
+    given, ch.image = _override(bag, "image", topics.image, (IMAGE, COMPRESSED))
+    if not given:
+        cands = color or other  # an image in an unknown encoding errors when decoded
+        raw = {t for t in cands if bag.topics[t].msgtype == IMAGE}
+        # image_transport republishes /x as /x/compressed: the raw one is lossless.
+        cands = [t for t in cands if not (t.endswith("/compressed") and
+                                          t[: -len("/compressed")] in raw)]
+        ch.image = _one(bag, "image", "colour image", cands, ())
+    if ch.image is not None:
+        msg = peek.get(ch.image) or bag.first(ch.image)
+        if msg is None:
+            raise BagError(f"{bag.name}: topic {ch.image} has no messages")
+        ch.image_compressed = bag.topics[ch.image].msgtype == COMPRESSED
+        if ch.image_compressed:
+            rgb = compressed_to_rgb(msg, f"{bag.name}: topic {ch.image}")
+            ch.image_size = (rgb.shape[1], rgb.shape[0])
+            ch.image_encoding = str(msg.format)
+        else:
+            ch.image_size = (int(msg.width), int(msg.height))
+            ch.image_encoding = str(msg.encoding)
+            image_to_rgb(msg, f"{bag.name}: topic {ch.image}")  # unknown encoding: fail now
+        ch.image_frame = _frame(str(msg.header.frame_id))
+
+    given, ch.depth = _override(bag, "depth", topics.depth, (IMAGE, COMPRESSED))
+    if ch.image is None:
+        ch.depth = None
+    elif not given and depth:
+        same = [t for t in depth if _size(peek[t], f"{bag.name}: topic {t}") == ch.image_size]
+        for t in sorted(set(depth) - set(same)):
+            ch.notes.append(f"depth topic {t} is not registered to {ch.image} (another image "
+                            "size); not used")
+        pref = [t for t in same if "align" in t or "regist" in t]
+        ch.depth = _one(bag, "depth", "registered depth", same, pref[:1] if len(pref) == 1
+                        else ())
+    if ch.depth is not None:
+        ch.depth_compressed = bag.topics[ch.depth].msgtype == COMPRESSED
+        msg = peek.get(ch.depth) or bag.first(ch.depth)
+        size = _size(msg, f"{bag.name}: topic {ch.depth}") if msg is not None else None
+        if size != ch.image_size:
+            raise BagError(f"{bag.name}: depth topic {ch.depth} is {size} but the image topic "
+                           f"{ch.image} is {ch.image_size} (width, height); the depth must be "
+                           "registered to the colour camera (e.g. aligned_depth_to_color). "
+                           "Set rosbag.topics.depth to such a topic, or 'none'")
+
+    given, ch.camera_info = _override(bag, "camera_info", topics.camera_info, (CAMERA_INFO,))
+    if not given and ch.image is not None:
+        infos = bag.of_type(CAMERA_INFO)
+        same_ns = [t for t in infos if _namespace(t) == _namespace(ch.image)]
+        ch.camera_info = same_ns[0] if same_ns else (infos[0] if len(infos) == 1 else None)
+        if ch.camera_info is None and infos:
+            ch.notes.append(f"several CameraInfo topics ({', '.join(infos)}) and none in the "
+                            f"namespace of {ch.image}; set rosbag.topics.camera_info")
+
+    given, ch.odometry = _override(bag, "odometry", topics.odometry, (ODOMETRY,))
+    if not given:
+        ch.odometry = _one(bag, "odometry", "nav_msgs/Odometry", bag.of_type(ODOMETRY),
+                           ("/odom", "/odometry"))
+    ch.tf = bag.of_type(*TF_TYPES)
+    scan = bag.first(ch.scan)
+    ch.scan_frame = _frame(str(scan.header.frame_id)) if scan is not None else ""
+    return ch
+
+
+def _size(msg: Any, where: str) -> tuple[int, int]:
+    if hasattr(msg, "encoding"):
+        return int(msg.width), int(msg.height)
+    if "compresseddepth" in str(msg.format).lower():
+        d = compressed_to_depth(msg, where)
+    else:
+        d = compressed_to_rgb(msg, where)
+    return d.shape[1], d.shape[0]
+
+
+def format_topics(bag: Bag, ch: TopicChoice,
+                  seen: dict[str, tuple[int, int, int]] | None = None) -> str:
+    """The table printed before converting: every topic with its count; for the topics
+    read, the mean rate and time span of their stamps (``seen``: topic -> (count, first
+    ns, last ns)); unread topics are not decoded just to time them."""
+    seen = seen or {}
+    dur = (bag.end_ns - bag.start_ns) / 1e9
+    t0 = datetime.fromtimestamp(bag.start_ns / 1e9, UTC).isoformat(timespec="seconds")
+    lines = [f"{bag.kind} bag {bag.name}: {bag.reader.message_count} messages, recorded over "
+             f"{dur:.1f} s from {t0}"]
+    width = max([len(t) for t in bag.topics] + [5])
+    twidth = max([len(t.msgtype) for t in bag.topics.values()] + [4])
+    lines.append(f"  {'topic':<{width}}  {'type':<{twidth}}  {'count':>7}  {'rate Hz':>8}  "
+                 f"{'span s':>8}  used as")
+    for name in sorted(bag.topics):
+        t = bag.topics[name]
+        rate = span = "-"
+        if name in seen:
+            n, first, last = seen[name]
+            sp = (last - first) / 1e9
+            span = f"{sp:.2f}"
+            rate = f"{(n - 1) / sp:.2f}" if n > 1 and sp > 0 else "-"
+        role = ch.role(name)
+        if role == "image":
+            role += f" ({ch.image_encoding})"
+        lines.append(f"  {name:<{width}}  {t.msgtype:<{twidth}}  {t.count:>7}  {rate:>8}  "
+                     f"{span:>8}  {role or '-'}")
+    lines += [f"  note: {n}" for n in ch.notes]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+@dataclass
+class _Stream:
+    """Stamps (ns) and bag times of one topic's messages, as indexed."""
+
+    stamps: list[int] = field(default_factory=list)
+    bag_ns: list[int] = field(default_factory=list)
+    sizes: list[tuple[int, int]] = field(default_factory=list)
+
+
+def read_rosbag(path: Path | str | Sequence[Path | str], options: RosbagOptions | None = None,
+                on_non_monotonic: Literal["error", "drop"] = "error",
+                progress: Callable[..., Iterator[Any]] | None = None,
+                log: logging.Logger | None = None, name: str | None = None) -> Recording:
+    """Index a bag into a ``Recording`` (see the module docstring).
+
+    Logs the topic table before the index pass. Errors (``BagError``) name the bag, the
+    topic and the field, and say what to change.
+    """
+    opts = options or RosbagOptions()
+    log = log or _log
+    paths = bag_paths(path)
+    cal = load_calibration(opts.calibration) if opts.calibration else None
+    with Bag(paths) as bag:
+        ch = choose_topics(bag, opts.topics)
+        idx = _index_pass(bag, ch, opts, progress)
+        log.info("%s", format_topics(bag, ch, idx.seen))
+    return _build(paths, bag.kind, ch, idx, opts, cal, on_non_monotonic, log, name)
+
+
+@dataclass
+class _Index:
+    scans: list[LaserScan] = field(default_factory=list)
+    scan_ns: list[int] = field(default_factory=list)
+    image: _Stream = field(default_factory=_Stream)
+    depth: _Stream = field(default_factory=_Stream)
+    odom_ns: list[int] = field(default_factory=list)
+    odom: list[np.ndarray] = field(default_factory=list)
+    odom_frames: tuple[str, str] = ("odom", "base_link")
+    info: Any = None
+    tf: TfTree = field(default_factory=TfTree)
+    seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
+
+
+def _stamp(msg: Any, ns: int, opts: RosbagOptions, where: str) -> int:
+    if opts.stamps == "bag":
+        return ns
+    s = header_ns(msg)
+    if s == 0:
+        raise BagError(f"{where}: field 'header.stamp' is zero; the driver did not stamp its "
+                       "messages. Fix: set 'rosbag.stamps: bag' to use the recording time")
+    return s
+
+
+def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
+                progress: Callable[..., Iterator[Any]] | None) -> _Index:
+    idx = _Index()
+    topics = [t for t in (ch.scan, ch.image, ch.depth, ch.camera_info, ch.odometry) if t]
+    topics += ch.tf
+    total = sum(bag.topics[t].count for t in topics)
+    it = bag.messages(topics)
+    if progress is not None:
+        it = progress(it, total=total, description="indexing bag")
+    for topic, ns, msg in it:
+        where = f"{bag.name}: topic {topic}"
+        # Rates come from the stamps that will be used (recording time for tf).
+        t = ns if topic in ch.tf or opts.stamps == "bag" else header_ns(msg)
+        n, first, last = idx.seen.get(topic, (0, t, t))
+        idx.seen[topic] = (n + 1, min(first, t), max(last, t))
+        if topic == ch.scan:
+            stamp = _stamp(msg, ns, opts, where)
+            try:
+                inten = np.array(msg.intensities, dtype=np.float32)
+                scan = LaserScan(stamp / 1e9, np.array(msg.ranges, dtype=np.float32),
+                                 float(msg.angle_min), float(msg.angle_increment),
+                                 float(msg.range_min), float(msg.range_max),
+                                 inten if len(inten) == len(msg.ranges) else None)
+            except ValueError as e:
+                raise BagError(f"{where}: message {len(idx.scans)}: {e}") from None
+            idx.scans.append(scan)
+            idx.scan_ns.append(stamp)
+        elif topic in (ch.image, ch.depth):
+            s = idx.image if topic == ch.image else idx.depth
+            s.stamps.append(_stamp(msg, ns, opts, where))
+            s.bag_ns.append(ns)
+            compressed = ch.image_compressed if topic == ch.image else ch.depth_compressed
+            s.sizes.append((-1, -1) if compressed else (int(msg.width), int(msg.height)))
+        elif topic == ch.camera_info:
+            if idx.info is None:
+                idx.info = msg
+        elif topic == ch.odometry:
+            try:
+                T = transform_to_matrix(msg.pose.pose)
+            except ValueError as e:
+                raise BagError(f"{where}: field 'pose.pose.orientation': {e}") from None
+            idx.odom_ns.append(_stamp(msg, ns, opts, where))
+            idx.odom.append(T)
+            idx.odom_frames = (_frame(str(msg.header.frame_id)) or "odom",
+                               _frame(str(msg.child_frame_id)) or opts.frames.base)
+        else:  # tf
+            static = "static" in topic
+            for tr in msg.transforms:
+                try:
+                    T = transform_to_matrix(tr.transform)
+                except ValueError as e:
+                    raise BagError(f"{where}: transform {tr.header.frame_id} -> "
+                                   f"{tr.child_frame_id}: {e}") from None
+                idx.tf.add(str(tr.header.frame_id), str(tr.child_frame_id), T, static, topic)
+    return idx
+
+
+def _keep(stamps: list[int], where: str, policy: Literal["error", "drop"],
+          dropped: dict[str, int], key: str) -> np.ndarray:
+    keep = stamps_keep(np.asarray(stamps, dtype=np.float64) / 1e9 if stamps else np.zeros(0),
+                       where, policy, fix=", or 'rosbag.stamps: bag' to use the recording time")
+    # Float seconds may tie where nanoseconds do not; the integer check is the exact one.
+    st = np.asarray(stamps, dtype=np.int64)
+    if len(st) > 1 and policy == "drop":
+        last = -1
+        for i in np.flatnonzero(keep):
+            if st[i] <= last:
+                keep[i] = False
+            else:
+                last = st[i]
+    dropped[key] = int((~keep).sum())
+    return keep
+
+
+def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: RosbagOptions,
+           cal: Calibration | None, policy: Literal["error", "drop"], log: logging.Logger,
+           name: str | None) -> Recording:
+    bag_name = ", ".join(str(p) for p in paths)
+    dropped: dict[str, int] = {}
+    # --- stamps
+    k = _keep(idx.scan_ns, f"{bag_name}: topic {ch.scan}", policy, dropped, str(ch.scan))
+    scans = [s for s, keep in zip(idx.scans, k, strict=True) if keep]
+    if not scans:
+        raise BagError(f"{bag_name}: topic {ch.scan} has no scans")
+    img = _filtered(idx.image, f"{bag_name}: topic {ch.image}", policy, dropped, ch.image)
+    dep = _filtered(idx.depth, f"{bag_name}: topic {ch.depth}", policy, dropped, ch.depth) \
+        if ch.depth else None
+
+    # --- camera
+    base = _frame(opts.frames.base)
+    tree = idx.tf
+    if cal is not None:
+        for parent, child, T in cal.transforms:
+            tree.add(parent, child, T, True, str(cal.path))
+    has_camera = ch.image is not None
+    # image_rect / image_rect_color carry undistorted pixels (image_proc's names).
+    rectified = opts.rectified if opts.rectified is not None else (
+        has_camera and "rect" in _base_name(str(ch.image)))
+    if not has_camera:
+        camera = placeholder_camera()
+    elif cal is not None and cal.camera is not None:
+        camera = cal.camera
+    elif idx.info is not None:
+        camera = camera_info_to_camera(idx.info, f"{bag_name}: topic {ch.camera_info}",
+                                       rectified=bool(rectified))
+    else:
+        raise BagError(
+            f"{bag_name}: no sensor_msgs/CameraInfo for image topic {ch.image}. Fix: name one "
+            "with rosbag.topics.camera_info, or give the intrinsics in a calibration YAML "
+            "('camera: {width, height, fx, fy, cx, cy, distortion: [k1, k2, p1, p2, k3]}') "
+            "and set rosbag.calibration")
+    if has_camera:
+        w, h = camera.size
+        src = f"calibration file {cal.path}" if cal is not None and cal.camera is not None \
+            else f"CameraInfo topic {ch.camera_info}"
+        # Raw images: every size is known from the index; compressed: the first one.
+        for i, size in enumerate([ch.image_size or (w, h), *idx.image.sizes]):
+            if size != (-1, -1) and size != (w, h):
+                raise BagError(
+                    f"{bag_name}: topic {ch.image}: image {max(i - 1, 0)}"
+                    f" is {size[0]}x{size[1]} but the {src} says {w}x{h} (fields "
+                    "width/height). Fix: use the CameraInfo of this image stream "
+                    "(rosbag.topics.camera_info), or give intrinsics for this image size in "
+                    "the calibration YAML ('camera:')")
+
+    # --- extrinsics
+    cam_frame = _frame(opts.frames.camera or ch.image_frame)
+    laser_frame = _frame(opts.frames.laser or ch.scan_frame)
+    sources: dict[str, str] = {}
+    if has_camera:
+        if cal is not None and cal.T_base_camera is not None:
+            cal.check_direction("T_base_camera", base, cam_frame or "camera")
+            T_base_camera = cal.T_base_camera
+            sources["T_base_camera"] = str(cal.path)
+        else:
+            if not cam_frame:
+                raise BagError(f"{bag_name}: topic {ch.image}: field 'header.frame_id' is "
+                               "empty; name the camera frame with rosbag.frames.camera")
+            T_base_camera = _lookup(tree, base, cam_frame, "camera", bag_name, ch, laser_frame)
+            if opts.frames.camera_convention == "body":
+                T_base_camera = T_base_camera @ optical_mount()
+            sources["T_base_camera"] = f"tf {base} <- {cam_frame}"
+            _warn_if_not_optical(T_base_camera, cam_frame, opts, log)
+    else:
+        T_base_camera = optical_mount()
+        sources["T_base_camera"] = "placeholder (no camera)"
+    if cal is not None and cal.T_base_laser is not None:
+        cal.check_direction("T_base_laser", base, laser_frame or "laser")
+        T_base_laser = cal.T_base_laser
+        sources["T_base_laser"] = str(cal.path)
+    elif cal is not None and cal.T_camera_laser is not None and has_camera:
+        cal.check_direction("T_camera_laser", cam_frame or "camera", laser_frame or "laser")
+        T_base_laser = T_base_camera @ cal.T_camera_laser
+        sources["T_base_laser"] = f"T_base_camera @ T_camera_laser from {cal.path}"
+    else:
+        if not laser_frame:
+            raise BagError(f"{bag_name}: topic {ch.scan}: field 'header.frame_id' is empty; "
+                           "name the laser frame with rosbag.frames.laser")
+        T_base_laser = _lookup(tree, base, laser_frame, "laser", bag_name, ch, cam_frame)
+        sources["T_base_laser"] = f"tf {base} <- {laser_frame}"
+    rig = Rig(camera, T_base_camera, T_base_laser)
+
+    # --- odometry
+    odometry = None
+    if ch.odometry and idx.odom:
+        ko = _keep(idx.odom_ns, f"{bag_name}: topic {ch.odometry}", policy, dropped,
+                   ch.odometry)
+        st = np.asarray(idx.odom_ns, dtype=np.int64)[ko] / 1e9
+        P = np.stack(idx.odom)[ko]
+        child = idx.odom_frames[1]
+        if child != base:
+            found = tree.lookup(child, base)
+            if found is not None:
+                P = P @ found[0]  # T_odom_child @ T_child_base
+            else:
+                log.warning("odometry on %s is for frame %r, which tf does not connect to %r; "
+                            "using it as the base pose", ch.odometry, child, base)
+        odometry = Trajectory(st, P, "odom", "base_link")
+
+    frame_stamps = np.asarray(img.stamps, dtype=np.int64) / 1e9 if has_camera else np.zeros(0)
+    meta = {
+        "source_kind": kind,
+        "topics": {k: v for k, v in (("scan", ch.scan), ("image", ch.image),
+                                     ("depth", ch.depth), ("camera_info", ch.camera_info),
+                                     ("odometry", ch.odometry)) if v},
+        "frames": {"base": base, "camera": cam_frame if has_camera else None,
+                   "laser": laser_frame},
+        "extrinsics_from": sources,
+        "stamps": opts.stamps,
+    }
+    if rectified and has_camera:
+        meta["rectified_images"] = True
+    loader = _make_loader(paths, ch, opts, img, dep, camera) if has_camera else _no_frames
+    return Recording(
+        name=name or paths[0].stem, source=f"rosbag {bag_name}", rig=rig, scans=scans,
+        frame_stamps=frame_stamps, load=loader,
+        depth_stamps=np.asarray(dep.stamps, dtype=np.int64) / 1e9 if dep else None,
+        odometry=odometry, has_camera=has_camera, meta=meta, dropped=dropped)
+
+
+def _no_frames(pairs: Sequence[tuple[int, int]]) -> Iterator[FrameData]:
+    if pairs:
+        raise BagError("this recording has no camera")
+    return iter(())
+
+
+def _filtered(s: _Stream, where: str, policy: Literal["error", "drop"],
+              dropped: dict[str, int], topic: str | None) -> _Stream:
+    if not topic:
+        return _Stream()
+    k = _keep(s.stamps, where, policy, dropped, topic)
+    return _Stream([x for x, y in zip(s.stamps, k, strict=True) if y],
+                   [x for x, y in zip(s.bag_ns, k, strict=True) if y],
+                   [x for x, y in zip(s.sizes, k, strict=True) if y])
+
+
+def _lookup(tree: TfTree, base: str, frame: str, role: str, bag_name: str, ch: TopicChoice,
+            other: str) -> np.ndarray:
+    found = tree.lookup(base, frame)
+    if found is not None:
+        return found[0]
+    moving = tree.lookup(base, frame, include_moving=True)
+    key = "T_base_camera" if role == "camera" else "T_base_laser"
+    known = sorted(tree.frames())
+    if moving is not None:
+        raise MissingTransformError(
+            f"{bag_name}: the transform {base} <- {frame} ({role}) passes through a joint that "
+            f"moves during the recording (path {' -> '.join(moving[1])}); the toolkit needs a "
+            f"fixed mount. Give {key} in a calibration YAML (rosbag.calibration)")
+    example = _CALIB_EXAMPLE.format(base=base, camera=frame if role == "camera" else other
+                                    or "camera_optical_frame",
+                                    laser=frame if role == "laser" else other or "laser")
+    raise MissingTransformError(
+        f"{bag_name}: no transform between the base frame {base!r} and the {role} frame "
+        f"{frame!r} (rosbag.frames.{role}, by default the "
+        f"{'images' if role == 'camera' else 'scans'}' header.frame_id) in "
+        f"{', '.join(ch.tf) or 'the bag (it has no tf topics)'}. Frames tf knows: "
+        f"{', '.join(known) or 'none'}. Fix: give {key} in a calibration YAML and set "
+        f"'rosbag.calibration: calib.yaml', e.g.\n{example}\nor name other frames with "
+        f"rosbag.frames.base / rosbag.frames.{role}")
+
+
+def _warn_if_not_optical(T: np.ndarray, frame: str, opts: RosbagOptions,
+                         log: logging.Logger) -> None:
+    # An optical frame looks along its +z; if that is the base's up axis the frame is
+    # probably camera_link (x forward), and projecting into the image would be wrong.
+    z_in_base = T[:3, 2]
+    if opts.frames.camera_convention == "optical" and abs(z_in_base[2]) > 0.9:
+        log.warning("camera frame %r points its z axis up or down in the base frame: it looks "
+                    "like a body frame (x forward), not an optical one. If so, set "
+                    "rosbag.frames.camera to the *_optical_frame or "
+                    "rosbag.frames.camera_convention: body", frame)
+
+
+def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _Stream,
+                 dep: _Stream | None, camera: PinholeCamera) -> Callable[
+                     [Sequence[tuple[int, int]]], Iterator[FrameData]]:
+    def load(pairs: Sequence[tuple[int, int]]) -> Iterator[FrameData]:
+        if not pairs:
+            return
+        want_img: dict[int, int] = {}
+        want_dep: dict[int, list[int]] = {}
+        start = math.inf
+        for k, (f, d) in enumerate(pairs):
+            want_img[img.stamps[f]] = k
+            start = min(start, img.bag_ns[f])
+            if d >= 0 and dep is not None:
+                want_dep.setdefault(dep.stamps[d], []).append(k)
+                start = min(start, dep.bag_ns[d])
+        # slot k: [rgb, depth, depth expected]
+        slots: dict[int, list[Any]] = {}
+        nxt = 0
+        w, h = camera.size
+        topics = [t for t in (ch.image, ch.depth) if t]
+        with Bag(paths) as bag:
+            for topic, ns, msg in bag.messages(topics, start_ns=int(start)):
+                where = f"{bag.name}: topic {topic}"
+                stamp = ns if opts.stamps == "bag" else header_ns(msg)
+                if topic == ch.image and stamp in want_img:
+                    k = want_img.pop(stamp)
+                    rgb = compressed_to_rgb(msg, where) if ch.image_compressed else \
+                        image_to_rgb(msg, where)
+                    if rgb.shape[1] != w or rgb.shape[0] != h:
+                        raise BagError(
+                            f"{where}: image at {stamp / 1e9:.9f} s is {rgb.shape[1]}x"
+                            f"{rgb.shape[0]} but the camera model is {w}x{h}; the stream "
+                            "changed size. Fix: give intrinsics matching these images in the "
+                            "calibration YAML ('camera:') or convert a part of constant size")
+                    slots.setdefault(k, [None, None, pairs[k][1] >= 0])[0] = rgb
+                elif topic == ch.depth and stamp in want_dep:
+                    d = compressed_to_depth(msg, where) if ch.depth_compressed else \
+                        image_to_depth(msg, where)
+                    if d.shape != (h, w):
+                        raise BagError(f"{where}: depth at {stamp / 1e9:.9f} s is "
+                                       f"{d.shape[1]}x{d.shape[0]}, the images {w}x{h}")
+                    for k in want_dep.pop(stamp):
+                        slots.setdefault(k, [None, None, True])[1] = d
+                while nxt in slots and slots[nxt][0] is not None and (
+                        slots[nxt][1] is not None or not slots[nxt][2]):
+                    rgb, d, _ = slots.pop(nxt)
+                    yield FrameData(stamp=img.stamps[pairs[nxt][0]] / 1e9, image=rgb, depth=d)
+                    nxt += 1
+                if nxt == len(pairs):
+                    return
+        raise BagError(f"{', '.join(map(str, paths))}: {len(pairs) - nxt} planned frames were "
+                       "not found when reading the images (the bag changed since it was "
+                       "indexed?)")
+
+    return load
