@@ -15,6 +15,7 @@ from toolkit.recipe.stage import Stage
 # Stage type name -> "module.path:ClassName". One line per stage, alphabetical.
 STAGES: dict[str, str] = {
     "ingest": "toolkit.ingest.stage:IngestStage",
+    "simulate": "toolkit.sim.stage:SimulateStage",
 }
 
 # Extra stages outside the toolkit (plugins, and the test suite's own tiny stages when it

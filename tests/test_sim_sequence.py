@@ -1,0 +1,208 @@
+"""Simulated sequences: the folder contract, sensor consistency, determinism, the stage."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import pytest
+
+from toolkit.geometry import inv_se3, se2_between
+from toolkit.io.sequence import read_sequence
+from toolkit.recipe.stage import StageContext
+from toolkit.sim.house import generate_house
+from toolkit.sim.robot import MotionLimits, OdometryNoise, plan_path, simulate_odometry
+from toolkit.sim.sensors import CameraSpec
+from toolkit.sim.simulate import SimConfig, simulate
+from toolkit.sim.stage import SimulateConfig, SimulateStage
+
+T = TypeVar("T")
+
+SMALL = SimConfig(
+    duration_s=3.0,
+    n_people=2,
+    camera=CameraSpec(width=320, height=240, fx=262.5, fy=262.5),
+    n_heldout=3,
+)
+
+
+@pytest.fixture(scope="module")
+def short_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("sim") / "seq"
+    simulate(SMALL, root)
+    return root
+
+
+def test_sequence_folder_contract(short_seq: Path) -> None:
+    seq = read_sequence(short_seq)
+    gt = seq.groundtruth
+    assert gt is not None and gt.poses_base is not None
+    assert 25 <= len(seq.frames) <= 31 and 25 <= len(seq.scans) <= 31
+    # Ground truth at every sensor stamp (camera and scans merged), odometry at the same.
+    stamps = np.unique(np.concatenate([seq.frame_stamps, seq.scan_stamps]))
+    assert np.allclose(gt.poses_base.stamps, stamps, rtol=0, atol=1e-6)
+    assert seq.odometry is not None and np.allclose(seq.odometry.stamps, stamps, atol=1e-6)
+    # Camera and lidar are not synchronised.
+    assert not np.intersect1d(seq.frame_stamps, seq.scan_stamps).size
+    assert gt.depth_paths is not None and len(gt.depth_paths) == len(seq.frames)
+    assert gt.mask_paths is not None and len(gt.mask_paths) == len(seq.frames)
+    assert gt.scan_dynamic is not None and gt.scan_dynamic.shape == (len(seq.scans), 360)
+    assert gt.mesh_path is not None and gt.mesh_path.stat().st_size > 10_000
+    assert gt.heldout is not None and len(gt.heldout.image_paths) == 3
+    d = gt.depth(0)
+    assert d.shape == (240, 320) and d.dtype == np.float32 and (d > 0).mean() > 0.99
+    assert gt.mask(0).dtype == bool
+    s = seq.scans[0]
+    assert len(s) == 360 and s.range_min == pytest.approx(0.12) and s.range_max == 12.0
+    assert not np.any(s.ranges == 0)
+    # The rig follows the project's frames: camera optical z is base x (pitched down).
+    R = seq.rig.T_base_camera[:3, :3]
+    assert R[0, 2] > 0.99 and R[2, 2] < 0  # looks forward and a little down
+    assert seq.rig.T_base_laser[2, 3] == pytest.approx(0.25)
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(str(gt.mesh_path))
+    assert mesh.has_vertex_colors() and len(mesh.triangles) > 1000
+
+
+def test_lidar_points_land_on_pixels_with_matching_depth(short_seq: Path) -> None:
+    seq = read_sequence(short_seq)
+    gt = seq.groundtruth
+    assert gt is not None and gt.poses_base is not None and gt.scan_dynamic is not None
+    cam = seq.rig.camera
+    diffs = []
+    for k, frame in enumerate(seq.frames[::3]):
+        k *= 3
+        s = seq.scan_index_at(frame.stamp)
+        scan = seq.scans[s]
+        assert abs(scan.stamp - frame.stamp) < 0.06
+        T_wb_c, T_wb_s = gt.poses_base.interpolate([frame.stamp, scan.stamp]).poses
+        T_cam_laser = inv_se3(T_wb_c @ seq.rig.T_base_camera) @ T_wb_s @ seq.rig.T_base_laser
+        keep = scan.valid_mask() & ~gt.scan_dynamic[s]
+        a = scan.angles()[keep]
+        r = scan.ranges[keep].astype(np.float64)
+        p = np.column_stack([r * np.cos(a), r * np.sin(a), np.zeros_like(r), np.ones_like(r)])
+        pc = (T_cam_laser @ p.T).T[:, :3]
+        uv, z = cam.project(pc)
+        ok = cam.in_image(uv) & (z > 0.3)
+        ij = np.round(uv[ok]).astype(int)
+        depth = gt.depth(k)
+        dyn = gt.mask(k)
+        good = ~dyn[ij[:, 1], ij[:, 0]]
+        diffs.append((depth[ij[:, 1], ij[:, 0]] - z[ok])[good])
+    diff = np.concatenate(diffs)
+    assert len(diff) > 200
+    # Lidar noise is 1 cm; a few points fall on depth edges where rounding to a pixel
+    # picks the neighbouring surface.
+    assert np.median(np.abs(diff)) < 0.012
+    assert np.mean(np.abs(diff) < 0.04) > 0.9
+
+
+def test_same_seed_same_bytes(tmp_path: Path) -> None:
+    cfg = SimConfig(duration_s=1.2, n_people=1, n_heldout=2,
+                    camera=CameraSpec(width=160, height=120, fx=131.0, fy=131.0,
+                                      noise_std=2.0))
+    a = simulate(cfg, tmp_path / "a").root
+    b = simulate(cfg, tmp_path / "b").root
+    files_a = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    files_b = sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    assert files_a == files_b and len(files_a) > 30
+    for rel in files_a:
+        assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
+    c = simulate(SimConfig(**{**cfg.__dict__, "seed": 1}), tmp_path / "c").root
+    assert (a / "scans.npz").read_bytes() != (c / "scans.npz").read_bytes()
+
+
+def test_robot_drives_a_loop_within_limits() -> None:
+    house = generate_house("small_house", 3)
+    lim = MotionLimits()
+    path = plan_path(house.route, house.start_yaw, lim)
+    assert path.laps == 1.0
+    assert np.allclose(path.xy[0], path.xy[-1], atol=1e-9)  # back at the start
+    assert abs(np.sin(path.yaw[-1] - path.yaw[0])) < 1e-9  # facing the same way
+    dt = np.diff(path.t)
+    v = np.linalg.norm(np.diff(path.xy, axis=0), axis=1) / dt
+    w = np.abs(np.diff(path.yaw)) / dt
+    assert v.max() <= lim.v_max + 1e-6 and np.percentile(v[v > 0.05], 90) > 0.3
+    assert w.max() <= lim.w_max + 1e-3
+    # Every room is visited.
+    for room in house.rooms:
+        inside = [room.contains(p) for p in path.xy[::10]]
+        assert any(inside), room.name
+    # A duration stretches or shortens the lap within 0.3-0.6 m/s.
+    p60 = plan_path(house.route, house.start_yaw, lim, duration_s=60.0)
+    assert 0.3 <= p60.v_max <= 0.6 and abs(p60.duration - 60.0) < 0.5
+
+
+def test_odometry_drift_follows_the_noise_model() -> None:
+    house = generate_house("small_house", 0)
+    path = plan_path(house.route, house.start_yaw)
+    t = np.arange(0.0, path.duration, 0.05)
+    true = path.pose2d(t)
+    rel_true = se2_between(true[0], true)
+    exact = simulate_odometry(true, OdometryNoise(0, 0, 0, 0, 0), np.random.default_rng(0))
+    assert np.allclose(exact[:, :2], rel_true[:, :2], atol=1e-6)
+    drift = simulate_odometry(true, OdometryNoise(), np.random.default_rng(0))
+    err = np.linalg.norm(drift[-1, :2] - rel_true[-1, :2])
+    assert 0.02 < err < 3.0
+    # Bias-only drift does not depend on the sampling rate (20 Hz vs 10 Hz stamps).
+    bias = OdometryNoise(scale_bias=0.05, yaw_bias=0.02, trans_std=0, rot_std=0,
+                         rot_per_m_std=0)
+    ends = [simulate_odometry(path.pose2d(tt), bias, np.random.default_rng(1))[-1]
+            for tt in (t, t[::2])]
+    assert np.linalg.norm(ends[0][:2]) > 0.1
+    assert np.linalg.norm(ends[0][:2] - ends[1][:2]) < 0.01
+
+
+class _Ctx(StageContext):
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = run_dir
+        self.stage_id = "simulate"
+        self.stage_dir = run_dir / "simulate"
+        self.stage_dir.mkdir(parents=True)
+        self.recipe_name = "test"
+        self.log = logging.getLogger("test.simulate")
+        self.metrics: dict[str, Any] = {}
+        self.md: list[str] = []
+        self.provided: dict[str, Path] = {}
+
+    def artifact(self, name: str) -> Path:
+        raise KeyError(name)
+
+    def has_artifact(self, name: str) -> bool:
+        return False
+
+    def provide(self, name: str, path: Path) -> None:
+        self.provided[name] = path
+
+    def add_metrics(self, metrics: dict[str, Any]) -> None:
+        self.metrics.update(metrics)
+
+    def report(self, markdown: str) -> None:
+        self.md.append(markdown)
+
+    def progress(self, iterable: Iterable[T], total: int | None = None,
+                 description: str = "") -> Iterator[T]:
+        return iter(iterable)
+
+
+def test_simulate_stage_writes_sequence_and_report(tmp_path: Path) -> None:
+    cfg = SimulateConfig(stage="simulate", duration_s=1.0, n_people=1, n_heldout=1,
+                         camera={"width": 160, "height": 120, "fx": 131.0, "fy": 131.0})
+    ctx = _Ctx(tmp_path)
+    SimulateStage(cfg).run(ctx)
+    seq = ctx.provided["sequence"]
+    assert seq == ctx.stage_dir / "sequence" and (seq / "meta.yaml").exists()
+    assert {"frames", "scans", "seconds", "frames_per_s"} <= set(ctx.metrics)
+    assert ctx.metrics["frames"] == len(read_sequence(seq).frames)
+    text = "\n".join(ctx.md)
+    assert "](simulate/preview.png)" in text and "](simulate/topdown.png)" in text
+    assert (ctx.stage_dir / "preview.png").stat().st_size > 1000
+    assert (ctx.stage_dir / "topdown.png").stat().st_size > 1000
+    with pytest.raises(ValueError):
+        SimulateConfig(stage="simulate", preset="castle")
+    with pytest.raises(ValueError):
+        SimulateConfig(stage="simulate", lidar={"beams": 360, "typo": 1})
