@@ -41,3 +41,13 @@ def test_sample_mesh_covers_surface():
     pts = sample_mesh(box, spacing_m=0.05)
     assert len(pts) >= 1000
     assert np.all(pts.min(0) >= -1e-9) and np.all(pts.max(0) <= [1 + 1e-9, 2 + 1e-9, 0.5 + 1e-9])
+
+
+def test_exact_accuracy_against_mesh():
+    import open3d as o3d
+
+    from toolkit.eval.geometry import mesh_distances
+
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
+    pts = np.array([[0.5, 0.5, 1.03], [0.5, 0.5, 0.5], [2.0, 0.5, 0.5]])
+    assert np.allclose(mesh_distances(pts, box), [0.03, 0.5, 1.0], atol=1e-6)

@@ -27,6 +27,16 @@ def sample_mesh(mesh: Any, spacing_m: float = 0.01, seed: int = 0,
     return np.asarray(mesh.sample_points_uniformly(number_of_points=n).points)
 
 
+def mesh_distances(points: np.ndarray, mesh: Any) -> np.ndarray:
+    """[N] exact distance from each point [N, 3] to the surface of an Open3D TriangleMesh."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    q = o3d.core.Tensor(np.asarray(points, dtype=np.float32))
+    return scene.compute_distance(q).numpy().astype(np.float64)
+
+
 def point_distances(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """[N] distance from each ``src`` point [N, 3] to its nearest ``dst`` point [M, 3]."""
     if len(dst) == 0:
@@ -36,19 +46,26 @@ def point_distances(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def geometry_metrics(
-    recon: np.ndarray, reference: np.ndarray, thresholds_m: tuple[float, ...] = DEFAULT_THRESHOLDS_M
+    recon: np.ndarray, reference: np.ndarray,
+    thresholds_m: tuple[float, ...] = DEFAULT_THRESHOLDS_M,
+    accuracy_distances: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Accuracy, completeness, Chamfer and precision/recall/F-score at each threshold.
 
     ``recon`` [N, 3] and ``reference`` [M, 3] in the same frame (metres). Keys carry units:
-    ``accuracy_mean_m``, ``chamfer_m``, ``fscore_5cm`` ...
+    ``accuracy_mean_m``, ``chamfer_m``, ``fscore_5cm`` ... Pass ``accuracy_distances`` [N]
+    (e.g. exact point-to-mesh distances from ``mesh_distances``) to avoid the bias of
+    measuring accuracy against a sampled reference, whose spacing adds to every distance.
     """
     recon = np.asarray(recon, dtype=np.float64).reshape(-1, 3)
     reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
     if len(recon) == 0 or len(reference) == 0:
         raise ValueError(f"need points on both sides, got {len(recon)} reconstructed and "
                          f"{len(reference)} reference points")
-    acc = point_distances(recon, reference)
+    acc = point_distances(recon, reference) if accuracy_distances is None else np.asarray(
+        accuracy_distances, dtype=np.float64).reshape(-1)
+    if len(acc) != len(recon):
+        raise ValueError(f"{len(acc)} accuracy distances for {len(recon)} points")
     comp = point_distances(reference, recon)
     out: dict[str, float] = {
         "accuracy_mean_m": float(acc.mean()),

@@ -14,6 +14,7 @@ from toolkit.recipe.stage import Stage
 
 # Stage type name -> "module.path:ClassName". One line per stage, alphabetical.
 STAGES: dict[str, str] = {
+    "evaluate": "toolkit.eval.stage:EvaluateStage",
     "ingest": "toolkit.ingest.stage:IngestStage",
     "simulate": "toolkit.sim.stage:SimulateStage",
 }
