@@ -17,6 +17,7 @@ STAGES: dict[str, str] = {
     "evaluate": "toolkit.eval.stage:EvaluateStage",
     "ingest": "toolkit.ingest.stage:IngestStage",
     "simulate": "toolkit.sim.stage:SimulateStage",
+    "splat": "toolkit.splat.stage:SplatStage",
 }
 
 # Extra stages outside the toolkit (plugins, and the test suite's own tiny stages when it

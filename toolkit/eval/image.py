@@ -1,0 +1,105 @@
+"""Image quality metrics: PSNR and SSIM, pure functions on numpy arrays or torch tensors.
+
+Images are [H, W] or [H, W, C], values in 0..``data_range`` (floats; uint8 is divided by
+255 and compared on a 0..1 range). SSIM is the standard Wang et al. 2004 form with an
+11x11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, computed on the valid region
+(no padding) and averaged over pixels and channels - the definition of 3DGS's training
+loss, torchmetrics, and scikit-image's ``structural_similarity(gaussian_weights=True,
+use_sample_covariance=False)``, which the tests compare against. The torch version is
+differentiable, so training uses the same function as evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+Array = np.ndarray | Tensor
+
+
+def _as_float(img: Array) -> Tensor:
+    if isinstance(img, np.ndarray):
+        t = torch.from_numpy(np.ascontiguousarray(img))
+        if img.dtype == np.uint8:
+            return t.to(torch.float64) / 255.0
+        return t.to(torch.float64)
+    if img.dtype == torch.uint8:
+        return img.to(torch.float32) / 255.0
+    return img
+
+
+def _check(a: Tensor, b: Tensor) -> None:
+    if a.shape != b.shape:
+        raise ValueError(f"images differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
+    if a.dim() not in (2, 3):
+        raise ValueError(f"images must be [H, W] or [H, W, C], got {tuple(a.shape)}")
+
+
+def _out(x: Tensor, like: Array) -> Any:
+    return float(x) if isinstance(like, np.ndarray) else x
+
+
+def mse(a: Array, b: Array, mask: Array | None = None) -> Any:
+    """Mean squared error (over ``mask`` [H, W] pixels when given)."""
+    ta, tb = _as_float(a), _as_float(b)
+    _check(ta, tb)
+    d = (ta - tb) ** 2
+    if mask is not None:
+        m = _as_float(mask).to(torch.bool) if isinstance(mask, np.ndarray) else mask.bool()
+        d = d[m]
+    return _out(d.mean(), a)
+
+
+def psnr(a: Array, b: Array, data_range: float = 1.0, mask: Array | None = None) -> Any:
+    """Peak signal-to-noise ratio in dB; inf for identical images."""
+    m = mse(a, b, mask)
+    if isinstance(a, np.ndarray):
+        return float("inf") if m == 0 else 10.0 * math.log10(data_range**2 / m)
+    return 10.0 * torch.log10(data_range**2 / m)
+
+
+def _gauss_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return g / g.sum()
+
+
+def ssim_map(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
+             sigma: float = 1.5) -> Tensor:
+    """[H - window + 1, W - window + 1, C] local SSIM (valid region only)."""
+    ta, tb = _as_float(a), _as_float(b)
+    _check(ta, tb)
+    if ta.dim() == 2:
+        ta, tb = ta[..., None], tb[..., None]
+    if min(ta.shape[0], ta.shape[1]) < window:
+        raise ValueError(f"images of {tuple(ta.shape[:2])} are smaller than the SSIM window "
+                         f"({window})")
+    C = ta.shape[2]
+    x = ta.permute(2, 0, 1)[None]  # [1, C, H, W]
+    y = tb.permute(2, 0, 1)[None]
+    g = _gauss_window(window, sigma, x.dtype, x.device)
+    # Separable filter: a column pass then a row pass, each a depthwise conv.
+    kv = g.reshape(1, 1, window, 1).expand(C, 1, window, 1)
+    kh = g.reshape(1, 1, 1, window).expand(C, 1, 1, window)
+
+    def blur(z: Tensor) -> Tensor:
+        return F.conv2d(F.conv2d(z, kv, groups=C), kh, groups=C)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x**2
+    syy = blur(y * y) - mu_y**2
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return s[0].permute(1, 2, 0)
+
+
+def ssim(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
+         sigma: float = 1.5) -> Any:
+    """Mean SSIM: a float for numpy input, a differentiable 0-d tensor for torch input."""
+    return _out(ssim_map(a, b, data_range, window, sigma).mean(), a)

@@ -1,0 +1,197 @@
+"""The fast CPU path: tile compositing in a C++/OpenMP extension built on first use.
+
+``torch.utils.cpp_extension.load`` compiles ``csrc/composite.cpp`` with gcc (``-O3
+-fopenmp -ffast-math -march=native``) into a per-user cache folder; later processes load the
+cached build in well under a second. The build folder's name hashes the source, the flags,
+the torch/Python versions and the CPU, so an edit, an upgrade or a different machine
+sharing a home folder gets its own build. Where no compiler is present or the build
+fails, ``load_extension`` returns None, the reason is logged once, and ``render`` falls back
+to the PyTorch reference.
+
+Projection and SH colours stay in PyTorch (autograd); only compositing and its backward
+(and the tile binning, a counting sort) run here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import sys
+import threading
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from toolkit.splat.rasterize.common import Projected, TileBins, pixel_rects
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).parent / "csrc" / "composite.cpp"
+CFLAGS = ["-O3", "-fopenmp", "-ffast-math", "-march=native"]
+# -ffast-math stays out of the link flags: linking with it pulls in crtfastmath.o, which
+# would switch the whole process to flush-denormals-to-zero.
+LDFLAGS = ["-fopenmp"]
+ENV_CACHE = "TOOLKIT_EXT_CACHE"
+ENV_DISABLE = "TOOLKIT_NO_CPP_EXT"
+
+_lock = threading.Lock()
+_state: dict[str, Any] = {"tried": False, "module": None, "error": None}
+_threads: dict[str, int | None] = {"composite": None}
+
+
+def set_threads(n: int | None) -> None:
+    """Threads of the compositing kernels; None follows ``torch.get_num_threads()``.
+
+    Compositing is one parallel loop per pass, so it keeps its speed-up on a machine busy
+    with other work, where PyTorch's hundreds of small parallel regions per step do not;
+    that is why it can be set apart from torch's thread count.
+    """
+    if n is not None and n < 1:
+        raise ValueError(f"thread count must be >= 1, got {n}")
+    _threads["composite"] = n
+
+
+def get_threads() -> int:
+    n = _threads["composite"]
+    return torch.get_num_threads() if n is None else n
+
+
+def cache_root() -> Path:
+    """Where builds are kept: $TOOLKIT_EXT_CACHE, else $XDG_CACHE_HOME or ~/.cache."""
+    env = os.environ.get(ENV_CACHE)
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "lidarcam-recon" / "torch_extensions"
+
+
+def _cpu_signature() -> str:
+    # -march=native code can crash on another CPU model: key the build on the CPU.
+    try:
+        text = Path("/proc/cpuinfo").read_text(errors="ignore")
+        lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))][:2]
+        return "\n".join(lines)
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def build_name() -> str:
+    """Extension module name: stable for one source, flag set, toolchain and CPU."""
+    h = hashlib.sha256()
+    for part in (SOURCE.read_bytes(), " ".join(CFLAGS + LDFLAGS).encode(),
+                 torch.__version__.encode(), sys.version.encode(), _cpu_signature().encode()):
+        h.update(part)
+    return f"toolkit_splat_composite_{h.hexdigest()[:16]}"
+
+
+def load_extension(verbose: bool = False) -> ModuleType | None:
+    """The compiled module, building it on the first call; None when it cannot be built."""
+    with _lock:
+        if _state["tried"]:
+            return _state["module"]
+        _state["tried"] = True
+        if os.environ.get(ENV_DISABLE):
+            _state["error"] = f"disabled by ${ENV_DISABLE}"
+            log.info("C++ rasteriser %s; using the PyTorch reference", _state["error"])
+            return None
+        compiler = os.environ.get("CXX", "c++")
+        if shutil.which(compiler) is None:
+            _state["error"] = f"no C++ compiler ({compiler!r} not on PATH)"
+            log.warning("C++ rasteriser unavailable: %s; falling back to the PyTorch "
+                        "reference (about 10x slower). Install g++ to enable it.",
+                        _state["error"])
+            return None
+        try:
+            from torch.utils.cpp_extension import load
+
+            name = build_name()
+            build_dir = cache_root() / name
+            build_dir.mkdir(parents=True, exist_ok=True)
+            _state["module"] = load(
+                name=name,
+                sources=[str(SOURCE)],
+                extra_cflags=CFLAGS,
+                extra_ldflags=LDFLAGS,
+                build_directory=str(build_dir),
+                verbose=verbose,
+            )
+        except Exception as exc:  # noqa: BLE001 - any build failure means: fall back
+            _state["error"] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1:]}"
+            log.warning("C++ rasteriser build failed (%s); falling back to the PyTorch "
+                        "reference. Run with verbose=True for the compiler output.",
+                        _state["error"])
+            _state["module"] = None
+        return _state["module"]
+
+
+def extension_error() -> str | None:
+    """Why the extension is unavailable (None if it loaded or was never tried)."""
+    return _state["error"]
+
+
+def available() -> bool:
+    return load_extension() is not None
+
+
+class _Composite(torch.autograd.Function):
+    """Differentiable compositing: (means2d, conics, features, opacities) -> image, T."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        means2d: Tensor,  # [M, 2]
+        conics: Tensor,  # [M, 3]
+        feats: Tensor,  # [M, C]
+        opacities: Tensor,  # [M]
+        rects: Tensor,  # [M, 4] int32
+        offsets: Tensor,  # [T + 1] int32
+        ids: Tensor,  # [P] int32
+        width: int,
+        height: int,
+        tile_size: int,
+    ) -> tuple[Tensor, Tensor]:
+        ext = load_extension()
+        assert ext is not None
+        args = [x.contiguous() for x in (means2d, conics, feats, opacities)]
+        threads = get_threads()
+        accum, T, last = ext.composite_forward(*args, rects, offsets, ids, width, height,
+                                               tile_size, threads)
+        ctx.save_for_backward(*args, rects, offsets, ids, T, last)
+        ctx.dims = (width, height, tile_size, threads)
+        return accum, T  # [H, W, C], [H, W]
+
+    @staticmethod
+    def backward(ctx: Any, g_accum: Tensor, g_T: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        ext = load_extension()
+        assert ext is not None
+        means2d, conics, feats, opac, rects, offsets, ids, T, last = ctx.saved_tensors
+        width, height, tile_size, threads = ctx.dims
+        g_m, g_c, g_f, g_o = ext.composite_backward(
+            means2d, conics, feats, opac, rects, offsets, ids, width, height, tile_size, T, last,
+            g_accum.contiguous(), g_T.contiguous(), threads,
+        )
+        return g_m, g_c, g_f, g_o, None, None, None, None, None, None
+
+
+def bin_tiles_cpp(proj: Projected, width: int, height: int, tile_size: int) -> TileBins:
+    """Same lists as ``common.bin_tiles`` (identical order), by a counting sort in C++."""
+    ext = load_extension()
+    assert ext is not None
+    rects = pixel_rects(proj.means2d, proj.radii, width, height).contiguous()
+    order = torch.argsort(proj.depths.detach(), stable=True)
+    offsets, ids = ext.bin_tiles(rects, order, width, height, tile_size)
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    return TileBins(tile_size, tiles_x, tiles_y, offsets, ids, rects)
+
+
+def composite(proj: Projected, bins: TileBins, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """[H, W, 4] accumulated (RGB, depth) and [H, W] final transmittance."""
+    feats = torch.cat([proj.colors, proj.depths[:, None]], -1)  # [M, 4]
+    return _Composite.apply(proj.means2d, proj.conics, feats, proj.opacities, bins.rects,
+                            bins.offsets, bins.ids, width, height, bins.tile_size)

@@ -1,0 +1,95 @@
+"""The CUDA backend: ``gsplat.rasterization`` behind the toolkit's ``render`` interface.
+
+gsplat (optional extra ``cuda``) is only used for CUDA tensors. Its settings are the ones the
+CPU rasterisers reproduce: classic (not antialiased) mode, 0.3 px dilation, packed output,
+expected depth ("RGB+ED"), SH colours with gsplat's +0.5 offset. gsplat puts pixel centres
+at i + 0.5 where the toolkit puts them at i, so the principal point is shifted by half a
+pixel; the two conventions then render the same image.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from toolkit.splat.model import Gaussians
+from toolkit.splat.rasterize.common import CameraTensors
+
+_reason: str | None = None
+
+
+def _import() -> Any:
+    global _reason
+    try:
+        import gsplat  # type: ignore[import-not-found]
+    except Exception as exc:  # noqa: BLE001 - gsplat's import may fail in many ways (CUDA JIT)
+        _reason = f"cannot import gsplat: {exc}"
+        return None
+    return gsplat
+
+
+def available() -> bool:
+    """gsplat imports and a CUDA device is present."""
+    global _reason
+    if not torch.cuda.is_available():
+        _reason = "no CUDA device"
+        return False
+    return _import() is not None
+
+
+def unavailable_reason() -> str | None:
+    return _reason
+
+
+def render(g: Gaussians, cam: CameraTensors, background: Tensor, sh_degree: int, near: float,
+           far: float, eps2d: float) -> Any:
+    """Same contract as ``toolkit.splat.rasterize.render`` (returns a RenderOutput)."""
+    from toolkit.splat.rasterize import RenderMeta, RenderOutput
+
+    gsplat = _import()
+    if gsplat is None:
+        raise RuntimeError(_reason)
+    dev, dt = g.means.device, g.means.dtype
+    K = torch.tensor([[cam.fx, 0.0, cam.cx + 0.5], [0.0, cam.fy, cam.cy + 0.5],
+                      [0.0, 0.0, 1.0]], dtype=dt, device=dev)
+    colors, alphas, info = gsplat.rasterization(
+        means=g.means,
+        quats=g.quats,
+        scales=torch.exp(g.log_scales),
+        opacities=torch.sigmoid(g.opacity_logits),
+        colors=g.full_sh(),
+        viewmats=cam.viewmat[None],
+        Ks=K[None],
+        width=cam.width,
+        height=cam.height,
+        near_plane=near,
+        far_plane=far,
+        eps2d=eps2d,
+        sh_degree=sh_degree,
+        backgrounds=background[None],
+        render_mode="RGB+ED",
+        packed=True,
+        rasterize_mode="classic",
+    )
+    color = colors[0, ..., :3]  # [H, W, 3]
+    depth = colors[0, ..., 3]  # [H, W] expected depth, already divided by alpha
+    alpha = alphas[0, ..., 0]
+    means2d = info["means2d"]  # [nnz, 2], gsplat pixel convention
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    radii = info["radii"]
+    if radii.dim() == 1:  # gsplat < 1.5 gives one radius per Gaussian
+        radii = radii[:, None].expand(-1, 2)
+    meta = RenderMeta(
+        gaussian_ids=info["gaussian_ids"].long(),
+        means2d=means2d,
+        radii=radii.to(torch.int32),
+        depths=info["depths"].detach(),
+        width=cam.width,
+        height=cam.height,
+        n_gaussians=len(g.means),
+        backend="gsplat",
+    )
+    return RenderOutput(color, depth, alpha, meta)

@@ -1,0 +1,444 @@
+"""Recipe stage ``splat``: Gaussians initialised from the fused map, optimised at fixed poses.
+
+```yaml
+- stage: splat
+  iterations: 1500        # training steps (one view each)
+  downscale: 4            # train and evaluate at 1/4 of the camera resolution
+  depth_weight: 0.1       # L1 depth term against the lidar-scaled depth (E_geo)
+  max_seconds: 220        # stop training early on a slow machine (null: never)
+```
+
+Inputs: ``sequence`` (images, rig, ground truth), ``fused`` (``map.ply`` and per-frame
+scaled depth in ``scaled_depth/`` or ``depth/``), optionally ``trajectory`` (slam2d: a TUM
+file of camera or base poses). Without a trajectory the ground-truth poses of the sequence
+are used, and the report says so in bold.
+
+Writes into its folder (the ``splats`` artifact is ``splats.ply``):
+
+    splats.ply            standard 3DGS PLY (opens in 3DGS viewers and Open3D)
+    renders.png           real | rendered | rendered depth, for a few held-out views
+    renders/path_*.png    every held-out frame along the driven path, rendered
+    renders/offpath_*.png every simulator held-out view (off the path), rendered
+    train_history.json    loss / PSNR every log_every steps
+    checkpoints/          training checkpoint (resume after an interruption)
+
+Held-out evaluation: every ``holdout_every``-th used frame is left out of training (the
+Mip-NeRF 360 convention), and the simulator's held-out views when the sequence has them;
+PSNR and SSIM on both, and depth error against ground-truth depth where it exists.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import torch
+from pydantic import Field
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, inv_se3
+from toolkit.io.atomic import atomic_path, atomic_write_json
+from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.sensors import Sequence, load_rgb
+from toolkit.splat.export import write_ply
+from toolkit.splat.model import init_from_points
+from toolkit.splat.rasterize import RenderOutput, resolve_backend
+from toolkit.splat.trainer import (
+    TrainConfig,
+    Trainer,
+    TrainView,
+    evaluate_views,
+)
+
+
+class SplatConfig(TrainConfig, StageConfig):
+    """Settings of the ``splat`` stage: training (``TrainConfig``) plus data handling."""
+
+    downscale: int = Field(4, ge=1, description="image size divisor for training")
+    frame_stride: int = Field(1, ge=1, description="use every n-th frame")
+    holdout_every: int = Field(8, ge=0, description="hold out every n-th used frame (0: none)")
+    # At the quickstart's 160x120, 40k initial Gaussians trained to a higher held-out PSNR
+    # within the time limit than 100k (more steps; densification adds where needed).
+    init_budget: int = Field(40_000, ge=1, description="at most this many initial Gaussians")
+    init_opacity: float = Field(0.1, gt=0, lt=1)
+    poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
+    strip_views: int = Field(4, ge=0, description="held-out views in renders.png")
+    # Torch threads. "auto": torch's default, except 1 when the machine is already fully
+    # loaded: on a shared 2-core machine PyTorch with 2 OpenMP threads ran 10x slower in wall
+    # time than with 1 once other processes kept both cores busy (docs/splatting.md). The
+    # compositing kernels keep all cores either way (one parallel loop per pass).
+    threads: int | Literal["auto"] = "auto"
+    # A safety net for the quickstart's 4-minute budget on slow machines; benchmark recipes
+    # set it to null.
+    max_seconds: float | None = Field(220.0, gt=0)
+
+
+def choose_threads(setting: int | str) -> int:
+    """Torch threads for training: ``setting``, or for "auto" the default unless the 1-minute
+    load average says every core is already busy."""
+    if setting != "auto":
+        return int(setting)
+    default = torch.get_num_threads()
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return default
+    cores = os.cpu_count() or default
+    return 1 if default > 1 and load >= cores else default
+
+
+# ------------------------------------------------------------------------ inputs
+def camera_poses(seq: Sequence, ctx: StageContext, cfg: SplatConfig) -> tuple[Trajectory, str]:
+    """T_world_camera at the frame stamps, and where it came from."""
+    from toolkit.io.tum import read_tum
+
+    stamps = seq.frame_stamps
+    if cfg.poses in ("auto", "trajectory") and ctx.has_artifact("trajectory"):
+        path = Path(ctx.artifact("trajectory"))
+        if path.is_dir():
+            names = ["trajectory_camera.tum", "camera_poses.tum", "trajectory.tum",
+                     "poses_base.tum"]
+            cands = [path / n for n in names if (path / n).exists()] or sorted(path.glob("*.tum"))
+            if not cands:
+                raise StageError(f"splat: trajectory artifact {path} holds no .tum file")
+            path = cands[0]
+        traj = read_tum(path)
+        with path.open() as fh:
+            has_header = any(line.startswith("# T_") for line in fh.readlines()[:5])
+        if not has_header and "camera" in path.name:
+            traj.child = "camera"  # no header: the file name is the only word on it
+        if traj.child in ("base_link", "base"):
+            traj = traj.transform(T_right=seq.rig.T_base_camera)
+        elif traj.child == "laser":
+            traj = traj.transform(T_right=inv_se3(seq.rig.T_base_laser) @ seq.rig.T_base_camera)
+        traj.child = "camera"
+        return _at(traj, stamps), "trajectory"
+    if cfg.poses == "trajectory":
+        raise StageError("splat: poses: trajectory, but no stage upstream provides one "
+                         "(add slam2d before splat)")
+    gt = seq.groundtruth
+    if gt is None or gt.poses_base is None:
+        raise StageError("splat: no poses - run slam2d before splat, or use a sequence with "
+                         "ground-truth poses")
+    traj = gt.poses_base.transform(T_right=seq.rig.T_base_camera)
+    traj.child = "camera"
+    return _at(traj, stamps), "groundtruth"
+
+
+def _at(traj: Trajectory, stamps: np.ndarray) -> Trajectory:
+    """Interpolated at ``stamps`` that lie inside the trajectory (others dropped)."""
+    inside = (stamps >= traj.stamps[0] - 1e-6) & (stamps <= traj.stamps[-1] + 1e-6)
+    out = traj.interpolate(stamps[inside], extrapolate_s=1e-6)
+    out.extra["frame_index"] = np.nonzero(inside)[0]
+    return out
+
+
+def find_depth_dir(fused: Path) -> Path | None:
+    for name in ("depth", "scaled_depth"):
+        if (fused / name).is_dir():
+            return fused / name
+    return None
+
+
+def depth_file(depth_dir: Path | None, index: int) -> Path | None:
+    if depth_dir is None:
+        return None
+    for ext in (".npy", ".png"):
+        p = depth_dir / f"{index:06d}{ext}"
+        if p.exists():
+            return p
+    return None
+
+
+def prepare_image(img: np.ndarray, camera: PinholeCamera, size: tuple[int, int]) -> np.ndarray:
+    """Undistort (if needed) then area-resize an RGB image to ``size`` (w, h)."""
+    img = camera.undistort_image(img)
+    if (img.shape[1], img.shape[0]) != size:
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    return img
+
+
+def prepare_depth(depth: np.ndarray, camera: PinholeCamera, size: tuple[int, int]) -> np.ndarray:
+    """Undistort and resize a depth map with nearest neighbours (no mixing across edges)."""
+    d = np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if camera.has_distortion:
+        m1, m2 = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K,
+                                             camera.size, cv2.CV_32FC1)
+        d = cv2.remap(d, m1, m2, cv2.INTER_NEAREST)
+    if (d.shape[1], d.shape[0]) != size:
+        d = cv2.resize(d, size, interpolation=cv2.INTER_NEAREST)
+    return d
+
+
+def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Points [N, 3] and colours [N, 3] 0..1 of the fused map (Open3D point cloud PLY)."""
+    import open3d as o3d
+
+    if not path.exists():
+        raise StageError(f"splat: fused map {path} not found")
+    pc = o3d.io.read_point_cloud(str(path))
+    pts = np.asarray(pc.points, dtype=np.float64)
+    if len(pts) == 0:
+        raise StageError(f"splat: fused map {path} holds no points")
+    cols = np.asarray(pc.colors, dtype=np.float64) if pc.has_colors() else None
+    return pts, cols if cols is not None else np.full_like(pts, 0.5)
+
+
+def _strip(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """Rows of real | rendered | depth (turbo colour map, near = red) as one RGB image."""
+    out = []
+    for real, rend, depth in rows:
+        valid = depth > 0
+        lo, hi = (np.percentile(depth[valid], [2, 98]) if valid.any() else (0.0, 1.0))
+        norm = np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1)
+        cm = cv2.applyColorMap(((1 - norm) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+        cm = cv2.cvtColor(cm, cv2.COLOR_BGR2RGB)
+        cm[~valid] = 0
+        out.append(np.concatenate([real, rend, cm], 1))
+    return np.concatenate(out, 0)
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"{path}: could not write image")
+
+
+def _to_u8(t: torch.Tensor) -> np.ndarray:
+    return (t.detach().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+# ------------------------------------------------------------------------ stage
+class SplatStage(Stage):
+    """Train 3D Gaussian splats from the fused map at the lidar poses; export a 3DGS PLY."""
+
+    name = "splat"
+    Config = SplatConfig
+    requires = ("sequence", "fused")
+    optional_requires = ("trajectory",)
+    provides = ("splats",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: SplatConfig = self.config  # type: ignore[assignment]
+        from toolkit.splat.rasterize import cpp_ext
+
+        before = torch.get_num_threads()
+        threads = choose_threads(cfg.threads)
+        if threads != before:
+            ctx.log.info("splat: %d torch thread(s) (%s), compositing on %d", threads,
+                         "busy machine" if cfg.threads == "auto" else "setting", before)
+        cpp_ext.set_threads(before)
+        torch.set_num_threads(threads)
+        try:
+            self._run(ctx, cfg)
+        finally:
+            torch.set_num_threads(before)
+            cpp_ext.set_threads(None)
+
+    def _run(self, ctx: StageContext, cfg: SplatConfig) -> None:
+        from toolkit.io.sequence import read_sequence
+
+        seq = read_sequence(ctx.artifact("sequence"))
+        fused = Path(ctx.artifact("fused"))
+        if not seq.frames:
+            raise StageError("splat: the sequence has no camera frames")
+        poses, pose_source = camera_poses(seq, ctx, cfg)
+        index = poses.extra["frame_index"]
+        used = np.arange(0, len(index), cfg.frame_stride)
+        cam_full = seq.rig.camera
+        w, h = cam_full.width // cfg.downscale, cam_full.height // cfg.downscale
+        cam = cam_full.undistorted().scaled(w, h)
+        depth_dir = find_depth_dir(fused)
+        gt = seq.groundtruth
+
+        train_views: list[TrainView] = []
+        test_views: list[TrainView] = []
+        test_gt_depth: list[np.ndarray | None] = []
+        n_depth = 0
+        for k in ctx.progress(list(used), description="splat: load views"):
+            fi = int(index[k])
+            img = prepare_image(seq.frames[fi].image, cam_full, (w, h))
+            dpath = depth_file(depth_dir, fi)
+            depth = None
+            if dpath is not None:
+                from toolkit.io.depth import read_depth
+
+                depth = torch.from_numpy(prepare_depth(read_depth(dpath), cam_full, (w, h)))
+                n_depth += 1
+            held = cfg.holdout_every > 0 and k % cfg.holdout_every == 0
+            view = TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
+                             inv_se3(poses.poses[k]), depth, f"frame {fi}")
+            if held:
+                test_views.append(view)
+                g = None
+                if gt is not None and gt.depth_paths is not None:
+                    g = prepare_depth(gt.depth(fi), cam_full, (w, h))
+                test_gt_depth.append(g)
+            else:
+                train_views.append(view)
+        if not train_views:
+            raise StageError("splat: no training views left (check frame_stride / "
+                             "holdout_every)")
+
+        pts, cols = read_map(fused / "map.ply")
+        model = init_from_points(pts, cols, budget=min(cfg.init_budget, cfg.max_gaussians),
+                                 sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity,
+                                 seed=cfg.seed)
+        tcfg = TrainConfig(**{k: getattr(cfg, k) for k in TrainConfig.model_fields})
+        data_key = _data_key(fused, [v.name for v in train_views], poses.poses, (w, h))
+        trainer = Trainer(model, train_views, tcfg, ctx.stage_dir / "checkpoints",
+                          data_key=data_key)
+        resumed = trainer.resume()
+        backend = resolve_backend(cfg.backend, model.means.device)
+        ctx.log.info("splat: %d training views at %dx%d (%d with scaled depth), %d held out, "
+                     "%d initial Gaussians, backend %s%s", len(train_views), w, h, n_depth,
+                     len(test_views), len(model), backend,
+                     f", resumed at step {trainer.step}" if resumed else "")
+        summary = trainer.train(iter_wrapper=lambda it, total, desc: ctx.progress(
+            it, total=total, description=desc))
+        model = trainer.model
+
+        write_ply(ctx.stage_dir / "splats.ply", model)
+        atomic_write_json(ctx.stage_dir / "train_history.json", summary.history)
+
+        # ---------------------------------------------------------------- evaluation
+        t0 = time.perf_counter()
+        metrics: dict[str, object] = {
+            "poses": pose_source,
+            "backend": backend,
+            "train_views": len(train_views),
+            "image_width": w,
+            "image_height": h,
+            "threads": torch.get_num_threads(),
+            "iterations": summary.steps,
+            "stopped_early": summary.stopped_early,
+            "train_seconds": summary.seconds,
+            "train_iters_per_s": summary.iters_per_s,
+            "n_gaussians_init": int(min(len(pts), cfg.init_budget, cfg.max_gaussians)),
+            "n_gaussians": summary.n_gaussians,
+            "train_psnr_db": summary.final_psnr_db,
+        }
+        strip_rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        (ctx.stage_dir / "renders").mkdir(exist_ok=True)
+        sim_views = self._sim_heldout(seq, cam_full, cam, (w, h))
+        # Pictures: every held-out view as a PNG; in the strip, views spread along the path
+        # and, when the simulator gave some, off-path ones as well.
+        n_path = cfg.strip_views - cfg.strip_views // 2 if sim_views else cfg.strip_views
+        n_sim = cfg.strip_views - n_path
+
+        def saver(prefix: str, n_total: int, n_strip: int) -> Callable[..., None]:
+            # Interior points of the sequence: a loop's first and last frames look alike.
+            picks = set(np.linspace(0, n_total - 1, n_strip + 2)[1:-1].round().astype(int)
+                        .tolist() if n_strip > 0 and n_total > 0 else [])
+
+            def save(i: int, v: TrainView, out: RenderOutput) -> None:
+                rend = _to_u8(out.color)
+                _write_png(ctx.stage_dir / "renders" / f"{prefix}_{i:03d}.png", rend)
+                if i in picks:
+                    depth = np.where(out.alpha.numpy() > 0.5, out.depth.numpy(), 0.0)
+                    strip_rows.append((v.image.numpy(), rend, depth))
+
+            return save
+
+        if test_views:
+            ev = evaluate_views(model, test_views, backend, cfg.background, test_gt_depth,
+                                saver("path", len(test_views), n_path))
+            metrics["heldout_every_n"] = cfg.holdout_every
+            metrics["heldout_frames"] = ev["views"]
+            metrics["heldout_psnr_db"] = ev["psnr_db"]
+            metrics["heldout_ssim"] = ev["ssim"]
+            for key in ("depth_mae_m", "depth_rmse_m"):
+                if key in ev:
+                    metrics[f"heldout_{key}"] = ev[key]
+        if sim_views:
+            views, depths = sim_views
+            ev = evaluate_views(model, views, backend, cfg.background, depths,
+                                saver("offpath", len(views), n_sim if test_views else
+                                      cfg.strip_views))
+            metrics["sim_heldout_views"] = ev["views"]
+            metrics["sim_heldout_psnr_db"] = ev["psnr_db"]
+            metrics["sim_heldout_ssim"] = ev["ssim"]
+            for key in ("depth_mae_m", "depth_rmse_m"):
+                if key in ev:
+                    metrics[f"sim_heldout_{key}"] = ev[key]
+        if strip_rows:
+            _write_png(ctx.stage_dir / "renders.png", _strip(strip_rows))
+        metrics["eval_seconds"] = time.perf_counter() - t0
+        ctx.add_metrics(metrics)
+        ctx.report(self._report(ctx, cfg, metrics, pose_source, bool(strip_rows),
+                                bool(sim_views), resumed))
+        ctx.provide("splats", ctx.stage_dir / "splats.ply")
+
+    @staticmethod
+    def _sim_heldout(seq: Sequence, cam_full: PinholeCamera, cam: PinholeCamera,
+                     size: tuple[int, int]) -> tuple[list[TrainView], list[np.ndarray | None]] | (
+                         None):
+        gt = seq.groundtruth
+        if gt is None or gt.heldout is None or not gt.heldout.image_paths:
+            return None
+        from toolkit.io.depth import read_depth
+
+        h = gt.heldout
+        views, depths = [], []
+        for i, p in enumerate(h.image_paths):
+            img = prepare_image(load_rgb(p), cam_full, size)
+            views.append(TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
+                                   inv_se3(h.poses_camera.poses[i]), None, f"held-out {i}"))
+            d = None
+            if h.depth_paths and i < len(h.depth_paths):
+                d = prepare_depth(read_depth(h.depth_paths[i]), cam_full, size)
+            depths.append(d)
+        return views, depths
+
+    @staticmethod
+    def _report(ctx: StageContext, cfg: SplatConfig, m: dict[str, object], pose_source: str,
+                strip: bool, sim: bool, resumed: bool) -> str:
+        sid = ctx.stage_id
+        lines = []
+        if pose_source == "groundtruth":
+            lines.append("**WARNING: no `trajectory` artifact upstream - splats trained at the "
+                         "sequence's GROUND-TRUTH camera poses, not the lidar SLAM poses.**\n")
+        lines.append(
+            f"{m['n_gaussians_init']} Gaussians from the fused map grew to {m['n_gaussians']} "
+            f"in {m['iterations']} iterations at {m['image_width']}x{m['image_height']} "
+            f"({m['train_seconds']:.0f} s, {m['train_iters_per_s']:.1f} it/s, backend "
+            f"`{m['backend']}`, {m['train_views']} training views"
+            + (", resumed from a checkpoint" if resumed else "") + ")."
+            + (" **Training stopped early at the time limit.**" if m["stopped_early"] else ""))
+        rows = []
+        if "heldout_psnr_db" in m:
+            rows.append((f"every {cfg.holdout_every}-th frame ({m['heldout_frames']})",
+                         m["heldout_psnr_db"], m["heldout_ssim"], m.get("heldout_depth_mae_m")))
+        if sim:
+            rows.append((f"simulator held-out views ({m['sim_heldout_views']})",
+                         m["sim_heldout_psnr_db"], m["sim_heldout_ssim"],
+                         m.get("sim_heldout_depth_mae_m")))
+        if rows:
+            lines.append("\n| held-out set | PSNR (dB) | SSIM | depth MAE (m) |\n|---|---|---|---|")
+            for name, p, s, d in rows:
+                dtxt = f"{d:.3f}" if isinstance(d, float) else "-"
+                lines.append(f"| {name} | {p:.2f} | {s:.3f} | {dtxt} |")
+        if strip:
+            lines.append(f"\n![real, rendered, rendered depth]({sid}/renders.png)\n\n"
+                         "Each row: real image | rendered from the splats | rendered depth "
+                         "(held-out views: along the path first, then off the path).")
+        lines.append(f"\nSplats: [{sid}/splats.ply]({sid}/splats.ply) (standard 3DGS PLY).")
+        return "\n".join(lines)
+
+
+def _data_key(fused: Path, names: list[str], poses: np.ndarray, size: tuple[int, int]) -> str:
+    """Identity of the training data, so a checkpoint from other inputs is not resumed."""
+    h = hashlib.sha256()
+    m = fused / "map.ply"
+    st = m.stat() if m.exists() else None
+    h.update(json.dumps([str(m), st.st_size if st else 0, st.st_mtime_ns if st else 0, names,
+                         list(size)]).encode())
+    h.update(np.ascontiguousarray(poses, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]

@@ -1,0 +1,502 @@
+"""Optimise a Gaussian model against posed images (poses fixed, optional refinement).
+
+Loss per step (one view): (1 - lambda) L1 + lambda (1 - SSIM) on colour (the paper's
+E_pho, lambda 0.2) plus ``depth_weight`` times the mean L1 between rendered expected depth
+and the lidar-scaled depth on its valid pixels (E_geo). Adam, one optimiser per parameter
+group with gsplat's learning rates; the means' rate decays exponentially to
+``lr_means_final`` of its start, and scales with the scene size. The SH degree rises by one
+every ``sh_degree_interval`` steps. Densification is a ``DefaultStrategy``.
+
+Checkpoints (``checkpoint_every`` steps and at the end) hold parameters, optimiser moments,
+strategy statistics and the RNG state, written atomically; ``Trainer.resume`` continues
+from one and reproduces the uninterrupted run exactly (the view order is a pure function
+of the seed and the step).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor, nn
+
+from toolkit.camera import PinholeCamera
+from toolkit.eval.image import psnr as psnr_fn
+from toolkit.eval.image import ssim as ssim_fn
+from toolkit.geometry import inv_se3
+from toolkit.io.atomic import atomic_path
+from toolkit.splat.model import PARAM_NAMES, GaussianModel
+from toolkit.splat.rasterize import RenderOutput, render
+from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
+
+log = logging.getLogger(__name__)
+
+IterWrapper = Callable[[Iterable[int], int, str], Iterable[int]]
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+class TrainConfig(BaseModel):
+    """Training settings (every field has a CPU-friendly default)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    iterations: int = Field(1500, ge=0)
+    sh_degree: int = Field(3, ge=0, le=3)
+    sh_degree_interval: int = Field(300, ge=1, description="steps per SH degree increase")
+    lambda_dssim: float = Field(0.2, ge=0.0, le=1.0)
+    depth_weight: float = Field(0.1, ge=0.0, description="weight of the L1 depth term (1/m)")
+    lr_means: float = 1.6e-4  # x scene scale
+    lr_means_final: float = 0.01  # fraction of lr_means reached at the last step
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    backend: str = "auto"
+    densify: StrategyConfig = StrategyConfig()
+    max_gaussians: int = Field(300_000, ge=1)
+    memory_budget_mb: float | None = Field(
+        None, gt=0, description="caps the Gaussian count so parameters + Adam state fit")
+    scene_scale: float | None = Field(None, gt=0, description="None: from the camera spread")
+    pose_refine: bool = False
+    lr_pose: float = 1e-5
+    pose_reg: float = 1e-6
+    checkpoint_every: int = Field(500, ge=0, description="0: only at the end")
+    log_every: int = Field(100, ge=1)
+    max_seconds: float | None = Field(None, gt=0, description="stop early after this long")
+    seed: int = 0
+
+
+@dataclass
+class TrainView:
+    """One posed image. ``camera`` is undistorted and matches the image size."""
+
+    image: Tensor  # [H, W, 3] uint8
+    camera: PinholeCamera
+    T_camera_world: np.ndarray  # [4, 4]
+    depth: Tensor | None = None  # [H, W] float32 metres, 0 = no value
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        h, w = self.image.shape[:2]
+        if (w, h) != self.camera.size:
+            raise ValueError(f"view {self.name}: image is {w}x{h} but the camera "
+                             f"{self.camera.width}x{self.camera.height}")
+        if self.depth is not None and tuple(self.depth.shape) != (h, w):
+            raise ValueError(f"view {self.name}: depth {tuple(self.depth.shape)} vs image "
+                             f"{(h, w)}")
+
+    def target(self, device: torch.device | str = "cpu") -> Tensor:
+        """[H, W, 3] float 0..1."""
+        return self.image.to(device=device, dtype=torch.float32) / 255.0
+
+
+@dataclass
+class TrainSummary:
+    steps: int
+    seconds: float
+    iters_per_s: float
+    n_gaussians: int
+    final_loss: float
+    final_psnr_db: float
+    stopped_early: bool
+    resumed_from: int | None
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def bytes_per_gaussian(sh_degree: int) -> int:
+    """Parameter + gradient + two Adam moments, float32 (render temporaries excluded)."""
+    floats = 3 + 3 + 4 + 1 + 3 * (sh_degree + 1) ** 2
+    return floats * 4 * 4
+
+
+def gaussian_cap(cfg: TrainConfig) -> int:
+    cap = cfg.max_gaussians
+    if cfg.memory_budget_mb is not None:
+        cap = min(cap, int(cfg.memory_budget_mb * 2**20 / bytes_per_gaussian(cfg.sh_degree)))
+    return max(cap, 1)
+
+
+def scene_scale_of(views: list[TrainView], points: Tensor | None = None) -> float:
+    """1.1 x the largest camera distance from the cameras' centroid (gsplat), or the cloud's
+    median radius when the cameras barely move."""
+    centres = np.array([inv_se3(v.T_camera_world)[:3, 3] for v in views])
+    spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) if len(views) else 0
+    if spread > 0.1 or points is None:
+        return max(1.1 * spread, 1e-3)
+    p = points.detach().cpu().double()
+    return float((p - p.mean(0)).norm(dim=1).median())
+
+
+def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
+    """[3, 3] from a 6D rotation (two columns, Gram-Schmidt; Zhou et al. 2019)."""
+    a1, a2 = d6[:3], d6[3:]
+    b1 = a1 / a1.norm()
+    b2 = a2 - (b1 * a2).sum() * b1
+    b2 = b2 / b2.norm()
+    return torch.stack([b1, b2, torch.linalg.cross(b1, b2)], 0)
+
+
+class PoseRefinement(nn.Module):
+    """Per-view correction D (camera frame) applied as D @ T_camera_world; starts at identity."""
+
+    def __init__(self, n_views: int) -> None:
+        super().__init__()
+        self.delta = nn.Parameter(torch.zeros(n_views, 9))  # translation 3 + 6D rotation
+        self.register_buffer("identity6", torch.tensor([1.0, 0, 0, 0, 1.0, 0]))
+
+    def forward(self, T_cw: Tensor, index: int) -> Tensor:
+        d = self.delta[index].to(T_cw.dtype)
+        R = rotation_6d_to_matrix(d[3:] + self.identity6.to(T_cw.dtype))
+        bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=T_cw.dtype)
+        D = torch.cat([torch.cat([R, d[:3, None]], 1), bottom], 0)  # [4, 4]
+        return D @ T_cw
+
+    def corrected(self, T_cw: np.ndarray, index: int) -> np.ndarray:
+        with torch.no_grad():
+            return self.forward(torch.as_tensor(T_cw, dtype=torch.float64), index).numpy()
+
+
+def _adam(params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
+    try:
+        return torch.optim.Adam(params, lr=lr, eps=1e-15, fused=True)
+    except (RuntimeError, TypeError):  # fused not supported for this device/dtype/version
+        return torch.optim.Adam(params, lr=lr, eps=1e-15, foreach=True)
+
+
+def config_digest(cfg: TrainConfig) -> str:
+    """What a checkpoint must agree with to be resumed (iterations may change)."""
+    d = cfg.model_dump(mode="json")
+    for k in ("iterations", "checkpoint_every", "log_every", "max_seconds"):
+        d.pop(k, None)
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+
+
+class Trainer:
+    """Owns the optimisers, strategy and schedule for one model and a set of views."""
+
+    def __init__(self, model: GaussianModel, views: list[TrainView], config: TrainConfig,
+                 checkpoint_dir: Path | None = None, data_key: str = "") -> None:
+        if not views:
+            raise ValueError("no training views")
+        if config.sh_degree > model.max_sh_degree:
+            raise ValueError(f"config asks for SH degree {config.sh_degree} but the model "
+                             f"holds degree {model.max_sh_degree}")
+        self.model = model
+        self.views = views
+        self.cfg = config
+        self.checkpoint_dir = checkpoint_dir
+        self.data_key = data_key  # identity of the views/initial model, checked on resume
+        self.step = 0
+        self.cap = gaussian_cap(config)
+        self.scene_scale = config.scene_scale or scene_scale_of(views, model.means)
+        self.strategy = DefaultStrategy(config.densify, max_gaussians=self.cap)
+        self.strategy_state = self.strategy.initialize_state(len(model), self.scene_scale)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.optimizers = self._make_optimizers()
+        self.pose: PoseRefinement | None = None
+        self.pose_opt: torch.optim.Optimizer | None = None
+        if config.pose_refine:
+            self.pose = PoseRefinement(len(views))
+            self.pose_opt = torch.optim.Adam(self.pose.parameters(), lr=config.lr_pose,
+                                             weight_decay=config.pose_reg)
+        self.history: list[dict[str, float]] = []
+        self.resumed_from: int | None = None
+        if len(model) > self.cap:
+            log.warning("model has %d Gaussians, above the cap of %d: growth disabled until "
+                        "pruning brings it below", len(model), self.cap)
+
+    # ---------------------------------------------------------------- setup
+    def _lrs(self) -> dict[str, float]:
+        c = self.cfg
+        return {"means": c.lr_means * self.scene_scale, "log_scales": c.lr_scales,
+                "quats": c.lr_quats, "opacity_logits": c.lr_opacities, "sh0": c.lr_sh0,
+                "shN": c.lr_shN}
+
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        # One Adam per group (gsplat): densification swaps one tensor at a time, and eps
+        # 1e-15 as in 3DGS (the default 1e-8 stalls tiny SH and position updates). The fused
+        # kernel: on CPU the default per-tensor Adam took 38 ms a step for 100k Gaussians,
+        # fused 5 ms.
+        return {k: _adam([self.model.params[k]], lr) for k, lr in self._lrs().items()}
+
+    def view_index(self, step: int) -> int:
+        """Views in a fresh random order every epoch; a function of seed and step only."""
+        n = len(self.views)
+        epoch, pos = divmod(step, n)
+        g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + epoch)
+        return int(torch.randperm(n, generator=g)[pos])
+
+    def active_sh_degree(self, step: int) -> int:
+        return min(step // self.cfg.sh_degree_interval, self.cfg.sh_degree)
+
+    def pose_of(self, index: int) -> np.ndarray | Tensor:
+        T = self.views[index].T_camera_world
+        if self.pose is None:
+            return T
+        return self.pose(torch.as_tensor(T, dtype=torch.float32), index)
+
+    # ---------------------------------------------------------------- one step
+    def train_step(self) -> dict[str, float]:
+        """One optimisation step on one view; returns loss figures."""
+        cfg = self.cfg
+        step = self.step
+        idx = self.view_index(step)
+        view = self.views[idx]
+        decay = cfg.lr_means_final ** (step / max(cfg.iterations, 1))
+        for group in self.optimizers["means"].param_groups:
+            group["lr"] = cfg.lr_means * self.scene_scale * decay
+        out = render(self.model, view.camera, self.pose_of(idx), background=cfg.background,
+                     sh_degree=self.active_sh_degree(step), backend=cfg.backend)
+        self.strategy.step_pre_backward(out.meta)
+        gt = view.target(out.color.device)
+        l1 = (out.color - gt).abs().mean()
+        loss = l1
+        if cfg.lambda_dssim > 0:
+            loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_fn(out.color, gt))
+        depth_l1 = torch.zeros(())
+        if cfg.depth_weight > 0 and view.depth is not None:
+            target = view.depth.to(out.depth.device)
+            valid = target > 0
+            if bool(valid.any()):
+                depth_l1 = (out.depth - target).abs()[valid].mean()
+                loss = loss + cfg.depth_weight * depth_l1
+        loss.backward()
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if self.pose_opt is not None:
+            self.pose_opt.step()
+            self.pose_opt.zero_grad(set_to_none=True)
+        changes = self.strategy.step_post_backward(self.model, self.optimizers,
+                                                   self.strategy_state, step, out.meta,
+                                                   self.generator)
+        with torch.no_grad():
+            p = float(psnr_fn(out.color.detach().clamp(0, 1), gt))
+        self.step += 1
+        return {"step": step, "loss": float(loss.detach()), "l1": float(l1.detach()),
+                "depth_l1_m": float(depth_l1.detach()), "psnr_db": p,
+                "n_gaussians": len(self.model), **{k: float(v) for k, v in changes.items()}}
+
+    # ---------------------------------------------------------------- the loop
+    def train(self, iter_wrapper: IterWrapper | None = None) -> TrainSummary:
+        """Run until ``config.iterations`` (or ``max_seconds``), checkpointing on the way.
+
+        ``iter_wrapper(iterable, total, description)`` wraps the step loop (a recipe's
+        progress bar); without one a rich bar with loss and PSNR is shown on a terminal.
+        """
+        cfg = self.cfg
+        start = self.step
+        t0 = time.perf_counter()
+        steps = range(start, cfg.iterations)
+        stopped = False
+        last: dict[str, float] = {"loss": float("nan"), "psnr_db": float("nan")}
+        ema: dict[str, float] = {}
+        with _progress(iter_wrapper, steps) as (loop, update):
+            for _ in loop:
+                last = self.train_step()
+                for k in ("loss", "psnr_db"):
+                    ema[k] = last[k] if k not in ema else 0.9 * ema[k] + 0.1 * last[k]
+                update(ema["loss"], ema["psnr_db"], len(self.model))
+                if self.step % cfg.log_every == 0 or self.step == cfg.iterations:
+                    rec = {**last, "loss_avg": ema["loss"], "psnr_avg_db": ema["psnr_db"]}
+                    self.history.append(rec)
+                    log.info("step %d/%d loss %.4f PSNR %.2f dB, %d Gaussians", self.step,
+                             cfg.iterations, ema["loss"], ema["psnr_db"], len(self.model))
+                if (cfg.checkpoint_every and self.checkpoint_dir is not None
+                        and self.step % cfg.checkpoint_every == 0):
+                    self.save_checkpoint()
+                if cfg.max_seconds is not None and time.perf_counter() - t0 > cfg.max_seconds:
+                    stopped = self.step < cfg.iterations
+                    log.warning("stopping at step %d: time limit of %.0f s reached",
+                                self.step, cfg.max_seconds)
+                    break
+        seconds = time.perf_counter() - t0
+        if self.checkpoint_dir is not None:
+            self.save_checkpoint(finished=True)
+        done = self.step - start
+        return TrainSummary(
+            steps=self.step, seconds=seconds, iters_per_s=done / seconds if seconds > 0 else 0.0,
+            n_gaussians=len(self.model), final_loss=ema.get("loss", last["loss"]),
+            final_psnr_db=ema.get("psnr_db", last["psnr_db"]), stopped_early=stopped,
+            resumed_from=self.resumed_from, history=self.history)
+
+    # ---------------------------------------------------------------- checkpoints
+    def checkpoint_path(self) -> Path:
+        if self.checkpoint_dir is None:
+            raise ValueError("this trainer has no checkpoint folder")
+        return self.checkpoint_dir / CHECKPOINT_NAME
+
+    def state_dict(self, finished: bool = False) -> dict[str, Any]:
+        return {
+            "finished": finished,
+            "format": "toolkit-splat-checkpoint/1",
+            "step": self.step,
+            "config_digest": config_digest(self.cfg),
+            "data_key": self.data_key,
+            "params": self.model.state(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "strategy_state": self.strategy_state,
+            "generator": self.generator.get_state(),
+            "pose": None if self.pose is None else self.pose.state_dict(),
+            "pose_opt": None if self.pose_opt is None else self.pose_opt.state_dict(),
+            "history": self.history,
+        }
+
+    def save_checkpoint(self, finished: bool = False) -> Path:
+        """Write the checkpoint atomically (a kill mid-write leaves the previous one).
+
+        ``finished`` marks the end of a training run: ``resume`` only continues runs that
+        were interrupted, so rerunning a finished one starts afresh.
+        """
+        path = self.checkpoint_path()
+        with atomic_path(path) as tmp:
+            torch.save(self.state_dict(finished), tmp)
+        return path
+
+    def load_state_dict(self, ckpt: dict[str, Any]) -> None:
+        if ckpt.get("config_digest") != config_digest(self.cfg):
+            raise ValueError("checkpoint was written with different training settings")
+        if ckpt.get("data_key", "") != self.data_key:
+            raise ValueError("checkpoint was written for different input data")
+        model = GaussianModel.from_state(ckpt["params"])
+        self.model.replace_params({k: nn.Parameter(model.params[k].detach().clone())
+                                   for k in PARAM_NAMES})
+        self.optimizers = self._make_optimizers()
+        for k, o in self.optimizers.items():
+            o.load_state_dict(ckpt["optimizers"][k])
+        self.strategy_state = ckpt["strategy_state"]
+        self.generator.set_state(ckpt["generator"])
+        if self.pose is not None and ckpt.get("pose") is not None:
+            self.pose.load_state_dict(ckpt["pose"])
+            assert self.pose_opt is not None
+            self.pose_opt.load_state_dict(ckpt["pose_opt"])
+        self.history = list(ckpt.get("history", []))
+        self.step = int(ckpt["step"])
+        self.resumed_from = self.step
+
+    def resume(self) -> bool:
+        """Continue from the checkpoint in ``checkpoint_dir`` if there is a usable one."""
+        if self.checkpoint_dir is None or not self.checkpoint_path().exists():
+            return False
+        try:
+            ckpt = torch.load(self.checkpoint_path(), map_location="cpu", weights_only=False)
+            if ckpt.get("finished"):
+                log.info("checkpoint %s is of a finished run; training afresh",
+                         self.checkpoint_path())
+                return False
+            self.load_state_dict(ckpt)
+        except (ValueError, KeyError, RuntimeError, OSError) as exc:
+            log.warning("ignoring checkpoint %s: %s", self.checkpoint_path(), exc)
+            return False
+        log.info("resumed training at step %d from %s", self.step, self.checkpoint_path())
+        return True
+
+
+class _progress:
+    """Context manager giving (loop, update) for the step loop."""
+
+    def __init__(self, iter_wrapper: IterWrapper | None, steps: range) -> None:
+        self.iter_wrapper = iter_wrapper
+        self.steps = steps
+        self.bar: Any = None
+
+    def __enter__(self) -> tuple[Iterable[int], Callable[[float, float, int], None]]:
+        if self.iter_wrapper is not None:
+            return self.iter_wrapper(self.steps, len(self.steps), "splat training"), _noop
+        if not sys.stderr.isatty():
+            return self.steps, _noop
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self.bar = Progress(
+            TextColumn("splat"), BarColumn(), MofNCompleteColumn(),
+            TextColumn("loss {task.fields[loss]:.4f}  PSNR {task.fields[psnr]:.2f} dB  "
+                       "{task.fields[n]} G"),
+            TimeElapsedColumn(), TimeRemainingColumn(), transient=True)
+        self.bar.__enter__()
+        task = self.bar.add_task("splat", total=len(self.steps), loss=float("nan"),
+                                 psnr=float("nan"), n=0)
+
+        def update(loss: float, psnr: float, n: int) -> None:
+            self.bar.update(task, advance=1, loss=loss, psnr=psnr, n=n)
+
+        return self.steps, update
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(*exc)
+
+
+def _noop(*_args: object) -> None:
+    return None
+
+
+# -------------------------------------------------------------------- evaluation
+def render_view(model: GaussianModel, camera: PinholeCamera, T_camera_world: np.ndarray,
+                background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                backend: str = "auto", sh_degree: int | None = None) -> RenderOutput:
+    """A no-grad render for evaluation and pictures."""
+    with torch.no_grad():
+        return render(model, camera, T_camera_world, background=background, backend=backend,
+                      sh_degree=sh_degree)
+
+
+def evaluate_views(model: GaussianModel, views: list[TrainView], backend: str = "auto",
+                   background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                   gt_depths: list[np.ndarray | None] | None = None,
+                   on_render: Callable[[int, TrainView, RenderOutput], None] | None = None) -> (
+                       dict[str, Any]):
+    """Mean PSNR / SSIM over ``views`` (and depth errors where ground truth is given).
+
+    ``on_render(i, view, output)`` sees every render (to save pictures without rendering
+    twice).
+    """
+    ps, ss, d_abs, d_sq, d_n = [], [], 0.0, 0.0, 0
+    for i, v in enumerate(views):
+        out = render_view(model, v.camera, v.T_camera_world, background, backend)
+        if on_render is not None:
+            on_render(i, v, out)
+        pred = out.color.clamp(0, 1)
+        gt = v.target()
+        ps.append(float(psnr_fn(pred, gt)))
+        ss.append(float(ssim_fn(pred, gt)))
+        gd = gt_depths[i] if gt_depths is not None else None
+        if gd is not None:
+            gdt = torch.as_tensor(gd, dtype=torch.float32)
+            m = (gdt > 0) & (out.alpha > 0.5)
+            if bool(m.any()):
+                e = (out.depth - gdt)[m]
+                d_abs += float(e.abs().sum())
+                d_sq += float((e * e).sum())
+                d_n += int(m.sum())
+    res: dict[str, Any] = {
+        "views": len(views),
+        "psnr_db": float(np.mean(ps)) if ps else math.nan,
+        "ssim": float(np.mean(ss)) if ss else math.nan,
+        "psnr_db_per_view": ps,
+    }
+    if d_n:
+        res["depth_mae_m"] = d_abs / d_n
+        res["depth_rmse_m"] = math.sqrt(d_sq / d_n)
+        res["depth_pixels"] = d_n
+    return res
+
