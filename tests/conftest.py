@@ -5,6 +5,9 @@ from pathlib import Path
 
 import pytest
 
+# Spinning OpenMP waits make torch crawl when the test machine's cores are busy.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 
 def shared_data_dir() -> Path:
     env = os.environ.get("TOOLKIT_SHARED_DATA")
