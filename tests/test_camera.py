@@ -76,10 +76,11 @@ def test_backproject_depth_image_plane():
 
 def test_conversions(cam):
     model, params = cam.to_colmap()
-    assert model == "FULL_OPENCV" and params[:4] == [cam.fx, cam.fy, cam.cx, cam.cy]
+    # COLMAP's pixel centres sit at +0.5.
+    assert model == "FULL_OPENCV" and params[:4] == [cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5]
     assert cam.undistorted().to_colmap()[0] == "PINHOLE"
     no_k3 = PinholeCamera(640, 480, 500, 500, 320, 240, [0.1, -0.05, 0.001, 0.002, 0.0])
-    assert no_k3.to_colmap() == ("OPENCV", [500.0, 500.0, 320.0, 240.0, 0.1, -0.05, 0.001, 0.002])
+    assert no_k3.to_colmap() == ("OPENCV", [500.0, 500.0, 320.5, 240.5, 0.1, -0.05, 0.001, 0.002])
     assert cam.colmap_line(3).startswith("3 FULL_OPENCV 640 480 519.268")
     o3d_cam = cam.to_open3d()
     assert np.allclose(np.asarray(o3d_cam.intrinsic_matrix), cam.K)

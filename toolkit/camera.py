@@ -214,9 +214,11 @@ class PinholeCamera:
     def to_colmap(self) -> tuple[str, list[float]]:
         """COLMAP model name and parameter list: PINHOLE, or OPENCV when distorted.
 
-        COLMAP's OPENCV model has no k3; a camera with k3 != 0 maps to FULL_OPENCV.
+        COLMAP puts pixel centres at +0.5 (the image's top-left corner is the origin) where
+        OpenCV puts them at integers, so the principal point is written as cx + 0.5,
+        cy + 0.5. COLMAP's OPENCV model has no k3; a camera with k3 != 0 maps to FULL_OPENCV.
         """
-        base = [float(self.fx), float(self.fy), float(self.cx), float(self.cy)]
+        base = [float(self.fx), float(self.fy), float(self.cx) + 0.5, float(self.cy) + 0.5]
         k1, k2, p1, p2, k3 = (float(v) for v in self.dist)
         if not self.has_distortion:
             return "PINHOLE", base
