@@ -14,10 +14,15 @@ from toolkit.recipe.stage import Stage
 
 # Stage type name -> "module.path:ClassName". One line per stage, alphabetical.
 STAGES: dict[str, str] = {
+    "camera_only": "toolkit.baselines.stage:CameraOnlyStage",
+    "colmap": "toolkit.baselines.stage:ColmapStage",
+    "depth": "toolkit.depth.stage:DepthStage",
     "evaluate": "toolkit.eval.stage:EvaluateStage",
+    "fuse": "toolkit.fusion.stage:FuseStage",
     "ingest": "toolkit.ingest.stage:IngestStage",
     "simulate": "toolkit.sim.stage:SimulateStage",
     "splat": "toolkit.splat.stage:SplatStage",
+    "tsdf": "toolkit.baselines.stage:TSDFStage",
 }
 
 # Extra stages outside the toolkit (plugins, and the test suite's own tiny stages when it

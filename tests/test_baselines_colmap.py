@@ -1,0 +1,164 @@
+"""COLMAP baseline on a small ray-cast textured room: SfM, Sim(3) alignment, triangulation
+at fixed poses, and the saved model's round trip."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from toolkit.baselines.synthetic import SyntheticRoom, default_camera, orbit_poses
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from toolkit.baselines.colmap import (  # noqa: E402  (needs pycolmap)
+    ColmapSettings,
+    SfMResult,
+    evaluate_sfm_trajectory,
+    extract_and_match,
+    load_sfm,
+    run_sfm,
+    save_sfm,
+    triangulate_known_poses,
+)
+from toolkit.baselines.common import write_png  # noqa: E402
+
+N_IMAGES = 12
+SETTINGS = ColmapSettings(matching="sequential", overlap=5, max_features=2048)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    room = SyntheticRoom()
+    cam = default_camera(256, 192, 70.0)
+    poses = orbit_poses(room, N_IMAGES, radius_m=0.8, sweep_deg=100.0)
+    root = tmp_path_factory.mktemp("colmap_scene")
+    render = room.renderer()
+    names, images, depths = [], [], []
+    for i, T in enumerate(poses):
+        rgb, depth = render.render(cam, T)
+        names.append(f"{i:06d}.png")
+        images.append(rgb)
+        depths.append(depth)
+        write_png(root / "images" / names[-1], rgb)
+    db = root / "database.db"
+    extract_and_match(db, root / "images", names, cam, SETTINGS)
+    return {"room": room, "root": root, "cam": cam, "poses": poses, "names": names, "db": db,
+            "images": images, "depths": depths}
+
+
+@pytest.fixture(scope="module")
+def sfm(scene: dict) -> SfMResult:
+    return run_sfm(scene["root"] / "images", scene["names"], scene["cam"],
+                   scene["root"] / "sfm", SETTINGS, database=scene["db"])
+
+
+def test_sfm_registers_images_and_aligns_to_the_true_path(scene: dict, sfm: SfMResult) -> None:
+    assert sfm.registered >= N_IMAGES - 1
+    assert sfm.models == 1
+    assert sfm.points > 500
+    assert sfm.reprojection_error_px < 0.5
+    stamps = {n: 10.0 + i for i, n in enumerate(scene["names"])}
+    ref = Trajectory(10.0 + np.arange(N_IMAGES), scene["poses"], "world", "camera")
+    e = evaluate_sfm_trajectory(sfm.trajectory(stamps), ref)
+    assert e["poses_compared"] == sfm.registered
+    # Shape right to millimetres over a ~1.2 m path; scale arbitrary, so a rigid alignment
+    # that keeps COLMAP's own scale is far off unless COLMAP happened to pick metres.
+    assert e["ate_sim3_rmse_m"] < 0.01, e
+    assert e["are_sim3_rmse_deg"] < 1.5, e
+    if abs(e["scale_to_reference"] - 1.0) > 0.2:
+        assert e["ate_se3_rmse_m"] > 10 * e["ate_sim3_rmse_m"]
+    # The estimated camera is ours when intrinsics are known (held fixed).
+    assert sfm.camera == scene["cam"]
+    # save_sfm / load_sfm give back the same poses and names.
+    frame_of = {n: i for i, n in enumerate(scene["names"])}
+    save_sfm(sfm, scene["root"] / "saved", frame_of, stamps, scene["names"])
+    back, frame_back, stamp_back = load_sfm(scene["root"] / "saved")
+    assert back.names == sfm.names and frame_back == frame_of and stamp_back == stamps
+    np.testing.assert_allclose(back.poses, sfm.poses, atol=1e-9)
+    assert back.points == sfm.points
+
+
+def test_triangulation_at_fixed_poses_checks_poses_and_intrinsics(scene: dict) -> None:
+    from scipy.spatial.transform import Rotation
+
+    from toolkit.eval.map_accuracy import MeshDistance
+
+    cam: PinholeCamera = scene["cam"]
+    images, poses, db = scene["root"] / "images", scene["poses"], scene["db"]
+    surface = MeshDistance(scene["room"].mesh())
+
+    def triangulate(camera: PinholeCamera, P: np.ndarray, tag: str) -> tuple[float, float]:
+        tri = triangulate_known_poses(images, scene["names"], camera, P, scene["root"] / tag,
+                                      SETTINGS, database=db)
+        assert tri.points > 500 and tri.mean_track_length > 3
+        return tri.reprojection_error_px, float(np.median(surface.distance(tri.points_xyz())))
+
+    # True poses and intrinsics: sub-pixel tracks, points on the room's surfaces (so the
+    # model really is in our world frame).
+    err, dist = triangulate(cam, poses, "tri")
+    assert err < 0.3 and dist < 0.01, (err, dist)
+    # Poses off by ~1 cm / 0.5 deg: the tracks no longer close.
+    rng = np.random.default_rng(0)
+    noisy = poses.copy()
+    noisy[:, :3, 3] += rng.normal(0, 0.01, (len(poses), 3))
+    noisy[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, np.radians(0.5), (len(poses), 3))
+                                            ).as_matrix() @ noisy[:, :3, :3]
+    err_p, _ = triangulate(cam, noisy, "tri_poses")
+    assert err_p > 1.0 > 3 * err, (err_p, err)
+    # A 2 % focal error barely shows in the reprojection error (a turning camera sees a
+    # consistently rescaled scene) but moves the points off the surface: check both.
+    wrong = PinholeCamera(cam.width, cam.height, cam.fx * 1.02, cam.fy * 1.02, cam.cx, cam.cy)
+    err_f, dist_f = triangulate(wrong, poses, "tri_focal")
+    assert err_f < 0.5 and dist_f > 5 * dist, (err_f, dist_f, dist)
+
+
+def test_sfm_without_matches_reports_nothing_registered(tmp_path: Path) -> None:
+    # Two flat grey images: no features, so no model - a result, not an exception.
+    cam = default_camera(64, 48)
+    for i in range(2):
+        write_png(tmp_path / "images" / f"{i}.png", np.full((48, 64, 3), 128, np.uint8))
+    sfm = run_sfm(tmp_path / "images", ["0.png", "1.png"], cam, tmp_path / "w", SETTINGS)
+    assert sfm.registered == 0 and sfm.reconstruction is None
+    assert sfm.summary()["registered_fraction"] == 0.0
+
+
+def test_camera_only_scales_relative_disparity_with_sfm_points(scene: dict,
+                                                              sfm: SfMResult) -> None:
+    """Without lidar, SfM points fix each frame's disparity scale and shift: the depth then
+    agrees with COLMAP's units, i.e. with the truth up to one global (Sim(3)) scale."""
+    pytest.importorskip("sklearn")
+    from toolkit.baselines.camera_only import (
+        CameraOnlySettings,
+        alignments,
+        camera_only_reconstruction,
+        depth_of,
+    )
+    from toolkit.depth.protocol import DepthPrediction
+
+    def prediction(i: int) -> DepthPrediction:
+        d = scene["depths"][i]
+        # Relative disparity: 1/z up to a per-frame scale and shift (as Depth Anything).
+        disp = np.where(d > 0, 0.5 * (1 + 0.05 * i) / np.where(d > 0, d, 1) + 0.2, np.nan)
+        return DepthPrediction(disp.astype(np.float32), "relative_disparity")
+
+    frame_of = {n: i for i, n in enumerate(scene["names"])}
+    res = camera_only_reconstruction(sfm, frame_of, scene["cam"], prediction,
+                                     lambda i: scene["images"][i], set(range(N_IMAGES)),
+                                     CameraOnlySettings(smoothing_window=1))
+    assert res.scale_source == "sfm" and res.units == "colmap"
+    assert res.used.all() and len(res.points) > 5000
+    with pytest.raises(ValueError, match="metric depth"):
+        camera_only_reconstruction(sfm, frame_of, scene["cam"], prediction,
+                                   lambda i: scene["images"][i], set(range(N_IMAGES)),
+                                   CameraOnlySettings(scale_source="network"))
+    S = alignments(res.poses[:, :3, 3], scene["poses"][res.frame_indices, :3, 3])["sim3"]
+    s = float(np.cbrt(np.linalg.det(S[:3, :3])))  # metres per COLMAP unit
+    for k, i in enumerate(res.frame_indices):
+        d, gt = depth_of(res, k, prediction(i)) * s, scene["depths"][i]
+        ok = (gt > 0) & np.isfinite(d)
+        rel = np.abs(d[ok] - gt[ok]) / gt[ok]
+        assert np.median(rel) < 0.01, (i, np.median(rel))

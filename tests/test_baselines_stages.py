@@ -1,0 +1,208 @@
+"""The ``tsdf``, ``colmap`` and ``camera_only`` stages run through the recipe runner on a
+small ray-cast room sequence, with tiny test stages standing in for the upstream ones."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from toolkit.baselines.synthetic import SyntheticRoom, default_camera, orbit_poses
+from toolkit.recipe import Stage, StageConfig, StageContext, registry
+from toolkit.recipe.runner import run_recipe
+from toolkit.recipe.schema import parse_recipe
+
+pytest.importorskip("open3d")
+
+DEPTH_SCALE_ERROR = 1.25  # the fake "network" reads every depth 25 % too far
+
+
+class RoomConfig(StageConfig):
+    frames: int = 12
+    width: int = 256
+    height: int = 192
+    small: bool = False  # a 3.2 x 2.6 m room: fewer surface samples to evaluate
+
+
+class RoomSequence(Stage):
+    """A ray-cast textured room as a sequence folder (test stage)."""
+
+    name = "t_room"
+    Config = RoomConfig
+    provides = ("sequence",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.baselines.synthetic import write_room_sequence
+
+        cfg: Any = self.config
+        if cfg.small:
+            room = SyntheticRoom(size=(3.2, 2.6, 2.2), boxes=[((0.4, 1.6, 0.0), (1.0, 2.2, 0.8))])
+            poses = orbit_poses(room, cfg.frames, radius_m=0.4, height_m=1.1, sweep_deg=300.0,
+                                look_distance_m=1.5)
+        else:
+            room = SyntheticRoom()
+            poses = orbit_poses(room, cfg.frames, radius_m=0.8, sweep_deg=100.0)
+        cam = default_camera(cfg.width, cfg.height, 70.0)
+        root = write_room_sequence(ctx.stage_dir / "seq", room, cam, poses)
+        ctx.provide("sequence", root)
+
+
+class FakeDepth(Stage):
+    """Ground-truth depth x 1.25 stored as a metric network's predictions (test stage)."""
+
+    name = "t_depth"
+    Config = StageConfig
+    requires = ("sequence",)
+    provides = ("depth",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.depth.protocol import DepthPrediction
+        from toolkit.depth.store import DepthStoreWriter
+        from toolkit.io.sequence import read_sequence
+
+        seq = read_sequence(ctx.artifact("sequence"))
+        w = DepthStoreWriter(ctx.stage_dir / "depth", "metric_depth")
+        for i, f in enumerate(seq.frames):
+            d = seq.groundtruth.depth(i) * DEPTH_SCALE_ERROR
+            w.add(i, f.stamp, DepthPrediction(np.where(d > 0, d, np.nan), "metric_depth"))
+        ctx.provide("depth", w.close())
+
+
+class FakeFuse(Stage):
+    """The fuse artifact's per-frame scaled depth, here exact (test stage)."""
+
+    name = "t_fused"
+    Config = StageConfig
+    requires = ("sequence",)
+    provides = ("fused",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.io.depth import write_depth
+        from toolkit.io.sequence import read_sequence
+
+        seq = read_sequence(ctx.artifact("sequence"))
+        out = ctx.stage_dir / "scaled_depth"
+        rows = ["index,stamp,file,scale,shift"]
+        for i, f in enumerate(seq.frames):
+            write_depth(out / f"{i:06d}.png", seq.groundtruth.depth(i))
+            rows.append(f"{i},{f.stamp!r},{i:06d}.png,1.0,0.0")
+        (out / "index.csv").write_text("\n".join(rows) + "\n")
+        ctx.provide("fused", ctx.stage_dir)
+
+
+class FakeSlam(Stage):
+    """trajectory_camera.tum = ground truth shifted 3 cm along x (test stage)."""
+
+    name = "t_slam"
+    Config = StageConfig
+    requires = ("sequence",)
+    provides = ("trajectory",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.baselines.common import groundtruth_camera_trajectory
+        from toolkit.io.sequence import read_sequence
+        from toolkit.io.tum import write_tum
+
+        traj = groundtruth_camera_trajectory(read_sequence(ctx.artifact("sequence")))
+        traj.poses[:, 0, 3] += 0.03
+        write_tum(ctx.stage_dir / "trajectory_camera.tum", traj)
+        ctx.provide("trajectory", ctx.stage_dir)
+
+
+@pytest.fixture(autouse=True)
+def stages() -> Iterator[None]:
+    from toolkit.baselines.stage import CameraOnlyStage, ColmapStage, TSDFStage
+
+    names = {"t_room": RoomSequence, "t_depth": FakeDepth, "t_fused": FakeFuse,
+             "t_slam": FakeSlam, "tsdf": TSDFStage, "colmap": ColmapStage,
+             "camera_only": CameraOnlyStage}
+    for n, cls in names.items():
+        registry.register(n, cls)
+    yield
+    for n in names:
+        registry.unregister(n)
+
+
+def _run(tmp_path: Path, stages: list[dict[str, Any]]) -> Any:
+    recipe = parse_recipe({"name": "baselines", "output": str(tmp_path / "run"),
+                           "stages": stages})
+    from rich.console import Console
+
+    return run_recipe(recipe, console=Console(quiet=True))
+
+
+def test_tsdf_stage_groundtruth_depth_without_trajectory(tmp_path: Path) -> None:
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 160, "height": 120,
+                           "small": True},
+                          {"stage": "tsdf", "depth_source": "groundtruth", "views": 2,
+                           "eval_spacing_m": 0.015}])
+    assert res.ok, res.error
+    m = res.metrics["tsdf"]
+    assert m["poses"] == "groundtruth" and m["frames"] == 8
+    assert m["geometry"]["fscore_2cm"] > 0.9, m["geometry"]
+    assert m["views"]["psnr_db"] > 20
+    run = tmp_path / "run"
+    assert (run / "tsdf" / "mesh.ply").stat().st_size > 10_000
+    assert (run / "tsdf" / "views.png").exists()
+    report = (run / "report.md").read_text()
+    assert "GROUND TRUTH" in report and "tsdf/views.png" in report
+
+
+def test_tsdf_stage_scaled_depth_at_trajectory_poses(tmp_path: Path) -> None:
+    base = [{"stage": "t_room", "frames": 12, "width": 160, "height": 120, "small": True}]
+    res = _run(tmp_path, [*base, {"stage": "tsdf"}])
+    assert not res.ok and "fuse stage upstream" in res.error
+    res = _run(tmp_path, [*base, {"stage": "tsdf", "depth_source": "groundtruth",
+                                  "mask_dynamic": "groundtruth"}])
+    assert not res.ok and "no ground-truth masks" in res.error
+    res = _run(tmp_path, [*base, {"stage": "t_slam"}, {"stage": "t_fused"},
+                          {"stage": "tsdf", "views": 0, "eval_spacing_m": 0.015}])
+    assert res.ok, res.error
+    m = res.metrics["tsdf"]
+    assert m["poses"] == "trajectory" and m["depth_source"] == "scaled"
+    assert m["min_observations"] == 2  # the default for scaled depth: drop single-frame junk
+    # Exact depth at poses 3 cm off in x: the surface is there, walls facing x moved 3 cm
+    # (walls along x slide within themselves), so accuracy is ~1-2 cm instead of ~0.5 cm.
+    g = m["geometry"]
+    assert g["fscore_10cm"] > 0.9, g
+    assert 0.01 < g["accuracy_mean_m"] < 0.03, g
+
+
+@pytest.mark.slow
+def test_colmap_and_camera_only_stages(tmp_path: Path) -> None:
+    from toolkit.io.colmap_text import read_colmap_model
+
+    res = _run(tmp_path, [{"stage": "t_room"}, {"stage": "t_slam"}, {"stage": "t_depth"},
+                          {"stage": "colmap", "overlap": 5, "max_features": 2048},
+                          {"stage": "camera_only"}])
+    assert res.ok, res.error
+    c = res.metrics["colmap"]
+    assert c["sfm"]["registered_images"] >= 11
+    assert c["sfm_vs_groundtruth"]["ate_sim3_rmse_m"] < 0.01
+    # Against the lidar trajectory (ground truth + 3 cm in x) the shape is the same too.
+    assert c["sfm_vs_lidar"]["ate_sim3_rmse_m"] < 0.01
+    # Triangulation at the (shifted) trajectory poses: consistent tracks, the points shifted
+    # too (3 cm off walls facing x, on the surface of walls along x).
+    assert c["triangulation"]["poses"] == "trajectory"
+    assert c["triangulation"]["reprojection_error_px"] < 0.5
+    assert 0.01 < c["triangulation"]["gt_mesh_distance_median_m"] < 0.04
+    run = tmp_path / "run"
+    model = read_colmap_model(run / "colmap" / "export" / "sparse" / "0")
+    assert len(model.images) == 12 and len(list((run / "colmap" / "export" / "images")
+                                                .glob("*.png"))) == 12
+    assert c["export"]["points_from"] == "triangulation at our poses"
+    # Camera only: metric network 25 % too far -> the map is 25 % too big, shape fine.
+    o = res.metrics["camera_only"]
+    assert o["colmap_reused"] and o["scale_source"] == "network"
+    assert o["trajectory"]["scale_to_reference"] == pytest.approx(1 / DEPTH_SCALE_ERROR,
+                                                                   rel=0.03)
+    assert o["trajectory"]["ate_sim3_rmse_m"] < 0.01
+    assert o["depth_own_scale"]["absrel"] == pytest.approx(DEPTH_SCALE_ERROR - 1, abs=0.03)
+    assert o["depth_sim3"]["absrel"] < 0.03
+    assert o["geometry_sim3"]["fscore_5cm"] > 0.9
+    assert o["geometry_own_scale"]["fscore_5cm"] < o["geometry_sim3"]["fscore_5cm"]
+    assert (run / "camera_only" / "map.ply").exists()
+    assert "camera_only/camera_only.png" in (run / "report.md").read_text()

@@ -1,0 +1,226 @@
+"""Depth backends: onnx preprocessing/output handling exact on a tiny model; simulated
+predictions follow their documented error model; the depth folder round-trips."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from toolkit.depth.protocol import DepthPrediction
+from toolkit.depth.simulated import (
+    PRESETS,
+    SimulatedDepthBackend,
+    SimulatedDepthParams,
+    low_texture_weight,
+)
+from toolkit.depth.store import DepthStore, DepthStoreWriter
+
+pytestmark = pytest.mark.filterwarnings(
+    "ignore:You are using the legacy TorchScript:DeprecationWarning",
+    "ignore:The feature will be removed:DeprecationWarning")
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+
+
+class Tiny(torch.nn.Module):
+    """A 1x1 conv with known weights, then softplus so depth stays positive; the output
+    is [1, 1, h, w] or [1, h, w] depending on ``squeeze``."""
+
+    def __init__(self, squeeze: bool = False) -> None:
+        super().__init__()
+        self.conv = torch.nn.Conv2d(3, 1, 1)
+        with torch.no_grad():
+            self.conv.weight[:] = torch.tensor([0.5, -0.25, 1.0]).view(1, 3, 1, 1)
+            self.conv.bias[:] = 0.1
+        self.squeeze = squeeze
+
+    def forward(self, x: "torch.Tensor") -> "torch.Tensor":
+        y = torch.nn.functional.softplus(self.conv(x))
+        return y[:, 0] if self.squeeze else y
+
+
+def _export(path: Path, hw: tuple[int, int] | None, squeeze: bool = False,
+            props: dict[str, str] | None = None) -> Path:
+    import onnx
+
+    model = Tiny(squeeze).eval()
+    h, w = hw or (28, 42)
+    dyn = None if hw else {"image": {2: "h", 3: "w"}, "depth": {1: "h", 2: "w"} if squeeze
+                                     else {2: "h", 3: "w"}}
+    torch.onnx.export(model, (torch.zeros(1, 3, h, w),), str(path), input_names=["image"],
+                      output_names=["depth"], dynamic_axes=dyn, dynamo=False)
+    if props:
+        m = onnx.load(str(path))
+        onnx.helper.set_model_props(m, props)
+        onnx.save(m, str(path))
+    return path
+
+
+def _reference(rgb: np.ndarray, hw: tuple[int, int], mean: np.ndarray, std: np.ndarray,
+               bgr: bool, interp: int = cv2.INTER_CUBIC) -> np.ndarray:
+    """What the backend must compute, spelled out step by step."""
+    img = rgb[..., ::-1] if bgr else rgb
+    img = cv2.resize(np.ascontiguousarray(img), (hw[1], hw[0]), interpolation=interp)
+    x = (img.astype(np.float32) / 255.0 - mean) / std
+    with torch.no_grad():
+        y = Tiny()(torch.from_numpy(x.transpose(2, 0, 1)[None].copy())).numpy()[0, 0]
+    return cv2.resize(y, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
+@pytest.fixture
+def rgb() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    return rng.integers(0, 256, (45, 61, 3), dtype=np.uint8)
+
+
+def test_onnx_backend_is_exact_on_a_tiny_model(tmp_path: Path, rgb: np.ndarray) -> None:
+    from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD, OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    path = _export(tmp_path / "tiny.onnx", (28, 42))
+    be = OnnxDepthBackend(C(model=path, kind="relative_depth", threads=1))
+    x = be.preprocess(rgb)
+    assert x.shape == (1, 3, 28, 42) and x.dtype == np.float32  # fixed input read from file
+    pred = be.predict(rgb)
+    assert isinstance(pred, DepthPrediction) and pred.values.shape == rgb.shape[:2]
+    assert pred.kind == "relative_depth" and pred.latency_s > 0
+    ref = _reference(rgb, (28, 42), np.array(IMAGENET_MEAN, np.float32),
+                     np.array(IMAGENET_STD, np.float32), bgr=False)
+    np.testing.assert_allclose(pred.values, ref, rtol=1e-5, atol=1e-6)
+    # Other normalisation and channel order.
+    mean, std = (0.5, 0.5, 0.5), (0.25, 0.5, 1.0)
+    be2 = OnnxDepthBackend(C(model=path, kind="metric_depth", mean=mean, std=std,
+                             channel_order="bgr", interpolation="linear", threads=1))
+    ref2 = _reference(rgb, (28, 42), np.array(mean, np.float32), np.array(std, np.float32),
+                      bgr=True, interp=cv2.INTER_LINEAR)
+    np.testing.assert_allclose(be2.predict(rgb).values, ref2, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="fixed 42x28 input"):
+        OnnxDepthBackend(C(model=path, kind="relative_depth", input_size=56)).predict(rgb)
+
+
+def test_onnx_dynamic_input_sizes_and_metadata(tmp_path: Path, rgb: np.ndarray) -> None:
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    path = _export(tmp_path / "dyn.onnx", None, squeeze=True,
+                   props={"depth_kind": "relative_disparity", "input_height": "56",
+                          "input_width": "70", "mean": "0,0,0", "std": "1,1,1"})
+    be = OnnxDepthBackend(C(model=path, threads=1))
+    assert be.kind == "relative_disparity"  # from the metadata
+    assert be.preprocess(rgb).shape == (1, 3, 56, 70)
+    ref = _reference(rgb, (56, 70), np.zeros(3, np.float32), np.ones(3, np.float32), False)
+    np.testing.assert_allclose(be.predict(rgb).values, ref, rtol=1e-5, atol=1e-6)
+    # keep_aspect: height 140 -> width from the 61:45 image, rounded to a multiple of 14.
+    be3 = OnnxDepthBackend(C(model=path, input_size=140, resize="keep_aspect", threads=1))
+    assert be3.input_hw((45, 61)) == (140, 196)
+    assert be3.predict(rgb).values.shape == (45, 61)
+
+
+def test_onnx_output_handling(tmp_path: Path) -> None:
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    path = _export(tmp_path / "t.onnx", (28, 42))
+    raw = np.array([[[[1.0, -2.0], [np.inf, 4.0]]]], np.float32)
+    depth = OnnxDepthBackend(C(model=path, kind="metric_depth", output_scale=0.001))
+    out = depth.postprocess(raw, (2, 2))
+    np.testing.assert_array_equal(np.isnan(out), [[False, True], [True, False]])
+    assert out[1, 1] == pytest.approx(0.004)  # millimetres to metres
+    disp = OnnxDepthBackend(C(model=path, kind="relative_disparity"))
+    out = disp.postprocess(raw, (4, 4))  # resized; negative disparity kept (shift unknown)
+    assert out.shape == (4, 4) and (out[np.isfinite(out)] < 0).any()
+
+
+def test_missing_model_says_where_to_put_it(tmp_path: Path) -> None:
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    missing = tmp_path / "models" / "depth_anything_v2_vits.onnx"
+    with pytest.raises(FileNotFoundError) as e:
+        OnnxDepthBackend(OnnxDepthConfig(model=missing, kind="relative_disparity"))
+    assert str(missing) in str(e.value) and "never downloads" in str(e.value)
+
+
+# ------------------------------------------------------------------ simulated
+
+
+def _scene() -> tuple[np.ndarray, np.ndarray]:
+    h, w = 90, 120
+    z = np.full((h, w), 4.0, np.float32)
+    z[20:70, 30:60] = 2.0  # a box in front of a wall
+    z[:, :5] = 0.0  # invalid ground truth
+    rng = np.random.default_rng(1)
+    rgb = np.full((h, w, 3), 128, np.uint8)
+    rgb[:, w // 2:] = rng.integers(0, 256, (h, w - w // 2, 3), dtype=np.uint8)  # texture
+    return rgb, z
+
+
+def test_simulated_scale_only_is_exact_scale() -> None:
+    rgb, z = _scene()
+    be = SimulatedDepthBackend(SimulatedDepthParams(**PRESETS["scale_only"], scale=1.7))
+    p = be.predict(rgb, gt_depth=z, frame_index=3)
+    ok = z > 0
+    np.testing.assert_allclose(p.values[ok], 1.7 * z[ok], rtol=1e-6)
+    assert p.extra["true_scale"] == pytest.approx(1.7)
+    assert p.values[~ok].min() == pytest.approx(1.7 * 20.0)  # filled with max_depth
+
+
+def test_simulated_disparity_is_affine_in_inverse_depth() -> None:
+    rgb, z = _scene()
+    be = SimulatedDepthBackend(SimulatedDepthParams(**PRESETS["scale_only"], scale=0.8,
+                                                    shift=0.2, kind="relative_disparity"))
+    p = be.predict(rgb, gt_depth=z, frame_index=0)
+    ok = z > 0
+    A = np.stack([p.values[ok], np.ones(ok.sum())], 1)
+    coef, *_ = np.linalg.lstsq(A, 1.0 / z[ok], rcond=None)
+    np.testing.assert_allclose(A @ coef, 1.0 / z[ok], rtol=1e-5)
+    assert coef[0] == pytest.approx(0.8, rel=1e-5) and coef[1] < 0  # shift to undo
+
+
+def test_simulated_errors_are_seeded_and_as_documented() -> None:
+    rgb, z = _scene()
+    params = SimulatedDepthParams(scale=1.0, wander_sigma=0.05, distortion=0.03, noise=0.02,
+                                  low_texture_gain=2.0)
+    a = SimulatedDepthBackend(params).predict(rgb, gt_depth=z, frame_index=7).values
+    b = SimulatedDepthBackend(params).predict(rgb, gt_depth=z, frame_index=7).values
+    np.testing.assert_array_equal(a, b)
+    c = SimulatedDepthBackend(params.model_copy(update={"seed": 5})).predict(
+        rgb, gt_depth=z, frame_index=7).values
+    assert not np.allclose(a, c)
+    be = SimulatedDepthBackend(params)
+    scales = np.array([be.frame_scale(i) for i in range(2000)])
+    assert 0.02 < np.std(np.log(scales)) < 0.1  # wander near its stationary std
+    assert abs(np.log(scales[1:] / scales[:-1])).max() < 0.05  # and slow
+    # Worse on the flat half than on the textured half (same depth: the wall at 4 m).
+    p = be.predict(rgb, gt_depth=z, frame_index=0).values / be.frame_scale(0)
+    rel = np.abs(np.log(p / 4.0))
+    flat, tex = rel[75:, 5:55], rel[75:, 70:]
+    assert np.std(np.log(p[75:, 5:55])) > 1.5 * np.std(np.log(p[75:, 70:]))
+    assert flat.mean() > 0 and tex.mean() > 0
+    w = low_texture_weight(rgb, 6.0)
+    assert w[45, 20] == 1.0 and w[45, 100] < 0.1
+
+
+def test_simulated_needs_ground_truth() -> None:
+    rgb, _ = _scene()
+    with pytest.raises(ValueError, match="ground-truth depth"):
+        SimulatedDepthBackend().predict(rgb)
+
+
+def test_depth_store_round_trip(tmp_path: Path) -> None:
+    vals = np.random.default_rng(0).random((6, 8)).astype(np.float32)
+    vals[0, 0] = np.nan
+    w = DepthStoreWriter(tmp_path / "d", "relative_disparity", {"backend": "test"})
+    w.add(0, 1.5, DepthPrediction(vals, "relative_disparity", 0.01, {"true_scale": 2.0}))
+    w.add(2, 1.7, DepthPrediction(vals * 2, "relative_disparity", 0.02))
+    w.close()
+    s = DepthStore(tmp_path / "d")
+    assert s.kind == "relative_disparity" and s.indices == [0, 2] and not s.has(1)
+    p = s.read(0)
+    np.testing.assert_array_equal(p.values, vals)
+    assert p.extra["true_scale"] == 2.0 and s.meta["backend"] == "test"
+    np.testing.assert_allclose(s.latencies(), [0.01, 0.02])
+    z = p.as_depth(2.0, 0.1)
+    assert z[1, 1] == pytest.approx(1 / (2 * vals[1, 1] + 0.1))

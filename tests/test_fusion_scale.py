@@ -1,0 +1,110 @@
+"""Scale estimators recover a known scale (and shift) with 30 % outliers; smoothing."""
+
+import numpy as np
+import pytest
+
+from toolkit.fusion.scale import (
+    FEW_PAIRS,
+    OK,
+    OUTLIER_FRAME,
+    ScaleEstimate,
+    estimate_scale,
+    smooth_scales,
+)
+
+
+def _pairs(scale: float, n: int = 300, outliers: float = 0.3, noise: float = 0.01,
+           seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Predictions d and lidar l = scale * d (with noise); a fraction replaced by junk."""
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(0.5, 6.0, n)
+    l = scale * d * (1 + noise * rng.standard_normal(n))
+    bad = rng.random(n) < outliers
+    # Outliers as at depth edges and on moving people: mostly nearer than the prediction.
+    l[bad] = rng.uniform(0.3, 8.0, bad.sum())
+    return l, d
+
+
+@pytest.mark.parametrize("method,opts", [
+    ("ratio", {}),
+    ("clustered", {}),
+    ("clustered", {"algorithm": "meanshift"}),
+    ("robust", {}),
+])
+@pytest.mark.parametrize("scale", [0.37, 1.0, 2.6])
+def test_estimators_recover_scale_with_30_percent_outliers(method: str, opts: dict,
+                                                            scale: float) -> None:
+    l, d = _pairs(scale)
+    est = estimate_scale(method, l, d, **opts)
+    assert est.quality == OK
+    assert est.scale == pytest.approx(scale, rel=0.01)
+    # The inliers are the 70 % good pairs (give or take the junk that lands on the line).
+    assert 0.6 * len(l) < est.inliers < 0.85 * len(l)
+
+
+def test_plain_paper_ratio_is_biased_by_outliers() -> None:
+    # Why the ratio estimator gates pairs by default: alpha = sum(l) / sum(d) over all
+    # pairs is pulled by the outliers.
+    l, d = _pairs(2.0)
+    plain = estimate_scale("ratio", l, d, gate=None)
+    assert abs(plain.scale / 2.0 - 1) > 0.03
+    exact_l = 2.0 * d
+    assert estimate_scale("ratio", exact_l, d, gate=None).scale == pytest.approx(2.0)
+
+
+def test_robust_recovers_scale_and_shift_in_disparity_with_outliers() -> None:
+    rng = np.random.default_rng(3)
+    n = 400
+    z = rng.uniform(0.6, 7.0, n)  # lidar depth
+    s, t = 0.8, -0.05  # 1/z = s * p + t
+    p = (1.0 / z - t) / s * (1 + 0.005 * rng.standard_normal(n))
+    bad = rng.random(n) < 0.3
+    z_meas = z.copy()
+    z_meas[bad] = rng.uniform(0.3, 8.0, bad.sum())
+    est = estimate_scale("robust", z_meas, p, disparity=True)
+    assert est.ok
+    assert est.scale == pytest.approx(s, rel=0.02)
+    assert est.shift == pytest.approx(t, abs=0.01)
+    # Depth after correction matches the lidar on the inliers.
+    zz = 1.0 / (est.scale * p[~bad] + est.shift)
+    assert np.median(np.abs(zz / z[~bad] - 1)) < 0.01
+
+
+@pytest.mark.parametrize("method", ["ratio", "clustered"])
+def test_scale_only_estimators_on_disparity_without_shift(method: str) -> None:
+    rng = np.random.default_rng(4)
+    z = rng.uniform(0.6, 7.0, 300)
+    p = 1.0 / (0.5 * z)  # 1/z = 0.5 * p
+    est = estimate_scale(method, z, p, disparity=True)
+    assert est.scale == pytest.approx(0.5, rel=1e-6)
+    assert est.shift == 0.0
+
+
+def test_few_pairs_flagged_and_invalid_pairs_ignored() -> None:
+    est = estimate_scale("clustered", np.array([1.0, 2.0, np.nan]), np.array([1.0, 2.0, 3.0]))
+    assert est.quality == FEW_PAIRS and not est.ok
+    l, d = _pairs(1.5, n=100, outliers=0.0)
+    l[:10] = np.nan
+    d[10:20] = -1.0  # invalid predictions
+    est = estimate_scale("robust", l, d)
+    assert est.pairs == 80 and est.scale == pytest.approx(1.5, rel=0.01)
+
+
+def test_unknown_estimator_is_an_error() -> None:
+    with pytest.raises(ValueError, match="unknown scale estimator"):
+        estimate_scale("magic", np.ones(30), np.ones(30))  # type: ignore[arg-type]
+
+
+def test_smoothing_rejects_outlier_frames_and_fills_flagged_ones() -> None:
+    true = 2.0 * np.exp(0.02 * np.sin(np.arange(40) / 6.0))  # slow wander
+    ests = [ScaleEstimate(float(s), 0.0, 100, 120, OK, "x") for s in true]
+    ests[10] = ScaleEstimate(3.5, 0.0, 100, 120, OK, "x")  # a bad frame
+    ests[20] = ScaleEstimate(float("nan"), 0.0, 0, 4, FEW_PAIRS, "x")
+    sm = smooth_scales(ests, window=7, outlier_tol=0.1)
+    assert sm.flag[10] == OUTLIER_FRAME and sm.flag[20] == FEW_PAIRS
+    assert sm.used.all()
+    assert np.max(np.abs(sm.scale / true - 1)) < 0.02
+    skip = smooth_scales(ests, window=7, outlier_tol=0.1, fill="skip")
+    assert not skip.used[10] and not skip.used[20] and skip.used.sum() == 38
+    own = smooth_scales(ests, window=7, mode="none")
+    assert own.scale[5] == ests[5].scale

@@ -1,0 +1,247 @@
+"""Helpers the baseline stages share: poses per frame, image folders for COLMAP, the part of
+the ground-truth surface the cameras saw, and report figures.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, inv_se3
+from toolkit.io.atomic import atomic_path
+from toolkit.sensors import Sequence
+
+# ---------------------------------------------------------------------------- poses
+
+
+@dataclass
+class FramePoses:
+    """T_world_camera for the frames that have one, and where the poses came from."""
+
+    indices: np.ndarray  # [K] frame indices with a pose
+    poses: np.ndarray  # [K, 4, 4] T_world_camera
+    source: str  # "trajectory" | "groundtruth"
+    note: str  # one sentence for the report
+
+    def trajectory(self, seq: Sequence) -> Trajectory:
+        return Trajectory(seq.frame_stamps[self.indices], self.poses, "world", "camera")
+
+
+def groundtruth_camera_trajectory(seq: Sequence) -> Trajectory | None:
+    """Ground-truth T_world_camera at the frame stamps, or None without ground truth."""
+    gt = seq.groundtruth
+    if gt is None or gt.poses_base is None or not seq.frames:
+        return None
+    inside = (seq.frame_stamps >= gt.poses_base.stamps[0] - 1e-9) & (
+        seq.frame_stamps <= gt.poses_base.stamps[-1] + 1e-9)
+    if not inside.any():
+        return None
+    base = gt.poses_base.interpolate(seq.frame_stamps[inside])
+    traj = base.transform(T_right=seq.rig.T_base_camera)
+    traj.child = "camera"
+    return traj
+
+
+def load_camera_trajectory(path: Path, seq: Sequence) -> Trajectory:
+    """T_world_camera from the ``trajectory`` artifact (a folder or a TUM file).
+
+    slam2d writes ``trajectory_camera.tum``; any other TUM file is converted with the rig
+    according to the frame its header names (base_link, laser or camera).
+    """
+    from toolkit.io.tum import read_tum
+
+    p = Path(path)
+    if p.is_dir():
+        cands = [p / "trajectory_camera.tum"] if (p / "trajectory_camera.tum").exists() else (
+            [p / n for n in ("trajectory.tum", "poses_base.tum", "poses.tum") if (p / n).exists()]
+            or sorted(p.glob("*.tum")))
+        if not cands:
+            raise FileNotFoundError(f"{p}: the trajectory artifact holds no .tum file")
+        p = cands[0]
+    traj = read_tum(p)
+    if p.name == "trajectory_camera.tum" or traj.child in ("camera", "camera_optical"):
+        out = traj
+    elif traj.child == "laser":
+        out = traj.transform(T_right=inv_se3(seq.rig.T_base_laser) @ seq.rig.T_base_camera)
+    else:  # base_link (TUM files without our header default to it)
+        out = traj.transform(T_right=seq.rig.T_base_camera)
+    out.child = "camera"
+    return out
+
+
+def poses_at_frames(traj: Trajectory, seq: Sequence, max_extrapolate_s: float = 0.05) -> (
+    tuple[np.ndarray, np.ndarray]
+):
+    """Frame indices [K] inside the trajectory's span and their poses [K, 4, 4]."""
+    st = seq.frame_stamps
+    ok = (st >= traj.stamps[0] - max_extrapolate_s) & (st <= traj.stamps[-1] + max_extrapolate_s)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return idx, np.zeros((0, 4, 4))
+    return idx, traj.interpolate(st[idx], extrapolate_s=max_extrapolate_s).poses
+
+
+def frame_poses(seq: Sequence, trajectory_path: Path | None, allow_groundtruth: bool = True) -> (
+    FramePoses
+):
+    """Our poses (the ``trajectory`` artifact) or, failing that, ground truth - said loudly."""
+    if trajectory_path is not None:
+        traj = load_camera_trajectory(trajectory_path, seq)
+        idx, P = poses_at_frames(traj, seq)
+        return FramePoses(idx, P, "trajectory", "Poses: the upstream `trajectory` artifact "
+                          "(2D lidar SLAM, T_world_camera).")
+    gt = groundtruth_camera_trajectory(seq) if allow_groundtruth else None
+    if gt is None:
+        raise ValueError("no poses: no trajectory stage upstream and the sequence has no "
+                         "ground-truth poses")
+    idx, P = poses_at_frames(gt, seq)
+    return FramePoses(idx, P, "groundtruth", "**Poses: GROUND TRUTH** (no `trajectory` "
+                      "artifact upstream), so pose errors are not part of these figures.")
+
+
+# ---------------------------------------------------------------------------- images
+
+
+def image_folder(seq: Sequence, indices: Seq[int], work_dir: Path) -> (
+    tuple[Path, list[str], PinholeCamera]
+):
+    """A folder COLMAP can read the frames from, their names in it, and the camera.
+
+    Distortion-free frames stored side by side are used where they lie (no copy); otherwise
+    undistorted PNGs are written to ``work_dir/images`` and the undistorted camera returned,
+    because COLMAP is then run with our pinhole intrinsics held fixed.
+    """
+    cam = seq.rig.camera
+    frames = [seq.frames[i] for i in indices]
+    paths = [f.path for f in frames]
+    if not cam.has_distortion and all(p is not None for p in paths):
+        parents = {Path(p).parent for p in paths}  # type: ignore[arg-type]
+        if len(parents) == 1:
+            return parents.pop(), [Path(p).name for p in paths], cam  # type: ignore[arg-type]
+    out = Path(work_dir) / "images"
+    out.mkdir(parents=True, exist_ok=True)
+    names = []
+    for i, f in zip(indices, frames, strict=True):
+        name = f"{int(i):06d}.png"
+        img = cam.undistort_image(f.image)
+        with atomic_path(out / name) as tmp:
+            if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
+                raise OSError(f"{out / name}: could not write image")
+        names.append(name)
+    return out, names, cam.undistorted()
+
+
+# ---------------------------------------------------------------------------- reference
+
+
+def observed_mask(points: np.ndarray, camera: PinholeCamera, poses: np.ndarray,
+                  depths: Seq[np.ndarray], tolerance_m: float = 0.05,
+                  max_depth_m: float = np.inf) -> np.ndarray:
+    """[M] bool: points [M, 3] that some view (pose [K, 4, 4] + depth [K][H, W]) saw.
+
+    A point counts as seen when it projects inside the image in front of the camera and
+    its depth agrees with that view's depth map within ``tolerance_m`` (so occluded
+    surfaces and the backs of boxes do not count). Completeness and F-score are then
+    computed against what could have been reconstructed, not against unseen walls.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    seen = np.zeros(len(pts), bool)
+    for T, depth in zip(poses, depths, strict=True):
+        todo = np.flatnonzero(~seen)  # a point seen once needs no further test
+        T_cw = inv_se3(T)
+        z = pts[todo] @ T_cw[2, :3] + T_cw[2, 3]  # depth first: most points are behind
+        front = (z > 1e-6) & (z <= max_depth_m)
+        idx = todo[front]
+        if len(idx) == 0:
+            continue
+        pc = pts[idx] @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv, zc = camera.project(pc)
+        inside = camera.in_image(uv)
+        idx, uv, zc = idx[inside], uv[inside], zc[inside]
+        u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, camera.width - 1)
+        v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, camera.height - 1)
+        d = depth[v, u]
+        ok = (d > 0) & (np.abs(d - zc) < tolerance_m)
+        seen[idx[ok]] = True
+    return seen
+
+
+def observed_reference(mesh: Any, camera: PinholeCamera, poses: np.ndarray,
+                       spacing_m: float = 0.01, max_views: int = 60,
+                       tolerance_m: float = 0.05, max_depth_m: float = np.inf) -> np.ndarray:
+    """[M, 3] samples of ``mesh`` (about one per ``spacing_m``^2) seen from ``poses``.
+
+    Visibility uses depth maps ray-cast from the mesh itself, so it is exact and ignores
+    moving obstacles; at most ``max_views`` evenly spread views are tested.
+    """
+    from toolkit.baselines.tsdf import MeshRenderer
+    from toolkit.eval.geometry import sample_mesh
+
+    ref = sample_mesh(mesh, spacing_m)
+    sel = np.unique(np.linspace(0, len(poses) - 1, min(max_views, len(poses))).astype(int))
+    renderer = MeshRenderer(mesh)
+    depths = [renderer.cast(camera, poses[k]).depth for k in sel]
+    depths = [np.where(np.isfinite(d), d, 0.0) for d in depths]
+    return ref[observed_mask(ref, camera, poses[sel], depths, tolerance_m, max_depth_m)]
+
+
+# ---------------------------------------------------------------------------- figures
+
+
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """Write an RGB uint8 image atomically."""
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2BGR)):
+            raise OSError(f"{path}: could not write PNG")
+
+
+def save_figure(fig: Any, path: Path, dpi: int = 100) -> None:
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+
+
+def plot_topdown(path: Path, curves: dict[str, np.ndarray], title: str,
+                 clouds: dict[str, np.ndarray] | None = None) -> None:
+    """Top-down (x, y) plot of trajectories [N, 3] and optional point clouds [M, 3]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 5.2))
+    for k, (label, pts) in enumerate((clouds or {}).items()):
+        p = np.asarray(pts)
+        if len(p) > 30000:
+            p = p[:: len(p) // 30000 + 1]
+        ax.scatter(p[:, 0], p[:, 1], s=0.3, alpha=0.35, color=f"C{7 + k % 3}", label=label,
+                   rasterized=True)
+    for k, (label, pos) in enumerate(curves.items()):
+        pos = np.asarray(pos)
+        style = "-" if k == 0 else "--"
+        ax.plot(pos[:, 0], pos[:, 1], style, color=f"C{k}", lw=1.4, label=label)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8, markerscale=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """PSNR in dB of uint8 images [H, W, 3] over ``mask`` [H, W] (all pixels by default)."""
+    d = a.astype(np.float64) - b.astype(np.float64)
+    if mask is not None:
+        d = d[mask]
+    mse = float(np.mean(d * d)) if d.size else float("nan")
+    return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)

@@ -1,0 +1,763 @@
+"""Recipe stages of the baselines: ``tsdf``, ``colmap`` and ``camera_only``.
+
+Each answers one question a user asks of a run:
+
+- ``tsdf``: does a classic volumetric fusion of the same depth at the same poses give the
+  same surface? (and, with ``depth_source: groundtruth``, what is the best any depth could do)
+- ``colmap``: do the images alone agree with our poses? SfM poses Sim(3)-aligned to ours,
+  and triangulation at our fixed poses; plus our poses exported as a COLMAP text model.
+- ``camera_only``: what did the lidar buy? The same map built without it.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.sensors import Sequence
+
+# ---------------------------------------------------------------------------- shared
+
+
+def _read_sequence(ctx: StageContext) -> Sequence:
+    from toolkit.io.sequence import read_sequence
+
+    seq = read_sequence(ctx.artifact("sequence"))
+    if not seq.frames:
+        raise StageError(f"{ctx.stage_id}: sequence {seq.name} has no camera frames")
+    return seq
+
+
+def _poses(ctx: StageContext, seq: Sequence, mode: str) -> Any:
+    from toolkit.baselines.common import frame_poses
+
+    use_traj = mode in ("auto", "trajectory") and ctx.has_artifact("trajectory")
+    if mode == "trajectory" and not use_traj:
+        raise StageError(f"{ctx.stage_id}: poses: trajectory, but no stage upstream provides "
+                         "'trajectory' (add slam2d before it)")
+    try:
+        fp = frame_poses(seq, ctx.artifact("trajectory") if use_traj else None,
+                         allow_groundtruth=mode != "trajectory")
+    except (ValueError, FileNotFoundError) as e:
+        raise StageError(f"{ctx.stage_id}: {e}") from None
+    if fp.source == "groundtruth":
+        ctx.log.warning("%s: no trajectory artifact; using GROUND-TRUTH poses", ctx.stage_id)
+    if len(fp.indices) == 0:
+        raise StageError(f"{ctx.stage_id}: no camera frame lies inside the trajectory's span")
+    return fp
+
+
+def _select(indices: np.ndarray, every: int, max_images: int | None) -> np.ndarray:
+    """Every ``every``-th index, then thinned evenly to at most ``max_images``."""
+    sel = np.asarray(indices)[::every]
+    if max_images is not None and len(sel) > max_images:
+        sel = sel[np.unique(np.linspace(0, len(sel) - 1, max_images).round().astype(int))]
+    return sel
+
+
+def _mesh_reference(seq: Sequence, poses: np.ndarray, max_depth_m: float,
+                    spacing_m: float = 0.01) -> tuple[Any, np.ndarray] | None:
+    """Ground-truth mesh and its samples seen from ``poses`` (None without a mesh)."""
+    gt = seq.groundtruth
+    if gt is None or gt.mesh_path is None:
+        return None
+    from toolkit.baselines.common import observed_reference
+    from toolkit.baselines.tsdf import read_mesh
+
+    mesh = read_mesh(gt.mesh_path)
+    ref = observed_reference(mesh, seq.rig.camera.undistorted(), poses, spacing_m,
+                             max_depth_m=max_depth_m)
+    return mesh, ref
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if isinstance(v, float):
+        return "n/a" if not np.isfinite(v) else f"{v:.{digits}g}"
+    return str(v)
+
+
+def _table(rows: list[tuple[str, Any]]) -> str:
+    return "\n".join(["| figure | value |", "|---|---|",
+                      *(f"| {k} | {_fmt(v)} |" for k, v in rows)])
+
+
+def _geometry_rows(prefix: str, g: dict[str, Any]) -> list[tuple[str, Any]]:
+    return [(f"{prefix} accuracy mean [m]", g["accuracy_mean_m"]),
+            (f"{prefix} completeness mean [m]", g["completeness_mean_m"]),
+            (f"{prefix} Chamfer [m]", g["chamfer_m"]),
+            (f"{prefix} F-score 2 / 5 / 10 cm",
+             f"{g['fscore_2cm']:.3f} / {g['fscore_5cm']:.3f} / {g['fscore_10cm']:.3f}")]
+
+
+# ---------------------------------------------------------------------------- tsdf
+
+
+class TSDFConfig(StageConfig):
+    """Settings of the ``tsdf`` stage."""
+
+    # scaled: the fuse stage's lidar-scaled depth; groundtruth: the simulator's exact depth
+    # (the upper bound any depth network could reach at these poses).
+    depth_source: Literal["scaled", "groundtruth"] = "scaled"
+    poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
+    # Pixels on moving people: "groundtruth" drops them with the simulator's masks; "auto"
+    # does so for ground-truth depth only (the upper bound), never for scaled depth, whose
+    # row must cope with people as the method does, without ground truth.
+    mask_dynamic: Literal["auto", "groundtruth", "none"] = "auto"
+    voxel_size_m: float = Field(0.02, gt=0)
+    trunc_voxels: float = Field(4.0, gt=0)
+    depth_max_m: float = Field(6.0, gt=0)  # as fuse's max_depth_m: far mono depth is guesswork
+    # Frames that must see a voxel. None: 1 for ground-truth depth, 2 for scaled depth,
+    # where it removes single-frame junk (on the simulated house F @ 5 cm 0.47 -> 0.55).
+    min_observations: int | None = Field(None, ge=1)
+    every: int = Field(1, ge=1)  # integrate every n-th frame
+    views: int = Field(3, ge=0)  # rendered comparison views in the report
+    eval_spacing_m: float = Field(0.01, gt=0)  # sample spacing for the mesh comparison
+    geometry: bool = True  # compare with the ground-truth mesh here (off: leave it to evaluate)
+
+
+def _scaled_depth_files(fused: Path) -> dict[int, Path]:
+    """Frame index -> scaled depth file of the fuse stage (index.csv, else file names)."""
+    import csv
+
+    for sub in ("scaled_depth", "depth"):
+        d = fused / sub
+        if (d / "index.csv").exists():
+            with (d / "index.csv").open(newline="") as f:
+                return {int(r["index"]): d / r["file"] for r in csv.DictReader(f)}
+        if d.is_dir():
+            files = sorted([*d.glob("[0-9]*.npy"), *d.glob("[0-9]*.png")])
+            return {int(p.stem): p for p in files if p.stem.isdigit()}
+    return {}
+
+
+class TSDFStage(Stage):
+    """TSDF mesh (Open3D VoxelBlockGrid) of scaled or ground-truth depth at our poses."""
+
+    name = "tsdf"
+    Config = TSDFConfig
+    requires = ("sequence",)
+    optional_requires = ("trajectory", "fused")
+    provides = ("tsdf_mesh",)
+
+    def run(self, ctx: StageContext) -> None:
+        import cv2
+
+        from toolkit.baselines.common import groundtruth_camera_trajectory, poses_at_frames
+        from toolkit.baselines.tsdf import TSDFSettings, TSDFVolume, write_mesh
+        from toolkit.io.depth import read_depth
+
+        cfg: TSDFConfig = self.config  # type: ignore[assignment]
+        seq = _read_sequence(ctx)
+        gt = seq.groundtruth
+        fp = _poses(ctx, seq, cfg.poses)
+        if cfg.depth_source == "scaled":
+            if not ctx.has_artifact("fused"):
+                raise StageError(f"{ctx.stage_id}: depth_source: scaled needs a fuse stage "
+                                 "upstream (its per-frame scaled depth); add one, or set "
+                                 "depth_source: groundtruth")
+            files = _scaled_depth_files(ctx.artifact("fused"))
+            if not files:
+                raise StageError(f"{ctx.stage_id}: {ctx.artifact('fused')} holds no per-frame "
+                                 "scaled depth (was fuse run with write_depth: none?)")
+
+            def depth_of(i: int) -> np.ndarray:
+                return read_depth(files[i])
+            have = set(files)
+            depth_note = "the `fuse` stage's lidar-scaled monocular depth"
+        else:
+            if gt is None or gt.depth_paths is None:
+                raise StageError(f"{ctx.stage_id}: depth_source: groundtruth, but sequence "
+                                 f"{seq.name} has no ground-truth depth")
+
+            def depth_of(i: int) -> np.ndarray:
+                return gt.depth(i)
+            have = set(range(len(seq.frames)))
+            depth_note = "**ground-truth depth** (upper bound)"
+        keep = np.array([i in have for i in fp.indices], bool)
+        indices, poses = fp.indices[keep][:: cfg.every], fp.poses[keep][:: cfg.every]
+        if len(indices) == 0:
+            raise StageError(f"{ctx.stage_id}: no frame has both a pose and depth")
+        use_masks = cfg.mask_dynamic == "groundtruth" or (
+            cfg.mask_dynamic == "auto" and cfg.depth_source == "groundtruth")
+        if use_masks and (gt is None or gt.mask_paths is None):
+            if cfg.mask_dynamic == "groundtruth":
+                raise StageError(f"{ctx.stage_id}: mask_dynamic: groundtruth, but sequence "
+                                 f"{seq.name} has no ground-truth masks")
+            use_masks = False
+        if use_masks:
+            depth_note += ", pixels on moving people removed with ground-truth masks"
+        cam = seq.rig.camera
+        ucam = cam.undistorted()
+        settings = TSDFSettings(cfg.voxel_size_m, cfg.trunc_voxels, cfg.depth_max_m,
+                                min_observations=cfg.min_observations or (
+                                    1 if cfg.depth_source == "groundtruth" else 2))
+        vol = TSDFVolume(settings)
+        t_int = 0.0
+        for i, T in zip(ctx.progress(list(indices), description="tsdf"), poses, strict=True):
+            rgb = seq.frames[i].image
+            depth = depth_of(int(i))
+            if use_masks:
+                depth = np.where(gt.mask(int(i)), 0.0, depth).astype(np.float32)
+            if cam.has_distortion:
+                rgb = cam.undistort_image(rgb)
+                depth = cam.undistort_image(depth, interpolation=cv2.INTER_NEAREST)
+            t0 = time.perf_counter()
+            vol.integrate(depth, rgb, ucam, T)
+            t_int += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mesh = vol.extract_mesh()
+        t_ext = time.perf_counter() - t0
+        if len(mesh.triangles) == 0:
+            raise StageError(f"{ctx.stage_id}: the TSDF mesh is empty (depth all invalid or "
+                             f"beyond depth_max_m={cfg.depth_max_m}?)")
+        out = ctx.stage_dir / "mesh.ply"
+        write_mesh(out, mesh)
+        ctx.provide("tsdf_mesh", out)
+        metrics: dict[str, Any] = {
+            "depth_source": cfg.depth_source, "poses": fp.source, "frames": int(len(indices)),
+            "dynamic_masked": use_masks, "min_observations": settings.min_observations,
+            "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
+            "integrate_ms_per_frame": 1000 * t_int / len(indices), "extract_s": t_ext,
+        }
+        rows: list[tuple[str, Any]] = [
+            ("frames integrated", len(indices)), ("triangles", len(mesh.triangles)),
+            ("integration [ms/frame]", metrics["integrate_ms_per_frame"]),
+            ("mesh extraction [s]", t_ext)]
+        # Geometry against the ground-truth surface the cameras saw (true poses for visibility).
+        gt_traj = groundtruth_camera_trajectory(seq)
+        vis_poses = poses_at_frames(gt_traj, seq)[1][:: cfg.every] if gt_traj is not None else poses
+        ref = _mesh_reference(seq, vis_poses, cfg.depth_max_m, cfg.eval_spacing_m) if (
+            cfg.geometry) else None
+        if ref is not None:
+            from toolkit.eval.geometry import geometry_metrics, sample_mesh
+
+            g = geometry_metrics(sample_mesh(mesh, cfg.eval_spacing_m), ref[1])
+            metrics["geometry"] = g
+            rows += _geometry_rows("vs GT mesh:", g)
+        md = [f"TSDF fusion (Open3D VoxelBlockGrid, {cfg.voxel_size_m * 100:g} cm voxels, "
+              f"truncation {cfg.trunc_voxels:g} voxels) of {depth_note}. {fp.note}",
+              _table(rows)]
+        if cfg.views > 0:
+            views = self._views(ctx, seq, mesh, ucam, indices, poses, cfg)
+            metrics["views"] = views["metrics"]
+            md.append(f"Camera image (left) and the TSDF mesh rendered at the same pose "
+                      f"(right); PSNR over covered pixels "
+                      f"{views['metrics']['psnr_db']:.1f} dB, coverage "
+                      f"{views['metrics']['coverage']:.0%}.")
+            md.append(f"![TSDF views]({ctx.stage_id}/{views['png']})")
+        md.append(f"Mesh: [mesh.ply]({ctx.stage_id}/mesh.ply)")
+        ctx.add_metrics(metrics)
+        ctx.report("\n\n".join(md))
+
+    @staticmethod
+    def _views(ctx: StageContext, seq: Sequence, mesh: Any, cam: Any, indices: np.ndarray,
+               poses: np.ndarray, cfg: TSDFConfig) -> dict[str, Any]:
+        from toolkit.baselines.common import psnr, write_png
+        from toolkit.baselines.tsdf import MeshRenderer
+
+        renderer = MeshRenderer(mesh)
+        sel = np.unique(np.linspace(0, len(indices) - 1, min(cfg.views, len(indices)))
+                        .round().astype(int))
+        rows, ps, cov = [], [], []
+        for k in sel:
+            img = seq.frames[int(indices[k])].image
+            if seq.rig.camera.has_distortion:
+                img = seq.rig.camera.undistort_image(img)
+            rgb, depth = renderer.render(cam, poses[k])
+            m = depth > 0
+            ps.append(psnr(rgb, img, m))
+            cov.append(float(m.mean()))
+            rows.append(np.concatenate([img, rgb], 1))
+        name = "views.png"
+        write_png(ctx.stage_dir / name, np.concatenate(rows, 0))
+        return {"png": name, "metrics": {"psnr_db": float(np.mean(ps)),
+                                         "coverage": float(np.mean(cov)), "count": len(sel)}}
+
+
+# ---------------------------------------------------------------------------- colmap
+
+
+class _ColmapKeys(StageConfig):
+    """COLMAP keys shared by ``colmap`` and ``camera_only``."""
+
+    matching: Literal["sequential", "exhaustive"] = "sequential"
+    overlap: int = Field(10, ge=1)
+    max_features: int = Field(4096, ge=64)
+    intrinsics: Literal["known", "refine", "unknown"] = "known"
+    every: int = Field(1, ge=1)  # use every n-th frame
+    max_images: int | None = Field(300, ge=3)  # then thin evenly to at most this many
+    threads: int = Field(2, ge=1)
+    seed: int = 0
+
+    def colmap_settings(self) -> Any:
+        from toolkit.baselines.colmap import ColmapSettings
+
+        return ColmapSettings(self.matching, self.overlap, self.max_features, self.intrinsics,
+                              self.threads, self.seed)
+
+
+class ColmapConfig(_ColmapKeys):
+    """Settings of the ``colmap`` stage."""
+
+    poses: Literal["auto", "trajectory", "groundtruth"] = "auto"  # for triangulation/export
+    triangulate: bool = True
+    export: bool = True  # our poses + intrinsics as a COLMAP text model
+    export_points: Literal["auto", "fused", "triangulated", "none"] = "auto"
+    export_images: bool = True  # hard-link (or copy) the (undistorted) images next to it
+    # A fused map has ~1M points (~90 MB as text); 3DGS trainers start from ~100k SfM points,
+    # so a random subset keeps the file small without changing the initialisation.
+    export_max_points: int | None = Field(300_000, ge=1)
+
+
+class ColmapStage(Stage):
+    """COLMAP (pycolmap, CPU) on the images: SfM vs our poses, triangulation at our poses."""
+
+    name = "colmap"
+    Config = ColmapConfig
+    requires = ("sequence",)
+    optional_requires = ("trajectory", "fused")
+    provides = ("colmap",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.baselines.colmap import (
+            evaluate_sfm_trajectory,
+            extract_and_match,
+            run_sfm,
+            save_sfm,
+        )
+        from toolkit.baselines.common import groundtruth_camera_trajectory, image_folder
+
+        cfg: ColmapConfig = self.config  # type: ignore[assignment]
+        seq = _read_sequence(ctx)
+        settings = cfg.colmap_settings()
+        sel = _select(np.arange(len(seq.frames)), cfg.every, cfg.max_images)
+        image_dir, names, cam = image_folder(seq, sel, ctx.stage_dir)
+        frame_of = {n: int(i) for n, i in zip(names, sel, strict=True)}
+        stamp_of = {n: float(seq.frame_stamps[i]) for n, i in frame_of.items()}
+        db = ctx.stage_dir / "database.db"
+        ctx.log.info("colmap: %d images, %s matching", len(names), cfg.matching)
+        seconds = extract_and_match(db, image_dir, names, cam, settings)
+        sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", settings, database=db)
+        sfm.seconds.update(seconds)
+        save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
+        metrics: dict[str, Any] = {"sfm": sfm.summary()}
+        rows: list[tuple[str, Any]] = [
+            ("images / registered", f"{sfm.images} / {sfm.registered}"),
+            ("separate models", sfm.models), ("sparse points", sfm.points),
+            ("mean reprojection error [px]", sfm.reprojection_error_px),
+            ("extract / match / map [s]", " / ".join(f"{sfm.seconds.get(k, float('nan')):.1f}"
+                                                    for k in ("extract", "match", "mapping")))]
+        curves: dict[str, np.ndarray] = {}
+        gt_traj = groundtruth_camera_trajectory(seq)
+        lidar_traj = None
+        if ctx.has_artifact("trajectory"):
+            from toolkit.baselines.common import load_camera_trajectory
+
+            lidar_traj = load_camera_trajectory(ctx.artifact("trajectory"), seq)
+        if gt_traj is not None:
+            curves["ground truth"] = gt_traj.positions
+        if lidar_traj is not None:
+            curves["lidar SLAM"] = lidar_traj.positions
+        if sfm.registered >= 3:
+            est = sfm.trajectory(stamp_of)
+            for tag, ref in (("groundtruth", gt_traj), ("lidar", lidar_traj)):
+                if ref is None:
+                    continue
+                try:
+                    e = evaluate_sfm_trajectory(est, ref)
+                except ValueError as exc:
+                    ctx.log.warning("colmap: no comparison with %s: %s", tag, exc)
+                    continue
+                metrics[f"sfm_vs_{tag}"] = e
+                rows += [(f"SfM vs {tag}: ATE Sim(3) [m]", e["ate_sim3_rmse_m"]),
+                         (f"SfM vs {tag}: ATE SE(3), own scale [m]", e["ate_se3_rmse_m"]),
+                         (f"SfM vs {tag}: scale [m per model unit]", e["scale_to_reference"])]
+            ref = gt_traj if gt_traj is not None else lidar_traj
+            ref_name = "groundtruth" if gt_traj is not None else "lidar"
+            if ref is not None and f"sfm_vs_{ref_name}" in metrics:
+                from toolkit.baselines.camera_only import alignments
+
+                ref_at = ref.interpolate(np.clip(est.stamps, ref.stamps[0], ref.stamps[-1]))
+                al = alignments(est.positions, ref_at.positions)
+                for tag, label in (("sim3", "COLMAP, Sim(3)-aligned"),
+                                   ("se3", "COLMAP, SE(3), own scale")):
+                    S = al[tag]
+                    curves[label] = est.positions @ S[:3, :3].T + S[:3, 3]
+                    _write_aligned(ctx.stage_dir / "sfm" / f"trajectory_{tag}.tum", est, S,
+                                   f"COLMAP camera poses, {tag}-aligned to {ref_name}")
+        else:
+            ctx.log.warning("colmap: only %d images registered; no trajectory comparison",
+                            sfm.registered)
+        md = [f"COLMAP {cfg.matching} matching, incremental mapping on {len(names)} images "
+              f"(intrinsics: {cfg.intrinsics})."]
+        if cfg.triangulate or cfg.export:
+            fp = _poses(ctx, seq, cfg.poses)
+            md.append(fp.note)
+        if cfg.triangulate:
+            tri = self._triangulate(ctx, seq, fp, frame_of, image_dir, cam, db, settings)
+            if tri is not None:
+                metrics["triangulation"] = tri
+                rows += [("triangulation at our poses: points", tri["points"]),
+                         ("triangulation at our poses: reprojection [px]",
+                          tri["reprojection_error_px"]),
+                         ("triangulation at our poses: mean track length",
+                          tri["mean_track_length"])]
+                if "gt_mesh_distance_median_m" in tri:
+                    rows.append(("triangulated points to GT mesh, median [m]",
+                                 tri["gt_mesh_distance_median_m"]))
+        md.append(_table(rows))
+        if len(curves) >= 2:
+            from toolkit.baselines.common import plot_topdown
+
+            plot_topdown(ctx.stage_dir / "trajectories.png", curves,
+                         "COLMAP camera centres vs reference (top view)")
+            md.append(f"![COLMAP trajectories]({ctx.stage_id}/trajectories.png)")
+        if cfg.export:
+            ex = self._export(ctx, seq, fp, cfg)
+            metrics["export"] = ex
+            md.append(f"Our poses and intrinsics as a COLMAP text model for Gaussian-splatting "
+                      f"and NeRF tools: `{ctx.stage_id}/export/sparse/0/` "
+                      f"({ex['images']} images, {ex['points']} points from {ex['points_from']}"
+                      + (", images in `export/images/`" if cfg.export_images else "") + ").")
+        ctx.add_metrics(metrics)
+        ctx.provide("colmap", ctx.stage_dir)
+        ctx.report("\n\n".join(md))
+
+    @staticmethod
+    def _triangulate(ctx: StageContext, seq: Sequence, fp: Any, frame_of: dict[str, int],
+                     image_dir: Path, cam: Any, db: Path, settings: Any) -> dict[str, Any] | None:
+        from toolkit.baselines.colmap import triangulate_known_poses
+
+        pose_of = {int(i): T for i, T in zip(fp.indices, fp.poses, strict=True)}
+        names = [n for n, i in frame_of.items() if i in pose_of]
+        if len(names) < 2:
+            ctx.log.warning("colmap: fewer than 2 selected frames have poses; no triangulation")
+            return None
+        poses = np.stack([pose_of[frame_of[n]] for n in names])
+        # Features matched under other intrinsics settings are verified with another camera
+        # model; triangulation at our poses uses our pinhole K, so match again in that case.
+        tri_db = db if settings.intrinsics == "known" else None
+        tri = triangulate_known_poses(image_dir, names, cam, poses, ctx.stage_dir / "triangulation",
+                                      settings, database=tri_db)
+        out: dict[str, Any] = {**tri.summary(), "poses": fp.source}
+        gt = seq.groundtruth
+        if gt is not None and gt.mesh_path is not None and tri.points > 0:
+            from toolkit.eval.map_accuracy import MeshDistance
+
+            d = MeshDistance(gt.mesh_path).distance(tri.points_xyz())
+            out["gt_mesh_distance_median_m"] = float(np.median(d))
+            out["gt_mesh_within_5cm"] = float(np.mean(d < 0.05))
+        return out
+
+    @staticmethod
+    def _export(ctx: StageContext, seq: Sequence, fp: Any, cfg: ColmapConfig) -> dict[str, Any]:
+        from toolkit.baselines.common import image_folder
+        from toolkit.io.colmap_text import write_poses_as_colmap
+
+        out = ctx.stage_dir / "export"
+        points = colors = None
+        source = "none"
+        want = cfg.export_points
+        if want in ("auto", "fused") and ctx.has_artifact("fused"):
+            from toolkit.fusion.voxel_map import read_map_ply
+
+            ply = ctx.artifact("fused") / "map.ply"
+            if ply.exists():
+                points, colors = read_map_ply(ply)
+                source = "the fused map"
+        elif want == "fused":
+            raise StageError(f"{ctx.stage_id}: export_points: fused needs a fuse stage upstream")
+        if points is None and want in ("auto", "triangulated"):
+            tri_dir = ctx.stage_dir / "triangulation" / "triangulated"
+            if (tri_dir / "points3D.bin").exists() or (tri_dir / "points3D.txt").exists():
+                import pycolmap
+
+                rec = pycolmap.Reconstruction(tri_dir)
+                pts = list(rec.points3D.values())
+                points = np.array([p.xyz for p in pts]).reshape(-1, 3)
+                colors = np.array([p.color for p in pts], np.uint8).reshape(-1, 3)
+                source = "triangulation at our poses"
+        if points is not None and cfg.export_max_points and len(points) > cfg.export_max_points:
+            keep = np.sort(np.random.default_rng(0).choice(len(points), cfg.export_max_points,
+                                                           replace=False))
+            points, colors = points[keep], colors[keep]
+            source += f" (random {cfg.export_max_points} of them)"
+        if cfg.export_images:
+            image_dir, names, cam = image_folder(seq, list(fp.indices), out / "_staging")
+            img_out = out / "images"
+            img_out.mkdir(parents=True, exist_ok=True)
+            import shutil
+
+            for n in names:
+                _link_or_copy(image_dir / n, img_out / n)
+            if (out / "_staging").exists():
+                shutil.rmtree(out / "_staging")
+        else:
+            names = [seq.frames[int(i)].path.name if seq.frames[int(i)].path else
+                     f"{int(i):06d}.png" for i in fp.indices]
+            cam = seq.rig.camera
+        write_poses_as_colmap(out / "sparse" / "0", cam, names, fp.poses, points, colors)
+        return {"images": len(names), "points": 0 if points is None else len(points),
+                "points_from": source, "poses": fp.source}
+
+
+# ---------------------------------------------------------------------------- camera only
+
+
+class CameraOnlyConfig(_ColmapKeys):
+    """Settings of the ``camera_only`` stage."""
+
+    # Reuse an upstream colmap stage's SfM model (same frames) instead of running COLMAP again.
+    reuse_colmap: bool = True
+    scale_source: Literal["auto", "network", "sfm"] = "auto"
+    estimator: Literal["ratio", "clustered", "robust"] = "robust"
+    min_points: int = Field(15, ge=2)
+    pixel_stride: int = Field(2, ge=1)
+    voxel_fraction: float = Field(0.008, gt=0)
+    eval_frames: int = Field(40, ge=1)  # frames compared with ground-truth depth
+    # Ground-truth surface samples for the map comparison. Coarser than tsdf's 1 cm: the
+    # camera-only map is off by decimetres, and its ~2M points make each comparison slow.
+    eval_spacing_m: float = Field(0.015, gt=0)
+    # The two map comparisons (own scale, Sim(3)) take most of this stage's time on a house
+    # (~2.5 M points each); off leaves the map to the evaluate stage.
+    geometry: bool = True
+    eval_max_depth_m: float = Field(10.0, gt=0)
+
+
+class CameraOnlyStage(Stage):
+    """The 'without lidar' rows: COLMAP poses and SfM-scaled depth, no lidar anywhere."""
+
+    name = "camera_only"
+    Config = CameraOnlyConfig
+    requires = ("sequence", "depth")
+    optional_requires = ("colmap", "trajectory")
+    provides = ("camera_only",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
+        from toolkit.baselines.colmap import load_sfm, run_sfm, save_sfm
+        from toolkit.baselines.common import image_folder
+        from toolkit.depth.store import DepthStore
+        from toolkit.fusion.voxel_map import MapArrays, write_map_ply
+        from toolkit.geometry import Trajectory
+        from toolkit.io.tum import write_tum
+
+        cfg: CameraOnlyConfig = self.config  # type: ignore[assignment]
+        seq = _read_sequence(ctx)
+        store = DepthStore(ctx.artifact("depth"))
+        reused = False
+        sfm = None
+        if cfg.reuse_colmap and ctx.has_artifact("colmap"):
+            sfm_dir = ctx.artifact("colmap") / "sfm"
+            if (sfm_dir / "frames.csv").exists():
+                sfm, frame_of, stamp_of = load_sfm(sfm_dir)
+                reused = True
+        if sfm is None:
+            sel = _select(np.arange(len(seq.frames)), cfg.every, cfg.max_images)
+            image_dir, names, cam = image_folder(seq, sel, ctx.stage_dir)
+            frame_of = {n: int(i) for n, i in zip(names, sel, strict=True)}
+            stamp_of = {n: float(seq.frame_stamps[i]) for n, i in frame_of.items()}
+            sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", cfg.colmap_settings())
+            save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
+        if sfm.registered < 3:
+            raise StageError(f"{ctx.stage_id}: COLMAP registered {sfm.registered} of "
+                             f"{sfm.images} images; the camera alone cannot build a map here")
+        settings = CameraOnlySettings(cfg.scale_source, cfg.estimator, cfg.min_points,
+                                      pixel_stride=cfg.pixel_stride,
+                                      voxel_fraction=cfg.voxel_fraction)
+        try:
+            res = camera_only_reconstruction(
+                sfm, frame_of, seq.rig.camera, store.read, lambda i: seq.frames[i].image,
+                set(store.indices), settings,
+                progress=lambda it: ctx.progress(list(it), description="camera only"))
+        except ValueError as e:
+            raise StageError(f"{ctx.stage_id}: {e}") from None
+        stamps = seq.frame_stamps[res.frame_indices]
+        est = Trajectory(stamps, res.poses, "model", "camera")
+        write_tum(ctx.stage_dir / "trajectory_camera.tum", est,
+                  f"camera-only (COLMAP) poses in {res.units} units, NOT metric world")
+        n = len(res.points)
+        write_map_ply(ctx.stage_dir / "map.ply", MapArrays(
+            res.points, res.colors, np.ones(n, np.int64), np.ones(n, np.int32),
+            np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.float32)))
+        ctx.provide("camera_only", ctx.stage_dir)
+        metrics: dict[str, Any] = {
+            "scale_source": res.scale_source, "units": res.units, "depth_kind": res.info["kind"],
+            "colmap_reused": reused, "images": sfm.images, "registered_images": sfm.registered,
+            "frames_fused": int(res.used.sum()), "frames_fitted": res.info["frames_fitted"],
+            "map_points": n,
+        }
+        rows: list[tuple[str, Any]] = [
+            ("registered images", f"{sfm.registered} / {sfm.images}"),
+            ("frames fused", int(res.used.sum())), ("map points", n)]
+        reuse_note = " (reused from the colmap stage)" if reused else ""
+        md = [f"Camera only (no lidar anywhere): COLMAP poses{reuse_note}, "
+              f"`{res.info['kind']}` predictions scaled by "
+              + ("COLMAP's sparse points per frame (map in COLMAP's arbitrary unit)"
+                 if res.scale_source == "sfm" else
+                 "the network's own metres (COLMAP model rescaled once to them)") + "."]
+        ev = self._evaluate(ctx, seq, res, est, store, cfg)
+        metrics.update(ev["metrics"])
+        rows += ev["rows"]
+        md.append("Evaluated twice: aligned rigidly (SE(3)), keeping the camera-only scale - the "
+                  "**scale error** a monocular system makes - and by similarity (Sim(3)), which "
+                  "removes the scale and leaves the **shape error**.")
+        md.append(_table(rows))
+        if ev.get("png"):
+            md.append(f"![camera only]({ctx.stage_id}/{ev['png']})")
+        ctx.add_metrics(metrics)
+        ctx.report("\n\n".join(md))
+
+    @staticmethod
+    def _evaluate(ctx: StageContext, seq: Sequence, res: Any, est: Any, store: Any,
+                  cfg: CameraOnlyConfig) -> dict[str, Any]:
+        from toolkit.baselines.camera_only import (
+            CameraOnlySettings,
+            alignments,
+            apply_similarity,
+            depth_of,
+        )
+        from toolkit.baselines.colmap import evaluate_sfm_trajectory
+        from toolkit.baselines.common import (
+            groundtruth_camera_trajectory,
+            load_camera_trajectory,
+            poses_at_frames,
+        )
+
+        out: dict[str, Any] = {"metrics": {}, "rows": []}
+        ref = groundtruth_camera_trajectory(seq)
+        ref_name = "groundtruth"
+        if ref is None and ctx.has_artifact("trajectory"):
+            ref, ref_name = load_camera_trajectory(ctx.artifact("trajectory"), seq), "lidar"
+        if ref is None:
+            ctx.log.warning("camera_only: no ground truth and no lidar trajectory to compare to")
+            return out
+        m, rows = out["metrics"], out["rows"]
+        try:
+            te = evaluate_sfm_trajectory(est, ref)
+        except ValueError as e:
+            ctx.log.warning("camera_only: %s", e)
+            return out
+        m["reference"] = ref_name
+        m["trajectory"] = te
+        rows += [(f"ATE vs {ref_name}, own scale (SE(3)) [m]", te["ate_se3_rmse_m"]),
+                 (f"ATE vs {ref_name}, Sim(3) [m]", te["ate_sim3_rmse_m"]),
+                 ("scale error (Sim(3) scale - 1)", te["scale_to_reference"] - 1.0)]
+        inside = (est.stamps >= ref.stamps[0]) & (est.stamps <= ref.stamps[-1])
+        ref_at = ref.interpolate(est.stamps[inside])
+        al = alignments(est.positions[inside], ref_at.positions)
+        for tag in ("se3", "sim3"):
+            _write_aligned(ctx.stage_dir / f"trajectory_{tag}.tum", est, al[tag],
+                           f"camera-only poses, {tag}-aligned to {ref_name}")
+        from toolkit.io.atomic import atomic_write_json
+
+        # The similarities map.ply needs to land in the world frame (x_world = S @ x_map).
+        atomic_write_json(ctx.stage_dir / "alignment.json",
+                          {"reference": ref_name, **{t: al[t].tolist() for t in al}})
+        clouds = {}
+        gt_traj = groundtruth_camera_trajectory(seq)
+        s_sim = float(np.cbrt(np.linalg.det(al["sim3"][:3, :3])))  # metres per result unit
+        if gt_traj is not None and cfg.geometry:
+            # The same depth range the reconstruction kept, in metres, so completeness is
+            # measured over what it could have seen.
+            max_depth_m = CameraOnlySettings().max_depth_factor * res.info[
+                "median_sparse_depth"] * s_sim
+            mr = _mesh_reference(seq, poses_at_frames(gt_traj, seq)[1], max_depth_m,
+                                 cfg.eval_spacing_m)
+            if mr is not None:
+                from toolkit.eval.geometry import geometry_metrics
+
+                for tag in ("se3", "sim3"):
+                    pts = apply_similarity(al[tag], res.points)
+                    clouds[tag] = pts
+                    g = geometry_metrics(pts, mr[1])
+                    m[f"geometry_{'own_scale' if tag == 'se3' else 'sim3'}"] = g
+                    rows += _geometry_rows("own scale:" if tag == "se3" else "Sim(3):", g)
+                clouds["gt"] = mr[1]
+        gt = seq.groundtruth
+        if gt is not None and gt.depth_paths is not None:
+            from toolkit.eval.depth import ErrorAccumulator
+
+            accs = {"own_scale": ErrorAccumulator(), "sim3": ErrorAccumulator()}
+            ks = np.unique(np.linspace(0, len(res.frame_indices) - 1,
+                                       min(cfg.eval_frames, len(res.frame_indices))).astype(int))
+            for k in ks:
+                if not res.used[k]:
+                    continue
+                i = res.frame_indices[k]
+                d = depth_of(res, int(k), store.read(i))
+                g = gt.depth(i)
+                accs["own_scale"].add(d, g, max_depth=cfg.eval_max_depth_m)
+                accs["sim3"].add(d * s_sim, g, max_depth=cfg.eval_max_depth_m)
+            for tag, acc in accs.items():
+                r = acc.result()
+                m[f"depth_{tag}"] = r.as_dict()
+                rows.append((f"depth vs GT, {tag.replace('_', ' ')}: RMSE [m] / AbsRel",
+                             f"{r.rmse_m:.3f} / {r.absrel:.3f}"))
+        if clouds:
+            out["png"] = "camera_only.png"
+            _camera_only_figure(ctx.stage_dir / out["png"], clouds, ref_at.positions,
+                                {t: apply_similarity(al[t], est.positions[inside])
+                                 for t in ("se3", "sim3")})
+        return out
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` to ``dst`` (images are never modified, and a 600-frame export
+    would otherwise double the disk use), copying across filesystems."""
+    import os
+    import shutil
+
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def _write_aligned(path: Path, est: Any, S: np.ndarray, header: str) -> None:
+    """A trajectory moved into the reference frame by similarity ``S`` (T_world_camera)."""
+    from toolkit.baselines.camera_only import pose_in_reference
+    from toolkit.geometry import Trajectory
+    from toolkit.io.tum import write_tum
+
+    poses = np.stack([pose_in_reference(S, T) for T in est.poses])
+    write_tum(path, Trajectory(est.stamps, poses, "world", "camera"), header)
+
+
+def _camera_only_figure(path: Path, clouds: dict[str, np.ndarray], ref_xyz: np.ndarray,
+                        est_xyz: dict[str, np.ndarray]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from toolkit.baselines.common import save_figure
+
+    def thin(p: np.ndarray, n: int = 40000) -> np.ndarray:
+        return p[:: len(p) // n + 1]
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    for ax, tag, title in ((axes[0], "se3", "own scale (SE(3)): scale error"),
+                           (axes[1], "sim3", "Sim(3): shape error")):
+        g = thin(clouds["gt"])
+        ax.scatter(g[:, 0], g[:, 1], s=0.2, color="0.7", label="GT surface seen", rasterized=True)
+        p = thin(clouds[tag])
+        ax.scatter(p[:, 0], p[:, 1], s=0.2, color="C1", alpha=0.5, label="camera-only map",
+                   rasterized=True)
+        ax.plot(ref_xyz[:, 0], ref_xyz[:, 1], "-", color="C0", lw=1.4, label="reference path")
+        ax.plot(est_xyz[tag][:, 0], est_xyz[tag][:, 1], "--", color="C3", lw=1.4,
+                label="camera-only path")
+        ax.set_title(title)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("x [m]")
+    axes[0].set_ylabel("y [m]")
+    axes[0].legend(loc="best", fontsize=8, markerscale=20)
+    fig.tight_layout()
+    save_figure(fig, path)

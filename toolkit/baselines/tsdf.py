@@ -1,0 +1,257 @@
+"""TSDF fusion baseline: per-frame depth + colour at known poses -> coloured triangle mesh.
+
+Open3D's tensor ``VoxelBlockGrid`` does the fusion. The legacy ``ScalableTSDFVolume`` is not
+used on purpose: in the Open3D 0.20 wheels it integrates without error but extracts empty
+meshes (shared/notes/dependencies-measured.md, section 2).
+
+The renderer here draws the coloured mesh at a camera pose with Open3D's ``RaycastingScene``
+and interpolates vertex colours with the hit triangle's barycentric coordinates, so image
+comparisons (TSDF mesh vs. camera image, splats vs. mesh) need no OpenGL context, which the
+headless machines this runs on do not have.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import inv_se3
+from toolkit.io.atomic import atomic_path
+
+
+@dataclass(frozen=True)
+class TSDFSettings:
+    """Volume parameters; the defaults suit rooms seen from a robot (metres)."""
+
+    voxel_size_m: float = 0.02
+    # Truncation distance in voxels (Open3D's trunc_voxel_multiplier): 4 voxels keep thin
+    # furniture from being eaten by the far side while tolerating ~cm depth noise.
+    trunc_voxels: float = 4.0
+    depth_max_m: float = 8.0
+    block_resolution: int = 16
+    # Initial hash-map capacity in blocks (16^3 voxels, 48 KB each). Open3D doubles it when
+    # full, but each rehash copies everything; a 5 x 4 m room needs ~1000 blocks at 2 cm.
+    # Allocation is zeroed up front, so a huge default costs seconds for small scenes.
+    block_count: int = 4096
+    # Frames that must have seen a voxel for it to be part of the surface; 2 or more drops
+    # surfaces seen once (often flying pixels of a single bad depth map).
+    min_observations: int = 1
+
+    @property
+    def weight_threshold(self) -> float:
+        # Every integration adds weight 1 and Open3D keeps voxels strictly above the
+        # threshold, so a threshold of exactly 1 would drop everything seen only once.
+        return self.min_observations - 0.5
+
+
+class TSDFVolume:
+    """A TSDF + colour voxel block grid in the world frame.
+
+    ``integrate`` takes z-depth in metres (0 or NaN = invalid), RGB uint8 and the camera
+    pose ``T_world_camera`` (optical frame); Open3D wants the inverse (world-to-camera)
+    as its "extrinsic", which is done here so callers keep the project's convention.
+    """
+
+    def __init__(self, settings: TSDFSettings | None = None) -> None:
+        import open3d as o3d
+        import open3d.core as o3c
+
+        self.settings = settings or TSDFSettings()
+        s = self.settings
+        self._o3d, self._o3c = o3d, o3c
+        # uint16 weight and colour (Open3D's reconstruction-system layout) take 12 bytes per
+        # voxel instead of 20; with them the integrator wants uint16 depth and uint8 colour.
+        self.grid = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight", "color"),
+            attr_dtypes=(o3c.float32, o3c.uint16, o3c.uint16),
+            attr_channels=((1), (1), (3)),
+            voxel_size=float(s.voxel_size_m),
+            block_resolution=int(s.block_resolution),
+            block_count=int(s.block_count),
+            device=o3c.Device("CPU:0"),
+        )
+        # Depth units per metre for the uint16 depth image: 0.2 mm steps, or coarser when
+        # depth_max_m would not fit in 16 bits.
+        self.depth_scale = float(min(5000.0, np.floor(65535.0 / (1.001 * s.depth_max_m))))
+        self.frames = 0
+
+    def integrate(self, depth: np.ndarray, color: np.ndarray, camera: PinholeCamera,
+                  T_world_camera: np.ndarray) -> None:
+        """Fuse one frame: ``depth`` [H, W] metres, ``color`` [H, W, 3] uint8 RGB.
+
+        The camera must be distortion-free (undistort images and depth first): the
+        volume projects voxels with a plain pinhole ``K``.
+        """
+        o3d, o3c = self._o3d, self._o3c
+        if camera.has_distortion:
+            raise ValueError("TSDF integration needs undistorted frames; pass "
+                             "camera.undistorted() with undistorted images and depth")
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.shape != (camera.height, camera.width):
+            raise ValueError(f"depth is {depth.shape[::-1]} (WxH), camera is "
+                             f"{camera.width}x{camera.height}")
+        if color.shape[:2] != depth.shape:
+            raise ValueError(f"colour {color.shape} and depth {depth.shape} differ in size")
+        s = self.settings
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(depth) & (depth > 0) & (depth <= s.depth_max_m)
+        d16 = np.where(ok, np.round(depth * self.depth_scale), 0).astype(np.uint16)
+        depth_img = o3d.t.geometry.Image(o3c.Tensor(d16))
+        color_img = o3d.t.geometry.Image(
+            o3c.Tensor(np.ascontiguousarray(np.asarray(color, dtype=np.uint8))))
+        K = o3c.Tensor(camera.K, o3c.float64)
+        extrinsic = o3c.Tensor(inv_se3(T_world_camera), o3c.float64)  # world -> camera
+        # float(): Open3D's bindings reject a Python int where they declare a float.
+        dmax, trunc = float(s.depth_max_m), float(s.trunc_voxels)
+        blocks = self.grid.compute_unique_block_coordinates(
+            depth_img, K, extrinsic, self.depth_scale, dmax, trunc)
+        self.grid.integrate(blocks, depth_img, color_img, K, K, extrinsic, self.depth_scale,
+                            dmax, trunc)
+        self.frames += 1
+
+    def extract_mesh(self) -> Any:
+        """Legacy ``open3d.geometry.TriangleMesh`` with vertex colours in [0, 1] and normals."""
+        if self.frames == 0:
+            raise ValueError("no frame integrated: the TSDF volume is empty")
+        w = self.settings.weight_threshold
+        mesh = self.grid.extract_triangle_mesh(weight_threshold=w).to_legacy()
+        if len(mesh.vertex_colors):
+            mesh.vertex_colors = self._o3d.utility.Vector3dVector(
+                np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
+        mesh.compute_vertex_normals()
+        return mesh
+
+    def extract_points(self) -> np.ndarray:
+        """[N, 3] surface points (zero crossings) of the volume."""
+        if self.frames == 0:
+            raise ValueError("no frame integrated: the TSDF volume is empty")
+        pcd = self.grid.extract_point_cloud(weight_threshold=self.settings.weight_threshold)
+        return pcd.point.positions.numpy().astype(np.float64)
+
+
+def integrate_frames(
+    frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    camera: PinholeCamera,
+    settings: TSDFSettings | None = None,
+) -> TSDFVolume:
+    """Fuse ``(depth [H, W] m, color [H, W, 3] uint8, T_world_camera [4, 4])`` tuples."""
+    vol = TSDFVolume(settings)
+    for depth, color, T in frames:
+        vol.integrate(depth, color, camera, T)
+    return vol
+
+
+def write_mesh(path: Path | str, mesh: Any) -> None:
+    """Write a triangle mesh as binary PLY, atomically (a reader never sees half a file)."""
+    import open3d as o3d
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
+            raise OSError(f"{path}: Open3D could not write the mesh")
+
+
+def read_mesh(path: Path | str) -> Any:
+    """Read a PLY (or any Open3D mesh format); error if the file is missing or empty."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: mesh file not found")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    if len(mesh.triangles) == 0:
+        raise ValueError(f"{path}: the mesh has no triangles")
+    return mesh
+
+
+# ---------------------------------------------------------------------------- rendering
+
+
+@dataclass
+class RayHits:
+    """First hits of one camera's pixel rays: all arrays are [H, W] (uv is [H, W, 2])."""
+
+    depth: np.ndarray  # [H, W] float32 z-depth in metres, inf where nothing was hit
+    triangle: np.ndarray  # [H, W] int64 triangle index, -1 where nothing was hit
+    uv: np.ndarray  # [H, W, 2] float32 barycentrics (b1, b2) of the hit triangle
+    points: np.ndarray  # [H, W, 3] float64 world hit points (NaN where nothing was hit)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """[H, W] bool: the ray hit the mesh."""
+        return self.triangle >= 0
+
+
+class MeshRenderer:
+    """Ray-cast a triangle mesh from pinhole cameras (build once, render many views).
+
+    Rays go through pixel centres with z = 1 in the camera (``PinholeCamera.pixel_rays``,
+    which also undoes distortion), so the hit distance is z-depth, not ray length.
+    """
+
+    def __init__(self, mesh: Any) -> None:
+        import open3d as o3d
+
+        self.vertices = np.asarray(mesh.vertices, dtype=np.float64)  # [V, 3]
+        self.triangles = np.asarray(mesh.triangles, dtype=np.int64)  # [T, 3]
+        if len(self.triangles) == 0:
+            raise ValueError("cannot render a mesh without triangles")
+        self.colors = (np.asarray(mesh.vertex_colors, dtype=np.float64)
+                       if mesh.has_vertex_colors() else None)  # [V, 3] in [0, 1]
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        self._rays_cache: dict[tuple, np.ndarray] = {}
+
+    def _camera_rays(self, camera: PinholeCamera) -> np.ndarray:
+        key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
+               tuple(camera.dist))
+        if key not in self._rays_cache:
+            self._rays_cache = {key: camera.pixel_rays()}  # [H, W, 3], keep only the latest
+        return self._rays_cache[key]
+
+    def cast(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> RayHits:
+        import open3d.core as o3c
+
+        T = np.asarray(T_world_camera, dtype=np.float64)
+        dirs = self._camera_rays(camera) @ T[:3, :3].T  # [H, W, 3] world, |z_cam| = 1
+        rays = np.empty((*dirs.shape[:2], 6), dtype=np.float32)
+        rays[..., :3] = T[:3, 3]
+        rays[..., 3:] = dirs
+        ans = self.scene.cast_rays(o3c.Tensor(rays))
+        t = ans["t_hit"].numpy()
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
+        hit = np.isfinite(t)
+        prim[~hit] = -1
+        points = np.full(dirs.shape, np.nan)
+        points[hit] = T[:3, 3] + dirs[hit] * t[hit, None].astype(np.float64)
+        return RayHits(t.astype(np.float32), prim, ans["primitive_uvs"].numpy(), points)
+
+    def render(self, camera: PinholeCamera, T_world_camera: np.ndarray,
+               background: tuple[int, int, int] = (0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
+        """RGB uint8 [H, W, 3] and z-depth float32 [H, W] (0 where empty) of the mesh."""
+        hits = self.cast(camera, T_world_camera)
+        rgb = np.empty((camera.height, camera.width, 3), dtype=np.uint8)
+        rgb[:] = np.asarray(background, dtype=np.uint8)
+        m = hits.valid
+        if self.colors is not None and m.any():
+            tri = self.triangles[hits.triangle[m]]  # [M, 3] vertex ids
+            b1, b2 = hits.uv[m, 0:1].astype(np.float64), hits.uv[m, 1:2].astype(np.float64)
+            # Embree's barycentrics: p = (1 - b1 - b2) v0 + b1 v1 + b2 v2.
+            c = ((1.0 - b1 - b2) * self.colors[tri[:, 0]] + b1 * self.colors[tri[:, 1]]
+                 + b2 * self.colors[tri[:, 2]])
+            rgb[m] = np.clip(np.round(c * 255.0), 0, 255).astype(np.uint8)
+        elif m.any():
+            rgb[m] = 200  # an uncoloured mesh renders grey, so its silhouette still shows
+        depth = np.where(m, hits.depth, 0.0).astype(np.float32)
+        return rgb, depth
+
+
+def render_mesh(mesh: Any, camera: PinholeCamera, T_world_camera: np.ndarray,
+                background: tuple[int, int, int] = (0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """One-off ``MeshRenderer(mesh).render(...)``: RGB [H, W, 3] uint8, depth [H, W] float32."""
+    return MeshRenderer(mesh).render(camera, T_world_camera, background)

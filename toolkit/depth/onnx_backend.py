@@ -1,0 +1,218 @@
+"""Any monocular depth network exported to ONNX, run with onnxruntime on the CPU.
+
+Preprocessing is spelled out in ``OnnxDepthConfig`` (input size, resize mode, mean/std,
+channel order, layout) because every exporter (Depth Anything V1/V2, MiDaS, DPT, UniDepth,
+Metric3D) differs there, and a wrong one silently gives plausible-looking garbage.
+Defaults come from the model's own ONNX metadata when it has them (the project's small
+model writes them; see ``METADATA_KEYS``), then from the config, then Depth Anything's.
+
+Weights are never downloaded: a missing file is an error that says where to put it.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from pydantic import BaseModel, ConfigDict, field_validator
+
+from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+# Custom metadata keys read from the ONNX file (``onnx.helper.set_model_props``).
+METADATA_KEYS = ("depth_kind", "input_height", "input_width", "mean", "std", "channel_order",
+                 "multiple_of")
+
+_INTERP = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "area": cv2.INTER_AREA,
+           "nearest": cv2.INTER_NEAREST}
+
+
+class OnnxDepthConfig(BaseModel):
+    """How to feed a given ONNX depth network and how to read its output."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    model: Path
+    # What the output means; None: the model's metadata must say (``depth_kind``).
+    kind: DepthKind | None = None
+    # Network input (height, width) or one side for a square input; None: the model's fixed
+    # input shape, else its metadata, else 518 (Depth Anything's training size).
+    input_size: tuple[int, int] | int | None = None
+    # keep_aspect: height = input_size, width from the image aspect, both rounded to
+    # ``multiple_of`` (needs a model exported with dynamic height/width).
+    resize: Literal["stretch", "keep_aspect"] = "stretch"
+    multiple_of: int | None = None  # 14 for ViT/14 backbones; None: metadata or 14
+    interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
+    mean: tuple[float, float, float] | None = None  # in [0, 1] units; None: metadata/ImageNet
+    std: tuple[float, float, float] | None = None
+    channel_order: Literal["rgb", "bgr"] | None = None
+    layout: Literal["nchw", "nhwc"] = "nchw"
+    output_index: int = 0
+    output_scale: float = 1.0  # e.g. 0.001 for a network that outputs millimetres
+    threads: int = 2  # onnxruntime intra-op threads
+
+    @field_validator("input_size")
+    @classmethod
+    def _positive(cls, v: Any) -> Any:
+        if v is None:
+            return v
+        hw = (v, v) if isinstance(v, int) else v
+        if min(hw) <= 0:
+            raise ValueError(f"input_size must be positive, got {v}")
+        return v
+
+
+def missing_model_message(path: Path) -> str:
+    return (
+        f"ONNX depth model not found at {path}. This toolkit never downloads weights: put the "
+        f"exported .onnx file there (or point the recipe's 'model' at it). The project's small "
+        f"model is datasets/models/small-depth.onnx (rebuild it with "
+        f"`python -m toolkit.depth.train_small`); for Depth Anything V2 or MiDaS export the "
+        f"model to ONNX yourself and copy it (see docs/depth_fusion.md)."
+    )
+
+
+class OnnxDepthBackend:
+    """``DepthBackend`` over an onnxruntime session."""
+
+    def __init__(self, config: OnnxDepthConfig) -> None:
+        import onnxruntime as ort
+
+        self.config = config
+        path = Path(config.model)
+        if not path.is_file():
+            raise FileNotFoundError(missing_model_message(path))
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(config.threads)
+        opts.inter_op_num_threads = 1
+        # Sequential execution: with 2 cores, parallel graph branches only fight each other.
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
+        inp = self.session.get_inputs()[0]
+        self.input_name = inp.name
+        self.output_name = self.session.get_outputs()[config.output_index].name
+        self._fixed_hw = self._fixed_input_hw(inp.shape)
+        kind = config.kind or self.metadata.get("depth_kind")
+        if kind is None:
+            raise ValueError(
+                f"{path}: say what the network outputs with 'kind' (one of {DEPTH_KINDS}); "
+                "the model has no 'depth_kind' metadata")
+        if kind not in DEPTH_KINDS:
+            raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
+        self.kind: DepthKind = kind  # type: ignore[assignment]
+        self.multiple_of = int(config.multiple_of or self.metadata.get("multiple_of", 14))
+        self.mean = np.asarray(config.mean or _floats(self.metadata.get("mean")) or IMAGENET_MEAN,
+                               dtype=np.float32)
+        self.std = np.asarray(config.std or _floats(self.metadata.get("std")) or IMAGENET_STD,
+                              dtype=np.float32)
+        self.channel_order = config.channel_order or self.metadata.get("channel_order", "rgb")
+        self.last_timing: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ sizes
+    @staticmethod
+    def _fixed_input_hw(shape: list[Any]) -> tuple[int, int] | None:
+        if len(shape) != 4:
+            return None
+        dims = shape[2:4]  # nchw; nhwc is handled in input_hw
+        return (int(dims[0]), int(dims[1])) if all(isinstance(d, int) for d in dims) else None
+
+    def input_hw(self, image_hw: tuple[int, int]) -> tuple[int, int]:
+        """Network input (height, width) for an image of ``image_hw``."""
+        cfg = self.config
+        fixed = self._fixed_hw
+        if cfg.layout == "nhwc":
+            shape = self.session.get_inputs()[0].shape
+            fixed = (int(shape[1]), int(shape[2])) if all(
+                isinstance(d, int) for d in shape[1:3]) else None
+        size = cfg.input_size
+        if size is None and fixed is not None:
+            return fixed
+        if size is None and "input_height" in self.metadata:
+            size = (int(self.metadata["input_height"]), int(self.metadata["input_width"]))
+        if size is None:
+            size = 518
+        h, w = (size, size) if isinstance(size, int) else size
+        if cfg.resize == "keep_aspect":
+            m = self.multiple_of
+            h = max(m, int(round(h / m)) * m)
+            w = max(m, int(round(h * image_hw[1] / image_hw[0] / m)) * m)
+        if fixed is not None and (h, w) != fixed:
+            raise ValueError(f"{cfg.model}: the model takes a fixed {fixed[1]}x{fixed[0]} input "
+                             f"but the config asks for {w}x{h}; drop 'input_size' or re-export "
+                             "with dynamic height/width")
+        return h, w
+
+    # ------------------------------------------------------------------ steps
+    def preprocess(self, rgb: np.ndarray) -> np.ndarray:
+        """[H, W, 3] uint8 RGB -> network input [1, 3, h, w] (or [1, h, w, 3]) float32."""
+        rgb = np.asarray(rgb)
+        if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise ValueError(f"expected an RGB uint8 [H, W, 3] image, got {rgb.dtype} {rgb.shape}")
+        h, w = self.input_hw(rgb.shape[:2])
+        img = rgb if self.channel_order == "rgb" else rgb[..., ::-1]
+        if (h, w) != img.shape[:2]:
+            img = cv2.resize(np.ascontiguousarray(img), (w, h),
+                             interpolation=_INTERP[self.config.interpolation])
+        x = (img.astype(np.float32) / np.float32(255.0) - self.mean) / self.std  # [h, w, 3]
+        if self.config.layout == "nchw":
+            x = x.transpose(2, 0, 1)
+        return np.ascontiguousarray(x[None], dtype=np.float32)
+
+    def postprocess(self, raw: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+        """Network output ([1, 1, h, w], [1, h, w] or [h, w]) -> [H, W] float32, NaN invalid."""
+        out = np.asarray(raw, dtype=np.float32)
+        while out.ndim > 2 and out.shape[0] == 1:
+            out = out[0]
+        if out.ndim != 2:
+            raise ValueError(f"{self.config.model}: output {self.output_name!r} has shape "
+                             f"{np.shape(raw)}; expected one depth channel")
+        out = out * np.float32(self.config.output_scale)
+        H, W = image_hw
+        if out.shape != (H, W):
+            # Bilinear with half-pixel centres, as torch's align_corners=False.
+            out = cv2.resize(out, (W, H), interpolation=cv2.INTER_LINEAR)
+        bad = ~np.isfinite(out)
+        if self.kind != "relative_disparity":
+            bad |= out <= 0  # a depth of zero or less is no depth; disparity 0 is fine
+        if bad.any():
+            out = out.copy()
+            out[bad] = np.nan
+        return out
+
+    def predict(self, rgb: np.ndarray, **_: Any) -> DepthPrediction:
+        """Run the network on one RGB frame [H, W, 3] uint8."""
+        t0 = time.perf_counter()
+        x = self.preprocess(rgb)
+        t1 = time.perf_counter()
+        raw = self.session.run([self.output_name], {self.input_name: x})[0]
+        t2 = time.perf_counter()
+        values = self.postprocess(raw, rgb.shape[:2])
+        t3 = time.perf_counter()
+        self.last_timing = {"preprocess_s": t1 - t0, "network_s": t2 - t1,
+                            "postprocess_s": t3 - t2}
+        return DepthPrediction(values, self.kind, latency_s=t2 - t1,
+                               extra={"input_hw": x.shape[2:4] if self.config.layout == "nchw"
+                                      else x.shape[1:3], **self.last_timing})
+
+    def describe(self) -> dict[str, Any]:
+        """Settings actually used (for the report and the depth index)."""
+        return {"backend": "onnx", "model": str(self.config.model), "kind": self.kind,
+                "mean": self.mean.tolist(), "std": self.std.tolist(),
+                "channel_order": self.channel_order, "layout": self.config.layout,
+                "resize": self.config.resize, "threads": self.config.threads,
+                "metadata": self.metadata}
+
+
+def _floats(text: str | None) -> tuple[float, ...] | None:
+    if not text:
+        return None
+    vals = tuple(float(v) for v in text.replace(",", " ").split())
+    if len(vals) != 3:
+        raise ValueError(f"ONNX metadata mean/std needs 3 numbers, got {text!r}")
+    return vals

@@ -1,0 +1,142 @@
+"""Recipe stage ``depth``: a monocular depth prediction for every camera frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from toolkit.depth.protocol import DepthKind
+from toolkit.depth.simulated import PRESETS, SimulatedDepthBackend, SimulatedDepthParams
+from toolkit.depth.store import DepthStoreWriter
+from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+
+
+class DepthConfig(StageConfig):
+    """Settings of the ``depth`` stage (onnx keys apply to ``backend: onnx`` only)."""
+
+    backend: Literal["onnx", "simulated"] = "onnx"
+    # --- onnx
+    model: Path | None = None
+    output: DepthKind | None = None  # what the network outputs; None: the model's metadata
+    input_size: tuple[int, int] | int | None = None
+    resize: Literal["stretch", "keep_aspect"] = "stretch"
+    multiple_of: int | None = None
+    interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
+    mean: tuple[float, float, float] | None = None
+    std: tuple[float, float, float] | None = None
+    channel_order: Literal["rgb", "bgr"] | None = None
+    layout: Literal["nchw", "nhwc"] = "nchw"
+    output_scale: float = 1.0
+    threads: int = Field(2, ge=1)
+    # --- simulated: a preset, then per-parameter overrides
+    preset: Literal["paper", "scale_only", "hard"] = "paper"
+    simulated: dict[str, Any] = Field(default_factory=dict)
+    # --- storage
+    dtype: Literal["float32", "float16"] = "float32"
+    every: int = Field(1, ge=1)  # predict every n-th frame only
+
+
+def make_backend(cfg: DepthConfig) -> Any:
+    """The configured backend (onnxruntime is imported only for ``onnx``)."""
+    if cfg.backend == "simulated":
+        params = {**PRESETS[cfg.preset], **cfg.simulated}
+        if cfg.output is not None:
+            params.setdefault("kind", cfg.output)
+        return SimulatedDepthBackend(SimulatedDepthParams(**params))
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    if cfg.model is None:
+        raise StageError("depth: backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
+                         "datasets/models/small-depth.onnx")
+    return OnnxDepthBackend(OnnxDepthConfig(
+        model=cfg.model, kind=cfg.output, input_size=cfg.input_size, resize=cfg.resize,
+        multiple_of=cfg.multiple_of, interpolation=cfg.interpolation, mean=cfg.mean,
+        std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
+        output_scale=cfg.output_scale, threads=cfg.threads))
+
+
+class DepthStage(Stage):
+    """Monocular depth for every frame (onnx network or simulated from ground truth)."""
+
+    name = "depth"
+    Config = DepthConfig
+    requires = ("sequence",)
+    provides = ("depth",)
+
+    def external_inputs(self) -> list[Path]:
+        cfg: DepthConfig = self.config  # type: ignore[assignment]
+        return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.io.sequence import read_sequence
+
+        cfg: DepthConfig = self.config  # type: ignore[assignment]
+        seq = read_sequence(ctx.artifact("sequence"))
+        if not seq.frames:
+            raise StageError(f"depth: sequence {seq.name} has no camera frames")
+        try:
+            backend = make_backend(cfg)
+        except FileNotFoundError as e:
+            raise StageError(str(e)) from None
+        gt = seq.groundtruth
+        if cfg.backend == "simulated" and (gt is None or gt.depth_paths is None):
+            raise StageError(f"depth: backend 'simulated' needs ground-truth depth, which "
+                             f"sequence {seq.name} lacks; use backend 'onnx' for real data")
+        out = ctx.stage_dir / "depth"
+        info = backend.describe()
+        writer = DepthStoreWriter(out, backend.kind, info, cfg.dtype)
+        indices = list(range(0, len(seq.frames), cfg.every))
+        first_pred = None
+        for i in ctx.progress(indices, description="depth"):
+            frame = seq.frames[i]
+            rgb = frame.image
+            kwargs = {"gt_depth": gt.depth(i), "frame_index": i} if cfg.backend == "simulated" \
+                else {}
+            pred = backend.predict(rgb, **kwargs)
+            writer.add(i, frame.stamp, pred)
+            if first_pred is None:
+                first_pred = (i, rgb, pred)
+        writer.close()
+        ctx.provide("depth", out)
+        lat = np.array([float(r["latency_s"]) for r in writer.rows])
+        metrics = {"frames": len(indices), "kind": backend.kind, "backend": cfg.backend,
+                   "latency_mean_s": float(lat.mean()), "latency_median_s": float(np.median(lat)),
+                   "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None}
+        ctx.add_metrics(metrics)
+        label = ("**simulated** monocular depth (made from ground truth with the documented "
+                 f"errors of preset `{cfg.preset}`; true sequence scale "
+                 f"{info.get('sequence_scale', float('nan')):.3f})"
+                 if cfg.backend == "simulated" else f"ONNX network `{cfg.model}`")
+        md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames, "
+              f"network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
+              f"(median {metrics['latency_median_s'] * 1000:.1f} ms)."]
+        if first_pred is not None:
+            fig = ctx.stage_dir / "depth_sample.png"
+            _sample_figure(fig, *first_pred)
+            md.append(f"![image and prediction]({ctx.stage_id}/{fig.name})")
+        ctx.report("\n\n".join(md))
+
+
+def _sample_figure(path: Path, index: int, rgb: np.ndarray, pred: Any) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from toolkit.io.atomic import atomic_path
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    ax[0].imshow(rgb)
+    ax[0].set_title(f"frame {index}")
+    im = ax[1].imshow(pred.values, cmap="turbo")
+    ax[1].set_title(pred.kind.replace("_", " "))
+    fig.colorbar(im, ax=ax[1], fraction=0.046)
+    for a in ax:
+        a.axis("off")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)

@@ -1,0 +1,107 @@
+"""The ``depth`` artifact on disk: one prediction per camera frame plus an index.
+
+    <dir>/meta.json        kind, backend settings, image size, frame count
+    <dir>/index.csv        index,stamp,file,latency_s[,true_scale]
+    <dir>/frames/NNNNNN.npy  [H, W] float32 (float16 when asked), NaN invalid
+
+``.npy`` and not 16-bit PNG: relative predictions have no unit, and disparity can be
+tiny or negative, which the TUM depth PNG cannot hold.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
+from toolkit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
+
+
+class DepthStoreWriter:
+    """Writes predictions frame by frame; ``close`` writes the index and meta last."""
+
+    def __init__(self, root: Path, kind: DepthKind, info: dict[str, Any] | None = None,
+                 dtype: str = "float32") -> None:
+        if dtype not in ("float32", "float16"):
+            raise ValueError("dtype must be float32 or float16")
+        self.root = Path(root)
+        (self.root / "frames").mkdir(parents=True, exist_ok=True)
+        (self.root / "meta.json").unlink(missing_ok=True)
+        self.kind = kind
+        self.info = info or {}
+        self.dtype = dtype
+        self.rows: list[dict[str, str]] = []
+        self.shape: tuple[int, int] | None = None
+
+    def add(self, index: int, stamp: float, pred: DepthPrediction) -> None:
+        if pred.kind != self.kind:
+            raise ValueError(f"frame {index}: kind {pred.kind} differs from {self.kind}")
+        rel = f"frames/{index:06d}.npy"
+        with atomic_path(self.root / rel) as tmp:
+            np.save(tmp, pred.values.astype(self.dtype))
+        self.shape = pred.values.shape
+        row = {"index": str(index), "stamp": repr(float(stamp)), "file": rel,
+               "latency_s": f"{pred.latency_s:.6f}"}
+        if "true_scale" in pred.extra:
+            row["true_scale"] = repr(float(pred.extra["true_scale"]))
+        self.rows.append(row)
+
+    def close(self) -> Path:
+        fields: list[str] = []
+        for r in self.rows:
+            fields += [k for k in r if k not in fields]
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=fields or ["index", "stamp", "file", "latency_s"],
+                           lineterminator="\n")
+        w.writeheader()
+        w.writerows(self.rows)
+        atomic_write_text(self.root / "index.csv", buf.getvalue())
+        meta = {"format": "lidarcam-depth", "version": 1, "kind": self.kind,
+                "frames": len(self.rows), "height": self.shape[0] if self.shape else None,
+                "width": self.shape[1] if self.shape else None, **self.info}
+        atomic_write_json(self.root / "meta.json", meta)
+        return self.root
+
+
+class DepthStore:
+    """Reads a depth folder written by ``DepthStoreWriter``."""
+
+    def __init__(self, root: Path | str) -> None:
+        self.root = Path(root)
+        meta_path = self.root / "meta.json"
+        if not meta_path.exists():
+            raise FileNotFoundError(f"{meta_path}: not a finished depth folder (no meta.json)")
+        self.meta: dict[str, Any] = json.loads(meta_path.read_text())
+        kind = self.meta.get("kind")
+        if kind not in DEPTH_KINDS:
+            raise ValueError(f"{meta_path}: field 'kind' is {kind!r}, not one of {DEPTH_KINDS}")
+        self.kind: DepthKind = kind
+        with (self.root / "index.csv").open(newline="") as f:
+            self.rows = list(csv.DictReader(f))
+        self._by_index = {int(r["index"]): r for r in self.rows}
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    @property
+    def indices(self) -> list[int]:
+        return sorted(self._by_index)
+
+    def has(self, index: int) -> bool:
+        return index in self._by_index
+
+    def read(self, index: int) -> DepthPrediction:
+        row = self._by_index.get(index)
+        if row is None:
+            raise KeyError(f"{self.root}: no prediction for frame {index}")
+        values = np.load(self.root / row["file"]).astype(np.float32)
+        extra = {"true_scale": float(row["true_scale"])} if row.get("true_scale") else {}
+        return DepthPrediction(values, self.kind, float(row.get("latency_s") or 0.0), extra)
+
+    def latencies(self) -> np.ndarray:
+        return np.array([float(r.get("latency_s") or 0.0) for r in self.rows])

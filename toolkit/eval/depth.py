@@ -1,0 +1,90 @@
+"""Depth accuracy: RMSE, AbsRel, delta < 1.25 against lidar ranges or ground-truth depth.
+
+The paper's protocol (Table IV) compares depth with the lidar at the projected lidar
+pixels; with a simulator the whole image is compared with ground truth too. Both are
+the same arithmetic on (prediction, reference) pairs, so one function serves both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DepthErrors:
+    """Errors of predicted z-depth against a reference, over ``count`` valid pairs."""
+
+    rmse_m: float
+    mae_m: float
+    absrel: float  # mean |pred - ref| / ref
+    delta1: float  # fraction with max(pred/ref, ref/pred) < 1.25
+    count: int
+
+    def as_dict(self, prefix: str = "") -> dict[str, float | int]:
+        return {f"{prefix}{k}": v for k, v in asdict(self).items()}
+
+
+NAN_ERRORS = DepthErrors(float("nan"), float("nan"), float("nan"), float("nan"), 0)
+
+
+def depth_errors(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None,
+                 max_depth: float | None = None) -> DepthErrors:
+    """Errors of ``pred`` against ``ref`` (same shape, metres; NaN/0 invalid in either)."""
+    p = np.asarray(pred, dtype=np.float64).reshape(-1)
+    r = np.asarray(ref, dtype=np.float64).reshape(-1)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(p) & np.isfinite(r) & (p > 0) & (r > 0)
+        if max_depth is not None:
+            ok &= r <= max_depth
+    if mask is not None:
+        ok &= np.asarray(mask, bool).reshape(-1)
+    if not ok.any():
+        return NAN_ERRORS
+    p, r = p[ok], r[ok]
+    e = p - r
+    ratio = np.maximum(p / r, r / p)
+    return DepthErrors(float(np.sqrt(np.mean(e * e))), float(np.mean(np.abs(e))),
+                       float(np.mean(np.abs(e) / r)), float(np.mean(ratio < 1.25)), int(len(p)))
+
+
+class ErrorAccumulator:
+    """Pools pairs over many frames so that sequence figures weight every pixel alike."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.se = 0.0
+        self.ae = 0.0
+        self.rel = 0.0
+        self.d1 = 0
+
+    def add(self, pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None,
+            max_depth: float | None = None) -> DepthErrors:
+        e = depth_errors(pred, ref, mask, max_depth)
+        if e.count:
+            self.n += e.count
+            self.se += e.rmse_m**2 * e.count
+            self.ae += e.mae_m * e.count
+            self.rel += e.absrel * e.count
+            self.d1 += int(round(e.delta1 * e.count))
+        return e
+
+    def result(self) -> DepthErrors:
+        if self.n == 0:
+            return NAN_ERRORS
+        return DepthErrors(float(np.sqrt(self.se / self.n)), self.ae / self.n, self.rel / self.n,
+                           self.d1 / self.n, self.n)
+
+
+def scale_error(estimated: np.ndarray, true: np.ndarray) -> dict[str, float]:
+    """Per-frame scale error |s_est / s_true - 1| summarised (both [F], NaN skipped)."""
+    e = np.asarray(estimated, np.float64)
+    t = np.asarray(true, np.float64)
+    ok = np.isfinite(e) & np.isfinite(t) & (t > 0)
+    if not ok.any():
+        return {"scale_error_mean": float("nan"), "scale_error_median": float("nan"),
+                "scale_error_max": float("nan"), "frames": 0}
+    rel = np.abs(e[ok] / t[ok] - 1.0)
+    return {"scale_error_mean": float(rel.mean()), "scale_error_median": float(np.median(rel)),
+            "scale_error_max": float(rel.max()), "frames": int(ok.sum())}

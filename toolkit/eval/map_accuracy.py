@@ -1,0 +1,48 @@
+"""Map accuracy: distance from map points to the ground-truth mesh (Open3D raycasting)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+class MeshDistance:
+    """Unsigned distance of points to a triangle mesh (built once, queried many times)."""
+
+    def __init__(self, mesh: Any) -> None:
+        import open3d as o3d
+
+        if isinstance(mesh, str | Path):
+            path = Path(mesh)
+            mesh = o3d.io.read_triangle_mesh(str(path))
+            if len(mesh.triangles) == 0:
+                raise ValueError(f"{path}: no triangles (missing or not a mesh)")
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """[N] metres from points [N, 3] to the nearest surface."""
+        import open3d as o3d
+
+        if len(points) == 0:
+            return np.zeros(0)
+        q = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+        return self.scene.compute_distance(q).numpy().astype(np.float64)
+
+
+def distance_stats(d: np.ndarray, thresholds: tuple[float, ...] = (0.02, 0.05, 0.10)) -> (
+    dict[str, float]
+):
+    """mean, RMSE, median, 90th percentile (m) and the fraction under each threshold."""
+    d = np.asarray(d, np.float64)
+    if len(d) == 0:
+        return {"mean_m": float("nan"), "rmse_m": float("nan"), "median_m": float("nan"),
+                "p90_m": float("nan"), "points": 0}
+    out = {"mean_m": float(d.mean()), "rmse_m": float(np.sqrt(np.mean(d * d))),
+           "median_m": float(np.median(d)), "p90_m": float(np.percentile(d, 90)),
+           "points": int(len(d))}
+    for t in thresholds:
+        out[f"within_{int(round(t * 100))}cm"] = float(np.mean(d <= t))
+    return out

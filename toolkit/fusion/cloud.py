@@ -1,0 +1,85 @@
+"""Scaled depth -> coloured world-frame points, without invalid, far and flying pixels.
+
+Flying pixels are the ramps a network (or any blur) puts across depth edges: points
+floating between a chair and the wall behind it. A pixel is dropped when the depth range
+in its neighbourhood is large relative to its own depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+
+
+@dataclass
+class CloudOptions:
+    """What a frame contributes to the map."""
+
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0  # monocular depth far away is mostly guesswork
+    edge_threshold: float = 0.06  # drop pixels whose 5x5 depth range exceeds this x depth
+    edge_window: int = 5
+    stride: int = 2  # every n-th pixel in both directions
+
+
+class RayCache:
+    """Pixel rays of one camera at one stride, computed once (undistortion is costly)."""
+
+    def __init__(self, camera: PinholeCamera, stride: int = 1) -> None:
+        self.camera = camera
+        self.stride = stride
+        rays = camera.pixel_rays()[::stride, ::stride]  # [h, w, 3] with z = 1
+        self.rays = np.ascontiguousarray(rays, dtype=np.float32)
+        self.shape = rays.shape[:2]
+
+
+def edge_mask(depth: np.ndarray, threshold: float, window: int = 5) -> np.ndarray:
+    """[H, W] bool: pixels near a depth discontinuity (flying-pixel candidates)."""
+    d = np.where(np.isfinite(depth), depth, 0).astype(np.float32)
+    kernel = np.ones((window, window), np.uint8)
+    hi = cv2.dilate(d, kernel)
+    # Invalid pixels (0) must not look like a jump to zero; lift them before the min filter.
+    lo = cv2.erode(np.where(d > 0, d, np.float32(1e6)), kernel)
+    return (hi - lo) > threshold * d
+
+
+def valid_pixels(depth: np.ndarray, opts: CloudOptions) -> np.ndarray:
+    """[H, W] bool: finite, within the depth range and not on an edge."""
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(depth) & (depth >= opts.min_depth_m) & (depth <= opts.max_depth_m)
+    if opts.edge_threshold > 0:
+        ok &= ~edge_mask(depth, opts.edge_threshold, opts.edge_window)
+    return ok
+
+
+def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,
+                    T_world_camera: np.ndarray, opts: CloudOptions,
+                    extra_mask: np.ndarray | None = None,
+                    valid: np.ndarray | None = None) -> tuple[
+                        np.ndarray, np.ndarray, np.ndarray]:
+    """World points [N, 3] float32, colours [N, 3] uint8 and their flat pixel indices [N] in
+    the strided grid, from a full-resolution scaled depth [H, W] and image [H, W, 3].
+
+    ``extra_mask`` [H, W] bool removes more pixels (e.g. known dynamic ones); ``valid``
+    is ``valid_pixels(depth, opts)`` when the caller already has it.
+    """
+    s = rays.stride
+    if depth.shape != (rays.camera.height, rays.camera.width):
+        raise ValueError(f"depth {depth.shape} does not match the camera "
+                         f"{rays.camera.height}x{rays.camera.width}")
+    ok = valid_pixels(depth, opts) if valid is None else valid.copy()
+    if extra_mask is not None:
+        ok &= ~extra_mask
+    ok = ok[::s, ::s]
+    idx = np.flatnonzero(ok)
+    z = depth[::s, ::s].reshape(-1)[idx].astype(np.float32)
+    pc = rays.rays.reshape(-1, 3)[idx] * z[:, None]  # [N, 3] camera frame
+    R = T_world_camera[:3, :3].astype(np.float32)
+    t = T_world_camera[:3, 3].astype(np.float32)
+    pw = pc @ R.T + t
+    col = rgb[::s, ::s].reshape(-1, 3)[idx]
+    return pw, col, idx

@@ -1,0 +1,298 @@
+"""Moving obstacles out of the map, using the sensors (no semantic detector).
+
+A point left by a person who walked on is in free space later: a later depth image or
+lidar scan sees *through* it, to the wall behind. ``SeeThroughCounter`` counts, per map
+voxel, the views that see through it and the views that see it where it is; voxels seen
+through often enough are removed. A static voxel occluded by a person is not affected:
+the ray stops *in front* of it, which is occlusion, not free space.
+
+Margins absorb depth errors: monocular depth is off by a few percent even after scaling,
+so depth views use a relative margin; the lidar is accurate to centimetres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import inv_se3
+from toolkit.sensors import LaserScan
+
+
+@dataclass
+class CarveOptions:
+    depth_margin_m: float = 0.10
+    depth_margin_rel: float = 0.15  # monocular depth disagrees by this much between frames
+    lidar_margin_m: float = 0.10
+    lidar_plane_tol_m: float = 0.05  # voxel distance from the scan plane to be tested
+    min_free: int = 3  # views that must see through a voxel before it goes
+    free_ratio: float = 0.5  # ... and this fraction of the views that tested it
+
+
+class SeeThroughCounter:
+    """Per-voxel counts of see-through (free) and consistent (hit) views."""
+
+    def __init__(self, points: np.ndarray, options: CarveOptions | None = None,
+                 block_m: float = 1.0) -> None:
+        self.points = np.asarray(points, dtype=np.float64)  # [V, 3] world
+        self.opts = options or CarveOptions()
+        self.free = np.zeros(len(self.points), np.int32)
+        self.hit = np.zeros(len(self.points), np.int32)
+        self._p32 = self.points.astype(np.float32)
+        self._plane_cache: tuple[np.ndarray, float, np.ndarray] | None = None
+        # Voxels grouped into 1 m blocks (sorted by block) so a view tests a few thousand
+        # block spheres against its frustum and then only the voxels of visible blocks.
+        bk = np.floor(self.points / block_m).astype(np.int64)
+        key = (bk[:, 0] << 42) + (bk[:, 1] << 21) + bk[:, 2] if len(bk) else np.zeros(0, int)
+        self._order = np.argsort(key, kind="stable")
+        ks = key[self._order]
+        self._start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]]) if len(ks) else \
+            np.zeros(0, np.int64)
+        self._count = np.diff(np.r_[self._start, len(ks)])
+        ps = self._p32[self._order]
+        self._centre = np.add.reduceat(ps, self._start, axis=0) / self._count[:, None] if \
+            len(ks) else np.zeros((0, 3), np.float32)
+        self._radius = np.float32(np.sqrt(3) * block_m)  # covers any block from its mean
+
+    def _visible_voxels(self, R: np.ndarray, t: np.ndarray, tx: float, ty: float,
+                        max_depth: float) -> np.ndarray:
+        """Indices of voxels in blocks whose bounding sphere meets the view frustum."""
+        if len(self._start) == 0:
+            return np.zeros(0, np.int64)
+        c = self._centre @ R.T + t  # [K, 3] block centres in the camera
+        r = self._radius
+        vis = (c[:, 2] > -r) & (c[:, 2] < max_depth + r)
+        # Side planes |x| = tx z: signed distance of the centre, normalised.
+        vis &= (np.abs(c[:, 0]) - tx * c[:, 2]) / np.sqrt(1 + tx * tx) < r
+        vis &= (np.abs(c[:, 1]) - ty * c[:, 2]) / np.sqrt(1 + ty * ty) < r
+        b = np.flatnonzero(vis)
+        if len(b) == 0:
+            return np.zeros(0, np.int64)
+        n = self._count[b]
+        first = np.repeat(self._start[b] - np.r_[0, np.cumsum(n)[:-1]], n)
+        return self._order[first + np.arange(n.sum())]
+
+    def add_depth_view(self, camera: PinholeCamera, T_camera_world: np.ndarray,
+                       depth: np.ndarray, stride: int = 1, max_depth: float = 8.0) -> None:
+        """One depth image (metres, NaN/0 invalid) seen from ``T_camera_world``; ``depth``
+        may be the full image subsampled by ``stride``."""
+        R = T_camera_world[:3, :3].astype(np.float32)
+        t = T_camera_world[:3, 3].astype(np.float32)
+        tx, ty = self._half_fov(camera)
+        cand = self._visible_voxels(R, t, tx, ty, max_depth)
+        if len(cand) == 0:
+            return
+        pc = self._p32[cand] @ R.T + t
+        zf = pc[:, 2]
+        inside = (zf > 0.05) & (zf < max_depth) & (np.abs(pc[:, 0]) < tx * zf) & (
+            np.abs(pc[:, 1]) < ty * zf)
+        front = cand[inside]
+        if len(front) == 0:
+            return
+        uv, z = camera.project(pc[inside])
+        inside = camera.in_image(uv)
+        front, uv, z = front[inside], uv[inside], z[inside]
+        col = np.clip(np.rint(uv[:, 0] / stride).astype(np.int64), 0, depth.shape[1] - 1)
+        row = np.clip(np.rint(uv[:, 1] / stride).astype(np.int64), 0, depth.shape[0] - 1)
+        d = depth[row, col]
+        ok = np.isfinite(d) & (d > 0)
+        front, z, d = front[ok], z[ok], d[ok]
+        margin = self.opts.depth_margin_m + self.opts.depth_margin_rel * d
+        self.free[front[z < d - margin]] += 1
+        self.hit[front[np.abs(z - d) <= margin]] += 1
+
+    @staticmethod
+    def _half_fov(camera: PinholeCamera) -> tuple[float, float]:
+        """tan of the half field of view (x, y) with 10 % slack for distortion."""
+        tx = max(camera.cx + 0.5, camera.width - 0.5 - camera.cx) / camera.fx
+        ty = max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy
+        return 1.1 * tx, 1.1 * ty
+
+    def add_scan(self, scan: LaserScan, T_laser_world: np.ndarray) -> None:
+        """One lidar scan taken at ``T_laser_world``: tests voxels near its plane."""
+        o = self.opts
+        near = self._near_plane(T_laser_world)
+        if len(near) == 0:
+            return
+        T = T_laser_world.astype(np.float32)
+        p = self._p32[near]
+        zl = p @ T[2, :3] + T[2, 3]
+        keep = np.abs(zl) < o.lidar_plane_tol_m
+        near, p = near[keep], p[keep]
+        x = p @ T[0, :3] + T[0, 3]
+        y = p @ T[1, :3] + T[1, 3]
+        r = np.hypot(x, y)
+        beam = np.rint((np.arctan2(y, x) - scan.angle_min) / scan.angle_increment)
+        n = len(scan.ranges)
+        # Bearings past the scan's ends wrap for a 360 degree scanner only.
+        span = abs(scan.angle_increment) * n
+        if span >= 2 * np.pi - 1e-6:
+            beam = np.mod(beam, n)
+        ok = (beam >= 0) & (beam < n)
+        near, r, beam = near[ok], r[ok], beam[ok].astype(np.int64)
+        ranges = scan.ranges[beam]
+        valid = scan.valid_mask()[beam]
+        near, r, ranges = near[valid], r[valid], ranges[valid]
+        self.free[near[r < ranges - o.lidar_margin_m]] += 1
+        self.hit[near[np.abs(r - ranges) <= o.lidar_margin_m]] += 1
+
+    def _near_plane(self, T_laser_world: np.ndarray) -> np.ndarray:
+        """Voxels within the plane tolerance of a scan plane, cached while the plane stays
+        put (a robot on a flat floor scans the same world plane all the time)."""
+        n = T_laser_world[2, :3]
+        d = T_laser_world[2, 3]
+        pad = 0.02
+        c = self._plane_cache
+        if c is not None and np.abs(c[0] - n).max() < 1e-3 and abs(c[1] - d) < pad / 2:
+            return c[2]
+        zl = self._p32 @ n.astype(np.float32) + np.float32(d)
+        near = np.flatnonzero(np.abs(zl) < self.opts.lidar_plane_tol_m + pad)
+        self._plane_cache = (n.copy(), float(d), near)
+        return near
+
+    def dynamic_mask(self) -> np.ndarray:
+        """[V] bool: voxels to remove."""
+        tested = self.free + self.hit
+        return (self.free >= self.opts.min_free) & (
+            self.free >= self.opts.free_ratio * np.maximum(tested, 1))
+
+
+def grow_dynamic(points: np.ndarray, first: np.ndarray, last: np.ndarray,
+                 frames: np.ndarray, dynamic: np.ndarray, radius: float = 0.05,
+                 slack_frames: int = 2, iterations: int = 3,
+                 max_frames: int = 4) -> np.ndarray:
+    """Extend ``dynamic`` [V] bool to touching voxels seen only while the object was there.
+
+    Where a person's feet meet the floor no view can see *through* them by more than the
+    depth margin, so carving leaves a rim. A voxel next to a removed one (within
+    ``radius``) whose whole observation span [first, last] lies inside its removed
+    neighbour's span (+- ``slack_frames``) and that was seen by at most ``max_frames``
+    frames appeared and vanished with the object; a floor voxel beside it was seen before
+    and after, and stays. Only voxels seen that briefly may grow, so the growth cannot run
+    through a static surface that happened to be seen for a short while.
+    """
+    from scipy.spatial import cKDTree
+
+    out = np.asarray(dynamic, bool).copy()
+    if not out.any():
+        return out
+    brief = np.flatnonzero(frames <= max_frames)
+    if len(brief) == 0:
+        return out
+    tree = cKDTree(points[brief])  # growth candidates only: a small part of a large map
+    src = np.flatnonzero(out)
+    for _ in range(iterations):
+        nbs = tree.query_ball_point(points[src], radius, workers=1)
+        lens = np.fromiter((len(n) for n in nbs), np.int64, len(nbs))
+        if lens.sum() == 0:
+            break
+        pair_src = np.repeat(src, lens)  # [P] removed voxel of each neighbour pair
+        pair_nb = brief[np.fromiter((j for n in nbs for j in n), np.int64, int(lens.sum()))]
+        cand = ~out[pair_nb]
+        pair_src, pair_nb = pair_src[cand], pair_nb[cand]
+        if len(pair_nb) == 0:
+            break
+        lo = np.full(len(points), np.iinfo(np.int64).max)
+        hi = np.full(len(points), np.iinfo(np.int64).min)
+        np.minimum.at(lo, pair_nb, first[pair_src].astype(np.int64))
+        np.maximum.at(hi, pair_nb, last[pair_src].astype(np.int64))
+        c = np.unique(pair_nb)
+        grow = c[(first[c] >= lo[c] - slack_frames) & (last[c] <= hi[c] + slack_frames)]
+        if len(grow) == 0:
+            break
+        out[grow] = True
+        # The next round grows from what was just added; the first round already covered
+        # everything within reach of the older voxels.
+        src = grow
+    return out
+
+
+def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
+                  offsets_s: tuple[float, ...] = (-4.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 4.0),
+                  margin_m: float = 0.15, margin_rel: float = 0.03, min_votes: int = 2,
+                  plane_tol_m: float = 0.1, isolated: bool = False) -> list[np.ndarray]:
+    """Per scan, [B] bool: beams whose end point other scans see through (a moving obstacle).
+
+    Scan k's end points are moved into scan j's laser frame (j at the given time offsets);
+    a point is seen through when scan j's beams at its bearing (and both neighbours, so a
+    corner grazed from another side does not count) reach further by ``margin``. Beams
+    beyond ``range_max`` (+inf) count as reaching further; dropouts (NaN) say nothing.
+    A flagged beam without a flagged neighbour is dropped unless ``isolated``: a person's leg
+    spans several beams, while a lone flag is mostly a chair leg thinner than the beam
+    spacing that other scans slip past (on the simulated house this took precision from
+    0.60 to 0.94 at recall 0.83 -> 0.78).
+    """
+    stamps = np.array([s.stamp for s in scans])
+    out = [np.zeros(len(s.ranges), bool) for s in scans]
+    T_laser_world = inv_se3(np.asarray(T_world_laser)) if len(scans) else None
+    for k, sk in enumerate(scans):
+        valid = sk.valid_mask()
+        if not valid.any():
+            continue
+        beams = np.flatnonzero(valid)
+        r = sk.ranges[beams].astype(np.float64)
+        a = sk.angles()[beams]
+        pl = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(r), np.ones_like(r)], 0)
+        pw = T_world_laser[k] @ pl  # [4, N]
+        votes = np.zeros(len(beams), np.int32)
+        for off in offsets_s:
+            j = int(np.argmin(np.abs(stamps - (sk.stamp + off))))
+            if abs(stamps[j] - sk.stamp) < 0.5 * abs(off) or j == k:
+                continue
+            sj = scans[j]
+            q = T_laser_world[j] @ pw  # type: ignore[index]
+            near = np.abs(q[2]) < plane_tol_m
+            rq = np.hypot(q[0], q[1])
+            b = np.rint((np.arctan2(q[1], q[0]) - sj.angle_min) / sj.angle_increment).astype(
+                np.int64)
+            n = len(sj.ranges)
+            full = abs(sj.angle_increment) * n >= 2 * np.pi - 1e-6
+            rng_j = sj.ranges.astype(np.float64)
+            # Beyond range_max (+inf) is free as far as the scanner reaches; NaN is unknown.
+            reach = np.where(np.isposinf(rng_j), sj.range_max, rng_j)
+            reach = np.where(np.isfinite(reach) & (reach >= sj.range_min), reach, -np.inf)
+            far = np.full(len(b), np.inf)
+            for db in (-1, 0, 1):
+                bb = b + db
+                bb = np.mod(bb, n) if full else bb
+                ok = (bb >= 0) & (bb < n)
+                far = np.where(ok, np.minimum(far, reach[np.clip(bb, 0, n - 1)]), -np.inf)
+            seen_through = near & (far > rq + margin_m + margin_rel * rq) & (rq < sj.range_max)
+            votes += seen_through
+        flag = np.zeros(len(sk.ranges), bool)
+        flag[beams[votes >= min_votes]] = True
+        if not isolated and flag.any():
+            wrap = abs(sk.angle_increment) * len(flag) >= 2 * np.pi - 1e-6
+            left, right = np.roll(flag, 1), np.roll(flag, -1)
+            if not wrap:
+                left[0] = right[-1] = False
+            flag &= left | right
+        out[k] = flag
+    return out
+
+
+def cylinder_mask(points: np.ndarray, centres_xy: np.ndarray, radius: float,
+                  z_max: float) -> np.ndarray:
+    """[N] bool: points [N, 3] within ``radius`` (horizontally) of any centre [K, 2] and
+    below ``z_max`` - the space a person whose legs the lidar saw can occupy."""
+    out = np.zeros(len(points), bool)
+    if len(centres_xy) == 0 or len(points) == 0:
+        return out
+    cand = points[:, 2] < z_max
+    lo = centres_xy.min(0) - radius
+    hi = centres_xy.max(0) + radius
+    cand &= (points[:, 0] > lo[0]) & (points[:, 0] < hi[0]) & (points[:, 1] > lo[1]) & (
+        points[:, 1] < hi[1])
+    idx = np.flatnonzero(cand)
+    if len(idx) == 0:
+        return out
+    p = points[idx, :2].astype(np.float32)
+    r2 = np.float32(radius * radius)
+    hit = np.zeros(len(idx), bool)
+    for c in centres_xy.astype(np.float32):
+        d = p - c
+        hit |= (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) < r2
+    out[idx[hit]] = True
+    return out

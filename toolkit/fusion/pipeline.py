@@ -1,0 +1,315 @@
+"""The fusion algorithm apart from the recipe runner: scale every frame, then map them.
+
+``FramePairs`` (lidar vs prediction at the lidar pixels) come first for every frame,
+because temporal smoothing of the scale needs the whole sequence; then every frame's
+scaled depth becomes a coloured cloud integrated into a ``VoxelMap``; finally moving
+obstacles are carved out with later depth views and lidar scans, and statistical
+outliers are dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from toolkit.depth.protocol import DepthPrediction
+from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, valid_pixels
+from toolkit.fusion.dynamic import (
+    CarveOptions,
+    SeeThroughCounter,
+    cylinder_mask,
+    dynamic_beams,
+    grow_dynamic,
+)
+from toolkit.fusion.projection import LidarPixels, LidarProjector, sample_depth, zbuffer_lidar
+from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, smooth_scales
+from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
+from toolkit.geometry import inv_se3
+from toolkit.sensors import Sequence
+
+
+class FusionConfig(BaseModel):
+    """Every setting of the fusion (the ``fuse`` stage's keys, without the stage ones)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    # scale estimation
+    scale: Literal["ratio", "clustered", "robust", "none"] = "clustered"
+    ratio_gate: float | None = 0.2  # log-ratio gate for valid pairs; None: paper's plain sum
+    cluster_algorithm: Literal["dbscan", "meanshift"] = "dbscan"
+    cluster_eps: float = 0.03
+    cluster_min_samples: int = 5
+    robust_threshold: float = 0.05
+    fit_shift: bool | None = None  # robust: None -> shift for disparity models only
+    min_pairs: int = Field(20, ge=2)
+    # temporal smoothing
+    smoothing: Literal["median", "none"] = "median"
+    smoothing_window: int = Field(9, ge=1)
+    outlier_tol: float = 0.1  # log scale distance from the window median
+    few_pairs: Literal["smoothed", "skip"] = "smoothed"
+    # lidar projection
+    scans_per_frame: int = Field(1, ge=1)
+    max_scan_dt_s: float = 0.2
+    motion_compensation: bool = True
+    # clouds and map
+    stride: int = Field(2, ge=1)
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    edge_threshold: float = 0.06
+    voxel_size_m: float = Field(0.02, gt=0)
+    min_voxel_frames: int = Field(1, ge=1)
+    outlier_neighbors: int = 20  # statistical outlier removal; 0 disables it
+    outlier_std_ratio: float = 2.0
+    outlier_voxel_m: float = 0.06  # cells the outlier test runs on (<= voxel size: voxels)
+    # moving obstacles
+    dynamic_removal: bool = True
+    # lidar: beams that other scans see through mark a moving obstacle; the camera points
+    # within dynamic_radius_m of such hits (and below dynamic_height_m) are not fused
+    lidar_dynamic: bool = True
+    dynamic_radius_m: float = 0.5
+    dynamic_height_m: float = 2.0
+    dynamic_scan_window_s: float = 0.15
+    carve_every: int = Field(5, ge=1)  # every n-th frame is a depth view for carving
+    carve_voxel_m: float = 0.06  # cell size of the carving test
+    carve_scans_every: int = Field(5, ge=1)
+    carve_with_depth: bool = True
+    carve_with_lidar: bool = True
+    depth_margin_m: float = 0.10
+    depth_margin_rel: float = 0.15
+    lidar_margin_m: float = 0.10
+    lidar_plane_tol_m: float = 0.05
+    min_free: int = 3
+    free_ratio: float = 0.5
+    grow_radius_m: float = 0.0  # > 0: also remove touching short-lived voxels (see dynamic)
+    grow_slack_frames: int = 2
+    grow_iterations: int = 6
+    grow_max_frames: int = 4
+
+    def cloud_options(self) -> CloudOptions:
+        return CloudOptions(self.min_depth_m, self.max_depth_m, self.edge_threshold, 5,
+                            self.stride)
+
+    def carve_options(self) -> CarveOptions:
+        return CarveOptions(self.depth_margin_m, self.depth_margin_rel, self.lidar_margin_m,
+                            self.lidar_plane_tol_m, self.min_free, self.free_ratio)
+
+
+@dataclass
+class FramePairs:
+    """Lidar vs prediction at the lidar pixels of one frame."""
+
+    lidar: LidarPixels
+    pred: np.ndarray  # [N] predicted values at the lidar pixels
+    estimate: ScaleEstimate
+
+
+def pose_arrays(seq: Sequence, T_world_base: object) -> tuple[np.ndarray, np.ndarray,
+                                                                np.ndarray]:
+    """``T_world_base`` at every frame [F, 4, 4] and scan [S, 4, 4] stamp, plus [F] bool of
+    frames inside the trajectory's time span (others have no trustworthy pose)."""
+    from toolkit.geometry import Trajectory
+
+    traj: Trajectory = T_world_base  # type: ignore[assignment]
+    t0, t1 = traj.stamps[0], traj.stamps[-1]
+    fs = seq.frame_stamps
+    inside = (fs >= t0 - 0.05) & (fs <= t1 + 0.05)
+    frame_poses = traj.interpolate(np.clip(fs, t0, t1)).poses if len(fs) else np.zeros((0, 4, 4))
+    ss = seq.scan_stamps
+    scan_poses = traj.interpolate(np.clip(ss, t0, t1)).poses if len(ss) else np.zeros((0, 4, 4))
+    return frame_poses, scan_poses, inside
+
+
+class Fusion:
+    """Per-frame pieces of the fusion, shared by the stage and the benchmark."""
+
+    def __init__(self, seq: Sequence, config: FusionConfig, frame_poses: np.ndarray,
+                 scan_poses: np.ndarray) -> None:
+        self.seq = seq
+        self.cfg = config
+        self.camera = seq.rig.camera
+        self.frame_poses = frame_poses  # [F, 4, 4] T_world_base
+        self.scan_poses = scan_poses  # [S, 4, 4]
+        self.projector = LidarProjector(
+            seq, frame_poses if config.motion_compensation else None,
+            scan_poses if config.motion_compensation else None,
+            config.scans_per_frame, config.max_scan_dt_s)
+        self.rays = RayCache(self.camera, config.stride)
+        self.cloud_opts = config.cloud_options()
+        self.map = VoxelMap(config.voxel_size_m)
+        self.views: list[tuple[int, np.ndarray]] = []  # (frame, strided scaled depth)
+        self.beam_dynamic: list[np.ndarray] = []
+        self._dyn_xy: list[np.ndarray] = []
+        self.points_masked_dynamic = 0
+        if config.dynamic_removal and config.lidar_dynamic and len(seq.scans):
+            T_wl = scan_poses @ seq.rig.T_base_laser
+            self.beam_dynamic = dynamic_beams(seq.scans, T_wl)
+            for k, s in enumerate(seq.scans):
+                b = np.flatnonzero(self.beam_dynamic[k])
+                r = s.ranges[b].astype(np.float64)
+                a = s.angles()[b]
+                pl = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(r)], 1)
+                self._dyn_xy.append((pl @ T_wl[k][:3, :3].T + T_wl[k][:3, 3])[:, :2])
+        # Imports take seconds on a busy machine; pay them here, not in the timed loop.
+        if config.scale == "clustered":
+            import sklearn.cluster  # noqa: F401
+        if config.outlier_neighbors > 0:
+            import open3d  # noqa: F401
+
+    def T_world_camera(self, index: int) -> np.ndarray:
+        return self.frame_poses[index] @ self.seq.rig.T_base_camera
+
+    # ------------------------------------------------------------------ scale
+    def frame_pairs(self, index: int, pred: DepthPrediction) -> FramePairs:
+        lidar = zbuffer_lidar(self.projector.project_frame(index), pred.values.shape)
+        d = sample_depth(pred.values, lidar)
+        c = self.cfg
+        if c.scale == "none":
+            est = ScaleEstimate(1.0, 0.0, len(d), len(d), "ok", "none")
+        else:
+            opts: dict[str, object] = {"min_pairs": c.min_pairs}
+            if c.scale == "ratio":
+                opts["gate"] = c.ratio_gate
+            elif c.scale == "clustered":
+                opts.update(algorithm=c.cluster_algorithm, eps=c.cluster_eps,
+                            min_samples=c.cluster_min_samples)
+            else:
+                opts.update(threshold=c.robust_threshold, fit_shift=c.fit_shift)
+            est = estimate_scale(c.scale, lidar.z, d, pred.is_disparity, **opts)
+        return FramePairs(lidar, d, est)
+
+    def dynamic_hits(self, index: int) -> np.ndarray:
+        """[K, 2] world xy of lidar hits on moving obstacles near frame ``index``'s time."""
+        if not self._dyn_xy:
+            return np.zeros((0, 2))
+        t = self.seq.frame_stamps[index]
+        st = self.seq.scan_stamps
+        lo, hi = np.searchsorted(st, [t - self.cfg.dynamic_scan_window_s,
+                                      t + self.cfg.dynamic_scan_window_s])
+        parts = [self._dyn_xy[k] for k in range(lo, hi) if len(self._dyn_xy[k])]
+        return np.concatenate(parts) if parts else np.zeros((0, 2))
+
+    def smooth(self, estimates: list[ScaleEstimate]) -> SmoothedScale:
+        c = self.cfg
+        if c.scale == "none":
+            n = len(estimates)
+            return SmoothedScale(np.ones(n), np.zeros(n), np.ones(n), ["ok"] * n,
+                                 np.ones(n, bool))
+        return smooth_scales(estimates, c.smoothing_window, c.outlier_tol, c.smoothing,
+                             c.few_pairs)
+
+    # ------------------------------------------------------------------ map
+    def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,
+                  labels: np.ndarray | None = None, drop: np.ndarray | None = None) -> int:
+        """Add one frame's scaled depth [H, W] to the map; returns the number of points.
+
+        ``labels`` [H, W] (e.g. ground-truth dynamic pixels) only ride along for
+        evaluation; ``drop`` [H, W] bool removes pixels before integration.
+        """
+        ok = valid_pixels(depth, self.cloud_opts)
+        pts, col, idx = depth_to_points(depth, rgb, self.rays, self.T_world_camera(index),
+                                        self.cloud_opts, drop, ok)
+        centres = self.dynamic_hits(index)
+        if len(centres):
+            moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
+                                   self.cfg.dynamic_height_m)
+            if moving.any():
+                self.points_masked_dynamic += int(moving.sum())
+                pts, col, idx = pts[~moving], col[~moving], idx[~moving]
+        lab = None
+        if labels is not None:
+            lab = labels[:: self.rays.stride, :: self.rays.stride].reshape(-1)[idx].astype(
+                np.float64)
+        self.map.integrate(pts, col, index, lab)
+        if self.cfg.dynamic_removal and self.cfg.carve_with_depth and (
+                index % self.cfg.carve_every == 0):
+            s = self.rays.stride
+            view = np.where(ok[::s, ::s], depth[::s, ::s], np.nan).astype(np.float16)
+            self.views.append((index, view))
+        return len(pts)
+
+    def finish(self, progress: object = None) -> tuple[MapArrays, dict[str, np.ndarray]]:
+        """The final map and per-voxel masks ``dynamic`` and ``outlier`` (of the raw map)."""
+        raw = self.map.arrays(min_frames=self.cfg.min_voxel_frames)
+        masks = {"dynamic": np.zeros(len(raw), bool), "outlier": np.zeros(len(raw), bool)}
+        c = self.cfg
+        if c.dynamic_removal and len(raw):
+            # Carving tests coarse cells (centroids of the map voxels in each): a person is
+            # many cells wide, and it is 10x fewer points to project into every view.
+            keys = voxel_keys(raw.points, max(c.carve_voxel_m, c.voxel_size_m))
+            _, inv = np.unique(keys, return_inverse=True)
+            n_cells = int(inv.max()) + 1
+            cells = np.stack([np.bincount(inv, raw.points[:, k], n_cells) for k in range(3)], 1)
+            cells /= np.bincount(inv, minlength=n_cells)[:, None]
+            counter = SeeThroughCounter(cells, c.carve_options())
+            if c.carve_with_depth:
+                for index, view in self.views:
+                    counter.add_depth_view(self.camera, inv_se3(self.T_world_camera(index)),
+                                           view.astype(np.float32), self.rays.stride,
+                                           c.max_depth_m + 1.0)
+            if c.carve_with_lidar and len(self.seq.scans):
+                T_bl = self.seq.rig.T_base_laser
+                for k in range(0, len(self.seq.scans), c.carve_scans_every):
+                    counter.add_scan(self.seq.scans[k], inv_se3(self.scan_poses[k] @ T_bl))
+            dyn = counter.dynamic_mask()[inv]
+            masks["carved"] = dyn
+            if c.grow_radius_m > 0:
+                dyn = grow_dynamic(raw.points, raw.first, raw.last, raw.frames, dyn,
+                                   c.grow_radius_m, c.grow_slack_frames, c.grow_iterations,
+                                   c.grow_max_frames)
+            masks["dynamic"] = dyn
+            masks["free_views"] = counter.free[inv]
+            masks["hit_views"] = counter.hit[inv]
+        keep = ~masks["dynamic"]
+        if c.outlier_neighbors > 0 and keep.sum() > c.outlier_neighbors:
+            idx = np.flatnonzero(keep)
+            pts = raw.points[idx]
+            if c.outlier_voxel_m > c.voxel_size_m:
+                # On coarse cell centroids: a floating blob is isolated at 6 cm as at 2 cm,
+                # and the k-NN search over a few million map voxels would take longer than
+                # fusing the frames.
+                _, inv = np.unique(voxel_keys(pts, c.outlier_voxel_m), return_inverse=True)
+                n = int(inv.max()) + 1
+                cells = np.stack([np.bincount(inv, pts[:, k], n) for k in range(3)], 1)
+                cells /= np.bincount(inv, minlength=n)[:, None]
+                inl = statistical_inliers(cells, c.outlier_neighbors, c.outlier_std_ratio)[inv]
+            else:
+                inl = statistical_inliers(pts, c.outlier_neighbors, c.outlier_std_ratio)
+            masks["outlier"][idx[~inl]] = True
+            keep[idx[~inl]] = False
+        masks["keep"] = keep
+        return raw, masks
+
+
+@dataclass
+class PairStats:
+    """Lidar/prediction pairs pooled over frames for the paper's lidar metrics."""
+
+    lidar: list[np.ndarray] = field(default_factory=list)
+    unscaled: list[np.ndarray] = field(default_factory=list)
+    scaled: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, lidar_z: np.ndarray, unscaled: np.ndarray, scaled: np.ndarray) -> None:
+        self.lidar.append(lidar_z)
+        self.unscaled.append(unscaled)
+        self.scaled.append(scaled)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def cat(a: list[np.ndarray]) -> np.ndarray:
+            return np.concatenate(a) if a else np.zeros(0)
+
+        return cat(self.lidar), cat(self.unscaled), cat(self.scaled)
+
+
+def scaled_at_pairs(pairs: FramePairs, disparity: bool, scale: float, shift: float) -> (
+    np.ndarray
+):
+    """[N] depth at the lidar pixels after scaling (NaN where the disparity is not > 0)."""
+    v = pairs.pred
+    if disparity:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            disp = scale * v + shift
+            return np.where(disp > 0, 1.0 / disp, np.nan)
+    return scale * v

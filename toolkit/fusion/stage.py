@@ -1,0 +1,390 @@
+"""Recipe stage ``fuse``: lidar-scaled depth -> coloured metric map of the world.
+
+Writes into its folder (the ``fused`` artifact):
+
+    map.ply               final voxel map (x y z, red green blue, count, frames)
+    scaled_depth/         per-frame scaled z-depth (TUM 16-bit PNG) + index.csv
+    camera_poses.tum      T_world_camera of every fused frame
+    scales.csv            per-frame pairs, estimate, flag, used scale (and shift)
+    *.png                 report figures
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from toolkit.depth.store import DepthStore
+from toolkit.eval.depth import ErrorAccumulator, depth_errors, scale_error
+from toolkit.fusion.cloud import valid_pixels
+from toolkit.fusion.pipeline import (
+    FramePairs,
+    Fusion,
+    FusionConfig,
+    PairStats,
+    pose_arrays,
+    scaled_at_pairs,
+)
+from toolkit.geometry import Trajectory
+from toolkit.io.atomic import atomic_write_text
+from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.sensors import Sequence
+
+
+class FuseConfig(FusionConfig, StageConfig):
+    """Settings of the ``fuse`` stage: the fusion's own (``FusionConfig``) plus these."""
+
+    # Where T_world_base comes from: the upstream 'trajectory' artifact (slam2d), the
+    # sequence's ground truth, or the first of those that exists (auto).
+    poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
+    write_depth: Literal["png", "npy", "none"] = "png"
+    eval_max_depth_m: float = 10.0  # depth comparisons (lidar and truth) nearer than this
+    mesh_eval_frames: int = Field(30, ge=0)  # frames whose clouds are measured to the mesh
+    mesh_eval_points: int = Field(200_000, ge=1)  # map points measured to the mesh (subsample)
+    figure_frame: int | None = None  # frame shown in the report (None: the middle one)
+
+
+def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
+    """``T_world_base`` from a TUM file, or a folder holding one (slam2d's artifact).
+
+    A file whose header says the poses are ``T_world_camera`` is converted with the rig.
+    """
+    from toolkit.geometry import inv_se3
+    from toolkit.io.tum import read_tum
+
+    p = Path(path)
+    if p.is_dir():
+        cands = [p / n for n in ("trajectory.tum", "poses_base.tum", "poses.tum")
+                 if (p / n).exists()] or sorted(p.glob("*.tum"))
+        if not cands:
+            raise StageError(f"fuse: trajectory artifact {p} holds no .tum file")
+        p = cands[0]
+    traj = read_tum(p)
+    if traj.child in ("camera", "camera_optical"):
+        traj = traj.transform(T_right=inv_se3(seq.rig.T_base_camera))
+        traj.child = "base_link"
+    elif traj.child == "laser":
+        traj = traj.transform(T_right=inv_se3(seq.rig.T_base_laser))
+        traj.child = "base_link"
+    return traj
+
+
+class FuseStage(Stage):
+    """Scale monocular depth with the lidar and fuse the frames into a coloured voxel map."""
+
+    name = "fuse"
+    Config = FuseConfig
+    requires = ("sequence", "depth")
+    optional_requires = ("trajectory",)
+    provides = ("fused",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.io.sequence import read_sequence
+
+        cfg: FuseConfig = self.config  # type: ignore[assignment]
+        fcfg = FusionConfig(**{k: getattr(cfg, k) for k in FusionConfig.model_fields})
+        seq = read_sequence(ctx.artifact("sequence"))
+        store = DepthStore(ctx.artifact("depth"))
+        gt = seq.groundtruth
+        # ---------------------------------------------------------------- poses
+        traj, pose_note, pose_source = None, "", ""
+        if cfg.poses in ("auto", "trajectory") and ctx.has_artifact("trajectory"):
+            traj = load_base_trajectory(ctx.artifact("trajectory"), seq)
+            pose_note = "Poses from the upstream `trajectory` artifact (2D lidar SLAM)."
+            pose_source = "trajectory"
+        elif cfg.poses in ("auto", "groundtruth") and gt is not None and gt.poses_base is not None:
+            traj = gt.poses_base
+            pose_source = "groundtruth"
+            pose_note = ("**WARNING: no `trajectory` artifact upstream - fused with the "
+                         "sequence's GROUND-TRUTH poses. Map accuracy here is not what the "
+                         "method achieves with its own SLAM poses.**")
+            ctx.log.warning("fuse: no trajectory artifact; using GROUND-TRUTH poses")
+        if traj is None:
+            raise StageError("fuse: no poses - run slam2d before fuse, or use a sequence with "
+                             "ground-truth poses (poses: groundtruth)")
+        frame_poses, scan_poses, inside = pose_arrays(seq, traj)
+        fusion = Fusion(seq, fcfg, frame_poses, scan_poses)
+        disparity = store.kind == "relative_disparity"
+        frames = [i for i in store.indices if i < len(seq.frames) and inside[i]]
+        if not frames:
+            raise StageError("fuse: no frame has both a depth prediction and a pose")
+        has_gt_depth = gt is not None and gt.depth_paths is not None
+        has_masks = gt is not None and gt.mask_paths is not None
+        # ---------------------------------------------------------------- pass 1: scales
+        t_start = time.perf_counter()
+        t_core = 0.0
+        c_core = 0.0  # CPU seconds of the same work: the machine may be shared
+        pairs: dict[int, FramePairs] = {}
+        oracle = np.full(len(frames), np.nan)
+        for j, i in enumerate(ctx.progress(frames, description="fuse: scales")):
+            pred = store.read(i)
+            t0, c0 = time.perf_counter(), time.process_time()
+            pairs[i] = fusion.frame_pairs(i, pred)
+            t_core += time.perf_counter() - t0
+            c_core += time.process_time() - c0
+            if has_gt_depth and not disparity:
+                g = gt.depth(i)
+                ok = (g > 0) & np.isfinite(pred.values) & (pred.values > 0)
+                if ok.sum() > 100:
+                    oracle[j] = float(np.median(g[ok] / pred.values[ok]))
+        estimates = [pairs[i].estimate for i in frames]
+        sm = fusion.smooth(estimates)
+        if not sm.used.any():
+            raise StageError(
+                f"fuse: no frame got a scale - median {np.median([e.pairs for e in estimates])}"
+                f" lidar pairs per frame (min_pairs {cfg.min_pairs}). Check T_base_laser / "
+                "T_base_camera (does the lidar land in the image?), the scan stamps, or use "
+                "scale: none for a metric network")
+        # ---------------------------------------------------------------- pass 2: map
+        out_depth = ctx.stage_dir / "scaled_depth"
+        if cfg.write_depth != "none":
+            out_depth.mkdir(parents=True, exist_ok=True)
+        lid = PairStats()
+        lid_valid = PairStats()  # pairs at pixels the map would use (no edge, in range)
+        acc_un, acc_sc = ErrorAccumulator(), ErrorAccumulator()
+        fig_frame = cfg.figure_frame if cfg.figure_frame in frames else frames[len(frames) // 2]
+        fig_data = None
+        eval_frames = set(np.linspace(0, len(frames) - 1, min(cfg.mesh_eval_frames,
+                                                              len(frames))).astype(int).tolist())
+        frame_clouds: list[np.ndarray] = []
+        depth_rows, pose_rows = [], []
+        n_points = 0
+        for j, i in enumerate(ctx.progress(frames, description="fuse: map")):
+            if not sm.used[j]:
+                continue
+            pred = store.read(i)
+            s, t = float(sm.scale[j]), float(sm.shift[j])
+            rgb = seq.frames[i].image
+            mask = gt.mask(i) if has_masks else None
+            t0, c0 = time.perf_counter(), time.process_time()
+            scaled = pred.as_depth(s, t)
+            n_points += fusion.integrate(i, scaled, rgb, labels=mask)
+            t_core += time.perf_counter() - t0
+            c_core += time.process_time() - c0
+            fp = pairs[i]
+            unscaled_pairs = scaled_at_pairs(fp, disparity, 1.0, 0.0)
+            scaled_pairs = scaled_at_pairs(fp, disparity, s, t)
+            lid.add(fp.lidar.z, unscaled_pairs, scaled_pairs)
+            if len(fp.lidar):
+                px = fp.lidar.pixel
+                ok = valid_pixels(scaled, fusion.cloud_opts)[
+                    np.clip(px[:, 1], 0, scaled.shape[0] - 1),
+                    np.clip(px[:, 0], 0, scaled.shape[1] - 1)]
+                lid_valid.add(fp.lidar.z[ok], unscaled_pairs[ok], scaled_pairs[ok])
+            g = None
+            if has_gt_depth:
+                g = gt.depth(i)
+                acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cfg.eval_max_depth_m)
+                acc_sc.add(scaled, g, max_depth=cfg.eval_max_depth_m)
+            if j in eval_frames and gt is not None and gt.mesh_path is not None:
+                from toolkit.fusion.cloud import depth_to_points
+
+                pts, _, _ = depth_to_points(scaled, rgb, fusion.rays, fusion.T_world_camera(i),
+                                            fusion.cloud_opts, mask)
+                frame_clouds.append(pts[:: max(1, len(pts) // 10000)])
+            if cfg.write_depth != "none":
+                from toolkit.io.depth import write_depth
+
+                name = f"{i:06d}.{cfg.write_depth}"
+                write_depth(out_depth / name, np.nan_to_num(scaled, nan=0.0))
+                depth_rows.append(f"{i},{seq.frames[i].stamp!r},{name},{s!r},{t!r}")
+            pose_rows.append((seq.frames[i].stamp, fusion.T_world_camera(i)))
+            if i == fig_frame:
+                fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp)
+        t0, c0 = time.perf_counter(), time.process_time()
+        raw, masks = fusion.finish()
+        t_finish = time.perf_counter() - t0
+        c_finish = time.process_time() - c0
+        final = raw.select(masks["keep"])
+        wall = time.perf_counter() - t_start
+        # ---------------------------------------------------------------- outputs
+        from toolkit.fusion.voxel_map import write_map_ply
+        from toolkit.io.tum import write_tum
+
+        write_map_ply(ctx.stage_dir / "map.ply", final)
+        if cfg.write_depth != "none":
+            atomic_write_text(out_depth / "index.csv",
+                              "index,stamp,file,scale,shift\n" + "\n".join(depth_rows) + "\n")
+        if pose_rows:
+            write_tum(ctx.stage_dir / "camera_poses.tum",
+                      Trajectory(np.array([p[0] for p in pose_rows]),
+                                 np.stack([p[1] for p in pose_rows]), "world", "camera"),
+                      "camera poses of the fused frames")
+        self._write_scales(ctx.stage_dir / "scales.csv", seq, frames, estimates, sm, oracle)
+        ctx.provide("fused", ctx.stage_dir)
+        # ---------------------------------------------------------------- metrics
+        used = int(sm.used.sum())
+        metrics: dict[str, object] = {
+            "frames": len(frames), "frames_fused": used,
+            "frames_flagged": int(sum(f != "ok" for f in sm.flag)),
+            "frames_few_pairs": int(sum(f == "few_pairs" for f in sm.flag)),
+            "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
+            "pairs_per_frame_median": float(np.median([e.pairs for e in estimates])),
+            "depth_kind": store.kind, "scale_method": cfg.scale,
+            "poses": pose_source,
+            "map_points": len(final), "map_points_raw": len(raw),
+            "map_points_removed_dynamic": int(masks["dynamic"].sum()),
+            "map_points_removed_outlier": int(masks["outlier"].sum()),
+            "fusion_fps": used / max(t_core + t_finish, 1e-9),
+            "fusion_fps_per_frame_only": used / max(t_core, 1e-9),
+            "fusion_fps_cpu": used / max(c_core + c_finish, 1e-9),
+            "fusion_fps_per_frame_only_cpu": used / max(c_core, 1e-9),
+            "finish_seconds": t_finish,
+            "lidar_dynamic_beams": int(sum(int(b.sum()) for b in fusion.beam_dynamic)),
+            "points_masked_dynamic": fusion.points_masked_dynamic,
+            "stage_seconds": wall,
+        }
+        # The same depth cap as for the ground truth: a 2D lidar sees 12 m down a corridor,
+        # where the camera's depth is guesswork that the map does not use either.
+        cap = cfg.eval_max_depth_m
+        l, un, sc = lid.arrays()
+        e_un, e_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
+        metrics.update(e_un.as_dict("lidar_unscaled_"))
+        metrics.update(e_sc.as_dict("lidar_scaled_"))
+        if e_un.count and e_un.rmse_m > 0:
+            metrics["lidar_rmse_ratio_scaled_unscaled"] = e_sc.rmse_m / e_un.rmse_m
+        l, un, sc = lid_valid.arrays()
+        v_un, v_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
+        metrics.update(v_un.as_dict("lidar_valid_unscaled_"))
+        metrics.update(v_sc.as_dict("lidar_valid_scaled_"))
+        if v_un.count and v_un.rmse_m > 0:
+            metrics["lidar_valid_rmse_ratio_scaled_unscaled"] = v_sc.rmse_m / v_un.rmse_m
+        if has_gt_depth:
+            g_un, g_sc = acc_un.result(), acc_sc.result()
+            metrics.update(g_un.as_dict("gt_unscaled_"))
+            metrics.update(g_sc.as_dict("gt_scaled_"))
+            if g_un.rmse_m > 0:
+                metrics["gt_rmse_ratio_scaled_unscaled"] = g_sc.rmse_m / g_un.rmse_m
+            if not disparity:
+                metrics.update({f"{k}": v for k, v in scale_error(
+                    sm.scale, oracle).items() if k != "frames"})
+                metrics.update({f"raw_{k}": v for k, v in scale_error(
+                    sm.raw_scale, oracle).items() if k != "frames"})
+        if has_masks and len(raw):
+            # The raw map already lacks what the lidar masked in the images; the fraction
+            # without any removal comes from a run with dynamic_removal: false.
+            metrics["dynamic_fraction_before_carving"] = float(np.mean(raw.label > 0.5))
+            metrics["dynamic_fraction"] = float(np.mean(final.label > 0.5)) if len(final) else 0.0
+            static = raw.label <= 0.5
+            metrics["static_points_removed_fraction"] = float(
+                np.mean(masks["dynamic"][static])) if static.any() else 0.0
+        if gt is not None and gt.mesh_path is not None:
+            from toolkit.eval.map_accuracy import MeshDistance, distance_stats
+
+            md = MeshDistance(gt.mesh_path)
+            static_final = final.select(final.label <= 0.5) if has_masks else final
+            # A fixed-stride subsample: point-to-mesh queries cost ~10 us each and the
+            # statistics settle long before a few million points.
+            step = max(1, len(static_final) // cfg.mesh_eval_points)
+            metrics.update({f"map_to_mesh_{k}": v for k, v in distance_stats(
+                md.distance(static_final.points[::step])).items()})
+            if has_masks:
+                # Static points the carving removed: if they lie off the true surface, the
+                # carving removed depth errors rather than good geometry.
+                gone = raw.select(masks["dynamic"] & (raw.label <= 0.5))
+                if len(gone):
+                    step = max(1, len(gone) // 50_000)
+                    metrics["carved_static_to_mesh_median_m"] = float(np.median(
+                        md.distance(gone.points[::step])))
+            meds = [float(np.median(md.distance(p))) for p in frame_clouds if len(p)]
+            if meds:
+                metrics["frame_to_mesh_median_m"] = float(np.median(meds))
+                metrics["frame_to_mesh_median_max_m"] = float(np.max(meds))
+        ctx.add_metrics(metrics)
+        # ---------------------------------------------------------------- report
+        self._report(ctx, cfg, seq, metrics, pose_note, fig_data, frames, sm, oracle, store,
+                     raw, masks, final, traj)
+
+    @staticmethod
+    def _write_scales(path: Path, seq: Sequence, frames: list[int], estimates: list,
+                      sm: object, oracle: np.ndarray) -> None:
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(["frame", "stamp", "pairs", "inliers", "raw_scale", "raw_shift", "flag",
+                    "scale", "shift", "used", "oracle_scale"])
+        for j, i in enumerate(frames):
+            e = estimates[j]
+            w.writerow([i, repr(float(seq.frames[i].stamp)), e.pairs, e.inliers,
+                        f"{e.scale:.6g}", f"{e.shift:.6g}", sm.flag[j],  # type: ignore[attr-defined]
+                        f"{sm.scale[j]:.6g}", f"{sm.shift[j]:.6g}",  # type: ignore[attr-defined]
+                        int(sm.used[j]), f"{oracle[j]:.6g}"])  # type: ignore[attr-defined]
+        atomic_write_text(path, buf.getvalue())
+
+    @staticmethod
+    def _report(ctx: StageContext, cfg: FuseConfig, seq: Sequence, m: dict, pose_note: str,
+                fig_data: object, frames: list[int], sm: object, oracle: np.ndarray,
+                store: DepthStore, raw: object, masks: dict, final: object,
+                traj: Trajectory) -> None:
+        from toolkit.fusion import figures
+
+        sid = ctx.stage_id
+        md = [pose_note] if pose_note else []
+        backend = store.meta.get("backend", "?")
+        if backend == "simulated":
+            md.append("Depth input: **simulated** monocular predictions (made from ground truth "
+                      "with documented errors), not a network.")
+        md.append(f"Scale estimator `{cfg.scale}` on `{store.kind}` predictions; "
+                  f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
+                  f"flagged ({m['frames_few_pairs']} with too few lidar pairs, "
+                  f"{m['frames_outlier']} outlier frames); median "
+                  f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame.")
+        rows = [("vs lidar (paper's protocol), all pairs", "lidar_unscaled_", "lidar_scaled_"),
+                ("vs lidar, pairs on pixels the map uses", "lidar_valid_unscaled_",
+                 "lidar_valid_scaled_")]
+        if "gt_scaled_rmse_m" in m:
+            rows.append(("vs ground-truth depth, whole images", "gt_unscaled_", "gt_scaled_"))
+        table = ["| reference | RMSE unscaled (m) | RMSE scaled (m) | AbsRel scaled | "
+                 "delta<1.25 scaled |", "|---|---:|---:|---:|---:|"]
+        for name, a, b in rows:
+            if not m.get(a + "count"):
+                continue
+            table.append(f"| {name} | {m[a + 'rmse_m']:.3f} | {m[b + 'rmse_m']:.3f} | "
+                         f"{m[b + 'absrel']:.3f} | {m[b + 'delta1']:.3f} |")
+        md.append("\n".join(table))
+        extra = [f"map: {m['map_points']} voxels of {cfg.voxel_size_m * 100:.0f} cm "
+                 f"({m['map_points_removed_dynamic']} removed as moving, "
+                 f"{m['map_points_removed_outlier']} statistical outliers)",
+                 f"fusion throughput {m['fusion_fps']:.1f} frames/s wall clock, "
+                 f"{m['fusion_fps_cpu']:.1f} frames/s of CPU time (network and file reading "
+                 "excluded; the two differ when other processes share the CPU)"]
+        if "dynamic_fraction" in m:
+            extra.append(f"map points on moving obstacles: {100 * m['dynamic_fraction']:.2f} % "
+                         f"({100 * m['dynamic_fraction_before_carving']:.2f} % before carving; "
+                         f"{m['points_masked_dynamic']} image points masked by lidar-detected "
+                         "moving obstacles)")
+        if "map_to_mesh_mean_m" in m:
+            extra.append(f"map to ground-truth mesh: mean {100 * m['map_to_mesh_mean_m']:.1f} cm,"
+                         f" RMSE {100 * m['map_to_mesh_rmse_m']:.1f} cm; per-frame median "
+                         f"{100 * m.get('frame_to_mesh_median_m', float('nan')):.1f} cm")
+        if "scale_error_median" in m:
+            extra.append(f"per-frame scale error vs the oracle (from ground truth): median "
+                         f"{100 * m['scale_error_median']:.1f} %, max "
+                         f"{100 * m['scale_error_max']:.1f} %")
+        md.append("\n".join(f"- {e}" for e in extra))
+        if fig_data is not None:
+            i, rgb, unscaled, scaled, g, fp = fig_data  # type: ignore[misc]
+            figures.lidar_overlay(ctx.stage_dir / "lidar_overlay.png", rgb, fp.lidar.uv,
+                                  fp.lidar.z, f"frame {i}: lidar in the image")
+            figures.depth_panels(ctx.stage_dir / "depth_scaled_vs_unscaled.png", rgb, unscaled,
+                                 scaled, g, f"frame {i}: scale {fp.estimate.scale:.3f}")
+            md.append(f"![lidar overlay]({sid}/lidar_overlay.png)")
+            md.append(f"![scaled vs unscaled depth]({sid}/depth_scaled_vs_unscaled.png)")
+        frames_arr = np.array(frames)
+        figures.scale_plot(ctx.stage_dir / "scales.png", frames_arr,
+                           sm.raw_scale, sm.scale,  # type: ignore[attr-defined]
+                           oracle, sm.flag, store.kind)  # type: ignore[attr-defined]
+        md.append(f"![per-frame scale]({sid}/scales.png)")
+        removed = raw.points[masks["dynamic"]]  # type: ignore[attr-defined]
+        xy = traj.positions[:, :2]
+        figures.map_views(ctx.stage_dir / "map_views.png", final.points,  # type: ignore
+                          final.colors, xy, "fused map", removed)  # type: ignore[attr-defined]
+        md.append(f"![coloured map]({sid}/map_views.png)")
+        md.append(f"Files: [map.ply]({sid}/map.ply), [scales.csv]({sid}/scales.csv), "
+                  f"scaled depth in `{sid}/scaled_depth/`.")
+        ctx.report("\n\n".join(md))

@@ -1,0 +1,193 @@
+"""Frames fused into one voxel map: per-voxel mean position and colour, observation counts.
+
+Each voxel keeps sums (position, colour, an optional label such as ground-truth "dynamic"),
+its point count, the number of frames that saw it and the first/last of those frames.
+Frames are reduced to their own voxels as they come and merged into the map in batches,
+so integration stays O(points) per frame (a dict per voxel would be 100x slower in
+Python, and Open3D's ``voxel_down_sample`` cannot accumulate counts across calls).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)  # voxel indices in [-2^20, 2^20): +-21 km at 2 cm
+_MASK = (1 << _BITS) - 1
+
+
+def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """[N] int64 key of the voxel holding each point [N, 3]."""
+    q = np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64) + _OFFSET
+    if q.size and (q.min() < 0 or q.max() > _MASK):
+        raise ValueError(f"points beyond +-{_OFFSET * voxel_size:.0f} m cannot be keyed")
+    return (q[:, 0] << (2 * _BITS)) | (q[:, 1] << _BITS) | q[:, 2]
+
+
+def key_centres(keys: np.ndarray, voxel_size: float) -> np.ndarray:
+    """[N, 3] centres of voxels with ``keys`` [N]."""
+    q = np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], -1)
+    return (q - _OFFSET + 0.5) * voxel_size
+
+
+@dataclass
+class MapArrays:
+    """The map as flat arrays (one row per voxel)."""
+
+    points: np.ndarray  # [V, 3] float64 mean position
+    colors: np.ndarray  # [V, 3] uint8 mean colour
+    count: np.ndarray  # [V] int64 points that fell in the voxel
+    frames: np.ndarray  # [V] int32 frames that saw it
+    first: np.ndarray  # [V] int32 first frame index
+    last: np.ndarray  # [V] int32 last frame index
+    label: np.ndarray  # [V] float32 mean label (e.g. fraction of ground-truth dynamic points)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def select(self, mask: np.ndarray) -> MapArrays:
+        return MapArrays(*(getattr(self, f)[mask] for f in
+                           ("points", "colors", "count", "frames", "first", "last", "label")))
+
+
+class VoxelMap:
+    """Accumulates coloured points into voxels of ``voxel_size`` metres."""
+
+    def __init__(self, voxel_size: float = 0.02, batch_entries: int = 1_000_000) -> None:
+        if voxel_size <= 0:
+            raise ValueError("voxel_size must be positive")
+        self.voxel_size = float(voxel_size)
+        self.batch_entries = batch_entries
+        self._keys = np.zeros(0, np.int64)
+        self._sums = np.zeros((0, 7), np.float64)  # x y z r g b label
+        self._count = np.zeros(0, np.int64)
+        self._frames = np.zeros(0, np.int32)
+        self._first = np.zeros(0, np.int32)
+        self._last = np.zeros(0, np.int32)
+        self._pending: list[tuple[np.ndarray, ...]] = []
+        self._pending_n = 0
+        self.frames_integrated = 0
+
+    def integrate(self, points: np.ndarray, colors: np.ndarray, frame: int,
+                  labels: np.ndarray | None = None) -> None:
+        """Add one frame's points [N, 3], colours [N, 3] uint8 and optional labels [N]."""
+        if len(points) == 0:
+            self.frames_integrated += 1
+            return
+        keys = voxel_keys(points, self.voxel_size)
+        uk, inv = np.unique(keys, return_inverse=True)
+        m = len(uk)
+        sums = np.empty((m, 7), np.float64)
+        for c in range(3):
+            sums[:, c] = np.bincount(inv, points[:, c], m)
+            sums[:, 3 + c] = np.bincount(inv, colors[:, c], m)
+        sums[:, 6] = np.bincount(inv, labels, m) if labels is not None else 0.0
+        cnt = np.bincount(inv, minlength=m).astype(np.int64)
+        f = np.full(m, frame, np.int32)
+        self._pending.append((uk, sums, cnt, np.ones(m, np.int32), f, f))
+        self._pending_n += m
+        self.frames_integrated += 1
+        if self._pending_n >= self.batch_entries:
+            self._merge()
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        parts = self._pending
+        keys = np.concatenate([p[0] for p in parts])
+        order = np.argsort(keys, kind="stable")
+        ks = keys[order]
+        start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        uk = ks[start]  # sorted unique keys of the batch
+
+        def reduce(k: int, op: np.ufunc) -> np.ndarray:
+            return op.reduceat(np.concatenate([p[k] for p in parts])[order], start, axis=0)
+
+        sums, cnt = reduce(1, np.add), reduce(2, np.add)
+        nfr, first, last = reduce(3, np.add), reduce(4, np.minimum), reduce(5, np.maximum)
+        self._pending = []
+        self._pending_n = 0
+        # Voxels already in the map are updated in place; new ones are inserted at their
+        # sorted positions (one O(map) copy per batch instead of re-sorting the map).
+        pos = np.searchsorted(self._keys, uk)
+        old = pos < len(self._keys)
+        old[old] = self._keys[pos[old]] == uk[old]
+        g = pos[old]
+        self._sums[g] += sums[old]
+        self._count[g] += cnt[old]
+        self._frames[g] += nfr[old].astype(np.int32)
+        self._first[g] = np.minimum(self._first[g], first[old])
+        self._last[g] = np.maximum(self._last[g], last[old])
+        new = ~old
+        if new.any():
+            at = pos[new]
+            self._keys = np.insert(self._keys, at, uk[new])
+            self._sums = np.insert(self._sums, at, sums[new], axis=0)
+            self._count = np.insert(self._count, at, cnt[new])
+            self._frames = np.insert(self._frames, at, nfr[new].astype(np.int32))
+            self._first = np.insert(self._first, at, first[new].astype(np.int32))
+            self._last = np.insert(self._last, at, last[new].astype(np.int32))
+
+    def __len__(self) -> int:
+        self._merge()
+        return len(self._keys)
+
+    def arrays(self, min_count: int = 1, min_frames: int = 1) -> MapArrays:
+        """The map, keeping voxels with at least ``min_count`` points and ``min_frames``
+        frames."""
+        self._merge()
+        keep = (self._count >= min_count) & (self._frames >= min_frames)
+        c = self._count[keep].astype(np.float64)
+        s = self._sums[keep]
+        pts = s[:, :3] / c[:, None]
+        col = np.clip(np.rint(s[:, 3:6] / c[:, None]), 0, 255).astype(np.uint8)
+        return MapArrays(pts, col, self._count[keep], self._frames[keep], self._first[keep],
+                         self._last[keep], (s[:, 6] / c).astype(np.float32))
+
+
+def statistical_inliers(points: np.ndarray, nb_neighbors: int = 20,
+                        std_ratio: float = 2.0) -> np.ndarray:
+    """[N] bool: Open3D's statistical outlier removal (mean neighbour distance within
+    ``std_ratio`` standard deviations of the global mean)."""
+    import open3d as o3d
+
+    keep = np.zeros(len(points), bool)
+    if len(points) <= nb_neighbors:
+        keep[:] = True
+        return keep
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    _, idx = pc.remove_statistical_outlier(nb_neighbors=nb_neighbors, std_ratio=std_ratio)
+    keep[np.asarray(idx, dtype=np.int64)] = True
+    return keep
+
+
+def write_map_ply(path: Path, m: MapArrays) -> None:
+    """PLY with x y z, red green blue (uchar) and per-voxel count/frames (Open3D tensor IO,
+    so common viewers read positions and colours and our tools read the counts)."""
+    import open3d as o3d
+
+    from toolkit.io.atomic import atomic_path
+
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(np.ascontiguousarray(m.points, np.float32))
+    pc.point.colors = o3d.core.Tensor(np.ascontiguousarray(m.colors, np.uint8))
+    pc.point["count"] = o3d.core.Tensor(np.minimum(m.count, 2**31 - 1).astype(np.int32)[:, None])
+    pc.point["frames"] = o3d.core.Tensor(m.frames.astype(np.int32)[:, None])
+    with atomic_path(path) as tmp:
+        if not o3d.t.io.write_point_cloud(str(tmp), pc):
+            raise OSError(f"{path}: Open3D could not write the map")
+
+
+def read_map_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Positions [N, 3] float64 and colours [N, 3] uint8 of a map PLY."""
+    import open3d as o3d
+
+    pc = o3d.t.io.read_point_cloud(str(path))
+    pts = pc.point.positions.numpy().astype(np.float64)
+    col = pc.point.colors.numpy() if "colors" in pc.point else np.zeros((len(pts), 3), np.uint8)
+    if col.dtype != np.uint8:
+        col = np.clip(np.rint(col * 255), 0, 255).astype(np.uint8)
+    return pts, col
