@@ -14,6 +14,7 @@ from toolkit.recipe.stage import Stage
 
 # Stage type name -> "module.path:ClassName". One line per stage, alphabetical.
 STAGES: dict[str, str] = {
+    "calibrate": "calibration.stage:CalibrateStage",
     "camera_only": "toolkit.baselines.stage:CameraOnlyStage",
     "colmap": "toolkit.baselines.stage:ColmapStage",
     "depth": "toolkit.depth.stage:DepthStage",

@@ -1,0 +1,356 @@
+"""Command line: ``python -m calibration intrinsics|extrinsic|check ...``.
+
+Errors a user can fix (a board that is not found, images without scans, a camera file
+for another resolution) print one message saying what to change and exit with code 2;
+anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.board import BoardError, BoardSpec
+from calibration.extrinsic import ExtrinsicError, SolverOptions
+from calibration.files import CalibrationFileError
+from calibration.intrinsics import IntrinsicsError
+from calibration.scans import PairingError, ScanFormatError
+
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    BoardError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
+    ScanFormatError, FileNotFoundError,
+)
+
+
+def _board(args: argparse.Namespace) -> BoardSpec:
+    size = getattr(args, "board_size", None)
+    return BoardSpec.parse(args.board, args.square, tuple(size) if size else None)
+
+
+def _add_board(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", required=True, metavar="COLSxROWS",
+                   help="inner corners of the checkerboard, e.g. 11x8 for 12x9 squares")
+    p.add_argument("--square", type=float, required=True, metavar="M",
+                   help="side of one square in metres, e.g. 0.019")
+
+
+def _np(x: Any) -> Any:
+    from toolkit.io.atomic import to_jsonable
+
+    return to_jsonable(x)
+
+
+# ---------------------------------------------------------------------------- intrinsics
+
+
+def cmd_intrinsics(args: argparse.Namespace) -> int:
+    from calibration.files import write_camera
+    from calibration.intrinsics import calibrate_intrinsics, detect_folder
+
+    board = _board(args)
+    dets, missed = detect_folder(Path(args.images), board)
+    res = calibrate_intrinsics(dets, board, args.model, args.max_image_rms)
+    res.rejected = {**missed, **res.rejected}
+    cam = res.camera
+    print(f"camera {cam.width}x{cam.height}, model {args.model}: fx {cam.fx:.2f} fy {cam.fy:.2f}"
+          f" cx {cam.cx:.2f} cy {cam.cy:.2f} dist {np.round(cam.dist, 5).tolist()}")
+    print(f"RMS reprojection error {res.rms_px:.3f} px over {len(res.used)} images")
+    for name, e in res.per_image_rms_px.items():
+        print(f"  {name}: {e:.3f} px")
+    for name, why in res.rejected.items():
+        print(f"  rejected {name}: {why}")
+    info = {**res.info(), "board": {"inner_corners": [board.cols, board.rows],
+                                    "square_m": board.square}}
+    write_camera(Path(args.out), cam, _np(info))
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- extrinsic
+
+
+def _options(args: argparse.Namespace) -> SolverOptions:
+    opts = SolverOptions(loss=args.loss)
+    if args.no_prior:
+        opts.prior_sigma_deg = opts.prior_sigma_m = None
+    elif args.prior_sigma is not None:
+        opts.prior_sigma_deg, opts.prior_sigma_m = args.prior_sigma
+    return opts
+
+
+def cmd_extrinsic(args: argparse.Namespace) -> int:
+    from calibration.files import (
+        load_camera,
+        load_extrinsic,
+        rig_for_extrinsic,
+        write_rig_with_calibration,
+    )
+    from calibration.pipeline import (
+        BoardSearch,
+        load_candidates,
+        load_candidates_from_sequence,
+        run_extrinsic,
+    )
+
+    board = _board(args)
+    camera = load_camera(Path(args.camera)) if args.camera else None
+    if args.sequence:
+        cands, skipped, camera = load_candidates_from_sequence(
+            Path(args.sequence), board, args.max_dt, args.skip_unpaired, camera)
+    else:
+        if not (args.images and args.scans and camera is not None):
+            raise CalibrationFileError("give --images, --scans and --camera, or --sequence")
+        cands, skipped = load_candidates(Path(args.images), Path(args.scans), board, camera,
+                                         str(args.camera), args.max_dt, args.skip_unpaired)
+    assert camera is not None
+    search = BoardSearch(
+        angle_window_deg=tuple(args.angle_window) if args.angle_window else None,
+        max_offset_m=args.max_offset,
+        mount=args.mount, seed=args.seed)
+    init = load_extrinsic(Path(args.init)) if args.init else None
+    run = run_extrinsic(cands, board, camera, search, _options(args), init, loo=not args.no_loo)
+    run.skipped = {**skipped, **run.skipped}
+    summary = run.summary()
+    _print_extrinsic(run.result.T_camera_laser, summary)
+    if args.out:
+        base = None
+        if args.rig:
+            from toolkit.io.sequence import read_rig
+
+            base = read_rig(Path(args.rig))
+        rig = rig_for_extrinsic(camera, run.result.T_camera_laser, base)
+        write_rig_with_calibration(Path(args.out), rig, _np(summary))
+        print(f"wrote {args.out}")
+    if args.json:
+        from calibration.files import extrinsic_to_mapping
+        from toolkit.io.atomic import atomic_write_json
+
+        atomic_write_json(Path(args.json), {**extrinsic_to_mapping(run.result.T_camera_laser),
+                                            **summary})
+        print(f"wrote {args.json}")
+    if args.overlays:
+        import cv2
+
+        from calibration.check import overlay, project_scan
+        from toolkit.io.atomic import atomic_path
+        from toolkit.sensors import load_rgb
+
+        out = Path(args.overlays)
+        out.mkdir(parents=True, exist_ok=True)
+        img_dir = Path(args.images) if args.images else None
+        for c in run.candidates:
+            path = (img_dir / c.name) if img_dir else _sequence_image(Path(args.sequence), c.name)
+            img = overlay(load_rgb(path), project_scan(c.scan.points,
+                                                       run.result.T_camera_laser, camera))
+            with atomic_path(out / f"{Path(c.name).stem}_overlay.png") as tmp:
+                cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        print(f"wrote {len(run.candidates)} overlays to {out}")
+    return 0
+
+
+def _sequence_image(root: Path, name: str) -> Path:
+    return root / "camera" / "images" / name
+
+
+def _print_extrinsic(T: np.ndarray, s: dict[str, Any]) -> None:
+    from calibration.files import extrinsic_to_mapping
+
+    tf = extrinsic_to_mapping(T)["tf"]
+    with np.printoptions(precision=5, suppress=True):
+        print("T_camera_laser (p_camera_optical = T @ p_laser):")
+        print(np.array(T))
+    print(f"tf camera_optical -> laser: xyz {np.round(tf['translation'], 4).tolist()} "
+          f"quat xyzw {np.round(tf['rotation'], 5).tolist()}")
+    print(f"views used {s['views_used']}, board points {s['points_on_board']}, point-to-plane "
+          f"RMS {s['residual_rms_m'] * 1000:.1f} mm ({s['refinement']}, start: "
+          f"{s['initialisation']})")
+    print("std rotation (deg, about camera x y z): "
+          f"{np.round(s['std_rotation_deg'], 3).tolist()}; translation (mm, along x y z): "
+          f"{np.round(np.array(s['std_translation_m']) * 1000, 1).tolist()}")
+    loo = s.get("leave_one_out")
+    if loo:
+        print(f"leave-one-view-out: rotation spread {loo['rotation_spread_deg']:.3f} deg, "
+              f"translation spread {loo['translation_spread_m'] * 1000:.1f} mm")
+    for name, why in {**s["views_rejected"], **s["images_skipped"]}.items():
+        print(f"  not used {name}: {why}")
+    for w in s["warnings"]:
+        print(f"WARNING: {w}")
+
+
+# ---------------------------------------------------------------------------- check
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    import cv2
+
+    from calibration.check import SEEN_AXES, overlay, project_scan, sensitivity
+    from calibration.files import load_camera, load_extrinsic
+    from calibration.pipeline import check_frames_from_pairs, check_frames_from_sequence
+    from toolkit.io.atomic import atomic_path, atomic_write_json
+
+    out = Path(args.out)
+    if args.sequence:
+        from toolkit.io.sequence import read_rig
+
+        root = Path(args.sequence)
+        rig = read_rig(Path(args.rig) if args.rig else root / "rig.yaml")
+        camera = rig.camera
+        T = load_extrinsic(Path(args.extrinsic)) if args.extrinsic else rig.T_camera_laser
+        frames, _ = check_frames_from_sequence(
+            root, T, args.frames, args.max_dt, Path(args.depth) if args.depth else None,
+            use_gt_depth=args.score != "edges")
+    else:
+        if not (args.images and args.scans and args.camera and (args.extrinsic or args.rig)):
+            raise CalibrationFileError("give --sequence, or --images, --scans, --camera and "
+                                       "--extrinsic (or --rig)")
+        camera = load_camera(Path(args.camera))
+        T = load_extrinsic(Path(args.extrinsic or args.rig))
+        frames = check_frames_from_pairs(Path(args.images), Path(args.scans), camera,
+                                         str(args.camera), args.max_dt)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for f in frames:
+        img = overlay(f.image, project_scan(f.points, T, camera))
+        p = out / f"{Path(f.name).stem}_overlay.png"
+        with atomic_path(p) as tmp:
+            cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        written.append(p.name)
+    scores = sensitivity(frames, T, camera, args.perturb_deg, args.score)
+    d = scores.to_dict()
+    print(f"{len(frames)} frames, {scores.n_points} points; {scores.kind} score "
+          f"{scores.score:.4f}")
+    for k, v in scores.perturbed.items():
+        print(f"  rotated {k}: {v:.4f} ({-scores.drop(k) * 100:+.1f} %)")
+    seen = SEEN_AXES[scores.kind]
+    better = [k for k in scores.perturbed if k[:2] in seen and scores.drop(k) < -0.02]
+    if better:
+        print(f"WARNING: the score rises when the extrinsic is rotated ({', '.join(better)}); "
+              "the extrinsic may be off about that axis")
+    if scores.kind == "edges":
+        print("note: the edge score judges rotation about the camera's vertical axis (ry) "
+              "only; give depth maps (--depth) to judge tilts too")
+    atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written})
+    print(f"wrote {len(written)} overlays and check.json to {out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m calibration",
+        description="Camera intrinsics, camera - 2D lidar extrinsic, and checks. The "
+                    "extrinsic is stored as T_camera_laser: p_camera_optical = T @ p_laser.")
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    pi = sub.add_parser("intrinsics", help="camera intrinsics from checkerboard images",
+                        description="Detect the checkerboard (sub-pixel corners), calibrate, "
+                                    "reject outlier images, write a camera YAML.")
+    pi.add_argument("--images", required=True, help="folder of checkerboard images")
+    _add_board(pi)
+    pi.add_argument("--model", default="opencv", choices=sorted(_models()),
+                    help="distortion model: " + "; ".join(f"{k}: {v}"
+                                                          for k, v in _models().items()))
+    pi.add_argument("--max-image-rms", type=float, default=None, metavar="PX",
+                    help="reject images above this RMS (default: 3x the median, >= 0.5 px)")
+    pi.add_argument("--out", default="camera.yaml", help="camera YAML to write")
+    pi.set_defaults(func=cmd_intrinsics)
+
+    pe = sub.add_parser(
+        "extrinsic", help="camera - 2D lidar extrinsic from board views",
+        description="Zhang & Pless (2004) style: board planes from PnP, board points found "
+                    "in each scan, linear start, robust joint refinement, outlier views "
+                    "rejected, covariance and leave-one-out stability.")
+    pe.add_argument("--images", help="folder of images named <stamp>.png (ns or s)")
+    pe.add_argument("--scans", help="folder of scans (.pcd, .csv, .npz) named <stamp>.ext, an "
+                                    "npz of many scans, or a sequence folder")
+    pe.add_argument("--camera", help="camera YAML (toolkit, rig or ROS camera_info)")
+    pe.add_argument("--sequence", help="sequence folder instead of --images/--scans (the camera "
+                                       "comes from its rig.yaml unless --camera is given)")
+    _add_board(pe)
+    pe.add_argument("--out", help="rig YAML to write (with T_camera_laser and the statistics)")
+    pe.add_argument("--rig", help="existing rig YAML: keep its camera mount, move the laser")
+    pe.add_argument("--json", help="write the full result as JSON")
+    pe.add_argument("--overlays", metavar="DIR", help="write scan-on-image overlays here")
+    pe.add_argument("--max-dt", type=float, default=0.1, metavar="S",
+                    help="largest image-scan time difference to pair (default 0.1 s)")
+    pe.add_argument("--skip-unpaired", action="store_true",
+                    help="use the paired images only instead of failing on unpaired ones")
+    pe.add_argument("--angle-window", type=float, nargs=2, metavar=("MIN", "MAX"),
+                    help="laser bearings (degrees, counter-clockwise from laser +x) where the "
+                         "board is; overrides the automatic search direction")
+    pe.add_argument("--max-offset", type=float, default=0.5, metavar="M",
+                    help="how far apart camera and laser can be (default 0.5 m)")
+    pe.add_argument("--board-size", type=float, nargs=2, metavar=("W", "H"),
+                    help="whole board in metres, width along the first corner count, pattern "
+                         "centred: the scan's end points on the board then constrain the "
+                         "extrinsic too (and the segment search is tighter)")
+    pe.add_argument("--mount", default="forward", choices=("forward", "any"),
+                    help="without --init: 'forward' assumes the laser looks where the camera "
+                         "looks (search direction and weak prior); 'any' assumes nothing")
+    pe.add_argument("--init", help="extrinsic guess YAML (T_camera_laser, T_laser_camera, rig or "
+                                   "tf-style); centre of the weak prior")
+    pe.add_argument("--prior-sigma", type=float, nargs=2, metavar=("DEG", "M"),
+                    help="strength of the prior towards the guess (default 20 deg, 0.5 m)")
+    pe.add_argument("--no-prior", action="store_true", help="no prior at all")
+    pe.add_argument("--loss", default="soft_l1",
+                    choices=("linear", "soft_l1", "huber", "cauchy", "arctan"),
+                    help="robust loss of the refinement (default soft_l1)")
+    pe.add_argument("--seed", type=int, default=0, help="RANSAC seed (default 0)")
+    pe.add_argument("--no-loo", action="store_true", help="skip the leave-one-out runs")
+    pe.set_defaults(func=cmd_extrinsic)
+
+    pc = sub.add_parser(
+        "check", help="overlay scans on images and score the extrinsic",
+        description="Project scan points into camera images coloured by range (PNG per "
+                    "frame) and score the extrinsic: agreement with depth maps when known, "
+                    "else alignment of range discontinuities with image edges; the score is "
+                    "also given with the extrinsic rotated about each camera axis.")
+    pc.add_argument("--sequence", help="sequence folder")
+    pc.add_argument("--rig", help="rig YAML with the extrinsic (default: the sequence's)")
+    pc.add_argument("--extrinsic", help="extrinsic YAML overriding the rig's")
+    pc.add_argument("--images", help="image folder (instead of --sequence)")
+    pc.add_argument("--scans", help="scan folder (instead of --sequence)")
+    pc.add_argument("--camera", help="camera YAML (with --images)")
+    pc.add_argument("--depth", help="folder of metric depth maps (<index:06d> or image stem, "
+                                    ".npy or .png)")
+    pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),
+                    help="auto: depth when every frame has a depth map, else edges")
+    pc.add_argument("--frames", type=int, default=12, help="frames to use (default 12)")
+    pc.add_argument("--max-dt", type=float, default=0.05, metavar="S",
+                    help="largest image-scan time difference (default 0.05 s)")
+    pc.add_argument("--perturb-deg", type=float, default=2.0,
+                    help="rotation of the sensitivity test (default 2 deg)")
+    pc.add_argument("--out", default="calibration_check", help="output folder")
+    pc.set_defaults(func=cmd_check)
+    return p
+
+
+def _models() -> dict[str, str]:
+    from calibration.intrinsics import MODELS
+
+    return MODELS
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except USER_ERRORS as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except Exception as e:
+        # Errors of the sequence reader name the file and field: show them the same way.
+        if type(e).__name__ == "SequenceFormatError":
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        raise

@@ -1,0 +1,685 @@
+"""Camera - 2D lidar extrinsic from views of a planar board (Zhang & Pless, IROS 2004).
+
+For every view the camera gives the board's plane ``n . q = d`` in the camera frame
+(PnP on the checkerboard corners) and the scan gives points ``p`` on that board in the
+laser frame. The extrinsic ``T_camera_laser = [R | t]`` must put those points on the
+plane: ``n . (R p + t) - d = 0``. This module solves that:
+
+1. a linear initialisation (Zhang & Pless' ``H = [r1 r2 t]`` least squares) and a guess of
+   the mount; when neither fits every view, the 24 axis-aligned mounts as further starts;
+   the start with the lowest robust cost wins;
+2. a refinement of the point-to-plane distances under a robust loss
+   (``scipy.optimize.least_squares``), then a joint maximum-likelihood refinement of the
+   extrinsic with every board pose (corner reprojection errors + point-to-plane distances,
+   + the scan's end points on the board outline when the board's size is known);
+3. rejection of views far off the others (wrong segment picked, board moved between image
+   and scan), also judged against the fit of the other views without them;
+4. the covariance from the Jacobian, and the directions the views leave unconstrained;
+5. leave-one-view-out stability.
+
+Everything here is pure: arrays in, arrays out, no files.
+
+Parameters are expressed as a rotation perturbation ``R = exp([w]x) R0`` about the
+*camera* axes plus the translation ``t`` (the laser origin in the camera frame), so that
+covariances and weak directions read as "rotation about camera x" and "along camera y".
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from calibration.board import BoardSpec
+from calibration.board_lines import fit_line
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import rotation_angle, se3
+
+AXIS_NAMES = (
+    "rotation about camera x (right: tilt up/down)",
+    "rotation about camera y (down: pan left/right)",
+    "rotation about camera z (forward: roll)",
+    "translation along camera x (right)",
+    "translation along camera y (down)",
+    "translation along camera z (forward)",
+)
+SHORT_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+
+
+class ExtrinsicError(ValueError):
+    """The views cannot give an extrinsic; the message says what is missing."""
+
+
+# ---------------------------------------------------------------------------- board planes
+
+
+@dataclass
+class BoardPlane:
+    """A board seen by the camera: its plane ``normal . q = distance`` in the camera frame."""
+
+    normal: np.ndarray  # [3] unit, pointing from the camera towards the board
+    distance: float  # metres, > 0
+    T_camera_board: np.ndarray  # [4, 4]
+    reprojection_rms_px: float
+
+    @property
+    def center(self) -> np.ndarray:
+        """[3] board frame origin in the camera frame."""
+        return self.T_camera_board[:3, 3]
+
+
+def board_plane(corners: np.ndarray, board: BoardSpec, camera: PinholeCamera) -> BoardPlane:
+    """The board's pose and plane from its detected corners [N, 2] (distorted pixels).
+
+    IPPE gives the planar pose without a starting guess (and without the two-fold
+    ambiguity iterative PnP can fall into at oblique views); an iterative refinement
+    then minimises the reprojection error through the full distortion model.
+    """
+    obj = board.object_points()  # [N, 3]
+    img = np.asarray(corners, dtype=np.float64).reshape(-1, 1, 2)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise ExtrinsicError("PnP failed on the board corners")
+    ok, rvec, tvec = cv2.solvePnP(obj, img, camera.K, camera.dist, rvec, tvec, True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img.reshape(-1, 2)) ** 2, 1))))
+    T = se3(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    n = T[:3, 2].copy()
+    d = float(n @ T[:3, 3])
+    if d < 0:
+        n, d = -n, -d
+    return BoardPlane(n, d, T, rms)
+
+
+@dataclass
+class View:
+    """One calibration view: the board plane from the camera, its points from the laser."""
+
+    name: str
+    plane: BoardPlane
+    points: np.ndarray  # [K, 2] laser frame metres, on the board
+    # For the joint refinement: the detected corners and their board-frame coordinates.
+    corners: np.ndarray | None = None  # [N, 2] distorted pixels
+    object_points: np.ndarray | None = None  # [N, 3] board frame metres
+    # Where the scan leaves the board (laser frame) and their sigmas, for boards of
+    # known size: these points lie on the board's outline.
+    edges: np.ndarray | None = None  # [E, 2] metres
+    edge_sigma: np.ndarray | None = None  # [E] metres
+
+
+def make_view(name: str, corners: np.ndarray, board: BoardSpec, camera: PinholeCamera,
+              points: np.ndarray) -> View:
+    """A view from detected corners [N, 2] and the board's laser points [K, 2]."""
+    return View(name, board_plane(corners, board, camera), np.asarray(points, np.float64),
+                np.asarray(corners, np.float64), board.object_points())
+
+
+# ---------------------------------------------------------------------------- residuals
+
+
+def _stack(views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per point: laser points [M, 3], normals [M, 3], distances [M], view ids [M]."""
+    P = np.concatenate([np.c_[v.points, np.zeros(len(v.points))] for v in views])
+    N = np.concatenate([np.repeat(v.plane.normal[None], len(v.points), 0) for v in views])
+    D = np.concatenate([np.full(len(v.points), v.plane.distance) for v in views])
+    ids = np.concatenate([np.full(len(v.points), i) for i, v in enumerate(views)])
+    return P, N, D, ids
+
+
+def point_to_plane(views: list[View], T_camera_laser: np.ndarray) -> list[np.ndarray]:
+    """Signed distances (metres) of each view's laser points to its board plane."""
+    R, t = T_camera_laser[:3, :3], T_camera_laser[:3, 3]
+    out = []
+    for v in views:
+        q = np.c_[v.points, np.zeros(len(v.points))] @ R.T + t  # [K, 3]
+        out.append(q @ v.plane.normal - v.plane.distance)
+    return out
+
+
+def _jacobian(P: np.ndarray, N: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """[M, 6] d residual / d (w, t) at w = 0 for ``R = exp([w]x) R``.
+
+    n . (exp(w) q + t) changes by n . (w x q) = w . (q x n), q = R p.
+    """
+    q = P @ R.T
+    return np.concatenate([np.cross(q, N), N], axis=1)
+
+
+@dataclass
+class _Problem:
+    P: np.ndarray  # [M, 3]
+    N: np.ndarray  # [M, 3]
+    D: np.ndarray  # [M]
+    sigma_m: float
+    prior: tuple[np.ndarray, float, float] | None  # (T0, sigma_rot_rad, sigma_t_m)
+
+
+def _solve(prob: _Problem, T0: np.ndarray, loss: str, f_scale: float, max_nfev: int) -> (
+    tuple[np.ndarray, float]
+):
+    """Refine from ``T0``; returns the transform and the final robust cost."""
+    R0 = T0[:3, :3].copy()
+    t0 = T0[:3, 3].copy()
+    cost = np.inf
+    # Re-linearise around the current rotation so the analytic Jacobian (exact at w = 0)
+    # is exact at the end, where the covariance is read.
+    for _ in range(4):
+        # R0 relative to the prior's rotation, so each call composes two rotations
+        # instead of decomposing a matrix.
+        rel = (Rotation.from_matrix(R0 @ prob.prior[0][:3, :3].T)
+               if prob.prior is not None else None)
+
+        def fun(x: np.ndarray, R0: np.ndarray = R0, rel: Rotation | None = rel) -> np.ndarray:
+            w = Rotation.from_rotvec(x[:3])
+            R = w.as_matrix() @ R0
+            r = ((prob.P @ R.T + x[3:]) * prob.N).sum(1) - prob.D
+            res = [r / prob.sigma_m]
+            if prob.prior is not None and rel is not None:
+                Tp, s_r, s_t = prob.prior
+                res.append((w * rel).as_rotvec() / s_r)
+                res.append((x[3:] - Tp[:3, 3]) / s_t)
+            return np.concatenate(res)
+
+        def jac(x: np.ndarray, R0: np.ndarray = R0) -> np.ndarray:
+            R = Rotation.from_rotvec(x[:3]).as_matrix() @ R0
+            J = [_jacobian(prob.P, prob.N, R) / prob.sigma_m]
+            if prob.prior is not None:
+                _, s_r, s_t = prob.prior
+                J.append(np.c_[np.eye(3) / s_r, np.zeros((3, 3))])
+                J.append(np.c_[np.zeros((3, 3)), np.eye(3) / s_t])
+            return np.concatenate(J)
+
+        sol = least_squares(fun, np.r_[0.0, 0.0, 0.0, t0], jac=jac, loss=loss,
+                            f_scale=f_scale, method="trf", x_scale="jac", max_nfev=max_nfev)
+        R0 = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0
+        t0 = sol.x[3:]
+        cost = float(sol.cost)
+        if np.linalg.norm(sol.x[:3]) < 1e-10:
+            break
+    return se3(R0, t0), cost
+
+
+# ---------------------------------------------------------------------------- initialisation
+
+
+def linear_init(views: list[View]) -> np.ndarray | None:
+    """Zhang & Pless' linear estimate, or None when the views do not determine it.
+
+    With laser points ``(x, y, 0)`` the camera point is ``H [x y 1]^T``, ``H = [r1 r2 t]``,
+    and every point gives one linear equation ``n^T H p = d`` in the nine entries of H.
+    """
+    P, N, D, _ = _stack(views)
+    A = np.concatenate([P[:, :1] * N, P[:, 1:2] * N, N], axis=1)  # [M, 9]
+    if len(A) < 9:
+        return None
+    h, *_ = np.linalg.lstsq(A, D, rcond=None)
+    H = h.reshape(3, 3).T  # columns h1 h2 h3
+    h1, h2 = H[:, 0], H[:, 1]
+    if np.linalg.norm(h1) < 1e-6 or np.linalg.norm(h2) < 1e-6:
+        return None
+    M = np.c_[h1, h2, np.cross(h1, h2)]
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return se3(R, _translation_given_rotation(P, N, D, R))
+
+
+def _translation_given_rotation(P: np.ndarray, N: np.ndarray, D: np.ndarray,
+                                R: np.ndarray) -> np.ndarray:
+    """Least-squares t with ``n . t = d - n . R p`` (minimum norm when underdetermined)."""
+    t, *_ = np.linalg.lstsq(N, D - ((P @ R.T) * N).sum(1), rcond=None)
+    return t
+
+
+def _axis_aligned_rotations() -> list[np.ndarray]:
+    """The 24 proper rotations whose columns are signed unit axes."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            for col, (row, s) in enumerate(zip(perm, signs, strict=True)):
+                R[row, col] = s
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return out
+
+
+# ---------------------------------------------------------------------------- result
+
+
+@dataclass
+class WeakDirection:
+    """A combination of parameters the views hardly constrain."""
+
+    std: float  # in normalised units: 1 = 1 degree or 1 cm
+    vector: np.ndarray  # [6] unit, over (rx, ry, rz, tx, ty, tz) in (deg, cm) units
+    description: str
+
+
+@dataclass
+class ExtrinsicResult:
+    """``T_camera_laser`` and what to think of it."""
+
+    T_camera_laser: np.ndarray  # [4, 4] p_camera_optical = T @ p_laser
+    residual_rms_m: float
+    per_view_rms_m: dict[str, float]
+    views_used: list[str]
+    views_rejected: dict[str, str]
+    n_points: int
+    covariance: np.ndarray  # [6, 6] over (w rad about camera axes, t m); inf where unknown
+    weak_directions: list[WeakDirection]
+    init_method: str
+    refinement: str = "point-to-plane"
+    guess: np.ndarray | None = None  # [4, 4] the prior's centre, if any
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def std_rotation_deg(self) -> np.ndarray:
+        """[3] about camera x, y, z."""
+        return np.degrees(np.sqrt(np.diag(self.covariance)[:3]))
+
+    @property
+    def std_translation_m(self) -> np.ndarray:
+        """[3] along camera x, y, z."""
+        return np.sqrt(np.diag(self.covariance)[3:])
+
+
+def _covariance(info: np.ndarray, weak_std: float) -> tuple[np.ndarray, list[WeakDirection]]:
+    """Covariance [6, 6] from the information matrix [6, 6] over (w rad, t m).
+
+    Directions whose standard deviation in (degree, cm) units exceeds ``weak_std`` are
+    reported as weak; those with no information at all get an infinite variance rather
+    than a pseudo-inverse's misleading zero.
+    """
+    S = np.diag([math.radians(1.0)] * 3 + [0.01] * 3)  # normalised unit -> (rad, m)
+    info_n = S @ info @ S  # [6, 6] in normalised units
+    lam, V = np.linalg.eigh(info_n)
+    floor = 1e-12 * max(lam.max(), 1e-300)
+    inv = np.where(lam > floor, 1.0 / np.maximum(lam, floor), np.inf)
+    with np.errstate(invalid="ignore"):
+        cov_n = np.zeros((6, 6))
+        for k in range(6):
+            if np.isinf(inv[k]):
+                mask = np.abs(V[:, k]) > 1e-6
+                cov_n[np.ix_(mask, mask)] = np.inf
+            else:
+                cov_n += inv[k] * np.outer(V[:, k], V[:, k])
+    cov = S @ cov_n @ S
+    weak = []
+    for k in np.argsort(-inv):
+        std = float(np.sqrt(inv[k]))
+        if std <= weak_std:
+            continue
+        v = V[:, k] * np.sign(V[np.argmax(np.abs(V[:, k])), k])
+        parts = [f"{abs(v[j]):.2f} x {SHORT_NAMES[j]}" for j in np.argsort(-np.abs(v))
+                 if abs(v[j]) >= 0.25]
+        main = AXIS_NAMES[int(np.argmax(np.abs(v)))]
+        std_txt = "unconstrained" if math.isinf(std) else f"std {std:.2g} deg|cm"
+        weak.append(WeakDirection(std, v, f"{main} ({std_txt}; mix {' + '.join(parts)})"))
+    return cov, weak
+
+
+# ---------------------------------------------------------------------------- solver
+
+
+@dataclass
+class SolverOptions:
+    """Settings of ``calibrate_extrinsic`` (defaults suit 1 cm lidar noise)."""
+
+    loss: str = "soft_l1"  # scipy least_squares loss; "linear" for plain least squares
+    f_scale_m: float = 0.02  # residual beyond which the robust loss down-weights points
+    reject_factor: float = 3.0  # a view is an outlier above this x the others' median RMS
+    reject_min_m: float = 0.01  # ... and above this RMS
+    min_views: int = 3
+    weak_std: float = 1.0  # report directions with std above 1 degree / 1 cm
+    # With a guess (``init``): a weak pull towards it that only decides directions the
+    # views leave open; it moves a well-constrained result by a negligible amount. None: off.
+    prior_sigma_deg: float | None = 20.0
+    prior_sigma_m: float | None = 0.5
+    multistart: bool = True
+    joint: bool = True  # refine board poses with the extrinsic (needs corners and a camera)
+
+
+def _prior(opts: SolverOptions, guess: np.ndarray | None) -> (
+    tuple[np.ndarray, float, float] | None
+):
+    if guess is None or not opts.prior_sigma_deg or not opts.prior_sigma_m:
+        return None
+    return guess, math.radians(opts.prior_sigma_deg), float(opts.prior_sigma_m)
+
+
+def _fit(views: list[View], opts: SolverOptions, guess: np.ndarray | None,
+         start: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """Best refined start: ``start``, ``guess``, linear, then the axis-aligned mounts."""
+    P, N, D, _ = _stack(views)
+    prob = _Problem(P, N, D, opts.f_scale_m, _prior(opts, guess))
+    starts: list[tuple[str, np.ndarray]] = []
+    if start is not None:
+        starts.append(("previous estimate", start))
+    if guess is not None:
+        starts.append(("given guess", guess))
+    lin = linear_init(views)
+    if lin is not None:
+        starts.append(("linear (Zhang & Pless)", lin))
+    best: tuple[float, np.ndarray, str] | None = None
+
+    def try_starts(cands: list[tuple[str, np.ndarray]]) -> None:
+        nonlocal best
+        for name, T0 in cands:
+            T, cost = _solve(prob, T0, opts.loss, 1.0, max_nfev=50)
+            # Earlier starts win ties: with weakly constrained data several starts reach
+            # the same cost and the informed one is the better guess.
+            if best is None or cost < best[0] * (1 - 1e-6) - 1e-12:
+                best = (cost, T, name)
+
+    try_starts(starts)
+    # The axis-aligned mounts are a safety net for a bad linear start (few or similar
+    # views, a wrong segment); not needed when a start already fits every view.
+    fits = best is not None and bool(np.all(_view_rms(views, best[1]) < 3 * opts.f_scale_m))
+    if (opts.multistart and not fits) or best is None:
+        try_starts([(f"axis-aligned #{k}", se3(R, _translation_given_rotation(P, N, D, R)))
+                    for k, R in enumerate(_axis_aligned_rotations())])
+    assert best is not None
+    T, _ = _solve(prob, best[1], opts.loss, 1.0, max_nfev=200)
+    return T, best[2]
+
+
+def _line_scatter(views: list[View]) -> float:
+    """Pooled RMS (metres) of the board points about each view's own fitted line."""
+    sq, n = 0.0, 0
+    for v in views:
+        if len(v.points) > 2:
+            _, _, rms = fit_line(v.points)
+            sq += rms**2 * len(v.points)
+            n += len(v.points)
+    return float(np.sqrt(sq / n)) if n else 0.0
+
+
+def _view_rms(views: list[View], T: np.ndarray) -> np.ndarray:
+    """[V] point-to-plane RMS of each view, metres."""
+    return np.array([np.sqrt(np.mean(r**2)) for r in point_to_plane(views, T)])
+
+
+def _outlier_view(views: list[View], opts: SolverOptions, guess: np.ndarray | None,
+                  T: np.ndarray) -> tuple[int, float, float] | None:
+    """(index, its RMS, the others' median RMS) of the view to reject, or None.
+
+    A view far off the fit of all views is the obvious case. But one bad view can drag
+    the fit until every view is a little off (a robust loss prefers spreading the error
+    to ignoring a whole board), so each view is also judged against the fit of the
+    others without it.
+    """
+    def verdict(rms: np.ndarray, i: int) -> tuple[float, float] | None:
+        others = float(np.median(np.delete(rms, i)))
+        if rms[i] > max(opts.reject_factor * others, opts.reject_min_m):
+            return float(rms[i]), others
+        return None
+
+    rms = _view_rms(views, T)
+    worst = int(np.argmax(rms))
+    v = verdict(rms, worst)
+    if v is not None:
+        return worst, *v
+    if len(views) < 4:
+        return None
+    quick = SolverOptions(**{**opts.__dict__, "multistart": False})
+    best: tuple[float, int, float, float] | None = None
+    for i in range(len(views)):
+        T_i, _ = _fit(views[:i] + views[i + 1:], quick, guess, start=T)
+        r = _view_rms(views, T_i)
+        v = verdict(r, i)
+        # Only a view that was dragging the others: without it they must fit clearly
+        # better. With weakly constrained views, leaving any one out lets the fit wander
+        # so that the left-out view disagrees, without it being wrong.
+        dragged = np.median(np.delete(r, i)) < 0.7 * np.median(np.delete(rms, i))
+        if v is not None and dragged and (best is None or v[0] / v[1] > best[0]):
+            best = (v[0] / v[1], i, *v)
+    return None if best is None else (best[1], best[2], best[3])
+
+
+def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
+                        options: SolverOptions | None = None,
+                        camera: PinholeCamera | None = None,
+                        start: np.ndarray | None = None,
+                        outline: tuple[np.ndarray, np.ndarray] | None = None) -> ExtrinsicResult:
+    """``T_camera_laser`` from board views, with outlier views rejected.
+
+    ``init`` [4, 4] is an optional starting guess (and, with the prior sigmas set in
+    ``options``, a soft constraint for directions the views leave open). With ``camera``
+    and views that carry their corners, the final estimate is the joint refinement; with
+    the board's ``outline`` (``BoardSpec.outline()``) it also uses the views' edge points.
+    """
+    opts = options or SolverOptions()
+    views = [v for v in views if len(v.points) >= 2]
+    if len(views) < opts.min_views:
+        raise ExtrinsicError(f"{len(views)} usable views; at least {opts.min_views} boards "
+                             "at different orientations are needed (6 or more recommended)")
+    rejected: dict[str, str] = {}
+    used = list(views)
+    T, init_method = _fit(used, opts, init, start)
+    while len(used) > opts.min_views:
+        found = _outlier_view(used, opts, init, T)
+        if found is None:
+            break
+        worst, rms_w, others = found
+        rejected[used[worst].name] = (
+            f"point-to-plane RMS {rms_w * 100:.1f} cm against a median of "
+            f"{others * 100:.1f} cm for the other views (wrong scan segment, board moved "
+            "between image and scan, or a bad corner detection)")
+        used.pop(worst)
+        T, init_method = _fit(used, opts, init, start=T)
+    res = point_to_plane(used, T)
+    r = np.concatenate(res)
+    # The laser noise seen without the extrinsic: the scatter of each board's points about
+    # their own line. With few views the extrinsic can fit the points better than the
+    # noise allows (it has as many unknowns as the views have constraints), and residuals
+    # alone would then make the covariance overconfident.
+    sigma_line = _line_scatter(used)
+    refine = "point-to-plane"
+    if camera is not None and opts.joint and all(v.corners is not None for v in used):
+        sigma_px = max(float(np.sqrt(np.mean([v.plane.reprojection_rms_px**2 for v in used])
+                                     / 2.0)), 0.02)
+        sigma_m = max(float(np.sqrt(np.mean(r**2))), sigma_line, 1e-3)
+        T, _, info = _joint_refine(used, T, camera, opts.loss, opts.f_scale_m / sigma_m,
+                                   sigma_px, sigma_m, _prior(opts, init), outline)
+        n_edges = sum(len(v.edges) for v in used if v.edges is not None) if outline else 0
+        refine = "joint (corners + point-to-plane" + (
+            f" + {n_edges} board-edge points)" if n_edges else ")")
+        res = point_to_plane(used, T)
+        r = np.concatenate(res)
+    else:
+        P, N, _, _ = _stack(used)
+        J = _jacobian(P, N, T[:3, :3])
+        info = J.T @ J / max(float(r @ r) / max(len(r) - 6, 1), sigma_line**2, 1e-12)
+    cov, weak = _covariance(info, opts.weak_std)
+    warnings = []
+    if len(used) < 5:
+        warnings.append(
+            f"only {len(used)} views: each board gives two constraints on the six unknowns, "
+            "so with fewer than 5 views there is little or no redundancy and a wrong "
+            "extrinsic can fit as well as the right one, with a small residual. Use 10 or "
+            "more views.")
+    if weak:
+        warnings.append(
+            "the views do not constrain all six degrees of freedom: "
+            + "; ".join(w.description for w in weak)
+            + ". Add views with the board turned about other axes (tilted forward and back as "
+              "well as turned left and right), at several distances.")
+    return ExtrinsicResult(
+        T_camera_laser=T,
+        residual_rms_m=float(np.sqrt(np.mean(r**2))),
+        per_view_rms_m={v.name: float(np.sqrt(np.mean(x**2))) for v, x in zip(used, res,
+                                                                             strict=True)},
+        views_used=[v.name for v in used],
+        views_rejected=rejected,
+        n_points=int(len(r)),
+        covariance=cov,
+        weak_directions=weak,
+        init_method=init_method,
+        refinement=refine,
+        guess=init,
+        warnings=warnings,
+    )
+
+
+# ---------------------------------------------------------------------------- joint refinement
+
+
+def _box_sdf(xy: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """[N] signed distance of board-frame points [N, 2] to the rectangle's outline."""
+    c, half = (lo + hi) / 2, (hi - lo) / 2
+    d = np.abs(xy - c) - half  # [N, 2]
+    return np.linalg.norm(np.maximum(d, 0.0), axis=1) + np.minimum(d.max(axis=1), 0.0)
+
+
+def _joint_refine(views: list[View], T: np.ndarray, camera: PinholeCamera, loss: str,
+                  f_scale: float, sigma_px: float, sigma_m: float,
+                  prior: tuple[np.ndarray, float, float] | None = None,
+                  outline: tuple[np.ndarray, np.ndarray] | None = None) -> (
+    tuple[np.ndarray, list[np.ndarray], np.ndarray]
+):
+    """Maximum-likelihood refinement of the extrinsic together with every board pose.
+
+    The plane-only fit treats each PnP plane as exact, but with sub-pixel corner noise
+    a board's tilt is uncertain by tenths of a degree and that error, shared by all the
+    view's laser points, dominates. Here the corners' reprojection errors (over
+    ``sigma_px``) and the point-to-plane distances (over ``sigma_m``) are minimised
+    together, so uncertain planes weigh less and the laser helps to place them.
+
+    Returns the extrinsic, the refined board poses [4, 4] and the marginal information
+    matrix [6, 6] of the extrinsic over (w rad, t m).
+    """
+    V = len(views)
+    n_par = 6 + 6 * V
+    Rb0 = [v.plane.T_camera_board[:3, :3].copy() for v in views]
+    Re0 = T[:3, :3].copy()
+    x0 = np.zeros(n_par)
+    x0[3:6] = T[:3, 3]
+    for i, v in enumerate(views):
+        x0[6 + 6 * i + 3: 12 + 6 * i] = v.plane.T_camera_board[:3, 3]
+    rows: list[tuple[int, int, bool]] = []  # (view, count, is_laser)
+    use_edges = [outline is not None and v.edges is not None and len(v.edges) > 0
+                 for v in views]
+    for i, v in enumerate(views):
+        assert v.corners is not None
+        rows.append((i, 2 * len(v.corners), False))
+        rows.append((i, len(v.points), True))
+        if use_edges[i]:
+            assert v.edges is not None
+            rows.append((i, len(v.edges), True))
+    m = sum(c for _, c, _ in rows) + (6 if prior is not None else 0)
+    sparsity = np.zeros((m, n_par), dtype=bool)
+    r0 = 0
+    for i, c, laser in rows:
+        sparsity[r0:r0 + c, 6 + 6 * i: 12 + 6 * i] = True
+        if laser:
+            sparsity[r0:r0 + c, :6] = True
+        r0 += c
+    sparsity[r0:, :6] = True  # the prior rows, if any
+    P3 = [np.c_[v.points, np.zeros(len(v.points))] for v in views]
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray],
+                                       list[np.ndarray]]:
+        Re = Rotation.from_rotvec(x[:3]).as_matrix() @ Re0
+        Rb = [Rotation.from_rotvec(x[6 + 6 * i: 9 + 6 * i]).as_matrix() @ Rb0[i]
+              for i in range(V)]
+        tb = [x[9 + 6 * i: 12 + 6 * i] for i in range(V)]
+        return Re, x[3:6], Rb, tb
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        Re, te, Rb, tb = unpack(x)
+        out = []
+        for i, v in enumerate(views):
+            assert v.object_points is not None and v.corners is not None
+            uv, _ = camera.project(v.object_points @ Rb[i].T + tb[i])
+            out.append(((uv - v.corners) / sigma_px).ravel())
+            n = Rb[i][:, 2]
+            out.append(((P3[i] @ Re.T + te) @ n - n @ tb[i]) / sigma_m)
+            if use_edges[i]:
+                assert v.edges is not None and v.edge_sigma is not None and outline is not None
+                e3 = np.c_[v.edges, np.zeros(len(v.edges))] @ Re.T + te
+                xy = ((e3 - tb[i]) @ Rb[i])[:, :2]  # board frame
+                out.append(_box_sdf(xy, *outline) / v.edge_sigma)
+        if prior is not None:
+            Tp, s_r, s_t = prior
+            out.append(Rotation.from_matrix(Re @ Tp[:3, :3].T).as_rotvec() / s_r)
+            out.append((te - Tp[:3, 3]) / s_t)
+        return np.concatenate(out)
+
+    sol = least_squares(fun, x0, jac="2-point", jac_sparsity=sparsity, loss=loss,
+                        f_scale=f_scale, method="trf", x_scale="jac", max_nfev=100)
+    Re, te, Rb, tb = unpack(sol.x)
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)  # [M, n]
+    if prior is not None:
+        # The reported uncertainty is the data's alone, so that weak directions show
+        # even where the prior holds them in place.
+        J = J[:-6]
+        m -= 6
+    fun_data = sol.fun[:m]
+    # Variance factor, at least 1: the sigmas are independent estimates of the noise, and
+    # residuals below them mean overfitting, not better data.
+    s2 = max(float(fun_data @ fun_data) / max(m - n_par, 1), 1.0)
+    H = J.T @ J / s2
+    A, B, C = H[:6, :6], H[:6, 6:], H[6:, 6:]
+    # Marginal information of the extrinsic: board poses integrated out (Schur complement).
+    info = A - B @ np.linalg.solve(C + 1e-12 * np.eye(len(C)), B.T)
+    return se3(Re, te), [se3(Rb[i], tb[i]) for i in range(V)], 0.5 * (info + info.T)
+
+
+# ---------------------------------------------------------------------------- stability
+
+
+@dataclass
+class LeaveOneOut:
+    """Spread of the extrinsic when each view in turn is left out."""
+
+    rotation_deg: dict[str, float]  # left-out view -> angle to the all-views solution
+    translation_m: dict[str, float]  # left-out view -> distance to the all-views solution
+    rotation_spread_deg: float  # largest of the above
+    translation_spread_m: float
+    rotation_std_deg: np.ndarray  # [3] std of the rotation over the runs, about camera x y z
+    translation_std_m: np.ndarray  # [3]
+
+
+def leave_one_out(views: list[View], result: ExtrinsicResult,
+                  options: SolverOptions | None = None,
+                  camera: PinholeCamera | None = None,
+                  outline: tuple[np.ndarray, np.ndarray] | None = None) -> LeaveOneOut | None:
+    """Re-solve without each used view in turn (None with fewer than 4 views).
+
+    The same estimator as the full solve (joint when ``camera`` is given), started from
+    the full solution, without view rejection.
+    """
+    opts = options or SolverOptions()
+    used = [v for v in views if v.name in result.views_used]
+    if len(used) < 4:
+        return None
+    T_all = result.T_camera_laser
+    rot: dict[str, float] = {}
+    tra: dict[str, float] = {}
+    rvecs, tvecs = [], []
+    fixed = SolverOptions(**{**opts.__dict__, "multistart": False,
+                             "min_views": len(used) - 1})
+    for i, v in enumerate(used):
+        rest = used[:i] + used[i + 1:]
+        T = calibrate_extrinsic(rest, result.guess, fixed, camera, start=T_all,
+                                outline=outline).T_camera_laser
+        dR = T[:3, :3] @ T_all[:3, :3].T
+        rot[v.name] = float(np.degrees(rotation_angle(dR)))
+        tra[v.name] = float(np.linalg.norm(T[:3, 3] - T_all[:3, 3]))
+        rvecs.append(np.degrees(Rotation.from_matrix(dR).as_rotvec()))
+        tvecs.append(T[:3, 3])
+    return LeaveOneOut(rot, tra, max(rot.values()), max(tra.values()),
+                       np.std(rvecs, axis=0), np.std(tvecs, axis=0))
+
+
+def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in metres) between two extrinsics."""
+    dR = T_est[:3, :3] @ T_true[:3, :3].T
+    return float(np.degrees(rotation_angle(dR))), float(np.linalg.norm(T_est[:3, 3]
+                                                                      - T_true[:3, 3]))

@@ -1,0 +1,198 @@
+"""Calibration files: camera YAML, extrinsic / rig YAML, in the toolkit's conventions.
+
+The extrinsic is stored as ``T_camera_laser`` (``p_camera_optical = T_camera_laser @
+p_laser``) with the direction written next to it, together with the same transform in
+tf form (parent ``camera_optical``, child ``laser``, xyz + quaternion xyzw), which is what
+``static_transform_publisher`` and a ROS ``TransformStamped`` take. Readers accept the
+toolkit's rig YAML, a bare ``T_camera_laser`` or ``T_laser_camera`` matrix, and tf-style
+mappings, so a result from another tool can be checked with ``python -m calibration check``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
+from toolkit.io.atomic import atomic_write_text
+from toolkit.sensors import Rig
+
+DIRECTION = "p_camera_optical = T_camera_laser @ p_laser (maps laser points into the camera)"
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file is missing or malformed; the message names the file and field."""
+
+
+def _load_yaml(path: Path, what: str) -> Any:
+    path = Path(path)
+    if not path.exists():
+        raise CalibrationFileError(f"{path}: {what} file not found")
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise CalibrationFileError(f"{path}: not valid YAML: {e}") from None
+
+
+# ---------------------------------------------------------------------------- camera
+
+
+def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
+    """A camera from the toolkit's camera/rig YAML or a ROS ``camera_info`` YAML."""
+    if not isinstance(d, dict):
+        raise CalibrationFileError(f"{source}: expected a mapping with the camera intrinsics")
+    if "camera" in d and isinstance(d["camera"], dict):
+        d = d["camera"]
+    try:
+        if "camera_matrix" in d or "image_width" in d:
+            # ROS camera_calibration output (camera_info YAML).
+            K = np.asarray(d["camera_matrix"]["data"], dtype=np.float64).reshape(3, 3)
+            dist = np.asarray(d.get("distortion_coefficients", {}).get("data", []),
+                              dtype=np.float64)
+            return PinholeCamera.from_K(K, int(d["image_width"]), int(d["image_height"]),
+                                        dist[:5])
+        return PinholeCamera.from_dict(d)
+    except KeyError as e:
+        raise CalibrationFileError(f"{source}: missing field {e} (need width, height, fx, fy, "
+                                   "cx, cy[, distortion], or a ROS camera_info YAML)") from None
+    except (TypeError, ValueError) as e:
+        raise CalibrationFileError(f"{source}: bad camera field: {e}") from None
+
+
+def load_camera(path: Path) -> PinholeCamera:
+    """Read a camera YAML (toolkit camera, rig, or ROS camera_info)."""
+    return camera_from_mapping(_load_yaml(path, "camera"), str(path))
+
+
+def check_image_size(camera: PinholeCamera, camera_source: str, image_path: Path,
+                     size: tuple[int, int]) -> None:
+    """Raise when an image's (width, height) differs from the camera's."""
+    if tuple(size) != camera.size:
+        w, h = size
+        raise CalibrationFileError(
+            f"{image_path}: image is {w}x{h} but {camera_source} fields width/height say "
+            f"{camera.width}x{camera.height}. Use the camera YAML calibrated at this "
+            f"resolution (python -m calibration intrinsics --images ...), or rescale the "
+            f"intrinsics if the images were resized.")
+
+
+def write_camera(path: Path, camera: PinholeCamera, info: dict[str, Any] | None = None) -> None:
+    """Camera YAML: the toolkit's camera mapping plus an optional ``calibration`` block."""
+    d: dict[str, Any] = camera.to_dict()
+    d["distortion_model"] = "opencv k1 k2 p1 p2 k3"
+    if info:
+        d["calibration"] = info
+    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False))
+
+
+# ---------------------------------------------------------------------------- extrinsic
+
+
+def _matrix(value: Any, source: str, field: str) -> np.ndarray:
+    M = np.asarray(value, dtype=np.float64)
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise CalibrationFileError(f"{source}: field '{field}' must be a finite 4x4 matrix "
+                                   f"(list of rows), got shape {M.shape}")
+    if not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-5):
+        raise CalibrationFileError(f"{source}: field '{field}' is not a rigid transform")
+    return M
+
+
+def _tf(d: dict[str, Any], source: str) -> np.ndarray:
+    """T_parent_child of a tf-style mapping (xyz + quaternion xyzw)."""
+    xyz = d.get("translation", d.get("xyz"))
+    quat = d.get("rotation", d.get("quaternion", d.get("quat_xyzw")))
+    if isinstance(xyz, dict):
+        xyz = [xyz.get(k) for k in "xyz"]
+    if isinstance(quat, dict):
+        quat = [quat.get(k) for k in "xyzw"]
+    try:
+        xyz_a = np.asarray(xyz, dtype=np.float64).reshape(3)
+        q = np.asarray(quat, dtype=np.float64).reshape(4)
+    except (TypeError, ValueError):
+        raise CalibrationFileError(f"{source}: tf-style extrinsic needs 'translation' [x, y, z] "
+                                   "and 'rotation' [qx, qy, qz, qw]") from None
+    if not 0.5 < np.linalg.norm(q) < 2.0:
+        raise CalibrationFileError(f"{source}: field 'rotation' is not a unit quaternion xyzw")
+    return pose_from_xyz_quat(xyz_a, q / np.linalg.norm(q))
+
+
+_CAMERA_NAMES = {"camera", "camera_optical", "camera_optical_frame", "cam", "camera_link_optical"}
+_LASER_NAMES = {"laser", "lidar", "laser_frame", "scan", "base_scan", "lidar_link", "laser_link"}
+
+
+def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
+    """T_camera_laser [4, 4] from any of the accepted layouts."""
+    if not isinstance(d, dict):
+        raise CalibrationFileError(f"{source}: expected a mapping")
+    if "T_camera_laser" in d:
+        return _matrix(d["T_camera_laser"], source, "T_camera_laser")
+    if "T_laser_camera" in d:
+        return inv_se3(_matrix(d["T_laser_camera"], source, "T_laser_camera"))
+    if "T_base_camera" in d and "T_base_laser" in d:
+        Tbc = _matrix(d["T_base_camera"], source, "T_base_camera")
+        return inv_se3(Tbc) @ _matrix(d["T_base_laser"], source, "T_base_laser")
+    tf = d.get("tf", d)
+    if isinstance(tf, dict) and ("parent" in tf or "frame_id" in tf):
+        parent = str(tf.get("parent", tf.get("frame_id", ""))).strip("/")
+        child = str(tf.get("child", tf.get("child_frame_id", ""))).strip("/")
+        T = _tf(tf, source)  # T_parent_child
+        if parent in _CAMERA_NAMES and child in _LASER_NAMES:
+            return T
+        if parent in _LASER_NAMES and child in _CAMERA_NAMES:
+            return inv_se3(T)
+        raise CalibrationFileError(
+            f"{source}: tf from {parent!r} to {child!r}: need a camera optical frame "
+            f"({sorted(_CAMERA_NAMES)}) and a laser frame ({sorted(_LASER_NAMES)}). A "
+            "camera_link (x forward) frame is not the optical frame; convert it first.")
+    raise CalibrationFileError(
+        f"{source}: no extrinsic found: give 'T_camera_laser' (4x4, {DIRECTION}), "
+        "'T_laser_camera', a rig (T_base_camera + T_base_laser) or a tf mapping "
+        "(parent, child, translation, rotation xyzw)")
+
+
+def load_extrinsic(path: Path) -> np.ndarray:
+    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML."""
+    return extrinsic_from_mapping(_load_yaml(path, "extrinsic"), str(path))
+
+
+def extrinsic_to_mapping(T_camera_laser: np.ndarray) -> dict[str, Any]:
+    """The matrix with its direction, and the same transform in tf form."""
+    xyz, q = pose_to_xyz_quat(T_camera_laser)
+    return {
+        "T_camera_laser": [[float(v) for v in row] for row in T_camera_laser],
+        "direction": DIRECTION,
+        "tf": {"parent": "camera_optical", "child": "laser",
+               "translation": [float(v) for v in xyz],
+               "rotation": [float(v) for v in q],
+               "note": "tf convention: maps child (laser) points into the parent (camera) "
+                       "frame; quaternion order x y z w"},
+    }
+
+
+def rig_for_extrinsic(camera: PinholeCamera, T_camera_laser: np.ndarray,
+                      base_rig: Rig | None = None) -> Rig:
+    """A rig holding the calibrated extrinsic.
+
+    With ``base_rig`` the camera stays where it was on the robot and the laser moves;
+    without one, ``base_link`` is put at the laser (a 2D lidar is usually mounted level
+    on the base), so ``T_base_laser`` is the identity.
+    """
+    if base_rig is not None:
+        return Rig(camera, base_rig.T_base_camera.copy(),
+                   base_rig.T_base_camera @ T_camera_laser)
+    return Rig(camera, inv_se3(T_camera_laser), np.eye(4))
+
+
+def write_rig_with_calibration(path: Path, rig: Rig, info: dict[str, Any]) -> None:
+    """Rig YAML (read by ``toolkit.io.sequence.read_rig``) plus the extrinsic and its stats."""
+    from toolkit.io.sequence import rig_to_dict
+
+    d = rig_to_dict(rig)
+    d.update(extrinsic_to_mapping(rig.T_camera_laser))
+    d["calibration"] = info
+    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False))

@@ -1,0 +1,134 @@
+"""Camera intrinsics from checkerboard views (OpenCV's Zhang-style calibration).
+
+Pure core: ``calibrate_intrinsics`` takes detections (corners per image) and returns the
+camera with its errors; reading images is ``detect_folder``'s job. Images whose
+reprojection error stands far above the others' (motion blur, a misdetected corner)
+are dropped and the calibration redone, and each drop is reported with its reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calibration.board import (
+    BoardError,
+    BoardSpec,
+    Detection,
+    board_hint,
+    detect_corners,
+    list_images,
+    read_image,
+)
+from toolkit.camera import PinholeCamera
+
+# Distortion models by name: which of k1 k2 p1 p2 k3 are estimated (COLMAP-like names).
+MODELS = {
+    "pinhole": "no distortion",
+    "radial": "k1 k2",
+    "opencv": "k1 k2 p1 p2 (COLMAP's OPENCV)",
+    "opencv5": "k1 k2 p1 p2 k3 (k3 needs many views reaching the image corners)",
+}
+_FLAGS = {
+    "pinhole": (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+                | cv2.CALIB_ZERO_TANGENT_DIST),
+    "radial": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
+    "opencv": cv2.CALIB_FIX_K3,
+    "opencv5": 0,
+}
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+
+
+class IntrinsicsError(ValueError):
+    """Too few usable views, or inconsistent images."""
+
+
+@dataclass
+class IntrinsicsResult:
+    camera: PinholeCamera
+    rms_px: float  # over all corners of the used images
+    per_image_rms_px: dict[str, float]
+    used: list[str]
+    rejected: dict[str, str] = field(default_factory=dict)  # image -> reason
+    model: str = "opencv"
+    std: dict[str, float] = field(default_factory=dict)  # fx fy cx cy k1 ... standard deviations
+
+    def info(self) -> dict[str, object]:
+        """The block written under ``calibration`` in the camera YAML."""
+        return {"rms_px": self.rms_px, "model": self.model, "images_used": len(self.used),
+                "per_image_rms_px": self.per_image_rms_px, "rejected": self.rejected,
+                "std": self.std}
+
+
+def calibrate_intrinsics(detections: list[Detection], board: BoardSpec, model: str = "opencv",
+                         max_image_rms_px: float | None = None, min_images: int = 3,
+                         reject_factor: float = 3.0) -> IntrinsicsResult:
+    """Calibrate from detections of one camera (all the same image size).
+
+    An image is rejected when its RMS exceeds ``max_image_rms_px`` if given, else
+    ``reject_factor`` times the median of the others (and 0.5 px), one at a time.
+    """
+    if model not in _FLAGS:
+        raise IntrinsicsError(f"model {model!r}: choose one of {', '.join(MODELS)}")
+    sizes = {d.image_size for d in detections}
+    if len(sizes) > 1:
+        raise IntrinsicsError(f"images have different sizes {sorted(sizes)}; calibrate each "
+                              "camera resolution separately")
+    dets = list(detections)
+    rejected: dict[str, str] = {}
+    obj = board.object_points().astype(np.float32)
+    while True:
+        if len(dets) < min_images:
+            raise IntrinsicsError(
+                f"{len(dets)} usable views; at least {min_images} are needed (10-20 recommended, "
+                f"with the board tilted and reaching the image corners). Rejected: {rejected}")
+        size = dets[0].image_size
+        flags = _FLAGS[model]
+        if len(dets) < 5 and model != "pinhole":
+            # Few views cannot separate the principal point from the board poses.
+            flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        rms, K, dist, rvecs, tvecs, std_intr, _, per_view = cv2.calibrateCameraExtended(
+            [obj] * len(dets), [d.corners.astype(np.float32).reshape(-1, 1, 2) for d in dets],
+            size, None, None, flags=flags, criteria=_CRITERIA)
+        per = {d.name: float(e) for d, e in zip(dets, np.ravel(per_view), strict=True)}
+        errs = np.array(list(per.values()))
+        worst = int(np.argmax(errs))
+        others = float(np.median(np.delete(errs, worst))) if len(errs) > 1 else errs[0]
+        limit = max_image_rms_px if max_image_rms_px is not None else max(
+            reject_factor * others, 0.5)
+        if errs[worst] > limit and len(dets) > min_images:
+            rejected[dets[worst].name] = (f"reprojection RMS {errs[worst]:.2f} px above the "
+                                          f"limit {limit:.2f} px (blur or a misdetected corner)")
+            dets.pop(worst)
+            continue
+        break
+    d5 = np.zeros(5)
+    d5[: min(5, dist.size)] = np.ravel(dist)[:5]
+    cam = PinholeCamera.from_K(K, size[0], size[1], d5)
+    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]
+    std = {n: float(s) for n, s in zip(names, np.ravel(std_intr)[:9], strict=True)}
+    return IntrinsicsResult(cam, float(rms), per, [d.name for d in dets], rejected, model, std)
+
+
+def detect_folder(folder: Path, board: BoardSpec) -> tuple[list[Detection], dict[str, str]]:
+    """Detections in every image of ``folder``; the images without a board, with reasons."""
+    paths = list_images(folder)
+    dets: list[Detection] = []
+    missed: dict[str, str] = {}
+    first = None
+    for p in paths:
+        img = read_image(p)
+        first = img if first is None else first
+        d = detect_corners(img, board, name=p.name)
+        if d is None:
+            missed[p.name] = f"no {board.cols}x{board.rows} board found"
+        else:
+            dets.append(d)
+    if not dets:
+        hint = board_hint(first, board) if first is not None else ""
+        raise BoardError(f"no {board} found in any of the {len(paths)} images in "
+                         f"{folder}.{hint}")
+    return dets, missed

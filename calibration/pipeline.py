@@ -1,0 +1,455 @@
+"""From image and scan files to an extrinsic: detection, pairing, board points, solve.
+
+This is the edge where files are read; the maths lives in ``board``, ``board_lines`` and
+``extrinsic``. ``run_extrinsic`` is what the command line and the recipe stage call.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.board import (
+    BoardError,
+    BoardSpec,
+    Detection,
+    board_hint,
+    detect_corners,
+    list_images,
+    read_image,
+)
+from calibration.board_lines import (
+    BoardExpectation,
+    board_edge_points,
+    extract_segments,
+    points_near_plane,
+    select_board_segment,
+)
+from calibration.extrinsic import (
+    ExtrinsicError,
+    ExtrinsicResult,
+    LeaveOneOut,
+    SolverOptions,
+    View,
+    calibrate_extrinsic,
+    leave_one_out,
+    make_view,
+)
+from calibration.files import check_image_size
+from calibration.frames import R_CAMERA_LASER_NOMINAL
+from calibration.scans import (
+    PairingError,
+    StampedScan,
+    describe_unpaired,
+    pair_by_stamp,
+    read_scans,
+    stamp_from_name,
+)
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import inv_se3, se3
+
+log = logging.getLogger("calibration")
+
+
+@dataclass
+class BoardSearch:
+    """How to find the board's points in a scan."""
+
+    angle_window_deg: tuple[float, float] | None = None  # laser bearings to search (manual)
+    max_offset_m: float = 0.5  # how far apart the two sensors can be
+    min_length_m: float | None = None  # default: half the printed pattern's short side
+    max_length_m: float | None = None  # default: the board's diagonal, or 4x the pattern
+    inlier_m: float = 0.02  # RANSAC line tolerance
+    seed: int = 0
+    # "forward": without --init, assume the laser looks where the camera does (laser x
+    # along the optical axis, z up) to pick segments and as a weak prior; "any": no guess.
+    mount: str = "forward"
+
+    def lengths(self, board: BoardSpec) -> tuple[float, float]:
+        w, h = board.pattern_extent
+        lo = self.min_length_m if self.min_length_m is not None else 0.5 * min(w, h)
+        if self.max_length_m is not None:
+            hi = self.max_length_m
+        elif board.size is not None:
+            hi = float(np.hypot(*board.size)) * 1.1
+        else:
+            hi = max(4.0 * float(np.hypot(w, h)), 1.0)
+        return lo, hi
+
+
+@dataclass
+class ViewCandidate:
+    """An image/scan pair whose image shows the board."""
+
+    name: str
+    detection: Detection
+    scan: StampedScan
+    dt: float
+
+
+@dataclass
+class ExtrinsicRun:
+    """Everything ``run_extrinsic`` found, for reports and the YAML/JSON outputs."""
+
+    result: ExtrinsicResult
+    loo: LeaveOneOut | None
+    views: list[View]
+    candidates: list[ViewCandidate]
+    skipped: dict[str, str] = field(default_factory=dict)  # image/view -> why not used
+    board: BoardSpec | None = None
+
+    def summary(self) -> dict[str, Any]:
+        r = self.result
+        out: dict[str, Any] = {
+            "views_used": len(r.views_used),
+            "views_rejected": r.views_rejected,
+            "images_skipped": self.skipped,
+            "residual_rms_m": r.residual_rms_m,
+            "per_view_rms_m": r.per_view_rms_m,
+            "points_on_board": r.n_points,
+            "std_rotation_deg": [float(v) for v in r.std_rotation_deg],
+            "std_translation_m": [float(v) for v in r.std_translation_m],
+            "std_axes": "camera optical x (right), y (down), z (forward)",
+            "weak_directions": [w.description for w in r.weak_directions],
+            "initialisation": r.init_method,
+            "refinement": r.refinement,
+            "warnings": r.warnings,
+        }
+        if self.loo is not None:
+            out["leave_one_out"] = {
+                "rotation_spread_deg": self.loo.rotation_spread_deg,
+                "translation_spread_m": self.loo.translation_spread_m,
+                "rotation_std_deg": [float(v) for v in self.loo.rotation_std_deg],
+                "translation_std_m": [float(v) for v in self.loo.translation_std_m],
+                "per_view_rotation_deg": self.loo.rotation_deg,
+                "per_view_translation_m": self.loo.translation_m,
+            }
+        if self.board is not None:
+            out["board"] = {"inner_corners": [self.board.cols, self.board.rows],
+                            "square_m": self.board.square}
+        return out
+
+
+# ---------------------------------------------------------------------------- inputs
+
+
+@dataclass
+class ImageSource:
+    paths: list[Path]
+    stamps: np.ndarray  # [I] seconds
+
+
+def images_from_folder(folder: Path) -> ImageSource:
+    paths = list_images(folder)
+    return ImageSource(paths, np.array([stamp_from_name(p) for p in paths]))
+
+
+def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | None,
+               camera_source: str = "camera YAML", min_found: int = 3) -> (
+    tuple[dict[int, Detection], dict[str, str]]
+):
+    """Detect the board in every image; raise if it is found in fewer than ``min_found``.
+
+    Image size is checked against the camera on every image, since a wrong camera YAML
+    gives plausible-looking but wrong planes rather than an obvious failure.
+    """
+    found: dict[int, Detection] = {}
+    missed: dict[str, str] = {}
+    first_image = None
+    for i, p in enumerate(images.paths):
+        img = read_image(p)
+        if first_image is None:
+            first_image = img
+        h, w = img.shape[:2]
+        if camera is not None:
+            check_image_size(camera, camera_source, p, (w, h))
+        det = detect_corners(img, board, name=p.name)
+        if det is None:
+            missed[p.name] = f"no {board.cols}x{board.rows} board found"
+        else:
+            found[i] = det
+    folder = images.paths[0].parent if images.paths else "?"
+    if not found:
+        hint = board_hint(first_image, board) if first_image is not None else ""
+        raise BoardError(f"no {board} found in any of the {len(images.paths)} "
+                         f"images in {folder}.{hint}")
+    if len(found) < min_found:
+        hint = board_hint(first_image, board) if first_image is not None else ""
+        names = ", ".join(d.name for d in found.values())
+        raise BoardError(f"the {board} was found in only {len(found)} of the "
+                         f"{len(images.paths)} images in {folder} ({names}); at least "
+                         f"{min_found} views are needed.{hint}")
+    return found, missed
+
+
+def pair_views(images: ImageSource, detections: dict[int, Detection], scans: list[StampedScan],
+               max_dt: float, skip_unpaired: bool) -> tuple[list[ViewCandidate], dict[str, str]]:
+    """Image/scan pairs of the images that show the board."""
+    idx = sorted(detections)
+    stamps = images.stamps[idx]
+    scan_stamps = np.array([s.stamp for s in scans])
+    pairs, unpaired = pair_by_stamp(stamps, scan_stamps, max_dt)
+    names = [images.paths[i].name for i in idx]
+    skipped: dict[str, str] = {}
+    if unpaired:
+        msg = describe_unpaired(unpaired, names, stamps, scan_stamps, max_dt)
+        if not skip_unpaired or not pairs:
+            raise PairingError(msg)
+        log.warning(msg)
+        for k in unpaired:
+            skipped[names[k]] = f"no scan within {max_dt * 1000:.0f} ms"
+    cands = [ViewCandidate(names[p.image_index], detections[idx[p.image_index]],
+                           scans[p.scan_index], p.dt) for p in pairs]
+    return cands, skipped
+
+
+# ---------------------------------------------------------------------------- board points
+
+
+def mount_guess(search: BoardSearch, init: np.ndarray | None) -> np.ndarray | None:
+    """[4, 4] T_camera_laser guess: the given one, the forward mount, or None."""
+    if init is not None:
+        return init
+    if search.mount == "forward":
+        return se3(R_CAMERA_LASER_NOMINAL)
+    if search.mount == "any":
+        return None
+    raise ValueError(f"mount {search.mount!r}: use 'forward' or 'any'")
+
+
+def _expectation(view_plane: Any, board: BoardSpec, search: BoardSearch,
+                 guess: np.ndarray | None) -> BoardExpectation:
+    T = view_plane.T_camera_board
+    c = T[:3, :3] @ board.center + T[:3, 3]
+    rng = float(np.linalg.norm(c))
+    inc = float(np.arccos(np.clip(abs(view_plane.normal @ c) / rng, 0.0, 1.0)))
+    lo, hi = search.lengths(board)
+    win = None
+    if search.angle_window_deg is not None:
+        win = (math.radians(search.angle_window_deg[0]), math.radians(search.angle_window_deg[1]))
+    bearing = None
+    if guess is not None and win is None:
+        c_l = inv_se3(guess) @ np.r_[c, 1.0]
+        bearing = float(np.arctan2(c_l[1], c_l[0]))
+    return BoardExpectation(view_plane.distance, rng, inc, lo, hi, search.max_offset_m, win,
+                            bearing, expected_length_m=min(board.pattern_extent))
+
+
+def _points_from_segments(cand: ViewCandidate, plane: Any, board: BoardSpec,
+                          search: BoardSearch, guess: np.ndarray | None) -> (
+    tuple[np.ndarray | None, str]
+):
+    """[K] indices of the scan points of the segment that best matches the board."""
+    pts = cand.scan.points
+    keep = np.arange(len(pts))
+    if search.angle_window_deg is not None:
+        a = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+        lo, hi = search.angle_window_deg
+        keep = np.nonzero((a >= lo) & (a <= hi))[0]
+        pts = pts[keep]
+    segs = extract_segments(pts, seed=search.seed, inlier_m=search.inlier_m)
+    seg, why = select_board_segment(segs, _expectation(plane, board, search, guess))
+    if seg is None:
+        return None, why
+    return keep[seg.indices], ""
+
+
+def _points_from_prediction(cand: ViewCandidate, plane: Any, board: BoardSpec,
+                            T_camera_laser: np.ndarray, tol_m: float,
+                            search: BoardSearch) -> np.ndarray:
+    """[K] indices of the scan points on the board plane ``T_camera_laser`` predicts."""
+    T_lc = inv_se3(T_camera_laser)
+    n_l = T_lc[:3, :3] @ plane.normal
+    off_l = plane.distance - plane.normal @ T_camera_laser[:3, 3]
+    c_cam = plane.T_camera_board[:3, :3] @ board.center + plane.T_camera_board[:3, 3]
+    c_l = T_lc[:3, :3] @ c_cam + T_lc[:3, 3]
+    _, hi = search.lengths(board)
+    return points_near_plane(cand.scan.points, n_l, off_l, c_l, tol_m, 0.5 * hi + 0.1)
+
+
+def build_views(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCamera,
+                search: BoardSearch, T_camera_laser: np.ndarray | None = None,
+                tol_m: float = 0.03, guess: np.ndarray | None = None) -> (
+    tuple[list[View], dict[str, str]]
+):
+    """Views with their board points: from segments (near where ``guess`` puts the
+    board), or, given ``T_camera_laser``, from the predicted plane."""
+    views: list[View] = []
+    skipped: dict[str, str] = {}
+    for c in cands:
+        plane_view = make_view(c.name, c.detection.corners, board, camera, np.zeros((0, 2)))
+        if T_camera_laser is None:
+            pts, why = _points_from_segments(c, plane_view.plane, board, search, guess)
+        else:
+            pts = _points_from_prediction(c, plane_view.plane, board, T_camera_laser, tol_m,
+                                          search)
+            why = "no scan points near the predicted board plane"
+        if pts is None or len(pts) < 5:
+            skipped[c.name] = f"scan {Path(c.scan.source).name}: {why}"
+            continue
+        plane_view.points = c.scan.points[pts]
+        if board.size is not None and T_camera_laser is not None:
+            plane_view.edges, plane_view.edge_sigma = board_edge_points(c.scan.points, pts)
+        views.append(plane_view)
+    return views, skipped
+
+
+# ---------------------------------------------------------------------------- the run
+
+
+def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCamera,
+                  search: BoardSearch | None = None, options: SolverOptions | None = None,
+                  init: np.ndarray | None = None, loo: bool = True) -> ExtrinsicRun:
+    """Two passes: board segments chosen by what the camera saw, a first solve; then the
+    board points re-selected around each predicted board plane and a final solve."""
+    search = search or BoardSearch()
+    opts = options or SolverOptions()
+    guess = mount_guess(search, init)
+    views, skipped = build_views(cands, board, camera, search, guess=guess)
+    if len(views) < opts.min_views:
+        detail = "; ".join(f"{k}: {v}" for k, v in skipped.items())
+        raise ExtrinsicError(
+            f"the board was found in the scans of only {len(views)} of {len(cands)} paired "
+            f"views ({detail}). Pass --angle-window MIN MAX (degrees, laser frame) around the "
+            "board's direction, --max-offset if the sensors are far apart, or --board-size.")
+    first = calibrate_extrinsic(views, guess, opts, camera)
+    tol = max(0.03, 3.0 * first.residual_rms_m)
+    views2, skipped2 = build_views(cands, board, camera, search, first.T_camera_laser, tol)
+    if len(views2) >= opts.min_views:
+        # Same data, better points: no need to search for a start again.
+        opts2 = SolverOptions(**{**opts.__dict__, "multistart": False})
+        result = calibrate_extrinsic(views2, guess, opts2, camera, start=first.T_camera_laser,
+                                     outline=board.outline())
+        views, skipped = views2, skipped2
+    else:
+        result = first
+    stab = leave_one_out(views, result, opts, camera, board.outline()) if loo else None
+    return ExtrinsicRun(result, stab, views, cands, skipped, board)
+
+
+def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera: PinholeCamera,
+                    camera_source: str, max_dt: float, skip_unpaired: bool = False) -> (
+    tuple[list[ViewCandidate], dict[str, str]]
+):
+    """Read images and scans from disk and pair the images that show the board."""
+    images = images_from_folder(images_dir)
+    scans = read_scans(scans_src)
+    if not scans:
+        raise FileNotFoundError(f"{scans_src}: no scans")
+    dets, missed = detect_all(images, board, camera, camera_source)
+    cands, skipped = pair_views(images, dets, scans, max_dt, skip_unpaired)
+    return cands, {**missed, **skipped}
+
+
+def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
+                                  skip_unpaired: bool = False, camera: PinholeCamera | None
+                                  = None) -> tuple[list[ViewCandidate], dict[str, str],
+                                                   PinholeCamera]:
+    """Pairs from a sequence folder (camera from its rig.yaml unless ``camera`` is given)."""
+    from toolkit.io.sequence import read_sequence
+
+    seq = read_sequence(root)
+    if not seq.frames:
+        raise FileNotFoundError(f"{root}: the sequence has no camera frames")
+    if not seq.scans:
+        raise FileNotFoundError(f"{root}: the sequence has no scans (scans.npz)")
+    cam = camera or seq.rig.camera
+    images = ImageSource([f.path for f in seq.frames if f.path is not None],
+                         np.array([f.stamp for f in seq.frames]))
+    scans = [StampedScan(s.stamp, s.points(), f"{root / 'scans.npz'}[{i}]")
+             for i, s in enumerate(seq.scans)]
+    dets, missed = detect_all(images, board, cam, str(root / "rig.yaml"))
+    cands, skipped = pair_views(images, dets, scans, max_dt, skip_unpaired)
+    return cands, {**missed, **skipped}, cam
+
+
+# ---------------------------------------------------------------------------- check inputs
+
+
+def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frames: int = 12,
+                               max_dt: float = 0.05, depth_dir: Path | None = None,
+                               use_gt_depth: bool = True) -> tuple[list[Any], Any]:
+    """Frames of a sequence for ``check``: evenly spread images with their nearest scans.
+
+    When the sequence has odometry (or ground-truth poses) the scan is moved to the
+    image's time, so robot motion between the two stamps is not blamed on the extrinsic.
+    Returns the frames and the sequence.
+    """
+    from calibration.check import CheckFrame
+    from toolkit.io.depth import read_depth
+    from toolkit.io.sequence import read_sequence
+
+    seq = read_sequence(root)
+    if not seq.frames or not seq.scans:
+        raise FileNotFoundError(f"{root}: check needs camera frames and scans")
+    stamps = seq.scan_stamps
+    usable = [i for i, f in enumerate(seq.frames)
+              if np.min(np.abs(stamps - f.stamp)) <= max_dt]
+    if not usable:
+        raise PairingError(f"{root}: no camera frame has a scan within {max_dt * 1000:.0f} ms; "
+                           "raise --max-dt")
+    pick = [usable[int(k)] for k in np.unique(np.linspace(0, len(usable) - 1,
+                                                          min(max_frames, len(usable))).round())]
+    traj = seq.odometry
+    if traj is None and seq.groundtruth is not None:
+        traj = seq.groundtruth.poses_base
+    T_bc = seq.rig.T_base_camera
+    T_bl = T_bc @ T_camera_laser
+    frames = []
+    for i in pick:
+        f = seq.frames[i]
+        s = seq.scans[seq.scan_index_at(f.stamp)]
+        p = s.points_3d()
+        if traj is not None and len(traj) > 1:
+            try:
+                Tb = traj.interpolate(np.array([f.stamp, s.stamp]), extrapolate_s=max_dt).poses
+                M = inv_se3(T_bl) @ inv_se3(Tb[0]) @ Tb[1] @ T_bl  # laser(ts) -> laser(tf)
+                p = p @ M[:3, :3].T + M[:3, 3]
+            except ValueError:
+                pass  # stamps outside the trajectory: use the scan as it is
+        depth = None
+        if depth_dir is not None:
+            depth = _depth_for(depth_dir, f.path, i, read_depth)
+        elif use_gt_depth and seq.groundtruth is not None and seq.groundtruth.depth_paths:
+            depth = seq.groundtruth.depth(i)
+        frames.append(CheckFrame(f.path.name if f.path else f"frame{i:06d}", f.image, p, depth))
+    return frames, seq
+
+
+def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any) -> np.ndarray:
+    stems = [f"{index:06d}"] + ([image_path.stem] if image_path is not None else [])
+    for stem in stems:
+        for ext in (".npy", ".png"):
+            p = Path(depth_dir) / f"{stem}{ext}"
+            if p.exists():
+                return reader(p)
+    raise FileNotFoundError(f"{depth_dir}: no depth map for frame {index} (looked for "
+                            f"{', '.join(s + '.npy|.png' for s in stems)})")
+
+
+def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCamera,
+                            camera_source: str, max_dt: float) -> list[Any]:
+    """Frames for ``check`` from an image folder and a scan folder (a calibration capture)."""
+    from calibration.check import CheckFrame
+    from toolkit.sensors import load_rgb
+
+    images = images_from_folder(images_dir)
+    scans = read_scans(scans_src)
+    pairs, unpaired = pair_by_stamp(images.stamps, np.array([s.stamp for s in scans]), max_dt)
+    if not pairs:
+        raise PairingError(describe_unpaired(unpaired, [p.name for p in images.paths],
+                                             images.stamps, np.array([s.stamp for s in scans]),
+                                             max_dt))
+    frames = []
+    for p in pairs:
+        path = images.paths[p.image_index]
+        img = load_rgb(path)
+        check_image_size(camera, camera_source, path, (img.shape[1], img.shape[0]))
+        pts = scans[p.scan_index].points
+        frames.append(CheckFrame(path.name, img, np.c_[pts, np.zeros(len(pts))]))
+    return frames

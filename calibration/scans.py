@@ -1,0 +1,266 @@
+"""Reading 2D scans for calibration and pairing them with images by timestamp.
+
+Formats: ASCII or binary PCD (one scan per file, as ROS ``pcl`` tools write them), CSV
+(``x,y[,z]`` or ``angle,range`` columns, one scan per file), npz (``points`` [N, 2|3], or
+the sequence format's ``stamps``/``ranges`` arrays holding many scans), and the project's
+sequence folder. A file's stamp comes from its name: an integer of 13+ digits is
+nanoseconds (``1773380642785313094.pcd``), anything else that parses as a number is
+seconds (``12.5.csv``).
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+SCAN_SUFFIXES = (".pcd", ".csv", ".npz")
+# Beams that return exactly the sensor origin are "no return" in many drivers' PCD output.
+_MIN_RANGE_M = 1e-3
+
+
+class ScanFormatError(ValueError):
+    """A scan file is malformed; the message names the file and the field."""
+
+
+class PairingError(ValueError):
+    """Images and scans cannot be matched in time; the message lists the offenders."""
+
+
+@dataclass
+class StampedScan:
+    """One 2D scan's valid end points in the laser frame."""
+
+    stamp: float  # seconds
+    points: np.ndarray  # [N, 2] float64 metres, laser frame (x forward, y left)
+    source: str  # file (and index) it came from, for messages
+
+
+# ---------------------------------------------------------------------------- stamps
+
+
+def stamp_from_name(path: Path) -> float:
+    """Seconds from a file name such as ``1773380642785313094.pcd`` or ``12.25.png``."""
+    stem = Path(path).stem
+    if re.fullmatch(r"\d{13,}", stem):
+        return int(stem) * 1e-9
+    try:
+        return float(stem)
+    except ValueError:
+        m = re.search(r"(\d{13,})", stem)
+        if m:
+            return int(m.group(1)) * 1e-9
+        raise ScanFormatError(
+            f"{path}: cannot read a timestamp from the file name; name files "
+            "<nanoseconds>.ext or <seconds>.ext, or pass a sequence folder") from None
+
+
+# ---------------------------------------------------------------------------- readers
+
+
+def _planar(points: np.ndarray, source: str) -> np.ndarray:
+    """[N, 2] valid points of [N, 2|3] input; a scan with height is not a 2D scan."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] not in (2, 3):
+        raise ScanFormatError(f"{source}: points must be [N, 2] or [N, 3], got {pts.shape}")
+    if pts.shape[1] == 3:
+        z = pts[:, 2][np.isfinite(pts[:, 2])]
+        if len(z) and np.abs(z).max() > 0.01:
+            raise ScanFormatError(f"{source}: z reaches {np.abs(z).max():.3f} m; this tool "
+                                  "calibrates planar (2D) scans given in the laser frame (z = 0)")
+        pts = pts[:, :2]
+    ok = np.all(np.isfinite(pts), axis=1) & (np.linalg.norm(pts, axis=1) > _MIN_RANGE_M)
+    return pts[ok]
+
+
+def read_pcd(path: Path) -> np.ndarray:
+    """[N, 2] points of a PCD file (DATA ascii or binary; x and y fields)."""
+    path = Path(path)
+    raw = path.read_bytes()
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while True:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise ScanFormatError(f"{path}: PCD header has no DATA line")
+        line = raw[pos:end].decode("ascii", "replace").strip()
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *vals = line.split()
+        header[key.upper()] = vals
+        if key.upper() == "DATA":
+            break
+    fields = header.get("FIELDS")
+    if not fields or "x" not in fields or "y" not in fields:
+        raise ScanFormatError(f"{path}: PCD field 'FIELDS' must name x and y, got {fields}")
+    n = int(header.get("POINTS", header.get("WIDTH", ["0"]))[0])
+    counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
+    kind = header["DATA"][0].lower()
+    ix, iy = fields.index("x"), fields.index("y")
+    iz = fields.index("z") if "z" in fields else None
+    if kind == "ascii":
+        text = raw[pos:].decode("ascii", "replace")
+        rows = [r.split() for r in text.splitlines() if r.strip()]
+        if len(rows) != n:
+            raise ScanFormatError(f"{path}: header field 'POINTS' says {n} but the file holds "
+                                  f"{len(rows)} rows (truncated file?)")
+        width = sum(counts)
+        try:
+            data = np.array([[float(v) for v in r[:width]] for r in rows], dtype=np.float64)
+        except ValueError as e:
+            raise ScanFormatError(f"{path}: non-numeric PCD data: {e}") from None
+        offs = np.cumsum([0, *counts])
+        cols = [offs[ix], offs[iy]] + ([offs[iz]] if iz is not None else [])
+        return _planar(data[:, cols], str(path))
+    if kind == "binary":
+        sizes = [int(s) for s in header["SIZE"]]
+        types = header["TYPE"]
+        dt = np.dtype([(f"f{k}", _pcd_dtype(types[k], sizes[k], path), (counts[k],))
+                       for k in range(len(fields))])
+        rec = np.frombuffer(raw, dtype=dt, count=n, offset=pos)
+        cols = [rec[f"f{ix}"][:, 0], rec[f"f{iy}"][:, 0]]
+        if iz is not None:
+            cols.append(rec[f"f{iz}"][:, 0])
+        return _planar(np.stack(cols, -1), str(path))
+    raise ScanFormatError(f"{path}: PCD 'DATA {kind}' is not supported; convert with "
+                          "pcl_convert_pcd_ascii_binary <in> <out> 0 (ascii)")
+
+
+def _pcd_dtype(t: str, size: int, path: Path) -> str:
+    kinds = {"F": "f", "I": "i", "U": "u"}
+    if t.upper() not in kinds:
+        raise ScanFormatError(f"{path}: PCD field 'TYPE' {t!r} unknown (F, I or U)")
+    return f"<{kinds[t.upper()]}{size}"
+
+
+def read_csv_scan(path: Path) -> np.ndarray:
+    """[N, 2] points of a CSV with a header naming ``x,y[,z]`` or ``angle,range`` (radians)."""
+    path = Path(path)
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        raise ScanFormatError(f"{path}: empty CSV")
+    head = [h.strip().lower() for h in rows[0]]
+    body = [r for r in rows[1:] if r and any(c.strip() for c in r)]
+    try:
+        data = np.array([[float(c) for c in r] for r in body], dtype=np.float64)
+    except ValueError as e:
+        raise ScanFormatError(f"{path}: non-numeric value below the header: {e}") from None
+    data = data.reshape(len(body), -1)
+    if {"x", "y"} <= set(head):
+        cols = [head.index("x"), head.index("y")] + ([head.index("z")] if "z" in head else [])
+        return _planar(data[:, cols], str(path))
+    if {"angle", "range"} <= set(head):
+        a, r = data[:, head.index("angle")], data[:, head.index("range")]
+        return _planar(np.stack([r * np.cos(a), r * np.sin(a)], -1), str(path))
+    raise ScanFormatError(f"{path}: CSV header {head} must name columns x,y[,z] or "
+                          "angle,range (radians)")
+
+
+def read_scan_file(path: Path) -> list[StampedScan]:
+    """Scans of one file: one for PCD/CSV/npz-with-points, many for a sequence-style npz."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".pcd":
+        return [StampedScan(stamp_from_name(path), read_pcd(path), str(path))]
+    if suffix == ".csv":
+        return [StampedScan(stamp_from_name(path), read_csv_scan(path), str(path))]
+    if suffix == ".npz":
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files}
+        if "points" in arrays:
+            stamp = float(arrays["stamp"]) if "stamp" in arrays else stamp_from_name(path)
+            return [StampedScan(stamp, _planar(arrays["points"], str(path)), str(path))]
+        if "ranges" in arrays:
+            from toolkit.io.sequence import scans_from_arrays
+
+            scans = scans_from_arrays(arrays, str(path))
+            return [StampedScan(s.stamp, s.points(), f"{path}[{i}]") for i, s in enumerate(scans)]
+        raise ScanFormatError(f"{path}: npz must hold 'points' [N, 2] (one scan) or the "
+                              "sequence arrays 'stamps', 'ranges', 'angle_min', ...")
+    raise ScanFormatError(f"{path}: unknown scan format {suffix!r}; use "
+                          f"{', '.join(SCAN_SUFFIXES)} or a sequence folder")
+
+
+def read_scans(source: Path) -> list[StampedScan]:
+    """All scans of a folder of scan files, an npz of many scans, or a sequence folder."""
+    source = Path(source)
+    if not source.exists():
+        raise FileNotFoundError(f"{source}: scan file or folder not found")
+    if source.is_file():
+        scans = read_scan_file(source)
+    elif (source / "scans.npz").exists() and (source / "rig.yaml").exists():
+        from toolkit.io.sequence import read_scans as read_sequence_scans
+
+        scans = [StampedScan(s.stamp, s.points(), f"{source / 'scans.npz'}[{i}]")
+                 for i, s in enumerate(read_sequence_scans(source / "scans.npz"))]
+    else:
+        files = sorted(p for p in source.iterdir()
+                       if p.suffix.lower() in SCAN_SUFFIXES and not p.name.startswith("."))
+        if not files:
+            raise FileNotFoundError(f"{source}: no scan files ({', '.join(SCAN_SUFFIXES)}) and "
+                                    "not a sequence folder (rig.yaml + scans.npz)")
+        scans = [s for p in files for s in read_scan_file(p)]
+    scans.sort(key=lambda s: s.stamp)
+    return scans
+
+
+# ---------------------------------------------------------------------------- pairing
+
+
+@dataclass
+class Pair:
+    image_index: int
+    scan_index: int
+    dt: float  # scan stamp - image stamp, seconds
+
+
+def pair_by_stamp(image_stamps: np.ndarray, scan_stamps: np.ndarray, max_dt: float) -> (
+    tuple[list[Pair], list[int]]
+):
+    """Nearest scan for each image within ``max_dt`` seconds; and the images left unpaired.
+
+    A scan is used at most once (by the image nearest to it) so that two images taken
+    while the board moved cannot share one scan.
+    """
+    image_stamps = np.asarray(image_stamps, dtype=np.float64)  # [I]
+    scan_stamps = np.asarray(scan_stamps, dtype=np.float64)  # [S]
+    if len(scan_stamps) == 0:
+        return [], list(range(len(image_stamps)))
+    order = np.argsort(scan_stamps)
+    sorted_stamps = scan_stamps[order]
+    cand: list[Pair] = []
+    for i, t in enumerate(image_stamps):
+        k = int(np.searchsorted(sorted_stamps, t))
+        best = min((j for j in (k - 1, k) if 0 <= j < len(sorted_stamps)),
+                   key=lambda j: abs(sorted_stamps[j] - t))
+        cand.append(Pair(i, int(order[best]), float(sorted_stamps[best] - t)))
+    taken: dict[int, Pair] = {}
+    for p in sorted(cand, key=lambda p: abs(p.dt)):
+        if abs(p.dt) <= max_dt and p.scan_index not in taken:
+            taken[p.scan_index] = p
+    pairs = sorted(taken.values(), key=lambda p: p.image_index)
+    paired = {p.image_index for p in pairs}
+    return pairs, [i for i in range(len(image_stamps)) if i not in paired]
+
+
+def describe_unpaired(unpaired: list[int], image_names: list[str], image_stamps: np.ndarray,
+                      scan_stamps: np.ndarray, max_dt: float) -> str:
+    """A message naming each unpaired image and its nearest scan."""
+    lines = []
+    for i in unpaired[:10]:
+        if len(scan_stamps):
+            dt = float(np.min(np.abs(np.asarray(scan_stamps) - image_stamps[i])))
+            lines.append(f"  {image_names[i]}: nearest scan {dt * 1000:.1f} ms away")
+        else:
+            lines.append(f"  {image_names[i]}: no scans at all")
+    more = f"\n  ... and {len(unpaired) - 10} more" if len(unpaired) > 10 else ""
+    return (f"{len(unpaired)} image(s) have no scan within {max_dt * 1000:.0f} ms:\n"
+            + "\n".join(lines) + more
+            + "\nFix: raise --max-dt if the sensors are not synchronised that well, check that "
+              "image and scan file names hold the same clock (nanoseconds or seconds), or pass "
+              "--skip-unpaired to calibrate from the paired views only.")

@@ -1,0 +1,252 @@
+"""The recipe stage ``calibrate``: camera - 2D lidar extrinsic into a rig.
+
+```yaml
+- stage: calibrate
+  source: simulate          # simulate | files
+  views: 10                 # simulate: board views of the capture
+  seed: 0
+  board: 11x8               # inner corners
+  square_m: 0.05
+  # files: images / scans / camera (or capture: a folder with images/, lasers/, camera.yaml)
+```
+
+With ``source: simulate`` the simulator renders a calibration capture of the upstream
+sequence's rig (or its default rig) and the result is compared with the exact answer.
+The calibrated rig is published as artifact ``rig`` (the upstream sequence's rig with the
+laser moved to the calibrated pose), the full result as ``calibration``; with an upstream
+sequence, ``check`` overlays its scans on its images and scores the extrinsic.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import Field
+
+from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+
+
+class CalibrateConfig(StageConfig):
+    """Settings of ``calibrate``."""
+
+    source: Literal["simulate", "files"] = "files"
+    # files: a capture folder (images/, lasers/, camera.yaml[, groundtruth.yaml]) or the
+    # three paths; camera defaults to the upstream sequence's
+    capture: str | None = None
+    images: str | None = None
+    scans: str | None = None
+    camera: str | None = None
+    # simulate
+    views: int = Field(10, ge=3)
+    seed: int = 0
+    lidar_noise_m: float = Field(0.01, ge=0)
+    lidar_beams: int | None = Field(None, gt=1)  # None: the simulator's lidar
+    # board and search
+    board: str = "11x8"
+    square_m: float = Field(0.05, gt=0)
+    board_size_m: tuple[float, float] | None = None
+    max_dt_s: float = Field(0.1, gt=0)
+    angle_window_deg: tuple[float, float] | None = None
+    max_offset_m: float = Field(0.5, gt=0)
+    mount: Literal["forward", "any"] = "forward"
+    loss: Literal["linear", "soft_l1", "huber", "cauchy", "arctan"] = "soft_l1"
+    ransac_seed: int = 0
+    leave_one_out: bool = True
+    # check on the upstream sequence
+    check: bool = True
+    check_frames: int = Field(6, ge=1)
+
+
+class CalibrateStage(Stage):
+    """Calibrate the camera - 2D lidar extrinsic from board views and write it into a rig."""
+
+    name = "calibrate"
+    Config = CalibrateConfig
+    optional_requires = ("sequence",)
+    provides = ("rig", "calibration")
+
+    config: CalibrateConfig
+
+    def external_inputs(self) -> list[Path]:
+        cfg = self.config
+        if cfg.source == "simulate":
+            return []
+        files: list[Path] = []
+        for p in (cfg.capture, cfg.images, cfg.scans, cfg.camera):
+            if p is None:
+                continue
+            path = Path(p)
+            if path.is_dir():
+                files += sorted(q for q in path.rglob("*") if q.is_file())
+            elif path.exists():
+                files.append(path)
+        return files
+
+    # ------------------------------------------------------------------ inputs
+    def _inputs(self, ctx: StageContext, base_rig: Any) -> tuple[Path, Path, Path | None,
+                                                                  Path | None]:
+        """(images, scans, camera YAML or None for the rig's, ground truth or None)."""
+        cfg = self.config
+        if cfg.source == "simulate":
+            try:
+                from toolkit.sim.calib_capture import capture_calibration
+            except ImportError as e:  # pragma: no cover - the simulator ships with the toolkit
+                raise StageError(f"calibrate: source 'simulate' needs toolkit.sim ({e})") from e
+            from toolkit.sim.sensors import LidarSpec
+
+            cap = ctx.stage_dir / "capture"
+            if not (cap / "groundtruth.yaml").exists():
+                cols, rows = (int(v) for v in cfg.board.lower().split("x"))
+                capture_calibration(
+                    cap, cfg.views, seed=cfg.seed, board=(cols, rows), square=cfg.square_m,
+                    lidar_noise=cfg.lidar_noise_m,
+                    camera=base_rig.camera if base_rig is not None else None,
+                    T_camera_laser=base_rig.T_camera_laser if base_rig is not None else None,
+                    lidar=LidarSpec(beams=cfg.lidar_beams) if cfg.lidar_beams else None)
+            return cap / "images", cap / "lasers", cap / "camera.yaml", cap / "groundtruth.yaml"
+        if cfg.capture:
+            cap = Path(cfg.capture)
+            gt = cap / "groundtruth.yaml"
+            cam = Path(cfg.camera) if cfg.camera else cap / "camera.yaml"
+            return (cap / "images", cap / "lasers", cam if cam.exists() else None,
+                    gt if gt.exists() else None)
+        if not (cfg.images and cfg.scans):
+            raise StageError("calibrate: give 'capture' (a folder with images/ and lasers/), "
+                             "or 'images' and 'scans', or source: simulate")
+        return Path(cfg.images), Path(cfg.scans), Path(cfg.camera) if cfg.camera else None, None
+
+    # ------------------------------------------------------------------ run
+    def run(self, ctx: StageContext) -> None:
+        from calibration.board import BoardSpec
+        from calibration.cli import USER_ERRORS
+        from calibration.extrinsic import SolverOptions, transform_error
+        from calibration.files import (
+            extrinsic_to_mapping,
+            load_camera,
+            rig_for_extrinsic,
+            write_rig_with_calibration,
+        )
+        from calibration.pipeline import BoardSearch, load_candidates, run_extrinsic
+        from toolkit.io.atomic import atomic_write_text, to_jsonable
+
+        cfg = self.config
+        seq_dir = ctx.artifact("sequence") if ctx.has_artifact("sequence") else None
+        base_rig = None
+        if seq_dir is not None:
+            from toolkit.io.sequence import read_rig
+
+            base_rig = read_rig(seq_dir / "rig.yaml")
+        try:
+            board = BoardSpec.parse(cfg.board, cfg.square_m, cfg.board_size_m)
+            images, scans, cam_path, gt_path = self._inputs(ctx, base_rig)
+            if cam_path is not None:
+                camera, cam_src = load_camera(cam_path), str(cam_path)
+            elif base_rig is not None:
+                camera, cam_src = base_rig.camera, str(seq_dir / "rig.yaml")
+            else:
+                raise StageError("calibrate: no camera: give 'camera' (a camera YAML) or run "
+                                 "after a stage that provides a sequence")
+            cands, skipped = load_candidates(images, scans, board, camera, cam_src,
+                                             cfg.max_dt_s)
+            search = BoardSearch(angle_window_deg=cfg.angle_window_deg,
+                                 max_offset_m=cfg.max_offset_m, mount=cfg.mount,
+                                 seed=cfg.ransac_seed)
+            run = run_extrinsic(cands, board, camera, search, SolverOptions(loss=cfg.loss),
+                                loo=cfg.leave_one_out)
+        except USER_ERRORS as e:
+            raise StageError(f"calibrate: {e}") from e
+        run.skipped = {**skipped, **run.skipped}
+        res = run.result
+        T = res.T_camera_laser
+        summary = run.summary()
+        metrics: dict[str, Any] = {
+            "views_used": len(res.views_used),
+            "residual_rms_m": res.residual_rms_m,
+            "rotation_std_deg": float(np.linalg.norm(res.std_rotation_deg)),
+            "translation_std_m": float(np.linalg.norm(res.std_translation_m)),
+            "weak_directions": len(res.weak_directions),
+        }
+        if run.loo is not None:
+            metrics["loo_rotation_spread_deg"] = run.loo.rotation_spread_deg
+            metrics["loo_translation_spread_m"] = run.loo.translation_spread_m
+        T_true = None
+        if gt_path is not None:
+            T_true = np.asarray(yaml.safe_load(gt_path.read_text())["T_camera_laser"], float)
+            rot, tra = transform_error(T, T_true)
+            metrics["rotation_error_deg"] = rot
+            metrics["translation_error_m"] = tra
+            summary["error_vs_ground_truth"] = {"rotation_deg": rot, "translation_m": tra}
+
+        calib_path = ctx.stage_dir / "calibration.yaml"
+        atomic_write_text(calib_path, yaml.safe_dump(
+            to_jsonable({**extrinsic_to_mapping(T), **summary}), sort_keys=False))
+        rig = rig_for_extrinsic(camera, T, base_rig)
+        rig_path = ctx.stage_dir / "rig.yaml"
+        write_rig_with_calibration(rig_path, rig, to_jsonable(summary))
+
+        lines = [
+            f"Extrinsic from {len(res.views_used)} board views ({res.n_points} scan points on "
+            f"the board): point-to-plane RMS {res.residual_rms_m * 1000:.1f} mm; std "
+            f"{np.round(res.std_rotation_deg, 3).tolist()} deg about camera x y z, "
+            f"{np.round(res.std_translation_m * 1000, 1).tolist()} mm along x y z.",
+        ]
+        if run.loo is not None:
+            lines.append(f"Leave-one-view-out spread: {run.loo.rotation_spread_deg:.3f} deg, "
+                         f"{run.loo.translation_spread_m * 1000:.1f} mm.")
+        if T_true is not None:
+            lines.append(f"Error against the simulator's ground truth: "
+                         f"{metrics['rotation_error_deg']:.3f} deg, "
+                         f"{metrics['translation_error_m'] * 1000:.1f} mm.")
+        lines += [f"**Warning:** {w}" for w in res.warnings]
+        if seq_dir is not None and cfg.check:
+            lines += self._check(ctx, seq_dir, T, T_true, metrics)
+        ctx.add_metrics(metrics)
+        ctx.report("\n\n".join(lines))
+        ctx.provide("rig", rig_path)
+        ctx.provide("calibration", calib_path)
+
+    def _check(self, ctx: StageContext, seq_dir: Path, T: np.ndarray, T_true: np.ndarray | None,
+               metrics: dict[str, Any]) -> list[str]:
+        import cv2
+
+        from calibration.check import overlay, perturbed, project_scan, score_frames, sensitivity
+        from calibration.pipeline import check_frames_from_sequence
+        from toolkit.io.atomic import atomic_path
+
+        frames, seq = check_frames_from_sequence(seq_dir, T, self.config.check_frames)
+        out = ctx.stage_dir / "check"
+        out.mkdir(parents=True, exist_ok=True)
+        names = []
+        for k, f in enumerate(frames[:4]):
+            img = overlay(f.image, project_scan(f.points, T, seq.rig.camera))
+            p = out / f"overlay_{k}.png"
+            with atomic_path(p) as tmp:
+                cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            names.append(p.name)
+        sc = sensitivity(frames, T, seq.rig.camera, 2.0)
+        worst = min(sc.drop(k) for k in sc.perturbed)
+        best = max(sc.drop(k) for k in sc.perturbed)
+        metrics["check_score"] = sc.score
+        metrics["check_kind"] = sc.kind
+        metrics["check_drop_at_2deg_max"] = best
+        metrics["check_drop_at_2deg_min"] = worst
+        lines = [f"Check on {len(frames)} frames of the sequence ({sc.kind} score): "
+                 f"{sc.score:.3f}; rotated by 2 deg the score falls by "
+                 + ", ".join(f"{k} {sc.drop(k) * 100:.0f} %" for k in sc.perturbed) + "."]
+        if T_true is not None:
+            s_true = score_frames(frames, T_true, seq.rig.camera, sc.kind)[0]
+            s_wrong = score_frames(frames, perturbed(T_true, 1, 2.0), seq.rig.camera, sc.kind)[0]
+            metrics["check_score_true"] = s_true
+            metrics["check_score_true_rotated_2deg"] = s_wrong
+            lines.append(f"Ground-truth extrinsic: score {s_true:.3f}; rotated 2 deg about "
+                         f"the camera's vertical axis: {s_wrong:.3f}.")
+        rel = ctx.stage_id
+        lines += [f"![lidar points on the image, coloured by range]({rel}/check/{n})"
+                  for n in names[:2]]
+        if not math.isfinite(sc.score):
+            lines.append("(no scan points landed in the checked images)")
+        return lines

@@ -1,0 +1,146 @@
+"""``python -m calibration``: end to end on a rendered capture, and the errors users see."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calibration.cli import main
+from calibration.extrinsic import transform_error
+from calibration.synthetic import make_capture, write_capture
+from toolkit.io.sequence import SequenceWriter, read_rig
+from toolkit.sensors import LaserScan, Rig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object]:
+    cap = make_capture(8, seed=11)
+    out = write_capture(cap, tmp_path_factory.mktemp("capture"))
+    return out, cap
+
+
+def _args(cap_dir: Path, *extra: str) -> list[str]:
+    return ["extrinsic", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+            "--camera", str(cap_dir / "camera.yaml"), "--board", "11x8", "--square", "0.05",
+            *extra]
+
+
+def test_help_of_every_command() -> None:
+    for cmd in ([], ["intrinsics"], ["extrinsic"], ["check"]):
+        r = subprocess.run([sys.executable, "-m", "calibration", *cmd, "--help"], cwd=ROOT,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and "usage: python -m calibration" in r.stdout
+
+
+def test_extrinsic_end_to_end(capture: tuple[Path, object], tmp_path: Path,
+                              capsys: pytest.CaptureFixture[str]) -> None:
+    cap_dir, cap = capture
+    rc = main(_args(cap_dir, "--out", str(tmp_path / "rig.yaml"), "--json",
+                    str(tmp_path / "r.json"), "--overlays", str(tmp_path / "ov"), "--no-loo"))
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "T_camera_laser (p_camera_optical = T @ p_laser)" in out
+    rig = read_rig(tmp_path / "rig.yaml")  # the toolkit's own reader takes it
+    rot, tra = transform_error(rig.T_camera_laser, cap.T_camera_laser)  # type: ignore[attr-defined]
+    assert rot < 0.5 and tra < 0.01
+    d = yaml.safe_load((tmp_path / "rig.yaml").read_text())
+    assert "maps laser points into the camera" in d["direction"]
+    assert d["tf"]["parent"] == "camera_optical" and d["tf"]["child"] == "laser"
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["views_used"] == 8 and res["residual_rms_m"] < 0.012
+    assert len(list((tmp_path / "ov").glob("*_overlay.png"))) == 8
+    # The written extrinsic is accepted back by check (rig with T_camera_laser).
+    rc = main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+               "--camera", str(cap_dir / "camera.yaml"), "--rig", str(tmp_path / "rig.yaml"),
+               "--out", str(tmp_path / "chk")])
+    assert rc == 0
+    chk = json.loads((tmp_path / "chk" / "check.json").read_text())
+    assert chk["kind"] == "edges" and len(chk["overlays"]) == 8
+
+
+def test_intrinsics_command(capture: tuple[Path, object], tmp_path: Path) -> None:
+    cap_dir, cap = capture
+    rc = main(["intrinsics", "--images", str(cap_dir / "images"), "--board", "11x8", "--square",
+               "0.05", "--model", "radial", "--out", str(tmp_path / "cam.yaml")])
+    assert rc == 0
+    d = yaml.safe_load((tmp_path / "cam.yaml").read_text())
+    true = cap.camera  # type: ignore[attr-defined]
+    assert abs(d["fx"] / true.fx - 1) < 0.01 and abs(d["cx"] - true.cx) < 5
+    assert d["calibration"]["rms_px"] < 0.3 and d["calibration"]["images_used"] == 8
+
+
+def test_sequence_folder_input(capture: tuple[Path, object], tmp_path: Path) -> None:
+    """The same views as a sequence folder (images + scans.npz + rig.yaml)."""
+    cap_dir, cap = capture
+    w = SequenceWriter(tmp_path / "seq", Rig(cap.camera), name="calib")  # type: ignore
+    images = sorted((cap_dir / "images").glob("*.png"))
+    for p in images:
+        w.add_frame(int(p.stem) * 1e-9, None, image_path=p)  # type: ignore[arg-type]
+    step = np.radians(0.25)
+    for v in cap.views:  # type: ignore[attr-defined]
+        r = np.linalg.norm(v.scan_points, axis=1)
+        w.add_scan(LaserScan(v.stamp + cap.scan_dt, r, -np.radians(135.0), step))  # type: ignore
+    w.close()
+    rc = main(["extrinsic", "--sequence", str(tmp_path / "seq"), "--board", "11x8", "--square",
+               "0.05", "--json", str(tmp_path / "r.json"), "--no-loo"])
+    assert rc == 0
+    T = np.array(json.loads((tmp_path / "r.json").read_text())["T_camera_laser"])
+    rot, tra = transform_error(T, cap.T_camera_laser)  # type: ignore[attr-defined]
+    assert rot < 0.5 and tra < 0.01
+
+
+def test_bad_inputs_give_clear_errors(capture: tuple[Path, object], tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    cap_dir, _ = capture
+    # No board anywhere (wrong grid size given), with a hint at the right one.
+    assert main(_args(cap_dir)[:-4] + ["--board", "12x9", "--square", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert "no 12x9 checkerboard" in err and "--board 11x8" in err
+    # Unpaired scans: the images and their nearest scans are named, and the fix.
+    assert main(_args(cap_dir, "--max-dt", "0.001")) == 2
+    err = capsys.readouterr().err
+    assert "no scan within 1 ms" in err and ".png: nearest scan 12.0 ms away" in err
+    assert "--max-dt" in err and "--skip-unpaired" in err
+    # A camera YAML for another resolution.
+    cam = yaml.safe_load((cap_dir / "camera.yaml").read_text())
+    cam["width"], cam["height"] = 1280, 960
+    (tmp_path / "cam.yaml").write_text(yaml.safe_dump(cam))
+    args = _args(cap_dir)
+    args[args.index("--camera") + 1] = str(tmp_path / "cam.yaml")
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "image is 640x480" in err and "width/height say 1280x960" in err
+    # A camera YAML missing a field.
+    del cam["fx"]
+    (tmp_path / "cam2.yaml").write_text(yaml.safe_dump(cam))
+    args[args.index("--camera") + 1] = str(tmp_path / "cam2.yaml")
+    assert main(args) == 2
+    assert "cam2.yaml: missing field" in capsys.readouterr().err
+    # An empty scan folder.
+    (tmp_path / "empty").mkdir()
+    args = _args(cap_dir)
+    args[args.index("--scans") + 1] = str(tmp_path / "empty")
+    assert main(args) == 2
+    assert "no scan files" in capsys.readouterr().err
+
+
+def test_skip_unpaired_uses_the_rest(capture: tuple[Path, object], tmp_path: Path) -> None:
+    cap_dir, _ = capture
+    scans = tmp_path / "lasers"
+    shutil.copytree(cap_dir / "lasers", scans)
+    for p in sorted(scans.glob("*.pcd"))[:2]:
+        p.unlink()
+    args = _args(cap_dir, "--skip-unpaired", "--no-loo", "--json", str(tmp_path / "r.json"))
+    args[args.index("--scans") + 1] = str(scans)
+    assert main(args) == 0
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["views_used"] == 6 and len(res["images_skipped"]) == 2
