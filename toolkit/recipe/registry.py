@@ -22,6 +22,7 @@ STAGES: dict[str, str] = {
     "fuse": "toolkit.fusion.stage:FuseStage",
     "ingest": "toolkit.ingest.stage:IngestStage",
     "simulate": "toolkit.sim.stage:SimulateStage",
+    "slam2d": "toolkit.slam2d.stage:Slam2DStage",
     "splat": "toolkit.splat.stage:SplatStage",
     "tsdf": "toolkit.baselines.stage:TSDFStage",
 }

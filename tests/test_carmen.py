@@ -1,0 +1,189 @@
+"""CARMEN / g2o readers, map_server maps, and the Freiburg relations metric."""
+
+from __future__ import annotations
+
+import gzip
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from toolkit.eval.relations import (
+    Relations,
+    read_relations,
+    relation_errors,
+    relations_metric,
+    select_relations,
+)
+from toolkit.geometry import Trajectory, se2_to_se3
+from toolkit.io.carmen import CarmenFormatError, read_carmen, read_g2o
+from toolkit.io.occupancy import OccupancyMap, read_occupancy, write_occupancy
+
+
+def shared_data() -> Path:
+    env = os.environ.get("TOOLKIT_SHARED_DATA")
+    return Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"shared data file {path} is not on this machine "
+                    "(set TOOLKIT_SHARED_DATA to the folder holding slam2d/)")
+    return path
+
+
+# ------------------------------------------------------------------ synthetic lines
+
+FLASER = "FLASER 4 1.0 2.0 0 3.5 0.1 0.2 0.3 0.11 0.21 0.31 12.5 host 12.6\n"
+ROBOTLASER = ("ROBOTLASER1 0 -1.5 3.0 0.75 50.0 0.1 0 5 1.0 1.5 50.0 2.0 nan 2 9 9 "
+              "1.17551651 0.09588511 0.5 1.0 0.0 0.5 0.1 0.0 0.5 0.2 0.3 100.25 host 100.3\n")
+ODOM = "ODOM 1.5 -0.5 0.25 0.1 0 0 13.0 host 13.0\n"
+
+
+def test_read_carmen_plain_and_gzip(tmp_path: Path):
+    text = "# comment\nPARAM robot_frontlaser_offset 0.2 nohost 0\n" + FLASER + ODOM
+    plain = tmp_path / "a.log"
+    plain.write_text(text)
+    gz = tmp_path / "a.log.gz"
+    with gzip.open(gz, "wt") as fh:
+        fh.write(text)
+    for path in (plain, gz):
+        log = read_carmen(path)
+        assert len(log.scans) == 1
+        s = log.scans[0]
+        assert s.stamp == 12.5
+        assert s.angle_min == pytest.approx(-np.pi / 2)
+        assert s.angle_increment == pytest.approx(np.pi / 4)
+        # Zero readings are invalid: stored as NaN, never as zero.
+        assert np.isnan(s.ranges[2]) and s.ranges[3] == pytest.approx(3.5)
+        assert np.allclose(log.scan_poses[0], [0.1, 0.2, 0.3])
+        assert np.allclose(log.scan_odometry[0], [0.11, 0.21, 0.31])
+        assert np.allclose(log.odom_poses, [[1.5, -0.5, 0.25]]) and log.odom_stamps[0] == 13.0
+        assert log.T_base_laser[0, 3] == pytest.approx(0.2)
+
+
+def test_read_robotlaser1_with_remissions_and_laser_offset(tmp_path: Path):
+    path = tmp_path / "b.log"
+    path.write_text(ROBOTLASER)
+    log = read_carmen(path)
+    s = log.scans[0]
+    assert s.stamp == 100.25 and len(s) == 5
+    assert s.angle_min == -1.5 and s.angle_increment == 0.75 and s.range_max == 50.0
+    assert np.isnan(s.ranges[4])
+    # Laser 0.2 m ahead of the robot along its heading (0.5 rad).
+    assert np.allclose(log.T_base_laser[:2, 3], [0.2, 0.0], atol=1e-6)
+
+
+def test_bad_line_names_file_and_line(tmp_path: Path):
+    path = tmp_path / "bad.log"
+    path.write_text(FLASER + "FLASER 3 1.0 oops\n")
+    with pytest.raises(CarmenFormatError, match=r"bad.log:2"):
+        read_carmen(path)
+
+
+def test_read_g2o_odometry_chain(tmp_path: Path):
+    lines = [
+        "VERTEX_SE2 0 5.0 5.0 1.0",  # corrected poses: must not leak into odometry
+        ROBOTLASER.replace("100.25", "1.0").strip(),
+        "VERTEX_SE2 1 6.0 5.0 1.0",
+        ROBOTLASER.replace("100.25", "2.0").strip(),
+        "VERTEX_SE2 2 7.0 5.0 1.0",
+        ROBOTLASER.replace("100.25", "3.0").strip(),
+        "EDGE_SE2 0 1 1.0 0.0 0.5 500 0 0 500 0 5000",
+        "EDGE_SE2 1 2 1.0 0.0 0.0 500 0 0 500 0 5000",
+        "EDGE_SE2 0 2 2.0 0.0 0.0 500 0 0 500 0 5000",
+    ]
+    path = tmp_path / "g.g2o"
+    path.write_text("\n".join(lines) + "\n")
+    g = read_g2o(path)
+    assert len(g.scans) == 3 and list(g.scan_vertex) == [0, 1, 2]
+    assert g.sequential_edges().tolist() == [True, True, False]
+    odo = g.odometry()
+    assert np.allclose(odo.poses[0], np.eye(4))
+    expect = se2_to_se3(1.0 + np.cos(0.5), np.sin(0.5), 0.5)
+    assert np.allclose(odo.poses[2], expect)
+
+
+# ------------------------------------------------------------------ shipped logs
+
+
+def test_shipped_killian_g2o():
+    g = read_g2o(need(shared_data() / "slam2d" / "killian" / "killian.g2o.zip"))
+    assert len(g.scans) == 3873 and len(g.vertex_ids) == 3873 and len(g.edges) == 4987
+    assert int(g.sequential_edges().sum()) == 3872
+    s = g.scans[0]
+    assert len(s) == 180 and s.angle_increment == pytest.approx(np.radians(1.0), abs=1e-5)
+    assert s.stamp == pytest.approx(1031745824.658)
+    assert g.duration_s == pytest.approx(7672.69, abs=0.01)
+    odo = g.odometry()
+    assert len(odo) == 3873
+    rel = read_relations(need(shared_data() / "slam2d" / "killian" / "mit-killian.relations"))
+    assert len(rel) == 4677
+    sel = select_relations(rel, np.array([s.stamp for s in g.scans]))
+    assert int(sel.sum()) == 658
+    # Dead-reckoned odometry on those relations (README: 0.93 m / 1.38 deg).
+    m = relations_metric(odo, Relations(rel.t1[sel], rel.t2[sel], rel.delta[sel]))
+    assert m["trans_abs_mean_m"] == pytest.approx(0.93, abs=0.01)
+    assert m["rot_abs_mean_deg"] == pytest.approx(1.38, abs=0.01)
+    # The corrected vertices score 0.039 m / 0.40 deg.
+    m = relations_metric(g.reference(), Relations(rel.t1[sel], rel.t2[sel], rel.delta[sel]))
+    assert m["trans_abs_mean_m"] == pytest.approx(0.039, abs=0.001)
+
+
+@pytest.mark.parametrize("name,count", [("intel", 910), ("aces", 440)])
+def test_shipped_radish_logs(name: str, count: int):
+    log = read_carmen(need(shared_data() / "slam2d" / "radish" / f"{name}-corrected.log.gz"))
+    assert len(log.scans) == count
+    assert all(len(s) == 180 for s in log.scans)
+    assert log.scans[0].angle_min == pytest.approx(-np.pi / 2)
+    ref = log.reference()
+    assert len(ref) == count - (4 if name == "intel" else 0)  # intel has 4 stamps going back
+    assert len(log.odom_stamps) > count
+
+
+# ------------------------------------------------------------------ map_server
+
+
+def test_occupancy_roundtrip_and_flip(tmp_path: Path):
+    occ = np.full((3, 4), np.nan, np.float32)
+    occ[0, 0] = 0.9  # lowest row (min y) occupied
+    occ[2, 3] = 0.05  # top row free
+    occ[1, 1] = 0.5  # uncertain -> unknown
+    grid = OccupancyMap(occ, 0.05, (-1.0, 2.0, 0.0))
+    pgm = write_occupancy(tmp_path / "map.yaml", grid)
+    raw = pgm.read_bytes()
+    pixels = np.frombuffer(raw[-12:], np.uint8).reshape(3, 4)
+    assert pixels[2, 0] == 0  # map_saver: bottom image row is the lowest y
+    assert pixels[0, 3] == 254
+    assert pixels[1, 1] == 205
+    back = read_occupancy(tmp_path / "map.yaml")
+    assert back.resolution == 0.05 and back.origin == (-1.0, 2.0, 0.0)
+    assert back.occupancy[0, 0] == 1.0 and back.occupancy[2, 3] == 0.0
+    assert np.isnan(back.occupancy[1, 1])
+
+
+# ------------------------------------------------------------------ relations metric
+
+
+def test_relations_metric_hand_computed():
+    # Estimate: robot at (0,0,0), (1,0,0), (1,1,pi/2) at t = 0, 1, 2.
+    stamps = np.array([0.0, 1.0, 2.0])
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, np.pi / 2]])
+    traj = Trajectory(stamps, np.stack([se2_to_se3(*p) for p in poses]))
+    # Reference relations: (0 -> 1) is 1.1 m ahead, (1 -> 2) is (0, 1) turned by 80 deg,
+    # and one relation whose stamp is not an estimate stamp.
+    rel = Relations(np.array([0.0, 1.0, 5.0]), np.array([1.0, 2.0, 6.0]),
+                    np.array([[1.1, 0.0, 0.0], [0.0, 1.0, np.radians(80.0)], [0, 0, 0]]))
+    et, er, used = relation_errors(traj, rel)
+    assert used.tolist() == [True, True, False]
+    assert et[0] == pytest.approx(0.1) and er[0] == pytest.approx(0.0)
+    assert et[1] == pytest.approx(0.0) and np.degrees(er[1]) == pytest.approx(10.0)
+    m = relations_metric(traj, rel)
+    assert m["relations_used"] == 2
+    assert m["trans_abs_mean_m"] == pytest.approx(0.05)
+    assert m["trans_abs_std_m"] == pytest.approx(0.05)
+    assert m["trans_sq_mean_m2"] == pytest.approx(0.005)
+    assert m["rot_abs_mean_deg"] == pytest.approx(5.0)
+    assert m["rot_sq_mean_deg2"] == pytest.approx(50.0)
+    assert m["rot_sq_std_deg2"] == pytest.approx(50.0)

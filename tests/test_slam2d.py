@@ -1,0 +1,241 @@
+"""2D SLAM: grid updates, matcher, pose graph and the whole pipeline on a synthetic world."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from toolkit.geometry import se2_between, se2_compose, se2_to_se3
+from toolkit.sensors import LaserScan
+from toolkit.slam2d import LidarSlam2D, Slam2DConfig
+from toolkit.slam2d.grid import ProbabilityGrid
+from toolkit.slam2d.matcher import GridPyramid, correlative_search, interpolate, refine
+from toolkit.slam2d.pose_graph import PoseGraph2D
+
+# A room with a few obstacles; walls deliberately off the 5 cm grid lines.
+WALLS = np.array([
+    [0.013, 0.021, 12.02, 0.021], [12.02, 0.021, 12.02, 8.037], [12.02, 8.037, 0.013, 8.037],
+    [0.013, 8.037, 0.013, 0.021], [3.01, 3.02, 4.53, 3.02], [4.53, 3.02, 4.53, 5.07],
+    [4.53, 5.07, 3.01, 5.07], [3.01, 5.07, 3.01, 3.02], [8.2, 1.3, 9.4, 2.6],
+    [7.0, 6.0, 10.5, 6.8], [1.5, 6.2, 2.2, 7.1],
+])  # [S, 4] segments x0 y0 x1 y1
+
+
+def raycast(pose: np.ndarray, angles: np.ndarray, max_range: float = 30.0) -> np.ndarray:
+    """[B] ranges from a laser at ``pose`` (x, y, theta) to the nearest wall."""
+    x, y, th = pose
+    d = np.stack([np.cos(angles + th), np.sin(angles + th)], -1)  # [B, 2]
+    a, b = WALLS[:, :2], WALLS[:, 2:]
+    e = b - a  # [S, 2]
+    w = a - np.array([x, y])  # [S, 2]
+    den = d[:, None, 0] * (-e[None, :, 1]) - d[:, None, 1] * (-e[None, :, 0])  # [B, S]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[None, :, 0] * (-e[None, :, 1]) - w[None, :, 1] * (-e[None, :, 0])) / den
+        u = (d[:, None, 0] * w[None, :, 1] - d[:, None, 1] * w[None, :, 0]) / den
+    ok = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+    r = np.where(ok, t, np.inf).min(axis=1)
+    r[r > max_range] = np.inf
+    return r
+
+
+def make_scan(pose: np.ndarray, stamp: float, n: int = 360, fov: float = 2 * np.pi,
+              increment_sign: float = 1.0, noise: float = 0.0,
+              rng: np.random.Generator | None = None) -> LaserScan:
+    inc = increment_sign * fov / n
+    amin = -increment_sign * fov / 2
+    ang = amin + np.arange(n) * inc
+    r = raycast(pose, ang)
+    if noise and rng is not None:
+        r = r + rng.normal(0, noise, n)
+    return LaserScan(stamp=stamp, ranges=r.astype(np.float32), angle_min=amin,
+                     angle_increment=inc, range_min=0.05, range_max=30.0)
+
+
+def scan_points(pose: np.ndarray, n: int = 360) -> np.ndarray:
+    s = make_scan(pose, 0.0, n)
+    return s.points()
+
+
+def grid_from(poses: list[np.ndarray], res: float = 0.05) -> ProbabilityGrid:
+    g = ProbabilityGrid(res, center=(6.0, 4.0))
+    for p in poses:
+        pts = scan_points(p)
+        c, s = np.cos(p[2]), np.sin(p[2])
+        g.insert(p[:2], pts @ np.array([[c, -s], [s, c]]).T + p[:2])
+    return g
+
+
+# ------------------------------------------------------------------ grid
+
+
+def test_grid_hit_miss_odds_and_growth():
+    g = ProbabilityGrid(0.1, hit_probability=0.55, miss_probability=0.49, initial_size_m=2.0)
+    g.insert(np.array([0.0, 0.0]), np.array([[5.0, 0.05]]))  # far outside: grid grows
+    occ = g.occupancy()
+    hit = g.cell_of(np.array([[5.0, 0.05]]))[0]
+    assert occ[hit[1], hit[0]] == pytest.approx(0.55, abs=1e-3)
+    mid = g.cell_of(np.array([[2.5, 0.05]]))[0]
+    assert occ[mid[1], mid[0]] == pytest.approx(0.49, abs=1e-3)
+    # A second hit multiplies the odds: 0.55 -> odds 1.222^2 -> p = 0.599.
+    g.insert(np.array([0.0, 0.0]), np.array([[5.0, 0.05]]))
+    o2 = 1.2222222 ** 2
+    assert g.occupancy()[hit[1], hit[0]] == pytest.approx(o2 / (1 + o2), abs=1e-3)
+    # Never-observed cells stay unknown.
+    assert np.isnan(g.occupancy()[0, 0])
+
+
+def test_grid_free_ray_without_hit():
+    g = ProbabilityGrid(0.1, initial_size_m=4.0)
+    g.insert(np.array([0.0, 0.0]), np.zeros((0, 2)), free_ends=np.array([[1.0, 1.0]]))
+    occ = g.occupancy()
+    c = g.cell_of(np.array([[0.5, 0.5]]))[0]
+    assert occ[c[1], c[0]] < 0.5
+    assert np.nanmax(occ) < 0.5  # no hit anywhere
+
+
+# ------------------------------------------------------------------ matcher
+
+
+def test_matcher_recovers_known_offset():
+    truth = np.array([4.1, 1.9, 0.3])
+    g = grid_from([np.array([5.5, 2.0, 0.1]), np.array([6.5, 1.8, 0.5]),
+                   np.array([8.0, 4.5, -2.0])])
+    field, origin = g.matching_field(0.1)
+    pts = scan_points(truth)
+    guess = truth + np.array([0.35, -0.25, np.radians(8.0)])
+    pyr = GridPyramid(field, origin, g.resolution, 3, g.p_min, 12)
+    found = correlative_search(pyr, pts, guess, 0.6, np.radians(15), np.radians(0.5))
+    assert found.found
+    assert np.hypot(*(found.pose[:2] - truth[:2])) < 0.06
+    assert abs(found.pose[2] - truth[2]) < np.radians(0.6)
+    ref = refine(field, origin, g.resolution, pts, found.pose, translation_weight=0.0,
+                 rotation_weight=0.0)
+    assert np.hypot(*(ref.pose[:2] - truth[:2])) < 0.015
+    assert abs(ref.pose[2] - truth[2]) < np.radians(0.2)
+
+
+def test_branch_and_bound_matches_brute_force():
+    g = grid_from([np.array([6.0, 4.0, 0.0])])
+    field, origin = g.matching_field(0.1)
+    pts = scan_points(np.array([6.2, 3.9, 0.05]))[::4]
+    guess = np.array([6.0, 4.0, 0.0])
+    exact = correlative_search(GridPyramid(field, origin, 0.05, 0, g.p_min, 8), pts, guess,
+                               0.4, np.radians(4), np.radians(1.0), max_candidates=10**9)
+    bnb = correlative_search(GridPyramid(field, origin, 0.05, 3, g.p_min, 8), pts, guess,
+                             0.4, np.radians(4), np.radians(1.0), max_candidates=10**9)
+    assert bnb.score == pytest.approx(exact.score, abs=1e-9)
+    assert np.allclose(bnb.pose, exact.pose)
+    assert bnb.candidates < exact.candidates
+
+
+def test_interpolation_gradient_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    prob = rng.random((20, 30)).astype(np.float32)
+    origin = np.array([-0.3, 0.7])
+    pts = rng.uniform([0, 1.0], [1.0, 1.5], (10, 2))
+    val, grad = interpolate(prob, origin, 0.05, pts)
+    h = 1e-6
+    for k in range(2):
+        dp = np.zeros(2)
+        dp[k] = h
+        fd = (interpolate(prob, origin, 0.05, pts + dp)[0] -
+              interpolate(prob, origin, 0.05, pts - dp)[0]) / (2 * h)
+        assert np.allclose(grad[:, k], fd, rtol=1e-3, atol=1e-3)
+
+
+# ------------------------------------------------------------------ pose graph
+
+
+def test_pose_graph_closes_square_loop():
+    # A 10 m square driven in 40 steps; odometry has a heading bias, the loop closure
+    # says the last pose is the first.
+    steps = 40
+    true = [np.array([0.0, 0.0, 0.0])]
+    for k in range(steps):
+        turn = np.pi / 2 if (k + 1) % 10 == 0 else 0.0
+        true.append(se2_compose(true[-1], np.array([1.0, 0.0, turn])))
+    true = np.array(true)
+    g = PoseGraph2D()
+    est = [np.zeros(3)]
+    for k in range(steps):
+        z = se2_between(true[k], true[k + 1]) + np.array([0.0, 0.0, 0.01])  # drift
+        est.append(se2_compose(est[-1], z))
+    for p in est:
+        g.add_vertex(p)
+    for k in range(steps):
+        z = se2_between(true[k], true[k + 1]) + np.array([0.0, 0.0, 0.01])
+        g.add_edge(k, k + 1, z, 100.0, 100.0)
+    before = np.hypot(*(g.poses[steps][:2] - g.poses[0][:2]))
+    assert before > 1.0
+    g.add_edge(0, steps, np.zeros(3), 1e4, 1e4, robust="huber", robust_scale=10.0)
+    # A wrong closure: with a robust loss it must not wreck the solution.
+    g.add_edge(5, 25, np.array([0.0, 0.0, 0.0]), 1e4, 1e4, robust="cauchy", robust_scale=1.0)
+    rep = g.optimize(50)
+    assert rep.final_cost < rep.initial_cost
+    after = np.hypot(*(g.poses[steps][:2] - g.poses[0][:2]))
+    assert after < 0.1
+    err = np.hypot(*(g.poses[:, :2] - true[:, :2]).T)
+    assert err.max() < 0.5
+    assert g.outliers().sum() == 1
+
+
+# ------------------------------------------------------------------ whole SLAM
+
+
+def _drive(n: int = 80) -> np.ndarray:
+    """[n, 3] a loop around the room's central obstacle."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    x = 6.0 + 3.6 * np.cos(t)
+    y = 4.2 + 2.4 * np.sin(t)
+    th = np.arctan2(np.gradient(y), np.gradient(x))
+    return np.stack([x, y, th], -1)
+
+
+@pytest.mark.parametrize("beams,fov,sign", [(360, 2 * np.pi, 1.0), (180, 2 * np.pi, -1.0)])
+def test_slam_tracks_synthetic_loop(beams, fov, sign):
+    rng = np.random.default_rng(1)
+    truth = _drive(40)
+    T_base_laser = se2_to_se3(0.2, 0.0, 0.0)
+    # The laser sees from its own pose: base pose composed with the mount.
+    laser_poses = se2_compose(truth, np.array([0.2, 0.0, 0.0]))
+    # Small submaps so that the loop meets finished ones and closes.
+    config = Slam2DConfig.model_validate({"submaps": {"num_range_data": 8},
+                                          "pose_graph": {"optimize_every_n_nodes": 10}})
+    slam = LidarSlam2D(config, T_base_laser)
+    for k, p in enumerate(laser_poses):
+        slam.add_scan(make_scan(p, float(k), beams, fov, sign, noise=0.01, rng=rng))
+    res = slam.finish()
+    assert len(res.trajectory) == len(truth)
+    est = res.poses
+    # Compare in the frame of the first pose (the SLAM starts at the identity).
+    rel_est = se2_between(est[0], est)
+    rel_true = se2_between(truth[0], truth)
+    err = np.hypot(*(rel_est[:, :2] - rel_true[:, :2]).T)
+    assert err.max() < 0.1, err.max()
+    assert res.metrics["nodes"] >= 35
+    assert res.metrics["loop_closures"] >= 1
+    occ = res.map.occupancy()
+    assert np.nanmax(occ) > 0.65 and np.nanmin(occ) < 0.2
+
+
+def test_bad_scans_are_skipped_and_counted():
+    slam = LidarSlam2D()
+    good = make_scan(np.array([6.0, 4.0, 0.0]), 1.0)
+    assert slam.add_scan(good) is not None
+    nan = make_scan(np.array([6.0, 4.0, 0.0]), 2.0)
+    nan.ranges[:] = np.nan
+    assert slam.add_scan(nan) is None
+    dup = make_scan(np.array([6.0, 4.0, 0.0]), 1.0)
+    assert slam.add_scan(dup) is None
+    older = make_scan(np.array([6.0, 4.0, 0.0]), 0.5)
+    assert slam.add_scan(older) is None
+    mixed = make_scan(np.array([6.05, 4.0, 0.0]), 3.0)
+    mixed.ranges[::3] = 0.0
+    mixed.ranges[1::3] = -1.0
+    assert slam.add_scan(mixed) is not None
+    m = slam.finish().metrics
+    assert m["skipped_scans_too_few_returns"] == 1
+    assert m["skipped_scans_duplicate_stamp"] == 1
+    assert m["skipped_scans_out_of_order"] == 1
+    assert m["invalid_beams"] >= 240
+    assert m["scans_used"] == 2

@@ -1,0 +1,38 @@
+"""Full benchmark runs on the shipped real logs (slow: minutes each; ``pytest -m slow``).
+
+Bounds are the figures measured when the benchmarks were last run (docs/slam2d.md) with a
+margin, so that a regression shows; the issue's targets are in the docs next to them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from toolkit.slam2d.bench import run_benchmark, shared_data_dir
+
+pytestmark = pytest.mark.slow
+
+
+def _data() -> Path:
+    d = shared_data_dir()
+    if not (d / "slam2d").exists():
+        pytest.skip(f"{d}/slam2d is not on this machine (set TOOLKIT_SHARED_DATA)")
+    return d
+
+
+def test_killian_relations(tmp_path: Path):
+    f = run_benchmark("killian", tmp_path, data_dir=_data())
+    rel = f["relations"]
+    assert rel["relations_used"] == 658
+    assert rel["trans_abs_mean_m"] < 0.045
+    assert rel["rot_abs_mean_deg"] < 0.40
+    assert f["slam"]["realtime_factor_cpu"] > 40
+
+
+@pytest.mark.parametrize("name", ["intel", "aces"])
+def test_radish_scan_only_ate(tmp_path: Path, name: str):
+    f = run_benchmark(name, tmp_path, data_dir=_data())
+    assert f["ate"]["ate_rmse_m"] < 0.2
+    assert (tmp_path / f"{name}_map.png").exists()

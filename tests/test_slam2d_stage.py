@@ -1,0 +1,89 @@
+"""The ``slam2d`` recipe stage on a small synthetic sequence (no recipe runner needed)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_slam2d import _drive, make_scan  # the tests folder is on sys.path
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, se2_compose, se2_to_se3
+from toolkit.io.occupancy import read_occupancy
+from toolkit.io.tum import read_tum
+from toolkit.recipe.stage import StageContext
+from toolkit.sensors import CameraFrame, GroundTruth, Rig, Sequence
+from toolkit.slam2d.stage import Slam2DStage
+
+
+class _Ctx(StageContext):
+    def __init__(self, root: Path) -> None:
+        self.run_dir = root
+        self.stage_dir = root / "slam2d"
+        self.stage_dir.mkdir(parents=True)
+        self.stage_id = "slam2d"
+        self.recipe_name = "test"
+        self.log = logging.getLogger("test")
+        self.metrics: dict[str, Any] = {}
+        self.provided: dict[str, Path] = {}
+        self.text = ""
+
+    def artifact(self, name: str) -> Path:
+        return self.run_dir / "sequence"
+
+    def has_artifact(self, name: str) -> bool:
+        return name == "sequence"
+
+    def provide(self, name: str, path: Path) -> None:
+        self.provided[name] = path
+
+    def add_metrics(self, metrics: dict[str, Any]) -> None:
+        self.metrics.update(metrics)
+
+    def report(self, markdown: str) -> None:
+        self.text += markdown
+
+    def progress(self, iterable: Iterable, total: int | None = None,
+                 description: str = "") -> Iterator:
+        return iter(iterable)
+
+
+def test_stage_writes_trajectories_and_map(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    truth = _drive(24)[:12]
+    stamps = np.arange(len(truth), dtype=float)
+    T_base_laser = se2_to_se3(0.1, 0.0, 0.0)
+    laser = se2_compose(truth, np.array([0.1, 0.0, 0.0]))
+    scans = [make_scan(p, t) for p, t in zip(laser, stamps, strict=True)]
+    gt = Trajectory(stamps, np.stack([se2_to_se3(*p) for p in truth]))
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    T_base_camera = np.eye(4)
+    T_base_camera[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]
+    frames = [CameraFrame.from_array(t, np.zeros((48, 64, 3), np.uint8), i)
+              for i, t in enumerate([-1.0, 0.5, 3.25, 7.5, 20.0])]
+    seq = Sequence(Rig(cam, T_base_camera, T_base_laser), frames, scans,
+                   groundtruth=GroundTruth(poses_base=gt), name="synthetic")
+    monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
+
+    stage = Slam2DStage(Slam2DStage.Config(stage="slam2d"))
+    ctx = _Ctx(tmp_path)
+    stage.run(ctx)
+    out = ctx.stage_dir
+    base = read_tum(out / "trajectory_base.tum")
+    assert len(base) == len(scans)
+    camt = read_tum(out / "trajectory_camera.tum")
+    assert np.allclose(camt.stamps, [0.5, 3.25, 7.5])  # frames outside the scan span dropped
+    assert np.allclose(camt.poses[0][:3, :3], base.interpolate([0.5]).poses[0][:3, :3]
+                       @ T_base_camera[:3, :3], atol=1e-6)
+    assert ctx.metrics["camera_frames_outside_scan_span"] == 2
+    assert ctx.metrics["gt_ate_rmse_m"] < 0.05
+    occ = read_occupancy(out / "map.yaml")
+    assert np.nanmax(occ.occupancy) == 1.0
+    assert (out / "map.png").stat().st_size > 1000
+    assert json.loads((out / "slam2d_config.json").read_text())["grid"]["resolution"] == 0.05
+    assert ctx.provided["trajectory"] == out
+    assert "map.png" in ctx.text

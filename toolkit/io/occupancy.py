@@ -1,0 +1,140 @@
+"""Occupancy grids in the ROS ``map_server`` format: a PGM image plus a YAML file.
+
+``map_saver`` writes 254 for free, 0 for occupied and 205 for unknown cells, with the
+image's top row at the map's highest y (rows flipped from grid order), and a YAML with
+``image``, ``resolution`` (m/px), ``origin`` [x, y, yaw] (pose of the lower-left pixel),
+``negate``, ``occupied_thresh`` and ``free_thresh``. ``map_server`` reads a pixel x as
+p = (255 - x) / 255 (x / 255 when negated): p > occupied_thresh is occupied, p <
+free_thresh free, anything else unknown (``mode: trinary``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from toolkit.io.atomic import atomic_write_bytes, atomic_write_text
+
+FREE, OCCUPIED, UNKNOWN = 254, 0, 205
+
+
+@dataclass
+class OccupancyMap:
+    """A grid in map order: row 0 is the lowest y, column 0 the lowest x."""
+
+    occupancy: np.ndarray  # [H, W] float32 occupancy probability, NaN where unknown
+    resolution: float  # m per cell
+    origin: tuple[float, float, float]  # (x, y, yaw) of the lower-left cell's corner
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.occupancy.shape  # type: ignore[return-value]
+
+    def trinary(self, occupied_thresh: float = 0.65, free_thresh: float = 0.196) -> np.ndarray:
+        """[H, W] uint8 map_saver pixel values (254 free, 0 occupied, 205 unknown), in map
+        order (not flipped)."""
+        p = self.occupancy
+        out = np.full(p.shape, UNKNOWN, np.uint8)
+        with np.errstate(invalid="ignore"):
+            out[p > occupied_thresh] = OCCUPIED
+            out[p < free_thresh] = FREE
+        return out
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """x [W] and y [H] of cell centres in the map frame (origin yaw assumed 0)."""
+        H, W = self.shape
+        x = self.origin[0] + (np.arange(W) + 0.5) * self.resolution
+        y = self.origin[1] + (np.arange(H) + 0.5) * self.resolution
+        return x, y
+
+
+def _pgm_bytes(img: np.ndarray, resolution: float) -> bytes:
+    H, W = img.shape
+    header = f"P5\n# CREATOR: toolkit.io.occupancy {resolution:.3f} m/pix\n{W} {H}\n255\n"
+    header = header.encode()
+    return header + np.ascontiguousarray(img, dtype=np.uint8).tobytes()
+
+
+def write_occupancy(yaml_path: Path | str, grid: OccupancyMap, occupied_thresh: float = 0.65,
+                    free_thresh: float = 0.196) -> Path:
+    """Write ``<name>.yaml`` and ``<name>.pgm`` next to it (atomically); returns the PGM path."""
+    yaml_path = Path(yaml_path)
+    if yaml_path.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"{yaml_path}: give the .yaml path; the .pgm goes next to it")
+    pgm_path = yaml_path.with_suffix(".pgm")
+    img = grid.trinary(occupied_thresh, free_thresh)[::-1]  # map_saver: top row = max y
+    atomic_write_bytes(pgm_path, _pgm_bytes(img, grid.resolution))
+    meta = {
+        "image": pgm_path.name,
+        "mode": "trinary",
+        "resolution": float(grid.resolution),
+        "origin": [float(v) for v in grid.origin],
+        "negate": 0,
+        "occupied_thresh": float(occupied_thresh),
+        "free_thresh": float(free_thresh),
+    }
+    atomic_write_text(yaml_path, yaml.safe_dump(meta, sort_keys=False))
+    return pgm_path
+
+
+def _read_pgm(path: Path) -> np.ndarray:
+    data = path.read_bytes()
+    tokens: list[bytes] = []
+    pos = 0
+    while len(tokens) < 4:  # magic, width, height, maxval; '#' starts a comment
+        while pos < len(data) and data[pos : pos + 1].isspace():
+            pos += 1
+        if data[pos : pos + 1] == b"#":
+            pos = data.index(b"\n", pos) + 1
+            continue
+        end = pos
+        while end < len(data) and not data[end : end + 1].isspace():
+            end += 1
+        tokens.append(data[pos:end])
+        pos = end
+    magic, w, h, maxval = tokens[0], int(tokens[1]), int(tokens[2]), int(tokens[3])
+    if magic != b"P5" or maxval > 255:
+        raise ValueError(f"{path}: only 8-bit binary PGM (P5) is supported, got {magic!r}")
+    pixels = np.frombuffer(data, np.uint8, count=w * h, offset=pos + 1)
+    return pixels.reshape(h, w)
+
+
+def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
+    """Read a map_server YAML + image into map order (row 0 = lowest y).
+
+    Cells become 1.0 (occupied), 0.0 (free) or NaN (unknown) in trinary mode, or the
+    pixel's probability p in ``scale`` mode (NaN where map_server would say unknown).
+    """
+    yaml_path = Path(yaml_path)
+    if not yaml_path.exists():
+        raise FileNotFoundError(f"{yaml_path}: map YAML not found")
+    meta = yaml.safe_load(yaml_path.read_text())
+    for key in ("image", "resolution", "origin"):
+        if key not in meta:
+            raise ValueError(f"{yaml_path}: missing field '{key}'")
+    img_path = (yaml_path.parent / meta["image"]).resolve()
+    if img_path.suffix.lower() == ".pgm":
+        img = _read_pgm(img_path)
+    else:
+        import cv2
+
+        img = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise FileNotFoundError(f"{img_path}: map image missing or unreadable")
+    x = img.astype(np.float32)
+    p = x / 255.0 if int(meta.get("negate", 0)) else (255.0 - x) / 255.0
+    occ_t = float(meta.get("occupied_thresh", 0.65))
+    free_t = float(meta.get("free_thresh", 0.196))
+    mode = meta.get("mode", "trinary")
+    out = np.full(p.shape, np.nan, np.float32)
+    if mode == "scale":
+        known = (p > occ_t) | (p < free_t) | ((p >= free_t) & (p <= occ_t) & (x != UNKNOWN))
+        out[known] = p[known]
+    else:
+        out[p > occ_t] = 1.0
+        out[p < free_t] = 0.0
+    origin = tuple(float(v) for v in meta["origin"])
+    return OccupancyMap(out[::-1].copy(), float(meta["resolution"]), origin)  # type: ignore[arg-type]

@@ -1,0 +1,149 @@
+"""Benchmarks of the 2D SLAM on the shipped real logs.
+
+    python -m toolkit.slam2d.bench killian|intel|aces [--out DIR] [--set local.x=1 ...]
+
+killian: scans + the sequential EDGE_SE2 odometry of killian.g2o; the Freiburg relations
+metric on the relations whose two stamps are scans of the file (658). intel / aces: the
+Radish logs scan-only; ATE after SE(2) alignment against the GMapping-corrected poses
+stored in the log. Writes ``<out>/<log>.json``, the map (PGM + YAML) and a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from toolkit.geometry import Trajectory, umeyama_alignment
+from toolkit.io.atomic import atomic_write_json
+from toolkit.io.occupancy import write_occupancy
+from toolkit.slam2d.config import Slam2DConfig
+from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
+from toolkit.slam2d.plot import save_map_png
+
+LOGS = ("killian", "intel", "aces")
+
+
+def shared_data_dir() -> Path:
+    """``$TOOLKIT_SHARED_DATA`` or ``../shared/data`` next to the repository."""
+    env = os.environ.get("TOOLKIT_SHARED_DATA")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+def ate_se2(estimate: Trajectory, reference: Trajectory, tol: float = 1e-3) -> dict:
+    """ATE (RMSE, mean, max of position errors, m) after the SE(2) alignment of the
+    estimate onto the reference, over the stamps both share (within ``tol`` s)."""
+    ref_st = reference.stamps
+    i = np.clip(np.searchsorted(ref_st, estimate.stamps), 1, len(ref_st) - 1)
+    near = np.where(np.abs(ref_st[i - 1] - estimate.stamps) < np.abs(ref_st[i] -
+                                                                       estimate.stamps), i - 1, i)
+    ok = np.abs(ref_st[near] - estimate.stamps) <= tol
+    est = estimate.positions[ok, :2]
+    ref = reference.positions[near[ok], :2]
+    R, t, _ = umeyama_alignment(est, ref)
+    err = np.linalg.norm(est @ R.T + t - ref, axis=1)
+    return {"ate_rmse_m": float(np.sqrt((err**2).mean())), "ate_mean_m": float(err.mean()),
+            "ate_max_m": float(err.max()), "ate_poses": int(ok.sum())}
+
+
+def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
+    data = config.model_dump()
+    for item in sets:
+        key, _, value = item.partition("=")
+        node = data
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node[p]
+        if parts[-1] not in node:
+            raise SystemExit(f"--set {key}: unknown setting")
+        node[parts[-1]] = yaml.safe_load(value)
+    return Slam2DConfig.model_validate(data)
+
+
+def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
+                  data_dir: Path | None = None) -> dict:
+    """Run one log; write JSON, map and PNG under ``out``; return the figures."""
+    from toolkit.eval.relations import read_relations, relations_metric, select_relations
+    from toolkit.io.carmen import read_carmen, read_g2o
+
+    data = data_dir or shared_data_dir()
+    config = config or Slam2DConfig()
+    out.mkdir(parents=True, exist_ok=True)
+    t_read = time.perf_counter()
+    figures: dict = {"log": name}
+    reference: Trajectory | None = None
+    if name == "killian":
+        g2o = read_g2o(data / "slam2d" / "killian" / "killian.g2o.zip")
+        scans, odom, T_bl = g2o.scans, g2o.odometry(), g2o.T_base_laser
+        figures["input"] = "scans + sequential EDGE_SE2 odometry (corrected vertices unused)"
+    elif name in ("intel", "aces"):
+        log = read_carmen(data / "slam2d" / "radish" / f"{name}-corrected.log.gz")
+        scans, odom, T_bl = log.scans, None, log.T_base_laser
+        reference = log.reference()
+        figures["input"] = "scans only (the log's GMapping poses are the reference)"
+    else:
+        raise ValueError(f"unknown log {name!r}; choose from {LOGS}")
+    figures["read_s"] = round(time.perf_counter() - t_read, 3)
+    figures["scans"] = len(scans)
+
+    result = run_slam(scans, odom, T_bl, config)
+    figures["slam"] = result.metrics
+    if name == "killian":
+        rel = read_relations(data / "slam2d" / "killian" / "mit-killian.relations")
+        scan_stamps = np.array([s.stamp for s in scans])
+        sel = select_relations(rel, scan_stamps)
+        from toolkit.eval.relations import Relations
+
+        subset = Relations(rel.t1[sel], rel.t2[sel], rel.delta[sel])
+        figures["relations"] = relations_metric(result.trajectory, subset)
+        figures["relations"]["relations_in_file"] = len(rel)
+        figures["relations"]["selection"] = "both stamps are scans of killian.g2o"
+        dr = relations_metric(odom, subset)
+        figures["odometry_relations"] = {k: v for k, v in dr.items() if "mean" in k}
+    if reference is not None:
+        figures["ate"] = ate_se2(result.trajectory, reference)
+
+    occ = grid_to_occupancy(result.map)
+    write_occupancy(out / f"{name}_map.yaml", occ)
+    save_map_png(out / f"{name}_map.png", occ, result.trajectory.positions[:, :2],
+                 title=f"{name}: {result.metrics['nodes']} nodes, "
+                       f"{result.metrics['loop_closures']} loop closures")
+    figures["config"] = config.model_dump()
+    atomic_write_json(out / f"{name}.json", figures)
+    return figures
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m toolkit.slam2d.bench", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("log", choices=LOGS)
+    ap.add_argument("--out", type=Path, default=Path("runs/bench_slam2d"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a setting, e.g. --set loop_closure.min_score=0.6")
+    ap.add_argument("--config", type=Path, help="YAML file of settings (Slam2DConfig)")
+    ap.add_argument("-v", "--verbose", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    config = Slam2DConfig()
+    if args.config:
+        config = Slam2DConfig.model_validate(yaml.safe_load(args.config.read_text()) or {})
+    config = _apply_overrides(config, args.set)
+    figures = run_benchmark(args.log, args.out, config)
+    show = {k: v for k, v in figures.items() if k != "config"}
+    json.dump(show, sys.stdout, indent=1)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,156 @@
+"""Settings of the 2D lidar SLAM, as nested pydantic models (unknown keys are errors).
+
+Defaults follow Cartographer's 2D options where they carry over, and are the ones the
+benchmarks in docs/slam2d.md were measured with: the same values for every log.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _Options(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GridOptions(_Options):
+    resolution: float = Field(0.05, gt=0, description="submap cell size, m")
+    hit_probability: float = Field(0.55, gt=0.5, lt=1)
+    miss_probability: float = Field(0.49, gt=0, lt=0.5)
+    min_probability: float = Field(0.1, gt=0, lt=0.5)
+    max_probability: float = Field(0.9, gt=0.5, lt=1)
+    matching_sigma_m: float = Field(
+        0.1, gt=0, description="width of the smoothed field scans are matched against, m"
+    )
+
+
+class ScanOptions(_Options):
+    min_range: float = Field(0.05, ge=0, description="beams shorter than this are dropped, m")
+    max_range: float = Field(30.0, gt=0, description="longer beams only clear free space, m")
+    missing_data_ray_length: float = Field(
+        5.0, ge=0, description="free space cleared along a beam without return, m"
+    )
+    min_valid_beams: int = Field(20, ge=3, description="fewer returns: the scan is skipped")
+    max_match_points: int = Field(
+        250, ge=10, description="voxel-filter the points used for matching down to this many"
+    )
+
+
+class MotionFilterOptions(_Options):
+    max_time_s: float = Field(5.0, ge=0)
+    max_distance_m: float = Field(0.2, ge=0)
+    max_angle_deg: float = Field(1.0, ge=0)
+
+
+class LocalMatchingOptions(_Options):
+    # Correlative search window around the predicted pose. With odometry the prediction is
+    # good to centimetres; without it the robot may have moved a metre and turned tens of
+    # degrees since the last scan (sparse logs), so the window is wider.
+    linear_window_m: float = Field(0.2, ge=0)
+    angular_window_deg: float = Field(5.0, ge=0)
+    scan_only_linear_window_m: float = Field(1.2, ge=0)
+    scan_only_angular_window_deg: float = Field(90.0, ge=0)
+    angular_step_deg: float = Field(0.5, gt=0, description="search step, refined afterwards")
+    translation_delta_cost_weight: float = Field(0.1, ge=0)
+    rotation_delta_cost_weight: float = Field(0.1, ge=0)
+    max_candidates: int = Field(600, ge=10)
+    # Continuous refinement (Cartographer's CeresScanMatcher2D cost); these priors and
+    # the delta costs above pull towards the odometry prediction. Cartographer's 10 / 40
+    # made the Killian scan-to-scan poses no better than the odometry (0.039 m on the
+    # consecutive relations); 1 / 1 lets the scan speak (0.034 m), lower slides in
+    # corridors (docs/slam2d.md).
+    occupied_space_weight: float = Field(1.0, gt=0)
+    translation_weight: float = Field(1.0, ge=0)
+    rotation_weight: float = Field(1.0, ge=0)
+    max_iterations: int = Field(20, ge=1)
+    # Without odometry the prediction ("stood still") carries no information about the
+    # translation: no translation cost in the search, and the refinement is only held to
+    # the search result, weakly, so that it cannot slide along a corridor. A mild rotation
+    # cost keeps a rectangular room from matching a quarter turn off.
+    scan_only_rotation_delta_cost_weight: float = Field(0.5, ge=0)
+    scan_only_translation_weight: float = Field(1.0, ge=0)
+    scan_only_rotation_weight: float = Field(1.0, ge=0)
+    # Scan-only, in a corridor whose walls ahead were only grazed by earlier beams, a pose
+    # a metre behind can score a little better than the true one (the scan slides along
+    # the corridor). The pose that repeats the last forward advance is searched too (small
+    # window) and wins when it scores within this margin of the best pose: the data
+    # decides when it is clear, the robot's motion when it is not.
+    motion_tiebreak_margin: float = Field(0.04, ge=0)
+    motion_tiebreak_linear_window_m: float = Field(0.25, ge=0)
+    motion_tiebreak_angular_window_deg: float = Field(10.0, ge=0)
+
+
+class SubmapOptions(_Options):
+    num_range_data: int = Field(35, ge=1, description="scans per submap (each is in two)")
+
+
+class LoopClosureOptions(_Options):
+    enabled: bool = True
+    max_constraint_distance_m: float = Field(15.0, ge=0)
+    sampling_ratio: float = Field(0.3, gt=0, le=1)
+    # On the smoothed field (not Cartographer's raw grid) a wrong match in clutter scores
+    # higher: 0.55 let hundreds of false closures through on the Intel log, 0.75 few.
+    min_score: float = Field(0.75, gt=0, lt=1)
+    linear_window_m: float = Field(7.0, ge=0)
+    angular_window_deg: float = Field(30.0, ge=0)
+    # A submap finished a short way back along the trajectory has drifted little from
+    # the node: a small window is enough there and costs a fiftieth of the big one.
+    recent_nodes: int = Field(100, ge=0, description="'a short way back', in nodes")
+    recent_linear_window_m: float = Field(1.5, ge=0)
+    recent_angular_window_deg: float = Field(10.0, ge=0)
+    angular_step_deg: float = Field(0.25, gt=0)
+    branch_and_bound_depth: int = Field(6, ge=0, le=10)
+    max_candidates: int = Field(800, ge=10)
+    max_points: int = Field(120, ge=10, description="scan points used by the search")
+    translation_weight: float = Field(1.1e4, gt=0)
+    rotation_weight: float = Field(1e5, gt=0)
+    loss: Literal["huber", "cauchy", "none"] = "huber"
+    loss_scale: float = Field(10.0, gt=0, description="on the weighted residual norm")
+    # Refinement of a found closure (Cartographer's constraint-builder Ceres options).
+    refine_occupied_space_weight: float = Field(20.0, gt=0)
+    refine_translation_weight: float = Field(10.0, ge=0)
+    refine_rotation_weight: float = Field(1.0, ge=0)
+
+
+class PoseGraphOptions(_Options):
+    optimize_every_n_nodes: int = Field(90, ge=0, description="0: only at the end")
+    max_iterations: int = Field(6, ge=1, description="per periodic optimisation (warm start)")
+    final_max_iterations: int = Field(50, ge=1)
+    intra_submap_translation_weight: float = Field(5e2, gt=0)
+    intra_submap_rotation_weight: float = Field(1.6e3, gt=0)
+    local_slam_translation_weight: float = Field(1e5, ge=0)
+    local_slam_rotation_weight: float = Field(1e5, ge=0)
+    # Scan-only, a wrong scan match is the likeliest gross error: a robust loss on the
+    # consecutive local-SLAM edges lets consistent loop closures outvote it.
+    local_slam_loss: Literal["huber", "cauchy", "none"] = "none"
+    local_slam_loss_scale: float = Field(10.0, gt=0)
+    # Odometry edges are weak (Cartographer: 1e5, as strong as local SLAM): the local
+    # SLAM's consecutive poses already use odometry as their prior and are closer to the
+    # truth; at 1e5 they were averaged with the raw odometry (Killian consecutive
+    # relations 0.0352 m instead of 0.0335 m).
+    odometry_translation_weight: float = Field(1e3, ge=0)
+    odometry_rotation_weight: float = Field(1e3, ge=0)
+
+
+class MapOptions(_Options):
+    """The output occupancy grid: every node's scan re-inserted at its optimised pose.
+
+    Stronger updates than the submaps' so that a few observations already cross
+    map_server's thresholds (0.65 occupied, 0.196 free) in sparse logs."""
+
+    resolution: float = Field(0.05, gt=0, description="output occupancy grid cell size, m")
+    hit_probability: float = Field(0.7, gt=0.5, lt=1)
+    miss_probability: float = Field(0.3, gt=0, lt=0.5)
+
+
+class Slam2DConfig(_Options):
+    grid: GridOptions = GridOptions()
+    scan: ScanOptions = ScanOptions()
+    motion_filter: MotionFilterOptions = MotionFilterOptions()
+    local: LocalMatchingOptions = LocalMatchingOptions()
+    submaps: SubmapOptions = SubmapOptions()
+    loop_closure: LoopClosureOptions = LoopClosureOptions()
+    pose_graph: PoseGraphOptions = PoseGraphOptions()
+    map: MapOptions = MapOptions()

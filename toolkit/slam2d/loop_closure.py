@@ -1,0 +1,105 @@
+"""Loop-closure constraints: search finished submaps for the scans of new nodes.
+
+As Cartographer's ``ConstraintBuilder2D``: a node is tried against every finished submap
+whose centre lies within ``max_constraint_distance_m`` of it (by the current global
+estimate), a fixed fraction of those pairs (``sampling_ratio``, deterministic per
+submap) is searched with branch-and-bound over a window around the estimated relative
+pose, and a match scoring at least ``min_score`` is refined on the interpolated grid and
+becomes a constraint ``submap -> node``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from toolkit.geometry import se2_between, se2_compose
+from toolkit.slam2d.config import LoopClosureOptions
+from toolkit.slam2d.matcher import correlative_search, refine
+from toolkit.slam2d.submaps import PyramidCache, Submap
+
+if TYPE_CHECKING:
+    from toolkit.slam2d.slam import Node
+
+
+@dataclass
+class Closure:
+    relative_pose: np.ndarray  # [3] node pose in the submap frame
+    score: float  # branch-and-bound score
+    refined_score: float
+
+
+class LoopCloser:
+    def __init__(self, options: LoopClosureOptions, resolution: float, sigma: float) -> None:
+        self.options = options
+        self.resolution = float(resolution)
+        self.cache = PyramidCache(sigma)
+        self._centres: dict[int, np.ndarray] = {}  # submap -> centre in its own frame [2]
+        self._pulses: dict[int, int] = {}
+        self._samples: dict[int, int] = {}
+        self.searches = 0
+        self.found = 0
+        self.seconds = 0.0
+        o = options
+        self._w_cells = int(np.ceil(o.linear_window_m / resolution))
+        self._depth = min(o.branch_and_bound_depth,
+                          max(0, int(np.floor(np.log2(max(self._w_cells, 1)))) - 1))
+
+    def on_submap_finished(self, submap: Submap, nodes: list[Node]) -> None:
+        """Remember where the submap's scans were (its centre, in the submap frame)."""
+        pts = np.array([nodes[i].local_pose[:2] for i in submap.nodes])
+        self._centres[submap.index] = pts.mean(0) - submap.local_pose[:2]
+
+    def _sample(self, submap: int) -> bool:
+        p = self._pulses.get(submap, 0) + 1
+        s = self._samples.get(submap, 0)
+        self._pulses[submap] = p
+        if s / p < self.options.sampling_ratio:  # Cartographer's FixedRatioSampler
+            self._samples[submap] = s + 1
+            return True
+        return False
+
+    def maybe_search(self, node: Node, submap: Submap, submap_global: np.ndarray,
+                     node_global: np.ndarray, force: bool = False) -> Closure | None:
+        o = self.options
+        centre = self._centres.get(submap.index)
+        if centre is None:
+            return None
+        c, s = np.cos(submap_global[2]), np.sin(submap_global[2])
+        centre_g = submap_global[:2] + np.array([c * centre[0] - s * centre[1],
+                                                 s * centre[0] + c * centre[1]])
+        if np.hypot(*(node_global[:2] - centre_g)) > o.max_constraint_distance_m:
+            return None
+        if not force and not self._sample(submap.index):
+            return None
+        recent = node.index - submap.nodes[-1] <= o.recent_nodes
+        return self.search(node, submap, se2_between(submap_global, node_global), recent)
+
+    def search(self, node: Node, submap: Submap, relative_guess: np.ndarray,
+               recent: bool = False) -> Closure | None:
+        """Branch-and-bound around ``relative_guess`` (node in submap frame), then refine."""
+        o = self.options
+        lin = o.recent_linear_window_m if recent else o.linear_window_m
+        ang = o.recent_angular_window_deg if recent else o.angular_window_deg
+        t0 = time.perf_counter()
+        self.searches += 1
+        pyr, prob = self.cache.get(submap, self._depth, self._w_cells)
+        guess = se2_compose(submap.local_pose, relative_guess)  # grid (local) coordinates
+        found = correlative_search(
+            pyr, node.match_points, guess, lin, np.radians(ang),
+            np.radians(o.angular_step_deg), min_score=o.min_score,
+            max_candidates=o.max_candidates)
+        out = None
+        if found.found:
+            ref = refine(prob, submap.grid.origin, submap.grid.resolution,
+                         node.hits.astype(np.float64), found.pose,
+                         occupied_weight=o.refine_occupied_space_weight,
+                         translation_weight=o.refine_translation_weight,
+                         rotation_weight=o.refine_rotation_weight)
+            out = Closure(se2_between(submap.local_pose, ref.pose), found.score, ref.score)
+            self.found += 1
+        self.seconds += time.perf_counter() - t0
+        return out

@@ -1,0 +1,486 @@
+"""``LidarSlam2D``: Cartographer-style 2D SLAM that takes scans one at a time.
+
+Local SLAM matches each scan against the older of two active submaps (correlative search
+around the predicted pose, then continuous refinement on the interpolated grid), applies
+a motion filter, and inserts the scan into both submaps. Global SLAM keeps a sparse pose
+graph of scan nodes and submaps (intra-submap constraints from local SLAM, consecutive
+local-SLAM and odometry constraints, loop closures found by branch-and-bound search of
+finished submaps) and optimises it every ``optimize_every_n_nodes`` nodes and at the end.
+
+The algorithm is this class; reading logs, running over a sequence and writing files are
+in ``run_slam`` and ``toolkit.slam2d.stage`` (kiss-icp's split between ``KissICP`` and
+its pipeline).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from toolkit.geometry import (
+    Trajectory,
+    se2_between,
+    se2_compose,
+    se2_inverse,
+    se2_to_se3,
+    se3_to_se2,
+    wrap_angle,
+)
+from toolkit.slam2d.config import Slam2DConfig
+from toolkit.slam2d.grid import ProbabilityGrid
+from toolkit.slam2d.loop_closure import LoopCloser
+from toolkit.slam2d.matcher import GridPyramid, correlative_search, refine
+from toolkit.slam2d.pose_graph import PoseGraph2D
+from toolkit.slam2d.submaps import ActiveSubmaps, Submap
+
+log = logging.getLogger(__name__)
+
+EDGE_INTRA, EDGE_LOCAL, EDGE_ODOM, EDGE_LOOP = 0, 1, 2, 3
+
+
+class ScanLike(Protocol):
+    """What the SLAM reads from a scan (``toolkit.sensors.LaserScan`` fits)."""
+
+    stamp: float
+    ranges: np.ndarray
+    angle_min: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+
+
+@dataclass
+class Node:
+    index: int
+    stamp: float
+    local_pose: np.ndarray  # [3] in the local SLAM frame
+    vertex: int
+    hits: np.ndarray  # [N, 2] float32 returns in the base frame
+    free: np.ndarray  # [M, 2] float32 ends of rays without return, base frame
+    match_points: np.ndarray  # [K, 2] float64 loop-closure points, base frame
+    odom: np.ndarray | None  # [3] T_odom_base, when odometry was given
+    submaps: list[int] = field(default_factory=list)
+
+
+@dataclass
+class SlamResult:
+    trajectory: Trajectory  # T_world_base at every accepted scan stamp
+    poses: np.ndarray  # [S, 3] the same as (x, y, theta)
+    nodes: np.ndarray  # [S] bool: the scan became a pose-graph node
+    map: ProbabilityGrid  # all node scans re-inserted at their optimised poses
+    metrics: dict
+
+
+def _voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
+    """First point of every occupied voxel (keeps scan order)."""
+    key = np.floor(points / size).astype(np.int64)
+    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
+    return points[np.sort(first)]
+
+
+def _adaptive_filter(points: np.ndarray, max_points: int, start: float) -> np.ndarray:
+    """Coarsen a voxel filter until at most ``max_points`` remain (Cartographer's adaptive
+    filter keeps matching cost bounded whatever the scanner's beam count)."""
+    if len(points) <= max_points:
+        return points
+    size = start
+    out = _voxel_filter(points, size)
+    while len(out) > max_points:
+        size *= 1.5
+        out = _voxel_filter(points, size)
+    return out
+
+
+class LidarSlam2D:
+    """Incremental 2D SLAM: feed ``add_scan`` in time order, then call ``finish``."""
+
+    def __init__(self, config: Slam2DConfig | None = None,
+                 T_base_laser: np.ndarray | None = None) -> None:
+        self.config = config or Slam2DConfig()
+        c = self.config
+        T = np.eye(4) if T_base_laser is None else np.asarray(T_base_laser, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_base_laser must be 4x4, got {T.shape}")
+        if abs(T[2, 2]) < 0.99:
+            raise ValueError("the laser plane must be horizontal (T_base_laser tilts it)")
+        # Points (x, y, 0) of the laser map to base x-y through the top-left 2x2 block; it
+        # is a reflection for an upside-down laser, which this handles without special cases.
+        self._A = T[:2, :2].copy()  # [2, 2]
+        self._sensor = T[:2, 3].copy()  # [2] laser origin in the base frame
+        grid_kwargs = dict(
+            resolution=c.grid.resolution,
+            hit_probability=c.grid.hit_probability,
+            miss_probability=c.grid.miss_probability,
+            min_probability=c.grid.min_probability,
+            max_probability=c.grid.max_probability,
+        )
+        self.submaps = ActiveSubmaps(c.submaps.num_range_data, grid_kwargs)
+        self.graph = PoseGraph2D()
+        self.loop = LoopCloser(c.loop_closure, c.grid.resolution, c.grid.matching_sigma_m)
+        self.nodes: list[Node] = []
+        # Per accepted scan: stamp, node it hangs off, pose relative to that node.
+        self._scan_stamps: list[float] = []
+        self._scan_ref: list[int] = []
+        self._scan_rel: list[np.ndarray] = []
+        self._scan_is_node: list[bool] = []
+        self._last_stamp: float | None = None
+        self._last_local: np.ndarray | None = None
+        self._last_odom: np.ndarray | None = None
+        self._last_delta: np.ndarray | None = None  # [3] last scan-to-scan motion
+        self._T_global_local = np.zeros(3)
+        self._nodes_since_opt = 0
+        self.warnings: Counter[str] = Counter()
+        self.counts: Counter[str] = Counter()
+        self.timings: Counter[str] = Counter()
+        self._finished = False
+
+    # ------------------------------------------------------------------ input
+
+    def _warn(self, key: str, message: str) -> None:
+        if self.warnings[key] == 0:
+            log.warning("%s (further ones are counted in metrics as %s)", message, key)
+        self.warnings[key] += 1
+
+    def _preprocess(self, scan: ScanLike) -> tuple[np.ndarray, np.ndarray] | None:
+        """(hits [N, 2], free ends [M, 2]) in the base frame, or None for a bad scan."""
+        c = self.config.scan
+        r = np.asarray(scan.ranges, dtype=np.float64)
+        ang = scan.angle_min + np.arange(len(r)) * scan.angle_increment
+        with np.errstate(invalid="ignore"):
+            finite = np.isfinite(r)
+            rmin = max(float(scan.range_min), c.min_range)
+            rmax = float(scan.range_max) if np.isfinite(scan.range_max) else np.inf
+            # A reading at (or past) the sensor's range_max is a beam without return:
+            # CARMEN and many drivers report no-return as exactly range_max.
+            no_return = (r == np.inf) | (finite & (r >= rmax))
+            ok = finite & (r >= rmin) & ~no_return
+            hit = ok & (r <= c.max_range)
+            free = no_return | (ok & (r > c.max_range))
+        bad = int(len(r) - ok.sum() - no_return.sum())
+        if bad:
+            self.counts["invalid_beams"] += bad
+        n_hit = int(hit.sum())
+        if n_hit < c.min_valid_beams:
+            self._warn("scans_too_few_returns",
+                       f"scan at {scan.stamp:.6f} has {n_hit} usable returns "
+                       f"(< {c.min_valid_beams}); skipped")
+            return None
+        cs = np.stack([np.cos(ang), np.sin(ang)], -1)  # [B, 2]
+        hits = (cs[hit] * r[hit, None]) @ self._A.T + self._sensor
+        free_len = min(c.missing_data_ray_length, c.max_range)
+        if free_len > 0 and free.any():
+            free_pts = (cs[free] * free_len) @ self._A.T + self._sensor
+        else:
+            free_pts = np.zeros((0, 2))
+        return hits, free_pts
+
+    # ------------------------------------------------------------------ local SLAM
+
+    def _predict(self, stamp: float, odom: np.ndarray | None) -> np.ndarray:
+        assert self._last_local is not None and self._last_stamp is not None
+        if odom is not None and self._last_odom is not None:
+            return se2_compose(self._last_local, se2_between(self._last_odom, odom))
+        return self._last_local.copy()
+
+    def _scan_match(self, pred: np.ndarray, points: np.ndarray, with_odom: bool) -> tuple[
+            np.ndarray, float]:
+        sm = self.submaps.matching
+        assert sm is not None
+        lc = self.config.local
+        grid = sm.grid
+        res = grid.resolution
+        lin = lc.linear_window_m if with_odom else lc.scan_only_linear_window_m
+        ang = np.radians(lc.angular_window_deg if with_odom else lc.scan_only_angular_window_deg)
+        w = int(np.ceil(lin / res))
+        depth = max(0, int(np.floor(np.log2(max(w, 1)))) - 1)
+        t0 = time.perf_counter()
+        # Crop the submap to where the scan can land: the box of its points at the
+        # prediction, grown by the largest shift the search can make (rotation included).
+        margin = lin + 6 * res + 4 * self.config.grid.matching_sigma_m
+        if not with_odom and self._last_delta is not None:
+            margin += float(np.hypot(*self._last_delta[:2])) + lc.motion_tiebreak_linear_window_m
+        c, s = np.cos(pred[2]), np.sin(pred[2])
+        at_pred = points @ np.array([[c, s], [-s, c]]) + pred[:2]
+        r_max = float(np.sqrt((points**2).sum(1)).max())
+        swing = r_max * min(2.0, 2.0 * np.sin(min(ang + np.radians(10), np.pi) / 2))
+        lo_xy = np.maximum(at_pred.min(0) - swing, pred[:2] - r_max) - margin
+        hi_xy = np.minimum(at_pred.max(0) + swing, pred[:2] + r_max) + margin
+        lo = grid.cell_of(lo_xy[None])[0]
+        hi = grid.cell_of(hi_xy[None])[0] + 1
+        field, f_origin = grid.matching_field(self.config.grid.matching_sigma_m, lo, hi)
+        pyr = GridPyramid(field, f_origin, res, depth, grid.p_min, w)
+        t1 = time.perf_counter()
+        # Priors towards the prediction only mean something with odometry. Without it the
+        # prediction is "stood still", and pulling towards it biases the match backwards
+        # along corridors (measured on the Radish logs, docs/slam2d.md).
+        found = correlative_search(
+            pyr, points, pred, lin, ang, np.radians(lc.angular_step_deg),
+            min_score=0.0,
+            translation_cost=lc.translation_delta_cost_weight if with_odom else 0.0,
+            rotation_cost=(lc.rotation_delta_cost_weight if with_odom
+                           else lc.scan_only_rotation_delta_cost_weight),
+            max_candidates=lc.max_candidates,
+        )
+        if not with_odom and lc.motion_tiebreak_margin > 0 and self._last_delta is not None:
+            # Repeat the last forward advance, not its turn: the turn ends with the bend.
+            repeat = se2_compose(pred, np.array([max(self._last_delta[0], 0.0), 0.0, 0.0]))
+            alt = correlative_search(
+                pyr, points, repeat, lc.motion_tiebreak_linear_window_m,
+                np.radians(lc.motion_tiebreak_angular_window_deg),
+                np.radians(lc.angular_step_deg), min_score=0.0,
+                rotation_cost=lc.scan_only_rotation_delta_cost_weight,
+                max_candidates=lc.max_candidates)
+            if alt.found and alt.score >= found.score - lc.motion_tiebreak_margin:
+                if np.hypot(*(alt.pose[:2] - found.pose[:2])) > 2 * res:
+                    self.counts["motion_tiebreaks"] += 1
+                found = alt
+        t2 = time.perf_counter()
+        start = found.pose if found.found else pred
+        target = pred if with_odom else start
+        ref = refine(
+            field, f_origin, res, points, start,
+            prior_translation=target[:2], prior_rotation=float(target[2]),
+            occupied_weight=lc.occupied_space_weight,
+            translation_weight=(lc.translation_weight if with_odom
+                                else lc.scan_only_translation_weight),
+            rotation_weight=lc.rotation_weight if with_odom else lc.scan_only_rotation_weight,
+            max_iterations=lc.max_iterations,
+        )
+        t3 = time.perf_counter()
+        self.timings["local_pyramid_s"] += t1 - t0
+        self.timings["local_search_s"] += t2 - t1
+        self.timings["local_refine_s"] += t3 - t2
+        pose = ref.pose.copy()
+        pose[2] = wrap_angle(pose[2])
+        return pose, ref.score
+
+    def add_scan(self, scan: ScanLike, odometry: np.ndarray | None = None) -> np.ndarray | None:
+        """Process one scan; returns its T_world_base as (x, y, theta), None if skipped.
+
+        ``odometry``: T_odom_base at the scan stamp, as [4, 4] or (x, y, theta).
+        """
+        if self._finished:
+            raise RuntimeError("add_scan after finish()")
+        t_start = time.perf_counter()
+        stamp = float(scan.stamp)
+        if not np.isfinite(stamp):
+            self._warn("scans_bad_stamp", "scan with a non-finite stamp; skipped")
+            return None
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            key = "scans_duplicate_stamp" if stamp == self._last_stamp else "scans_out_of_order"
+            self._warn(key, f"scan at {stamp:.6f} is not after the previous one "
+                            f"({self._last_stamp:.6f}); skipped")
+            return None
+        odom = None
+        if odometry is not None:
+            o = np.asarray(odometry, dtype=np.float64)
+            odom = se3_to_se2(o) if o.shape == (4, 4) else o.reshape(3).copy()
+            if not np.all(np.isfinite(odom)):
+                self._warn("odometry_non_finite", f"non-finite odometry at {stamp:.6f}; ignored")
+                odom = None
+        pre = self._preprocess(scan)
+        if pre is None:
+            return None
+        hits, free = pre
+        self.counts["scans_used"] += 1
+        match_pts = _adaptive_filter(hits, self.config.scan.max_match_points,
+                                     self.config.grid.resolution)
+
+        if self._last_local is None:
+            local = np.zeros(3)
+            if odom is not None:
+                # Start the world frame on the odometry frame so both read alike.
+                self._T_global_local = odom.copy()
+        else:
+            pred = self._predict(stamp, odom)
+            local, score = self._scan_match(pred, match_pts, odom is not None and
+                                            self._last_odom is not None)
+            self.counts["local_score_sum"] += score
+            self._last_delta = se2_between(self._last_local, local)
+        self._last_local = local
+        self._last_stamp = stamp
+        self._last_odom = odom
+
+        # Motion filter: a scan too close to the last node only gets a pose.
+        mf = self.config.motion_filter
+        if self.nodes:
+            last = self.nodes[-1]
+            d = se2_between(last.local_pose, local)
+            if (stamp - last.stamp <= mf.max_time_s
+                    and np.hypot(d[0], d[1]) <= mf.max_distance_m
+                    and abs(d[2]) <= np.radians(mf.max_angle_deg)):
+                self._scan_stamps.append(stamp)
+                self._scan_ref.append(last.index)
+                self._scan_rel.append(d)
+                self._scan_is_node.append(False)
+                self.counts["scans_motion_filtered"] += 1
+                self.timings["local_s"] += time.perf_counter() - t_start
+                return se2_compose(self.graph.poses[last.vertex], d)
+        node = self._add_node(stamp, local, hits, free, odom)
+        self.timings["local_s"] += time.perf_counter() - t_start
+
+        t_g = time.perf_counter()
+        self._global_step(node)
+        self.timings["global_s"] += time.perf_counter() - t_g
+        return self.graph.poses[node.vertex].copy()
+
+    def _add_node(self, stamp: float, local: np.ndarray, hits: np.ndarray, free: np.ndarray,
+                  odom: np.ndarray | None) -> Node:
+        pg = self.config.pose_graph
+        c, s = np.cos(local[2]), np.sin(local[2])
+        R = np.array([[c, -s], [s, c]])
+        t_ins = time.perf_counter()
+        idx = len(self.nodes)
+        n_before = len(self.submaps.all)
+        inserted, finished = self.submaps.insert(
+            idx, R @ self._sensor + local[:2], hits @ R.T + local[:2],
+            free @ R.T + local[:2], local)
+        self.timings["insert_s"] += time.perf_counter() - t_ins
+        vertex = self.graph.add_vertex(se2_compose(self._T_global_local, local))
+        lc = self.config.loop_closure
+        match_pts = _adaptive_filter(hits, lc.max_points, 2 * self.config.grid.resolution)
+        node = Node(idx, stamp, local, vertex, hits.astype(np.float32),
+                    free.astype(np.float32), match_pts, odom)
+        self.nodes.append(node)
+        self._scan_stamps.append(stamp)
+        self._scan_ref.append(idx)
+        self._scan_rel.append(np.zeros(3))
+        self._scan_is_node.append(True)
+        for sm in self.submaps.all[n_before:]:
+            sm.vertex = self.graph.add_vertex(se2_compose(self._T_global_local, sm.local_pose))
+        for sm in inserted:
+            self.graph.add_edge(sm.vertex, vertex, se2_between(sm.local_pose, local),
+                                pg.intra_submap_translation_weight,
+                                pg.intra_submap_rotation_weight, kind=EDGE_INTRA)
+            node.submaps.append(sm.index)
+        if idx > 0:
+            prev = self.nodes[idx - 1]
+            if pg.local_slam_translation_weight > 0:
+                self.graph.add_edge(prev.vertex, vertex, se2_between(prev.local_pose, local),
+                                    pg.local_slam_translation_weight,
+                                    pg.local_slam_rotation_weight, robust=pg.local_slam_loss,
+                                    robust_scale=pg.local_slam_loss_scale, kind=EDGE_LOCAL)
+            if odom is not None and prev.odom is not None and pg.odometry_translation_weight > 0:
+                self.graph.add_edge(prev.vertex, vertex, se2_between(prev.odom, odom),
+                                    pg.odometry_translation_weight,
+                                    pg.odometry_rotation_weight, kind=EDGE_ODOM)
+        for sm in finished:
+            self.loop.on_submap_finished(sm, self.nodes)
+        self.counts["nodes"] += 1
+        return node
+
+    # ------------------------------------------------------------------ global SLAM
+
+    def _global_step(self, node: Node) -> None:
+        if self.config.loop_closure.enabled:
+            t0 = time.perf_counter()
+            for sm in self.submaps.all:
+                if not sm.finished or sm.index in node.submaps:
+                    continue
+                self._try_closure(node, sm)
+            self.timings["loop_search_s"] += time.perf_counter() - t0
+        self._nodes_since_opt += 1
+        every = self.config.pose_graph.optimize_every_n_nodes
+        if every and self._nodes_since_opt >= every:
+            self._optimize(self.config.pose_graph.max_iterations)
+
+    def _try_closure(self, node: Node, sm: Submap, force: bool = False) -> bool:
+        poses = self.graph.poses
+        found = self.loop.maybe_search(node, sm, poses[sm.vertex], poses[node.vertex], force)
+        if found is None:
+            return False
+        lc = self.config.loop_closure
+        self.graph.add_edge(sm.vertex, node.vertex, found.relative_pose, lc.translation_weight,
+                            lc.rotation_weight, robust=lc.loss, robust_scale=lc.loss_scale,
+                            kind=EDGE_LOOP)
+        self.counts["loop_closures"] += 1
+        return True
+
+    def _optimize(self, iterations: int) -> None:
+        rep = self.graph.optimize(iterations)
+        self._nodes_since_opt = 0
+        self.counts["optimizations"] += 1
+        self.timings["optimize_s"] += rep.seconds
+        # New nodes enter the world through the newest optimised submap's correction.
+        sm = self.submaps.all[-1]
+        self._T_global_local = se2_compose(self.graph.poses[sm.vertex],
+                                           se2_inverse(sm.local_pose))
+        log.debug("optimised %d vertices in %.3fs (%d its, cost %.3g -> %.3g, %d outliers)",
+                  self.graph.num_vertices, rep.seconds, rep.iterations, rep.initial_cost,
+                  rep.final_cost, rep.outlier_edges)
+        self.counts["loop_outliers"] = rep.outlier_edges
+
+    # ------------------------------------------------------------------ output
+
+    def current_pose(self) -> np.ndarray | None:
+        """T_world_base (x, y, theta) of the last accepted scan."""
+        if not self._scan_stamps:
+            return None
+        ref = self.nodes[self._scan_ref[-1]]
+        return se2_compose(self.graph.poses[ref.vertex], self._scan_rel[-1])
+
+    def finish(self) -> SlamResult:
+        """Final loop-closure pass and optimisation; the trajectory and the map."""
+        if self._finished:
+            raise RuntimeError("finish() called twice")
+        self._finished = True
+        t0 = time.perf_counter()
+        for sm in self.submaps.finish_all():
+            self.loop.on_submap_finished(sm, self.nodes)
+        if self.nodes:
+            self._optimize(self.config.pose_graph.final_max_iterations)
+        self.timings["final_optimize_s"] += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        stamps = np.array(self._scan_stamps)
+        node_poses = self.graph.poses[[n.vertex for n in self.nodes]] if self.nodes else \
+            np.zeros((0, 3))
+        if len(stamps):
+            poses = se2_compose(node_poses[np.array(self._scan_ref)], np.array(self._scan_rel))
+        else:
+            poses = np.zeros((0, 3))
+        grid = self.render_map(node_poses)
+        self.timings["map_s"] += time.perf_counter() - t1
+        T = np.stack([se2_to_se3(*p) for p in poses]) if len(poses) else np.zeros((0, 4, 4))
+        traj = Trajectory(stamps, T, "world", "base_link")
+        return SlamResult(traj, poses, np.array(self._scan_is_node, bool), grid,
+                          self.metrics())
+
+    def render_map(self, node_poses: np.ndarray | None = None) -> ProbabilityGrid:
+        """All node scans inserted at their (optimised) world poses into one grid."""
+        c = self.config
+        if node_poses is None:
+            node_poses = self.graph.poses[[n.vertex for n in self.nodes]]
+        grid = ProbabilityGrid(c.map.resolution, c.map.hit_probability,
+                               c.map.miss_probability, c.grid.min_probability,
+                               c.grid.max_probability, initial_size_m=40.0)
+        for n, p in zip(self.nodes, node_poses, strict=True):
+            cth, sth = np.cos(p[2]), np.sin(p[2])
+            R = np.array([[cth, -sth], [sth, cth]])
+            grid.insert(R @ self._sensor + p[:2], n.hits.astype(np.float64) @ R.T + p[:2],
+                        n.free.astype(np.float64) @ R.T + p[:2])
+        return grid
+
+    def metrics(self) -> dict:
+        t = self.timings
+        m = {
+            "scans_used": self.counts["scans_used"],
+            "nodes": self.counts["nodes"],
+            "scans_motion_filtered": self.counts["scans_motion_filtered"],
+            "submaps": len(self.submaps.all),
+            "loop_closures": self.counts["loop_closures"],
+            "loop_closure_searches": self.loop.searches,
+            "loop_closure_outliers": self.counts["loop_outliers"],
+            "optimizations": self.counts["optimizations"],
+            "motion_tiebreaks": self.counts["motion_tiebreaks"],
+            "invalid_beams": self.counts["invalid_beams"],
+            "mean_local_score": (self.counts["local_score_sum"] / max(1, self.counts["nodes"] - 1)
+                                 if self.counts["nodes"] > 1 else None),
+        }
+        m.update({f"skipped_{k}": v for k, v in sorted(self.warnings.items())})
+        m.update({f"time_{k}": round(v, 3) for k, v in sorted(t.items())})
+        return m

@@ -1,0 +1,166 @@
+"""The recipe stage ``slam2d``: metric T_world_base from the sequence's scans.
+
+```yaml
+- stage: slam2d
+  use_odometry: true          # the sequence's odometry as a prior, when it has one
+  relations: null             # a Freiburg .relations file to score against (benchmarks)
+  local: {scan_only_linear_window_m: 1.2}   # any Slam2DConfig group can be overridden
+```
+
+Writes ``trajectory_base.tum`` (T_world_base at every scan used), ``trajectory_camera.tum``
+(T_world_camera at the camera stamps inside the scan span), ``map.pgm`` + ``map.yaml``
+(map_server) and ``map.png`` (the map with the trajectory), and provides the folder as
+artifact ``trajectory``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.slam2d.config import (
+    GridOptions,
+    LocalMatchingOptions,
+    LoopClosureOptions,
+    MapOptions,
+    MotionFilterOptions,
+    PoseGraphOptions,
+    ScanOptions,
+    Slam2DConfig,
+    SubmapOptions,
+)
+
+_GROUPS = ("grid", "scan", "motion_filter", "local", "submaps", "loop_closure", "pose_graph",
+           "map")
+
+
+class Slam2DStageConfig(StageConfig):
+    """Settings of ``slam2d``: the SLAM's option groups plus what the stage reads/scores."""
+
+    use_odometry: bool = True
+    relations: str | None = None
+    grid: GridOptions = GridOptions()
+    scan: ScanOptions = ScanOptions()
+    motion_filter: MotionFilterOptions = MotionFilterOptions()
+    local: LocalMatchingOptions = LocalMatchingOptions()
+    submaps: SubmapOptions = SubmapOptions()
+    loop_closure: LoopClosureOptions = LoopClosureOptions()
+    pose_graph: PoseGraphOptions = PoseGraphOptions()
+    map: MapOptions = MapOptions()
+
+    def slam_config(self) -> Slam2DConfig:
+        return Slam2DConfig(**{g: getattr(self, g) for g in _GROUPS})
+
+
+class Slam2DStage(Stage):
+    """2D lidar SLAM (Cartographer-style): base poses, occupancy map, loop closures."""
+
+    name = "slam2d"
+    Config = Slam2DStageConfig
+    requires = ("sequence",)
+    provides = ("trajectory",)
+
+    def external_inputs(self) -> list[Path]:
+        cfg = self.config
+        assert isinstance(cfg, Slam2DStageConfig)
+        return [Path(cfg.relations)] if cfg.relations else []
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.eval.relations import read_relations, relations_metric
+        from toolkit.io.atomic import atomic_write_json
+        from toolkit.io.occupancy import write_occupancy
+        from toolkit.io.sequence import read_sequence
+        from toolkit.io.tum import write_tum
+        from toolkit.slam2d.bench import ate_se2
+        from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
+        from toolkit.slam2d.plot import save_map_png
+
+        cfg = self.config
+        assert isinstance(cfg, Slam2DStageConfig)
+        seq = read_sequence(ctx.artifact("sequence"))
+        if not seq.scans:
+            raise StageError(f"sequence {seq.name} has no laser scans: slam2d needs a 2D lidar")
+        odom = seq.odometry if cfg.use_odometry else None
+        ctx.log.info("slam2d on %d scans (%s)", len(seq.scans),
+                     "with odometry" if odom is not None else "scan-only")
+        result = run_slam(
+            seq.scans, odom, seq.rig.T_base_laser, cfg.slam_config(),
+            progress=lambda it: ctx.progress(it, total=len(seq.scans), description="slam2d"))
+        out = ctx.stage_dir
+        traj = result.trajectory
+        if len(traj) < 2:
+            raise StageError(f"slam2d kept {len(traj)} scans of {len(seq.scans)}: nothing to "
+                             f"track (metrics: {result.metrics})")
+        write_tum(out / "trajectory_base.tum", traj,
+                  header="slam2d: T_world_base at the scan stamps")
+
+        # Camera poses: base poses interpolated at the camera stamps, times the mount.
+        fs = seq.frame_stamps
+        inside = (fs >= traj.stamps[0]) & (fs <= traj.stamps[-1])
+        cam = traj.interpolate(fs[inside]).transform(T_right=seq.rig.T_base_camera)
+        cam.child = "camera"
+        write_tum(out / "trajectory_camera.tum", cam,
+                  header="slam2d: T_world_camera (optical) at the camera stamps")
+        metrics = dict(result.metrics)
+        metrics["camera_poses"] = int(inside.sum())
+        metrics["camera_frames_outside_scan_span"] = int((~inside).sum())
+
+        occ = grid_to_occupancy(result.map)
+        write_occupancy(out / "map.yaml", occ)
+        ref_xy = None
+        gt = seq.groundtruth.poses_base if seq.groundtruth is not None else None
+        if gt is not None and len(gt) >= 3:
+            try:
+                metrics.update({f"gt_{k}": v for k, v in ate_se2(traj, gt).items()})
+            except (ValueError, IndexError) as e:
+                ctx.log.warning("no ATE against ground truth: %s", e)
+            ref_xy = gt.positions[:, :2]
+        if cfg.relations:
+            rel = read_relations(cfg.relations)
+            metrics["relations"] = relations_metric(traj, rel)
+        save_map_png(out / "map.png", occ, traj.positions[:, :2],
+                     title=f"{seq.name}: {metrics['nodes']} nodes, {metrics['submaps']} "
+                           f"submaps, {metrics['loop_closures']} loop closures",
+                     reference_xy=None if ref_xy is None else _aligned_ref(traj, gt))
+        atomic_write_json(out / "slam2d_config.json", cfg.slam_config().model_dump())
+        ctx.add_metrics(metrics)
+        ctx.report(_report(ctx.stage_id, metrics))
+        ctx.provide("trajectory", out)
+
+
+def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pair
+    """Ground-truth positions [N, 2] moved into the SLAM's world frame (for the plot)."""
+    from toolkit.geometry import umeyama_alignment
+
+    st = gt.stamps
+    i = np.clip(np.searchsorted(traj.stamps, st), 0, len(traj) - 1)
+    ok = np.abs(traj.stamps[i] - st) < 1e-3
+    if ok.sum() < 3:
+        return None
+    R, t, _ = umeyama_alignment(gt.positions[ok, :2], traj.positions[i[ok], :2])
+    return gt.positions[:, :2] @ R.T + t
+
+
+def _report(stage_id: str, m: dict) -> str:
+    lines = [
+        f"![map]({stage_id}/map.png)",
+        "",
+        "| figure | value |",
+        "| --- | --- |",
+    ]
+    keys = ["scans_used", "nodes", "submaps", "loop_closures", "loop_closure_outliers",
+            "realtime_factor", "realtime_factor_cpu", "gt_ate_rmse_m", "camera_poses"]
+    for k in keys:
+        if k in m and m[k] is not None:
+            lines.append(f"| {k} | {m[k]} |")
+    rel = m.get("relations")
+    if rel and "trans_abs_mean_m" in rel:
+        lines.append(f"| relations (n={rel['relations_used']}) | "
+                     f"{rel['trans_abs_mean_m']:.4f} ± {rel['trans_abs_std_m']:.4f} m, "
+                     f"{rel['rot_abs_mean_deg']:.3f} ± {rel['rot_abs_std_deg']:.3f} deg |")
+    skipped = {k: v for k, v in m.items() if k.startswith("skipped_")}
+    if skipped:
+        lines.append(f"| skipped scans | {skipped} |")
+    return "\n".join(lines) + "\n"
