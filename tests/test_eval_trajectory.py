@@ -101,3 +101,13 @@ def test_tum_reference_files_parse_and_report(shared_data):
     est = read_tum(d / "freiburg1_xyz-rgbdslam.txt")
     rep = trajectory_report(est, gt, align="se3", max_diff=0.01)
     assert rep["ate_count"] > 500 and 0.0 < rep["ate_rmse_m"] < 0.1
+
+
+def test_per_axis_heading_error_is_yaw_for_optical_cameras():
+    # A camera looking forward (optical frame) on a robot whose heading is off by 1 degree.
+    R_base_optical = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)
+    ref = Trajectory(np.arange(3.0), np.stack([se2_to_se3(i, 0, 0) @ se3(R_base_optical)
+                                               for i in range(3)]))
+    est = ref.transform(T_left=se3(Rotation.from_euler("z", 1, degrees=True).as_matrix()))
+    e = per_axis_errors(est.transform(), ref)
+    assert e["yaw_rmse_deg"] == pytest.approx(1.0) and e["pitch_rmse_deg"] < 1e-9

@@ -155,11 +155,12 @@ def rpe(est: Trajectory, ref: Trajectory, pairs: list[tuple[int, int]],
 def per_axis_errors(est_aligned: Trajectory, ref: Trajectory) -> dict[str, float]:
     """The paper's Table I: RMSE of x, y, z (m), roll, pitch, yaw (deg), position, orientation.
 
-    Orientation errors are those of R_ref^T R_est as roll/pitch/yaw (xyz Euler), so they are
-    small angles for a good estimate regardless of heading.
+    Orientation errors are the world-frame error rotation R_est R_ref^T as roll/pitch/yaw
+    about the world's x, y, z (z up: yaw is heading). Taken in the sensor's own frame
+    instead, an optical camera's heading error would read as "pitch".
     """
     d = est_aligned.positions - ref.positions
-    E = np.swapaxes(ref.poses[:, :3, :3], 1, 2) @ est_aligned.poses[:, :3, :3]
+    E = est_aligned.poses[:, :3, :3] @ np.swapaxes(ref.poses[:, :3, :3], 1, 2)
     rpy = np.degrees(Rotation.from_matrix(E).as_euler("xyz"))
 
     def rmse(a: np.ndarray) -> float:
