@@ -92,6 +92,7 @@ def sweep(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     board = BoardSpec(11, 8, 0.05, size)
     errors: dict[int, list[tuple[float, float]]] = {n: [] for n in views}
     stds: dict[int, list[tuple[float, float]]] = {n: [] for n in views}
+    flagged: dict[int, list[bool]] = {n: [] for n in views}  # the result carried a warning
     t0 = time.time()
     for seed in range(args.seeds):
         if args.source == "sim":
@@ -109,6 +110,7 @@ def sweep(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             errors[n].append(transform_error(run.result.T_camera_laser, T_gt))
             stds[n].append((float(np.linalg.norm(run.result.std_rotation_deg)),
                             float(np.linalg.norm(run.result.std_translation_m))))
+            flagged[n].append(bool(run.result.warnings))
         e = np.array(errors[args.target_views])
         print(f"seed {seed}: {args.target_views} views rotation {e[-1, 0]:.3f} deg, "
               f"translation {e[-1, 1] * 1000:.1f} mm ({time.time() - t0:.0f} s)", flush=True)
@@ -123,6 +125,13 @@ def sweep(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             "translation_error_m_worst": float(e[:, 1].max()),
             "predicted_rotation_std_deg_median": float(np.median(s[:, 0])),
             "predicted_translation_std_m_median": float(np.median(s[:, 1])),
+            "warned_fraction": float(np.mean(flagged[n])),
+            # The worst errors among results that came without a warning: what a user
+            # who reads the warnings can be caught out by.
+            "rotation_error_deg_worst_unwarned": float(max(
+                (x for x, f in zip(e[:, 0], flagged[n], strict=True) if not f), default=0.0)),
+            "translation_error_m_worst_unwarned": float(max(
+                (x for x, f in zip(e[:, 1], flagged[n], strict=True) if not f), default=0.0)),
         }
     tgt = per_n[str(args.target_views)]
     e = np.array(errors[args.target_views])
@@ -186,7 +195,8 @@ def markdown(res: dict[str, Any]) -> str:
                      if sim.get("board_size_m") else "") + ".", "",
                   "| views | rotation median (deg) | rotation worst (deg) | translation median "
                   "(mm) | translation worst (mm) | predicted std: rotation (deg) / "
-                  "translation (mm) |", "|---|---|---|---|---|---|"]
+                  "translation (mm) | warned | worst without warning (deg / mm) |",
+                  "|---|---|---|---|---|---|---|---|"]
         for n, g in sorted(sim["per_views"].items(), key=lambda kv: int(kv[0])):
             lines.append(
                 f"| {n} | {g['rotation_error_deg_median']:.3f} | "
@@ -194,7 +204,10 @@ def markdown(res: dict[str, Any]) -> str:
                 f"{g['translation_error_m_median'] * 1000:.1f} | "
                 f"{g['translation_error_m_worst'] * 1000:.1f} | "
                 f"{g['predicted_rotation_std_deg_median']:.3f} / "
-                f"{g['predicted_translation_std_m_median'] * 1000:.1f} |")
+                f"{g['predicted_translation_std_m_median'] * 1000:.1f} | "
+                f"{g['warned_fraction'] * 100:.0f} % | "
+                f"{g['rotation_error_deg_worst_unwarned']:.3f} / "
+                f"{g['translation_error_m_worst_unwarned'] * 1000:.1f} |")
         lines += ["", f"Target at {sim['target_views']} views: rotation <= "
                   f"{t['rotation_deg']} deg and translation <= {t['translation_m'] * 1000:g} mm "
                   f"for every seed: {'met' if t['met'] else 'NOT met'}.", "",

@@ -335,6 +335,7 @@ class SolverOptions:
     f_scale_m: float = 0.02  # residual beyond which the robust loss down-weights points
     reject_factor: float = 3.0  # a view is an outlier above this x the others' median RMS
     reject_min_m: float = 0.01  # ... and above this RMS
+    gross_m: float = 0.05  # with 5 views or fewer only views above this RMS are rejected
     min_views: int = 3
     weak_std: float = 1.0  # report directions with std above 1 degree / 1 cm
     # With a guess (``init``): a weak pull towards it that only decides directions the
@@ -425,8 +426,8 @@ def _outlier_view(views: list[View], opts: SolverOptions, guess: np.ndarray | No
     v = verdict(rms, worst)
     if v is not None:
         return worst, *v
-    if len(views) < 4:
-        return None
+    if len(views) < 6:
+        return None  # too few views left to judge one by the others
     quick = SolverOptions(**{**opts.__dict__, "multistart": False})
     best: tuple[float, int, float, float] | None = None
     for i in range(len(views)):
@@ -467,6 +468,10 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
         if found is None:
             break
         worst, rms_w, others = found
+        if len(used) <= 5 and rms_w < opts.gross_m:
+            # Five views or fewer fit loosely enough that a disagreeing view may be the
+            # right one; only a gross error (a wrong segment) is safe to drop.
+            break
         rejected[used[worst].name] = (
             f"point-to-plane RMS {rms_w * 100:.1f} cm against a median of "
             f"{others * 100:.1f} cm for the other views (wrong scan segment, board moved "
