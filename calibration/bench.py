@@ -177,7 +177,10 @@ def plot_sweep(res: dict[str, Any], path: Path) -> None:
         a.set_yscale("log")
         a.grid(True, which="both", alpha=0.3)
         a.legend()
-    fig.suptitle(f"extrinsic error over {res['seeds']} seeds: {res['source'][:60]}", fontsize=9)
+    label = res["source"].split(" (")[0]
+    if res.get("board_size_m"):
+        label += ", board size given"
+    fig.suptitle(f"extrinsic error over {res['seeds']} seeds: {label}", fontsize=9)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
