@@ -20,38 +20,18 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
-from toolkit.slam2d.config import (
-    GridOptions,
-    LocalMatchingOptions,
-    LoopClosureOptions,
-    MapOptions,
-    MotionFilterOptions,
-    PoseGraphOptions,
-    ScanOptions,
-    Slam2DConfig,
-    SubmapOptions,
-)
-
-_GROUPS = ("grid", "scan", "motion_filter", "local", "submaps", "loop_closure", "pose_graph",
-           "map")
+from toolkit.slam2d.config import Slam2DConfig
 
 
-class Slam2DStageConfig(StageConfig):
+class Slam2DStageConfig(Slam2DConfig, StageConfig):
     """Settings of ``slam2d``: the SLAM's option groups plus what the stage reads/scores."""
 
     use_odometry: bool = True
     relations: str | None = None
-    grid: GridOptions = GridOptions()
-    scan: ScanOptions = ScanOptions()
-    motion_filter: MotionFilterOptions = MotionFilterOptions()
-    local: LocalMatchingOptions = LocalMatchingOptions()
-    submaps: SubmapOptions = SubmapOptions()
-    loop_closure: LoopClosureOptions = LoopClosureOptions()
-    pose_graph: PoseGraphOptions = PoseGraphOptions()
-    map: MapOptions = MapOptions()
 
     def slam_config(self) -> Slam2DConfig:
-        return Slam2DConfig(**{g: getattr(self, g) for g in _GROUPS})
+        """The SLAM's own settings, without the stage's."""
+        return Slam2DConfig(**{g: getattr(self, g) for g in Slam2DConfig.model_fields})
 
 
 class Slam2DStage(Stage):
