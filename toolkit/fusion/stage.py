@@ -34,6 +34,7 @@ from toolkit.fusion.pipeline import (
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_write_text
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.recipe.timing import work_metrics
 from toolkit.sensors import Sequence
 
 
@@ -239,6 +240,7 @@ class FuseStage(Stage):
             "lidar_dynamic_beams": int(sum(int(b.sum()) for b in fusion.beam_dynamic)),
             "points_masked_dynamic": fusion.points_masked_dynamic,
             "stage_seconds": wall,
+            **work_metrics(t_core + t_finish, c_core + c_finish, used),
         }
         # The same depth cap as for the ground truth: a 2D lidar sees 12 m down a corridor,
         # where the camera's depth is guesswork that the map does not use either.

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.recipe.timing import work_metrics
 from toolkit.slam2d.config import Slam2DConfig
 
 
@@ -84,6 +85,8 @@ class Slam2DStage(Stage):
         write_tum(out / "trajectory_camera.tum", cam,
                   header="slam2d: T_world_camera (optical) at the camera stamps")
         metrics = dict(result.metrics)
+        metrics.update(work_metrics(result.metrics["wall_time_s"], result.metrics["cpu_time_s"],
+                                    int(inside.sum())))
         metrics["camera_poses"] = int(inside.sum())
         metrics["camera_frames_outside_scan_span"] = int((~inside).sum())
 
