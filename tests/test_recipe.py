@@ -150,11 +150,39 @@ class External(Stage):
         _count(self.config.counter, ctx.stage_id)  # type: ignore[attr-defined]
 
 
+class TableConfig(StageConfig):
+    counter: str
+    rows: list[str]
+
+
+class Table(Stage):
+    """Tabulate earlier stages' metrics (test stage)."""
+
+    name = "t_table"
+    Config = TableConfig
+    provides = ("table",)
+
+    @classmethod
+    def reads_results(cls, config: StageConfig) -> tuple[str, ...]:
+        return tuple(config.rows)  # type: ignore[attr-defined]
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        rows = {r: ctx.stage_result(r).metrics for r in cfg.rows}
+        atomic_write_json(ctx.stage_dir / "table.json", rows)
+        ctx.provide("table", ctx.stage_dir / "table.json")
+        ctx.add_metrics({"rows": rows,
+                         "cpu_known": all(ctx.stage_result(r).cpu_seconds is not None
+                                          for r in cfg.rows)})
+
+
 TEST_STAGES: dict[str, type[Stage]] = {
     "t_source": Source,
     "t_double": Double,
     "t_sink": Sink,
     "t_external": External,
+    "t_table": Table,
 }
 
 
@@ -227,7 +255,7 @@ def test_cli_bad_key_exits_2_naming_the_path(tmp_path: Path) -> None:
     assert proc.returncode == 2, proc.stderr
     assert "stages[1] (t_double): unknown key 'factr'" in proc.stderr
     assert "did you mean 'factor'?" in proc.stderr
-    assert "allowed keys: id, counter, factor" in proc.stderr
+    assert "allowed keys: id, inputs, counter, factor" in proc.stderr
     assert not (tmp_path / "run").exists(), "nothing may run when validation fails"
 
 
@@ -543,3 +571,52 @@ def test_atomic_writes(tmp_path: Path) -> None:
         "sub",
         "x.bin",
     ], "no temporary files may be left behind"
+
+
+def _two_sources(tmp_path: Path) -> dict[str, Any]:
+    counter = str(tmp_path / "calls.txt")
+    return {
+        "name": "two",
+        "output": str(tmp_path / "run"),
+        "stages": [
+            {"stage": "t_source", "id": "five", "counter": counter, "value": 5},
+            {"stage": "t_source", "id": "seven", "counter": counter, "value": 7},
+            {"stage": "t_double", "id": "d5", "counter": counter, "inputs": {"number": "five"}},
+            {"stage": "t_double", "id": "d7", "counter": counter},
+            {"stage": "t_table", "id": "table", "counter": counter, "rows": ["d5", "d7"]},
+        ],
+    }
+
+
+def test_inputs_pick_the_named_stage_and_results_are_readable(tmp_path: Path) -> None:
+    path = _write_recipe(tmp_path, _two_sources(tmp_path))
+    result = _run(path)
+    assert result.ok, result.error
+    assert result.metrics["d5"]["doubled"] == 10  # from "five", not the nearest ("seven")
+    assert result.metrics["d7"]["doubled"] == 14
+    assert result.metrics["table"]["rows"]["d5"]["doubled"] == 10
+    assert result.metrics["table"]["cpu_known"] is True
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "| CPU seconds | CPU load |" in report
+    # Changing a stage the table reads reruns the table, and only what depends on it.
+    (tmp_path / "calls.txt").unlink()
+    result = _run(path, "five.value=6")
+    assert result.metrics["table"]["rows"]["d5"]["doubled"] == 12
+    assert _calls(tmp_path) == {"five": 1, "d5": 1, "table": 1}
+
+
+def test_inputs_errors_name_the_problem(tmp_path: Path) -> None:
+    data = _two_sources(tmp_path)
+    data["stages"][2]["inputs"] = {"number": "fiv"}
+    with pytest.raises(RecipeError, match=r"inputs: number: 'fiv' is not an earlier stage id"):
+        load_recipe(_write_recipe(tmp_path, data))
+    data["stages"][2]["inputs"] = {"doubled": "five"}
+    with pytest.raises(RecipeError, match=r"inputs: 'doubled' is not an artifact this stage"):
+        load_recipe(_write_recipe(tmp_path, data))
+    data["stages"][2]["inputs"] = {"number": "d7"}
+    with pytest.raises(RecipeError, match=r"is not an earlier stage id"):
+        load_recipe(_write_recipe(tmp_path, data))
+    data["stages"][2]["inputs"] = {}
+    data["stages"][4]["rows"] = ["d5", "d9"]
+    with pytest.raises(RecipeError, match=r"reads the results of 'd9'"):
+        load_recipe(_write_recipe(tmp_path, data))

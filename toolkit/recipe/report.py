@@ -27,6 +27,7 @@ class StageSummary:
     type: str
     status: str  # ran | cached | failed | pending | not run
     seconds: float | None = None
+    cpu_seconds: float | None = None
     markdown: str = ""
 
 
@@ -39,11 +40,24 @@ def _seconds(value: float | None) -> str:
     return "" if value is None else f"{value:.1f}"
 
 
-def timing_rows(stages: Sequence[StageSummary]) -> list[tuple[str, str, str]]:
-    """(stage, status, seconds) rows, with a total over the stages that have a time."""
-    rows = [(s.id, s.status, _seconds(s.seconds)) for s in stages]
-    total = sum(s.seconds for s in stages if s.seconds is not None)
-    rows.append(("total", "", _seconds(total)))
+def _load(s: StageSummary) -> str:
+    if s.seconds is None or s.cpu_seconds is None or s.seconds <= 0:
+        return ""
+    return f"{100.0 * s.cpu_seconds / s.seconds:.0f} %"
+
+
+def timing_rows(stages: Sequence[StageSummary]) -> list[tuple[str, str, str, str, str]]:
+    """(stage, status, seconds, CPU seconds, CPU load) rows, with a total over the stages
+    that have a time. CPU load is CPU time over wall time (100 % = one core busy)."""
+    rows = [(s.id, s.status, _seconds(s.seconds), _seconds(s.cpu_seconds), _load(s))
+            for s in stages]
+    timed = [s for s in stages if s.seconds is not None]
+    total = sum(s.seconds for s in timed)  # type: ignore[misc]
+    with_cpu = [s for s in timed if s.cpu_seconds is not None]
+    cpu = sum(s.cpu_seconds for s in with_cpu) if with_cpu else None  # type: ignore[misc]
+    wall_cpu = sum(s.seconds for s in with_cpu)  # type: ignore[misc]
+    load = StageSummary("", "", "", wall_cpu, cpu)
+    rows.append(("total", "", _seconds(total), _seconds(cpu), _load(load)))
     return rows
 
 
@@ -61,10 +75,11 @@ def build_report(
     for stage in stages:
         if stage.status in ("ran", "cached") and stage.markdown.strip():
             parts.append(f"## {stage_heading(stage.id, stage.type)}\n\n{stage.markdown.strip()}")
-    table = ["| stage | status | seconds |", "|---|---|---:|"]
-    table += [f"| {a} | {b} | {c} |" for a, b, c in timing_rows(stages)]
+    table = ["| stage | status | seconds | CPU seconds | CPU load |", "|---|---|---:|---:|---:|"]
+    table += ["| " + " | ".join(row) + " |" for row in timing_rows(stages)]
     timing = "## Timing\n\n" + "\n".join(table)
-    timing += "\n\nCached stages show the time of the run that computed them."
+    timing += ("\n\nCached stages show the time of the run that computed them. CPU load = "
+               "CPU time / wall time, 100 % = one core.")
     parts.append(timing)
     if error:
         parts.append(f"**Failed:** {error} (details in run.log)")
@@ -90,10 +105,12 @@ def timing_table(stages: Sequence[StageSummary], title: str = "Timing") -> Table
     table.add_column("stage")
     table.add_column("status")
     table.add_column("seconds", justify="right")
+    table.add_column("CPU s", justify="right")
+    table.add_column("CPU load", justify="right")
     rows = timing_rows(stages)
-    for index, (stage, status, seconds) in enumerate(rows):
+    for index, (stage, status, seconds, cpu, load) in enumerate(rows):
         if index == len(rows) - 1:
             table.add_section()
         style = _STYLES.get(status, "")
-        table.add_row(stage, f"[{style}]{status}[/]" if style else status, seconds)
+        table.add_row(stage, f"[{style}]{status}[/]" if style else status, seconds, cpu, load)
     return table

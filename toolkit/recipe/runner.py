@@ -35,13 +35,17 @@ from rich.progress import (
 
 from toolkit.io.atomic import atomic_write_json, atomic_write_text, to_jsonable
 from toolkit.recipe import registry, report
-from toolkit.recipe.schema import Recipe, RecipeError, StageSpec
-from toolkit.recipe.stage import Stage, StageContext, StageError
+from toolkit.recipe.schema import Recipe, RecipeError, StageSpec, config_data
+from toolkit.recipe.stage import Stage, StageContext, StageError, StageResult
 
 try:
     import fcntl
 except ImportError:  # Windows: runs are not locked against each other there
     fcntl = None  # type: ignore[assignment]
+try:
+    import resource
+except ImportError:  # Windows: CPU time of this process only
+    resource = None  # type: ignore[assignment]
 
 T = TypeVar("T")
 
@@ -78,6 +82,7 @@ class _Record:
     reason: str = ""
     key: str | None = None
     seconds: float | None = None
+    cpu_seconds: float | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
     report: list[str] = field(default_factory=list)
     provides: dict[str, Path] = field(default_factory=dict)
@@ -92,6 +97,7 @@ class _Record:
             type=self.spec.type,
             status=self.status,
             seconds=self.seconds,
+            cpu_seconds=self.cpu_seconds,
             markdown="\n\n".join(self.report),
         )
 
@@ -194,7 +200,8 @@ class _Run:
         """Reuse, run or skip one stage; False stops the run (the stage failed)."""
         spec = record.spec
         selected = self.selected(spec.index)
-        waiting = [s for s in dict.fromkeys(spec.sources.values()) if not self.records[s].finished]
+        waiting = [s for s in dict.fromkeys((*spec.sources.values(), *spec.reads))
+                   if not self.records[s].finished]
         if waiting:
             if selected:
                 upstream = self.records[waiting[0]]
@@ -208,9 +215,9 @@ class _Run:
         start = time.perf_counter()
         try:
             stage = spec.cls(spec.config)
-            record.key = _cache_key(
-                spec, stage, {n: self.records[s].key for n, s in spec.sources.items()}
-            )
+            upstream = {n: self.records[s].key for n, s in spec.sources.items()}
+            upstream.update({f"results:{s}": self.records[s].key for s in spec.reads})
+            record.key = _cache_key(spec, stage, upstream)
         except Exception as exc:
             if not selected:
                 record.status, record.reason = "not run", f"cannot check its inputs: {exc}"
@@ -242,6 +249,7 @@ class _Run:
         stage_dir = self.run_dir / record.spec.id
         record.status = "cached"
         record.seconds = stored.get("seconds")
+        record.cpu_seconds = stored.get("cpu_seconds")
         record.metrics = dict(stored.get("metrics") or {})
         text = stored.get("report") or ""
         record.report = [text] if text else []
@@ -263,10 +271,12 @@ class _Run:
         )
         ctx = _Context(self, record)
         start = time.perf_counter()
+        cpu_start = _cpu_seconds()
         try:
             stage.run(ctx)
             ctx.check_provided()
             record.seconds = time.perf_counter() - start
+            record.cpu_seconds = _cpu_seconds() - cpu_start
             marker = {
                 "key": record.key,
                 "stage": spec.type,
@@ -274,6 +284,7 @@ class _Run:
                 "metrics": record.metrics,
                 "report": "\n\n".join(record.report),
                 "seconds": record.seconds,
+                "cpu_seconds": record.cpu_seconds,
                 "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
             }
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
@@ -354,6 +365,16 @@ class _Context(StageContext):
 
     def has_artifact(self, name: str) -> bool:
         return name in self._spec.available
+
+    def stage_result(self, stage_id: str) -> StageResult:
+        if stage_id not in self._spec.reads:
+            raise StageError(
+                f"stage {self.stage_id!r} asked for the results of {stage_id!r} without "
+                f"declaring it; {self._spec.cls.__name__}.reads_results must name it")
+        rec = self._run.records[stage_id]
+        return StageResult(id=stage_id, type=rec.spec.type, metrics=dict(rec.metrics),
+                           seconds=rec.seconds, cpu_seconds=rec.cpu_seconds,
+                           stage_dir=self._run.run_dir / stage_id, provides=dict(rec.provides))
 
     def provide(self, name: str, path: Path) -> None:
         cls = self._spec.cls
@@ -439,12 +460,22 @@ def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None]
     payload = {
         "stage": spec.type,
         "version": getattr(stage, "version", 1),
-        "config": spec.config.model_dump(mode="json"),
+        "config": config_data(spec.config),
         "upstream": dict(sorted(upstream.items())),
         "external": [_fingerprint(Path(p)) for p in stage.external_inputs()],
     }
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process (all threads) and its finished children: what a stage
+    costs on a machine of its own, whatever else shares the cores."""
+    if resource is None:
+        return time.process_time()
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def _fingerprint(path: Path) -> dict[str, Any]:

@@ -51,6 +51,8 @@ class StageSpec:
     sources: Mapping[str, str] = field(default_factory=dict)
     # Every artifact an earlier stage provides (what ``ctx.has_artifact`` answers).
     available: frozenset[str] = frozenset()
+    # Ids of earlier stages whose results this stage reads (``Stage.reads_results``).
+    reads: tuple[str, ...] = ()
 
     @property
     def label(self) -> str:
@@ -83,8 +85,17 @@ class Recipe:
         out: dict[str, Any] = {"name": self.name, "output": self.output.as_posix()}
         if self.description:
             out["description"] = self.description
-        out["stages"] = [s.config.model_dump(mode="json") for s in self.stages]
+        out["stages"] = [config_data(s.config) for s in self.stages]
         return out
+
+
+def config_data(config: StageConfig) -> dict[str, Any]:
+    """A stage's settings as plain data; an empty ``inputs`` is left out, so recipes and
+    cache keys written before that option existed stay as they were."""
+    data = config.model_dump(mode="json")
+    if not data.get("inputs"):
+        data.pop("inputs", None)
+    return data
 
 
 def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
@@ -210,10 +221,31 @@ def _parse_stage(index: int, raw: Any, problems: list[str]) -> StageSpec | None:
 
 def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSpec]:
     provided: dict[str, str] = {}
+    # Every earlier stage id -> what it provides, for explicit ``inputs:``.
+    earlier: dict[str, tuple[str, ...]] = {}
     wired = []
     for spec in specs:
         sources = {}
+        declared = (*spec.cls.requires, *spec.cls.optional_requires)
+        chosen = dict(spec.config.inputs)
+        for name, source in chosen.items():
+            if name not in declared:
+                problems.append(
+                    f"{spec.label}: inputs: {name!r} is not an artifact this stage uses "
+                    f"({', '.join(declared) or 'none'})")
+            elif source not in earlier:
+                problems.append(
+                    f"{spec.label}: inputs: {name}: {source!r} is not an earlier stage id"
+                    f"{_suggest(source, list(earlier))}")
+            elif name not in earlier[source]:
+                problems.append(
+                    f"{spec.label}: inputs: {name}: stage {source!r} does not provide {name!r} "
+                    f"(it provides {', '.join(earlier[source]) or 'nothing'})")
+            else:
+                sources[name] = source
         for name in spec.cls.requires:
+            if name in sources or name in chosen:
+                continue
             if name in provided:
                 sources[name] = provided[name]
                 continue
@@ -224,8 +256,13 @@ def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSp
                 + (hint if makers else "")
             )
         for name in spec.cls.optional_requires:
-            if name in provided:
+            if name in provided and name not in chosen:
                 sources[name] = provided[name]
+        reads = tuple(spec.cls.reads_results(spec.config))
+        for rid in reads:
+            if rid not in earlier:
+                problems.append(f"{spec.label}: reads the results of {rid!r}, which is not an "
+                                f"earlier stage id{_suggest(rid, list(earlier))}")
         wired.append(
             StageSpec(
                 index=spec.index,
@@ -234,11 +271,13 @@ def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSp
                 cls=spec.cls,
                 config=spec.config,
                 sources=sources,
-                available=frozenset(provided),
+                available=frozenset(provided) | frozenset(sources),
+                reads=reads,
             )
         )
         for name in spec.cls.provides:
             provided[name] = spec.id
+        earlier[spec.id] = tuple(spec.cls.provides)
     return wired
 
 

@@ -18,10 +18,11 @@ from __future__ import annotations
 import logging
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 T = TypeVar("T")
 
@@ -35,6 +36,23 @@ class StageConfig(BaseModel):
     # Folder and --set name of this stage in the run; defaults to the stage type, set it
     # when a recipe runs one stage type twice (e.g. two scale estimators side by side).
     id: str | None = None
+    # Artifact name -> id of the earlier stage to take it from, when the nearest earlier
+    # stage that provides it is not the one meant (a benchmark that runs two depth stages
+    # and fuses each: ``inputs: {depth: depth_network}``).
+    inputs: dict[str, str] = Field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """What a finished earlier stage left: for stages that tabulate other stages' results."""
+
+    id: str
+    type: str
+    metrics: dict[str, Any]
+    seconds: float | None
+    cpu_seconds: float | None
+    stage_dir: Path
+    provides: dict[str, Path] = field(default_factory=dict)
 
 
 class StageContext(ABC):
@@ -72,6 +90,11 @@ class StageContext(ABC):
         Paths to images should be relative to the run directory (``stage_id/plot.png``).
         """
 
+    def stage_result(self, stage_id: str) -> StageResult:
+        """Metrics, timing and artifacts of earlier stage ``stage_id``; only for the ids the
+        stage declares in ``reads_results`` (they join its cache key)."""
+        raise StageError(f"stage {self.stage_id!r}: this runner does not give stage results")
+
     @abstractmethod
     def progress(
         self, iterable: Iterable[T], total: int | None = None, description: str = ""
@@ -98,6 +121,11 @@ class Stage(ABC):
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config
+
+    @classmethod
+    def reads_results(cls, config: StageConfig) -> tuple[str, ...]:
+        """Ids of earlier stages whose results (``ctx.stage_result``) this stage reads."""
+        return ()
 
     def external_inputs(self) -> list[Path]:
         """Files outside the run (a log, a model) whose change must rerun the stage."""
