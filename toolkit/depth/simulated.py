@@ -72,6 +72,11 @@ PRESETS: dict[str, dict[str, Any]] = {
     # Only the unknown scale: isolates the scale estimators.
     "scale_only": {"wander_sigma": 0.0, "distortion": 0.0, "edge_blur_px": 0.0, "noise": 0.0,
                    "low_texture_gain": 0.0},
+    # The exact ground-truth depth, metric: the upper bound of the benchmark's rows (what a
+    # perfect network would give at these poses).
+    "groundtruth": {"kind": "metric_depth", "scale": 1.0, "wander_sigma": 0.0,
+                    "distortion": 0.0, "edge_blur_px": 0.0, "noise": 0.0,
+                    "low_texture_gain": 0.0},
     # A weaker network: stronger shape errors.
     "hard": {"wander_sigma": 0.05, "distortion": 0.08, "edge_blur_px": 3.0, "noise": 0.03},
 }

@@ -33,7 +33,7 @@ class DepthConfig(StageConfig):
     output_scale: float = 1.0
     threads: int = Field(2, ge=1)
     # --- simulated: a preset, then per-parameter overrides
-    preset: Literal["paper", "scale_only", "hard"] = "paper"
+    preset: Literal["paper", "scale_only", "hard", "groundtruth"] = "paper"
     simulated: dict[str, Any] = Field(default_factory=dict)
     # --- storage
     dtype: Literal["float32", "float16"] = "float32"
