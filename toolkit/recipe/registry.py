@@ -21,6 +21,7 @@ STAGES: dict[str, str] = {
     "evaluate": "toolkit.eval.stage:EvaluateStage",
     "fuse": "toolkit.fusion.stage:FuseStage",
     "ingest": "toolkit.ingest.stage:IngestStage",
+    "paper_tables": "toolkit.eval.paper_tables:PaperTablesStage",
     "simulate": "toolkit.sim.stage:SimulateStage",
     "slam2d": "toolkit.slam2d.stage:Slam2DStage",
     "splat": "toolkit.splat.stage:SplatStage",

@@ -1,0 +1,124 @@
+"""paper_tables: the benchmark tables from other stages' results, with known figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pytest
+
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import Trajectory, se2_to_se3, se3
+from toolkit.io.sequence import SequenceWriter
+from toolkit.io.tum import write_tum
+from toolkit.recipe import Stage, StageConfig, StageContext, parse_recipe, registry, run_recipe
+from toolkit.sensors import LaserScan, Rig
+
+R_BASE_OPTICAL = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=float)
+
+
+class SceneConfig(StageConfig):
+    stage: Literal["t_pscene"] = "t_pscene"
+    # Camera-position error of the "SLAM" trajectory: +-err_m in y, alternating.
+    err_m: float = 0.01
+
+
+class Scene(Stage):
+    """A sequence with ground truth and a SLAM camera trajectory with a known error."""
+
+    name = "t_pscene"
+    Config = SceneConfig
+    provides = ("sequence", "trajectory")
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        cam = PinholeCamera(16, 12, 10.0, 10.0, 7.5, 5.5)
+        rig = Rig(cam, se3(R_BASE_OPTICAL, [0.1, 0, 0.5]), se3(np.eye(3), [0, 0, 0.3]))
+        w = SequenceWriter(ctx.stage_dir / "sequence", rig, "fake")
+        stamps = np.arange(40) * 0.1
+        poses = np.stack([se2_to_se3(0.05 * i, 0.01 * i * i, 0.03 * i) for i in range(40)])
+        for t in stamps:
+            w.add_frame(float(t), np.zeros((12, 16, 3), np.uint8))
+            w.add_scan(LaserScan(float(t), np.ones(8), 0.0, np.pi / 4))
+        w.groundtruth_poses = Trajectory(stamps, poses)
+        w.close()
+        cams = poses @ rig.T_base_camera
+        # World-frame y offsets +-err: zero mean, so no rigid alignment can remove them.
+        cams[:, 1, 3] += cfg.err_m * np.where(np.arange(40) % 2 == 0, 1.0, -1.0)
+        write_tum(ctx.stage_dir / "trajectory_camera.tum",
+                  Trajectory(stamps, cams, "world", "camera"))
+        ctx.provide("sequence", ctx.stage_dir / "sequence")
+        ctx.provide("trajectory", ctx.stage_dir)
+        ctx.add_metrics({"work_seconds": 2.0, "work_cpu_seconds": 2.0, "work_frames": 200})
+
+
+class FiguresConfig(StageConfig):
+    stage: Literal["t_figures"] = "t_figures"
+    figures: dict[str, Any] = {}
+
+
+class Figures(Stage):
+    """Publishes the metrics it is given (a stand-in for depth, fuse, evaluate...)."""
+
+    name = "t_figures"
+    Config = FiguresConfig
+
+    def run(self, ctx: StageContext) -> None:
+        ctx.add_metrics(dict(self.config.figures))  # type: ignore[attr-defined]
+
+
+@pytest.fixture
+def stages():
+    registry.register("t_pscene", Scene)
+    registry.register("t_figures", Figures)
+    yield
+    registry.unregister("t_pscene")
+    registry.unregister("t_figures")
+
+
+def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
+    fuse = {"work_seconds": 3.0, "work_cpu_seconds": 3.0, "work_frames": 100,
+            "lidar_unscaled_rmse_m": 1.5, "lidar_scaled_rmse_m": 0.12,
+            "lidar_rmse_ratio_scaled_unscaled": 0.08, "gt_scaled_absrel": 0.03}
+    geo = {"accuracy_mean_m": 0.02, "completeness_mean_m": 0.03, "chamfer_m": 0.025,
+           "fscore_2cm": 0.5, "fscore_5cm": 0.92, "fscore_10cm": 0.97}
+    recipe = parse_recipe({"name": "tables", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "t_pscene", "id": "slam"},
+        {"stage": "t_figures", "id": "depth_a",
+         "figures": {"work_seconds": 1.0, "work_cpu_seconds": 2.0, "work_frames": 100}},
+        {"stage": "t_figures", "id": "fuse_a", "figures": fuse},
+        {"stage": "t_figures", "id": "eval_a", "figures": {"fused_map": geo}},
+        {"stage": "t_figures", "id": "depth_b",
+         "figures": {"work_seconds": 30.0, "work_cpu_seconds": 60.0, "work_frames": 100}},
+        {"stage": "paper_tables", "slam": "slam", "position_rmse_target_m": 0.02, "rows": [
+            {"label": "A", "depth": "depth_a", "fuse": "fuse_a", "evaluate": "eval_a",
+             "fps_target": 10, "fscore_5cm_target": 0.9},
+            {"label": "B", "depth": "depth_b", "fusion_time_from": "fuse_a",
+             "timing_only": True, "fps_target": 3},
+        ]},
+    ]})
+    res = run_recipe(recipe)
+    assert res.ok, res.error
+    t = json.loads((tmp_path / "run" / "paper_tables" / "tables.json").read_text())
+    row = t["table_i"]["with lidar: 2D lidar SLAM (SE(3)-aligned)"]
+    assert row["position_rmse_m"] == pytest.approx(0.01, abs=1e-3)
+    assert row["poses"] == 40
+    # Per frame: SLAM 2 s / 200 + depth 1 s / 100 + fusion 3 s / 100 = 0.05 s -> 20 frames/s;
+    # CPU 0.01 + 0.02 + 0.03 = 0.06 s per 0.05 s -> 120 %.
+    a = t["table_ii"]["A"]
+    assert a["fps"] == pytest.approx(20.0) and a["cpu_load_pct"] == pytest.approx(120.0)
+    # B: 0.01 + 0.3 + 0.03 = 0.34 s -> 2.94 frames/s, below its 3 frames/s target.
+    assert t["table_ii"]["B"]["fps"] == pytest.approx(1 / 0.34)
+    by_label = {c["target"]: c["met"] for c in t["targets"]}
+    assert next(v for k, v in by_label.items() if k.startswith("camera position")) is True
+    assert by_label["A: >= 10 frames/s at CPU load <= 200 %"] is True
+    assert by_label["B: >= 3 frames/s at CPU load <= 200 %"] is False
+    assert by_label["A: fused cloud: F-score at 5 cm >= 0.9"] is True
+    assert any(k.startswith("A: scaled / unscaled RMSE vs lidar") and v for k, v in
+               by_label.items())
+    report = (tmp_path / "run" / "report.md").read_text()
+    for heading in ("Table I", "Table II", "Table III", "Table IV", "Targets"):
+        assert heading in report
+    assert (tmp_path / "run" / "paper_tables" / "figure5_trajectories.png").exists()
