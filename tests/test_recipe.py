@@ -616,7 +616,17 @@ def test_inputs_errors_name_the_problem(tmp_path: Path) -> None:
     data["stages"][2]["inputs"] = {"number": "d7"}
     with pytest.raises(RecipeError, match=r"is not an earlier stage id"):
         load_recipe(_write_recipe(tmp_path, data))
+    data["stages"][2]["inputs"] = {"number": None}
+    with pytest.raises(RecipeError, match=r"inputs: number: null, but the stage cannot run"):
+        load_recipe(_write_recipe(tmp_path, data))
     data["stages"][2]["inputs"] = {}
     data["stages"][4]["rows"] = ["d5", "d9"]
     with pytest.raises(RecipeError, match=r"reads the results of 'd9'"):
         load_recipe(_write_recipe(tmp_path, data))
+
+
+def test_inputs_null_leaves_an_optional_artifact_out(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    data["stages"][2]["inputs"] = {"number": None}  # t_sink asserts has_artifact("number")
+    result = _run(_write_recipe(tmp_path, data))
+    assert not result.ok and result.failed_stage == "t_sink"

@@ -229,6 +229,14 @@ def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSp
         declared = (*spec.cls.requires, *spec.cls.optional_requires)
         chosen = dict(spec.config.inputs)
         for name, source in chosen.items():
+            if source is None:
+                if name in spec.cls.requires:
+                    problems.append(f"{spec.label}: inputs: {name}: null, but the stage "
+                                    f"cannot run without {name!r}")
+                elif name not in declared:
+                    problems.append(f"{spec.label}: inputs: {name!r} is not an artifact this "
+                                    f"stage uses ({', '.join(declared) or 'none'})")
+                continue
             if name not in declared:
                 problems.append(
                     f"{spec.label}: inputs: {name!r} is not an artifact this stage uses "
@@ -271,7 +279,8 @@ def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSp
                 cls=spec.cls,
                 config=spec.config,
                 sources=sources,
-                available=frozenset(provided) | frozenset(sources),
+                available=(frozenset(provided) | frozenset(sources))
+                - {n for n, v in chosen.items() if v is None},
                 reads=reads,
             )
         )

@@ -38,8 +38,9 @@ class StageConfig(BaseModel):
     id: str | None = None
     # Artifact name -> id of the earlier stage to take it from, when the nearest earlier
     # stage that provides it is not the one meant (a benchmark that runs two depth stages
-    # and fuses each: ``inputs: {depth: depth_network}``).
-    inputs: dict[str, str] = Field(default_factory=dict)
+    # and fuses each: ``inputs: {depth: depth_network}``); null leaves an optional artifact
+    # out (``inputs: {tsdf_mesh: null}``: evaluate this row without a TSDF mesh).
+    inputs: dict[str, str | None] = Field(default_factory=dict)
 
 
 @dataclass(frozen=True)
