@@ -115,79 +115,167 @@ class LidarReturn:
 
 
 class CameraRenderer:
-    """Renders RGB, z-depth and the dynamic mask of one camera in one scene."""
+    """Renders RGB, z-depth and the dynamic mask of one camera in one scene.
+
+    Not thread-safe: the per-pixel work arrays are allocated once and reused by every
+    ``render`` call (see ``render``); use one renderer per thread.
+    """
 
     def __init__(self, scene: Scene, camera: PinholeCamera) -> None:
         self.scene = scene
         self.camera = camera
         H, W = camera.height, camera.width
+        N = H * W
         self.rays_cam = camera.pixel_rays().reshape(-1, 3).astype(np.float32)  # [N, 3] z = 1
         self.norm2 = np.einsum("ij,ij->i", self.rays_cam, self.rays_cam)  # [N] |d|^2
-        self._rays = np.empty((H * W, 6), np.float32)  # reused cast buffer
+        self._rays = np.empty((N, 6), np.float32)  # reused cast buffer
         self._rays_cols = [np.ascontiguousarray(self.rays_cam[:, k]) for k in range(3)]
+        # pixel_rays() has z = 1 exactly, so the z term of each direction is R[k, 2] itself.
+        self._unit_z = bool(np.all(self._rays_cols[2] == 1.0))
         # |d|^2 / f folds the per-pixel part of the mip footprint into one array.
         self.norm2 = (self.norm2 / np.sqrt(camera.fx * camera.fy)).astype(np.float32)
         off = scene.bank.offset  # [M, LEVELS]
-        self._lvl_start = (off[0] - off[0, 0]).astype(np.int32)  # [LEVELS]
+        self._lvl_start = (off[0] - off[0, 0]).astype(np.int64)  # [LEVELS]
         if not np.all(off - off[:, :1] == self._lvl_start):
             raise ValueError("texture pyramids must share one layout")
-        self._lvl_size = (TILE >> np.arange(LEVELS)).astype(np.int32)
+        self._lvl_size = (TILE >> np.arange(LEVELS)).astype(np.int64)
+        # Tables gathered by triangle id, int64 so that np.take needs no index conversion.
+        self._tri_tex_start = scene.tri_tex_start.astype(np.int64)
         self._noise_bank: np.ndarray | None = None
+        # Work arrays reused by every frame. Allocating ~30 fresh [N] temporaries per frame
+        # made glibc hand megabytes back to the kernel and fault them in again: ~10k page
+        # faults and 25-35 ms of system CPU per 640x480 frame, more than the shading itself.
+        self._f = [np.empty(N, np.float32) for _ in range(4)]
+        self._i = [np.empty(N, np.int64) for _ in range(5)]
+        self._g = np.empty((N, 6), np.float32)  # per-pixel u0 v0 du1 dv1 du2 dv2
+        self._tint = np.empty((N, 3), np.float32)
+        self._rgbf = np.empty((N, 3), np.float32)
+        self._texel = np.empty(N, np.uint32)
+        self._ok = np.empty(N, bool)
+        # Per-triangle mip factor tpm / h of the current frame; 1 in the miss row (t = inf
+        # there gives the coarsest level, and the row is black).
+        self._k_tri = np.ones(scene.n_triangles + 1, np.float32)
+        self._tri_normal_cols = [np.ascontiguousarray(scene.tri_normal[:, k]) for k in range(3)]
 
     def render(self, T_world_camera: np.ndarray, people: list[Primitive] | None = None,
                noise_std: float = 0.0, rng: np.random.Generator | None = None,
                want_material: bool = False) -> CameraImage:
         """One image from ``T_world_camera`` [4, 4] with people shapes (optional).
 
-        Hot loop: np.take instead of fancy indexing and no BLAS calls on [N, 3] arrays
-        (both are several times slower here, and BLAS threads fight the raycaster's).
+        Hot loop, written for speed: every per-pixel step writes into a work array made in
+        ``__init__`` (``out=``), ``np.take`` with int64 indices and ``mode="clip"`` (no
+        index conversion, no bounds-check copy; the ids are in range by construction), no
+        BLAS calls on [N, 3] arrays (BLAS threads fight the raycaster's). The arithmetic is
+        the plain float32 expression, in the same order, so the pixels are those of the
+        straightforward version.
         """
         H, W = self.camera.height, self.camera.width
+        N = H * W
         sc = self.scene
+        f0, f1, f2, f3 = self._f
+        idx, lvl, i2, i3 = self._i[:4]
         R = np.asarray(T_world_camera[:3, :3], np.float64)
         o = np.asarray(T_world_camera[:3, 3], np.float64)
         rays = self._rays
-        rays[:, :3] = o.astype(np.float32)
+        for k in range(3):  # a strided fill per column: 6x faster than rays[:, :3] = o
+            rays[:, k] = np.float32(o[k])
         rc = self._rays_cols
         for k in range(3):
-            rays[:, 3 + k] = rc[0] * np.float32(R[k, 0]) + rc[1] * np.float32(R[k, 1]) + \
-                rc[2] * np.float32(R[k, 2])
+            # (x R[k,0] + y R[k,1]) + z R[k,2], z = 1 for undistorted and distorted rays.
+            np.multiply(rc[0], np.float32(R[k, 0]), out=f0)
+            np.multiply(rc[1], np.float32(R[k, 1]), out=f1)
+            np.add(f0, f1, out=f0)
+            if self._unit_z:
+                np.add(f0, np.float32(R[k, 2]), out=rays[:, 3 + k])
+            else:
+                np.multiply(rc[2], np.float32(R[k, 2]), out=f1)
+                np.add(f0, f1, out=rays[:, 3 + k])
         dirs = rays[:, 3:]
         hit = sc.cast(rays)
         t = hit["t_hit"]  # [N] float32 z-depth (inf on a miss)
-        idx = np.minimum(hit["primitive_ids"], sc.n_triangles)  # misses -> the black row
+        np.minimum(hit["primitive_ids"], np.uint32(sc.n_triangles), out=idx)  # miss: black row
         bary = hit["primitive_uvs"]  # [N, 2]
         b0, b1 = bary[:, 0], bary[:, 1]
-        g = [np.take(col, idx) for col in sc.tri_uvaff_cols]  # 6 x [N]
-        u = g[0] + b0 * g[2] + b1 * g[4]  # level-0 texel coordinates
-        v = g[1] + b0 * g[3] + b1 * g[5]
-        # Mip level from the pixel footprint: texels per pixel = tpm * range / (f * cos).
-        nrm = hit["primitive_normals"]
-        ndotd = np.abs(nrm[:, 0] * dirs[:, 0] + nrm[:, 1] * dirs[:, 1] + nrm[:, 2] * dirs[:, 2])
-        rho = np.take(sc.tri_tpm, idx) * t * self.norm2 / np.maximum(ndotd, 1e-3)
-        lvl = np.clip(np.frexp(rho)[1] - 1, 0, LEVELS - 1).astype(np.int32)
-        size = np.take(self._lvl_size, lvl)  # texels per side at that level
-        mask = size - 1
-        iu = (u.astype(np.int32) >> lvl) & mask
-        iv = (v.astype(np.int32) >> lvl) & mask
-        # Every material's pyramid has the same layout: start of level 0 + level offset.
-        addr = np.take(sc.tri_tex_start, idx) + np.take(self._lvl_start, lvl) + iv * size + iu
-        texel = np.take(sc.bank.texels, addr).view(np.uint8).reshape(-1, 4)
-        rgb = texel[:, :3] * np.take(sc.tri_tint, idx, axis=0)  # [N, 3] float32
-        depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32)
-        dynamic = np.zeros(H * W, bool)
-        if people:
-            self._draw_people(people, o, R, dirs, depth, rgb, dynamic)
-        rgb = rgb.reshape(H, W, 3)
-        if noise_std > 0:
-            rng = rng if rng is not None else np.random.default_rng()
-            rgb += self._noise(rng) * np.float32(noise_std)
-        np.clip(rgb, 0, 255, out=rgb)
-        img = rgb.astype(np.uint8)
+        g = self._g
+        np.take(sc.tri_uvaff, idx, axis=0, out=g, mode="clip")
+        # Level-0 texel coordinates u = u0 + b0 du1 + b1 du2 (v likewise).
+        u, v = f2, f3
+        np.multiply(b0, g[:, 2], out=f0)
+        np.add(g[:, 0], f0, out=u)
+        np.multiply(b1, g[:, 4], out=f0)
+        np.add(u, f0, out=u)
+        np.multiply(b0, g[:, 3], out=f0)
+        np.add(g[:, 1], f0, out=v)
+        np.multiply(b1, g[:, 5], out=f0)
+        np.add(v, f0, out=v)
+        # Mip level from the pixel footprint: texels per pixel = tpm * range / (f * cos)
+        # = tpm * t |d| / (f |n.d| / |d|). On the hit triangle's plane n.p = c the ray
+        # parameter is t = h / |n.d| with h = |c - n.o| (the camera's distance to the
+        # plane), so rho = (tpm / h) * t^2 * |d|^2 / f: one value per triangle and frame
+        # instead of a per-pixel dot product with the hit normal.
+        k_tri = self._k_tri
+        n = self._tri_normal_cols  # no BLAS: a 5k x 3 product starts OpenBLAS threads
+        h = np.abs(sc.tri_d - (n[0] * o[0] + n[1] * o[1] + n[2] * o[2]))  # [T] float64
+        k_tri[:-1] = sc.tri_tpm[:-1] / np.maximum(h, 1e-9)
+        rho = f0
+        np.take(k_tri, idx, out=rho, mode="clip")
+        np.multiply(rho, t, out=rho)
+        np.multiply(rho, t, out=rho)
+        np.multiply(rho, self.norm2, out=rho)
+        # floor(log2(rho)) clipped to the pyramid, read off the float32 exponent bits (the
+        # same as frexp's exponent - 1 for every finite rho >= 0, subnormals and 0 included;
+        # inf on a miss gives the coarsest level).
+        np.right_shift(rho.view(np.uint32), np.uint32(23), out=lvl)
+        np.bitwise_and(lvl, 0xFF, out=lvl)
+        np.subtract(lvl, 127, out=lvl)
+        np.clip(lvl, 0, LEVELS - 1, out=lvl)
+        size, mask = i2, i3
+        np.take(self._lvl_size, lvl, out=size, mode="clip")  # texels per side at that level
+        np.subtract(size, 1, out=mask)
+        tint = self._tint
+        np.take(sc.tri_tint, idx, axis=0, out=tint, mode="clip")
         material = None
         if want_material:
-            material = np.where(dynamic, -1, np.take(sc.tri_material, idx)).reshape(H, W)
-            material[(idx == sc.n_triangles).reshape(H, W)] = -1
+            material = np.take(sc.tri_material, idx)
+            material[idx == sc.n_triangles] = -1
+        # Texel address: start of the material's level 0 + level offset (every pyramid has
+        # the same layout) + row * size + column, the coordinates wrapped at that level.
+        addr, tmp = self._i[4], idx  # idx is not needed any more
+        np.take(self._tri_tex_start, idx, out=addr, mode="clip")
+        np.take(self._lvl_start, lvl, out=tmp, mode="clip")
+        np.add(addr, tmp, out=addr)
+        for coord, row in ((v, True), (u, False)):
+            np.copyto(tmp, coord, casting="unsafe")  # truncation: coordinates are positive
+            np.right_shift(tmp, lvl, out=tmp)
+            np.bitwise_and(tmp, mask, out=tmp)
+            if row:
+                np.multiply(tmp, size, out=tmp)
+            np.add(addr, tmp, out=addr)
+        texel = self._texel
+        np.take(sc.bank.texels, addr, out=texel, mode="clip")
+        rgbf = self._rgbf
+        np.multiply(texel.view(np.uint8).reshape(-1, 4)[:, :3], tint, out=rgbf)
+        depth = np.empty(N, np.float32)
+        ok = self._ok
+        np.isfinite(t, out=ok)
+        np.copyto(depth, t)
+        np.logical_not(ok, out=ok)
+        depth[ok] = 0.0
+        dynamic = np.zeros(N, bool)
+        if people:
+            self._draw_people(people, o, R, dirs, depth, rgbf, dynamic)
+        rgb = rgbf.reshape(H, W, 3)
+        if noise_std > 0:
+            rng = rng if rng is not None else np.random.default_rng()
+            noise = self._tint.reshape(H, W, 3)  # free again: the tint is applied
+            np.multiply(self._noise(rng), np.float32(noise_std), out=noise)
+            np.add(rgb, noise, out=rgb)
+        np.clip(rgb, 0, 255, out=rgb)
+        img = np.empty((H, W, 3), np.uint8)
+        np.copyto(img, rgb, casting="unsafe")  # truncation, as astype(np.uint8)
+        if material is not None:
+            material = material.reshape(H, W)
+            material[dynamic.reshape(H, W)] = -1
         return CameraImage(img, depth.reshape(H, W), dynamic.reshape(H, W), material)
 
     def _noise(self, rng: np.random.Generator) -> np.ndarray:
@@ -240,17 +328,28 @@ class CameraRenderer:
             if win is None:
                 continue
             u0, v0, u1, v1 = win
-            pix = (np.arange(v0, v1)[:, None] * W + np.arange(u0, u1)[None, :]).reshape(-1)
-            dx, dy, dz = dirs[pix, 0], dirs[pix, 1], dirs[pix, 2]
-            # Cheap pre-test against the person's bounding cylinder: the window is a
-            # rectangle, the person a small part of it.
+            # Views of the window, no gathers: the window is a rectangle, the person a
+            # small part of it, so only the pixels that pass a cheap pre-test are gathered.
+            d3 = dirs.reshape(-1, W, 3)[v0:v1, u0:u1]
+            wx, wy = d3[..., 0], d3[..., 1]
+            # Pre-test: rays that come within BOUND_R of the person's vertical axis, ahead
+            # of the camera (disc >= 0 and b < 0 for the infinite bounding cylinder; the
+            # camera is outside it). A superset of the hits, whatever their height.
             c = group[-1].params
-            bound = Primitive("cyl", np.array([c[0], c[1], BOUND_R, 0.0, HEAD_Z + HEAD_R]),
-                              c[:3], -1)
-            inside = np.isfinite(intersect_cols(bound, o, dx, dy, dz))
-            if not inside.any():
+            ox, oy = np.float32(o[0] - c[0]), np.float32(o[1] - c[1])
+            b = wx * ox
+            b += wy * oy
+            a = wx * wx
+            a += wy * wy
+            a *= np.float32(ox * ox + oy * oy - BOUND_R * BOUND_R)
+            inside = b < 0
+            b *= b
+            inside &= b >= a
+            rows, cols = np.nonzero(inside)
+            if len(rows) == 0:
                 continue
-            pix, dx, dy, dz = pix[inside], dx[inside], dy[inside], dz[inside]
+            pix = (rows + v0) * W + (cols + u0)
+            dx, dy, dz = wx[rows, cols], wy[rows, cols], d3[rows, cols, 2]
             best = depth[pix]
             best[best == 0] = np.inf
             which = np.full(len(pix), -1)
