@@ -152,10 +152,31 @@ def observed_mask(points: np.ndarray, camera: PinholeCamera, poses: np.ndarray,
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     seen = np.zeros(len(pts), bool)
+    if len(pts) == 0:
+        return seen
+    # Points are bucketed in cubes; a view tests only the points of cubes whose bounding
+    # sphere meets its frustum (a house is large, a view sees a few percent of it).
+    cell = 0.5
+    ijk = np.floor(pts / cell).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    dims = ijk.max(axis=0) + 1
+    keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]  # one int per cube
+    uniq, first, cube_of = np.unique(keys, return_index=True, return_inverse=True)
+    centres = (ijk[first] + 0.5) * cell + np.floor(pts.min(axis=0) / cell) * cell  # [C, 3]
+    radius = cell * np.sqrt(3.0) / 2
+    tx = max(camera.cx, camera.width - camera.cx) / camera.fx  # half-FOV tangents
+    ty = max(camera.cy, camera.height - camera.cy) / camera.fy
+    mx, my = radius * np.sqrt(1 + tx * tx), radius * np.sqrt(1 + ty * ty)
     for T, depth in zip(poses, depths, strict=True):
-        todo = np.flatnonzero(~seen)  # a point seen once needs no further test
         T_cw = inv_se3(T)
-        z = pts[todo] @ T_cw[2, :3] + T_cw[2, 3]  # depth first: most points are behind
+        c = centres @ T_cw[:3, :3].T + T_cw[:3, 3]  # [C, 3]
+        near = ((c[:, 2] > -radius) & (c[:, 2] < max_depth_m + radius)
+                & (np.abs(c[:, 0]) <= c[:, 2] * tx + mx)
+                & (np.abs(c[:, 1]) <= c[:, 2] * ty + my))
+        if not near.any():
+            continue
+        todo = np.flatnonzero(near[cube_of] & ~seen)  # a point seen once needs no more tests
+        z = pts[todo] @ T_cw[2, :3] + T_cw[2, 3]
         front = (z > 1e-6) & (z <= max_depth_m)
         idx = todo[front]
         if len(idx) == 0:
