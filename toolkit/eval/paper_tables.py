@@ -415,7 +415,7 @@ class PaperTablesStage(Stage):
             ("The splats (real | rendered | depth)", _link(res.get(first.splat) if first.splat
                                                           else None, "renders.png", "splats")),
             ("Splats vs TSDF at held-out views", _link(res.get(first.splat) if first.splat
-                                                       else None, "compare_tsdf.png", "compare")),
+                                                       else None, "splat_vs_tsdf.png", "compare")),
             ("Camera only", _link(res.get(cfg.camera_only) if cfg.camera_only else None,
                                   "camera_only.png", "camera only")),
         ]
