@@ -97,6 +97,32 @@ def _mark(ok: bool | None) -> str:
     return "" if ok is None else (" ✓" if ok else " ✗")
 
 
+def _colmap_lines(m: dict[str, Any]) -> list[str]:
+    """COLMAP cross-checks: SfM alone against ground truth and lidar, triangulation at the
+    lidar poses."""
+    md = []
+    sfm = m.get("sfm") or {}
+    if sfm:
+        md.append(f"COLMAP SfM on the images alone: {sfm.get('registered_images')} of "
+                  f"{sfm.get('images')} images registered in {sfm.get('models')} model(s), "
+                  f"reprojection {_num(sfm.get('reprojection_error_px'), '.2f', 1, ' px')}.")
+    for ref in ("groundtruth", "lidar"):
+        e = m.get(f"sfm_vs_{ref}")
+        if e:
+            md.append(f"Its largest model against {ref}: ATE Sim(3) "
+                      f"{_num(e.get('ate_sim3_rmse_m'), '.3f', 1, ' m')}, own scale (SE(3)) "
+                      f"{_num(e.get('ate_se3_rmse_m'), '.3f', 1, ' m')} over "
+                      f"{e.get('poses_compared')} poses.")
+    tri = m.get("triangulation")
+    if tri:
+        med = _num(tri.get("gt_mesh_distance_median_m"), ".1f", 100, " cm")
+        md.append(f"Triangulation of its features at the lidar-SLAM poses: "
+                  f"{tri.get('points')} points, reprojection "
+                  f"{_num(tri.get('reprojection_error_px'), '.2f', 1, ' px')}, median distance "
+                  f"to the true surface {med}.")
+    return [" ".join(md), ""] if md else []
+
+
 def _per_frame(m: dict[str, Any], key: str, default_frames: int) -> float:
     """Seconds per frame of a stage's work (its own frame count, else ``default_frames``)."""
     return float(m[key]) / max(int(m.get("work_frames") or default_frames), 1)
@@ -202,6 +228,8 @@ class PaperTablesStage(Stage):
                " m | |", ""]
         if cfg.camera_only and not any(lbl.startswith("without") for lbl, _ in rows):
             md += ["The camera-only stage left no aligned trajectory (COLMAP failed).", ""]
+        if cfg.colmap:
+            md += _colmap_lines(res[cfg.colmap].metrics)
         if gt_all is not None:
             path = ctx.stage_dir / "figure5_trajectories.png"
             _plot_curves(gt_all.positions, curves, path)
@@ -262,7 +290,8 @@ class PaperTablesStage(Stage):
                 r = res[key]
                 extra.append(f"- {label}: {r.seconds:.0f} s wall, "
                              f"{_num(r.cpu_seconds, '.0f')} s CPU for "
-                             f"{_get(r.metrics, 'images') or '?'} images.")
+                             f"{_get(r.metrics, 'sfm', 'images') or _get(r.metrics, 'images')}"
+                             " images.")
         if extra:
             md += ["Baselines (not online pipelines; whole stage times):", "", *extra, ""]
         tables["table_ii"] = out
