@@ -7,7 +7,10 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.depth import depth_errors
 from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, edge_mask
 from toolkit.fusion.projection import (
+    LidarPixels,
     LidarProjector,
+    edge_pairs,
+    occluded_lidar,
     project_scan,
     sample_depth,
     zbuffer_lidar,
@@ -104,6 +107,69 @@ def test_zbuffer_keeps_nearest_per_pixel() -> None:
                      np.zeros((3, 3)), np.arange(3), np.zeros(3, int))
     z = zbuffer_lidar(lp, (10, 30))
     assert sorted(z.z.tolist()) == [2.0, 4.0]
+
+
+def test_occlusion_drops_far_side_of_range_jumps_only() -> None:
+    # One beam spacing is 525 * 1 deg = 9.2 px at the image centre. A chair leg at 1 m in
+    # front of a wall at 3 m: the wall beams next to it are hidden from the camera above;
+    # the leg itself and wall beams two spacings away are not. A wall seen obliquely (depth
+    # growing 5 cm per beam) is no jump.
+    u = 319.5 + 9.2 * np.arange(-3, 4)
+    z = np.array([3.0, 3.0, 3.0, 1.0, 3.0, 3.0, 3.0])
+    lp = LidarPixels(np.stack([u, np.full(7, 240.0)], 1), z, np.zeros((7, 3)), np.arange(7),
+                     np.zeros(7, int))
+    occ = occluded_lidar(lp, 525.0, 319.5, np.radians(1.0), 1.5)
+    assert occ.tolist() == [False, False, True, False, True, False, False]
+    # The nearer point projects lower (it is nearer the lidar plane below the camera): only
+    # columns count.
+    lp.uv[3, 1] = 300.0
+    assert occluded_lidar(lp, 525.0, 319.5, np.radians(1.0), 1.5).tolist() == occ.tolist()
+    oblique = LidarPixels(lp.uv, 2.0 + 0.05 * np.arange(7), lp.points_cam, lp.beam, lp.scan)
+    assert not occluded_lidar(oblique, 525.0, 319.5, np.radians(1.0), 1.5).any()
+    assert not occluded_lidar(lp, 525.0, 319.5, np.radians(1.0), 0.0).any()
+
+
+def test_edge_pairs_flag_lidar_pixels_on_depth_edges() -> None:
+    d = np.full((60, 80), 4.0, np.float32)
+    d[:, 40:] = 2.0
+    d[10, 10] = np.nan  # an invalid neighbour is no edge
+    lp = LidarPixels(np.array([[10.0, 11.0], [39.0, 30.0], [60.0, 30.0], [5.0, 5.0]]),
+                     np.ones(4), np.zeros((4, 3)), np.arange(4), np.zeros(4, int))
+    assert edge_pairs(d, lp, 0.06, 5).tolist() == [False, True, False, False]
+
+
+def test_near_stride_keeps_every_voxel_with_fewer_points() -> None:
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 79.5, 59.5)
+    rays = RayCache(cam, 2)
+    depth = np.full((120, 160), 0.5, np.float32)  # a wall at 0.5 m
+    depth[:, 80:] = 3.0  # and one at 3 m: beyond near_depth_m, untouched
+    rgb = np.zeros((120, 160, 3), np.uint8)
+    plain = CloudOptions(edge_threshold=0.0, stride=2)
+    near = CloudOptions(edge_threshold=0.0, stride=2, near_stride=4,
+                        near_depth_m=0.05 * 100.0 / 8)  # voxel * fx / (2 near_stride)
+    p0, _, i0 = depth_to_points(depth, rgb, rays, np.eye(4), plain)
+    p1, _, i1 = depth_to_points(depth, rgb, rays, np.eye(4), near)
+    assert set(i1.tolist()) <= set(i0.tolist())
+    far0, far1 = p0[p0[:, 2] > 2], p1[p1[:, 2] > 2]
+    assert len(far1) == len(far0)
+    assert len(p1) - len(far1) == pytest.approx((len(p0) - len(far0)) / 4, rel=0.05)
+    k0 = np.unique(voxel_keys(p0[p0[:, 2] < 2], 0.05))
+    k1 = np.unique(voxel_keys(p1[p1[:, 2] < 2], 0.05))
+    assert np.array_equal(k0, k1)  # 2 cm spacing < half a 5 cm voxel: every voxel keeps one
+
+
+def test_voxel_map_weights_and_nearest_depth() -> None:
+    vm = VoxelMap(0.1)
+    a = np.array([[0.01, 0.01, 0.01], [0.05, 0.05, 0.05]])
+    col = np.array([[0, 0, 0], [100, 0, 0]], np.uint8)
+    vm.integrate(a, col, 0, depths=np.array([2.0, 2.0]), weights=np.array([3, 1]))
+    vm.integrate(a[:1], col[:1], 1, depths=np.array([1.0]))
+    m = vm.arrays()
+    assert len(m) == 1 and m.count[0] == 5 and m.frames[0] == 2
+    np.testing.assert_allclose(m.points[0], (4 * a[0] + a[1]) / 5)
+    assert m.colors[0, 0] == 20
+    assert m.near[0] == pytest.approx(1.0)
+    assert m.select(np.array([True])).near[0] == pytest.approx(1.0)
 
 
 def test_edge_mask_drops_flying_pixels_only() -> None:

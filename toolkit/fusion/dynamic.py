@@ -91,7 +91,18 @@ class SeeThroughCounter:
         front = cand[inside]
         if len(front) == 0:
             return
-        uv, z = camera.project(pc[inside])
+        pc = pc[inside]
+        if camera.has_distortion:
+            uv, z = camera.project(pc)
+        else:
+            # The pinhole in float32 on the cells already in front: camera.project's float64
+            # copy was a fifth of the carving time.
+            z = pc[:, 2]
+            uv = np.empty((len(pc), 2), np.float32)
+            np.divide(pc[:, 0], z, out=uv[:, 0])
+            np.divide(pc[:, 1], z, out=uv[:, 1])
+            uv[:, 0] = uv[:, 0] * np.float32(camera.fx) + np.float32(camera.cx)
+            uv[:, 1] = uv[:, 1] * np.float32(camera.fy) + np.float32(camera.cy)
         inside = camera.in_image(uv)
         front, uv, z = front[inside], uv[inside], z[inside]
         col = np.clip(np.rint(uv[:, 0] / stride).astype(np.int64), 0, depth.shape[1] - 1)
@@ -290,9 +301,20 @@ def cylinder_mask(points: np.ndarray, centres_xy: np.ndarray, radius: float,
         return out
     p = points[idx, :2].astype(np.float32)
     r2 = np.float32(radius * radius)
+    # Points sorted by x once; each centre then tests only the slice within its radius in x
+    # (a person covers a metre of a frame that spans several).
+    order = np.argsort(p[:, 0], kind="stable")
+    xs = p[order, 0]
+    ys = p[order, 1]
     hit = np.zeros(len(idx), bool)
-    for c in centres_xy.astype(np.float32):
-        d = p - c
-        hit |= (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) < r2
-    out[idx[hit]] = True
+    c32 = centres_xy.astype(np.float32)
+    lo_i = np.searchsorted(xs, c32[:, 0] - np.float32(radius), side="left")
+    hi_i = np.searchsorted(xs, c32[:, 0] + np.float32(radius), side="right")
+    for (cx, cy), a, b in zip(c32, lo_i, hi_i, strict=True):
+        if b <= a:
+            continue
+        dx = xs[a:b] - cx
+        dy = ys[a:b] - cy
+        hit[a:b] |= (dx * dx + dy * dy) < r2
+    out[idx[order[hit]]] = True
     return out

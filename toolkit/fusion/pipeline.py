@@ -24,7 +24,14 @@ from toolkit.fusion.dynamic import (
     dynamic_beams,
     grow_dynamic,
 )
-from toolkit.fusion.projection import LidarPixels, LidarProjector, sample_depth, zbuffer_lidar
+from toolkit.fusion.projection import (
+    LidarPixels,
+    LidarProjector,
+    edge_pairs,
+    occluded_lidar,
+    sample_depth,
+    zbuffer_lidar,
+)
 from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, smooth_scales
 from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
 from toolkit.geometry import inv_se3
@@ -54,8 +61,20 @@ class FusionConfig(BaseModel):
     scans_per_frame: int = Field(1, ge=1)
     max_scan_dt_s: float = 0.2
     motion_compensation: bool = True
+    # Which pairs both sensors see (metrics lidar_visible_*): a lidar point next to a
+    # nearer one (within this many beam spacings in the image) is occluded from the camera
+    # above it; 0 keeps them. Pairs on a depth edge of the prediction (same test as the
+    # map's flying pixels, edge_threshold) go too when pair_edge_filter is on.
+    pair_occlusion_beams: float = Field(1.5, ge=0)
+    pair_occlusion_margin_m: float = 0.05
+    pair_occlusion_margin_rel: float = 0.05
+    pair_edge_filter: bool = True
     # clouds and map
     stride: int = Field(2, ge=1)
+    # Every near_stride-th pixel only where that spacing stays below half a voxel (depth <
+    # voxel_size * fx / (2 near_stride), 1.3 m for 2 cm voxels at fx 525): a 1 m wall gives
+    # 25 points per voxel at stride 2, which cost time and average into one voxel. 0: off.
+    near_stride: int = Field(4, ge=0)
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
     edge_threshold: float = 0.06
@@ -88,9 +107,11 @@ class FusionConfig(BaseModel):
     grow_iterations: int = 6
     grow_max_frames: int = 4
 
-    def cloud_options(self) -> CloudOptions:
+    def cloud_options(self, fx: float = 0.0) -> CloudOptions:
+        """Cloud settings; ``fx`` (pixels) sets the depth below which ``near_stride`` holds."""
+        near = self.voxel_size_m * fx / (2 * self.near_stride) if self.near_stride else 0.0
         return CloudOptions(self.min_depth_m, self.max_depth_m, self.edge_threshold, 5,
-                            self.stride)
+                            self.stride, self.near_stride, near)
 
     def carve_options(self) -> CarveOptions:
         return CarveOptions(self.depth_margin_m, self.depth_margin_rel, self.lidar_margin_m,
@@ -104,6 +125,8 @@ class FramePairs:
     lidar: LidarPixels
     pred: np.ndarray  # [N] predicted values at the lidar pixels
     estimate: ScaleEstimate
+    # [N] bool: pairs both sensors see (not occluded from the camera, not on a depth edge)
+    visible: np.ndarray
 
 
 def pose_arrays(seq: Sequence, T_world_base: object) -> tuple[np.ndarray, np.ndarray,
@@ -137,7 +160,11 @@ class Fusion:
             scan_poses if config.motion_compensation else None,
             config.scans_per_frame, config.max_scan_dt_s)
         self.rays = RayCache(self.camera, config.stride)
-        self.cloud_opts = config.cloud_options()
+        self.cloud_opts = config.cloud_options(self.camera.fx)
+        # One beam spacing for the occlusion test of the pairs (scanners of one sequence
+        # share it; the finest one is the strictest test)
+        steps = [abs(s.angle_increment) for s in seq.scans[:1]]
+        self._beam_step = float(min(steps)) if steps else np.radians(1.0)
         self.map = VoxelMap(config.voxel_size_m)
         self.views: list[tuple[int, np.ndarray]] = []  # (frame, strided scaled depth)
         self.beam_dynamic: list[np.ndarray] = []
@@ -166,6 +193,13 @@ class Fusion:
         lidar = zbuffer_lidar(self.projector.project_frame(index), pred.values.shape)
         d = sample_depth(pred.values, lidar)
         c = self.cfg
+        vis = np.ones(len(d), bool)
+        if c.pair_occlusion_beams > 0 and len(d) > 1:
+            vis &= ~occluded_lidar(lidar, self.camera.fx, self.camera.cx, self._beam_step,
+                                   c.pair_occlusion_beams, c.pair_occlusion_margin_m,
+                                   c.pair_occlusion_margin_rel)
+        if c.pair_edge_filter and c.edge_threshold > 0:
+            vis &= ~edge_pairs(pred.values, lidar, c.edge_threshold, self.cloud_opts.edge_window)
         if c.scale == "none":
             est = ScaleEstimate(1.0, 0.0, len(d), len(d), "ok", "none")
         else:
@@ -177,8 +211,12 @@ class Fusion:
                             min_samples=c.cluster_min_samples)
             else:
                 opts.update(threshold=c.robust_threshold, fit_shift=c.fit_shift)
+            # From all pairs: the estimators reject the hidden ones as outliers anyway, and
+            # the edge test also drops good pairs on noisy flat walls, so the visible pairs
+            # alone gave a slightly worse scale (simulated house: median error vs the oracle
+            # 0.76 % instead of 0.70 %, worst frame 5.1 % instead of 3.1 %).
             est = estimate_scale(c.scale, lidar.z, d, pred.is_disparity, **opts)
-        return FramePairs(lidar, d, est)
+        return FramePairs(lidar, d, est, vis)
 
     def dynamic_hits(self, index: int) -> np.ndarray:
         """[K, 2] world xy of lidar hits on moving obstacles near frame ``index``'s time."""
@@ -222,7 +260,14 @@ class Fusion:
         if labels is not None:
             lab = labels[:: self.rays.stride, :: self.rays.stride].reshape(-1)[idx].astype(
                 np.float64)
-        self.map.integrate(pts, col, index, lab)
+        z = depth[:: self.rays.stride, :: self.rays.stride].reshape(-1)[idx]
+        w = None
+        o = self.cloud_opts
+        if o.near_stride > o.stride and o.near_depth_m > 0:
+            # A near point stands for (near_stride / stride)^2 pixels: voxel means keep the
+            # weight the nearer, more accurate views had at the plain stride.
+            w = np.where(z < o.near_depth_m, (o.near_stride // o.stride) ** 2, 1)
+        self.map.integrate(pts, col, index, lab, z, w)
         if self.cfg.dynamic_removal and self.cfg.carve_with_depth and (
                 index % self.cfg.carve_every == 0):
             s = self.rays.stride
@@ -235,11 +280,15 @@ class Fusion:
         raw = self.map.arrays(min_frames=self.cfg.min_voxel_frames)
         masks = {"dynamic": np.zeros(len(raw), bool), "outlier": np.zeros(len(raw), bool)}
         c = self.cfg
+        cell_inv: np.ndarray | None = None  # [V] carving cell of every voxel
+        cell_size = 0.0
         if c.dynamic_removal and len(raw):
             # Carving tests coarse cells (centroids of the map voxels in each): a person is
             # many cells wide, and it is 10x fewer points to project into every view.
-            keys = voxel_keys(raw.points, max(c.carve_voxel_m, c.voxel_size_m))
+            cell_size = max(c.carve_voxel_m, c.voxel_size_m)
+            keys = voxel_keys(raw.points, cell_size)
             _, inv = np.unique(keys, return_inverse=True)
+            cell_inv = inv
             n_cells = int(inv.max()) + 1
             cells = np.stack([np.bincount(inv, raw.points[:, k], n_cells) for k in range(3)], 1)
             cells /= np.bincount(inv, minlength=n_cells)[:, None]
@@ -270,7 +319,12 @@ class Fusion:
                 # On coarse cell centroids: a floating blob is isolated at 6 cm as at 2 cm,
                 # and the k-NN search over a few million map voxels would take longer than
                 # fusing the frames.
-                _, inv = np.unique(voxel_keys(pts, c.outlier_voxel_m), return_inverse=True)
+                if cell_inv is not None and cell_size == c.outlier_voxel_m:
+                    # The carving's cells, without the removed voxels: no second keying
+                    # and sort of the whole map.
+                    _, inv = np.unique(cell_inv[idx], return_inverse=True)
+                else:
+                    _, inv = np.unique(voxel_keys(pts, c.outlier_voxel_m), return_inverse=True)
                 n = int(inv.max()) + 1
                 cells = np.stack([np.bincount(inv, pts[:, k], n) for k in range(3)], 1)
                 cells /= np.bincount(inv, minlength=n)[:, None]

@@ -159,6 +159,73 @@ def sample_depth(values: np.ndarray, lidar: LidarPixels) -> np.ndarray:
     return values[row, col].astype(np.float64)
 
 
+def occluded_lidar(lidar: LidarPixels, fx: float, cx: float, angle_increment: float,
+                   window_beams: float = 1.5, margin_m: float = 0.05,
+                   margin_rel: float = 0.05) -> np.ndarray:
+    """[N] bool: lidar points the camera probably does not see, because a nearer lidar point
+    lies within ``window_beams`` beam spacings of them in the image.
+
+    The camera sits above (and here in front of) the lidar, so the object whose edge the
+    lidar grazes - a chair, a person's legs, a table - covers a few more pixels in the image
+    than in the scan: the far-side point next to a range jump is paired with the occluder.
+    On the simulated house these pairs are 1 % of all pairs but, with ground-truth depth as
+    the prediction, make a 0.185 m RMSE against the lidar (0.010 m without them). Where
+    the silhouette ends between two beams is unknown, so the whole gap to the neighbouring
+    beam (and a half more) counts. The beam spacing in pixels, fx * dtheta * (1 + x^2) with
+    x = (u - cx) / fx, grows towards the image sides.
+    """
+    n = len(lidar)
+    out = np.zeros(n, bool)
+    if n < 2 or window_beams <= 0:
+        return out
+    u, z = lidar.uv[:, 0], lidar.z
+    # Columns only: the occluder stands on the floor, and being nearer it projects lower in
+    # the image than the far point (by tens of pixels at a 0.2 m camera-lidar height gap)
+    # while its body rises through the far point's row.
+    x = (u - cx) / fx
+    win = window_beams * fx * abs(angle_increment) * (1.0 + x * x)  # [N] pixels
+    order = np.argsort(u, kind="stable")
+    us, zs, ws = u[order], z[order], win[order]
+    # Candidates within the widest window only: O(N k) instead of O(N^2) for many scans.
+    lo = np.searchsorted(us, us - ws.max())
+    hi = np.searchsorted(us, us + ws.max(), side="right")
+    occl = np.zeros(n, bool)
+    for off in range(1, int((hi - lo).max()) + 1):
+        for sgn in (-1, 1):
+            j = np.arange(n) + sgn * off
+            ok = (j >= 0) & (j < n)
+            jj = np.clip(j, 0, n - 1)
+            near = ok & (np.abs(us[jj] - us) <= ws) & (zs[jj] < zs - (margin_m + margin_rel * zs))
+            occl |= near
+    out[order] = occl
+    return out
+
+
+def edge_pairs(values: np.ndarray, lidar: LidarPixels, threshold: float,
+               window: int = 5) -> np.ndarray:
+    """[N] bool: lidar pixels whose ``window`` x ``window`` neighbourhood in the prediction
+    spans more than ``threshold`` x the value there (a blurred depth edge: the pixel's
+    prediction is a ramp between two surfaces, whichever the lidar hit). Only the few lidar
+    pixels are looked at, not the whole image."""
+    n = len(lidar)
+    if n == 0 or threshold <= 0:
+        return np.zeros(n, bool)
+    h, w = values.shape
+    px = lidar.pixel
+    r = window // 2
+    dd = np.arange(-r, r + 1)
+    rows = np.clip(px[:, 1, None, None] + dd[None, :, None], 0, h - 1)  # [N, k, 1]
+    cols = np.clip(px[:, 0, None, None] + dd[None, None, :], 0, w - 1)  # [N, 1, k]
+    win = values[rows, cols].reshape(n, -1).astype(np.float64)  # [N, k*k]
+    centre = values[np.clip(px[:, 1], 0, h - 1), np.clip(px[:, 0], 0, w - 1)].astype(
+        np.float64)
+    # An invalid neighbour is no evidence of an edge; an invalid centre is no pair.
+    win = np.where(np.isfinite(win), win, centre[:, None])
+    with np.errstate(invalid="ignore"):
+        span = win.max(1) - win.min(1)
+        return ~(span <= threshold * np.abs(centre))
+
+
 def zbuffer_lidar(lidar: LidarPixels, shape: tuple[int, int]) -> LidarPixels:
     """Keep the nearest lidar point per pixel (the camera sees the nearer one when the
     lidar's slightly different viewpoint puts two points on one pixel)."""

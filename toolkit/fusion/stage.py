@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -148,6 +149,7 @@ class FuseStage(Stage):
             out_depth.mkdir(parents=True, exist_ok=True)
         lid = PairStats()
         lid_valid = PairStats()  # pairs at pixels the map would use (no edge, in range)
+        lid_vis = PairStats()  # pairs both sensors see (FramePairs.visible)
         acc_un, acc_sc = ErrorAccumulator(), ErrorAccumulator()
         fig_frame = cfg.figure_frame if cfg.figure_frame in frames else frames[len(frames) // 2]
         fig_data = None
@@ -172,6 +174,8 @@ class FuseStage(Stage):
             unscaled_pairs = scaled_at_pairs(fp, disparity, 1.0, 0.0)
             scaled_pairs = scaled_at_pairs(fp, disparity, s, t)
             lid.add(fp.lidar.z, unscaled_pairs, scaled_pairs)
+            v = fp.visible
+            lid_vis.add(fp.lidar.z[v], unscaled_pairs[v], scaled_pairs[v])
             if len(fp.lidar):
                 px = fp.lidar.pixel
                 ok = valid_pixels(scaled, fusion.cloud_opts)[
@@ -186,8 +190,10 @@ class FuseStage(Stage):
             if j in eval_frames and gt is not None and gt.mesh_path is not None:
                 from toolkit.fusion.cloud import depth_to_points
 
+                # Every stride-th pixel, as before near_stride: the figure is the accuracy of
+                # the frame's depth, which thinning the near pixels would skew to far ones.
                 pts, _, _ = depth_to_points(scaled, rgb, fusion.rays, fusion.T_world_camera(i),
-                                            fusion.cloud_opts, mask)
+                                            replace(fusion.cloud_opts, near_stride=0), mask)
                 frame_clouds.append(pts[:: max(1, len(pts) // 10000)])
             if cfg.write_depth != "none":
                 from toolkit.io.depth import write_depth
@@ -227,6 +233,8 @@ class FuseStage(Stage):
             "frames_few_pairs": int(sum(f == "few_pairs" for f in sm.flag)),
             "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
             "pairs_per_frame_median": float(np.median([e.pairs for e in estimates])),
+            "pairs_visible_per_frame_median": float(np.median(
+                [int(pairs[i].visible.sum()) for i in frames])),
             "depth_kind": store.kind, "scale_method": cfg.scale,
             "poses": pose_source,
             "map_points": len(final), "map_points_raw": len(raw),
@@ -251,6 +259,17 @@ class FuseStage(Stage):
         metrics.update(e_sc.as_dict("lidar_scaled_"))
         if e_un.count and e_un.rmse_m > 0:
             metrics["lidar_rmse_ratio_scaled_unscaled"] = e_sc.rmse_m / e_un.rmse_m
+        # The same protocol on the pairs both sensors see: the lidar point is not hidden
+        # from the camera behind a nearer object and its pixel is not on a depth edge of the
+        # prediction. With ground-truth depth as the prediction the all-pairs RMSE is
+        # 0.185 m on the simulated house (occlusion alone) against 0.017 m on these pairs.
+        l, un, sc = lid_vis.arrays()
+        s_un, s_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
+        metrics.update(s_un.as_dict("lidar_visible_unscaled_"))
+        metrics.update(s_sc.as_dict("lidar_visible_scaled_"))
+        if s_un.count and s_un.rmse_m > 0:
+            metrics["lidar_visible_rmse_ratio_scaled_unscaled"] = s_sc.rmse_m / s_un.rmse_m
+        metrics["pairs_visible_fraction"] = s_un.count / max(e_un.count, 1)
         l, un, sc = lid_valid.arrays()
         v_un, v_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
         metrics.update(v_un.as_dict("lidar_valid_unscaled_"))
@@ -335,8 +354,11 @@ class FuseStage(Stage):
                   f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
                   f"flagged ({m['frames_few_pairs']} with too few lidar pairs, "
                   f"{m['frames_outlier']} outlier frames); median "
-                  f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame.")
+                  f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
+                  f"({m['pairs_visible_per_frame_median']:.0f} seen by both sensors).")
         rows = [("vs lidar (paper's protocol), all pairs", "lidar_unscaled_", "lidar_scaled_"),
+                ("vs lidar, pairs both sensors see (no occlusion, no depth edge)",
+                 "lidar_visible_unscaled_", "lidar_visible_scaled_"),
                 ("vs lidar, pairs on pixels the map uses", "lidar_valid_unscaled_",
                  "lidar_valid_scaled_")]
         if "gt_scaled_rmse_m" in m:

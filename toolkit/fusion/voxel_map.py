@@ -44,13 +44,16 @@ class MapArrays:
     first: np.ndarray  # [V] int32 first frame index
     last: np.ndarray  # [V] int32 last frame index
     label: np.ndarray  # [V] float32 mean label (e.g. fraction of ground-truth dynamic points)
+    # [V] float32 camera depth of the nearest frame that saw the voxel (inf: not recorded)
+    near: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.points)
 
     def select(self, mask: np.ndarray) -> MapArrays:
         return MapArrays(*(getattr(self, f)[mask] for f in
-                           ("points", "colors", "count", "frames", "first", "last", "label")))
+                           ("points", "colors", "count", "frames", "first", "last", "label")),
+                         near=None if self.near is None else self.near[mask])
 
 
 class VoxelMap:
@@ -67,27 +70,45 @@ class VoxelMap:
         self._frames = np.zeros(0, np.int32)
         self._first = np.zeros(0, np.int32)
         self._last = np.zeros(0, np.int32)
+        self._near = np.zeros(0, np.float32)
         self._pending: list[tuple[np.ndarray, ...]] = []
         self._pending_n = 0
         self.frames_integrated = 0
 
     def integrate(self, points: np.ndarray, colors: np.ndarray, frame: int,
-                  labels: np.ndarray | None = None) -> None:
-        """Add one frame's points [N, 3], colours [N, 3] uint8 and optional labels [N]."""
+                  labels: np.ndarray | None = None, depths: np.ndarray | None = None,
+                  weights: np.ndarray | None = None) -> None:
+        """Add one frame's points [N, 3], colours [N, 3] uint8, optional labels [N], the
+        points' camera depths [N] (the voxel keeps the nearest frame's mean depth) and
+        integer weights [N] (a point standing for several pixels counts as many)."""
         if len(points) == 0:
             self.frames_integrated += 1
             return
         keys = voxel_keys(points, self.voxel_size)
         uk, inv = np.unique(keys, return_inverse=True)
         m = len(uk)
-        sums = np.empty((m, 7), np.float64)
+        # Sums stored column by column ([7, m], x y z r g b label): the batch merge adds them
+        # with one bincount per column instead of permuting an [n, 7] array.
+        sums = np.empty((7, m), np.float64)
+        w = None if weights is None else np.asarray(weights, np.float64)
         for c in range(3):
-            sums[:, c] = np.bincount(inv, points[:, c], m)
-            sums[:, 3 + c] = np.bincount(inv, colors[:, c], m)
-        sums[:, 6] = np.bincount(inv, labels, m) if labels is not None else 0.0
-        cnt = np.bincount(inv, minlength=m).astype(np.int64)
+            sums[c] = np.bincount(inv, points[:, c] if w is None else w * points[:, c], m)
+            sums[3 + c] = np.bincount(inv, colors[:, c] if w is None else w * colors[:, c], m)
+        if labels is None:
+            sums[6] = 0.0
+        else:
+            sums[6] = np.bincount(inv, labels if w is None else w * labels, m)
+        cnt = (np.bincount(inv, minlength=m) if w is None else np.rint(
+            np.bincount(inv, w, m))).astype(np.int64)
         f = np.full(m, frame, np.int32)
-        self._pending.append((uk, sums, cnt, np.ones(m, np.int32), f, f))
+        if depths is None:
+            near = np.full(m, np.inf, np.float32)
+        else:
+            # The frame's mean depth in the voxel: a 2 cm voxel spans a few cm of depth at
+            # most, and bincount is far cheaper than a per-voxel minimum.
+            near = (np.bincount(inv, depths if w is None else w * depths, m) / cnt).astype(
+                np.float32)
+        self._pending.append((uk, sums, cnt, np.ones(m, np.int32), f, f, near))
         self._pending_n += m
         self.frames_integrated += 1
         if self._pending_n >= self.batch_entries:
@@ -100,14 +121,29 @@ class VoxelMap:
         keys = np.concatenate([p[0] for p in parts])
         order = np.argsort(keys, kind="stable")
         ks = keys[order]
-        start = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        head = np.r_[True, ks[1:] != ks[:-1]]
+        start = np.flatnonzero(head)
         uk = ks[start]  # sorted unique keys of the batch
+        m = len(uk)
+        grp = np.empty(len(keys), np.int64)  # batch voxel of every pending entry
+        grp[order] = np.cumsum(head) - 1
+        del ks, head
 
-        def reduce(k: int, op: np.ufunc) -> np.ndarray:
-            return op.reduceat(np.concatenate([p[k] for p in parts])[order], start, axis=0)
+        def cat(k: int) -> np.ndarray:
+            return np.concatenate([p[k] for p in parts], axis=-1)
 
-        sums, cnt = reduce(1, np.add), reduce(2, np.add)
-        nfr, first, last = reduce(3, np.add), reduce(4, np.minimum), reduce(5, np.maximum)
+        # Additive fields by bincount (no permutation of the big arrays); min/max fields,
+        # 1-D and small, by reduceat in sorted order.
+        sp = cat(1)
+        sums = np.empty((m, 7), np.float64)
+        for c in range(7):
+            sums[:, c] = np.bincount(grp, sp[c], m)
+        del sp
+        cnt = np.bincount(grp, cat(2), m).astype(np.int64)
+        nfr = np.bincount(grp, cat(3), m).astype(np.int32)
+        first = np.minimum.reduceat(cat(4)[order], start)
+        last = np.maximum.reduceat(cat(5)[order], start)
+        near = np.minimum.reduceat(cat(6)[order], start)
         self._pending = []
         self._pending_n = 0
         # Voxels already in the map are updated in place; new ones are inserted at their
@@ -118,18 +154,20 @@ class VoxelMap:
         g = pos[old]
         self._sums[g] += sums[old]
         self._count[g] += cnt[old]
-        self._frames[g] += nfr[old].astype(np.int32)
+        self._frames[g] += nfr[old]
         self._first[g] = np.minimum(self._first[g], first[old])
         self._last[g] = np.maximum(self._last[g], last[old])
+        self._near[g] = np.minimum(self._near[g], near[old])
         new = ~old
         if new.any():
             at = pos[new]
             self._keys = np.insert(self._keys, at, uk[new])
             self._sums = np.insert(self._sums, at, sums[new], axis=0)
             self._count = np.insert(self._count, at, cnt[new])
-            self._frames = np.insert(self._frames, at, nfr[new].astype(np.int32))
+            self._frames = np.insert(self._frames, at, nfr[new])
             self._first = np.insert(self._first, at, first[new].astype(np.int32))
             self._last = np.insert(self._last, at, last[new].astype(np.int32))
+            self._near = np.insert(self._near, at, near[new])
 
     def __len__(self) -> int:
         self._merge()
@@ -139,13 +177,16 @@ class VoxelMap:
         """The map, keeping voxels with at least ``min_count`` points and ``min_frames``
         frames."""
         self._merge()
-        keep = (self._count >= min_count) & (self._frames >= min_frames)
+        keep: slice | np.ndarray = slice(None)
+        if min_count > 1 or min_frames > 1:  # every voxel has >= 1 of both
+            keep = (self._count >= min_count) & (self._frames >= min_frames)
         c = self._count[keep].astype(np.float64)
         s = self._sums[keep]
         pts = s[:, :3] / c[:, None]
         col = np.clip(np.rint(s[:, 3:6] / c[:, None]), 0, 255).astype(np.uint8)
-        return MapArrays(pts, col, self._count[keep], self._frames[keep], self._first[keep],
-                         self._last[keep], (s[:, 6] / c).astype(np.float32))
+        return MapArrays(pts, col, self._count[keep].copy(), self._frames[keep].copy(),
+                         self._first[keep].copy(), self._last[keep].copy(),
+                         (s[:, 6] / c).astype(np.float32), self._near[keep].copy())
 
 
 def statistical_inliers(points: np.ndarray, nb_neighbors: int = 20,
