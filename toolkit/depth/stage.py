@@ -18,7 +18,10 @@ from toolkit.recipe.timing import WorkTimer
 class DepthConfig(StageConfig):
     """Settings of the ``depth`` stage (onnx keys apply to ``backend: onnx`` only)."""
 
-    backend: Literal["onnx", "simulated"] = "onnx"
+    # dav2s_random: a Depth-Anything-V2-Small-sized network (ViT-S/14 + DPT) with RANDOM
+    # weights, built and exported here at ``input_size``: its depth is meaningless, it
+    # exists so a benchmark can time a network of that size without any download.
+    backend: Literal["onnx", "simulated", "dav2s_random"] = "onnx"
     # --- onnx
     model: Path | None = None
     output: DepthKind | None = None  # what the network outputs; None: the model's metadata
@@ -38,6 +41,17 @@ class DepthConfig(StageConfig):
     # --- storage
     dtype: Literal["float32", "float16"] = "float32"
     every: int = Field(1, ge=1)  # predict every n-th frame only
+
+
+def _input_hw(size: tuple[int, int] | int | None) -> tuple[int, int]:
+    if size is None:
+        raise StageError("depth: backend 'dav2s_random' needs input_size: [H, W] (multiples "
+                         "of 14, e.g. [266, 350])")
+    h, w = (size, size) if isinstance(size, int) else size
+    if h % 14 or w % 14:
+        raise StageError(f"depth: input_size {h}x{w}: a ViT-S/14 needs multiples of 14 "
+                         f"(e.g. {14 * round(h / 14)}x{14 * round(w / 14)})")
+    return int(h), int(w)
 
 
 def make_backend(cfg: DepthConfig) -> Any:
@@ -71,6 +85,22 @@ class DepthStage(Stage):
         cfg: DepthConfig = self.config  # type: ignore[assignment]
         return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
 
+    @staticmethod
+    def _random_model(cfg: DepthConfig, ctx: StageContext) -> DepthConfig:
+        """Export the random-weight ViT-S/14 + DPT once into the stage folder; run it as an
+        ONNX model."""
+        from toolkit.depth.bench_latency import export_onnx, vit_s14_dpt
+
+        h, w = _input_hw(cfg.input_size)
+        path = ctx.stage_dir / f"dav2s_random_{h}x{w}.onnx"
+        if not path.exists():
+            import torch
+
+            torch.manual_seed(0)
+            ctx.log.info("depth: exporting a random-weight ViT-S/14 + DPT at %dx%d", h, w)
+            export_onnx(vit_s14_dpt(), path, h, w, random_weights=True)
+        return cfg.model_copy(update={"backend": "onnx", "model": path})
+
     def run(self, ctx: StageContext) -> None:
         from toolkit.io.sequence import read_sequence
 
@@ -78,6 +108,8 @@ class DepthStage(Stage):
         seq = read_sequence(ctx.artifact("sequence"))
         if not seq.frames:
             raise StageError(f"depth: sequence {seq.name} has no camera frames")
+        if cfg.backend == "dav2s_random":
+            cfg = self._random_model(cfg, ctx)
         try:
             backend = make_backend(cfg)
         except FileNotFoundError as e:
@@ -112,10 +144,14 @@ class DepthStage(Stage):
                    "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None,
                    **timer.metrics(len(indices))}
         ctx.add_metrics(metrics)
+        if self.config.backend == "dav2s_random":  # type: ignore[attr-defined]
+            ctx.add_metrics({"random_weights": True})
         label = ("**simulated** monocular depth (made from ground truth with the documented "
                  f"errors of preset `{cfg.preset}`; true sequence scale "
                  f"{info.get('sequence_scale', float('nan')):.3f})"
-                 if cfg.backend == "simulated" else f"ONNX network `{cfg.model}`")
+                 if cfg.backend == "simulated" else f"ONNX network `{cfg.model}`"
+                 + (" (**RANDOM WEIGHTS, timing only: the depth is meaningless**)"
+                    if self.config.backend == "dav2s_random" else ""))  # type: ignore[attr-defined]
         md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames, "
               f"network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms)."]
