@@ -91,3 +91,21 @@ def test_evaluate_scores_known_errors(tmp_path: Path, fake_scene):
     assert (tmp_path / "run" / "evaluate" / "trajectory.png").exists()
     report = (tmp_path / "run" / "report.md").read_text()
     assert "Table I" in report and "F@5cm" in report
+
+
+def test_map_to_world_recovers_the_slam_frame_offset() -> None:
+    from types import SimpleNamespace
+
+    from toolkit.eval.alignment import apply, map_to_world
+
+    stamps = np.arange(30) * 0.1
+    base = np.stack([se2_to_se3(0.1 * i, 0.02 * i * i, 0.05 * i) for i in range(30)])
+    T_base_camera = se3(R_BASE_OPTICAL, [0.1, 0, 0.5])
+    seq = SimpleNamespace(groundtruth=SimpleNamespace(poses_base=Trajectory(stamps, base)),
+                          rig=SimpleNamespace(T_base_camera=T_base_camera))
+    T_map_world = se2_to_se3(-1.4, 0.3, 0.2)  # where the SLAM put its origin
+    cams = T_map_world @ base @ T_base_camera
+    S = map_to_world(seq, stamps, cams)
+    np.testing.assert_allclose(S @ T_map_world, np.eye(4), atol=1e-9)
+    p = np.array([[1.0, 2.0, 0.5]])
+    np.testing.assert_allclose(apply(S, apply(T_map_world, p)), p, atol=1e-9)

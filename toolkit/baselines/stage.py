@@ -234,9 +234,13 @@ class TSDFStage(Stage):
         ref = _mesh_reference(seq, vis_poses, cfg.depth_max_m, cfg.eval_spacing_m) if (
             cfg.geometry) else None
         if ref is not None:
+            from toolkit.eval.alignment import apply, map_to_world
             from toolkit.eval.geometry import geometry_metrics, sample_mesh
 
-            g = geometry_metrics(sample_mesh(mesh, cfg.eval_spacing_m), ref[1])
+            # SLAM poses live in the map frame, the ground truth in the world: align first.
+            S = map_to_world(seq, seq.frame_stamps[indices], poses) if (
+                fp.source != "groundtruth") else None
+            g = geometry_metrics(apply(S, sample_mesh(mesh, cfg.eval_spacing_m)), ref[1])
             metrics["geometry"] = g
             rows += _geometry_rows("vs GT mesh:", g)
         md = [f"TSDF fusion (Open3D VoxelBlockGrid, {cfg.voxel_size_m * 100:g} cm voxels, "
@@ -447,9 +451,13 @@ class ColmapStage(Stage):
         out: dict[str, Any] = {**tri.summary(), "poses": fp.source}
         gt = seq.groundtruth
         if gt is not None and gt.mesh_path is not None and tri.points > 0:
+            from toolkit.eval.alignment import apply, map_to_world
             from toolkit.eval.map_accuracy import MeshDistance
 
-            d = MeshDistance(gt.mesh_path).distance(tri.points_xyz())
+            # Points at SLAM poses are in the map frame: one rigid transform to the world.
+            S = map_to_world(seq, seq.frame_stamps[fp.indices], fp.poses) if (
+                fp.source != "groundtruth") else None
+            d = MeshDistance(gt.mesh_path).distance(apply(S, tri.points_xyz()))
             out["gt_mesh_distance_median_m"] = float(np.median(d))
             out["gt_mesh_within_5cm"] = float(np.mean(d < 0.05))
         return out

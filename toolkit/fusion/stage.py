@@ -296,15 +296,19 @@ class FuseStage(Stage):
             metrics["static_points_removed_fraction"] = float(
                 np.mean(masks["dynamic"][static])) if static.any() else 0.0
         if gt is not None and gt.mesh_path is not None:
+            from toolkit.eval.alignment import apply, map_to_world
             from toolkit.eval.map_accuracy import MeshDistance, distance_stats
 
             md = MeshDistance(gt.mesh_path)
+            # The SLAM map frame is not the simulator's world: one rigid transform first.
+            S = map_to_world(seq, np.array([p[0] for p in pose_rows]),
+                             np.stack([p[1] for p in pose_rows])) if pose_rows else None
             static_final = final.select(final.label <= 0.5) if has_masks else final
             # A fixed-stride subsample: point-to-mesh queries cost ~10 us each and the
             # statistics settle long before a few million points.
             step = max(1, len(static_final) // cfg.mesh_eval_points)
             metrics.update({f"map_to_mesh_{k}": v for k, v in distance_stats(
-                md.distance(static_final.points[::step])).items()})
+                md.distance(apply(S, static_final.points[::step]))).items()})
             if has_masks:
                 # Static points the carving removed: if they lie off the true surface, the
                 # carving removed depth errors rather than good geometry.
@@ -312,8 +316,8 @@ class FuseStage(Stage):
                 if len(gone):
                     step = max(1, len(gone) // 50_000)
                     metrics["carved_static_to_mesh_median_m"] = float(np.median(
-                        md.distance(gone.points[::step])))
-            meds = [float(np.median(md.distance(p))) for p in frame_clouds if len(p)]
+                        md.distance(apply(S, gone.points[::step]))))
+            meds = [float(np.median(md.distance(apply(S, p)))) for p in frame_clouds if len(p)]
             if meds:
                 metrics["frame_to_mesh_median_m"] = float(np.median(meds))
                 metrics["frame_to_mesh_median_max_m"] = float(np.max(meds))

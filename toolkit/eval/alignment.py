@@ -1,0 +1,41 @@
+"""The rigid transform from a SLAM map frame to the simulator's world frame.
+
+A SLAM run starts its map where the robot starts; ground truth lives in the world the
+recording was made in. Before an estimated map is compared with the ground-truth mesh it
+must be moved by one rigid transform, taken from the camera trajectory (SE(3) Umeyama on
+the camera centres): no scale, so a scale error stays visible. With ground-truth poses the
+transform is the identity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from toolkit.geometry import se3, umeyama_alignment
+from toolkit.sensors import Sequence
+
+
+def map_to_world(seq: Sequence, stamps: np.ndarray, T_map_camera: np.ndarray,
+                 extrapolate_s: float = 0.05) -> np.ndarray | None:
+    """[4, 4] S with ``x_world = S @ x_map``, fitted on the camera centres of ``T_map_camera``
+    [N, 4, 4] at ``stamps`` [N] against the sequence's ground truth; None without it."""
+    gt = seq.groundtruth
+    if gt is None or gt.poses_base is None or len(stamps) < 3:
+        return None
+    stamps = np.asarray(stamps, dtype=np.float64)
+    T = np.asarray(T_map_camera, dtype=np.float64)
+    inside = (stamps >= gt.poses_base.stamps[0] - extrapolate_s) & (
+        stamps <= gt.poses_base.stamps[-1] + extrapolate_s)
+    if inside.sum() < 3:
+        return None
+    ref = gt.poses_base.interpolate(stamps[inside], extrapolate_s=extrapolate_s).transform(
+        T_right=seq.rig.T_base_camera)
+    R, t, _ = umeyama_alignment(T[inside, :3, 3], ref.positions, with_scale=False)
+    return se3(R, t)
+
+
+def apply(S: np.ndarray | None, points: np.ndarray) -> np.ndarray:
+    """``points`` [N, 3] moved by S (unchanged when S is None)."""
+    if S is None:
+        return points
+    return np.asarray(points) @ S[:3, :3].T + S[:3, 3]
