@@ -164,11 +164,12 @@ def test_tsdf_stage_scaled_depth_at_trajectory_poses(tmp_path: Path) -> None:
     m = res.metrics["tsdf"]
     assert m["poses"] == "trajectory" and m["depth_source"] == "scaled"
     assert m["min_observations"] == 2  # the default for scaled depth: drop single-frame junk
-    # Exact depth at poses 3 cm off in x: the surface is there, walls facing x moved 3 cm
-    # (walls along x slide within themselves), so accuracy is ~1-2 cm instead of ~0.5 cm.
+    # Exact depth at poses 3 cm off in x: a rigid offset of the whole trajectory (a SLAM map
+    # frame) is undone by the map-to-world alignment before the comparison, so the surface
+    # scores as exact depth does at this sampling (~1 cm), not 3 cm off.
     g = m["geometry"]
     assert g["fscore_10cm"] > 0.9, g
-    assert 0.01 < g["accuracy_mean_m"] < 0.03, g
+    assert g["accuracy_mean_m"] < 0.015, g
 
 
 @pytest.mark.slow
