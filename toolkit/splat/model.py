@@ -8,11 +8,14 @@
 
 Initialisation follows 3DGS/gsplat: one Gaussian per point of the (subsampled) fused cloud,
 isotropic scale from the mean distance to the 3 nearest neighbours, identity rotation,
-opacity 0.1, DC colour from the point colour.
+opacity 0.1, DC colour from the point colour. ``init_random_in_views`` is the start without
+a fused cloud (the paper's "MonoGS with lidar" row): points on random camera rays at random
+depths, grey, then the same per-point initialisation.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +23,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
+from toolkit.camera import PinholeCamera
 from toolkit.splat.sh import num_sh_bases, rgb_to_sh0
 
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")
@@ -203,3 +207,56 @@ def init_from_points(
     shN = torch.zeros(n, num_sh_bases(sh_degree) - 1, 3, dtype=dtype)
     return GaussianModel(t(pts), t(log_s), t(quats), torch.full((n,), logit, dtype=dtype), sh0,
                          shN)
+
+
+def random_points_in_views(
+    cameras: Sequence[PinholeCamera],
+    T_world_cameras: Sequence[np.ndarray],  # each [4, 4]
+    n: int,
+    depth_range_m: tuple[float, float] = (0.3, 5.0),
+    seed: int = 0,
+) -> np.ndarray:
+    """[n, 3] world points on random pixel rays of random views, at random z-depths.
+
+    Views are drawn uniformly, pixels uniformly over the image, z uniformly in
+    ``depth_range_m``: every point lies in some camera's frustum, so each starts with a
+    gradient, and the density follows what the cameras saw (more where views overlap).
+    Uniform in depth rather than in volume on purpose: uniform in volume puts most points
+    near the far limit, which in rooms is behind the walls.
+    """
+    if len(cameras) != len(T_world_cameras) or not cameras:
+        raise ValueError("need one pose per camera and at least one view")
+    near, far = depth_range_m
+    if not 0.0 < near < far:
+        raise ValueError(f"depth_range_m must satisfy 0 < near < far, got {depth_range_m}")
+    rng = np.random.default_rng(seed)
+    which = rng.integers(0, len(cameras), size=n)
+    out = np.empty((n, 3))
+    for k in np.unique(which):
+        m = which == k
+        cam, T = cameras[k], np.asarray(T_world_cameras[k], dtype=np.float64)
+        uv = np.stack([rng.uniform(-0.5, cam.width - 0.5, m.sum()),
+                       rng.uniform(-0.5, cam.height - 0.5, m.sum())], -1)
+        p_cam = cam.backproject(uv, rng.uniform(near, far, m.sum()))  # [M, 3]
+        out[m] = p_cam @ T[:3, :3].T + T[:3, 3]
+    return out
+
+
+def init_random_in_views(
+    cameras: Sequence[PinholeCamera],
+    T_world_cameras: Sequence[np.ndarray],
+    n: int,
+    depth_range_m: tuple[float, float] = (0.3, 5.0),
+    sh_degree: int = 3,
+    init_opacity: float = 0.1,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+) -> GaussianModel:
+    """``n`` grey Gaussians at ``random_points_in_views`` (no point cloud needed).
+
+    Grey (0.5) as 3DGS's random initialisation effectively is (its random SH DC values are
+    below 1/255); scales from the 3-NN spacing like ``init_from_points``.
+    """
+    pts = random_points_in_views(cameras, T_world_cameras, n, depth_range_m, seed)
+    return init_from_points(pts, np.full_like(pts, 0.5), sh_degree=sh_degree,
+                            init_opacity=init_opacity, seed=seed, dtype=dtype)

@@ -8,10 +8,12 @@
   max_seconds: 220        # stop training early on a slow machine (null: never)
 ```
 
-Inputs: ``sequence`` (images, rig, ground truth), ``fused`` (``map.ply`` and per-frame
-scaled depth in ``scaled_depth/`` or ``depth/``), optionally ``trajectory`` (slam2d: a TUM
-file of camera or base poses). Without a trajectory the ground-truth poses of the sequence
-are used, and the report says so in bold.
+Inputs: ``sequence`` (images, rig, ground truth); ``fused`` (``map.ply`` and per-frame
+scaled depth in ``scaled_depth/`` or ``depth/``), needed for ``init: fused`` and for the
+depth term; optionally ``trajectory`` (slam2d: a TUM file of camera or base poses) and
+``tsdf_mesh`` (the tsdf stage's coloured mesh, rendered at the same held-out views for a
+side-by-side PSNR). Without a trajectory the ground-truth poses of the sequence are used,
+and the report says so in bold.
 
 Writes into its folder (the ``splats`` artifact is ``splats.ply``):
 
@@ -19,6 +21,7 @@ Writes into its folder (the ``splats`` artifact is ``splats.ply``):
     renders.png           real | rendered | rendered depth, for a few held-out views
     renders/path_*.png    every held-out frame along the driven path, rendered
     renders/offpath_*.png every simulator held-out view (off the path), rendered
+    splat_vs_tsdf.png     real | splats | TSDF mesh, for the views of renders.png (with tsdf_mesh)
     train_history.json    loss / PSNR every log_every steps
     checkpoints/          training checkpoint (resume after an interruption)
 
@@ -43,12 +46,13 @@ import torch
 from pydantic import Field
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import Trajectory, inv_se3
+from toolkit.geometry import Trajectory, inv_se3, umeyama_alignment
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.sensors import Sequence, load_rgb
 from toolkit.splat.export import write_ply
-from toolkit.splat.model import init_from_points
+from toolkit.splat.mesh_compare import Comparison, MeshViewRenderer
+from toolkit.splat.model import init_from_points, init_random_in_views
 from toolkit.splat.rasterize import RenderOutput, resolve_backend
 from toolkit.splat.trainer import (
     TrainConfig,
@@ -68,6 +72,16 @@ class SplatConfig(TrainConfig, StageConfig):
     # within the time limit than 100k (more steps; densification adds where needed).
     init_budget: int = Field(40_000, ge=1, description="at most this many initial Gaussians")
     init_opacity: float = Field(0.1, gt=0, lt=1)
+    # fused: one Gaussian per point of the fuse stage's map (the method). random: Gaussians
+    # on random rays of the training cameras at random depths, grey, no map needed (the
+    # paper's "MonoGS with lidar" row: lidar poses, no lidar-scaled cloud; pair it with
+    # depth_weight: 0 so that nothing from the depth network enters).
+    init: Literal["fused", "random"] = "fused"
+    random_depth_m: tuple[float, float] = Field((0.3, 5.0), description="z range for init: "
+                                                "random (metres)")
+    # Render the upstream tsdf stage's mesh at the same held-out views and report its PSNR
+    # beside the splats' (only when a tsdf stage runs before this one).
+    compare_tsdf: bool = True
     poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
     strip_views: int = Field(4, ge=0, description="held-out views in renders.png")
     # Torch threads. "auto": torch's default, except 1 when the machine is already fully
@@ -130,6 +144,34 @@ def camera_poses(seq: Sequence, ctx: StageContext, cfg: SplatConfig) -> tuple[Tr
     traj = gt.poses_base.transform(T_right=seq.rig.T_base_camera)
     traj.child = "camera"
     return _at(traj, stamps), "groundtruth"
+
+
+def groundtruth_to_trajectory_frame(seq: Sequence, poses: Trajectory) -> (
+        tuple[np.ndarray, float] | None):
+    """T_traj_gt [4, 4] mapping the ground-truth world into the trajectory's world, and the
+    RMS residual (m) of the camera positions after alignment; None without ground truth.
+
+    SLAM puts its map origin at the first pose, the simulator elsewhere (1.4 m apart on the
+    small house), so the simulator's held-out views (ground-truth poses) must be moved into
+    the frame the splats were trained in: an SE(3) Umeyama fit of the ground-truth camera
+    positions to the trajectory's at the same stamps, as is usual for evaluating novel views
+    with estimated poses. Planar paths are fine (unique when the points are not collinear).
+    """
+    gt = seq.groundtruth
+    if gt is None or gt.poses_base is None:
+        return None
+    gt_cam = gt.poses_base.transform(T_right=seq.rig.T_base_camera)
+    st = poses.stamps
+    inside = (st >= gt_cam.stamps[0] - 1e-6) & (st <= gt_cam.stamps[-1] + 1e-6)
+    if inside.sum() < 3:
+        return None
+    src = gt_cam.interpolate(st[inside], extrapolate_s=1e-6).poses[:, :3, 3]
+    dst = poses.poses[inside, :3, 3]
+    R, t, _ = umeyama_alignment(src, dst)
+    rmse = float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T, rmse
 
 
 def _at(traj: Trajectory, stamps: np.ndarray) -> Trajectory:
@@ -221,8 +263,10 @@ class SplatStage(Stage):
 
     name = "splat"
     Config = SplatConfig
-    requires = ("sequence", "fused")
-    optional_requires = ("trajectory",)
+    requires = ("sequence",)
+    # fused: the initial cloud and depth targets (init: random trains without it);
+    # tsdf_mesh: rendered at the held-out views for the comparison.
+    optional_requires = ("trajectory", "fused", "tsdf_mesh")
     provides = ("splats",)
 
     def run(self, ctx: StageContext) -> None:
@@ -246,16 +290,25 @@ class SplatStage(Stage):
         from toolkit.io.sequence import read_sequence
 
         seq = read_sequence(ctx.artifact("sequence"))
-        fused = Path(ctx.artifact("fused"))
+        fused = Path(ctx.artifact("fused")) if ctx.has_artifact("fused") else None
         if not seq.frames:
             raise StageError("splat: the sequence has no camera frames")
+        if cfg.init == "fused" and fused is None:
+            raise StageError("splat: init: fused needs the fused map, but no stage upstream "
+                             "provides 'fused' - add a fuse stage before splat, or set "
+                             "init: random (with depth_weight: 0) to start from random "
+                             "Gaussians")
+        if cfg.depth_weight > 0 and fused is None:
+            ctx.log.warning("splat: depth_weight %g but no fused depth upstream: the depth "
+                            "term is off (images only)", cfg.depth_weight)
         poses, pose_source = camera_poses(seq, ctx, cfg)
         index = poses.extra["frame_index"]
         used = np.arange(0, len(index), cfg.frame_stride)
         cam_full = seq.rig.camera
         w, h = cam_full.width // cfg.downscale, cam_full.height // cfg.downscale
         cam = cam_full.undistorted().scaled(w, h)
-        depth_dir = find_depth_dir(fused)
+        # Depth targets are read only when the loss uses them.
+        depth_dir = find_depth_dir(fused) if fused is not None and cfg.depth_weight > 0 else None
         gt = seq.groundtruth
 
         train_views: list[TrainView] = []
@@ -287,12 +340,23 @@ class SplatStage(Stage):
             raise StageError("splat: no training views left (check frame_stride / "
                              "holdout_every)")
 
-        pts, cols = read_map(fused / "map.ply")
-        model = init_from_points(pts, cols, budget=min(cfg.init_budget, cfg.max_gaussians),
-                                 sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity,
-                                 seed=cfg.seed)
+        budget = min(cfg.init_budget, cfg.max_gaussians)
+        if cfg.init == "fused":
+            assert fused is not None
+            pts, cols = read_map(fused / "map.ply")
+            model = init_from_points(pts, cols, budget=budget, sh_degree=cfg.sh_degree,
+                                     init_opacity=cfg.init_opacity, seed=cfg.seed)
+        else:
+            model = init_random_in_views([v.camera for v in train_views],
+                                         [inv_se3(v.T_camera_world) for v in train_views],
+                                         budget, cfg.random_depth_m, sh_degree=cfg.sh_degree,
+                                         init_opacity=cfg.init_opacity, seed=cfg.seed)
+        n_init = len(model)
         tcfg = TrainConfig(**{k: getattr(cfg, k) for k in TrainConfig.model_fields})
-        data_key = _data_key(fused, [v.name for v in train_views], poses.poses, (w, h))
+        data_key = _data_key(fused / "map.ply" if cfg.init == "fused" and fused else None,
+                             [cfg.init, budget, cfg.init_opacity, list(cfg.random_depth_m),
+                              depth_dir is not None],
+                             [v.name for v in train_views], poses.poses, (w, h))
         trainer = Trainer(model, train_views, tcfg, ctx.stage_dir / "checkpoints",
                           data_key=data_key)
         resumed = trainer.resume()
@@ -321,19 +385,37 @@ class SplatStage(Stage):
             "stopped_early": summary.stopped_early,
             "train_seconds": summary.seconds,
             "train_iters_per_s": summary.iters_per_s,
-            "n_gaussians_init": int(min(len(pts), cfg.init_budget, cfg.max_gaussians)),
+            "init": cfg.init,
+            "n_gaussians_init": n_init,
             "n_gaussians": summary.n_gaussians,
             "train_psnr_db": summary.final_psnr_db,
         }
         strip_rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        compare_rows: list[np.ndarray] = []
         (ctx.stage_dir / "renders").mkdir(exist_ok=True)
-        sim_views = self._sim_heldout(seq, cam_full, cam, (w, h))
+        mesh_r: MeshViewRenderer | None = None
+        if cfg.compare_tsdf and ctx.has_artifact("tsdf_mesh"):
+            mesh_r = MeshViewRenderer(ctx.artifact("tsdf_mesh"), cam_full.undistorted(), (w, h),
+                                      cfg.background)
+            metrics["tsdf_mesh_triangles"] = mesh_r.n_triangles
+        comparisons: dict[str, Comparison] = {}
+        t_mesh = [0.0]
+        # Simulator held-out views have ground-truth poses: move them into the trajectory's
+        # frame (the splats' frame) first.
+        T_traj_gt = np.eye(4)
+        if pose_source == "trajectory":
+            al = groundtruth_to_trajectory_frame(seq, poses)
+            if al is not None:
+                T_traj_gt = al[0]
+                metrics["sim_heldout_alignment_rmse_m"] = al[1]
+        sim_views = self._sim_heldout(seq, cam_full, cam, (w, h), T_traj_gt)
         # Pictures: every held-out view as a PNG; in the strip, views spread along the path
         # and, when the simulator gave some, off-path ones as well.
         n_path = cfg.strip_views - cfg.strip_views // 2 if sim_views else cfg.strip_views
         n_sim = cfg.strip_views - n_path
 
-        def saver(prefix: str, n_total: int, n_strip: int) -> Callable[..., None]:
+        def saver(prefix: str, n_total: int, n_strip: int, comp: Comparison | None = None) -> (
+                Callable[..., None]):
             # Interior points of the sequence: a loop's first and last frames look alike.
             picks = set(np.linspace(0, n_total - 1, n_strip + 2)[1:-1].round().astype(int)
                         .tolist() if n_strip > 0 and n_total > 0 else [])
@@ -341,15 +423,31 @@ class SplatStage(Stage):
             def save(i: int, v: TrainView, out: RenderOutput) -> None:
                 rend = _to_u8(out.color)
                 _write_png(ctx.stage_dir / "renders" / f"{prefix}_{i:03d}.png", rend)
+                mesh_img = None
+                if mesh_r is not None and comp is not None:
+                    t = time.perf_counter()
+                    mr = mesh_r.render(v.T_camera_world)
+                    comp.add(mr, out.color.clamp(0, 1), v.target())
+                    mesh_img = _to_u8(mr.color)
+                    t_mesh[0] += time.perf_counter() - t
                 if i in picks:
                     depth = np.where(out.alpha.numpy() > 0.5, out.depth.numpy(), 0.0)
                     strip_rows.append((v.image.numpy(), rend, depth))
+                    if mesh_img is not None:
+                        compare_rows.append(np.concatenate([v.image.numpy(), rend, mesh_img],
+                                                           1))
 
             return save
 
+        def compared(prefix: str) -> Comparison | None:
+            if mesh_r is None:
+                return None
+            comparisons[prefix] = Comparison()
+            return comparisons[prefix]
+
         if test_views:
             ev = evaluate_views(model, test_views, backend, cfg.background, test_gt_depth,
-                                saver("path", len(test_views), n_path))
+                                saver("path", len(test_views), n_path, compared("heldout")))
             metrics["heldout_every_n"] = cfg.holdout_every
             metrics["heldout_frames"] = ev["views"]
             metrics["heldout_psnr_db"] = ev["psnr_db"]
@@ -361,25 +459,35 @@ class SplatStage(Stage):
             views, depths = sim_views
             ev = evaluate_views(model, views, backend, cfg.background, depths,
                                 saver("offpath", len(views), n_sim if test_views else
-                                      cfg.strip_views))
+                                      cfg.strip_views, compared("sim_heldout")))
             metrics["sim_heldout_views"] = ev["views"]
             metrics["sim_heldout_psnr_db"] = ev["psnr_db"]
             metrics["sim_heldout_ssim"] = ev["ssim"]
             for key in ("depth_mae_m", "depth_rmse_m"):
                 if key in ev:
                     metrics[f"sim_heldout_{key}"] = ev[key]
+        for prefix, comp in comparisons.items():
+            metrics.update(comp.metrics(prefix))
+            if f"{prefix}_psnr_db" in metrics:
+                metrics[f"{prefix}_psnr_gain_over_tsdf_db"] = (
+                    float(metrics[f"{prefix}_psnr_db"])  # type: ignore[arg-type]
+                    - metrics[f"tsdf_{prefix}_psnr_db"])
+        if mesh_r is not None:
+            metrics["tsdf_render_seconds"] = t_mesh[0]
         if strip_rows:
             _write_png(ctx.stage_dir / "renders.png", _strip(strip_rows))
+        if compare_rows:
+            _write_png(ctx.stage_dir / "splat_vs_tsdf.png", np.concatenate(compare_rows, 0))
         metrics["eval_seconds"] = time.perf_counter() - t0
         ctx.add_metrics(metrics)
         ctx.report(self._report(ctx, cfg, metrics, pose_source, bool(strip_rows),
-                                bool(sim_views), resumed))
+                                bool(sim_views), resumed, bool(compare_rows)))
         ctx.provide("splats", ctx.stage_dir / "splats.ply")
 
     @staticmethod
     def _sim_heldout(seq: Sequence, cam_full: PinholeCamera, cam: PinholeCamera,
-                     size: tuple[int, int]) -> tuple[list[TrainView], list[np.ndarray | None]] | (
-                         None):
+                     size: tuple[int, int], T_traj_gt: np.ndarray) -> (
+                         tuple[list[TrainView], list[np.ndarray | None]] | None):
         gt = seq.groundtruth
         if gt is None or gt.heldout is None or not gt.heldout.image_paths:
             return None
@@ -390,7 +498,8 @@ class SplatStage(Stage):
         for i, p in enumerate(h.image_paths):
             img = prepare_image(load_rgb(p), cam_full, size)
             views.append(TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
-                                   inv_se3(h.poses_camera.poses[i]), None, f"held-out {i}"))
+                                   inv_se3(T_traj_gt @ h.poses_camera.poses[i]), None,
+                                   f"held-out {i}"))
             d = None
             if h.depth_paths and i < len(h.depth_paths):
                 d = prepare_depth(read_depth(h.depth_paths[i]), cam_full, size)
@@ -399,14 +508,16 @@ class SplatStage(Stage):
 
     @staticmethod
     def _report(ctx: StageContext, cfg: SplatConfig, m: dict[str, object], pose_source: str,
-                strip: bool, sim: bool, resumed: bool) -> str:
+                strip: bool, sim: bool, resumed: bool, compare_png: bool = False) -> str:
         sid = ctx.stage_id
         lines = []
         if pose_source == "groundtruth":
             lines.append("**WARNING: no `trajectory` artifact upstream - splats trained at the "
                          "sequence's GROUND-TRUTH camera poses, not the lidar SLAM poses.**\n")
+        origin = ("from the fused map" if m["init"] == "fused" else
+                  "at random on the cameras' rays (no fused map)")
         lines.append(
-            f"{m['n_gaussians_init']} Gaussians from the fused map grew to {m['n_gaussians']} "
+            f"{m['n_gaussians_init']} Gaussians {origin} grew to {m['n_gaussians']} "
             f"in {m['iterations']} iterations at {m['image_width']}x{m['image_height']} "
             f"({m['train_seconds']:.0f} s, {m['train_iters_per_s']:.1f} it/s, backend "
             f"`{m['backend']}`, {m['train_views']} training views"
@@ -415,30 +526,56 @@ class SplatStage(Stage):
         rows = []
         if "heldout_psnr_db" in m:
             rows.append((f"every {cfg.holdout_every}-th frame ({m['heldout_frames']})",
-                         m["heldout_psnr_db"], m["heldout_ssim"], m.get("heldout_depth_mae_m")))
+                         "heldout"))
         if sim:
-            rows.append((f"simulator held-out views ({m['sim_heldout_views']})",
-                         m["sim_heldout_psnr_db"], m["sim_heldout_ssim"],
-                         m.get("sim_heldout_depth_mae_m")))
+            rows.append((f"simulator held-out views ({m['sim_heldout_views']})", "sim_heldout"))
+        tsdf = any(f"tsdf_{p}_psnr_db" in m for _, p in rows)
+
+        def f(key: str, fmt: str) -> str:
+            v = m.get(key)
+            return format(v, fmt) if isinstance(v, float) and np.isfinite(v) else "-"
+
         if rows:
-            lines.append("\n| held-out set | PSNR (dB) | SSIM | depth MAE (m) |\n|---|---|---|---|")
-            for name, p, s, d in rows:
-                dtxt = f"{d:.3f}" if isinstance(d, float) else "-"
-                lines.append(f"| {name} | {p:.2f} | {s:.3f} | {dtxt} |")
+            head = "| held-out set | PSNR (dB) | SSIM | depth MAE (m) |"
+            if tsdf:
+                head += (" TSDF mesh PSNR (dB) | TSDF SSIM | gain (dB) | TSDF coverage | "
+                         "covered px: TSDF / splats PSNR (dB) |")
+            lines.append("\n" + head + "\n" + "|---" * (head.count("|") - 1) + "|")
+            for name, p in rows:
+                row = (f"| {name} | {f(f'{p}_psnr_db', '.2f')} | {f(f'{p}_ssim', '.3f')} | "
+                       f"{f(f'{p}_depth_mae_m', '.3f')} |")
+                if tsdf:
+                    row += (f" {f(f'tsdf_{p}_psnr_db', '.2f')} | {f(f'tsdf_{p}_ssim', '.3f')} | "
+                            f"{f(f'{p}_psnr_gain_over_tsdf_db', '+.2f')} | "
+                            f"{f(f'tsdf_{p}_coverage', '.1%')} | "
+                            f"{f(f'tsdf_{p}_psnr_covered_db', '.2f')} / "
+                            f"{f(f'{p}_psnr_on_tsdf_covered_db', '.2f')} |")
+                lines.append(row)
+            if tsdf:
+                lines.append(
+                    "\nTSDF mesh: the upstream `tsdf` stage's mesh (vertex colours) ray-cast at "
+                    "the same held-out poses at full resolution and area-resized like the "
+                    "images; PSNR over all pixels, pixels without a hit count with the "
+                    "background colour. Covered px: pixels every ray of which hit the mesh, "
+                    "for the mesh and for the splats on the same pixels.")
         if strip:
             lines.append(f"\n![real, rendered, rendered depth]({sid}/renders.png)\n\n"
                          "Each row: real image | rendered from the splats | rendered depth "
                          "(held-out views: along the path first, then off the path).")
+        if compare_png:
+            lines.append(f"\n![real, splats, TSDF mesh]({sid}/splat_vs_tsdf.png)\n\n"
+                         "Each row: real image | splats | TSDF mesh, same views as above.")
         lines.append(f"\nSplats: [{sid}/splats.ply]({sid}/splats.ply) (standard 3DGS PLY).")
         return "\n".join(lines)
 
 
-def _data_key(fused: Path, names: list[str], poses: np.ndarray, size: tuple[int, int]) -> str:
-    """Identity of the training data, so a checkpoint from other inputs is not resumed."""
+def _data_key(map_ply: Path | None, init: list[object], names: list[str], poses: np.ndarray,
+              size: tuple[int, int]) -> str:
+    """Identity of the training data and initialisation, so a checkpoint from other inputs
+    is not resumed."""
     h = hashlib.sha256()
-    m = fused / "map.ply"
-    st = m.stat() if m.exists() else None
-    h.update(json.dumps([str(m), st.st_size if st else 0, st.st_mtime_ns if st else 0, names,
-                         list(size)]).encode())
+    st = map_ply.stat() if map_ply is not None and map_ply.exists() else None
+    h.update(json.dumps([str(map_ply), st.st_size if st else 0, st.st_mtime_ns if st else 0,
+                         init, names, list(size)]).encode())
     h.update(np.ascontiguousarray(poses, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
