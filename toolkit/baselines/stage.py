@@ -534,6 +534,7 @@ class CameraOnlyConfig(_ColmapKeys):
     # The two map comparisons (own scale, Sim(3)) take most of this stage's time on a house
     # (~2.5 M points each); off leaves the map to the evaluate stage.
     geometry: bool = True
+    eval_max_points: int = Field(400_000, ge=1000)  # map points scored (random subset)
     eval_max_depth_m: float = Field(10.0, gt=0)
 
 
@@ -680,10 +681,15 @@ class CameraOnlyStage(Stage):
             if mr is not None:
                 from toolkit.eval.geometry import geometry_metrics
 
+                # A random subset, as evaluate scores maps: the statistics settle long
+                # before the ~2.5 M points of a house.
+                rng = np.random.default_rng(cfg.seed)
+                sub = (rng.choice(len(res.points), cfg.eval_max_points, replace=False)
+                       if len(res.points) > cfg.eval_max_points else slice(None))
                 for tag in ("se3", "sim3"):
                     pts = apply_similarity(al[tag], res.points)
                     clouds[tag] = pts
-                    g = geometry_metrics(pts, mr[1])
+                    g = geometry_metrics(pts[sub], mr[1])
                     m[f"geometry_{'own_scale' if tag == 'se3' else 'sim3'}"] = g
                     rows += _geometry_rows("own scale:" if tag == "se3" else "Sim(3):", g)
                 clouds["gt"] = mr[1]
