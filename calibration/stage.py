@@ -8,6 +8,10 @@
   board: 11x8               # inner corners
   square_m: 0.05
   # files: images / scans / camera (or capture: a folder with images/, lasers/, camera.yaml)
+
+- stage: calibrate          # check only: no board, the upstream sequence's extrinsic
+  mode: check
+  check_frames: 6
 ```
 
 With ``source: simulate`` the simulator renders a calibration capture of the upstream
@@ -15,6 +19,12 @@ sequence's rig (or its default rig) and the result is compared with the exact an
 The calibrated rig is published as artifact ``rig`` (the upstream sequence's rig with the
 laser moved to the calibrated pose), the full result as ``calibration``; with an upstream
 sequence, ``check`` overlays its scans on its images and scores the extrinsic.
+
+``mode: check`` calibrates nothing: it checks the upstream sequence's extrinsic (or the one
+in ``extrinsic``, any file ``python -m calibration check --extrinsic`` reads) on the
+sequence, draws the overlays, scores it and the same extrinsic turned by 2 degrees about
+each camera axis, and passes the rig on unchanged. On a simulated sequence the rig is the
+exact one, so this shows what the score makes of a right and of a 2-degree-wrong extrinsic.
 """
 
 from __future__ import annotations
@@ -33,6 +43,9 @@ from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 class CalibrateConfig(StageConfig):
     """Settings of ``calibrate``."""
 
+    # calibrate: estimate the extrinsic from board views (and check it on the sequence);
+    # check: only check an existing extrinsic on the upstream sequence
+    mode: Literal["calibrate", "check"] = "calibrate"
     source: Literal["simulate", "files"] = "files"
     # files: a capture folder (images/, lasers/, camera.yaml[, groundtruth.yaml]) or the
     # three paths; camera defaults to the upstream sequence's
@@ -59,6 +72,9 @@ class CalibrateConfig(StageConfig):
     # check on the upstream sequence
     check: bool = True
     check_frames: int = Field(6, ge=1)
+    # mode check: the extrinsic to check (T_camera_laser, a rig, a tf mapping); None: the
+    # upstream sequence's rig
+    extrinsic: str | None = None
 
 
 class CalibrateStage(Stage):
@@ -68,11 +84,16 @@ class CalibrateStage(Stage):
     Config = CalibrateConfig
     optional_requires = ("sequence",)
     provides = ("rig", "calibration")
+    # 2: mode check; overlays of the extrinsic turned by 2 degrees next to the checked one
+    version = 2
 
     config: CalibrateConfig
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
+        if cfg.mode == "check":
+            return [Path(cfg.extrinsic)] if cfg.extrinsic and Path(cfg.extrinsic).exists() \
+                else []
         if cfg.source == "simulate":
             return []
         files: list[Path] = []
@@ -140,6 +161,9 @@ class CalibrateStage(Stage):
             from toolkit.io.sequence import read_rig
 
             base_rig = read_rig(seq_dir / "rig.yaml")
+        if cfg.mode == "check":
+            self._run_check_only(ctx, seq_dir, base_rig)
+            return
         try:
             board = BoardSpec.parse(cfg.board, cfg.square_m, cfg.board_size_m)
             images, scans, cam_path, gt_path = self._inputs(ctx, base_rig)
@@ -209,44 +233,136 @@ class CalibrateStage(Stage):
         ctx.provide("rig", rig_path)
         ctx.provide("calibration", calib_path)
 
+    def _run_check_only(self, ctx: StageContext, seq_dir: Path | None, base_rig: Any) -> None:
+        """``mode: check``: score an existing extrinsic on the sequence, pass the rig on."""
+        from calibration.cli import USER_ERRORS
+        from calibration.extrinsic import transform_error
+        from calibration.files import extrinsic_to_mapping, load_extrinsic, rig_for_extrinsic
+        from toolkit.io.atomic import atomic_write_text, to_jsonable
+        from toolkit.io.sequence import write_rig
+
+        cfg = self.config
+        if seq_dir is None or base_rig is None:
+            raise StageError("calibrate: mode 'check' needs a sequence from an earlier stage "
+                             "(simulate or ingest) to check the extrinsic on")
+        if cfg.extrinsic:
+            try:
+                T = load_extrinsic(Path(cfg.extrinsic))
+            except USER_ERRORS as e:
+                raise StageError(f"calibrate: {e}") from e
+            what = f"the extrinsic of {cfg.extrinsic}"
+        else:
+            T = base_rig.T_camera_laser
+            what = "the sequence's extrinsic"
+        # A simulated sequence's rig is the exact one the simulator rendered with.
+        meta_path = seq_dir / "meta.yaml"
+        meta = yaml.safe_load(meta_path.read_text()) if meta_path.exists() else {}
+        simulated = isinstance(meta, dict) and "simulator" in meta
+        T_true = base_rig.T_camera_laser if simulated else None
+        if simulated and not cfg.extrinsic:
+            what += " (the simulator's exact rig)"
+        metrics: dict[str, Any] = {}
+        try:
+            lines = [f"Check of {what}, no calibration."]
+            lines += self._check(ctx, seq_dir, T, T_true, metrics)
+        except USER_ERRORS as e:
+            raise StageError(f"calibrate: {e}") from e
+        if T_true is not None:
+            rot, tra = transform_error(T, T_true)
+            metrics["rotation_error_deg"], metrics["translation_error_m"] = rot, tra
+        rig = rig_for_extrinsic(base_rig.camera, T, base_rig) if cfg.extrinsic else base_rig
+        rig_path = ctx.stage_dir / "rig.yaml"
+        write_rig(rig_path, rig)
+        calib_path = ctx.stage_dir / "calibration.yaml"
+        atomic_write_text(calib_path, yaml.safe_dump(
+            to_jsonable({**extrinsic_to_mapping(T), "mode": "check", "checked": what,
+                         "check": metrics}), sort_keys=False))
+        ctx.add_metrics(metrics)
+        ctx.report("\n\n".join(lines))
+        ctx.provide("rig", rig_path)
+        ctx.provide("calibration", calib_path)
+
     def _check(self, ctx: StageContext, seq_dir: Path, T: np.ndarray, T_true: np.ndarray | None,
                metrics: dict[str, Any]) -> list[str]:
         import cv2
 
-        from calibration.check import overlay, perturbed, project_scan, score_frames, sensitivity
+        from calibration.check import (
+            SEEN_AXES,
+            overlay,
+            perturbed,
+            project_scan,
+            score_frames,
+            sensitivity,
+        )
         from calibration.pipeline import check_frames_from_sequence
         from toolkit.io.atomic import atomic_path
 
         frames, seq = check_frames_from_sequence(seq_dir, T, self.config.check_frames)
+        camera = seq.rig.camera
         out = ctx.stage_dir / "check"
         out.mkdir(parents=True, exist_ok=True)
-        names = []
-        for k, f in enumerate(frames[:4]):
-            img = overlay(f.image, project_scan(f.points, T, seq.rig.camera))
-            p = out / f"overlay_{k}.png"
-            with atomic_path(p) as tmp:
+
+        def write(name: str, img: np.ndarray) -> str:
+            with atomic_path(out / name) as tmp:
                 cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-            names.append(p.name)
-        sc = sensitivity(frames, T, seq.rig.camera, 2.0)
-        worst = min(sc.drop(k) for k in sc.perturbed)
-        best = max(sc.drop(k) for k in sc.perturbed)
+            return name
+
+        for k, f in enumerate(frames[:4]):
+            write(f"overlay_{k}.png", overlay(f.image, project_scan(f.points, T, camera)))
+        sc = sensitivity(frames, T, camera, 2.0)
         metrics["check_score"] = sc.score
         metrics["check_kind"] = sc.kind
-        metrics["check_drop_at_2deg_max"] = best
-        metrics["check_drop_at_2deg_min"] = worst
-        lines = [f"Check on {len(frames)} frames of the sequence ({sc.kind} score): "
-                 f"{sc.score:.3f}; rotated by 2 deg the score falls by "
-                 + ", ".join(f"{k} {sc.drop(k) * 100:.0f} %" for k in sc.perturbed) + "."]
+        metrics["check_points"] = sc.n_points
+        metrics["check_drop_at_2deg_max"] = max(sc.drop(k) for k in sc.perturbed)
+        metrics["check_drop_at_2deg_min"] = min(sc.drop(k) for k in sc.perturbed)
+        metrics["check_scores_rotated_2deg"] = dict(sc.perturbed)
+        seen = SEEN_AXES[sc.kind]
+        table = ["| extrinsic | score | change |", "|---|---|---|",
+                 f"| checked | {sc.score:.3f} | |"]
+        for k, v in sc.perturbed.items():
+            note = "" if k[:2] in seen else " (not judged by this score)"
+            table.append(f"| rotated {k} | {v:.3f} | {-sc.drop(k) * 100:+.0f} %{note} |")
+        lines = [f"Check on {len(frames)} frames of the sequence ({sc.kind} score, "
+                 f"{sc.n_points} projected points): {sc.score:.3f}.", "\n".join(table)]
+        # A side-by-side picture: the extrinsic (the true one when known) and the same turned
+        # 2 degrees about the camera's vertical axis, the rotation a 2D scan sees best.
+        ref = T if T_true is None else T_true
+        wrong = perturbed(ref, 1, 2.0)
+        pairs = []
+        for k, f in enumerate(frames[:2]):
+            pa = project_scan(f.points, ref, camera)
+            # The same range colours in both panels, so that only the positions differ.
+            lim = ((float(np.percentile(pa.range_m, 2)), float(np.percentile(pa.range_m, 98)))
+                   if len(pa.range_m) else None)
+            a = overlay(f.image, pa, lim)
+            b = overlay(f.image, project_scan(f.points, wrong, camera), lim)
+            for img, text in ((a, "true" if T_true is not None else "checked"),
+                              (b, "rotated 2 deg (yaw)")):
+                (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+                cv2.rectangle(img, (4, 4), (16 + tw, 14 + th), (0, 0, 0), -1)
+                cv2.putText(img, text, (10, 9 + th), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
+                            (255, 255, 255), 1, cv2.LINE_AA)
+            pairs.append(write(f"overlay_vs_rotated_{k}.png", np.hstack([a, b])))
         if T_true is not None:
-            s_true = score_frames(frames, T_true, seq.rig.camera, sc.kind)[0]
-            s_wrong = score_frames(frames, perturbed(T_true, 1, 2.0), seq.rig.camera, sc.kind)[0]
+            same = np.allclose(T_true, T, atol=1e-12)
+            s_true = sc.score if same else score_frames(frames, T_true, camera, sc.kind)[0]
+            true_perturbed = dict(sc.perturbed) if same else sensitivity(
+                frames, T_true, camera, 2.0, sc.kind).perturbed
+            s_wrong = true_perturbed["ry+2deg"]
             metrics["check_score_true"] = s_true
             metrics["check_score_true_rotated_2deg"] = s_wrong
+            # Does the score rank the true extrinsic above every 2-degree rotation of it?
+            metrics["check_true_beats_rotated_2deg"] = bool(
+                all(s_true > v for v in true_perturbed.values()))
             lines.append(f"Ground-truth extrinsic: score {s_true:.3f}; rotated 2 deg about "
-                         f"the camera's vertical axis: {s_wrong:.3f}.")
+                         f"the camera's vertical axis: {s_wrong:.3f} "
+                         f"({(s_wrong - s_true) / max(abs(s_true), 1e-9) * 100:+.0f} %); "
+                         "the true one scores above every 2-degree rotation: "
+                         f"{'yes' if metrics['check_true_beats_rotated_2deg'] else 'no'}.")
         rel = ctx.stage_id
-        lines += [f"![lidar points on the image, coloured by range]({rel}/check/{n})"
-                  for n in names[:2]]
+        lines += [f"![lidar points on the image coloured by range: left the "
+                  f"{'true' if T_true is not None else 'checked'} extrinsic, right turned by 2 "
+                  f"degrees]({rel}/check/{n})" for n in pairs]
         if not math.isfinite(sc.score):
             lines.append("(no scan points landed in the checked images)")
         return lines

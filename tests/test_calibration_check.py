@@ -101,29 +101,31 @@ def test_overlay_draws_points_coloured_by_range(scene) -> None:  # noqa: ANN001
         np.zeros((0, 2)), T, camera))).all()
 
 
-def test_stage_with_upstream_sequence_checks_the_result(scene, tmp_path) -> None:  # noqa: ANN001
-    """calibrate after a sequence: rig keeps the camera mount, check scores the result."""
-    import yaml
-
-    from calibration.stage import CalibrateStage
-    from calibration.synthetic import make_capture, write_capture
-    from toolkit.io.sequence import SequenceWriter, read_rig
-    from toolkit.recipe import registry
-    from toolkit.recipe.runner import run_recipe
-    from toolkit.recipe.schema import load_recipe
-    from toolkit.recipe.stage import Stage, StageConfig
+def _write_sequence(scene, root):  # noqa: ANN001, ANN202
+    """The boxes scene as a sequence folder (images, scans, ground-truth depth, rig)."""
+    from toolkit.io.sequence import SequenceWriter
     from toolkit.sensors import LaserScan, Rig
 
     frames, camera, T = scene
     T_bc = se3(R_BASE_OPTICAL, [0.05, 0.0, 0.5])
-    w = SequenceWriter(tmp_path / "seq", Rig(camera, T_bc, T_bc @ T), name="boxes")
+    w = SequenceWriter(root, Rig(camera, T_bc, T_bc @ T), name="boxes")
     for k, f in enumerate(frames):
         w.add_frame(10.0 + k, f.image, gt_depth=f.depth)
         r = np.linalg.norm(f.points[:, :2], axis=1)
         w.add_scan(LaserScan(10.0 + k, r, -np.pi, np.radians(0.5)))
     w.close()
-    cap = make_capture(6, seed=3, camera=camera, T_camera_laser=T)
-    write_capture(cap, tmp_path / "capture")
+    return T_bc
+
+
+def _run_with_sequence(seq_dir, stages, tmp_path):  # noqa: ANN001, ANN202
+    """Run ``stages`` after a stage that provides the sequence folder ``seq_dir``."""
+    import yaml
+
+    from calibration.stage import CalibrateStage
+    from toolkit.recipe import registry
+    from toolkit.recipe.runner import run_recipe
+    from toolkit.recipe.schema import load_recipe
+    from toolkit.recipe.stage import Stage, StageConfig
 
     class SeqConfig(StageConfig):
         path: str
@@ -142,18 +144,30 @@ def test_stage_with_upstream_sequence_checks_the_result(scene, tmp_path) -> None
             ctx.provide("sequence", ctx.stage_dir / "seq")
 
     recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": [
-        {"stage": "t_sequence", "path": str(tmp_path / "seq")},
-        {"stage": "calibrate", "capture": str(tmp_path / "capture"), "square_m": 0.05,
-         "leave_one_out": False, "check_frames": 5}]}
+        {"stage": "t_sequence", "path": str(seq_dir)}, *stages]}
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
     added = {"t_sequence": SeqStage, "calibrate": CalibrateStage}
     for n, c in added.items():
         registry.register(n, c)
     try:
-        res = run_recipe(load_recipe(tmp_path / "r.yaml", []))
+        return run_recipe(load_recipe(tmp_path / "r.yaml", []))
     finally:
         for n in added:
             registry.unregister(n)
+
+
+def test_stage_with_upstream_sequence_checks_the_result(scene, tmp_path) -> None:  # noqa: ANN001
+    """calibrate after a sequence: rig keeps the camera mount, check scores the result."""
+    from calibration.synthetic import make_capture, write_capture
+    from toolkit.io.sequence import read_rig
+
+    frames, camera, T = scene
+    T_bc = _write_sequence(scene, tmp_path / "seq")
+    cap = make_capture(6, seed=3, camera=camera, T_camera_laser=T)
+    write_capture(cap, tmp_path / "capture")
+    res = _run_with_sequence(tmp_path / "seq", [
+        {"stage": "calibrate", "capture": str(tmp_path / "capture"), "square_m": 0.05,
+         "leave_one_out": False, "check_frames": 5}], tmp_path)
     assert res.ok, res.error
     m = res.metrics["calibrate"]
     assert m["check_kind"] == "depth" and m["check_score"] > 0.9
@@ -162,5 +176,60 @@ def test_stage_with_upstream_sequence_checks_the_result(scene, tmp_path) -> None
     assert np.allclose(rig.T_base_camera, T_bc)  # the camera stays, the laser moves
     assert np.allclose(rig.T_camera_laser, T, atol=0.01)
     report = (tmp_path / "run" / "report.md").read_text()
-    assert "(calibrate/check/overlay_0.png)" in report
+    assert "(calibrate/check/overlay_vs_rotated_0.png)" in report
     assert (tmp_path / "run" / "calibrate" / "check" / "overlay_0.png").exists()
+
+
+def test_stage_check_only_scores_the_rig_and_a_given_extrinsic(scene, tmp_path) -> None:  # noqa: ANN001
+    """mode: check calibrates nothing: it scores the sequence's extrinsic (or a file's)."""
+    import yaml
+
+    from calibration.check import perturbed
+    from calibration.files import extrinsic_to_mapping
+    from toolkit.io.sequence import read_rig
+
+    frames, camera, T = scene
+    T_bc = _write_sequence(scene, tmp_path / "seq")
+    res = _run_with_sequence(tmp_path / "seq", [
+        {"stage": "calibrate", "mode": "check", "check_frames": 5}], tmp_path)
+    assert res.ok, res.error
+    m = res.metrics["calibrate"]
+    assert m["check_kind"] == "depth" and m["check_score"] > 0.95
+    # Not a simulator sequence: no ground truth is claimed.
+    assert "check_score_true" not in m and "rotation_error_deg" not in m
+    assert m["check_scores_rotated_2deg"]["ry+2deg"] < 0.8 * m["check_score"]
+    run = tmp_path / "run" / "calibrate"
+    assert np.allclose(read_rig(run / "rig.yaml").T_base_laser, T_bc @ T)  # passed on as is
+    assert yaml.safe_load((run / "calibration.yaml").read_text())["mode"] == "check"
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "| rotated ry+2deg |" in report and "overlay_vs_rotated_1.png" in report
+    assert (run / "check" / "overlay_vs_rotated_0.png").exists()
+
+    # A given extrinsic 2 degrees off about the vertical scores worse than the rig's.
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text(yaml.safe_dump(extrinsic_to_mapping(perturbed(T, 1, 2.0))))
+    (tmp_path / "second").mkdir()
+    res2 = _run_with_sequence(tmp_path / "seq", [
+        {"stage": "calibrate", "mode": "check", "check_frames": 5,
+         "extrinsic": str(wrong)}], tmp_path / "second")
+    assert res2.ok, res2.error
+    assert res2.metrics["calibrate"]["check_score"] < 0.8 * m["check_score"]
+
+
+def test_stage_check_only_needs_a_sequence(tmp_path) -> None:  # noqa: ANN001
+    import yaml
+
+    from calibration.stage import CalibrateStage
+    from toolkit.recipe import registry
+    from toolkit.recipe.runner import run_recipe
+    from toolkit.recipe.schema import load_recipe
+
+    recipe = {"name": "t", "output": str(tmp_path / "run"),
+              "stages": [{"stage": "calibrate", "mode": "check"}]}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    registry.register("calibrate", CalibrateStage)
+    try:
+        res = run_recipe(load_recipe(tmp_path / "r.yaml", []))
+    finally:
+        registry.unregister("calibrate")
+    assert not res.ok and "needs a sequence" in str(res.error)

@@ -67,6 +67,16 @@ def test_extrinsic_end_to_end(capture: tuple[Path, object], tmp_path: Path,
     assert chk["kind"] == "edges" and len(chk["overlays"]) == 8
 
 
+def test_extrinsic_is_deterministic(capture: tuple[Path, object], tmp_path: Path) -> None:
+    """Same input, same output: RANSAC is seeded and nothing depends on the clock."""
+    cap_dir, _ = capture
+    for k in range(2):
+        assert main(_args(cap_dir, "--json", str(tmp_path / f"r{k}.json"), "--no-loo")) == 0
+    a, b = (json.loads((tmp_path / f"r{k}.json").read_text()) for k in range(2))
+    assert a["T_camera_laser"] == b["T_camera_laser"]
+    assert a["residual_rms_m"] == b["residual_rms_m"]
+
+
 def test_intrinsics_command(capture: tuple[Path, object], tmp_path: Path) -> None:
     cap_dir, cap = capture
     rc = main(["intrinsics", "--images", str(cap_dir / "images"), "--board", "11x8", "--square",

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from calibration.stage import CalibrateStage
@@ -37,3 +38,31 @@ def test_calibrate_stage_writes_rig_and_metrics(tmp_path: Path) -> None:
     calib = yaml.safe_load((tmp_path / "run" / "calibrate" / "calibration.yaml").read_text())
     assert "T_camera_laser" in calib and "error_vs_ground_truth" in calib
     assert "Extrinsic from 6 board views" in (tmp_path / "run" / "report.md").read_text()
+
+
+@pytest.mark.slow  # renders a 4 s drive through the house: 10 s CPU, a minute on a busy machine
+def test_check_only_after_simulate_separates_a_2_degree_error(tmp_path: Path) -> None:
+    """What the quickstart runs: `calibrate` with `mode: check` after `simulate`.
+
+    The simulator's rig is exact, so the stage scores the true extrinsic and the same turned
+    by 2 degrees, and writes the overlays into the report.
+    """
+    from toolkit.recipe.runner import run_recipe
+    from toolkit.recipe.schema import load_recipe
+
+    recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "simulate", "preset": "small_house", "seed": 0, "duration_s": 4.0,
+         "n_people": 1, "n_heldout": 0},
+        {"stage": "calibrate", "mode": "check", "check_frames": 12}]}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    res = run_recipe(load_recipe(tmp_path / "r.yaml", []))
+    assert res.ok, res.error
+    m = res.metrics["calibrate"]
+    assert m["check_kind"] == "depth" and m["rotation_error_deg"] == 0.0
+    assert m["check_score_true"] > 0.9
+    assert m["check_score_true_rotated_2deg"] < 0.8 * m["check_score_true"]
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "the simulator's exact rig" in report and "| rotated ry+2deg |" in report
+    for k in range(2):
+        assert (tmp_path / "run" / "calibrate" / "check" / f"overlay_vs_rotated_{k}.png").exists()
+        assert f"(calibrate/check/overlay_vs_rotated_{k}.png)" in report

@@ -80,3 +80,30 @@ def test_lidar_board_points_on_the_board_plane(capture: Path) -> None:
         bad = se3(np.eye(3), 0.02 * n) @ T_cl
         p_bad = pts[idx] @ bad[:3, :3].T + bad[:3, 3]
         assert abs(np.mean(p_bad @ n - d)) > abs(np.mean(dist)) + 0.01
+
+
+def test_capture_follows_the_protocol(capture: Path) -> None:
+    """Boards lean forward and back, turn left and right, at spread distances."""
+    gt = yaml.safe_load((capture / "groundtruth.yaml").read_text())
+    T_bc = np.array(gt["T_base_camera"])
+    lean, turn, dist = [], [], []
+    for view in gt["views"]:
+        n_base = T_bc[:3, :3] @ np.array(view["T_camera_board"])[:3, 2]  # board normal
+        lean.append(np.degrees(np.arcsin(n_base[2])))  # >0: the board's face tilts up
+        turn.append(np.degrees(np.arctan2(n_base[1], n_base[0])))
+        dist.append(np.array(view["T_camera_board"])[2, 3])
+    lean, turn = np.array(lean), np.array(turn)
+    # Forward-left, back-left, forward-right, back-right: every sign in four views.
+    assert set(np.sign(lean)) == {-1.0, 1.0} and set(np.sign(turn)) == {-1.0, 1.0}
+    assert np.all(np.abs(lean) > 12)  # 20-45 deg about the board's own axis (turn mixes in)
+    assert np.ptp(dist) > 0.3  # near and far, not one distance
+    assert gt["protocol"]["lean_deg"] == [20.0, 45.0]
+
+
+def test_capture_is_deterministic(tmp_path: Path) -> None:
+    a = capture_calibration(tmp_path / "a", n_views=2, seed=5)
+    b = capture_calibration(tmp_path / "b", n_views=2, seed=5)
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files and files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for f in files:
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f

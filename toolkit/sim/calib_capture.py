@@ -11,12 +11,13 @@ exact answer::
 Image and scan stamps differ by 8-56 ms per view (as in the real data), so a consumer
 pairs them by nearest stamp; ``groundtruth.yaml`` lists the pairs too. The board is
 rendered analytically (exact square edges, 2x2 supersampled so corners are anti-aliased)
-over a textured room, and the lidar ranges to it are exact before noise.
+over a textured room, and the lidar ranges to it are exact before noise. The board poses
+follow ``CaptureProtocol``: what a person holding the board is told to do.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -64,27 +65,74 @@ def _board_geometry(board: tuple[int, int], square: float) -> dict[str, float]:
             "y0": -square - margin, "y1": rows * square + margin, "margin": margin}
 
 
+# Low-discrepancy steps (additive recurrences, Weyl sequences) for the distance and the
+# lateral position: every prefix of the views covers both ranges evenly, so the first 5
+# views of a capture are as well spread as the first 20. The steps must not be near 1/4 or
+# 3/4: the lean and turn signs repeat every 4 views, and with such a step (Roberts' R2
+# sequence has 0.755) every forward-leaning board came out near and every backward-leaning
+# one far, which confounds the laser's pitch with its height (measured: 10-16 mm height
+# errors at 10 views). The golden-ratio step puts views four apart (same lean and turn)
+# 0.47 of the range apart; the silver-ratio step spreads the lateral position.
+SPREAD_STEP = (0.6180339887498949, 0.4142135623730950)  # distance, lateral
+
+
+@dataclass(frozen=True)
+class CaptureProtocol:
+    """How the person holding the board moves it from one view to the next.
+
+    The instructions a calibration session gives (docs/calibration.md, "Capturing a good
+    calibration"): lean the board forward and back by ``lean_deg``, turn it left and right
+    by ``turn_deg``, cycling through the four combinations (forward-left, back-left,
+    forward-right, back-right) so that any four consecutive views hold all of them; step
+    between near and far (``distance_m`` from the camera) and from one side of the image
+    to the other so that the boards fill the view; rotate it a little in its plane. A
+    laser pitch and a laser height are told apart only by boards leaning both ways at
+    several distances; boards that barely lean leave the height unobservable.
+    """
+
+    distance_m: tuple[float, float] = (0.8, 2.0)
+    lean_deg: tuple[float, float] = (20.0, 45.0)  # about the board's horizontal axis
+    turn_deg: tuple[float, float] = (15.0, 40.0)  # about the vertical
+    in_plane_deg: float = 15.0
+    lateral_fill: float = 0.9  # fraction of the sideways room the image leaves
+    max_incidence_deg: float = 60.0  # between the board normal and the line of sight
+
+
 def _board_pose(rng: np.random.Generator, geo: dict[str, float], T_world_cam: np.ndarray,
-                laser_z: float) -> np.ndarray:
-    """A random ``T_world_board`` facing the camera (not yet checked for visibility)."""
+                laser_z: float, k: int, phase: np.ndarray, proto: CaptureProtocol,
+                camera: PinholeCamera, shrink: float) -> np.ndarray:
+    """``T_world_board`` of view ``k`` under the protocol (not yet checked for visibility).
+
+    ``phase`` [2] offsets the distance and lateral sequences per capture; ``shrink`` (1 on
+    the first try, smaller after failed tries) pulls the board towards the image centre, as
+    a person does when told the board is cut off.
+    """
     w, h = geo["x1"] - geo["x0"], geo["y1"] - geo["y0"]
-    dist = rng.uniform(1.0, 2.2)
-    lateral = rng.uniform(-0.35, 0.35) * dist
-    yaw = rng.uniform(-0.7, 0.7)  # board turned about the vertical
-    tilt = rng.uniform(-0.45, 0.45)  # leaning forwards / backwards
-    roll = rng.uniform(-0.45, 0.45)  # in-plane rotation
+    lean_sign = 1.0 if k % 2 == 0 else -1.0
+    turn_sign = 1.0 if (k // 2) % 2 == 0 else -1.0
+    lean = lean_sign * np.radians(rng.uniform(*proto.lean_deg))
+    turn = turn_sign * np.radians(rng.uniform(*proto.turn_deg))
+    roll = np.radians(rng.uniform(-proto.in_plane_deg, proto.in_plane_deg))
+    # Distance and lateral position from the sequences, jittered within a small stratum.
+    su, sv = (phase + (k + 1) * np.asarray(SPREAD_STEP) + rng.uniform(-0.05, 0.05, 2)) % 1.0
+    d0, d1 = proto.distance_m
+    dist = d0 + (d1 - d0) * su
+    # Sideways room at that distance: the image's half-width minus the turned board's.
+    half_fov = min(camera.cx, camera.width - camera.cx) / camera.fx
+    room = max(dist * half_fov - 0.5 * w * np.cos(turn) - 0.05, 0.0)
+    lateral = (2.0 * sv - 1.0) * proto.lateral_fill * room * shrink
     # Facing frame: board z (into the board) along +x of the world, x to the right (-y),
-    # y down (-z), so an unrotated board is upright and faces the rig.
+    # y down (-z), so an unrotated board is upright and faces the rig. Lean about the
+    # board's horizontal axis first, then turn about the vertical.
     R_face = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    R = Rotation.from_euler("ZYX", [yaw, tilt, 0.0]).as_matrix() @ R_face @ \
+    R = Rotation.from_euler("ZYX", [turn, lean, 0.0]).as_matrix() @ R_face @ \
         Rotation.from_euler("z", roll).as_matrix()
-    # Put the laser plane through the board at a random fraction of its height.
-    centre_b = np.array([(geo["x0"] + geo["x1"]) / 2, (geo["y0"] + geo["y1"]) / 2, 0.0])
-    frac = rng.uniform(-0.3, 0.3)
-    c_world = np.array([T_world_cam[0, 3] + dist, T_world_cam[1, 3] + lateral,
-                        laser_z - frac * h * 0.8])
-    del w
-    return se3(R, c_world - R @ centre_b)
+    # The laser plane crosses the board somewhere in the middle 60 % of its height (and
+    # anywhere along its width), at the chosen distance and lateral position.
+    u = np.array([geo["x0"] + w * rng.uniform(0.3, 0.7), geo["y0"] + h * rng.uniform(0.2, 0.8),
+                  0.0])
+    hit = np.array([T_world_cam[0, 3] + dist, T_world_cam[1, 3] + lateral, laser_z])
+    return se3(R, hit - R @ u)
 
 
 def _inside(pb: np.ndarray, geo: dict[str, float]) -> np.ndarray:
@@ -116,14 +164,17 @@ def capture_calibration(out_dir: Path | str, n_views: int, seed: int = 0,
                         lidar_noise: float = 0.01, image_noise: float = 2.0,
                         camera: PinholeCamera | None = None,
                         T_camera_laser: np.ndarray | None = None,
-                        lidar: LidarSpec | None = None, min_board_points: int = 8) -> Path:
+                        lidar: LidarSpec | None = None, min_board_points: int = 8,
+                        protocol: CaptureProtocol | None = None) -> Path:
     """Render ``n_views`` board views and their scans into ``out_dir``; returns it.
 
     ``board``: inner corners (columns, rows) as ``cv2.findChessboardCorners`` takes them;
     ``square``: square side in metres. ``camera`` defaults to the simulator's camera,
     ``T_camera_laser`` to the simulator's rig (laser 0.2 m below the camera, 0.1 m
     behind). Every view shows the whole board to the camera and has at least
-    ``min_board_points`` lidar returns on it.
+    ``min_board_points`` lidar returns on it. Boards are placed as ``protocol`` (default
+    ``CaptureProtocol()``) tells a person to hold them: leaning forward and back, turned
+    left and right, near and far, across the image.
     """
     out = Path(out_dir)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 31]))
@@ -153,14 +204,19 @@ def capture_calibration(out_dir: Path | str, n_views: int, seed: int = 0,
 
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "lasers").mkdir(parents=True, exist_ok=True)
+    proto = protocol if protocol is not None else CaptureProtocol()
+    phase = rng.uniform(0.0, 1.0, 2)
     views = []
-    tries = 0
+    tries = view_tries = 0
     while len(views) < n_views:
         tries += 1
         if tries > 500 * max(n_views, 1):
             raise RuntimeError("could not place the board in view of both sensors; is the "
                                "lidar plane within the camera's view?")
-        T_wb = _board_pose(rng, geo, T_world_cam, T_world_laser[2, 3])
+        # Each failed try of the same view moves the board a little nearer the middle.
+        T_wb = _board_pose(rng, geo, T_world_cam, T_world_laser[2, 3], len(views), phase,
+                           proto, cam, 0.97 ** view_tries)
+        view_tries += 1
         T_cb = inv_se3(T_world_cam) @ T_wb
         # Whole board (with its margin) in the image, in front, not too oblique, above floor.
         pc = outline_b @ T_cb[:3, :3].T + T_cb[:3, 3]
@@ -171,7 +227,8 @@ def capture_calibration(out_dir: Path | str, n_views: int, seed: int = 0,
             continue
         n_c = T_cb[:3, 2]
         view_dir = (T_cb[:3, 3] + T_cb[:3, :3] @ outline_b.mean(0))
-        if abs(n_c @ view_dir) / np.linalg.norm(view_dir) < np.cos(np.radians(60)):
+        if abs(n_c @ view_dir) / np.linalg.norm(view_dir) < np.cos(
+                np.radians(proto.max_incidence_deg)):
             continue
         if (outline_b @ T_wb[:3, :3].T + T_wb[:3, 3])[:, 2].min() < 0.03:
             continue
@@ -213,6 +270,7 @@ def capture_calibration(out_dir: Path | str, n_views: int, seed: int = 0,
         rgb8 = np.clip(rgb, 0, 255).astype(np.uint8)
 
         k = len(views)
+        view_tries = 0
         img_ns = T0_NS + k * 2_000_000_000
         las_ns = img_ns + int(rng.uniform(8e6, 56e6))
         img_name, las_name = f"images/{img_ns}.png", f"lasers/{las_ns}.pcd"
@@ -252,6 +310,8 @@ def capture_calibration(out_dir: Path | str, n_views: int, seed: int = 0,
                   "angle_increment": float(lspec.angle_increment),
                   "range_min": lspec.range_min, "range_max": lspec.range_max},
         "image_noise_std": float(image_noise),
+        "protocol": {k: (list(v) if isinstance(v, tuple) else v)
+                     for k, v in asdict(proto).items()},
         "views": views,
     }
     atomic_write_text(out / "groundtruth.yaml", yaml.safe_dump(gt, sort_keys=False))
