@@ -445,8 +445,8 @@ class PaperTablesStage(Stage):
         fuse = res.get(first.fuse) if first.fuse else None
         links = [
             ("Figure 3: lidar points projected into the image (calibration check)",
-             _link(res.get(cfg.calibrate) if cfg.calibrate else None, "check_overlay.png",
-                   "lidar overlay")),
+             _link(res.get(cfg.calibrate) if cfg.calibrate else None,
+                   "check/overlay_vs_rotated_0.png", "lidar overlay, true vs rotated 2 deg")),
             ("Figure 3: lidar points projected into the image (fusion pairs)",
              _link(fuse, "lidar_overlay.png", "lidar overlay")),
             ("Figure 6: depth error, scaled vs unscaled",
