@@ -163,6 +163,13 @@ class PaperTablesStage(Stage):
         md += self._table_iii(cfg, res, tables, checks)
         md += self._table_iv(cfg, res, tables, checks)
         md += self._figures(cfg, res)
+        if cfg.calibrate:
+            cm = res[cfg.calibrate].metrics
+            if cm.get("check_true_beats_rotated_2deg") is not None:
+                checks.append(("extrinsic check: the true extrinsic scores above every 2-degree "
+                               "rotation of it", f"{cm.get('check_score_true', float('nan')):.3f}"
+                               f" vs yaw +2 deg {cm.get('check_score_true_rotated_2deg', 0):.3f}",
+                               bool(cm["check_true_beats_rotated_2deg"])))
         if checks:
             md += ["### Targets", "", "| target | ours | met |", "|---|---|---|"]
             md += [f"| {t} | {v} | {'yes' if ok else ('no' if ok is False else '-')} |"
