@@ -239,3 +239,30 @@ def test_bad_scans_are_skipped_and_counted():
     assert m["skipped_scans_out_of_order"] == 1
     assert m["invalid_beams"] >= 240
     assert m["scans_used"] == 2
+
+
+@pytest.mark.parametrize("old_nodes", [True, False])
+def test_old_nodes_are_searched_against_new_submaps(old_nodes):
+    """Two laps: with ``old_nodes`` the first lap's nodes get closures to the submaps of
+    the second lap (node vertex older than the submap's), without it none do."""
+    from toolkit.slam2d.slam import EDGE_LOOP
+
+    rng = np.random.default_rng(2)
+    truth = np.concatenate([_drive(24), _drive(24)])
+    config = Slam2DConfig.model_validate({
+        "submaps": {"num_range_data": 5},
+        "loop_closure": {"old_nodes": old_nodes, "recent_nodes": 8, "sampling_ratio": 1.0,
+                         "linear_window_m": 1.0, "angular_window_deg": 10.0},
+        "pose_graph": {"optimize_every_n_nodes": 10}})
+    slam = LidarSlam2D(config)
+    for k, p in enumerate(truth):  # odometry = truth: the small local window, fast
+        slam.add_scan(make_scan(p, float(k), 180, noise=0.01, rng=rng), p)
+    res = slam.finish()
+    i, j, _ = slam.graph.edges(EDGE_LOOP)
+    submap_vertices = {sm.vertex for sm in slam.submaps.all}
+    assert all(int(v) in submap_vertices for v in i)
+    backwards = int((j < i).sum())  # node created before the submap it is tied to
+    assert (backwards > 0) == old_nodes
+    rel_est = se2_between(res.poses[0], res.poses)
+    rel_true = se2_between(truth[0], truth)
+    assert np.hypot(*(rel_est[:, :2] - rel_true[:, :2]).T).max() < 0.1

@@ -41,6 +41,7 @@ class LoopCloser:
         self._pulses: dict[int, int] = {}
         self._samples: dict[int, int] = {}
         self.searches = 0
+        self.wide_searches = 0  # with the wide window (the expensive ones)
         self.found = 0
         self.seconds = 0.0
         o = options
@@ -75,7 +76,10 @@ class LoopCloser:
             return None
         if not force and not self._sample(submap.index):
             return None
-        recent = node.index - submap.nodes[-1] <= o.recent_nodes
+        # Nodes a short way (in the node sequence) before or after the submap's own have
+        # drifted little relative to it; the others get the wide window.
+        gap = max(node.index - submap.nodes[-1], submap.nodes[0] - node.index)
+        recent = gap <= o.recent_nodes
         return self.search(node, submap, se2_between(submap_global, node_global), recent)
 
     def search(self, node: Node, submap: Submap, relative_guess: np.ndarray,
@@ -86,6 +90,7 @@ class LoopCloser:
         ang = o.recent_angular_window_deg if recent else o.angular_window_deg
         t0 = time.perf_counter()
         self.searches += 1
+        self.wide_searches += not recent
         pyr, prob = self.cache.get(submap, self._depth, self._w_cells)
         guess = se2_compose(submap.local_pose, relative_guess)  # grid (local) coordinates
         found = correlative_search(

@@ -134,6 +134,7 @@ class LidarSlam2D:
         self._last_delta: np.ndarray | None = None  # [3] last scan-to-scan motion
         self._T_global_local = np.zeros(3)
         self._nodes_since_opt = 0
+        self._newly_finished: list[Submap] = []  # searched for old nodes at the next step
         self.warnings: Counter[str] = Counter()
         self.counts: Counter[str] = Counter()
         self.timings: Counter[str] = Counter()
@@ -371,6 +372,7 @@ class LidarSlam2D:
                                     pg.odometry_rotation_weight, kind=EDGE_ODOM)
         for sm in finished:
             self.loop.on_submap_finished(sm, self.nodes)
+        self._newly_finished.extend(finished)
         self.counts["nodes"] += 1
         return node
 
@@ -379,6 +381,7 @@ class LidarSlam2D:
     def _global_step(self, node: Node) -> None:
         if self.config.loop_closure.enabled:
             t0 = time.perf_counter()
+            self._search_old_nodes(node.index)
             for sm in self.submaps.all:
                 if not sm.finished or sm.index in node.submaps:
                     continue
@@ -388,6 +391,23 @@ class LidarSlam2D:
         every = self.config.pose_graph.optimize_every_n_nodes
         if every and self._nodes_since_opt >= every:
             self._optimize(self.config.pose_graph.max_iterations)
+
+    def _search_old_nodes(self, before: int) -> None:
+        """Search the nodes older than ``before`` against the submaps finished since the
+        last call (Cartographer's other direction). Without it a node is only ever
+        constrained to submaps finished before it, so a scan that local SLAM placed
+        wrongly (the spin at the start of Intel, a slide along a corridor) stays wrong
+        inside its own submaps however often the robot comes back."""
+        if not self.config.loop_closure.old_nodes:
+            self._newly_finished.clear()
+            return
+        # ``old_nodes_skip`` leaves out the nodes just before the submap, which local SLAM
+        # already ties to it through the overlapping predecessor submap.
+        skip = self.config.loop_closure.old_nodes_skip
+        while self._newly_finished:
+            sm = self._newly_finished.pop(0)
+            for n in self.nodes[:max(0, min(before, sm.nodes[0] - skip))]:
+                self._try_closure(n, sm)
 
     def _try_closure(self, node: Node, sm: Submap, force: bool = False) -> bool:
         poses = self.graph.poses
@@ -432,6 +452,11 @@ class LidarSlam2D:
         t0 = time.perf_counter()
         for sm in self.submaps.finish_all():
             self.loop.on_submap_finished(sm, self.nodes)
+            self._newly_finished.append(sm)
+        if self.config.loop_closure.enabled:
+            t_l = time.perf_counter()
+            self._search_old_nodes(len(self.nodes))
+            self.timings["loop_search_s"] += time.perf_counter() - t_l
         if self.nodes:
             self._optimize(self.config.pose_graph.final_max_iterations)
         self.timings["final_optimize_s"] += time.perf_counter() - t0
@@ -474,6 +499,7 @@ class LidarSlam2D:
             "submaps": len(self.submaps.all),
             "loop_closures": self.counts["loop_closures"],
             "loop_closure_searches": self.loop.searches,
+            "loop_closure_wide_searches": self.loop.wide_searches,
             "loop_closure_outliers": self.counts["loop_outliers"],
             "optimizations": self.counts["optimizations"],
             "motion_tiebreaks": self.counts["motion_tiebreaks"],

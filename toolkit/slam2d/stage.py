@@ -85,8 +85,11 @@ class Slam2DStage(Stage):
         write_tum(out / "trajectory_camera.tum", cam,
                   header="slam2d: T_world_camera (optical) at the camera stamps")
         metrics = dict(result.metrics)
+        # Frames are the camera frames it gave poses to (what a per-frame runtime table
+        # adds up); a log without a camera counts its scans.
+        frames = int(inside.sum()) or int(result.metrics.get("scans_used") or 0)
         metrics.update(work_metrics(result.metrics["wall_time_s"], result.metrics["cpu_time_s"],
-                                    int(inside.sum())))
+                                    frames))
         metrics["camera_poses"] = int(inside.sum())
         metrics["camera_frames_outside_scan_span"] = int((~inside).sum())
 
