@@ -224,3 +224,112 @@ def test_depth_store_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose(s.latencies(), [0.01, 0.02])
     z = p.as_depth(2.0, 0.1)
     assert z[1, 1] == pytest.approx(1 / (2 * vals[1, 1] + 0.1))
+
+
+# ------------------------------------------------------------------ small network
+
+
+def test_small_network_loss_is_scale_invariant_and_sees_shape() -> None:
+    from toolkit.depth.train_small import si_loss
+
+    g = torch.Generator().manual_seed(0)
+    depth = torch.rand(2, 1, 24, 32, generator=g) * 4 + 0.5
+    depth[0, 0, :3] = 0  # invalid ground truth is masked out
+    exact = torch.log(depth.clamp(min=1e-6))
+    assert float(si_loss(exact, depth)) == pytest.approx(0.0, abs=1e-6)
+    # Any constant added to the log prediction (a global scale) costs nothing...
+    assert float(si_loss(exact + 1.7, depth)) == pytest.approx(0.0, abs=1e-5)
+    # ...a wrong shape does, and the gradient term adds to it.
+    warped = exact + 0.2 * torch.linspace(0, 1, 32)
+    assert float(si_loss(warped, depth, grad_weight=0.0)) > 1e-3
+    assert float(si_loss(warped, depth, 0.5)) > float(si_loss(warped, depth, 0.0))
+
+
+def test_small_network_exports_with_its_preprocessing(tmp_path: Path, rgb: np.ndarray) -> None:
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+    from toolkit.depth.train_small import TrainConfig, _to_input, export, make_model
+
+    model = make_model((4, 8, 8, 8, 8)).eval()
+    # Any input size runs (the stride-2 stages round up; the decoder resizes to each skip).
+    with torch.no_grad():
+        assert model(torch.zeros(1, 3, 45, 61)).shape == (1, 1, 45, 61)
+    cfg = TrainConfig(out=tmp_path / "m.onnx", height=24, width=32)
+    export(model, cfg)
+    be = OnnxDepthBackend(OnnxDepthConfig(model=cfg.out, threads=1))
+    assert be.kind == "relative_depth" and be.input_hw((480, 640)) == (24, 32)
+    assert be.warning is None
+    small = cv2.resize(rgb, (32, 24), interpolation=cv2.INTER_CUBIC)
+    with torch.no_grad():
+        ref = torch.exp(model(_to_input(small[None]))).numpy()[0, 0]
+    out = be.session.run(None, {be.input_name: be.preprocess(small)})[0][0, 0]
+    np.testing.assert_allclose(out, ref, rtol=1e-4)  # the ONNX file outputs exp(log depth)
+
+
+def test_shipped_small_model_fits_the_budget() -> None:
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    path = Path(__file__).resolve().parents[1] / "datasets" / "models" / "small-depth.onnx"
+    assert path.stat().st_size <= 20e6  # the repository's limit for the shipped model
+    be = OnnxDepthBackend(OnnxDepthConfig(model=path, threads=1))
+    size = (int(be.metadata["input_height"]), int(be.metadata["input_width"]))
+    assert be.kind == "relative_depth" and be.input_hw((480, 640)) == size
+    frame = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    pred = be.predict(frame)
+    assert pred.values.shape == (480, 640) and np.isfinite(pred.values).all()
+    assert (pred.values > 0).all()
+
+
+# ------------------------------------------------------------------ DA-V2-Small-sized export
+
+
+def test_vit_dpt_export_runs_in_the_onnx_backend(tmp_path: Path, rgb: np.ndarray,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """The bench's ViT/14 + DPT, shrunk so that it exports in a second: the exported file
+    carries the metadata the depth stage needs, says it has random weights, and the
+    backend resizes frames in and out of its fixed input at the chosen thread count."""
+    import logging
+
+    from toolkit.depth.bench_latency import (
+        RANDOM_WEIGHTS_WARNING,
+        export_onnx,
+        quantize_int8,
+        vit_s14_dpt,
+    )
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    torch.manual_seed(0)
+    model = vit_s14_dpt(dim=32, depth=4, heads=2, feats=8, outs=(8, 8, 16, 16)).eval()
+    path = tmp_path / "da_tiny.onnx"
+    export_onnx(model, path, 28, 42)
+    with caplog.at_level(logging.WARNING, logger="toolkit.depth.onnx_backend"):
+        be = OnnxDepthBackend(OnnxDepthConfig(model=path, threads=2))
+    assert "RANDOM WEIGHTS" in caplog.text
+    assert be.describe()["warning"] == RANDOM_WEIGHTS_WARNING and be.config.threads == 2
+    assert be.kind == "relative_disparity" and be.input_hw((45, 61)) == (28, 42)
+    x = be.preprocess(rgb)
+    with torch.no_grad():
+        ref = model(torch.from_numpy(x)).numpy()
+    np.testing.assert_allclose(be.session.run(None, {be.input_name: x})[0], ref,
+                               rtol=1e-4, atol=1e-5 * np.abs(ref).max())
+    assert be.predict(rgb).values.shape == (45, 61)
+    # The int8 copy keeps the metadata (and the warning) and still runs.
+    q = tmp_path / "da_tiny_int8.onnx"
+    quantize_int8(path, q)
+    bq = OnnxDepthBackend(OnnxDepthConfig(model=q, threads=1))
+    assert bq.warning == RANDOM_WEIGHTS_WARNING and bq.kind == "relative_disparity"
+    assert bq.metadata["quantization"].startswith("dynamic int8")
+    assert np.isfinite(bq.predict(rgb).values).any()
+
+
+@pytest.mark.slow
+def test_da_v2_small_sized_export_cli(tmp_path: Path) -> None:
+    """Full size (24.7 M parameters, about 100 MB): the file a recipe can point at."""
+    from toolkit.depth.bench_latency import main
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    path = tmp_path / "da_small_266x350.onnx"
+    assert main(["--export", str(path), "--size", "266x350"]) == 0
+    be = OnnxDepthBackend(OnnxDepthConfig(model=path, threads=2))
+    assert be.warning and be.input_hw((480, 640)) == (266, 350)
+    frame = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    assert be.predict(frame).values.shape == (480, 640)

@@ -17,6 +17,7 @@ minutes), checked against torch, and timed with onnxruntime at the given thread 
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import platform
 import tempfile
@@ -26,13 +27,18 @@ from pathlib import Path
 import numpy as np
 
 
-def vit_s14_dpt() -> object:
-    """Depth Anything V2 Small's shape: ViT-S/14 + DPT head (random weights)."""
+def vit_s14_dpt(dim: int = 384, depth: int = 12, heads: int = 6, feats: int = 64,
+                outs: tuple[int, ...] = (48, 96, 192, 384)) -> object:
+    """Depth Anything V2 Small's shape: ViT-S/14 + DPT head (random weights).
+
+    The defaults are V2 Small's; smaller values give a model of the same structure that
+    exports in a second (the tests use one).
+    """
     import torch
     from torch import nn
 
     class Block(nn.Module):
-        def __init__(self, dim: int = 384, heads: int = 6) -> None:
+        def __init__(self, dim: int, heads: int) -> None:
             super().__init__()
             self.heads = heads
             self.norm1 = nn.LayerNorm(dim, eps=1e-6)
@@ -77,15 +83,14 @@ def vit_s14_dpt() -> object:
             return self.out(x)
 
     class DepthAnythingSmallShape(nn.Module):
-        def __init__(self, dim: int = 384, depth: int = 12, feats: int = 64,
-                     outs: tuple[int, ...] = (48, 96, 192, 384)) -> None:
+        def __init__(self) -> None:
             super().__init__()
             self.patch = nn.Conv2d(3, dim, 14, stride=14)
             self.cls = nn.Parameter(torch.zeros(1, 1, dim))
             self.pos = nn.Parameter(torch.zeros(1, 1 + 37 * 37, dim))  # trained at 518
-            self.blocks = nn.ModuleList([Block(dim) for _ in range(depth)])
+            self.blocks = nn.ModuleList([Block(dim, heads) for _ in range(depth)])
             self.norm = nn.LayerNorm(dim, eps=1e-6)
-            self.take = (2, 5, 8, 11)
+            self.take = tuple(max(0, depth * k // 4 - 1) for k in (1, 2, 3, 4))  # 2 5 8 11
             self.project = nn.ModuleList([nn.Conv2d(dim, o, 1) for o in outs])
             self.resize = nn.ModuleList([
                 nn.ConvTranspose2d(outs[0], outs[0], 4, stride=4),
@@ -154,86 +159,196 @@ def transformers_model() -> object:
     return Wrap()
 
 
-def bench(sizes: list[tuple[int, int]], threads: list[int], runs: int, impl: str,
-          spin: bool = False) -> dict:
-    import onnxruntime as ort
+RANDOM_WEIGHTS_WARNING = (
+    "RANDOM WEIGHTS: this is a Depth-Anything-V2-Small-sized network with untrained "
+    "weights, exported for timing only; its depth is meaningless")
+
+
+def export_onnx(model: object, path: Path, height: int, width: int,
+                random_weights: bool = True) -> float:
+    """Export ``model`` at a fixed ``height`` x ``width`` input with the metadata that
+    ``OnnxDepthBackend`` reads (Depth Anything's preprocessing, relative disparity out),
+    so a recipe's depth stage runs the file with only ``model:`` set. Returns seconds.
+
+    The size is fixed because the position-grid interpolation is traced for one patch
+    grid; the backend resizes each frame to it and the output back to the frame.
+    """
+    import onnx
     import torch
+
+    from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
+    from toolkit.io.atomic import atomic_path
+
+    t0 = time.perf_counter()
+    x = torch.zeros(1, 3, height, width)
+    with atomic_path(path) as tmp:
+        torch.onnx.export(model, (x,), str(tmp), input_names=["image"], output_names=["depth"],
+                          opset_version=17, dynamo=False)
+        m = onnx.load(str(tmp))
+        props = {"depth_kind": "relative_disparity", "input_height": str(height),
+                 "input_width": str(width), "multiple_of": "14", "channel_order": "rgb",
+                 "mean": ",".join(str(v) for v in IMAGENET_MEAN),
+                 "std": ",".join(str(v) for v in IMAGENET_STD),
+                 "name": "Depth-Anything-V2-Small-sized ViT-S/14 + DPT (toolkit.depth."
+                         "bench_latency)"}
+        if random_weights:
+            props.update({"weights": "random", "warning": RANDOM_WEIGHTS_WARNING})
+        onnx.helper.set_model_props(m, props)
+        onnx.save(m, str(tmp))
+    return time.perf_counter() - t0
+
+
+def quantize_int8(src: Path, dst: Path) -> float:
+    """onnxruntime's dynamic int8 quantization of the MatMul/Gemm weights (activations are
+    quantized per call): the ViT's linear layers are most of its time. Metadata is kept.
+    With real weights check the accuracy before relying on it. Returns seconds."""
+    import onnx
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    from toolkit.io.atomic import atomic_path
+
+    t0 = time.perf_counter()
+    with atomic_path(dst) as tmp:
+        quantize_dynamic(str(src), str(tmp), weight_type=QuantType.QInt8,
+                         op_types_to_quantize=["MatMul", "Gemm"])
+        props = {p.key: p.value for p in onnx.load(str(src), load_external_data=False)
+                 .metadata_props}
+        m = onnx.load(str(tmp))
+        onnx.helper.set_model_props(m, {**props, "quantization": "dynamic int8 (MatMul)"})
+        onnx.save(m, str(tmp))
+    return time.perf_counter() - t0
+
+
+def _loadavg() -> float:
+    return float(os.getloadavg()[0])
+
+
+def bench(sizes: list[tuple[int, int]], threads: list[int], runs: int, impl: str,
+          spin: bool = False, frame_hw: tuple[int, int] = (480, 640),
+          int8: bool = False) -> dict:
+    """Export each size, check it against torch, then time it through ``OnnxDepthBackend``
+    (the depth stage's code path: resize a ``frame_hw`` frame in, run, resize out).
+
+    Per run: wall time of the network alone and of the whole ``predict``, and the process
+    CPU time of ``predict``; the 1-minute load average is recorded with each size because
+    on a shared machine wall time says more about the neighbours than about the network.
+    """
+    import torch
+
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
 
     torch.manual_seed(0)
     model = (vit_s14_dpt() if impl == "torch" else transformers_model()).eval()  # type: ignore
     n_params = sum(p.numel() for p in model.parameters())  # type: ignore[attr-defined]
+    frame = np.random.default_rng(0).integers(0, 256, (*frame_hw, 3), dtype=np.uint8)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for h, w in sizes:
             x = torch.randn(1, 3, h, w)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             with torch.no_grad():
                 ref = model(x).numpy()  # type: ignore[operator]
-            t_torch = time.perf_counter() - t0
+            t_torch, c_torch = time.perf_counter() - t0, time.process_time() - c0
             path = Path(tmp) / f"da_small_{h}x{w}.onnx"
-            t0 = time.perf_counter()
-            torch.onnx.export(model, (x,), str(path), input_names=["image"],
-                              output_names=["depth"], opset_version=17, dynamo=False)
-            t_export = time.perf_counter() - t0
-            size_mb = sum(p.stat().st_size for p in Path(tmp).glob(f"da_small_{h}x{w}*")) / 1e6
-            for th in threads:
-                opts = ort.SessionOptions()
-                opts.intra_op_num_threads = th
-                opts.inter_op_num_threads = 1
-                # Spinning worker threads burn the cores other processes need; on a shared
-                # machine that makes everyone, this run included, several times slower.
-                opts.add_session_config_entry("session.intra_op.allow_spinning",
-                                              "1" if spin else "0")
-                sess = ort.InferenceSession(str(path), opts,
-                                            providers=["CPUExecutionProvider"])
+            t_export = export_onnx(model, path, h, w)
+            variants = [("fp32", path)]
+            if int8:
+                qpath = path.with_name(f"{path.stem}_int8.onnx")
+                quantize_int8(path, qpath)
+                variants.append(("int8", qpath))
+            for (precision, file), th in itertools.product(variants, threads):
+                size_mb = file.stat().st_size / 1e6
+                be = OnnxDepthBackend(OnnxDepthConfig(model=file, threads=th, spin=spin))
                 xi = x.numpy()
-                out = sess.run(None, {"image": xi})[0]  # warm-up (and correctness)
-                times, cpu = [], []
+                out = be.session.run(None, {be.input_name: xi})[0]  # warm-up + correctness
+                rel = float(np.abs(out - ref).max() / max(np.abs(ref).max(), 1e-12))
+                be.predict(frame)
+                net, total, cpu, loads = [], [], [], [_loadavg()]
                 for _ in range(runs):
                     t0, c0 = time.perf_counter(), time.process_time()
-                    sess.run(None, {"image": xi})
-                    times.append(time.perf_counter() - t0)
+                    be.predict(frame)
+                    total.append(time.perf_counter() - t0)
                     cpu.append(time.process_time() - c0)
-                rel = float(np.abs(out - ref).max() / max(np.abs(ref).max(), 1e-12))
+                    net.append(be.last_timing["network_s"])
+                loads.append(_loadavg())
                 results.append({"height": h, "width": w, "threads": th,
-                                "latency_median_s": float(np.median(times)),
-                                "latency_min_s": float(np.min(times)),
-                                "latency_mean_s": float(np.mean(times)),
-                                "fps": float(1.0 / np.median(times)), "runs": runs,
+                                "precision": precision,
+                                "latency_median_s": float(np.median(net)),
+                                "latency_min_s": float(np.min(net)),
+                                "latency_mean_s": float(np.mean(net)),
+                                "predict_median_s": float(np.median(total)),
+                                "fps": float(1.0 / np.median(total)), "runs": runs,
                                 "cpu_s_per_frame": float(np.median(cpu)),
-                                "spinning": spin,
+                                "loadavg_1min": [float(v) for v in loads],
+                                "spinning": spin, "frame_hw": list(frame_hw),
                                 "max_rel_error_vs_torch": rel, "export_s": t_export,
-                                "torch_eager_s": t_torch, "onnx_mb": size_mb})
-                print(f"{w}x{h} threads {th}: {np.median(times) * 1000:.0f} ms/frame "
-                      f"(min {np.min(times) * 1000:.0f}, CPU {np.median(cpu) * 1000:.0f} ms), "
-                      f"rel err {rel:.1e}")
-                del sess
-            path.unlink()
+                                "torch_eager_s": t_torch, "torch_eager_cpu_s": c_torch,
+                                "onnx_mb": size_mb})
+                print(f"{h}x{w} (HxW) {precision} threads {th}: "
+                      f"network {np.median(net) * 1000:.0f} ms "
+                      f"(min {np.min(net) * 1000:.0f}), predict on {frame_hw[1]}x{frame_hw[0]} "
+                      f"{np.median(total) * 1000:.0f} ms wall / {np.median(cpu) * 1000:.0f} ms "
+                      f"CPU, load {loads[0]:.1f}-{loads[1]:.1f}, rel err {rel:.1e}", flush=True)
+                del be
+            for _, file in variants:
+                file.unlink()
     return {"impl": impl, "params": int(n_params), "results": results}
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    """'HxW' (or one side for a square) -> (h, w); both multiples of 14 (ViT-S/14)."""
+    parts = [int(v) for v in text.lower().split("x")]
+    h, w = (parts[0], parts[0]) if len(parts) == 1 else (parts[0], parts[1])
+    if h % 14 or w % 14 or h <= 0 or w <= 0:
+        raise SystemExit(f"size {text}: both sides must be positive multiples of 14 (ViT-S/14)")
+    return h, w
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="Depth-Anything-V2-Small-sized ONNX latency")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/depth_latency.json"))
-    ap.add_argument("--sizes", default="518x518,518x392,392x392,266x266",
-                    help="HxW list, multiples of 14")
+    ap.add_argument("--sizes", default="518x518,364x364,308x308,266x350",
+                    help="HxW list, multiples of 14 (266x350 keeps a 640x480 frame's 4:3)")
     ap.add_argument("--threads", default="1,2", help="comma-separated onnxruntime threads")
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--impl", choices=["torch", "transformers"], default="torch")
     ap.add_argument("--spin", action="store_true",
                     help="let onnxruntime threads spin (faster on an idle machine only)")
+    ap.add_argument("--export", type=Path, default=None, metavar="PATH",
+                    help="only write the model at --size to PATH (.onnx, random weights, "
+                         "with metadata for the depth stage's onnx backend); time nothing")
+    ap.add_argument("--size", default="266x350", help="--export: input HxW")
+    ap.add_argument("--int8", action="store_true",
+                    help="also time (with --export: write) a dynamic-int8 quantized copy")
     a = ap.parse_args(argv)
-    sizes = [tuple(int(v) for v in s.split("x")) for s in a.sizes.split(",")]
-    for h, w in sizes:
-        if h % 14 or w % 14:
-            raise SystemExit(f"size {h}x{w}: both sides must be multiples of 14 (ViT-S/14)")
+    # Busy-waiting OpenMP threads (torch's default) cost many times the CPU on shared cores
+    # (see train_small); set before torch loads OpenMP. onnxruntime has its own setting.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    if a.export is not None:
+        import torch
+
+        h, w = _parse_size(a.size)
+        torch.manual_seed(0)
+        model = (vit_s14_dpt() if a.impl == "torch" else transformers_model()).eval()  # type: ignore
+        secs = export_onnx(model, a.export, h, w)
+        if a.int8:  # the fp32 file is only a step on the way
+            fp32 = a.export.with_name(f".{a.export.stem}_fp32.onnx")
+            a.export.replace(fp32)
+            secs += quantize_int8(fp32, a.export)
+            fp32.unlink()
+        print(f"wrote {a.export} ({a.export.stat().st_size / 1e6:.0f} MB, input {h}x{w} HxW, "
+              f"{secs:.0f} s)\n{RANDOM_WEIGHTS_WARNING}.\nDepth stage: backend: onnx, model: "
+              f"{a.export} (kind and preprocessing come from its metadata; threads: 2)")
+        return 0
+    sizes = [_parse_size(s) for s in a.sizes.split(",")]
     load0 = os.getloadavg()
     res = bench(sizes, [int(t) for t in a.threads.split(",")], a.runs, a.impl,  # type: ignore
-                a.spin)
+                a.spin, int8=a.int8)
     res.update({"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                 "loadavg_before": load0, "loadavg_after": os.getloadavg(),
                 "note": "random weights; latency depends on the architecture only. A load "
-                        "average above the core count means other processes shared the CPU."})
+                        "average above the core count means other processes shared the CPU; "
+                        "cpu_s_per_frame (process CPU time) is then the steadier figure."})
     from toolkit.io.atomic import atomic_write_json
 
     atomic_write_json(a.out, res)

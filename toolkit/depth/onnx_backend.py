@@ -11,6 +11,7 @@ Weights are never downloaded: a missing file is an error that says where to put 
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Any, Literal
@@ -20,6 +21,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator
 
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
+
+_log = logging.getLogger(__name__)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -55,6 +58,10 @@ class OnnxDepthConfig(BaseModel):
     output_index: int = 0
     output_scale: float = 1.0  # e.g. 0.001 for a network that outputs millimetres
     threads: int = 2  # onnxruntime intra-op threads
+    # Busy-waiting worker threads win a little latency on an idle machine but burn the
+    # cores that SLAM and fusion need in the same process chain (and other jobs on a
+    # shared machine), which made everything several times slower here; off by default.
+    spin: bool = False
 
     @field_validator("input_size")
     @classmethod
@@ -92,6 +99,8 @@ class OnnxDepthBackend:
         opts.inter_op_num_threads = 1
         # Sequential execution: with 2 cores, parallel graph branches only fight each other.
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.add_session_config_entry("session.intra_op.allow_spinning",
+                                      "1" if config.spin else "0")
         self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         inp = self.session.get_inputs()[0]
@@ -113,6 +122,13 @@ class OnnxDepthBackend:
                               dtype=np.float32)
         self.channel_order = config.channel_order or self.metadata.get("channel_order", "rgb")
         self.last_timing: dict[str, float] = {}
+        # A timing stand-in (``bench_latency --export``) runs like a real network; say
+        # loudly that its depth is noise, in the log and in ``describe()``.
+        self.warning: str | None = self.metadata.get("warning") or (
+            "random weights: depth is meaningless" if self.metadata.get("weights") == "random"
+            else None)
+        if self.warning:
+            _log.warning("%s: %s", path, self.warning)
 
     # ------------------------------------------------------------------ sizes
     @staticmethod
@@ -206,7 +222,8 @@ class OnnxDepthBackend:
                 "mean": self.mean.tolist(), "std": self.std.tolist(),
                 "channel_order": self.channel_order, "layout": self.config.layout,
                 "resize": self.config.resize, "threads": self.config.threads,
-                "metadata": self.metadata}
+                "spin": self.config.spin, "metadata": self.metadata,
+                **({"warning": self.warning} if self.warning else {})}
 
 
 def _floats(text: str | None) -> tuple[float, ...] | None:

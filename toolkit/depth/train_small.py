@@ -1,24 +1,36 @@
 """Train the project's small monocular depth network on simulator renders; export ONNX.
 
-    python -m toolkit.depth.train_small --out datasets/models/small-depth.onnx --minutes 12
+    python -m toolkit.depth.train_small --minutes 25          # datasets/models/small-depth.onnx
 
-A compact U-Net (about 0.22 M parameters) predicts log depth from one RGB image. The loss
-is scale-invariant (Eigen et al. 2014, with lambda = 1, plus a multi-scale gradient
-matching term on log depth as in MiDaS), so the network learns shape and relative depth,
-not metric scale: its output is ``relative_depth`` (exp of the prediction), to be scaled
-by the lidar like Depth Anything's relative output. The exported file carries its
-preprocessing in ONNX metadata (kind, input size, mean/std), which ``OnnxDepthBackend``
-reads, and a model card is written next to it.
+A compact U-Net (0.59 M parameters, see ``make_model``) predicts log depth from one
+RGB image at 160x120. The loss is scale-invariant (Eigen et al. 2014 with lambda = 1,
+plus a multi-scale gradient matching term on log depth as in MiDaS), so the network
+learns shape and relative depth, not metric scale: its output is ``relative_depth``
+(exp of the prediction), to be scaled by the lidar like Depth Anything's relative output.
+The exported file carries its preprocessing in ONNX metadata (kind, input size,
+mean/std), which ``OnnxDepthBackend`` reads, and a model card is written next to it.
 
 Training images come from ``toolkit.sim`` houses whose seeds differ from the evaluation
-house (seed 0), rendered from poses along each house's robot route with random yaw,
-height and pitch changes so that views are not all straight down the corridor.
+house (seed 0, the quickstart's), rendered from poses along each house's robot route with
+random yaw, height and pitch changes so that views are not all straight down the corridor.
+Renders are cached (``--cache``), so a second training run starts at once.
+
+Status: the file shipped in ``datasets/models`` was made by the previous version of this
+module (a 96x128 U-Net, commit ec34ba5); the three runs of this one so far (13-25 minutes
+on a shared machine) were not clearly better on the quickstart house (docs/depth_fusion.md).
+
+    python -m toolkit.depth.train_small --eval-only MODEL.onnx \
+        --sequence runs/quickstart/simulate/sequence
+
+evaluates a model against a simulated sequence's ground-truth depth (per-image median
+scale, the oracle; the ``fuse`` stage measures the lidar-scaled figures).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,30 +43,49 @@ from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
 @dataclass
 class TrainConfig:
     out: Path = Path("datasets/models/small-depth.onnx")
-    train_seeds: tuple[int, ...] = (101, 102, 103, 104)
+    train_seeds: tuple[int, ...] = tuple(range(101, 113))  # 12 houses, none of them seed 0
     val_seed: int = 0  # the evaluation house: never trained on
-    images_per_house: int = 200
+    images_per_house: int = 150
     val_images: int = 60
-    height: int = 96
-    width: int = 128
-    widths: tuple[int, ...] = (12, 24, 32, 48)  # channels per U-Net level
+    height: int = 120  # network input (4:3 like the 640x480 camera)
+    width: int = 160
+    # Renders are made at render_factor x the input size and shrunk with the same cubic
+    # resize the ONNX backend applies to 640x480 frames, so training images look like the
+    # inputs the network gets at run time (point-sampled renders alias differently).
+    render_factor: int = 2
+    # Training crops (same pixel scale). Off by default: trained on 96x128 crops of the
+    # 120x160 frames (with stronger colour changes) for 25 minutes, the network was worse
+    # on the quickstart sequence (oracle-scaled AbsRel 0.095 against 0.077 of the previous
+    # 96x128 full-frame model). A camera fixed on a robot puts the floor and the horizon at
+    # the same rows in every frame; random crops take that cue away.
+    crop_height: int | None = None
+    crop_width: int | None = None
+    widths: tuple[int, ...] = (16, 32, 48, 64, 96)  # channels at 1/2 .. 1/32 resolution
     batch: int = 8
     lr: float = 2e-3
-    minutes: float = 12.0  # training time budget (data generation not included)
-    max_iters: int = 20000
+    warmup_iters: int = 50
+    minutes: float = 25.0  # training time budget, wall clock (data generation not included)
+    max_iters: int = 100000
     grad_weight: float = 0.5
     threads: int = 2
     seed: int = 0
+    cache: Path | None = Path("datasets/generated/depth_train")
     log: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------- data
 
 
-def render_set(seed: int, n: int, height: int, width: int, rng: np.random.Generator) -> (
-    tuple[np.ndarray, np.ndarray]
-):
-    """``n`` renders of house ``seed``: images [n, H, W, 3] uint8, depth [n, H, W] float32."""
+def render_set(seed: int, n: int, height: int, width: int, rng: np.random.Generator,
+               factor: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` renders of house ``seed``: images [n, H, W, 3] uint8, depth [n, H, W] float32.
+
+    With ``factor`` > 1 the camera renders at ``factor`` x (H, W); images are shrunk with
+    cv2's cubic resize (what ``OnnxDepthBackend`` does to full frames) and depth is
+    subsampled (no averaging: a mean across an object border is a depth nothing has).
+    """
+    import cv2
+
     from toolkit.geometry import se3
     from toolkit.sim.people import primitives_at
     from toolkit.sim.sensors import CameraRenderer, CameraSpec
@@ -62,7 +93,7 @@ def render_set(seed: int, n: int, height: int, width: int, rng: np.random.Genera
 
     world = build_world(SimConfig(seed=seed, n_heldout=0))
     spec = CameraSpec()
-    cam = spec.camera().scaled(width, height)
+    cam = spec.camera().scaled(width * factor, height * factor)
     rend = CameraRenderer(world.scene, cam)
     T_bc = world.rig.T_base_camera
     ts = rng.uniform(0, world.path.duration, n)
@@ -79,49 +110,96 @@ def render_set(seed: int, n: int, height: int, width: int, rng: np.random.Genera
         jitter = se3(Rz @ Ry, [0.0, rng.uniform(-0.2, 0.2), rng.uniform(-0.15, 0.4)])
         img = rend.render(T_wb @ jitter @ T_bc, primitives_at(world.walkers, float(t)),
                           spec.noise_std, rng)
-        imgs[k] = img.rgb
-        depth[k] = img.depth
+        if factor > 1:
+            imgs[k] = cv2.resize(img.rgb, (width, height), interpolation=cv2.INTER_CUBIC)
+            o = factor // 2  # the sample nearest the centre of each output pixel
+            depth[k] = img.depth[o::factor, o::factor]
+        else:
+            imgs[k] = img.rgb
+            depth[k] = img.depth
+    return imgs, depth
+
+
+def load_or_render(seed: int, n: int, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``render_set`` through an on-disk cache keyed by everything that changes the pixels."""
+    key = f"house{seed}_n{n}_{cfg.height}x{cfg.width}_f{cfg.render_factor}_s{cfg.seed}.npz"
+    path = Path(cfg.cache) / key if cfg.cache else None
+    if path is not None and path.is_file():
+        with np.load(path) as z:
+            return z["images"], z["depth"]
+    # One generator per house, so a cached house and a fresh one give the same renders.
+    house_rng = np.random.default_rng([cfg.seed, seed])
+    imgs, depth = render_set(seed, n, cfg.height, cfg.width, house_rng, cfg.render_factor)
+    if path is not None:
+        from toolkit.io.atomic import atomic_path
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, images=imgs, depth=depth)
     return imgs, depth
 
 
 # ---------------------------------------------------------------------------- model
 
 
-def make_model(widths: tuple[int, ...] = (12, 24, 32, 48)) -> object:
-    """The U-Net: conv-BN-ReLU pairs, max-pool down, bilinear up with skip connections."""
+def make_model(widths: tuple[int, ...] = (16, 32, 48, 64, 96)) -> object:
+    """The U-Net: stride-2 residual stages at 1/2 .. 1/32 resolution, an image-wide
+    context vector at the bottom, a decoder that upsamples bilinearly and concatenates
+    the skips, and a thin full-resolution refinement that sees the input pixels.
+
+    Why this shape: relative depth of a room is mostly layout (which wall is far), which
+    needs image-wide context (the global average, broadcast back) that stacked 3x3
+    convolutions on a 160x120 input do not reach. The costly layers of a plain U-Net are
+    the ones at full resolution (two thirds of the old one's multiply-adds), so here the
+    wide features start at 1/2 resolution and only 8 channels run at full resolution,
+    enough to put depth edges where the image edges are: blurred edges become flying
+    pixels that the fusion has to drop.
+    """
     import torch
     from torch import nn
 
-    def block(cin: int, cout: int) -> nn.Module:
-        return nn.Sequential(
-            nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout),
-            nn.ReLU(inplace=True),
-            nn.Conv2d(cout, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout),
-            nn.ReLU(inplace=True))
+    def cbr(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+        return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False),
+                             nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+    class Res(nn.Module):
+        def __init__(self, c: int) -> None:
+            super().__init__()
+            self.a = cbr(c, c)
+            self.b = nn.Sequential(nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.relu(x + self.b(self.a(x)))
 
     class SmallDepthUNet(nn.Module):
         def __init__(self) -> None:
             super().__init__()
             w = list(widths)
-            self.enc = nn.ModuleList([block(3 if i == 0 else w[i - 1], w[i])
-                                      for i in range(len(w))])
-            self.mid = block(w[-1], w[-1])
-            self.dec = nn.ModuleList([block(w[i] + (w[i + 1] if i + 1 < len(w) else w[-1]),
-                                            w[i]) for i in reversed(range(len(w)))])
-            self.head = nn.Conv2d(w[0], 1, 1)
+            fine = 8
+            self.down = nn.ModuleList([nn.Sequential(cbr(3 if i == 0 else w[i - 1], w[i], 2),
+                                                     Res(w[i])) for i in range(len(w))])
+            self.context = nn.Sequential(nn.Conv2d(w[-1], w[-1], 1), nn.ReLU(inplace=True))
+            self.up = nn.ModuleList([cbr(w[i + 1] + w[i], w[i]) for i in range(len(w) - 1)])
+            self.fine_in = cbr(3, fine)
+            self.fine = cbr(w[0] + fine, fine)
+            self.head = nn.Conv2d(fine, 1, 3, padding=1)
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] -> [B, 1, H, W]
+            f = self.fine_in(x)  # [B, 8, H, W]
             skips = []
-            for e in self.enc:
-                x = e(x)
+            for d in self.down:
+                x = d(x)
                 skips.append(x)
-                x = nn.functional.max_pool2d(x, 2)
-            x = self.mid(x)
-            for d, s in zip(self.dec, reversed(skips), strict=True):
+            # [B, C, 1, 1] image-wide context added everywhere at the coarsest level
+            x = x + self.context(nn.functional.adaptive_avg_pool2d(x, 1))
+            for i in reversed(range(len(self.up))):
+                s = skips[i]
                 x = nn.functional.interpolate(x, size=s.shape[-2:], mode="bilinear",
                                               align_corners=False)
-                x = d(torch.cat([x, s], 1))
-            return self.head(x)  # log depth up to an additive constant
+                x = self.up[i](torch.cat([x, s], 1))
+            x = nn.functional.interpolate(x, size=f.shape[-2:], mode="bilinear",
+                                          align_corners=False)
+            return self.head(self.fine(torch.cat([x, f], 1)))  # log depth + unknown constant
 
     return SmallDepthUNet()
 
@@ -151,7 +229,9 @@ def si_loss(pred_log: object, depth: object, grad_weight: float = 0.5) -> object
     """Scale-invariant log loss (lambda = 1) + multi-scale gradient matching, masked.
 
     Both are invariant to adding a constant to ``pred_log``: the network is never asked
-    for a metric scale it cannot know from one image.
+    for a metric scale it cannot know from one image. The gradient term (MiDaS) compares
+    the spatial derivatives of the log-depth residual at 4 scales, which is what makes
+    depth edges sharp and planes flat; the first term alone tolerates smooth blur.
     """
     import torch
 
@@ -166,7 +246,7 @@ def si_loss(pred_log: object, depth: object, grad_weight: float = 0.5) -> object
         r = (d - mean.view(-1, 1, 1, 1)) * valid
         m = valid.float()
         g = 0.0
-        for _ in range(3):
+        for _ in range(4):
             gx = (r[..., 1:] - r[..., :-1]).abs() * m[..., 1:] * m[..., :-1]
             gy = (r[..., 1:, :] - r[..., :-1, :]).abs() * m[..., 1:, :] * m[..., :-1, :]
             g = g + (gx.sum() + gy.sum()) / m.sum().clamp(min=1)
@@ -188,6 +268,32 @@ def _to_input(imgs: np.ndarray) -> object:
     return torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2)))
 
 
+def augment(imgs: np.ndarray, depth: np.ndarray, ch: int | None, cw: int | None,
+            rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Flips and mild colour and exposure changes, optionally random crops.
+
+    [B, H, W, 3] uint8 and [B, H, W] -> [B, ch, cw, 3] uint8 and [B, ch, cw] (crops keep
+    the pixel scale). The changes stay mild because every house is lit by the same
+    simulator: strong gamma and exposure changes may cost accuracy on the evaluation house
+    (the run with crops and gamma 0.8-1.25, exposure 0.7-1.3 and noise was the worse one;
+    the two changes were not tested apart) and buy robustness it does not need.
+    """
+    B, H, W = depth.shape
+    ch, cw = ch or H, cw or W
+    out_i = np.empty((B, ch, cw, 3), np.uint8)
+    out_d = np.empty((B, ch, cw), np.float32)
+    for b in range(B):
+        y, x = rng.integers(0, H - ch + 1), rng.integers(0, W - cw + 1)
+        im = imgs[b, y:y + ch, x:x + cw].astype(np.float32)
+        de = depth[b, y:y + ch, x:x + cw]
+        if rng.random() < 0.5:
+            im, de = im[:, ::-1], de[:, ::-1]
+        im = im * rng.uniform(0.92, 1.08, 3) * rng.uniform(0.8, 1.2)  # white balance, exposure
+        out_i[b] = np.clip(im, 0, 255).astype(np.uint8)
+        out_d[b] = de
+    return out_i, out_d
+
+
 def evaluate(model: object, imgs: np.ndarray, depth: np.ndarray) -> dict[str, float]:
     """AbsRel, RMSE and delta1 after the per-image median scale (the oracle scale)."""
     import torch
@@ -207,25 +313,61 @@ def evaluate(model: object, imgs: np.ndarray, depth: np.ndarray) -> dict[str, fl
     return {"absrel": e.absrel, "rmse_m": e.rmse_m, "delta1": e.delta1}
 
 
+def evaluate_sequence(model_path: Path, sequence: Path, every: int = 4, threads: int = 2,
+                      max_depth: float = 10.0) -> dict[str, float]:
+    """A model run through ``OnnxDepthBackend`` (the depth stage's code path, full
+    640x480 frames) on every ``every``-th frame of a simulated sequence, against its
+    ground-truth depth after the per-image median scale (the oracle scale: the lidar-scaled
+    figures, which add the scale estimator's own error, come from the ``fuse`` stage)."""
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+    from toolkit.eval.depth import ErrorAccumulator
+    from toolkit.io.sequence import read_sequence
+
+    seq = read_sequence(sequence)
+    if seq.groundtruth is None or seq.groundtruth.depth_paths is None:
+        raise ValueError(f"{sequence}: no ground-truth depth to evaluate against")
+    be = OnnxDepthBackend(OnnxDepthConfig(model=model_path, threads=threads))
+    acc = ErrorAccumulator()
+    lat, cpu = [], []
+    for i in range(0, len(seq.frames), every):
+        rgb = seq.frames[i].image
+        c0 = time.process_time()
+        pred = be.predict(rgb)
+        cpu.append(time.process_time() - c0)
+        lat.append(pred.latency_s)
+        gt = seq.groundtruth.depth(i)
+        z = pred.as_depth()
+        ok = (gt > 0) & (gt <= max_depth) & np.isfinite(z)
+        s = np.median(gt[ok] / z[ok])
+        acc.add(z * s, gt, max_depth=max_depth)
+    e = acc.result()
+    return {"absrel": e.absrel, "rmse_m": e.rmse_m, "delta1": e.delta1, "frames": len(lat),
+            "network_ms_median": 1000 * float(np.median(lat)),
+            "predict_cpu_ms_median": 1000 * float(np.median(cpu)),
+            "loadavg": " / ".join(f"{v:.1f}" for v in os.getloadavg())}
+
+
 def train(cfg: TrainConfig) -> dict:
     import torch
 
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
-    t0 = time.perf_counter()
-    parts = [render_set(s, cfg.images_per_house, cfg.height, cfg.width, rng)
-             for s in cfg.train_seeds]
+    t0, c0 = time.perf_counter(), time.process_time()
+    parts = [load_or_render(s, cfg.images_per_house, cfg) for s in cfg.train_seeds]
     X = np.concatenate([p[0] for p in parts])
     D = np.concatenate([p[1] for p in parts])
-    Xv, Dv = render_set(cfg.val_seed, cfg.val_images, cfg.height, cfg.width, rng)
+    del parts
+    Xv, Dv = load_or_render(cfg.val_seed, cfg.val_images, cfg)
     t_data = time.perf_counter() - t0
-    print(f"rendered {len(X)} training and {len(Xv)} validation images in {t_data:.0f} s")
+    print(f"{len(X)} training and {len(Xv)} validation images ready in {t_data:.0f} s "
+          f"(CPU {time.process_time() - c0:.0f} s)", flush=True)
     model = make_model(cfg.widths)
     n_params = sum(p.numel() for p in model.parameters())  # type: ignore[attr-defined]
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)  # type: ignore
     budget = cfg.minutes * 60.0
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
+    loads = [os.getloadavg()[0]]
     it = 0
     losses = []
     while it < cfg.max_iters:
@@ -233,16 +375,13 @@ def train(cfg: TrainConfig) -> dict:
         if elapsed > budget:
             break
         # Cosine decay over the time budget, not the iteration count: the machine's speed
-        # (shared cores) decides how many iterations fit.
+        # (shared cores) decides how many iterations fit. A short warm-up keeps the first
+        # steps of Adam on fresh BatchNorm statistics from throwing the weights off.
+        warm = min(1.0, (it + 1) / cfg.warmup_iters)
         for g in opt.param_groups:
-            g["lr"] = cfg.lr * 0.5 * (1 + np.cos(np.pi * min(1.0, elapsed / budget)))
+            g["lr"] = warm * cfg.lr * 0.5 * (1 + np.cos(np.pi * min(1.0, elapsed / budget)))
         idx = rng.integers(0, len(X), cfg.batch)
-        imgs, dep = X[idx].copy(), D[idx].copy()
-        flip = rng.random(cfg.batch) < 0.5
-        imgs[flip] = imgs[flip, :, ::-1]
-        dep[flip] = dep[flip, :, ::-1]
-        gain = rng.uniform(0.75, 1.25, (cfg.batch, 1, 1, 3))
-        imgs = np.clip(imgs * gain, 0, 255).astype(np.uint8)
+        imgs, dep = augment(X[idx], D[idx], cfg.crop_height, cfg.crop_width, rng)
         model.train()  # type: ignore[attr-defined]
         pred = model(_to_input(imgs))  # type: ignore[operator]
         loss = si_loss(pred, torch.from_numpy(np.ascontiguousarray(dep))[:, None],
@@ -253,16 +392,18 @@ def train(cfg: TrainConfig) -> dict:
         losses.append(float(loss.detach()))  # type: ignore[attr-defined]
         it += 1
         if it % 100 == 0:
+            loads.append(os.getloadavg()[0])
             print(f"iter {it} loss {np.mean(losses[-100:]):.4f} "
-                  f"({time.perf_counter() - t1:.0f} s)")
-    t_train = time.perf_counter() - t1
+                  f"({time.perf_counter() - t1:.0f} s, CPU {time.process_time() - c1:.0f} s, "
+                  f"load {loads[-1]:.1f})", flush=True)
+    t_train, c_train = time.perf_counter() - t1, time.process_time() - c1
     val = evaluate(model, Xv, Dv)
-    print(f"validation (house seed {cfg.val_seed}, median-scaled): {val}")
+    print(f"validation (house seed {cfg.val_seed}, median-scaled): {val}", flush=True)
     export(model, cfg)
-    import os
-
     return {"params": int(n_params), "iterations": it, "train_seconds": t_train,
-            "loadavg": " / ".join(f"{v:.1f}" for v in os.getloadavg()),
+            "train_cpu_seconds": c_train,
+            "loadavg": f"{np.mean(loads):.1f} mean, {np.min(loads):.1f}-{np.max(loads):.1f} "
+                       "(1-minute load average sampled every 100 iterations)",
             "data_seconds": t_data, "images": int(len(X)), "final_loss": float(
                 np.mean(losses[-100:])) if losses else None, "validation": val}
 
@@ -271,8 +412,9 @@ def export(model: object, cfg: TrainConfig) -> None:
     import onnx
     import torch
 
-    model.eval()  # type: ignore[attr-defined]
-    wrapped = ExportWrapper.wrap(model)
+    # The wrapper must be in eval mode too: the exporter puts the whole tree back into
+    # the wrapper's mode afterwards, and a fresh module is in training mode.
+    wrapped = ExportWrapper.wrap(model).eval()  # type: ignore[attr-defined]
     out = Path(cfg.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp")
@@ -284,7 +426,7 @@ def export(model: object, cfg: TrainConfig) -> None:
     m = onnx.load(str(tmp))
     onnx.helper.set_model_props(m, {
         "depth_kind": "relative_depth", "input_height": str(cfg.height),
-        "input_width": str(cfg.width), "multiple_of": "16", "channel_order": "rgb",
+        "input_width": str(cfg.width), "multiple_of": "8", "channel_order": "rgb",
         "mean": ",".join(str(v) for v in IMAGENET_MEAN),
         "std": ",".join(str(v) for v in IMAGENET_STD),
         "name": "lidarcam small-depth U-Net", "training": "toolkit.depth.train_small"})
@@ -295,6 +437,16 @@ def export(model: object, cfg: TrainConfig) -> None:
 def write_card(path: Path, cfg: TrainConfig, stats: dict) -> None:
     size_mb = Path(cfg.out).stat().st_size / 1e6
     v = stats["validation"]
+    seq = stats.get("sequence_eval")
+    seq_text = "" if not seq else f"""
+On the quickstart sequence itself (`{seq['sequence']}`, every {seq['every']}th of its
+640x480 frames, {seq['frames']} frames, through `OnnxDepthBackend` as the depth stage runs
+it, pixels up to 10 m, oracle scale): AbsRel {seq['absrel']:.3f}, RMSE {seq['rmse_m']:.3f} m,
+delta<1.25 {seq['delta1']:.3f}; network {seq['network_ms_median']:.1f} ms per frame (median,
+{cfg.threads} threads, load average {seq['loadavg']}).
+"""
+    crop_text = (f"random {cfg.crop_width}x{cfg.crop_height} crops (same pixel scale), "
+                 if cfg.crop_height else "whole frames, ")
     text = f"""# small-depth.onnx: the project's small monocular depth network
 
 **What it is.** A compact U-Net ({stats['params'] / 1e6:.2f} M parameters, {size_mb:.1f} MB)
@@ -302,28 +454,39 @@ that predicts **relative depth** (z-depth up to one unknown scale per image) fro
 image. It stands in for Depth Anything in the quickstart so that the main job runs a real
 network end to end on a CPU; it is not a general-purpose depth model.
 
+**Architecture.** Five stride-2 stages (channels {list(cfg.widths)} at 1/2 .. 1/32
+resolution, each a strided conv and a residual block), a global-average context vector
+added at 1/32, a decoder with one conv per level on bilinear upsampling + skip, and an
+8-channel full-resolution branch from the input pixels before the output conv. Output:
+exp of the predicted log depth.
+
 **Input/output** (also stored as ONNX metadata, read by `toolkit.depth.onnx_backend`):
 input `image` [1, 3, H, W] float32, RGB, `(x / 255 - mean) / std` with ImageNet mean
-{IMAGENET_MEAN} and std {IMAGENET_STD}, trained at H x W = {cfg.height} x {cfg.width}
-(dynamic; multiples of 16); output `depth` [1, 1, H, W], positive, relative depth
-(`depth_kind = relative_depth`). Scale it with the lidar (`fuse` stage).
+{IMAGENET_MEAN} and std {IMAGENET_STD}, H x W = {cfg.height} x {cfg.width} (the backend
+resizes 640x480 frames with cubic interpolation; the graph takes any size); output `depth`
+[1, 1, H, W], positive, relative depth (`depth_kind = relative_depth`), resized back to the
+frame by the backend. Scale it with the lidar (`fuse` stage).
 
 **Training.** `python -m toolkit.depth.train_small --minutes {cfg.minutes:g} --threads
-{cfg.threads}` on a 2-core CPU shared with other jobs (load average
-{stats.get('loadavg', '?')} during training, so iterations were several times slower than
-on an idle machine): {stats['images']} renders of the simulated houses with seeds
-{list(cfg.train_seeds)} (`toolkit.sim`, small_house preset, people included), from poses
-along each robot route with yaw +-0.6 rad, pitch +-0.15 rad, height -0.15..+0.4 m and
-lateral +-0.2 m jitter; horizontal flips and brightness gain 0.75-1.25.
-Loss: scale-invariant log loss (lambda = 1) + {cfg.grad_weight} x multi-scale gradient
-matching on log depth. AdamW, lr {cfg.lr} with cosine decay over the time budget, batch
-{cfg.batch}; {stats['iterations']} iterations in {stats['train_seconds'] / 60:.1f} min
-(rendering {stats['data_seconds']:.0f} s), measured on a shared 2-core machine.
+{cfg.threads}` on a 2-core CPU shared with other jobs (1-minute load average
+{stats.get('loadavg', '?')}; on an idle machine the same minutes run more iterations).
+Data: {stats['images']} renders of {len(cfg.train_seeds)} simulated houses, seeds
+{cfg.train_seeds[0]}-{cfg.train_seeds[-1]} ({cfg.images_per_house} each; `toolkit.sim`,
+small_house preset, people included; **seed 0, the quickstart house, is never trained
+on**), rendered at {cfg.render_factor}x and shrunk to {cfg.width}x{cfg.height} with cubic
+interpolation, from poses along each robot route with yaw +-0.6 rad, pitch +-0.15 rad,
+height -0.15..+0.4 m and lateral +-0.2 m jitter. Augmentation: {crop_text}horizontal
+flips, per-channel gain 0.92-1.08, exposure 0.8-1.2.
+Loss: scale-invariant log loss (lambda = 1) + {cfg.grad_weight} x gradient matching of the
+log-depth residual at 4 scales. AdamW (weight decay 1e-4), lr {cfg.lr}, {cfg.warmup_iters}
+warm-up iterations, cosine decay over the time budget, batch {cfg.batch};
+{stats['iterations']} iterations in {stats['train_seconds'] / 60:.1f} min wall
+({stats['train_cpu_seconds'] / 60:.1f} min CPU), rendering {stats['data_seconds']:.0f} s.
 
-**Validation** on {cfg.val_images} renders of house seed {cfg.val_seed} (the evaluation
-house, never trained on), each scaled by its median ratio to the truth (oracle scale):
-AbsRel {v['absrel']:.3f}, RMSE {v['rmse_m']:.3f} m, delta<1.25 {v['delta1']:.3f}.
-
+**Measured accuracy** on {cfg.val_images} renders of house seed {cfg.val_seed} (the
+evaluation house, never trained on), each scaled by its median ratio to the truth (oracle
+scale): AbsRel {v['absrel']:.3f}, RMSE {v['rmse_m']:.3f} m, delta<1.25 {v['delta1']:.3f}.
+{seq_text}
 **Limits.** Trained on one kind of synthetic house only: expect poor results on real
 images. Relative depth only: no metric scale without the lidar.
 
@@ -339,12 +502,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=TrainConfig.out)
     ap.add_argument("--minutes", type=float, default=TrainConfig.minutes)
     ap.add_argument("--images-per-house", type=int, default=TrainConfig.images_per_house)
-    ap.add_argument("--houses", type=int, default=len(TrainConfig.train_seeds))
+    ap.add_argument("--houses", type=int, default=len(TrainConfig.train_seeds),
+                    help="train on house seeds 101 .. 100 + N")
     ap.add_argument("--threads", type=int, default=TrainConfig.threads)
+    ap.add_argument("--cache", type=Path, default=TrainConfig.cache,
+                    help="folder for rendered training images (git-ignored by default)")
+    ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--sequence", type=Path, default=None,
+                    help="simulated sequence to evaluate the model on after training "
+                         "(e.g. runs/quickstart/simulate/sequence); goes into the card")
+    ap.add_argument("--every", type=int, default=4, help="--sequence: every n-th frame")
+    ap.add_argument("--eval-only", type=Path, default=None, metavar="MODEL",
+                    help="only evaluate MODEL (.onnx) on --sequence; train nothing")
     a = ap.parse_args(argv)
+    # OpenMP worker threads busy-wait between operations by default. On a machine whose
+    # cores are shared, that spinning took 14x the CPU time per iteration (3.4 s instead of
+    # 0.24 s with 2 threads at load average 15) and 30x the wall time; passive waiting
+    # costs nothing measurable on an idle machine. Must be set before torch loads OpenMP.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    if a.eval_only is not None:
+        if a.sequence is None:
+            ap.error("--eval-only needs --sequence")
+        print(json.dumps(evaluate_sequence(a.eval_only, a.sequence, a.every, a.threads),
+                         indent=2))
+        return 0
     cfg = TrainConfig(out=a.out, minutes=a.minutes, images_per_house=a.images_per_house,
-                      train_seeds=tuple(101 + i for i in range(a.houses)), threads=a.threads)
+                      train_seeds=tuple(101 + i for i in range(a.houses)), threads=a.threads,
+                      cache=None if a.no_cache else a.cache)
     stats = train(cfg)
+    if a.sequence is not None:
+        stats["sequence_eval"] = {"sequence": str(a.sequence), "every": a.every,
+                                  **evaluate_sequence(cfg.out, a.sequence, a.every,
+                                                      cfg.threads)}
+        print(f"quickstart sequence (oracle scale): {stats['sequence_eval']}")
     card = Path(cfg.out).with_name("MODEL_CARD.md")
     write_card(card, cfg, stats)
     (Path(cfg.out).with_suffix(".train.json")).write_text(json.dumps(
