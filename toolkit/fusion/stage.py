@@ -52,6 +52,19 @@ class FuseConfig(FusionConfig, StageConfig):
     figure_frame: int | None = None  # frame shown in the report (None: the middle one)
 
 
+def _pair_metrics(metrics: dict[str, object], stats: PairStats, prefix: str,
+                  cap: float) -> int:
+    """Unscaled and scaled depth errors of lidar pairs under ``prefix``; returns the count."""
+    lidar, unscaled, scaled = stats.arrays()
+    e_un = depth_errors(unscaled, lidar, max_depth=cap)
+    e_sc = depth_errors(scaled, lidar, max_depth=cap)
+    metrics.update(e_un.as_dict(f"{prefix}unscaled_"))
+    metrics.update(e_sc.as_dict(f"{prefix}scaled_"))
+    if e_un.count and e_un.rmse_m > 0:
+        metrics[f"{prefix}rmse_ratio_scaled_unscaled"] = e_sc.rmse_m / e_un.rmse_m
+    return int(e_un.count)
+
+
 def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
     """``T_world_base`` from a TUM file, or a folder holding one (slam2d's artifact).
 
@@ -253,29 +266,14 @@ class FuseStage(Stage):
         # The same depth cap as for the ground truth: a 2D lidar sees 12 m down a corridor,
         # where the camera's depth is guesswork that the map does not use either.
         cap = cfg.eval_max_depth_m
-        l, un, sc = lid.arrays()
-        e_un, e_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
-        metrics.update(e_un.as_dict("lidar_unscaled_"))
-        metrics.update(e_sc.as_dict("lidar_scaled_"))
-        if e_un.count and e_un.rmse_m > 0:
-            metrics["lidar_rmse_ratio_scaled_unscaled"] = e_sc.rmse_m / e_un.rmse_m
+        n_all = _pair_metrics(metrics, lid, "lidar_", cap)
         # The same protocol on the pairs both sensors see: the lidar point is not hidden
         # from the camera behind a nearer object and its pixel is not on a depth edge of the
         # prediction. With ground-truth depth as the prediction the all-pairs RMSE is
         # 0.185 m on the simulated house (occlusion alone) against 0.017 m on these pairs.
-        l, un, sc = lid_vis.arrays()
-        s_un, s_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
-        metrics.update(s_un.as_dict("lidar_visible_unscaled_"))
-        metrics.update(s_sc.as_dict("lidar_visible_scaled_"))
-        if s_un.count and s_un.rmse_m > 0:
-            metrics["lidar_visible_rmse_ratio_scaled_unscaled"] = s_sc.rmse_m / s_un.rmse_m
-        metrics["pairs_visible_fraction"] = s_un.count / max(e_un.count, 1)
-        l, un, sc = lid_valid.arrays()
-        v_un, v_sc = depth_errors(un, l, max_depth=cap), depth_errors(sc, l, max_depth=cap)
-        metrics.update(v_un.as_dict("lidar_valid_unscaled_"))
-        metrics.update(v_sc.as_dict("lidar_valid_scaled_"))
-        if v_un.count and v_un.rmse_m > 0:
-            metrics["lidar_valid_rmse_ratio_scaled_unscaled"] = v_sc.rmse_m / v_un.rmse_m
+        n_vis = _pair_metrics(metrics, lid_vis, "lidar_visible_", cap)
+        metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)
+        _pair_metrics(metrics, lid_valid, "lidar_valid_", cap)
         if has_gt_depth:
             g_un, g_sc = acc_un.result(), acc_sc.result()
             metrics.update(g_un.as_dict("gt_unscaled_"))
