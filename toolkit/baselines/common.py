@@ -161,7 +161,7 @@ def observed_mask(points: np.ndarray, camera: PinholeCamera, poses: np.ndarray,
     ijk -= ijk.min(axis=0)
     dims = ijk.max(axis=0) + 1
     keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]  # one int per cube
-    uniq, first, cube_of = np.unique(keys, return_index=True, return_inverse=True)
+    _, first, cube_of = np.unique(keys, return_index=True, return_inverse=True)
     centres = (ijk[first] + 0.5) * cell + np.floor(pts.min(axis=0) / cell) * cell  # [C, 3]
     radius = cell * np.sqrt(3.0) / 2
     tx = max(camera.cx, camera.width - camera.cx) / camera.fx  # half-FOV tangents

@@ -108,7 +108,8 @@ class DepthStage(Stage):
         seq = read_sequence(ctx.artifact("sequence"))
         if not seq.frames:
             raise StageError(f"depth: sequence {seq.name} has no camera frames")
-        if cfg.backend == "dav2s_random":
+        random_weights = cfg.backend == "dav2s_random"
+        if random_weights:
             cfg = self._random_model(cfg, ctx)
         try:
             backend = make_backend(cfg)
@@ -144,14 +145,14 @@ class DepthStage(Stage):
                    "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None,
                    **timer.metrics(len(indices))}
         ctx.add_metrics(metrics)
-        if self.config.backend == "dav2s_random":  # type: ignore[attr-defined]
+        if random_weights:
             ctx.add_metrics({"random_weights": True})
         label = ("**simulated** monocular depth (made from ground truth with the documented "
                  f"errors of preset `{cfg.preset}`; true sequence scale "
                  f"{info.get('sequence_scale', float('nan')):.3f})"
                  if cfg.backend == "simulated" else f"ONNX network `{cfg.model}`"
                  + (" (**RANDOM WEIGHTS, timing only: the depth is meaningless**)"
-                    if self.config.backend == "dav2s_random" else ""))  # type: ignore[attr-defined]
+                    if random_weights else ""))
         md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames, "
               f"network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms)."]

@@ -11,8 +11,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from toolkit.geometry import se3, umeyama_alignment
+from toolkit.geometry import Trajectory, se3, umeyama_alignment
 from toolkit.sensors import Sequence
+
+
+def ground_truth_camera(seq: Sequence, stamps: np.ndarray,
+                        extrapolate_s: float = 0.05) -> Trajectory:
+    """T_world_camera from the sequence's ground-truth base poses at ``stamps``."""
+    gt = seq.groundtruth.poses_base.interpolate(stamps, extrapolate_s=extrapolate_s)
+    return gt.transform(T_right=seq.rig.T_base_camera)
 
 
 def map_to_world(seq: Sequence, stamps: np.ndarray, T_map_camera: np.ndarray,
@@ -28,8 +35,7 @@ def map_to_world(seq: Sequence, stamps: np.ndarray, T_map_camera: np.ndarray,
         stamps <= gt.poses_base.stamps[-1] + extrapolate_s)
     if inside.sum() < 3:
         return None
-    ref = gt.poses_base.interpolate(stamps[inside], extrapolate_s=extrapolate_s).transform(
-        T_right=seq.rig.T_base_camera)
+    ref = ground_truth_camera(seq, stamps[inside], extrapolate_s)
     R, t, _ = umeyama_alignment(T[inside, :3, 3], ref.positions, with_scale=False)
     return se3(R, t)
 

@@ -184,7 +184,8 @@ class PaperTablesStage(Stage):
     # ------------------------------------------------------------------ Table I
     def _table_i(self, ctx: StageContext, cfg: PaperTablesConfig, res: dict[str, StageResult],
                  seq: Any, tables: dict[str, Any], checks: list) -> list[str]:
-        from toolkit.eval.stage import ground_truth_camera, trajectory_figures
+        from toolkit.eval.alignment import ground_truth_camera
+        from toolkit.eval.stage import trajectory_figures
         from toolkit.eval.trajectory import per_axis_errors, synced
         from toolkit.io.tum import read_tum
 

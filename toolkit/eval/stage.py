@@ -14,6 +14,7 @@ from typing import Literal
 
 import numpy as np
 
+from toolkit.eval.alignment import ground_truth_camera
 from toolkit.eval.geometry import (
     DEFAULT_THRESHOLDS_M,
     geometry_metrics,
@@ -42,12 +43,6 @@ class EvaluateConfig(StageConfig):
     # Camera poses tested for that visibility (evenly spread along the drive).
     completeness_views: int = 120
     seed: int = 0
-
-
-def ground_truth_camera(seq, stamps: np.ndarray) -> Trajectory:
-    """T_world_camera from the sequence's ground-truth base poses at ``stamps``."""
-    gt = seq.groundtruth.poses_base.interpolate(stamps, extrapolate_s=0.05)
-    return gt.transform(T_right=seq.rig.T_base_camera)
 
 
 def trajectory_figures(est: Trajectory, gt: Trajectory, max_diff: float) -> tuple[

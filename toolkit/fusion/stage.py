@@ -231,10 +231,11 @@ class FuseStage(Stage):
         if cfg.write_depth != "none":
             atomic_write_text(out_depth / "index.csv",
                               "index,stamp,file,scale,shift\n" + "\n".join(depth_rows) + "\n")
-        if pose_rows:
-            write_tum(ctx.stage_dir / "camera_poses.tum",
-                      Trajectory(np.array([p[0] for p in pose_rows]),
-                                 np.stack([p[1] for p in pose_rows]), "world", "camera"),
+        fused_poses = Trajectory(np.array([p[0] for p in pose_rows]),
+                                 np.stack([p[1] for p in pose_rows]), "world",
+                                 "camera") if pose_rows else None
+        if fused_poses is not None:
+            write_tum(ctx.stage_dir / "camera_poses.tum", fused_poses,
                       "camera poses of the fused frames")
         self._write_scales(ctx.stage_dir / "scales.csv", seq, frames, estimates, sm, oracle)
         ctx.provide("fused", ctx.stage_dir)
@@ -299,8 +300,8 @@ class FuseStage(Stage):
 
             md = MeshDistance(gt.mesh_path)
             # The SLAM map frame is not the simulator's world: one rigid transform first.
-            S = map_to_world(seq, np.array([p[0] for p in pose_rows]),
-                             np.stack([p[1] for p in pose_rows])) if pose_rows else None
+            S = map_to_world(seq, fused_poses.stamps, fused_poses.poses) if (
+                fused_poses is not None) else None
             static_final = final.select(final.label <= 0.5) if has_masks else final
             # A fixed-stride subsample: point-to-mesh queries cost ~10 us each and the
             # statistics settle long before a few million points.
