@@ -104,7 +104,8 @@ def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path) ->
         recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": [
             {"stage": "t_sequence", "path": str(box_room)},
             {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
-            {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 5},
+            {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 5,
+             "refine": "floor_lidar", "consensus": True},
         ]}
         p = tmp_path / "r.yaml"
         p.write_text(yaml.safe_dump(recipe))
@@ -117,8 +118,15 @@ def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path) ->
     assert m["poses"] == "groundtruth"
     assert m["gt_scaled_rmse_m"] < 0.5 * m["gt_unscaled_rmse_m"]
     assert m["scale_error_median"] < 0.03
+    # The shape correction ran on the frames and took their error down, not up.
+    assert m["refine_frames_applied"] >= 15 and m["refine_anchors_floor_median"] > 50
+    assert m["gt_refined_absrel"] < m["gt_scaled_absrel"]
+    # The consensus surface thinned the map without emptying it (the 160x120 frames of
+    # the box room spread a wall over more voxels than 640x480 ones do).
+    assert 0 < m["map_points_removed_consensus"] < 0.8 * m["map_points_raw"]
     run = tmp_path / "run"
     report = (run / "report.md").read_text()
+    assert "Shape correction `floor_lidar`" in report
     assert "GROUND-TRUTH poses" in report
     for png in ("lidar_overlay.png", "depth_scaled_vs_unscaled.png", "map_views.png"):
         assert f"(fuse/{png})" in report and (run / "fuse" / png).stat().st_size > 1000

@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, valid_pixels
+from toolkit.fusion.consensus import ConsensusSurface
 from toolkit.fusion.dynamic import (
     CarveOptions,
     SeeThroughCounter,
@@ -32,6 +33,7 @@ from toolkit.fusion.projection import (
     sample_depth,
     zbuffer_lidar,
 )
+from toolkit.fusion.refine import DepthRefiner, Refinement, RefineOptions
 from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, smooth_scales
 from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
 from toolkit.geometry import inv_se3
@@ -69,6 +71,16 @@ class FusionConfig(BaseModel):
     pair_occlusion_margin_m: float = 0.05
     pair_occlusion_margin_rel: float = 0.05
     pair_edge_filter: bool = True
+    # Low-frequency shape correction of each frame's scaled depth (toolkit.fusion.refine):
+    # a smooth log-depth field fitted to the floor (a plane floor_height_m below base_link;
+    # 0 where base_link is on the floor, REP 105's base_footprint) and the lidar pairs
+    # ("floor_lidar"), or to the lidar pairs alone ("lidar", a robot not on a flat floor).
+    refine: Literal["none", "floor_lidar", "lidar"] = "none"
+    floor_height_m: float = 0.0
+    refine_grid: tuple[int, int] = (8, 6)  # nodes across, down
+    refine_gate: float = Field(0.12, gt=0)
+    refine_gate_final: float = Field(0.06, gt=0)
+    refine_smooth: float = Field(1.0, gt=0)
     # clouds and map
     stride: int = Field(2, ge=1)
     # Every near_stride-th pixel only where that spacing stays below half a voxel (depth <
@@ -80,6 +92,17 @@ class FusionConfig(BaseModel):
     edge_threshold: float = 0.06
     voxel_size_m: float = Field(0.02, gt=0)
     min_voxel_frames: int = Field(1, ge=1)
+    # Multi-view consensus: the same depth also goes into a coarse TSDF (Open3D), whose
+    # surface is the weighted average of every view along the rays; map voxels farther
+    # than consensus_m from that surface are dropped. One view's depth error (a few % of
+    # the depth) spreads a surface into a shell many voxels thick; the TSDF finds its
+    # middle. Half-resolution frames and 4 cm voxels keep it cheap.
+    consensus: bool = False
+    consensus_m: float = Field(0.04, gt=0)
+    consensus_voxel_m: float = Field(0.04, gt=0)
+    consensus_trunc_voxels: float = Field(6.0, gt=0)
+    consensus_downsample: int = Field(2, ge=1)
+    consensus_every: int = Field(1, ge=1)
     outlier_neighbors: int = 20  # statistical outlier removal; 0 disables it
     outlier_std_ratio: float = 2.0
     outlier_voxel_m: float = 0.06  # cells the outlier test runs on (<= voxel size: voxels)
@@ -112,6 +135,11 @@ class FusionConfig(BaseModel):
         near = self.voxel_size_m * fx / (2 * self.near_stride) if self.near_stride else 0.0
         return CloudOptions(self.min_depth_m, self.max_depth_m, self.edge_threshold, 5,
                             self.stride, self.near_stride, near)
+
+    def refine_options(self) -> RefineOptions:
+        return RefineOptions(grid=self.refine_grid, gate=self.refine_gate,
+                             gate_final=self.refine_gate_final, smooth=self.refine_smooth,
+                             max_depth_m=self.max_depth_m)
 
     def carve_options(self) -> CarveOptions:
         return CarveOptions(self.depth_margin_m, self.depth_margin_rel, self.lidar_margin_m,
@@ -165,7 +193,15 @@ class Fusion:
         # share it; the finest one is the strictest test)
         steps = [abs(s.angle_increment) for s in seq.scans[:1]]
         self._beam_step = float(min(steps)) if steps else np.radians(1.0)
+        self.refiner = None if config.refine == "none" else DepthRefiner(
+            self.camera, config.refine_options(),
+            config.floor_height_m if config.refine == "floor_lidar" else None)
         self.map = VoxelMap(config.voxel_size_m)
+        self.consensus: ConsensusSurface | None = None
+        if config.consensus:
+            self.consensus = ConsensusSurface(
+                self.camera, config.consensus_voxel_m, config.consensus_trunc_voxels,
+                config.max_depth_m, config.consensus_downsample)
         self.views: list[tuple[int, np.ndarray]] = []  # (frame, strided scaled depth)
         self.beam_dynamic: list[np.ndarray] = []
         self._dyn_xy: list[np.ndarray] = []
@@ -238,6 +274,16 @@ class Fusion:
         return smooth_scales(estimates, c.smoothing_window, c.outlier_tol, c.smoothing,
                              c.few_pairs)
 
+    def refine(self, index: int, depth: np.ndarray, pairs: FramePairs) -> tuple[
+            np.ndarray, Refinement]:
+        """The scaled depth [H, W] with its low-frequency shape error corrected (unchanged
+        when ``refine`` is none or too few anchors agree)."""
+        if self.refiner is None:
+            return depth, Refinement(False)
+        v = pairs.visible
+        return self.refiner.refine(depth, self.T_world_camera(index), self.frame_poses[index],
+                                   pairs.lidar.pixel[v], pairs.lidar.z[v])
+
     # ------------------------------------------------------------------ map
     def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,
                   labels: np.ndarray | None = None, drop: np.ndarray | None = None) -> int:
@@ -268,6 +314,9 @@ class Fusion:
             # weight the nearer, more accurate views had at the plain stride.
             w = np.where(z < o.near_depth_m, (o.near_stride // o.stride) ** 2, 1)
         self.map.integrate(pts, col, index, lab, z, w)
+        if self.consensus is not None and index % self.cfg.consensus_every == 0:
+            self.consensus.integrate(np.where(ok if drop is None else ok & ~drop, depth, 0.0),
+                                     rgb, self.T_world_camera(index))
         if self.cfg.dynamic_removal and self.cfg.carve_with_depth and (
                 index % self.cfg.carve_every == 0):
             s = self.rays.stride
@@ -312,6 +361,12 @@ class Fusion:
             masks["free_views"] = counter.free[inv]
             masks["hit_views"] = counter.hit[inv]
         keep = ~masks["dynamic"]
+        if self.consensus is not None and self.consensus.frames and keep.any():
+            idx = np.flatnonzero(keep)
+            off = self.consensus.off_surface(raw.points[idx], c.consensus_m)
+            masks["consensus"] = np.zeros(len(raw), bool)
+            masks["consensus"][idx[off]] = True
+            keep[idx[off]] = False
         if c.outlier_neighbors > 0 and keep.sum() > c.outlier_neighbors:
             idx = np.flatnonzero(keep)
             pts = raw.points[idx]

@@ -32,6 +32,8 @@ from toolkit.fusion.pipeline import (
     pose_arrays,
     scaled_at_pairs,
 )
+from toolkit.fusion.projection import sample_depth
+from toolkit.fusion.refine import Refinement
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_write_text
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
@@ -163,7 +165,9 @@ class FuseStage(Stage):
         lid = PairStats()
         lid_valid = PairStats()  # pairs at pixels the map would use (no edge, in range)
         lid_vis = PairStats()  # pairs both sensors see (FramePairs.visible)
-        acc_un, acc_sc = ErrorAccumulator(), ErrorAccumulator()
+        lid_ref_vis = PairStats()  # the same after the shape correction (refine)
+        acc_un, acc_sc, acc_ref = ErrorAccumulator(), ErrorAccumulator(), ErrorAccumulator()
+        refinements: list[Refinement] = []
         fig_frame = cfg.figure_frame if cfg.figure_frame in frames else frames[len(frames) // 2]
         fig_data = None
         eval_frames = set(np.linspace(0, len(frames) - 1, min(cfg.mesh_eval_frames,
@@ -178,17 +182,23 @@ class FuseStage(Stage):
             s, t = float(sm.scale[j]), float(sm.shift[j])
             rgb = seq.frames[i].image
             mask = gt.mask(i) if has_masks else None
+            fp = pairs[i]
             t0, c0 = time.perf_counter(), time.process_time()
-            scaled = pred.as_depth(s, t)
+            alpha_scaled = pred.as_depth(s, t)
+            scaled, refinement = fusion.refine(i, alpha_scaled, fp)
             n_points += fusion.integrate(i, scaled, rgb, labels=mask)
             t_core += time.perf_counter() - t0
             c_core += time.process_time() - c0
-            fp = pairs[i]
+            refinements.append(refinement)
             unscaled_pairs = scaled_at_pairs(fp, disparity, 1.0, 0.0)
             scaled_pairs = scaled_at_pairs(fp, disparity, s, t)
             lid.add(fp.lidar.z, unscaled_pairs, scaled_pairs)
             v = fp.visible
             lid_vis.add(fp.lidar.z[v], unscaled_pairs[v], scaled_pairs[v])
+            if fusion.refiner is not None:
+                # In-sample for the lidar: the correction was fitted to these pairs.
+                lid_ref_vis.add(fp.lidar.z[v], unscaled_pairs[v],
+                                sample_depth(scaled, fp.lidar)[v].astype(np.float64))
             if len(fp.lidar):
                 px = fp.lidar.pixel
                 ok = valid_pixels(scaled, fusion.cloud_opts)[
@@ -199,7 +209,9 @@ class FuseStage(Stage):
             if has_gt_depth:
                 g = gt.depth(i)
                 acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cfg.eval_max_depth_m)
-                acc_sc.add(scaled, g, max_depth=cfg.eval_max_depth_m)
+                acc_sc.add(alpha_scaled, g, max_depth=cfg.eval_max_depth_m)
+                if fusion.refiner is not None:
+                    acc_ref.add(scaled, g, max_depth=cfg.eval_max_depth_m)
             if j in eval_frames and gt is not None and gt.mesh_path is not None:
                 from toolkit.fusion.cloud import depth_to_points
 
@@ -254,6 +266,8 @@ class FuseStage(Stage):
             "map_points": len(final), "map_points_raw": len(raw),
             "map_points_removed_dynamic": int(masks["dynamic"].sum()),
             "map_points_removed_outlier": int(masks["outlier"].sum()),
+            "map_points_removed_consensus": int(masks["consensus"].sum()) if (
+                "consensus" in masks) else 0,
             "fusion_fps": used / max(t_core + t_finish, 1e-9),
             "fusion_fps_per_frame_only": used / max(t_core, 1e-9),
             "fusion_fps_cpu": used / max(c_core + c_finish, 1e-9),
@@ -275,12 +289,30 @@ class FuseStage(Stage):
         n_vis = _pair_metrics(metrics, lid_vis, "lidar_visible_", cap)
         metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)
         _pair_metrics(metrics, lid_valid, "lidar_valid_", cap)
+        if fusion.refiner is not None:
+            _pair_metrics(metrics, lid_ref_vis, "lidar_visible_refined_", cap)
+            done = [r for r in refinements if r.applied]
+            metrics.update({
+                "refine": cfg.refine, "refine_frames_applied": len(done),
+                "refine_anchors_floor_median": float(np.median(
+                    [r.anchors_floor for r in refinements])) if refinements else 0.0,
+                "refine_anchors_lidar_median": float(np.median(
+                    [r.anchors_lidar for r in refinements])) if refinements else 0.0,
+                "refine_field_rms_median": float(np.median(
+                    [r.field_rms for r in done])) if done else 0.0,
+                "refine_field_max": float(max(r.field_max for r in done)) if done else 0.0,
+            })
         if has_gt_depth:
             g_un, g_sc = acc_un.result(), acc_sc.result()
             metrics.update(g_un.as_dict("gt_unscaled_"))
             metrics.update(g_sc.as_dict("gt_scaled_"))
             if g_un.rmse_m > 0:
                 metrics["gt_rmse_ratio_scaled_unscaled"] = g_sc.rmse_m / g_un.rmse_m
+            if fusion.refiner is not None:
+                g_ref = acc_ref.result()
+                metrics.update(g_ref.as_dict("gt_refined_"))
+                if g_un.rmse_m > 0:
+                    metrics["gt_rmse_ratio_refined_unscaled"] = g_ref.rmse_m / g_un.rmse_m
             if not disparity:
                 metrics.update({f"{k}": v for k, v in scale_error(
                     sm.scale, oracle).items() if k != "frames"})
@@ -364,8 +396,15 @@ class FuseStage(Stage):
                  "lidar_visible_unscaled_", "lidar_visible_scaled_"),
                 ("vs lidar, pairs on pixels the map uses", "lidar_valid_unscaled_",
                  "lidar_valid_scaled_")]
+        if "lidar_visible_refined_scaled_count" in m:
+            rows.append(("vs lidar, pairs both sensors see, after the shape correction "
+                         "(fitted to them: in-sample)", "lidar_visible_unscaled_",
+                         "lidar_visible_refined_scaled_"))
         if "gt_scaled_rmse_m" in m:
             rows.append(("vs ground-truth depth, whole images", "gt_unscaled_", "gt_scaled_"))
+        if "gt_refined_rmse_m" in m:
+            rows.append(("vs ground-truth depth, whole images, after the shape correction",
+                         "gt_unscaled_", "gt_refined_"))
         table = ["| reference | RMSE unscaled (m) | RMSE scaled (m) | AbsRel scaled | "
                  "delta<1.25 scaled |", "|---|---:|---:|---:|---:|"]
         for name, a, b in rows:
@@ -374,8 +413,20 @@ class FuseStage(Stage):
             table.append(f"| {name} | {m[a + 'rmse_m']:.3f} | {m[b + 'rmse_m']:.3f} | "
                          f"{m[b + 'absrel']:.3f} | {m[b + 'delta1']:.3f} |")
         md.append("\n".join(table))
+        if "refine_frames_applied" in m:
+            md.append(f"Shape correction `{cfg.refine}` (a smooth log-depth field per frame, "
+                      f"{cfg.refine_grid[0]}x{cfg.refine_grid[1]} nodes) on "
+                      f"{m['refine_frames_applied']}/{m['frames_fused']} frames; median anchors "
+                      f"per frame: {m['refine_anchors_floor_median']:.0f} floor, "
+                      f"{m['refine_anchors_lidar_median']:.0f} lidar; median field RMS "
+                      f"{100 * m['refine_field_rms_median']:.1f} %, largest "
+                      f"{100 * m['refine_field_max']:.1f} %. The map and the scaled depth "
+                      "written for later stages are the corrected ones; the rows without "
+                      "'shape correction' are the per-frame scale alone (the paper's method).")
         extra = [f"map: {m['map_points']} voxels of {cfg.voxel_size_m * 100:.0f} cm "
                  f"({m['map_points_removed_dynamic']} removed as moving, "
+                 f"{m['map_points_removed_consensus']} farther than "
+                 f"{cfg.consensus_m * 100:g} cm from the multi-view consensus surface, "
                  f"{m['map_points_removed_outlier']} statistical outliers)",
                  f"fusion throughput {m['fusion_fps']:.1f} frames/s wall clock, "
                  f"{m['fusion_fps_cpu']:.1f} frames/s of CPU time (network and file reading "

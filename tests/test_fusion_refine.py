@@ -1,0 +1,148 @@
+"""The shape correction recovers a known smooth depth distortion from floor and lidar."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from toolkit.camera import PinholeCamera
+from toolkit.fusion.refine import CorrectionGrid, DepthRefiner, RefineOptions, floor_depth
+
+CAM = PinholeCamera.from_fov(160, 120, 90.0)
+HEIGHT_M = 0.45
+WALL_X_M = 4.0
+
+
+def camera_pose(pitch_deg: float = 10.0) -> np.ndarray:
+    """T_base_camera: optical frame looking along base x, pitched down, 0.45 m up."""
+    p = np.radians(pitch_deg)
+    # optical z (forward) = base x tilted down; optical x (right) = -base y
+    z = np.array([np.cos(p), 0.0, -np.sin(p)])
+    x = np.array([0.0, -1.0, 0.0])
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], 1)
+    T[:3, 3] = [0.0, 0.0, HEIGHT_M]
+    return T
+
+
+def scene_depth(T_world_camera: np.ndarray) -> np.ndarray:
+    """[H, W] z-depth of a floor (z = 0) and a wall (x = 4 m) seen from the camera."""
+    rays = CAM.pixel_rays() @ T_world_camera[:3, :3].T  # [H, W, 3]
+    c = T_world_camera[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(rays[..., 2] < 0, -c[2] / rays[..., 2], np.inf)
+        t_wall = np.where(rays[..., 0] > 0, (WALL_X_M - c[0]) / rays[..., 0], np.inf)
+    return np.minimum(t_floor, t_wall).astype(np.float32)
+
+
+def distortion(h: int, w: int, amplitude: float = 0.04) -> np.ndarray:
+    """[H, W] a smooth log-depth field, like a monocular network's shape error."""
+    v, u = np.mgrid[0:h, 0:w]
+    return (amplitude * (np.cos(2 * np.pi * (0.6 * u / w + 0.3 * v / h) + 0.4)
+                         + 0.5 * np.sin(2 * np.pi * 0.5 * v / h))).astype(np.float32)
+
+
+def wall_lidar(T_world_camera: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lidar pixels [N, 2] (col, row) and depths [N] on the wall at the lidar's height."""
+    # The lidar plane (z = 0.25 m) crosses the wall along a line; project it.
+    ys = np.linspace(-3.5, 3.5, 200)
+    pts = np.stack([np.full_like(ys, WALL_X_M), ys, np.full_like(ys, 0.25)], 1)
+    T_cw = np.linalg.inv(T_world_camera)
+    pc = pts @ T_cw[:3, :3].T + T_cw[:3, 3]
+    uv, z = CAM.project(pc)
+    keep = (z > 0) & CAM.in_image(uv)
+    px = np.rint(uv[keep]).astype(np.int64)
+    return px, z[keep]
+
+
+def log_error(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    return float(np.median(np.abs(np.log(a[mask] / b[mask]))))
+
+
+def test_floor_depth_matches_plane_intersection() -> None:
+    T = camera_pose()
+    rays = CAM.pixel_rays()[[100, 110], [80, 20]] @ T[:3, :3].T
+    t = floor_depth(rays, T[:3, 3], np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    pts = T[:3, 3] + t[:, None] * rays
+    np.testing.assert_allclose(pts[:, 2], 0.0, atol=1e-9)
+    # A ray going up never meets the floor.
+    up = (CAM.pixel_rays()[0, 80] @ T[:3, :3].T)[None]
+    assert np.isinf(floor_depth(up, T[:3, 3], np.array([0.0, 0.0, 1.0]), np.zeros(3)))[0]
+
+
+def test_grid_fits_a_field_it_can_represent() -> None:
+    g = CorrectionGrid(160, 120, (5, 4))
+    nodes = np.random.default_rng(0).normal(0, 0.05, (4, 5))
+    rows, cols = np.mgrid[0:120:6, 0:160:6]
+    rows, cols = rows.ravel(), cols.ravel()
+    A = g.design(rows, cols)
+    fitted = g.fit(A, A @ nodes.ravel(), smooth=1e-4, huber=1.0)
+    np.testing.assert_allclose(fitted, nodes, atol=1e-3)
+
+
+@pytest.mark.parametrize("outliers", [False, True])
+def test_floor_and_lidar_remove_a_smooth_distortion(outliers: bool) -> None:
+    T = camera_pose()
+    truth = scene_depth(T)
+    pred = truth * np.exp(distortion(*truth.shape))
+    if outliers:
+        # A box on the floor, 30 % of the floor pixels: much nearer than the floor there.
+        floor = truth < (WALL_X_M - 0.1) / np.cos(np.radians(10))
+        rows = np.flatnonzero(floor.any(1))
+        box = np.zeros_like(floor)
+        box[rows[0]:, 40:90] = True
+        box &= floor
+        assert box.sum() > 0.25 * floor.sum()
+        truth = np.where(box, truth * 0.6, truth)
+        pred = np.where(box, truth * np.exp(distortion(*truth.shape)), pred)
+    px, z = wall_lidar(T, truth)
+    refiner = DepthRefiner(CAM, RefineOptions(grid=(6, 5), step_px=4), floor_height_m=0.0)
+    out, info = refiner.refine(pred, T, np.eye(4), px, z)
+    assert info.applied and info.anchors_lidar > 50 and info.anchors_floor > 100
+    valid = np.isfinite(truth)
+    before = log_error(pred, truth, valid)
+    after = log_error(out, truth, valid)
+    assert before > 0.015
+    # The box's own pixels follow the field fitted around them (it is smooth).
+    assert after < 0.25 * before, (before, after)
+
+
+def test_lidar_only_corrects_the_lidar_row_and_needs_anchors() -> None:
+    T = camera_pose()
+    truth = scene_depth(T)
+    field = distortion(*truth.shape)
+    pred = truth * np.exp(field)
+    px, z = wall_lidar(T, truth)
+    refiner = DepthRefiner(CAM, RefineOptions(grid=(6, 5)), floor_height_m=None)
+    out, info = refiner.refine(pred, T, np.eye(4), px, z)
+    assert info.applied and info.anchors_floor == 0
+    at = (px[:, 1], px[:, 0])
+    assert np.median(np.abs(np.log(out[at] / truth[at]))) < 0.3 * np.median(np.abs(field[at]))
+    # Nothing to anchor to: the depth comes back unchanged.
+    same, none = refiner.refine(pred, T, np.eye(4))
+    assert not none.applied and same is pred
+
+
+def test_consensus_keeps_the_middle_of_a_shell_of_views() -> None:
+    """Ten views of a wall 4 m away, each 2 % too near or too far: the voxel map would
+    hold a shell 16 cm thick; the consensus surface is the wall itself."""
+    from toolkit.fusion.consensus import ConsensusSurface
+
+    T = camera_pose(pitch_deg=0.0)
+    truth = scene_depth(T)
+    truth = np.where(truth < 3.9, np.nan, truth)  # the wall only, not the floor
+    surface = ConsensusSurface(CAM, voxel_size_m=0.04, trunc_voxels=6, depth_max_m=6.0,
+                               downsample=2)
+    rgb = np.full(truth.shape + (3,), 128, np.uint8)
+    for k in range(10):
+        err = 0.02 if k % 2 else -0.02
+        surface.integrate(truth * np.float32(1 + err), rgb, T)
+    rows, cols = np.mgrid[10:110:10, 10:150:10]
+    rays = CAM.pixel_rays()[rows.ravel(), cols.ravel()]
+    z = truth[rows.ravel(), cols.ravel()]
+    ok = np.isfinite(z)
+    on_wall = (rays[ok] * z[ok, None]) @ T[:3, :3].T + T[:3, 3]  # [N, 3] world
+    assert not surface.off_surface(on_wall, 0.04).any()
+    shifted = on_wall + np.array([0.15, 0.0, 0.0])  # 15 cm behind the wall
+    assert surface.off_surface(shifted, 0.04).all()

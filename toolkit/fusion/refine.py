@@ -1,0 +1,189 @@
+"""Per-frame correction of the scaled depth's low-frequency shape error.
+
+One scale per frame fixes a monocular network's unknown scale, not its shape: the error
+left after scaling is mostly a smooth multiplicative field over the image (a wall that
+bends, a floor that tilts), the same in neighbouring frames, so averaging frames does not
+remove it. Two references measure that field in every frame without a model of the scene:
+
+- the lidar pairs (the pixels the scale came from), one curve across the image;
+- the floor: a wheeled robot drives on it, so its plane in the camera is known from the
+  base pose and the mounting (``floor_height_m`` below ``base_link``; 0 for REP 105's
+  ``base_footprint`` convention). Pixels whose prediction is within ``gate`` of the
+  floor's depth there are taken as floor; a chair or a wall in front of the floor is
+  much nearer and falls out.
+
+The field is fitted in log depth on a coarse grid of nodes (bilinear between them) with a
+smoothness penalty between neighbouring nodes and a Huber loss, twice: the second time
+only anchors within ``gate_final`` of the first field count. Above the lidar row nothing is
+measured and the smoothness carries the field up from the lidar.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from toolkit.camera import PinholeCamera
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """How the correction field is fitted (see the module docstring)."""
+
+    grid: tuple[int, int] = (8, 6)  # nodes across and down the image
+    step_px: int = 8  # floor anchors on every step_px-th pixel
+    gate: float = 0.12  # |log(reference / depth)| for an anchor to count, first fit
+    gate_final: float = 0.06  # the same around the first fit's field, second fit
+    smooth: float = 1.0  # weight of node differences, per 1000 anchors
+    huber: float = 0.03  # log-depth residual where the loss turns linear
+    min_anchors: int = 50  # fewer: the frame keeps its depth as scaled
+    max_depth_m: float = 6.0  # floor anchors nearer than this
+
+
+@dataclass
+class Refinement:
+    """What the correction did to one frame."""
+
+    applied: bool
+    anchors_floor: int = 0
+    anchors_lidar: int = 0
+    field_rms: float = 0.0  # RMS of the log correction over the image
+    field_max: float = 0.0  # largest |log correction|
+
+
+def interpolation_weights(n: int, nodes: int) -> np.ndarray:
+    """[n, nodes] linear interpolation weights of n pixels between evenly spread nodes."""
+    x = np.linspace(0.0, nodes - 1.0, n)
+    i0 = np.clip(np.floor(x).astype(np.int64), 0, nodes - 2)
+    f = x - i0
+    w = np.zeros((n, nodes))
+    w[np.arange(n), i0] = 1.0 - f
+    w[np.arange(n), i0 + 1] = f
+    return w
+
+
+class CorrectionGrid:
+    """A smooth log-depth field on ``nodes`` = (across, down) bilinear nodes."""
+
+    def __init__(self, width: int, height: int, nodes: tuple[int, int]) -> None:
+        gx, gy = int(nodes[0]), int(nodes[1])
+        if gx < 2 or gy < 2:
+            raise ValueError(f"refine grid needs at least 2 x 2 nodes, got {nodes}")
+        self.gx, self.gy = gx, gy
+        self.wx = interpolation_weights(width, gx)  # [W, gx]
+        self.wy = interpolation_weights(height, gy)  # [H, gy]
+        diffs = []
+        for y in range(gy):
+            for x in range(gx):
+                for dy, dx in ((0, 1), (1, 0)):
+                    if y + dy < gy and x + dx < gx:
+                        row = np.zeros(gx * gy)
+                        row[y * gx + x] = 1.0
+                        row[(y + dy) * gx + x + dx] = -1.0
+                        diffs.append(row)
+        D = np.array(diffs)
+        # A small ridge keeps nodes that no anchor reaches at the smoothness's value.
+        self.penalty = D.T @ D + 1e-3 * np.eye(gx * gy)  # [G, G]
+
+    def design(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """[M, G] weights of the nodes at pixels (rows, cols)."""
+        return (self.wy[rows][:, :, None] * self.wx[cols][:, None, :]).reshape(len(rows), -1)
+
+    def fit(self, A: np.ndarray, r: np.ndarray, smooth: float, huber: float,
+            iterations: int = 4) -> np.ndarray:
+        """[gy, gx] node values fitting residuals ``r`` [M] at pixels whose node weights
+        are ``A`` [M, G] (``design``)."""
+        lam = smooth * len(r) / 1000.0
+        w = np.ones(len(r))
+        c = np.zeros(A.shape[1])
+        for _ in range(iterations):
+            Aw = A * w[:, None]
+            c = np.linalg.solve(Aw.T @ A + lam * self.penalty, Aw.T @ r)
+            e = np.abs(A @ c - r)
+            w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+        return c.reshape(self.gy, self.gx)
+
+    def field(self, nodes: np.ndarray) -> np.ndarray:
+        """[H, W] float32 field of the node values [gy, gx]."""
+        return (self.wy @ nodes @ self.wx.T).astype(np.float32)
+
+
+def floor_depth(rays_world: np.ndarray, centre: np.ndarray, normal: np.ndarray,
+                point: np.ndarray) -> np.ndarray:
+    """[M] camera z-depth at which rays [M, 3] (world directions of camera rays with
+    z_camera = 1) from ``centre`` [3] meet the plane through ``point`` with upward
+    ``normal``; inf where a ray does not go down to it."""
+    nd = rays_world @ normal  # [M]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(nd < -1e-6, float(normal @ (point - centre)) / nd, np.inf)
+    return np.where(t > 0, t, np.inf)
+
+
+class DepthRefiner:
+    """Fits and applies the correction field of one camera's frames."""
+
+    def __init__(self, camera: PinholeCamera, options: RefineOptions | None = None,
+                 floor_height_m: float | None = 0.0) -> None:
+        self.opts = options or RefineOptions()
+        self.camera = camera
+        self.floor_height_m = floor_height_m
+        h, w = camera.height, camera.width
+        self.grid = CorrectionGrid(w, h, self.opts.grid)
+        s = self.opts.step_px
+        rows = np.arange(s // 2, h, s)
+        cols = np.arange(s // 2, w, s)
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        self.rows, self.cols = rr.ravel(), cc.ravel()  # [M] anchor pixels
+        self.rays = camera.pixel_rays()[self.rows, self.cols].astype(np.float64)  # [M, 3]
+        self.design = self.grid.design(self.rows, self.cols)  # [M, G], the same every frame
+
+    def floor_reference(self, T_world_camera: np.ndarray, T_world_base: np.ndarray) -> (
+        np.ndarray
+    ):
+        """[M] floor depth at the anchor pixels (inf: the ray misses the floor in range)."""
+        if self.floor_height_m is None:
+            return np.full(len(self.rows), np.inf)
+        normal = T_world_base[:3, 2]
+        point = T_world_base[:3, 3] + self.floor_height_m * normal
+        d = self.rays @ T_world_camera[:3, :3].T
+        t = floor_depth(d, T_world_camera[:3, 3], normal, point)
+        return np.where(t <= self.opts.max_depth_m, t, np.inf)
+
+    def refine(self, depth: np.ndarray, T_world_camera: np.ndarray,
+               T_world_base: np.ndarray, lidar_px: np.ndarray | None = None,
+               lidar_z: np.ndarray | None = None) -> tuple[np.ndarray, Refinement]:
+        """Corrected depth [H, W] float32 and what was done, from the scaled ``depth``
+        [H, W], the poses and the lidar pairs: pixels ``lidar_px`` [N, 2] (col, row) with
+        their lidar z-depths ``lidar_z`` [N]."""
+        o = self.opts
+        h, w = depth.shape
+        tf = self.floor_reference(T_world_camera, T_world_base)
+        d_anchor = depth[self.rows, self.cols].astype(np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r_floor = np.log(tf) - np.log(d_anchor)  # [M]
+        A, r = [self.design], [r_floor]
+        n_floor_all = len(r_floor)
+        if lidar_px is not None and lidar_z is not None and len(lidar_z):
+            lc = np.clip(lidar_px[:, 0], 0, w - 1)
+            lr = np.clip(lidar_px[:, 1], 0, h - 1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r.append(np.log(lidar_z) - np.log(depth[lr, lc].astype(np.float64)))
+            A.append(self.grid.design(lr, lc))
+        A_a, r_a = np.concatenate(A), np.concatenate(r)
+        ok = np.isfinite(r_a) & (np.abs(r_a) < o.gate)
+        if ok.sum() < o.min_anchors:
+            return depth, Refinement(False, int(ok[:n_floor_all].sum()),
+                                     int(ok[n_floor_all:].sum()))
+        nodes = self.grid.fit(A_a[ok], r_a[ok], o.smooth, o.huber)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(r_a) & (np.abs(r_a - A_a @ nodes.reshape(-1)) < o.gate_final)
+        if ok.sum() < o.min_anchors:
+            return depth, Refinement(False, int(ok[:n_floor_all].sum()),
+                                     int(ok[n_floor_all:].sum()))
+        nodes = self.grid.fit(A_a[ok], r_a[ok], o.smooth, o.huber)
+        f = self.grid.field(nodes)
+        out = (depth * np.exp(f)).astype(np.float32)
+        return out, Refinement(True, int(ok[:n_floor_all].sum()), int(ok[n_floor_all:].sum()),
+                               float(np.sqrt(np.mean(f.astype(np.float64) ** 2))),
+                               float(np.abs(f).max()))
