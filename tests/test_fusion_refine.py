@@ -77,7 +77,7 @@ def test_grid_fits_a_field_it_can_represent() -> None:
     rows, cols = np.mgrid[0:120:6, 0:160:6]
     rows, cols = rows.ravel(), cols.ravel()
     A = g.design(rows, cols)
-    fitted = g.fit(A, A @ nodes.ravel(), smooth=1e-4, huber=1.0)
+    fitted = g.fit(A, A.dot(nodes), smooth=1e-4, huber=1.0)
     np.testing.assert_allclose(fitted, nodes, atol=1e-3)
 
 

@@ -5,7 +5,8 @@
 Predictions come from the ``simulated`` backend (computed before the clock starts) on a
 simulator sequence, or on the synthetic box room rendered at 640x480 when no sequence is
 given. The timed part is what the ``fuse`` stage does per frame - lidar projection,
-scale estimation, scaling, flying-pixel filtering, back-projection, voxel integration -
+scale estimation, scaling, shape correction (``--refine``), flying-pixel filtering,
+back-projection, voxel integration (and the consensus TSDF, ``--consensus``) -
 plus, separately, the end-of-run work (carving moving obstacles, outlier removal).
 """
 
@@ -20,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 
-def run_bench(seq_path: Path, frames: int, method: str, stride: int) -> dict:
+def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str = "none",
+              consensus: bool = False) -> dict:
     from toolkit.depth.simulated import SimulatedDepthBackend
     from toolkit.fusion.pipeline import Fusion, FusionConfig, pose_arrays
     from toolkit.io.sequence import read_sequence
@@ -35,7 +37,8 @@ def run_bench(seq_path: Path, frames: int, method: str, stride: int) -> dict:
         imgs[i] = seq.frames[i].image
         preds[i] = backend.predict(imgs[i], gt_depth=gt.depth(i), frame_index=int(i))
     fp, sp, _ = pose_arrays(seq, gt.poses_base)
-    cfg = FusionConfig(scale=method, stride=stride)  # type: ignore[arg-type]
+    cfg = FusionConfig(scale=method, stride=stride, refine=refine,  # type: ignore[arg-type]
+                       consensus=consensus)
     fusion = Fusion(seq, cfg, fp, sp)
     fusion.frame_pairs(int(idx[0]), preds[idx[0]])  # warm caches outside the clock
     # Wall clock and CPU time: on a shared machine the wall clock measures the neighbours.
@@ -46,14 +49,16 @@ def run_bench(seq_path: Path, frames: int, method: str, stride: int) -> dict:
     points = 0
     for j, i in enumerate(idx):
         if sm.used[j]:
-            points += fusion.integrate(int(i), preds[i].as_depth(sm.scale[j], sm.shift[j]),
-                                       imgs[i])
+            depth, _ = fusion.refine(int(i), preds[i].as_depth(sm.scale[j], sm.shift[j]),
+                                     pairs[i])
+            points += fusion.integrate(int(i), depth, imgs[i])
     t2, c2 = time.perf_counter(), time.process_time()
     raw, masks = fusion.finish()
     t3, c3 = time.perf_counter(), time.process_time()
     h, w = seq.rig.camera.height, seq.rig.camera.width
     return {
         "sequence": str(seq_path), "image": f"{w}x{h}", "frames": int(n), "scale": method,
+        "refine": refine, "consensus": consensus,
         "stride": stride, "points_per_frame": points / n, "map_voxels": len(raw),
         "scale_ms_per_frame": 1000 * (t1 - t0) / n,
         "integrate_ms_per_frame": 1000 * (t2 - t1) / n,
@@ -72,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--scale", default="clustered", choices=["ratio", "clustered", "robust"])
     ap.add_argument("--stride", type=int, default=2)
+    ap.add_argument("--refine", default="none", choices=["none", "floor_lidar", "lidar"])
+    ap.add_argument("--consensus", action="store_true", help="multi-view consensus filter")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/fusion.json"))
     a = ap.parse_args(argv)
     load0 = os.getloadavg()
@@ -82,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
 
             seq = write_box_room(Path(tmp) / "box", n_frames=min(a.frames, 60), width=640,
                                  height=480)
-        res = run_bench(seq, a.frames, a.scale, a.stride)
+        res = run_bench(seq, a.frames, a.scale, a.stride, a.refine, a.consensus)
     res.update({"cores": os.cpu_count(), "loadavg_before": load0,
                 "loadavg_after": os.getloadavg()})
     for k, v in res.items():

@@ -33,7 +33,8 @@ class ConsensusSurface:
         self.volume_camera = camera.undistorted().scaled(w, h)
         self.volume = TSDFVolume(TSDFSettings(voxel_size_m=voxel_size_m,
                                               trunc_voxels=trunc_voxels,
-                                              depth_max_m=depth_max_m, block_count=1024))
+                                              depth_max_m=depth_max_m, block_resolution=8,
+                                              block_count=4096))
         self.frames = 0
         self._surface: np.ndarray | None = None
 

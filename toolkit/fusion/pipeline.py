@@ -81,6 +81,9 @@ class FusionConfig(BaseModel):
     refine_gate: float = Field(0.12, gt=0)
     refine_gate_final: float = Field(0.06, gt=0)
     refine_smooth: float = Field(1.0, gt=0)
+    # Also anchor vertical columns through the lidar points (walls stand upright), gated
+    # by the prediction like the floor: a table top above a leg the lidar hit falls out.
+    refine_columns: bool = True
     # clouds and map
     stride: int = Field(2, ge=1)
     # Every near_stride-th pixel only where that spacing stays below half a voxel (depth <
@@ -98,7 +101,7 @@ class FusionConfig(BaseModel):
     # the depth) spreads a surface into a shell many voxels thick; the TSDF finds its
     # middle. Half-resolution frames and 4 cm voxels keep it cheap.
     consensus: bool = False
-    consensus_m: float = Field(0.04, gt=0)
+    consensus_m: float = Field(0.03, gt=0)
     consensus_voxel_m: float = Field(0.04, gt=0)
     consensus_trunc_voxels: float = Field(6.0, gt=0)
     consensus_downsample: int = Field(2, ge=1)
@@ -282,7 +285,9 @@ class Fusion:
             return depth, Refinement(False)
         v = pairs.visible
         return self.refiner.refine(depth, self.T_world_camera(index), self.frame_poses[index],
-                                   pairs.lidar.pixel[v], pairs.lidar.z[v])
+                                   pairs.lidar.pixel[v], pairs.lidar.z[v],
+                                   pairs.lidar.points_cam[v] if self.cfg.refine_columns
+                                   else None)
 
     # ------------------------------------------------------------------ map
     def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,
