@@ -231,6 +231,18 @@ class DepthRefiner:
         [H, W], the poses and the lidar pairs: pixels ``lidar_px`` [N, 2] (col, row) with
         their lidar z-depths ``lidar_z`` [N] and camera-frame points ``lidar_points_cam``
         [N, 3] (for the vertical columns)."""
+        from threadpoolctl import threadpool_limits
+
+        # The matrices here are tiny: BLAS's second thread only spins (on 2 cores it
+        # doubled the CPU time of the correction and took it from the rest of the fusion).
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._refine(depth, T_world_camera, T_world_base, lidar_px, lidar_z,
+                                lidar_points_cam)
+
+    def _refine(self, depth: np.ndarray, T_world_camera: np.ndarray,
+                T_world_base: np.ndarray, lidar_px: np.ndarray | None,
+                lidar_z: np.ndarray | None,
+                lidar_points_cam: np.ndarray | None) -> tuple[np.ndarray, Refinement]:
         o = self.opts
         h, w = depth.shape
         tf = self.floor_reference(T_world_camera, T_world_base)
