@@ -84,6 +84,7 @@ class FusionConfig(BaseModel):
     # Also anchor vertical columns through the lidar points (walls stand upright), gated
     # by the prediction like the floor: a table top above a leg the lidar hit falls out.
     refine_columns: bool = True
+    refine_column_top_m: float = Field(2.2, gt=0)  # columns reach this far above the floor
     # clouds and map
     stride: int = Field(2, ge=1)
     # Every near_stride-th pixel only where that spacing stays below half a voxel (depth <
@@ -142,7 +143,8 @@ class FusionConfig(BaseModel):
     def refine_options(self) -> RefineOptions:
         return RefineOptions(grid=self.refine_grid, gate=self.refine_gate,
                              gate_final=self.refine_gate_final, smooth=self.refine_smooth,
-                             max_depth_m=self.max_depth_m)
+                             max_depth_m=self.max_depth_m,
+                             column_top_m=self.refine_column_top_m)
 
     def carve_options(self) -> CarveOptions:
         return CarveOptions(self.depth_margin_m, self.depth_margin_rel, self.lidar_margin_m,
