@@ -134,10 +134,9 @@ def test_consensus_keeps_the_middle_of_a_shell_of_views() -> None:
     truth = np.where(truth < 3.9, np.nan, truth)  # the wall only, not the floor
     surface = ConsensusSurface(CAM, voxel_size_m=0.04, trunc_voxels=6, depth_max_m=6.0,
                                downsample=2)
-    rgb = np.full(truth.shape + (3,), 128, np.uint8)
     for k in range(10):
         err = 0.02 if k % 2 else -0.02
-        surface.integrate(truth * np.float32(1 + err), rgb, T)
+        surface.integrate(truth * np.float32(1 + err), T)
     rows, cols = np.mgrid[10:110:10, 10:150:10]
     rays = CAM.pixel_rays()[rows.ravel(), cols.ravel()]
     z = truth[rows.ravel(), cols.ravel()]

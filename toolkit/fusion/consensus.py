@@ -5,8 +5,8 @@ many views becomes, in a voxel map of points, a shell several voxels thick. A TS
 averages the signed distance along each view's rays, and its zero crossing is the
 weighted middle of that shell. The fusion keeps the voxel map (its colours, counts and
 moving-obstacle bookkeeping) and drops the voxels that lie farther than a threshold from
-this surface. The volume runs on downsampled frames with coarse voxels: it only has to
-say where the middle is.
+this surface. The volume runs on downsampled frames with coarse voxels and no colour: it
+only has to say where the middle is.
 """
 
 from __future__ import annotations
@@ -15,49 +15,71 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from toolkit.baselines.tsdf import TSDFSettings, TSDFVolume
 from toolkit.camera import PinholeCamera
+from toolkit.geometry import inv_se3
 
 
 class ConsensusSurface:
-    """A coarse TSDF of the fused frames, queried for the distance to its surface."""
+    """A coarse, geometry-only TSDF (Open3D VoxelBlockGrid) of the fused frames."""
 
     def __init__(self, camera: PinholeCamera, voxel_size_m: float = 0.04,
                  trunc_voxels: float = 6.0, depth_max_m: float = 6.0,
                  downsample: int = 2) -> None:
+        import open3d as o3d
+        import open3d.core as o3c
+
+        self._o3d, self._o3c = o3d, o3c
         self.camera = camera
         # Never below 320 pixels across: a coarser image leaves holes between its rays
         # at a few metres that the 4 cm voxels cannot bridge.
         self.downsample = max(1, min(int(downsample), camera.width // 320))
         w, h = camera.width // self.downsample, camera.height // self.downsample
         self.volume_camera = camera.undistorted().scaled(w, h)
-        self.volume = TSDFVolume(TSDFSettings(voxel_size_m=voxel_size_m,
-                                              trunc_voxels=trunc_voxels,
-                                              depth_max_m=depth_max_m, block_resolution=8,
-                                              block_count=4096))
+        self.K = o3c.Tensor(self.volume_camera.K, o3c.float64)
+        self.trunc_voxels = float(trunc_voxels)
+        self.depth_max_m = float(depth_max_m)
+        # Depth units per metre for the uint16 depth image (Open3D's integrator wants it).
+        self.depth_scale = float(min(5000.0, np.floor(65535.0 / (1.001 * depth_max_m))))
+        # 8^3 blocks: a 24 cm truncation band touches fewer voxels than with 16^3 blocks
+        # (measured 6.4 vs 8.9 ms per frame).
+        self.grid = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
+            attr_channels=((1), (1)), voxel_size=float(voxel_size_m), block_resolution=8,
+            block_count=4096, device=o3c.Device("CPU:0"))
         self.frames = 0
         self._surface: np.ndarray | None = None
 
-    def integrate(self, depth: np.ndarray, rgb: np.ndarray, T_world_camera: np.ndarray) -> None:
-        """Add one frame: z-depth [H, W] in metres (0 or NaN where not to be used) and its
-        RGB image [H, W, 3], at full resolution of the fused camera."""
+    def integrate(self, depth: np.ndarray, T_world_camera: np.ndarray) -> None:
+        """Add one frame: z-depth [H, W] in metres (0 or NaN where not to be used) at the
+        full resolution of the fused camera."""
+        o3d, o3c = self._o3d, self._o3c
         d = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0)
         if self.camera.has_distortion:
             d = self.camera.undistort_image(d, cv2.INTER_NEAREST)
-            rgb = self.camera.undistort_image(rgb)
-        size = (self.volume_camera.width, self.volume_camera.height)
         if self.downsample > 1:
             # Nearest: averaging depth across an edge would make points that exist nowhere.
-            d = cv2.resize(d, size, interpolation=cv2.INTER_NEAREST)
-            rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-        self.volume.integrate(d, rgb, self.volume_camera, T_world_camera)
+            d = cv2.resize(d, (self.volume_camera.width, self.volume_camera.height),
+                           interpolation=cv2.INTER_NEAREST)
+        ok = (d > 0) & (d <= self.depth_max_m)
+        d16 = np.where(ok, np.round(d * self.depth_scale), 0).astype(np.uint16)
+        img = o3d.t.geometry.Image(o3c.Tensor(d16))
+        ext = o3c.Tensor(inv_se3(T_world_camera), o3c.float64)  # world -> camera
+        blocks = self.grid.compute_unique_block_coordinates(
+            img, self.K, ext, self.depth_scale, self.depth_max_m, self.trunc_voxels)
+        self.grid.integrate(blocks, img, self.K, ext, self.depth_scale, self.depth_max_m,
+                            self.trunc_voxels)
         self.frames += 1
         self._surface = None
 
     def surface(self) -> np.ndarray:
         """[M, 3] points on the consensus surface (zero crossings of the TSDF)."""
         if self._surface is None:
-            self._surface = self.volume.extract_points() if self.frames else np.zeros((0, 3))
+            if self.frames == 0:
+                self._surface = np.zeros((0, 3))
+            else:
+                # Weight above 0.5: every voxel a frame reached counts (one frame = 1).
+                pcd = self.grid.extract_point_cloud(weight_threshold=0.5)
+                self._surface = pcd.point.positions.numpy().astype(np.float64)
         return self._surface
 
     def off_surface(self, points: np.ndarray, max_distance_m: float) -> np.ndarray:

@@ -323,7 +323,7 @@ class Fusion:
         self.map.integrate(pts, col, index, lab, z, w)
         if self.consensus is not None and index % self.cfg.consensus_every == 0:
             self.consensus.integrate(np.where(ok if drop is None else ok & ~drop, depth, 0.0),
-                                     rgb, self.T_world_camera(index))
+                                     self.T_world_camera(index))
         if self.cfg.dynamic_removal and self.cfg.carve_with_depth and (
                 index % self.cfg.carve_every == 0):
             s = self.rays.stride
