@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
 
 from calibration.check import (
     CheckFrame,
@@ -119,41 +120,10 @@ def _write_sequence(scene, root):  # noqa: ANN001, ANN202
 
 def _run_with_sequence(seq_dir, stages, tmp_path):  # noqa: ANN001, ANN202
     """Run ``stages`` after a stage that provides the sequence folder ``seq_dir``."""
-    import yaml
-
     from calibration.stage import CalibrateStage
-    from toolkit.recipe import registry
-    from toolkit.recipe.runner import run_recipe
-    from toolkit.recipe.schema import load_recipe
-    from toolkit.recipe.stage import Stage, StageConfig
 
-    class SeqConfig(StageConfig):
-        path: str
-
-    class SeqStage(Stage):
-        """Provide an existing sequence folder."""
-
-        name = "t_sequence"
-        Config = SeqConfig
-        provides = ("sequence",)
-
-        def run(self, ctx) -> None:  # noqa: ANN001
-            import shutil
-
-            shutil.copytree(self.config.path, ctx.stage_dir / "seq")  # type: ignore
-            ctx.provide("sequence", ctx.stage_dir / "seq")
-
-    recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": [
-        {"stage": "t_sequence", "path": str(seq_dir)}, *stages]}
-    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
-    added = {"t_sequence": SeqStage, "calibrate": CalibrateStage}
-    for n, c in added.items():
-        registry.register(n, c)
-    try:
-        return run_recipe(load_recipe(tmp_path / "r.yaml", []))
-    finally:
-        for n in added:
-            registry.unregister(n)
+    return run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq_dir)}, *stages],
+                      {"t_sequence": SequenceFolder, "calibrate": CalibrateStage})
 
 
 def test_stage_with_upstream_sequence_checks_the_result(scene, tmp_path) -> None:  # noqa: ANN001
@@ -217,19 +187,8 @@ def test_stage_check_only_scores_the_rig_and_a_given_extrinsic(scene, tmp_path) 
 
 
 def test_stage_check_only_needs_a_sequence(tmp_path) -> None:  # noqa: ANN001
-    import yaml
-
     from calibration.stage import CalibrateStage
-    from toolkit.recipe import registry
-    from toolkit.recipe.runner import run_recipe
-    from toolkit.recipe.schema import load_recipe
 
-    recipe = {"name": "t", "output": str(tmp_path / "run"),
-              "stages": [{"stage": "calibrate", "mode": "check"}]}
-    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
-    registry.register("calibrate", CalibrateStage)
-    try:
-        res = run_recipe(load_recipe(tmp_path / "r.yaml", []))
-    finally:
-        registry.unregister("calibrate")
+    res = run_stages(tmp_path, [{"stage": "calibrate", "mode": "check"}],
+                     {"calibrate": CalibrateStage})
     assert not res.ok and "needs a sequence" in str(res.error)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from recipe_helpers import run_stages  # the tests folder is on sys.path
 
 from calibration.stage import CalibrateStage
 from calibration.synthetic import make_capture, write_capture
@@ -14,21 +15,12 @@ from calibration.synthetic import make_capture, write_capture
 
 def test_calibrate_stage_writes_rig_and_metrics(tmp_path: Path) -> None:
     from toolkit.io.sequence import read_rig
-    from toolkit.recipe import registry
-    from toolkit.recipe.runner import run_recipe
-    from toolkit.recipe.schema import load_recipe
 
     cap = make_capture(6, seed=21)
     write_capture(cap, tmp_path / "capture")
-    recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": [
+    res = run_stages(tmp_path, [
         {"stage": "calibrate", "capture": str(tmp_path / "capture"), "board": "11x8",
-         "square_m": 0.05, "leave_one_out": False}]}
-    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
-    registry.register("calibrate", CalibrateStage)
-    try:
-        res = run_recipe(load_recipe(tmp_path / "r.yaml", []))
-    finally:
-        registry.unregister("calibrate")
+         "square_m": 0.05, "leave_one_out": False}], {"calibrate": CalibrateStage})
     assert res.ok, res.error
     m = res.metrics["calibrate"]
     assert m["views_used"] == 6 and m["residual_rms_m"] < 0.012

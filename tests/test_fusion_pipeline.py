@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
+from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
 
 from toolkit.eval.map_accuracy import MeshDistance
 from toolkit.fusion.pipeline import Fusion, FusionConfig, pose_arrays
@@ -74,46 +74,15 @@ def test_moving_box_is_removed_from_the_map(box_room: Path) -> None:
 def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path) -> None:
     from toolkit.depth.stage import DepthStage
     from toolkit.fusion.stage import FuseStage
-    from toolkit.recipe import registry
-    from toolkit.recipe.runner import run_recipe
-    from toolkit.recipe.schema import load_recipe
-    from toolkit.recipe.stage import Stage, StageConfig
 
-    class SeqConfig(StageConfig):
-        path: str
-
-    class SeqStage(Stage):
-        """Provide an existing sequence folder."""
-
-        name = "t_sequence"
-        Config = SeqConfig
-        provides = ("sequence",)
-
-        def run(self, ctx) -> None:  # noqa: ANN001
-            import shutil
-
-            dst = ctx.stage_dir / "seq"  # artifacts must live in the stage's folder
-            shutil.copytree(self.config.path, dst, dirs_exist_ok=True)  # type: ignore
-            ctx.provide("sequence", dst)
-
-    # The registry may not list depth/fuse yet when this runs in isolation.
-    added = {"t_sequence": SeqStage, "depth": DepthStage, "fuse": FuseStage}
-    for n, c in added.items():
-        registry.register(n, c)
-    try:
-        recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": [
-            {"stage": "t_sequence", "path": str(box_room)},
-            {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
-            {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 5,
-             "refine": "floor_lidar", "consensus": True},
-        ]}
-        p = tmp_path / "r.yaml"
-        p.write_text(yaml.safe_dump(recipe))
-        res = run_recipe(load_recipe(p, []))
-        assert res.ok, res.error
-    finally:
-        for n in added:
-            registry.unregister(n)
+    # Registered for the run: the registry may not list depth/fuse yet in isolation.
+    res = run_stages(tmp_path, [
+        {"stage": "t_sequence", "path": str(box_room)},
+        {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+        {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 5,
+         "refine": "floor_lidar", "consensus": True},
+    ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
+    assert res.ok, res.error
     m = res.metrics["fuse"]
     assert m["poses"] == "groundtruth"
     assert m["gt_scaled_rmse_m"] < 0.5 * m["gt_unscaled_rmse_m"]

@@ -1,0 +1,47 @@
+"""Running test recipes: stages registered for the run only, a folder given as a sequence."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from toolkit.recipe import registry
+from toolkit.recipe.runner import run_recipe
+from toolkit.recipe.schema import load_recipe
+from toolkit.recipe.stage import Stage, StageConfig
+
+
+class SequenceFolderConfig(StageConfig):
+    path: str
+
+
+class SequenceFolder(Stage):
+    """Provide an existing sequence folder (copied: artifacts live in the stage's folder)."""
+
+    name = "t_sequence"
+    Config = SequenceFolderConfig
+    provides = ("sequence",)
+
+    def run(self, ctx: Any) -> None:
+        dst = ctx.stage_dir / "seq"
+        shutil.copytree(self.config.path, dst, dirs_exist_ok=True)  # type: ignore[attr-defined]
+        ctx.provide("sequence", dst)
+
+
+def run_stages(tmp_path: Path, stages: list[dict[str, Any]],
+               register: dict[str, type[Stage]]) -> Any:
+    """Run a recipe of ``stages`` (output ``tmp_path/run``) with ``register``'s stages
+    added to the registry for this run only; returns the runner's result."""
+    recipe = {"name": "t", "output": str(tmp_path / "run"), "stages": stages}
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    for name, cls in register.items():
+        registry.register(name, cls)
+    try:
+        return run_recipe(load_recipe(path, []))
+    finally:
+        for name in register:
+            registry.unregister(name)
