@@ -333,3 +333,36 @@ def test_da_v2_small_sized_export_cli(tmp_path: Path) -> None:
     assert be.warning and be.input_hw((480, 640)) == (266, 350)
     frame = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
     assert be.predict(frame).values.shape == (480, 640)
+
+
+def test_training_resumes_from_its_checkpoint(tmp_path: Path) -> None:
+    """A run that finds ``<out>.ckpt`` continues from its iteration and time used; a
+    checkpoint of another configuration is refused; a finished run removes it."""
+    import torch
+
+    from toolkit.depth.train_small import (
+        TrainConfig,
+        checkpoint_path,
+        make_model,
+        save_checkpoint,
+        train,
+    )
+
+    cfg = TrainConfig(out=tmp_path / "m.onnx", train_seeds=(101,), images_per_house=3,
+                      val_images=2, height=24, width=32, widths=(4, 8), batch=2,
+                      minutes=5.0, max_iters=9, threads=1, cache=tmp_path / "cache",
+                      checkpoint_minutes=5.0)
+    torch.manual_seed(0)
+    model = make_model(cfg.widths)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)  # type: ignore[attr-defined]
+    rng = np.random.default_rng(3)
+    save_checkpoint(checkpoint_path(cfg.out), cfg, model, opt, rng, 7, 60.0, 50.0)
+    stats = train(cfg)
+    assert stats["iterations"] == 9  # 7 from the checkpoint + 2 here
+    assert stats["train_seconds"] >= 60.0  # the time budget counts the first run's minute
+    assert not checkpoint_path(cfg.out).exists() and cfg.out.is_file()
+
+    other = TrainConfig(**{**cfg.__dict__, "lr": 1e-3})
+    save_checkpoint(checkpoint_path(cfg.out), cfg, model, opt, rng, 7, 60.0, 50.0)
+    with pytest.raises(ValueError, match="different training configuration"):
+        train(other)

@@ -70,6 +70,10 @@ class TrainConfig:
     threads: int = 2
     seed: int = 0
     cache: Path | None = Path("datasets/generated/depth_train")
+    # Training state (weights, optimiser, iteration, time used) is saved every
+    # checkpoint_minutes next to ``out`` (``<out>.ckpt``); a run started again with the
+    # same ``out`` continues from it within the same time budget. 0: no checkpoints.
+    checkpoint_minutes: float = 5.0
     log: list = field(default_factory=list)
 
 
@@ -366,14 +370,31 @@ def train(cfg: TrainConfig) -> dict:
     n_params = sum(p.numel() for p in model.parameters())  # type: ignore[attr-defined]
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)  # type: ignore
     budget = cfg.minutes * 60.0
-    t1, c1 = time.perf_counter(), time.process_time()
+    ckpt = checkpoint_path(cfg.out)
+    it, used, used_cpu = 0, 0.0, 0.0
+    if cfg.checkpoint_minutes > 0 and ckpt.is_file():
+        state = torch.load(ckpt, weights_only=False)
+        if state["config"] != _resumable(cfg):
+            raise ValueError(f"{ckpt}: checkpoint of a different training configuration "
+                             f"({state['config']}); delete it to start afresh")
+        model.load_state_dict(state["model"])  # type: ignore[attr-defined]
+        opt.load_state_dict(state["opt"])
+        rng.bit_generator.state = state["rng"]
+        it, used, used_cpu = state["iteration"], state["seconds"], state["cpu_seconds"]
+        print(f"resuming {ckpt} at iteration {it} ({used / 60:.1f} of {cfg.minutes:g} min)",
+              flush=True)
+    t1, c1 = time.perf_counter() - used, time.process_time() - used_cpu
+    t_ckpt = time.perf_counter()
     loads = [os.getloadavg()[0]]
-    it = 0
-    losses = []
+    losses: list[float] = []
     while it < cfg.max_iters:
         elapsed = time.perf_counter() - t1
         if elapsed > budget:
             break
+        due = time.perf_counter() - t_ckpt > 60 * cfg.checkpoint_minutes
+        if cfg.checkpoint_minutes > 0 and due:
+            save_checkpoint(ckpt, cfg, model, opt, rng, it, elapsed, time.process_time() - c1)
+            t_ckpt = time.perf_counter()
         # Cosine decay over the time budget, not the iteration count: the machine's speed
         # (shared cores) decides how many iterations fit. A short warm-up keeps the first
         # steps of Adam on fresh BatchNorm statistics from throwing the weights off.
@@ -400,12 +421,38 @@ def train(cfg: TrainConfig) -> dict:
     val = evaluate(model, Xv, Dv)
     print(f"validation (house seed {cfg.val_seed}, median-scaled): {val}", flush=True)
     export(model, cfg)
+    ckpt.unlink(missing_ok=True)  # the run is complete: a rerun trains afresh
     return {"params": int(n_params), "iterations": it, "train_seconds": t_train,
             "train_cpu_seconds": c_train,
             "loadavg": f"{np.mean(loads):.1f} mean, {np.min(loads):.1f}-{np.max(loads):.1f} "
                        "(1-minute load average sampled every 100 iterations)",
             "data_seconds": t_data, "images": int(len(X)), "final_loss": float(
                 np.mean(losses[-100:])) if losses else None, "validation": val}
+
+
+def checkpoint_path(out: Path) -> Path:
+    return Path(out).with_name(Path(out).name + ".ckpt")
+
+
+def _resumable(cfg: TrainConfig) -> dict:
+    """What a checkpoint must share with the run that resumes it (not the time budget)."""
+    keep = ("train_seeds", "images_per_house", "height", "width", "render_factor",
+            "crop_height", "crop_width", "widths", "batch", "lr", "grad_weight", "seed")
+    return {k: getattr(cfg, k) for k in keep}
+
+
+def save_checkpoint(path: Path, cfg: TrainConfig, model: object, opt: object,
+                    rng: np.random.Generator, iteration: int, seconds: float,
+                    cpu_seconds: float) -> None:
+    import torch
+
+    from toolkit.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        torch.save({"config": _resumable(cfg), "model": model.state_dict(),  # type: ignore
+                    "opt": opt.state_dict(), "rng": rng.bit_generator.state,  # type: ignore
+                    "iteration": iteration, "seconds": seconds, "cpu_seconds": cpu_seconds},
+                   tmp)
 
 
 def export(model: object, cfg: TrainConfig) -> None:
@@ -508,6 +555,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=TrainConfig.cache,
                     help="folder for rendered training images (git-ignored by default)")
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--checkpoint-minutes", type=float,
+                    default=TrainConfig.checkpoint_minutes,
+                    help="save the training state (<out>.ckpt) this often; a rerun with the "
+                         "same --out resumes from it (0: never)")
     ap.add_argument("--sequence", type=Path, default=None,
                     help="simulated sequence to evaluate the model on after training "
                          "(e.g. runs/quickstart/simulate/sequence); goes into the card")
@@ -528,7 +579,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     cfg = TrainConfig(out=a.out, minutes=a.minutes, images_per_house=a.images_per_house,
                       train_seeds=tuple(101 + i for i in range(a.houses)), threads=a.threads,
-                      cache=None if a.no_cache else a.cache)
+                      cache=None if a.no_cache else a.cache,
+                      checkpoint_minutes=a.checkpoint_minutes)
     stats = train(cfg)
     if a.sequence is not None:
         stats["sequence_eval"] = {"sequence": str(a.sequence), "every": a.every,
