@@ -1,6 +1,6 @@
 """Train the project's small monocular depth network on simulator renders; export ONNX.
 
-    python -m toolkit.depth.train_small --minutes 25          # datasets/models/small-depth.onnx
+    python -m toolkit.depth.train_small                # 45 min: datasets/models/small-depth.onnx
 
 A compact U-Net (0.59 M parameters, see ``make_model``) predicts log depth from one
 RGB image at 160x120. The loss is scale-invariant (Eigen et al. 2014 with lambda = 1,
@@ -15,9 +15,8 @@ house (seed 0, the quickstart's), rendered from poses along each house's robot r
 random yaw, height and pitch changes so that views are not all straight down the corridor.
 Renders are cached (``--cache``), so a second training run starts at once.
 
-Status: the file shipped in ``datasets/models`` was made by the previous version of this
-module (a 96x128 U-Net, commit ec34ba5); the three runs of this one so far (13-25 minutes
-on a shared machine) were not clearly better on the quickstart house (docs/depth_fusion.md).
+The shipped file was made by this module's defaults (45 minutes, 24 houses) on an
+otherwise idle 2-core machine; the model card next to it has the figures.
 
     python -m toolkit.depth.train_small --eval-only MODEL.onnx \
         --sequence runs/quickstart/simulate/sequence
@@ -43,7 +42,7 @@ from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
 @dataclass
 class TrainConfig:
     out: Path = Path("datasets/models/small-depth.onnx")
-    train_seeds: tuple[int, ...] = tuple(range(101, 113))  # 12 houses, none of them seed 0
+    train_seeds: tuple[int, ...] = tuple(range(101, 125))  # 24 houses, none of them seed 0
     val_seed: int = 0  # the evaluation house: never trained on
     images_per_house: int = 150
     val_images: int = 60
@@ -64,7 +63,7 @@ class TrainConfig:
     batch: int = 8
     lr: float = 2e-3
     warmup_iters: int = 50
-    minutes: float = 25.0  # training time budget, wall clock (data generation not included)
+    minutes: float = 45.0  # training time budget, wall clock (data generation not included)
     max_iters: int = 100000
     grad_weight: float = 0.5
     threads: int = 2
@@ -514,9 +513,10 @@ resizes 640x480 frames with cubic interpolation; the graph takes any size); outp
 [1, 1, H, W], positive, relative depth (`depth_kind = relative_depth`), resized back to the
 frame by the backend. Scale it with the lidar (`fuse` stage).
 
-**Training.** `python -m toolkit.depth.train_small --minutes {cfg.minutes:g} --threads
-{cfg.threads}` on a 2-core CPU shared with other jobs (1-minute load average
-{stats.get('loadavg', '?')}; on an idle machine the same minutes run more iterations).
+**Training.** `python -m toolkit.depth.train_small --minutes {cfg.minutes:g} --houses
+{len(cfg.train_seeds)} --threads {cfg.threads}` on a 2-core CPU (1-minute load average
+{stats.get('loadavg', '?')}; about 2 is a machine doing nothing else; on a busier one the
+same minutes run fewer iterations).
 Data: {stats['images']} renders of {len(cfg.train_seeds)} simulated houses, seeds
 {cfg.train_seeds[0]}-{cfg.train_seeds[-1]} ({cfg.images_per_house} each; `toolkit.sim`,
 small_house preset, people included; **seed 0, the quickstart house, is never trained

@@ -391,7 +391,11 @@ class PaperTablesStage(Stage):
               "shows the floor that parallax alone puts on the all-pairs figure. The scaled "
               "columns are the per-frame scale alone (the paper's method); where the fusion "
               "also corrected each frame's shape (`refine`), its AbsRel against ground truth "
-              "is the column after δ<1.25, and that corrected depth is what the map holds.",
+              "is the column after δ<1.25, and that corrected depth is what the map holds. "
+              "A relative-depth network (the shipped small one, Depth Anything's relative "
+              "models) has no metric output: its unscaled column is the error of whatever "
+              "constant its output happens to carry, so its ratio says more about that "
+              "constant than about the lidar scale; compare its scaled columns.",
               "",
               "| depth | RMSE unscaled vs lidar | RMSE scaled vs lidar | scaled / unscaled, all "
               "pairs | scaled / unscaled, co-visible pairs | RMSE scaled vs GT | AbsRel scaled "
