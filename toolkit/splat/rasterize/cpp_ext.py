@@ -113,9 +113,18 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
             name = build_name()
             build_dir = cache_root() / name
             build_dir.mkdir(parents=True, exist_ok=True)
+            # Compile a copy kept in the build folder: ninja's build file names the source
+            # by absolute path, so another checkout or install of the same source (a CI
+            # clone, a second venv) would otherwise rebuild it (about a minute) each time
+            # the two take turns. The folder name already hashes the source's content.
+            src = build_dir / SOURCE.name
+            if not src.is_file():
+                from toolkit.io.atomic import atomic_write_bytes
+
+                atomic_write_bytes(src, SOURCE.read_bytes())
             _state["module"] = load(
                 name=name,
-                sources=[str(SOURCE)],
+                sources=[str(src)],
                 extra_cflags=CFLAGS,
                 extra_ldflags=LDFLAGS,
                 build_directory=str(build_dir),
