@@ -390,8 +390,7 @@ def train(cfg: TrainConfig) -> dict:
         elapsed = time.perf_counter() - t1
         if elapsed > budget:
             break
-        due = time.perf_counter() - t_ckpt > 60 * cfg.checkpoint_minutes
-        if cfg.checkpoint_minutes > 0 and due:
+        if 0 < cfg.checkpoint_minutes * 60 < time.perf_counter() - t_ckpt:
             save_checkpoint(ckpt, cfg, model, opt, rng, it, elapsed, time.process_time() - c1)
             t_ckpt = time.perf_counter()
         # Cosine decay over the time budget, not the iteration count: the machine's speed

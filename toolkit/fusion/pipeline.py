@@ -332,9 +332,10 @@ class Fusion:
         return len(pts)
 
     def finish(self, progress: object = None) -> tuple[MapArrays, dict[str, np.ndarray]]:
-        """The final map and per-voxel masks ``dynamic`` and ``outlier`` (of the raw map)."""
+        """The final map and per-voxel masks ``dynamic``, ``consensus`` and ``outlier`` (of
+        the raw map)."""
         raw = self.map.arrays(min_frames=self.cfg.min_voxel_frames)
-        masks = {"dynamic": np.zeros(len(raw), bool), "outlier": np.zeros(len(raw), bool)}
+        masks = {k: np.zeros(len(raw), bool) for k in ("dynamic", "consensus", "outlier")}
         c = self.cfg
         cell_inv: np.ndarray | None = None  # [V] carving cell of every voxel
         cell_size = 0.0
@@ -371,7 +372,6 @@ class Fusion:
         if self.consensus is not None and self.consensus.frames and keep.any():
             idx = np.flatnonzero(keep)
             off = self.consensus.off_surface(raw.points[idx], c.consensus_m)
-            masks["consensus"] = np.zeros(len(raw), bool)
             masks["consensus"][idx[off]] = True
             keep[idx[off]] = False
         if c.outlier_neighbors > 0 and keep.sum() > c.outlier_neighbors:

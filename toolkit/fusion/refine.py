@@ -251,21 +251,20 @@ class DepthRefiner:
             r_floor = np.log(tf) - np.log(d_anchor)  # [M]
         A, r = [self.design], [r_floor]
         n_floor_all = len(r_floor)
-        if lidar_px is not None and lidar_z is not None and len(lidar_z):
-            lc = np.clip(lidar_px[:, 0], 0, w - 1)
-            lr = np.clip(lidar_px[:, 1], 0, h - 1)
+
+        def add_anchors(px: np.ndarray, z: np.ndarray) -> None:
+            """Pixels [K, 2] (col, row) whose depth should be z [K]."""
+            cc = np.clip(px[:, 0], 0, w - 1)
+            rr = np.clip(px[:, 1], 0, h - 1)
             with np.errstate(divide="ignore", invalid="ignore"):
-                r.append(np.log(lidar_z) - np.log(depth[lr, lc].astype(np.float64)))
-            A.append(self.grid.design(lr, lc))
+                r.append(np.log(z) - np.log(depth[rr, cc].astype(np.float64)))
+            A.append(self.grid.design(rr, cc))
+
+        if lidar_px is not None and lidar_z is not None and len(lidar_z):
+            add_anchors(lidar_px, lidar_z)
         n_lidar_end = sum(len(x) for x in r)
         if lidar_points_cam is not None and len(lidar_points_cam):
-            px, zc = self.column_anchors(lidar_points_cam, T_world_camera, T_world_base)
-            if len(zc):
-                cc = np.clip(px[:, 0], 0, w - 1)
-                rr = np.clip(px[:, 1], 0, h - 1)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    r.append(np.log(zc) - np.log(depth[rr, cc].astype(np.float64)))
-                A.append(self.grid.design(rr, cc))
+            add_anchors(*self.column_anchors(lidar_points_cam, T_world_camera, T_world_base))
         A_a, r_a = Design.concat(A), np.concatenate(r)
         ok = np.isfinite(r_a) & (np.abs(r_a) < o.gate)
         if ok.sum() < o.min_anchors:

@@ -266,8 +266,7 @@ class FuseStage(Stage):
             "map_points": len(final), "map_points_raw": len(raw),
             "map_points_removed_dynamic": int(masks["dynamic"].sum()),
             "map_points_removed_outlier": int(masks["outlier"].sum()),
-            "map_points_removed_consensus": int(masks["consensus"].sum()) if (
-                "consensus" in masks) else 0,
+            "map_points_removed_consensus": int(masks["consensus"].sum()),
             "fusion_fps": used / max(t_core + t_finish, 1e-9),
             "fusion_fps_per_frame_only": used / max(t_core, 1e-9),
             "fusion_fps_cpu": used / max(c_core + c_finish, 1e-9),
