@@ -322,8 +322,8 @@ class Fusion:
             w = np.where(z < o.near_depth_m, (o.near_stride // o.stride) ** 2, 1)
         self.map.integrate(pts, col, index, lab, z, w)
         if self.consensus is not None and index % self.cfg.consensus_every == 0:
-            self.consensus.integrate(np.where(ok if drop is None else ok & ~drop, depth, 0.0),
-                                     self.T_world_camera(index))
+            self.consensus.integrate(depth, self.T_world_camera(index),
+                                     ok if drop is None else ok & ~drop)
         if self.cfg.dynamic_removal and self.cfg.carve_with_depth and (
                 index % self.cfg.carve_every == 0):
             s = self.rays.stride
