@@ -422,10 +422,11 @@ class FuseStage(Stage):
                       f"{100 * m['refine_field_max']:.1f} %. The map and the scaled depth "
                       "written for later stages are the corrected ones; the rows without "
                       "'shape correction' are the per-frame scale alone (the paper's method).")
+        consensus = (f"{m['map_points_removed_consensus']} farther than "
+                     f"{cfg.consensus_m * 100:g} cm from the multi-view consensus surface, "
+                     if cfg.consensus else "")
         extra = [f"map: {m['map_points']} voxels of {cfg.voxel_size_m * 100:.0f} cm "
-                 f"({m['map_points_removed_dynamic']} removed as moving, "
-                 f"{m['map_points_removed_consensus']} farther than "
-                 f"{cfg.consensus_m * 100:g} cm from the multi-view consensus surface, "
+                 f"({m['map_points_removed_dynamic']} removed as moving, {consensus}"
                  f"{m['map_points_removed_outlier']} statistical outliers)",
                  f"fusion throughput {m['fusion_fps']:.1f} frames/s wall clock, "
                  f"{m['fusion_fps_cpu']:.1f} frames/s of CPU time (network and file reading "
