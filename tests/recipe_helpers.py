@@ -14,6 +14,37 @@ from toolkit.recipe.schema import load_recipe
 from toolkit.recipe.stage import Stage, StageConfig
 
 
+class SplatInputsConfig(StageConfig):
+    frames: int = 12
+    depth_folder: str = "scaled_depth"
+
+
+class SplatInputs(Stage):
+    """A small synthetic room sequence and its fused folder, for the splat stage."""
+
+    name = "t_splat_inputs"
+    Config = SplatInputsConfig
+    provides: tuple[str, ...] = ("sequence", "fused")
+
+    def run(self, ctx: Any) -> None:
+        from toolkit.splat.synthetic import write_synthetic_inputs
+
+        cfg: Any = self.config
+        seq, fused = write_synthetic_inputs(ctx.stage_dir, n_frames=cfg.frames, width=48,
+                                            height=36, n_gaussians=2500,
+                                            depth_folder=cfg.depth_folder)
+        ctx.provide("sequence", seq)
+        if "fused" in self.provides:
+            ctx.provide("fused", fused)
+
+
+class SplatSequenceOnly(SplatInputs):
+    """The same room sequence without a fused map."""
+
+    name = "t_seq_only"
+    provides = ("sequence",)
+
+
 class SequenceFolderConfig(StageConfig):
     path: str
 

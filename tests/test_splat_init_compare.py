@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from recipe_helpers import SplatInputs, SplatSequenceOnly  # the tests folder is on sys.path
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3
@@ -18,33 +19,6 @@ from toolkit.splat.mesh_compare import Comparison, MeshViewRenderer
 from toolkit.splat.model import init_random_in_views, random_points_in_views
 from toolkit.splat.stage import SplatStage
 from toolkit.splat.synthetic import look_pose, orbit_poses, room_points, write_synthetic_inputs
-
-
-class SequenceOnly(Stage):
-    """A synthetic room sequence and nothing else: no fused map (test stage)."""
-
-    name = "t_seq_only"
-    Config = StageConfig
-    provides = ("sequence",)
-
-    def run(self, ctx: StageContext) -> None:
-        seq, _ = write_synthetic_inputs(ctx.stage_dir, n_frames=12, width=48, height=36,
-                                        n_gaussians=2500)
-        ctx.provide("sequence", seq)
-
-
-class SequenceAndFused(Stage):
-    """A synthetic room sequence and its fused folder (test stage)."""
-
-    name = "t_seq_fused"
-    Config = StageConfig
-    provides = ("sequence", "fused")
-
-    def run(self, ctx: StageContext) -> None:
-        seq, fused = write_synthetic_inputs(ctx.stage_dir, n_frames=12, width=48, height=36,
-                                            n_gaussians=2500)
-        ctx.provide("sequence", seq)
-        ctx.provide("fused", fused)
 
 
 class RoomMesh(Stage):
@@ -71,8 +45,8 @@ class RoomMesh(Stage):
 
 @pytest.fixture(autouse=True)
 def stages() -> Iterator[None]:
-    names = {"t_seq_only": SequenceOnly, "t_room_mesh": RoomMesh,
-             "t_seq_fused": SequenceAndFused, "splat": SplatStage}
+    names = {"t_seq_only": SplatSequenceOnly, "t_room_mesh": RoomMesh,
+             "t_seq_fused": SplatInputs, "splat": SplatStage}
     for name, cls in names.items():
         registry.register(name, cls)
     yield

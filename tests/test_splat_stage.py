@@ -10,34 +10,13 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from recipe_helpers import SplatInputs  # the tests folder is on sys.path
 
 from toolkit.geometry import Trajectory
 from toolkit.io.tum import write_tum
 from toolkit.recipe import Stage, StageConfig, StageContext, load_recipe, registry, run_recipe
 from toolkit.splat.export import read_ply
 from toolkit.splat.stage import SplatStage
-from toolkit.splat.synthetic import write_synthetic_inputs
-
-
-class InputsConfig(StageConfig):
-    frames: int = 12
-    depth_folder: str = "scaled_depth"
-
-
-class SyntheticInputs(Stage):
-    """Write a synthetic sequence and fused folder (test stage)."""
-
-    name = "t_splat_inputs"
-    Config = InputsConfig
-    provides = ("sequence", "fused")
-
-    def run(self, ctx: StageContext) -> None:
-        cfg: Any = self.config
-        seq, fused = write_synthetic_inputs(ctx.stage_dir, n_frames=cfg.frames, width=48,
-                                            height=36, n_gaussians=2500,
-                                            depth_folder=cfg.depth_folder)
-        ctx.provide("sequence", seq)
-        ctx.provide("fused", fused)
 
 
 class TrajectoryStage(Stage):
@@ -62,7 +41,7 @@ class TrajectoryStage(Stage):
 
 @pytest.fixture(autouse=True)
 def stages() -> Iterator[None]:
-    for name, cls in (("t_splat_inputs", SyntheticInputs), ("t_splat_traj", TrajectoryStage),
+    for name, cls in (("t_splat_inputs", SplatInputs), ("t_splat_traj", TrajectoryStage),
                       ("splat", SplatStage)):
         registry.register(name, cls)
     yield
