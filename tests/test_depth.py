@@ -226,6 +226,72 @@ def test_depth_store_round_trip(tmp_path: Path) -> None:
     assert z[1, 1] == pytest.approx(1 / (2 * vals[1, 1] + 0.1))
 
 
+def test_depth_store_keeps_an_interrupted_writers_frames_under_the_same_key(
+        tmp_path: Path) -> None:
+    vals = np.arange(12, dtype=np.float32).reshape(3, 4)
+    root = tmp_path / "d"
+    w = DepthStoreWriter(root, "metric_depth", resume_key="k1")
+    for i in range(3):
+        w.add(i, float(i), DepthPrediction(vals + i, "metric_depth", 0.01))
+    del w  # killed before close(): no index, no meta
+    (root / "frames" / "000007.npy").write_bytes(b"half a file")  # not journaled
+    with (root / "journal.jsonl").open("a") as f:
+        f.write('{"index": "3", "sta')  # a line torn by the kill
+    w = DepthStoreWriter(root, "metric_depth", resume_key="k1")
+    assert w.resumed == 3 and w.done == {0, 1, 2}
+    assert not (root / "frames" / "000007.npy").exists()
+    w.add(3, 3.0, DepthPrediction(vals + 3, "metric_depth", 0.02))
+    w.close()
+    s = DepthStore(root)
+    assert s.indices == [0, 1, 2, 3] and s.meta["height"] == 3 and s.meta["width"] == 4
+    np.testing.assert_array_equal(s.read(2).values, vals + 2)
+    assert not (root / "journal.jsonl").exists()
+    # Other settings (another key) start from nothing.
+    w = DepthStoreWriter(root, "metric_depth", resume_key="k2")
+    assert w.resumed == 0 and not list((root / "frames").glob("*.npy"))
+
+
+def test_depth_stage_resumes_after_an_interruption(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.synthetic import write_box_room
+
+    seq = write_box_room(tmp_path / "seq", n_frames=8)
+    stages = [{"stage": "t_sequence", "path": str(seq)},
+              {"stage": "depth", "backend": "simulated"}]
+    register = {"t_sequence": SequenceFolder, "depth": DepthStage}
+    for d in ("full", "cut"):
+        (tmp_path / d).mkdir()
+    full = run_stages(tmp_path / "full", stages, register)
+    assert full.ok, full.error
+    calls: list[int] = []
+    predict = SimulatedDepthBackend.predict
+
+    def dies_at_frame_5(self: SimulatedDepthBackend, rgb: np.ndarray, **kw: object) -> object:
+        if kw["frame_index"] == 5 and not calls.count(-1):
+            calls.append(-1)
+            raise RuntimeError("killed")
+        calls.append(int(kw["frame_index"]))  # type: ignore[call-overload]
+        return predict(self, rgb, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(SimulatedDepthBackend, "predict", dies_at_frame_5)
+    first = run_stages(tmp_path / "cut", stages, register)
+    assert not first.ok and calls == [0, 1, 2, 3, 4, -1]
+    calls.clear()
+    calls.append(-1)  # no second kill
+    again = run_stages(tmp_path / "cut", stages, register)
+    assert again.ok, again.error
+    assert calls == [-1, 5, 6, 7] and again.metrics["depth"]["frames_resumed"] == 5
+    a = DepthStore(tmp_path / "full/run/depth/depth")
+    b = DepthStore(tmp_path / "cut/run/depth/depth")
+    assert a.indices == b.indices == list(range(8))
+    for i in a.indices:
+        np.testing.assert_array_equal(a.read(i).values, b.read(i).values)
+    assert "5 kept from an interrupted run" in (tmp_path / "cut/run/report.md").read_text()
+
+
 # ------------------------------------------------------------------ small network
 
 

@@ -10,7 +10,7 @@ from pydantic import Field
 
 from toolkit.depth.protocol import DepthKind
 from toolkit.depth.simulated import PRESETS, SimulatedDepthBackend, SimulatedDepthParams
-from toolkit.depth.store import DepthStoreWriter
+from toolkit.depth.store import DepthStore, DepthStoreWriter
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.recipe.timing import WorkTimer
 
@@ -121,13 +121,19 @@ class DepthStage(Stage):
                              f"sequence {seq.name} lacks; use backend 'onnx' for real data")
         out = ctx.stage_dir / "depth"
         info = backend.describe()
-        writer = DepthStoreWriter(out, backend.kind, info, cfg.dtype)
+        writer = DepthStoreWriter(out, backend.kind, info, cfg.dtype,
+                                  resume_key=ctx.cache_key or None)
         indices = list(range(0, len(seq.frames), cfg.every))
+        done = writer.done
+        todo = [i for i in indices if i not in done]
+        if writer.resumed:
+            ctx.log.info("depth: resuming, %d of %d frames kept from an interrupted run",
+                         len(indices) - len(todo), len(indices))
         first_pred = None
         # Only inference is work: image decoding and the simulated backend's ground-truth
         # read stand for what a live camera driver delivers.
         timer = WorkTimer()
-        for i in ctx.progress(indices, description="depth"):
+        for i in ctx.progress(todo, description="depth"):
             frame = seq.frames[i]
             rgb = frame.image
             kwargs = {"gt_depth": gt.depth(i), "frame_index": i} if cfg.backend == "simulated" \
@@ -141,9 +147,13 @@ class DepthStage(Stage):
         ctx.provide("depth", out)
         lat = np.array([float(r["latency_s"]) for r in writer.rows])
         metrics = {"frames": len(indices), "kind": backend.kind, "backend": cfg.backend,
+                   "frames_resumed": len(indices) - len(todo),
                    "latency_mean_s": float(lat.mean()), "latency_median_s": float(np.median(lat)),
                    "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None,
-                   **timer.metrics(len(indices))}
+                   **timer.metrics(len(todo))}
+        if first_pred is None:  # every frame came from the interrupted run
+            i = indices[0]
+            first_pred = (i, seq.frames[i].image, DepthStore(out).read(i))
         ctx.add_metrics(metrics)
         if random_weights:
             ctx.add_metrics({"random_weights": True})
@@ -153,8 +163,10 @@ class DepthStage(Stage):
                  if cfg.backend == "simulated" else f"ONNX network `{cfg.model}`"
                  + (" (**RANDOM WEIGHTS, timing only: the depth is meaningless**)"
                     if random_weights else ""))
-        md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames, "
-              f"network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
+        resumed = (f" ({metrics['frames_resumed']} kept from an interrupted run)"
+                   if metrics["frames_resumed"] else "")
+        md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames"
+              f"{resumed}, network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms)."]
         if first_pred is not None:
             fig = ctx.stage_dir / "depth_sample.png"

@@ -3,6 +3,8 @@
     <dir>/meta.json        kind, backend settings, image size, frame count
     <dir>/index.csv        index,stamp,file,latency_s[,true_scale]
     <dir>/frames/NNNNNN.npy  [H, W] float32 (float16 when asked), NaN invalid
+    <dir>/journal.jsonl    while writing: a key line, then a line per frame on disk (a
+                           killed run's frames are kept by a writer with the same key)
 
 ``.npy`` and not 16-bit PNG: relative predictions have no unit, and disparity can be
 tiny or negative, which the TUM depth PNG cannot hold.
@@ -21,12 +23,20 @@ import numpy as np
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
 from toolkit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 
+JOURNAL = "journal.jsonl"
+
 
 class DepthStoreWriter:
-    """Writes predictions frame by frame; ``close`` writes the index and meta last."""
+    """Writes predictions frame by frame; ``close`` writes the index and meta last.
+
+    With a ``resume_key`` every frame is journaled once its file is in place, and a later
+    writer given the same key (the same settings and inputs) keeps the frames an
+    interrupted one wrote: ``done`` lists them, ``resumed`` counts them. Without a key, or
+    with another one, the folder starts empty.
+    """
 
     def __init__(self, root: Path, kind: DepthKind, info: dict[str, Any] | None = None,
-                 dtype: str = "float32") -> None:
+                 dtype: str = "float32", resume_key: str | None = None) -> None:
         if dtype not in ("float32", "float16"):
             raise ValueError("dtype must be float32 or float16")
         self.root = Path(root)
@@ -35,8 +45,45 @@ class DepthStoreWriter:
         self.kind = kind
         self.info = info or {}
         self.dtype = dtype
-        self.rows: list[dict[str, str]] = []
         self.shape: tuple[int, int] | None = None
+        head = {"key": resume_key, "kind": kind, "dtype": dtype}
+        self.rows: list[dict[str, str]] = self._journaled(head) if resume_key else []
+        if self.rows:
+            last = np.load(self.root / self.rows[-1]["file"], mmap_mode="r")
+            self.shape = (int(last.shape[0]), int(last.shape[1]))
+        listed = {r["file"] for r in self.rows}
+        for f in (self.root / "frames").glob("*.npy"):
+            if f"frames/{f.name}" not in listed:
+                f.unlink()  # another run's, or written after the journal's last line
+        self.resumed = len(self.rows)
+        self._journal_path = self.root / JOURNAL
+        # Rewritten atomically from the rows kept, which drops a torn last line.
+        atomic_write_text(self._journal_path, "".join(
+            json.dumps(r) + "\n" for r in [head, *self.rows]))
+        self._journal = self._journal_path.open("a", encoding="utf-8")
+
+    def _journaled(self, head: dict[str, Any]) -> list[dict[str, str]]:
+        """Rows of an earlier writer's journal with the same head whose files exist."""
+        path = self.root / JOURNAL
+        if not path.exists():
+            return []
+        rows: list[dict[str, str]] = []
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines()):
+            try:
+                item = json.loads(line)
+            except json.JSONDecodeError:
+                break  # a line torn by the kill: everything before it stands
+            if n == 0:
+                if item != head:
+                    return []
+            elif (self.root / item["file"]).exists():
+                rows.append(item)
+        return rows
+
+    @property
+    def done(self) -> set[int]:
+        """Frame indices already written (by this writer or a resumed one)."""
+        return {int(r["index"]) for r in self.rows}
 
     def add(self, index: int, stamp: float, pred: DepthPrediction) -> None:
         if pred.kind != self.kind:
@@ -50,8 +97,13 @@ class DepthStoreWriter:
         if "true_scale" in pred.extra:
             row["true_scale"] = repr(float(pred.extra["true_scale"]))
         self.rows.append(row)
+        # After the file: a journaled frame is complete on disk. Flushed, not fsynced: this
+        # guards against a killed process, not against power loss.
+        self._journal.write(json.dumps(row) + "\n")
+        self._journal.flush()
 
     def close(self) -> Path:
+        self.rows.sort(key=lambda r: int(r["index"]))
         fields: list[str] = []
         for r in self.rows:
             fields += [k for k in r if k not in fields]
@@ -65,6 +117,8 @@ class DepthStoreWriter:
                 "frames": len(self.rows), "height": self.shape[0] if self.shape else None,
                 "width": self.shape[1] if self.shape else None, **self.info}
         atomic_write_json(self.root / "meta.json", meta)
+        self._journal.close()
+        self._journal_path.unlink(missing_ok=True)
         return self.root
 
 

@@ -340,6 +340,7 @@ class _Context(StageContext):
         self.stage_dir = run.run_dir / spec.id
         self.stage_id = spec.id
         self.recipe_name = run.recipe.name
+        self.cache_key = record.key or ""
         self.log = logging.getLogger(f"toolkit.run.{spec.id}")
         self._run = run
         self._record = record

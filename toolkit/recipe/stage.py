@@ -64,6 +64,9 @@ class StageContext(ABC):
     stage_id: str
     recipe_name: str
     log: logging.Logger
+    # This run's cache key of the stage (settings, upstream keys, external files): partial
+    # work a killed run left in stage_dir under the same key may be resumed.
+    cache_key: str = ""
 
     @abstractmethod
     def artifact(self, name: str) -> Path:
