@@ -11,6 +11,7 @@ from pydantic import Field
 from toolkit.depth.protocol import DepthKind
 from toolkit.depth.simulated import PRESETS, SimulatedDepthBackend, SimulatedDepthParams
 from toolkit.depth.store import DepthStore, DepthStoreWriter
+from toolkit.io.prefetch import prefetched
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.recipe.timing import WorkTimer
 
@@ -133,14 +134,18 @@ class DepthStage(Stage):
         # Only inference is work: image decoding and the simulated backend's ground-truth
         # read stand for what a live camera driver delivers.
         timer = WorkTimer()
-        for i in ctx.progress(todo, description="depth"):
-            frame = seq.frames[i]
-            rgb = frame.image
-            kwargs = {"gt_depth": gt.depth(i), "frame_index": i} if cfg.backend == "simulated" \
-                else {}
+        simulated = cfg.backend == "simulated"
+
+        def load(i: int) -> tuple[np.ndarray, dict]:
+            # In a thread, ahead of the network (image decoding releases the GIL).
+            return seq.frames[i].image, (
+                {"gt_depth": gt.depth(i), "frame_index": i} if simulated else {})
+
+        for i, (rgb, kwargs) in ctx.progress(prefetched(load, todo), total=len(todo),
+                                             description="depth"):
             with timer:
                 pred = backend.predict(rgb, **kwargs)
-            writer.add(i, frame.stamp, pred)
+            writer.add(i, seq.frames[i].stamp, pred)
             if first_pred is None:
                 first_pred = (i, rgb, pred)
         writer.close()

@@ -1,0 +1,71 @@
+"""Reading ahead and writing behind in a thread.
+
+Decoding and encoding image files (OpenCV) and reading arrays (numpy) release the GIL, so a
+thread doing them overlaps a stage's computation on a second core - unlike threads doing
+the numpy-heavy computation itself, which mostly wait for each other.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def prefetched(load: Callable[[T], R], items: Iterable[T], ahead: int = 2) -> Iterator[
+        tuple[T, R]]:
+    """``(item, load(item))`` for every item in order, the next ``ahead`` items loading in a
+    thread meanwhile. An error in ``load`` is raised when its item's turn comes."""
+    it = iter(items)
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch")
+    pending: deque[tuple[T, Future]] = deque()
+    try:
+        for item in it:
+            pending.append((item, pool.submit(load, item)))
+            if len(pending) > ahead:
+                first, fut = pending.popleft()
+                yield first, fut.result()
+        while pending:
+            first, fut = pending.popleft()
+            yield first, fut.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+class WriteBehind:
+    """Runs writes in a thread, in submission order, at most ``max_pending`` behind.
+
+    Use as a context manager: leaving it waits for every write and raises the first error
+    (as does a ``submit`` after a failed write).
+    """
+
+    def __init__(self, max_pending: int = 8) -> None:
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="write-behind")
+        self._pending: deque[Future] = deque()
+        self._max = max(1, max_pending)
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> None:
+        while self._pending and (self._pending[0].done() or len(self._pending) >= self._max):
+            self._pending.popleft().result()
+        self._pending.append(self._pool.submit(fn, *args))
+
+    def close(self) -> None:
+        try:
+            while self._pending:
+                self._pending.popleft().result()
+        finally:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> WriteBehind:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        # Already failing: let the writes finish (each is atomic) without masking the error.
+        self._pool.shutdown(wait=True, cancel_futures=True)
