@@ -27,6 +27,15 @@ def test_prefetched_keeps_order_and_loads_ahead() -> None:
     assert out == [(i, i * i) for i in range(6)]
 
 
+def test_without_a_thread_the_same_in_the_callers_thread(tmp_path: Path) -> None:
+    me = threading.get_ident()
+    got = list(prefetched(lambda i: (i, threading.get_ident()), range(3), ahead=0))
+    assert got == [(i, (i, me)) for i in range(3)]
+    with WriteBehind(threaded=False) as w:
+        w.submit(lambda: (tmp_path / "a").write_text(str(threading.get_ident())))
+        assert (tmp_path / "a").read_text() == str(me)  # written before submit returned
+
+
 def test_prefetched_raises_a_load_error_at_its_turn() -> None:
     def load(i: int) -> int:
         if i == 3:

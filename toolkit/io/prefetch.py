@@ -2,7 +2,9 @@
 
 Decoding and encoding image files (OpenCV) and reading arrays (numpy) release the GIL, so a
 thread doing them overlaps a stage's computation on a second core - unlike threads doing
-the numpy-heavy computation itself, which mostly wait for each other.
+the numpy-heavy computation itself, which mostly wait for each other. The thread's work
+does compete for the cores, though: a stage that times its own processing (``work_*``
+metrics) measures more CPU and, with multi-threaded libraries, more wall time while it runs.
 """
 
 from __future__ import annotations
@@ -19,7 +21,12 @@ R = TypeVar("R")
 def prefetched(load: Callable[[T], R], items: Iterable[T], ahead: int = 2) -> Iterator[
         tuple[T, R]]:
     """``(item, load(item))`` for every item in order, the next ``ahead`` items loading in a
-    thread meanwhile. An error in ``load`` is raised when its item's turn comes."""
+    thread meanwhile (``ahead`` 0: no thread). An error in ``load`` is raised when its
+    item's turn comes."""
+    if ahead <= 0:
+        for item in items:
+            yield item, load(item)
+        return
     it = iter(items)
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch")
     pending: deque[tuple[T, Future]] = deque()
@@ -37,18 +44,23 @@ def prefetched(load: Callable[[T], R], items: Iterable[T], ahead: int = 2) -> It
 
 
 class WriteBehind:
-    """Runs writes in a thread, in submission order, at most ``max_pending`` behind.
+    """Runs writes in a thread, in submission order, at most ``max_pending`` behind (or at
+    once, with ``threaded=False``).
 
     Use as a context manager: leaving it waits for every write and raises the first error
     (as does a ``submit`` after a failed write).
     """
 
-    def __init__(self, max_pending: int = 8) -> None:
+    def __init__(self, max_pending: int = 8, threaded: bool = True) -> None:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="write-behind")
         self._pending: deque[Future] = deque()
         self._max = max(1, max_pending)
+        self._threaded = threaded
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> None:
+        if not self._threaded:
+            fn(*args)
+            return
         while self._pending and (self._pending[0].done() or len(self._pending) >= self._max):
             self._pending.popleft().result()
         self._pending.append(self._pool.submit(fn, *args))
