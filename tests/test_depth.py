@@ -292,6 +292,36 @@ def test_depth_stage_resumes_after_an_interruption(tmp_path: Path,
     assert "5 kept from an interrupted run" in (tmp_path / "cut/run/report.md").read_text()
 
 
+def test_depth_stage_killed_after_its_last_frame_predicts_nothing_again(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.synthetic import write_box_room
+
+    seq = write_box_room(tmp_path / "seq", n_frames=4)
+    stages = [{"stage": "t_sequence", "path": str(seq)},
+              {"stage": "depth", "backend": "simulated"}]
+    register = {"t_sequence": SequenceFolder, "depth": DepthStage}
+    close = DepthStoreWriter.close
+
+    def killed(self: DepthStoreWriter) -> Path:
+        raise RuntimeError("killed before the index was written")
+
+    monkeypatch.setattr(DepthStoreWriter, "close", killed)
+    assert not run_stages(tmp_path, stages, register).ok
+    monkeypatch.setattr(DepthStoreWriter, "close", close)
+    calls: list[int] = []
+    predict = SimulatedDepthBackend.predict
+    monkeypatch.setattr(SimulatedDepthBackend, "predict",
+                        lambda self, rgb, **kw: calls.append(1) or predict(self, rgb, **kw))
+    res = run_stages(tmp_path, stages, register)
+    assert res.ok, res.error
+    assert calls == [] and res.metrics["depth"]["frames_resumed"] == 4
+    assert DepthStore(tmp_path / "run/depth/depth").indices == [0, 1, 2, 3]
+    assert (tmp_path / "run/depth/depth_sample.png").stat().st_size > 1000
+
+
 # ------------------------------------------------------------------ small network
 
 
