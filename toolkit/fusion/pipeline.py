@@ -293,13 +293,15 @@ class Fusion:
 
     # ------------------------------------------------------------------ map
     def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,
-                  labels: np.ndarray | None = None, drop: np.ndarray | None = None) -> int:
+                  labels: np.ndarray | None = None, drop: np.ndarray | None = None,
+                  valid: np.ndarray | None = None) -> int:
         """Add one frame's scaled depth [H, W] to the map; returns the number of points.
 
         ``labels`` [H, W] (e.g. ground-truth dynamic pixels) only ride along for
-        evaluation; ``drop`` [H, W] bool removes pixels before integration.
+        evaluation; ``drop`` [H, W] bool removes pixels before integration; ``valid`` is
+        ``valid_pixels(depth, self.cloud_opts)`` when the caller already has it.
         """
-        ok = valid_pixels(depth, self.cloud_opts)
+        ok = valid_pixels(depth, self.cloud_opts) if valid is None else valid
         pts, col, idx = depth_to_points(depth, rgb, self.rays, self.T_world_camera(index),
                                         self.cloud_opts, drop, ok)
         centres = self.dynamic_hits(index)

@@ -207,7 +207,9 @@ class FuseStage(Stage):
                 t0, c0 = time.perf_counter(), time.process_time()
                 alpha_scaled = pred.as_depth(s, t)
                 scaled, refinement = fusion.refine(i, alpha_scaled, fp)
-                n_points += fusion.integrate(i, scaled, rgb, labels=mask)
+                # The map's pixel mask, also the lidar pairs' "on pixels the map uses".
+                valid = valid_pixels(scaled, fusion.cloud_opts)
+                n_points += fusion.integrate(i, scaled, rgb, labels=mask, valid=valid)
                 t_core += time.perf_counter() - t0
                 c_core += time.process_time() - c0
                 refinements.append(refinement)
@@ -222,7 +224,7 @@ class FuseStage(Stage):
                                     sample_depth(scaled, fp.lidar)[v].astype(np.float64))
                 if len(fp.lidar):
                     px = fp.lidar.pixel
-                    ok = valid_pixels(scaled, fusion.cloud_opts)[
+                    ok = valid[
                         np.clip(px[:, 1], 0, scaled.shape[0] - 1),
                         np.clip(px[:, 0], 0, scaled.shape[1] - 1)]
                     lid_valid.add(fp.lidar.z[ok], unscaled_pairs[ok], scaled_pairs[ok])

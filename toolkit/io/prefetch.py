@@ -52,13 +52,13 @@ class WriteBehind:
     """
 
     def __init__(self, max_pending: int = 8, threaded: bool = True) -> None:
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="write-behind")
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="write-behind") \
+            if threaded else None
         self._pending: deque[Future] = deque()
         self._max = max(1, max_pending)
-        self._threaded = threaded
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> None:
-        if not self._threaded:
+        if self._pool is None:
             fn(*args)
             return
         while self._pending and (self._pending[0].done() or len(self._pending) >= self._max):
@@ -70,7 +70,8 @@ class WriteBehind:
             while self._pending:
                 self._pending.popleft().result()
         finally:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            if self._pool is not None:
+                self._pool.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> WriteBehind:
         return self
@@ -80,4 +81,5 @@ class WriteBehind:
             self.close()
             return
         # Already failing: let the writes finish (each is atomic) without masking the error.
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
