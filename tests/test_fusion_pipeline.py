@@ -136,3 +136,56 @@ def test_fusion_bench_reports_the_fastest_of_its_runs(box_room: Path) -> None:
     assert len(res["runs_fps_including_finish"]) == 2
     assert res["fps_including_finish"] == max(res["runs_fps_including_finish"])
     assert 0 < res["fps_including_finish"] <= res["fps_per_frame_work"]
+
+
+@pytest.mark.parametrize("kill_in", ["frame_pairs", "integrate"])
+def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch,
+                                                kill_in: str) -> None:
+    """Killed in the scale pass or in the map pass, a rerun keeps what the checkpoint holds,
+    redoes only the rest and writes what an uninterrupted run writes, byte for byte."""
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.stage import FuseStage
+
+    stages = [{"stage": "t_sequence", "path": str(box_room)},
+              {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+              {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 5,
+               "refine": "floor_lidar", "consensus": True, "checkpoint_every_s": 1e-9}]
+    register = {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage}
+    for d in ("full", "cut"):
+        (tmp_path / d).mkdir()
+    full = run_stages(tmp_path / "full", stages, register)
+    assert full.ok, full.error
+    calls: list[int] = []
+    real = getattr(Fusion, kill_in)
+
+    def dies_at_frame_12(self: Fusion, index: int, *a: object, **kw: object) -> object:
+        if index == 12 and -1 not in calls:
+            calls.append(-1)
+            raise RuntimeError("killed")
+        calls.append(index)
+        return real(self, index, *a, **kw)
+
+    monkeypatch.setattr(Fusion, kill_in, dies_at_frame_12)
+    first = run_stages(tmp_path / "cut", stages, register)
+    assert not first.ok and calls[-1] == -1
+    assert (tmp_path / "cut/run/fuse/checkpoint.pkl").exists()
+    calls.clear()
+    calls.append(-1)  # no second kill
+    again = run_stages(tmp_path / "cut", stages, register)
+    assert again.ok, again.error
+    m = again.metrics["fuse"]
+    assert calls[1:] == list(range(12, 20))  # frames 0-11 came from the checkpoint
+    if kill_in == "frame_pairs":
+        assert (m["frames_resumed_scales"], m["frames_resumed_map"]) == (12, 0)
+    else:
+        assert (m["frames_resumed_scales"], m["frames_resumed_map"]) == (20, 12)
+    assert not (tmp_path / "cut/run/fuse/checkpoint.pkl").exists()
+    a, b = tmp_path / "full/run/fuse", tmp_path / "cut/run/fuse"
+    for name in ("map.ply", "scales.csv", "camera_poses.tum", "scaled_depth/index.csv",
+                 "scaled_depth/000015.png"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    timing = ("fps", "seconds", "work_", "resumed", "checkpoints")
+    ref = {k: v for k, v in full.metrics["fuse"].items() if not any(t in k for t in timing)}
+    assert {k: v for k, v in m.items() if k in ref} == ref
+    assert "Resumed an interrupted run" in (tmp_path / "cut/run/report.md").read_text()

@@ -630,3 +630,23 @@ def test_inputs_null_leaves_an_optional_artifact_out(tmp_path: Path) -> None:
     data["stages"][2]["inputs"] = {"number": None}  # t_sink asserts has_artifact("number")
     result = _run(_write_recipe(tmp_path, data))
     assert not result.ok and result.failed_stage == "t_sink"
+
+
+def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
+    import numpy as np
+
+    from toolkit.recipe.checkpoint import Checkpoint
+
+    path = tmp_path / "stage" / "checkpoint.pkl"
+    ck = Checkpoint(path, "key-a", every_s=0)
+    assert ck.load() is None and not ck.due()  # nothing saved; 0 s: never due
+    ck.save({"done": 3, "sums": np.arange(4.0)})
+    state = Checkpoint(path, "key-a", every_s=60).load()
+    assert state["done"] == 3 and np.array_equal(state["sums"], np.arange(4.0))
+    assert Checkpoint(path, "key-b", every_s=60).load() is None  # other settings
+    assert Checkpoint(path, "key-a", every_s=1e-9).due()
+    path.write_bytes(b"\x80\x05torn")  # not a pickle: start afresh, do not fail
+    assert Checkpoint(path, "key-a", every_s=60).load() is None
+    ck.remove()
+    assert not path.exists()
+    assert [p.name for p in path.parent.iterdir()] == []  # no temporary files left

@@ -333,6 +333,20 @@ class Fusion:
             self.views.append((index, view))
         return len(pts)
 
+    def state(self) -> dict[str, object]:
+        """What the fused frames built (voxel map, carving views, consensus volume), to be
+        pickled: ``restore`` on a fusion of the same settings continues from it."""
+        return {"map": self.map, "views": self.views,
+                "points_masked_dynamic": self.points_masked_dynamic,
+                "consensus": None if self.consensus is None else self.consensus.state()}
+
+    def restore(self, state: dict[str, object]) -> None:
+        self.map = state["map"]  # type: ignore[assignment]
+        self.views = state["views"]  # type: ignore[assignment]
+        self.points_masked_dynamic = int(state["points_masked_dynamic"])  # type: ignore
+        if self.consensus is not None and state["consensus"] is not None:
+            self.consensus.restore(state["consensus"])  # type: ignore[arg-type]
+
     def finish(self, progress: object = None) -> tuple[MapArrays, dict[str, np.ndarray]]:
         """The final map and per-voxel masks ``dynamic``, ``consensus`` and ``outlier`` (of
         the raw map)."""

@@ -14,7 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -38,6 +38,7 @@ from toolkit.fusion.refine import Refinement
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.prefetch import WriteBehind, prefetched
+from toolkit.recipe.checkpoint import Checkpoint
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.recipe.timing import work_metrics
 from toolkit.sensors import Sequence
@@ -58,6 +59,10 @@ class FuseConfig(FusionConfig, StageConfig):
     mesh_eval_frames: int = Field(30, ge=0)  # frames whose clouds are measured to the mesh
     mesh_eval_points: int = Field(200_000, ge=1)  # map points measured to the mesh (subsample)
     figure_frame: int | None = None  # frame shown in the report (None: the middle one)
+    # Save the map built so far this often (seconds; 0: never), so that a killed run resumes
+    # where it was instead of fusing every frame again. A save writes the whole voxel map
+    # (about 0.1 KB per voxel: 0.3 GB for the quickstart's).
+    checkpoint_every_s: float = Field(300.0, ge=0)
 
 
 def _pair_metrics(metrics: dict[str, object], stats: PairStats, prefix: str,
@@ -71,6 +76,31 @@ def _pair_metrics(metrics: dict[str, object], stats: PairStats, prefix: str,
     if e_un.count and e_un.rmse_m > 0:
         metrics[f"{prefix}rmse_ratio_scaled_unscaled"] = e_sc.rmse_m / e_un.rmse_m
     return int(e_un.count)
+
+
+@dataclass
+class FuseProgress:
+    """What the stage has accumulated so far; a checkpoint holds it with the fusion's map."""
+
+    oracle: np.ndarray  # [F] per-frame scale from ground truth (NaN: none)
+    pairs: dict[int, FramePairs] = field(default_factory=dict)  # pass 1, by frame
+    scales_done: int = 0  # frames of pass 1 done
+    map_done: int = 0  # used frames of pass 2 done
+    lid: PairStats = field(default_factory=PairStats)
+    lid_valid: PairStats = field(default_factory=PairStats)  # at pixels the map uses
+    lid_vis: PairStats = field(default_factory=PairStats)  # pairs both sensors see
+    lid_ref_vis: PairStats = field(default_factory=PairStats)  # the same after refine
+    acc_un: ErrorAccumulator = field(default_factory=ErrorAccumulator)
+    acc_sc: ErrorAccumulator = field(default_factory=ErrorAccumulator)
+    acc_ref: ErrorAccumulator = field(default_factory=ErrorAccumulator)
+    refinements: list[Refinement] = field(default_factory=list)
+    frame_clouds: list[np.ndarray] = field(default_factory=list)  # for map-to-mesh per frame
+    depth_rows: list[str] = field(default_factory=list)  # scaled_depth/index.csv
+    pose_rows: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    fig_data: tuple | None = None
+    t_core: float = 0.0  # wall seconds of the fusion's own work
+    c_core: float = 0.0  # CPU seconds of the same: the machine may be shared
+    fusion: dict[str, object] | None = None  # Fusion.state() when saved
 
 
 def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
@@ -139,29 +169,48 @@ class FuseStage(Stage):
             raise StageError("fuse: no frame has both a depth prediction and a pose")
         has_gt_depth = gt is not None and gt.depth_paths is not None
         has_masks = gt is not None and gt.mask_paths is not None
-        # ---------------------------------------------------------------- pass 1: scales
+        # ---------------------------------------------------------------- resume
         t_start = time.perf_counter()
-        t_core = 0.0
-        c_core = 0.0  # CPU seconds of the same work: the machine may be shared
-        pairs: dict[int, FramePairs] = {}
-        oracle = np.full(len(frames), np.nan)
+        ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.cache_key,
+                          cfg.checkpoint_every_s, ctx.log)
+        st: FuseProgress | None = ckpt.load()
+        if st is not None and len(st.oracle) == len(frames):
+            if st.fusion is not None:
+                fusion.restore(st.fusion)
+            st.fusion = None
+            ctx.log.info("fuse: resuming after %d/%d frames' scales and %d frames' map",
+                         st.scales_done, len(frames), st.map_done)
+        else:
+            st = FuseProgress(oracle=np.full(len(frames), np.nan))
+        resumed = (st.scales_done, st.map_done)
+
+        def save_checkpoint() -> None:
+            st.fusion = fusion.state()
+            ckpt.save(st)
+            st.fusion = None
+
+        # ---------------------------------------------------------------- pass 1: scales
         oracle_gt = has_gt_depth and not disparity
 
         def load_pass1(i: int) -> tuple[DepthPrediction, np.ndarray | None]:
             return store.read(i), gt.depth(i) if oracle_gt else None  # type: ignore[union-attr]
 
         ahead = 2 if cfg.prefetch else 0
-        for j, (i, (pred, g)) in enumerate(ctx.progress(
-                prefetched(load_pass1, frames, ahead), total=len(frames),
-                description="fuse: scales")):
+        todo = frames[st.scales_done:]
+        for i, (pred, g) in ctx.progress(prefetched(load_pass1, todo, ahead), total=len(todo),
+                                         description="fuse: scales"):
             t0, c0 = time.perf_counter(), time.process_time()
-            pairs[i] = fusion.frame_pairs(i, pred)
-            t_core += time.perf_counter() - t0
-            c_core += time.process_time() - c0
+            st.pairs[i] = fusion.frame_pairs(i, pred)
+            st.t_core += time.perf_counter() - t0
+            st.c_core += time.process_time() - c0
             if g is not None:
                 ok = (g > 0) & np.isfinite(pred.values) & (pred.values > 0)
                 if ok.sum() > 100:
-                    oracle[j] = float(np.median(g[ok] / pred.values[ok]))
+                    st.oracle[st.scales_done] = float(np.median(g[ok] / pred.values[ok]))
+            st.scales_done += 1
+            if ckpt.due():
+                save_checkpoint()
+        pairs, oracle = st.pairs, st.oracle
         estimates = [pairs[i].estimate for i in frames]
         sm = fusion.smooth(estimates)
         if not sm.used.any():
@@ -174,19 +223,9 @@ class FuseStage(Stage):
         out_depth = ctx.stage_dir / "scaled_depth"
         if cfg.write_depth != "none":
             out_depth.mkdir(parents=True, exist_ok=True)
-        lid = PairStats()
-        lid_valid = PairStats()  # pairs at pixels the map would use (no edge, in range)
-        lid_vis = PairStats()  # pairs both sensors see (FramePairs.visible)
-        lid_ref_vis = PairStats()  # the same after the shape correction (refine)
-        acc_un, acc_sc, acc_ref = ErrorAccumulator(), ErrorAccumulator(), ErrorAccumulator()
-        refinements: list[Refinement] = []
         fig_frame = cfg.figure_frame if cfg.figure_frame in frames else frames[len(frames) // 2]
-        fig_data = None
         eval_frames = set(np.linspace(0, len(frames) - 1, min(cfg.mesh_eval_frames,
                                                               len(frames))).astype(int).tolist())
-        frame_clouds: list[np.ndarray] = []
-        depth_rows, pose_rows = [], []
-        n_points = 0
         used = [(j, i) for j, i in enumerate(frames) if sm.used[j]]
 
         def load_pass2(ji: tuple[int, int]) -> tuple[
@@ -198,9 +237,10 @@ class FuseStage(Stage):
 
         # Reading the next frames and writing the scaled depth run in threads (file
         # decoding and encoding release the GIL), unless prefetch is off.
+        todo2 = used[st.map_done:]
         with WriteBehind(threaded=cfg.prefetch) as writes:
             for (j, i), (pred, rgb, mask, g) in ctx.progress(
-                    prefetched(load_pass2, used, ahead), total=len(used),
+                    prefetched(load_pass2, todo2, ahead), total=len(todo2),
                     description="fuse: map"):
                 s, t = float(sm.scale[j]), float(sm.shift[j])
                 fp = pairs[i]
@@ -209,30 +249,30 @@ class FuseStage(Stage):
                 scaled, refinement = fusion.refine(i, alpha_scaled, fp)
                 # The map's pixel mask, also the lidar pairs' "on pixels the map uses".
                 valid = valid_pixels(scaled, fusion.cloud_opts)
-                n_points += fusion.integrate(i, scaled, rgb, labels=mask, valid=valid)
-                t_core += time.perf_counter() - t0
-                c_core += time.process_time() - c0
-                refinements.append(refinement)
+                fusion.integrate(i, scaled, rgb, labels=mask, valid=valid)
+                st.t_core += time.perf_counter() - t0
+                st.c_core += time.process_time() - c0
+                st.refinements.append(refinement)
                 unscaled_pairs = scaled_at_pairs(fp, disparity, 1.0, 0.0)
                 scaled_pairs = scaled_at_pairs(fp, disparity, s, t)
-                lid.add(fp.lidar.z, unscaled_pairs, scaled_pairs)
+                st.lid.add(fp.lidar.z, unscaled_pairs, scaled_pairs)
                 v = fp.visible
-                lid_vis.add(fp.lidar.z[v], unscaled_pairs[v], scaled_pairs[v])
+                st.lid_vis.add(fp.lidar.z[v], unscaled_pairs[v], scaled_pairs[v])
                 if fusion.refiner is not None:
                     # In-sample for the lidar: the correction was fitted to these pairs.
-                    lid_ref_vis.add(fp.lidar.z[v], unscaled_pairs[v],
-                                    sample_depth(scaled, fp.lidar)[v].astype(np.float64))
+                    st.lid_ref_vis.add(fp.lidar.z[v], unscaled_pairs[v],
+                                       sample_depth(scaled, fp.lidar)[v].astype(np.float64))
                 if len(fp.lidar):
                     px = fp.lidar.pixel
                     ok = valid[
                         np.clip(px[:, 1], 0, scaled.shape[0] - 1),
                         np.clip(px[:, 0], 0, scaled.shape[1] - 1)]
-                    lid_valid.add(fp.lidar.z[ok], unscaled_pairs[ok], scaled_pairs[ok])
+                    st.lid_valid.add(fp.lidar.z[ok], unscaled_pairs[ok], scaled_pairs[ok])
                 if g is not None:
-                    acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cfg.eval_max_depth_m)
-                    acc_sc.add(alpha_scaled, g, max_depth=cfg.eval_max_depth_m)
+                    st.acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cfg.eval_max_depth_m)
+                    st.acc_sc.add(alpha_scaled, g, max_depth=cfg.eval_max_depth_m)
                     if fusion.refiner is not None:
-                        acc_ref.add(scaled, g, max_depth=cfg.eval_max_depth_m)
+                        st.acc_ref.add(scaled, g, max_depth=cfg.eval_max_depth_m)
                 if j in eval_frames and gt is not None and gt.mesh_path is not None:
                     from toolkit.fusion.cloud import depth_to_points
 
@@ -240,16 +280,20 @@ class FuseStage(Stage):
                     # the frame's depth, which thinning the near pixels would skew to far ones.
                     pts, _, _ = depth_to_points(scaled, rgb, fusion.rays, fusion.T_world_camera(i),
                                                 replace(fusion.cloud_opts, near_stride=0), mask)
-                    frame_clouds.append(pts[:: max(1, len(pts) // 10000)])
+                    st.frame_clouds.append(pts[:: max(1, len(pts) // 10000)])
                 if cfg.write_depth != "none":
                     from toolkit.io.depth import write_depth
 
                     name = f"{i:06d}.{cfg.write_depth}"
                     writes.submit(write_depth, out_depth / name, scaled)  # NaN becomes 0
-                    depth_rows.append(f"{i},{seq.frames[i].stamp!r},{name},{s!r},{t!r}")
-                pose_rows.append((seq.frames[i].stamp, fusion.T_world_camera(i)))
+                    st.depth_rows.append(f"{i},{seq.frames[i].stamp!r},{name},{s!r},{t!r}")
+                st.pose_rows.append((seq.frames[i].stamp, fusion.T_world_camera(i)))
                 if i == fig_frame:
-                    fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp)
+                    st.fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp)
+                st.map_done += 1
+                if ckpt.due():
+                    writes.flush()  # the checkpoint promises these frames' files
+                    save_checkpoint()
         t0, c0 = time.perf_counter(), time.process_time()
         raw, masks = fusion.finish()
         t_finish = time.perf_counter() - t0
@@ -263,10 +307,10 @@ class FuseStage(Stage):
         write_map_ply(ctx.stage_dir / "map.ply", final)
         if cfg.write_depth != "none":
             atomic_write_text(out_depth / "index.csv",
-                              "index,stamp,file,scale,shift\n" + "\n".join(depth_rows) + "\n")
-        fused_poses = Trajectory(np.array([p[0] for p in pose_rows]),
-                                 np.stack([p[1] for p in pose_rows]), "world",
-                                 "camera") if pose_rows else None
+                              "index,stamp,file,scale,shift\n" + "\n".join(st.depth_rows) + "\n")
+        fused_poses = Trajectory(np.array([p[0] for p in st.pose_rows]),
+                                 np.stack([p[1] for p in st.pose_rows]), "world",
+                                 "camera") if st.pose_rows else None
         if fused_poses is not None:
             write_tum(ctx.stage_dir / "camera_poses.tum", fused_poses,
                       "camera poses of the fused frames")
@@ -288,48 +332,51 @@ class FuseStage(Stage):
             "map_points_removed_dynamic": int(masks["dynamic"].sum()),
             "map_points_removed_outlier": int(masks["outlier"].sum()),
             "map_points_removed_consensus": int(masks["consensus"].sum()),
-            "fusion_fps": used / max(t_core + t_finish, 1e-9),
-            "fusion_fps_per_frame_only": used / max(t_core, 1e-9),
-            "fusion_fps_cpu": used / max(c_core + c_finish, 1e-9),
-            "fusion_fps_per_frame_only_cpu": used / max(c_core, 1e-9),
+            "fusion_fps": used / max(st.t_core + t_finish, 1e-9),
+            "fusion_fps_per_frame_only": used / max(st.t_core, 1e-9),
+            "fusion_fps_cpu": used / max(st.c_core + c_finish, 1e-9),
+            "fusion_fps_per_frame_only_cpu": used / max(st.c_core, 1e-9),
             "finish_seconds": t_finish,
             "lidar_dynamic_beams": int(sum(int(b.sum()) for b in fusion.beam_dynamic)),
             "points_masked_dynamic": fusion.points_masked_dynamic,
             "stage_seconds": wall,
-            **work_metrics(t_core + t_finish, c_core + c_finish, used),
+            # Frames an interrupted run had done, taken from its checkpoint.
+            "frames_resumed_scales": resumed[0], "frames_resumed_map": resumed[1],
+            "checkpoints_saved": ckpt.saves, "checkpoint_seconds": ckpt.seconds,
+            **work_metrics(st.t_core + t_finish, st.c_core + c_finish, used),
         }
         # The same depth cap as for the ground truth: a 2D lidar sees 12 m down a corridor,
         # where the camera's depth is guesswork that the map does not use either.
         cap = cfg.eval_max_depth_m
-        n_all = _pair_metrics(metrics, lid, "lidar_", cap)
+        n_all = _pair_metrics(metrics, st.lid, "lidar_", cap)
         # The same protocol on the pairs both sensors see: the lidar point is not hidden
         # from the camera behind a nearer object and its pixel is not on a depth edge of the
         # prediction. With ground-truth depth as the prediction the all-pairs RMSE is
         # 0.185 m on the simulated house (occlusion alone) against 0.017 m on these pairs.
-        n_vis = _pair_metrics(metrics, lid_vis, "lidar_visible_", cap)
+        n_vis = _pair_metrics(metrics, st.lid_vis, "lidar_visible_", cap)
         metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)
-        _pair_metrics(metrics, lid_valid, "lidar_valid_", cap)
+        _pair_metrics(metrics, st.lid_valid, "lidar_valid_", cap)
         if fusion.refiner is not None:
-            _pair_metrics(metrics, lid_ref_vis, "lidar_visible_refined_", cap)
-            done = [r for r in refinements if r.applied]
+            _pair_metrics(metrics, st.lid_ref_vis, "lidar_visible_refined_", cap)
+            done = [r for r in st.refinements if r.applied]
             metrics.update({
                 "refine": cfg.refine, "refine_frames_applied": len(done),
                 "refine_anchors_floor_median": float(np.median(
-                    [r.anchors_floor for r in refinements])) if refinements else 0.0,
+                    [r.anchors_floor for r in st.refinements])) if st.refinements else 0.0,
                 "refine_anchors_lidar_median": float(np.median(
-                    [r.anchors_lidar for r in refinements])) if refinements else 0.0,
+                    [r.anchors_lidar for r in st.refinements])) if st.refinements else 0.0,
                 "refine_field_rms_median": float(np.median(
                     [r.field_rms for r in done])) if done else 0.0,
                 "refine_field_max": float(max(r.field_max for r in done)) if done else 0.0,
             })
         if has_gt_depth:
-            g_un, g_sc = acc_un.result(), acc_sc.result()
+            g_un, g_sc = st.acc_un.result(), st.acc_sc.result()
             metrics.update(g_un.as_dict("gt_unscaled_"))
             metrics.update(g_sc.as_dict("gt_scaled_"))
             if g_un.rmse_m > 0:
                 metrics["gt_rmse_ratio_scaled_unscaled"] = g_sc.rmse_m / g_un.rmse_m
             if fusion.refiner is not None:
-                g_ref = acc_ref.result()
+                g_ref = st.acc_ref.result()
                 metrics.update(g_ref.as_dict("gt_refined_"))
                 if g_un.rmse_m > 0:
                     metrics["gt_rmse_ratio_refined_unscaled"] = g_ref.rmse_m / g_un.rmse_m
@@ -368,14 +415,15 @@ class FuseStage(Stage):
                     step = max(1, len(gone) // 50_000)
                     metrics["carved_static_to_mesh_median_m"] = float(np.median(
                         md.distance(apply(S, gone.points[::step]))))
-            meds = [float(np.median(md.distance(apply(S, p)))) for p in frame_clouds if len(p)]
+            meds = [float(np.median(md.distance(apply(S, p)))) for p in st.frame_clouds if len(p)]
             if meds:
                 metrics["frame_to_mesh_median_m"] = float(np.median(meds))
                 metrics["frame_to_mesh_median_max_m"] = float(np.max(meds))
         ctx.add_metrics(metrics)
         # ---------------------------------------------------------------- report
-        self._report(ctx, cfg, seq, metrics, pose_note, fig_data, frames, sm, oracle, store,
+        self._report(ctx, cfg, seq, metrics, pose_note, st.fig_data, frames, sm, oracle, store,
                      raw, masks, final, traj)
+        ckpt.remove()  # every output is written: a rerun has nothing to resume
 
     @staticmethod
     def _write_scales(path: Path, seq: Sequence, frames: list[int], estimates: list,
@@ -405,6 +453,11 @@ class FuseStage(Stage):
         if backend == "simulated":
             md.append("Depth input: **simulated** monocular predictions (made from ground truth "
                       "with documented errors), not a network.")
+        if m["frames_resumed_scales"] or m["frames_resumed_map"]:
+            md.append(f"Resumed an interrupted run from its checkpoint: "
+                      f"{m['frames_resumed_scales']}/{m['frames']} frames' scales and "
+                      f"{m['frames_resumed_map']}/{m['frames_fused']} frames of the map "
+                      "were kept.")
         md.append(f"Scale estimator `{cfg.scale}` on `{store.kind}` predictions; "
                   f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
                   f"flagged ({m['frames_few_pairs']} with too few lidar pairs, "

@@ -65,10 +65,14 @@ class WriteBehind:
             self._pending.popleft().result()
         self._pending.append(self._pool.submit(fn, *args))
 
+    def flush(self) -> None:
+        """Wait until every write submitted so far is on disk (raising the first error)."""
+        while self._pending:
+            self._pending.popleft().result()
+
     def close(self) -> None:
         try:
-            while self._pending:
-                self._pending.popleft().result()
+            self.flush()
         finally:
             if self._pool is not None:
                 self._pool.shutdown(wait=True, cancel_futures=True)

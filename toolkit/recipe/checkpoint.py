@@ -1,0 +1,71 @@
+"""A stage's in-memory state saved now and then, so that a killed stage resumes mid-way.
+
+The state (any picklable object: numpy arrays, dataclasses) is written atomically to one
+file in the stage's folder together with the stage's cache key; a later run loads it only
+under the same key, so changed settings or inputs start afresh. The file is the stage's own
+intermediate output, read back only by the stage that wrote it (it is a pickle: do not
+load checkpoints from elsewhere).
+"""
+
+from __future__ import annotations
+
+import logging
+import pickle
+import time
+from pathlib import Path
+from typing import Any
+
+from toolkit.io.atomic import atomic_path
+
+_FORMAT = 1
+
+
+class Checkpoint:
+    """Saves a stage's state to ``path`` at most every ``every_s`` seconds (0: never)."""
+
+    def __init__(self, path: Path, key: str, every_s: float,
+                 log: logging.Logger | None = None) -> None:
+        self.path = Path(path)
+        self.key = key
+        self.every_s = float(every_s)
+        self.log = log or logging.getLogger(__name__)
+        self.saves = 0
+        self.seconds = 0.0  # spent saving
+        self._last = time.monotonic()
+
+    def load(self) -> Any | None:
+        """The state saved under this key, or None (no file, another key, unreadable)."""
+        if not self.path.exists():
+            return None
+        try:
+            with open(self.path, "rb") as fh:
+                saved = pickle.load(fh)
+        except Exception as e:  # written by another version of the code, or damaged
+            self.log.warning("%s: cannot read the checkpoint (%s); starting afresh", self.path, e)
+            return None
+        if not isinstance(saved, dict) or saved.get("format") != _FORMAT or (
+                saved.get("key") != self.key):
+            self.log.info("%s: checkpoint of other settings or inputs; starting afresh",
+                          self.path)
+            return None
+        self._last = time.monotonic()
+        return saved["state"]
+
+    def due(self) -> bool:
+        """Whether ``every_s`` has passed since the last save (or load, or creation)."""
+        return self.every_s > 0 and time.monotonic() - self._last >= self.every_s
+
+    def save(self, state: Any) -> None:
+        """Write ``state`` atomically (a kill during the write leaves the previous one)."""
+        t0 = time.perf_counter()
+        with atomic_path(self.path) as tmp:
+            with open(tmp, "wb") as fh:
+                pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, fh,
+                            protocol=pickle.HIGHEST_PROTOCOL)
+        self.saves += 1
+        self.seconds += time.perf_counter() - t0
+        self._last = time.monotonic()
+
+    def remove(self) -> None:
+        """Drop the checkpoint once the stage's outputs are complete."""
+        self.path.unlink(missing_ok=True)
