@@ -172,6 +172,41 @@ def test_tsdf_stage_scaled_depth_at_trajectory_poses(tmp_path: Path) -> None:
     assert g["accuracy_mean_m"] < 0.015, g
 
 
+
+def test_tsdf_stage_resumes_from_its_checkpoint(tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    from toolkit.baselines.tsdf import TSDFVolume, read_mesh
+
+    stages = [{"stage": "t_room", "frames": 8, "width": 160, "height": 120, "small": True},
+              {"stage": "tsdf", "depth_source": "groundtruth", "views": 0,
+               "geometry": False, "checkpoint_every_s": 1e-9}]
+    full = _run(tmp_path / "full", stages)
+    assert full.ok, full.error
+    integrate = TSDFVolume.integrate
+    calls: list[int] = []
+
+    def dies_at_the_6th(self: TSDFVolume, *a: Any) -> None:
+        calls.append(self.frames)
+        if len(calls) == 6:
+            raise RuntimeError("killed")
+        integrate(self, *a)
+
+    monkeypatch.setattr(TSDFVolume, "integrate", dies_at_the_6th)
+    assert not _run(tmp_path / "cut", stages).ok
+    assert (tmp_path / "cut/run/tsdf/checkpoint.pkl").exists()
+    calls.clear()
+    again = _run(tmp_path / "cut", stages)
+    assert again.ok, again.error
+    # The volume came back with its 5 frames and took only the last 3.
+    assert calls == [5, 6, 7] and again.metrics["tsdf"]["frames_resumed"] == 5
+    assert not (tmp_path / "cut/run/tsdf/checkpoint.pkl").exists()
+    # The same mesh; Open3D lists its vertices in hash-map order, which a reload changes.
+    a, b = (read_mesh(tmp_path / d / "run/tsdf/mesh.ply") for d in ("full", "cut"))
+    assert len(a.triangles) == len(b.triangles)
+    va, vb = (np.hstack([np.asarray(m.vertices), np.asarray(m.vertex_colors)]) for m in (a, b))
+    np.testing.assert_array_equal(va[np.lexsort(va.T)], vb[np.lexsort(vb.T)])
+
+
 @pytest.mark.slow
 def test_colmap_and_camera_only_stages(tmp_path: Path) -> None:
     from toolkit.io.colmap_text import read_colmap_model

@@ -18,6 +18,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
+from toolkit.recipe.checkpoint import Checkpoint
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.sensors import Sequence
 
@@ -118,6 +119,8 @@ class TSDFConfig(StageConfig):
     views: int = Field(3, ge=0)  # rendered comparison views in the report
     eval_spacing_m: float = Field(0.01, gt=0)  # sample spacing for the mesh comparison
     geometry: bool = True  # compare with the ground-truth mesh here (off: leave it to evaluate)
+    # Save the volume this often (seconds; 0: never) so that a killed run resumes there.
+    checkpoint_every_s: float = Field(300.0, ge=0)
 
 
 def _scaled_depth_files(fused: Path) -> dict[int, Path]:
@@ -197,8 +200,17 @@ class TSDFStage(Stage):
                                 min_observations=cfg.min_observations or (
                                     1 if cfg.depth_source == "groundtruth" else 2))
         vol = TSDFVolume(settings)
-        t_int = 0.0
-        for i, T in zip(ctx.progress(list(indices), description="tsdf"), poses, strict=True):
+        ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.cache_key,
+                          cfg.checkpoint_every_s, ctx.log)
+        saved = ckpt.load()
+        resumed, t_int = 0, 0.0
+        if saved is not None:
+            vol.restore(saved["volume"])
+            resumed, t_int = saved["done"], saved["integrate_s"]
+            ctx.log.info("%s: resuming after %d/%d frames", ctx.stage_id, resumed, len(indices))
+        for k in ctx.progress(range(resumed, len(indices)), total=len(indices) - resumed,
+                              description="tsdf"):
+            i, T = indices[k], poses[k]
             rgb = seq.frames[i].image
             depth = depth_of(int(i))
             if use_masks:
@@ -209,6 +221,8 @@ class TSDFStage(Stage):
             t0 = time.perf_counter()
             vol.integrate(depth, rgb, ucam, T)
             t_int += time.perf_counter() - t0
+            if ckpt.due():
+                ckpt.save({"volume": vol.state(), "done": k + 1, "integrate_s": t_int})
         t0 = time.perf_counter()
         mesh = vol.extract_mesh()
         t_ext = time.perf_counter() - t0
@@ -223,6 +237,7 @@ class TSDFStage(Stage):
             "dynamic_masked": use_masks, "min_observations": settings.min_observations,
             "vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
             "integrate_ms_per_frame": 1000 * t_int / len(indices), "extract_s": t_ext,
+            "frames_resumed": resumed,
         }
         rows: list[tuple[str, Any]] = [
             ("frames integrated", len(indices)), ("triangles", len(mesh.triangles)),
@@ -254,9 +269,13 @@ class TSDFStage(Stage):
                       f"{views['metrics']['psnr_db']:.1f} dB, coverage "
                       f"{views['metrics']['coverage']:.0%}.")
             md.append(f"![TSDF views]({ctx.stage_id}/{views['png']})")
+        if resumed:
+            md.append(f"Resumed an interrupted run: {resumed}/{len(indices)} frames came from "
+                      "its checkpoint.")
         md.append(f"Mesh: [mesh.ply]({ctx.stage_id}/mesh.ply)")
         ctx.add_metrics(metrics)
         ctx.report("\n\n".join(md))
+        ckpt.remove()  # every output is written: a rerun has nothing to resume
 
     @staticmethod
     def _views(ctx: StageContext, seq: Sequence, mesh: Any, cam: Any, indices: np.ndarray,

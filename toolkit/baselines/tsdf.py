@@ -22,6 +22,7 @@ import numpy as np
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3
 from toolkit.io.atomic import atomic_path
+from toolkit.io.voxel_grid import GridCheckpoint
 
 
 @dataclass(frozen=True)
@@ -49,7 +50,7 @@ class TSDFSettings:
         return self.min_observations - 0.5
 
 
-class TSDFVolume:
+class TSDFVolume(GridCheckpoint):
     """A TSDF + colour voxel block grid in the world frame.
 
     ``integrate`` takes z-depth in metres (0 or NaN = invalid), RGB uint8 and the camera

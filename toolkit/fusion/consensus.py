@@ -11,17 +11,17 @@ only has to say where the middle is.
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3
+from toolkit.io.voxel_grid import GridCheckpoint
 
 
-class ConsensusSurface:
+class ConsensusSurface(GridCheckpoint):
     """A coarse, geometry-only TSDF (Open3D VoxelBlockGrid) of the fused frames."""
 
     def __init__(self, camera: PinholeCamera, voxel_size_m: float = 0.04,
@@ -86,24 +86,8 @@ class ConsensusSurface:
         self.frames += 1
         self._surface = None
 
-    def state(self) -> dict[str, object]:
-        """The volume and its frame count, picklable (Open3D's own npz of the grid)."""
-        if self.frames == 0:  # Open3D cannot load a grid without blocks
-            return {"grid_npz": None, "frames": 0}
-        with tempfile.TemporaryDirectory() as d:
-            path = Path(d) / "grid.npz"
-            self.grid.save(str(path))
-            return {"grid_npz": path.read_bytes(), "frames": self.frames}
-
-    def restore(self, state: dict[str, object]) -> None:
-        """Continue from ``state()`` of a volume with the same settings."""
-        if state["grid_npz"] is None:
-            return
-        with tempfile.TemporaryDirectory() as d:
-            path = Path(d) / "grid.npz"
-            path.write_bytes(state["grid_npz"])  # type: ignore[arg-type]
-            self.grid = self._o3d.t.geometry.VoxelBlockGrid.load(str(path))
-        self.frames = int(state["frames"])  # type: ignore[call-overload]
+    def restore(self, state: dict[str, Any]) -> None:
+        super().restore(state)
         self._surface = None
 
     def surface(self) -> np.ndarray:
