@@ -207,6 +207,37 @@ def test_tsdf_stage_resumes_from_its_checkpoint(tmp_path: Path,
     np.testing.assert_array_equal(va[np.lexsort(va.T)], vb[np.lexsort(vb.T)])
 
 
+
+def test_colmap_stage_keeps_the_database_of_a_killed_run(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import toolkit.baselines.colmap as colmap
+
+    stages = [{"stage": "t_room", "frames": 6, "width": 320, "height": 240, "small": True},
+              {"stage": "colmap", "overlap": 3, "max_features": 512, "triangulate": False,
+               "export": False}]
+    run_sfm = colmap.run_sfm
+
+    def killed(*a: Any, **kw: Any) -> Any:
+        raise RuntimeError("killed while mapping")
+
+    monkeypatch.setattr(colmap, "run_sfm", killed)
+    assert not _run(tmp_path, stages).ok
+    assert (tmp_path / "run/colmap/database.json").exists()
+    monkeypatch.setattr(colmap, "run_sfm", run_sfm)
+    extractions: list[int] = []
+    extract = colmap.extract_and_match
+    monkeypatch.setattr(colmap, "extract_and_match",
+                        lambda *a, **kw: extractions.append(1) or extract(*a, **kw))
+    res = _run(tmp_path, stages)
+    assert res.ok, res.error
+    assert extractions == [] and res.metrics["colmap"]["database_resumed"]
+    assert res.metrics["colmap"]["sfm"]["extract_s"] > 0  # the first run's time, reported
+    # Other settings: the database is not theirs.
+    res = _run(tmp_path, [stages[0], {**stages[1], "max_features": 256}])
+    assert res.ok, res.error
+    assert extractions == [1] and not res.metrics["colmap"]["database_resumed"]
+
+
 @pytest.mark.slow
 def test_colmap_and_camera_only_stages(tmp_path: Path) -> None:
     from toolkit.io.colmap_text import read_colmap_model

@@ -11,6 +11,7 @@ Each answers one question a user asks of a run:
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, Literal
@@ -18,6 +19,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
+from toolkit.io.atomic import atomic_write_json
 from toolkit.recipe.checkpoint import Checkpoint
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.sensors import Sequence
@@ -364,11 +366,22 @@ class ColmapStage(Stage):
         stamp_of = {n: float(seq.frame_stamps[i]) for n, i in frame_of.items()}
         db = ctx.stage_dir / "database.db"
         ctx.log.info("colmap: %d images, %s matching", len(names), cfg.matching)
-        seconds = extract_and_match(db, image_dir, names, cam, settings)
+        # Features and matches are most of COLMAP's time: a killed run's complete database
+        # (marked with this run's cache key once matching finished) is used again.
+        marker = ctx.stage_dir / "database.json"
+        done = json.loads(marker.read_text()) if marker.exists() and db.exists() else {}
+        database_kept = bool(ctx.cache_key) and done.get("key") == ctx.cache_key
+        if database_kept:
+            seconds = done["seconds"]
+            ctx.log.info("colmap: features and matches kept from an interrupted run")
+        else:
+            marker.unlink(missing_ok=True)
+            seconds = extract_and_match(db, image_dir, names, cam, settings)
+            atomic_write_json(marker, {"key": ctx.cache_key, "seconds": seconds})
         sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", settings, database=db)
         sfm.seconds.update(seconds)
         save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
-        metrics: dict[str, Any] = {"sfm": sfm.summary()}
+        metrics: dict[str, Any] = {"sfm": sfm.summary(), "database_resumed": database_kept}
         rows: list[tuple[str, Any]] = [
             ("images / registered", f"{sfm.images} / {sfm.registered}"),
             ("separate models", sfm.models), ("sparse points", sfm.points),
@@ -417,7 +430,9 @@ class ColmapStage(Stage):
             ctx.log.warning("colmap: only %d images registered; no trajectory comparison",
                             sfm.registered)
         md = [f"COLMAP {cfg.matching} matching, incremental mapping on {len(names)} images "
-              f"(intrinsics: {cfg.intrinsics})."]
+              f"(intrinsics: {cfg.intrinsics})."
+              + (" Features and matches from an interrupted run of the same settings."
+                 if database_kept else "")]
         if cfg.triangulate or cfg.export:
             fp = _poses(ctx, seq, cfg.poses)
             md.append(fp.note)
