@@ -274,3 +274,15 @@ def test_colmap_and_camera_only_stages(tmp_path: Path) -> None:
     assert o["geometry_own_scale"]["fscore_5cm"] < o["geometry_sim3"]["fscore_5cm"]
     assert (run / "camera_only" / "map.ply").exists()
     assert "camera_only/camera_only.png" in (run / "report.md").read_text()
+
+
+def test_camera_only_runs_colmap_itself_without_a_colmap_stage(tmp_path: Path) -> None:
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 320, "height": 240},
+                          {"stage": "t_depth"},
+                          {"stage": "camera_only", "reuse_colmap": False, "overlap": 4,
+                           "max_features": 1024, "geometry": False, "eval_frames": 4}])
+    assert res.ok, res.error
+    o = res.metrics["camera_only"]
+    assert not o["colmap_reused"] and not o["database_resumed"]
+    assert o["registered_images"] >= 6 and o["scale_source"] == "network"
+    assert (tmp_path / "run/camera_only/database.json").exists()

@@ -307,6 +307,28 @@ class TSDFStage(Stage):
 # ---------------------------------------------------------------------------- colmap
 
 
+def _matched_database(ctx: StageContext, db: Path, image_dir: Path, names: list[str],
+                      cam: Any, settings: Any) -> tuple[dict[str, float], bool]:
+    """Features and verified matches of ``names`` in ``db``; the seconds each step took and
+    whether they came from an interrupted run of this stage.
+
+    They are most of COLMAP's time, so a complete database that a killed run left (marked
+    with the stage's cache key in ``<db>.json`` once matching finished) is used again.
+    """
+    from toolkit.baselines.colmap import extract_and_match
+
+    marker = db.with_suffix(".json")
+    done = json.loads(marker.read_text()) if marker.exists() and db.exists() else {}
+    if ctx.cache_key and done.get("key") == ctx.cache_key:
+        ctx.log.info("%s: features and matches kept from an interrupted run", ctx.stage_id)
+        return done["seconds"], True
+    marker.unlink(missing_ok=True)
+    seconds = extract_and_match(db, image_dir, names, cam, settings)
+    atomic_write_json(marker, {"key": ctx.cache_key, "seconds": seconds})
+    return seconds, False
+
+
+
 class _ColmapKeys(StageConfig):
     """COLMAP keys shared by ``colmap`` and ``camera_only``."""
 
@@ -349,12 +371,7 @@ class ColmapStage(Stage):
     provides = ("colmap",)
 
     def run(self, ctx: StageContext) -> None:
-        from toolkit.baselines.colmap import (
-            evaluate_sfm_trajectory,
-            extract_and_match,
-            run_sfm,
-            save_sfm,
-        )
+        from toolkit.baselines.colmap import evaluate_sfm_trajectory, run_sfm, save_sfm
         from toolkit.baselines.common import groundtruth_camera_trajectory, image_folder
 
         cfg: ColmapConfig = self.config  # type: ignore[assignment]
@@ -366,18 +383,7 @@ class ColmapStage(Stage):
         stamp_of = {n: float(seq.frame_stamps[i]) for n, i in frame_of.items()}
         db = ctx.stage_dir / "database.db"
         ctx.log.info("colmap: %d images, %s matching", len(names), cfg.matching)
-        # Features and matches are most of COLMAP's time: a killed run's complete database
-        # (marked with this run's cache key once matching finished) is used again.
-        marker = ctx.stage_dir / "database.json"
-        done = json.loads(marker.read_text()) if marker.exists() and db.exists() else {}
-        database_kept = bool(ctx.cache_key) and done.get("key") == ctx.cache_key
-        if database_kept:
-            seconds = done["seconds"]
-            ctx.log.info("colmap: features and matches kept from an interrupted run")
-        else:
-            marker.unlink(missing_ok=True)
-            seconds = extract_and_match(db, image_dir, names, cam, settings)
-            atomic_write_json(marker, {"key": ctx.cache_key, "seconds": seconds})
+        seconds, database_kept = _matched_database(ctx, db, image_dir, names, cam, settings)
         sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", settings, database=db)
         sfm.seconds.update(seconds)
         save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
@@ -593,7 +599,7 @@ class CameraOnlyStage(Stage):
         cfg: CameraOnlyConfig = self.config  # type: ignore[assignment]
         seq = _read_sequence(ctx)
         store = DepthStore(ctx.artifact("depth"))
-        reused = False
+        reused = database_kept = False
         sfm = None
         if cfg.reuse_colmap and ctx.has_artifact("colmap"):
             sfm_dir = ctx.artifact("colmap") / "sfm"
@@ -605,7 +611,12 @@ class CameraOnlyStage(Stage):
             image_dir, names, cam = image_folder(seq, sel, ctx.stage_dir)
             frame_of = {n: int(i) for n, i in zip(names, sel, strict=True)}
             stamp_of = {n: float(seq.frame_stamps[i]) for n, i in frame_of.items()}
-            sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", cfg.colmap_settings())
+            db = ctx.stage_dir / "database.db"
+            seconds, database_kept = _matched_database(ctx, db, image_dir, names, cam,
+                                                       cfg.colmap_settings())
+            sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", cfg.colmap_settings(),
+                          database=db)
+            sfm.seconds.update(seconds)
             save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
         if sfm.registered < 3:
             raise StageError(f"{ctx.stage_id}: COLMAP registered {sfm.registered} of "
@@ -631,7 +642,8 @@ class CameraOnlyStage(Stage):
         ctx.provide("camera_only", ctx.stage_dir)
         metrics: dict[str, Any] = {
             "scale_source": res.scale_source, "units": res.units, "depth_kind": res.info["kind"],
-            "colmap_reused": reused, "images": sfm.images, "registered_images": sfm.registered,
+            "colmap_reused": reused, "database_resumed": database_kept, "images": sfm.images,
+            "registered_images": sfm.registered,
             "frames_fused": int(res.used.sum()), "frames_fitted": res.info["frames_fitted"],
             "map_points": n,
         }
