@@ -130,17 +130,24 @@ def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pa
 
 
 def _report(stage_id: str, m: dict) -> str:
-    lines = [
-        f"![map]({stage_id}/map.png)",
-        "",
-        "| figure | value |",
-        "| --- | --- |",
-    ]
-    keys = ["scans_used", "nodes", "submaps", "loop_closures", "loop_closure_outliers",
-            "realtime_factor", "realtime_factor_cpu", "gt_ate_rmse_m", "camera_poses"]
-    for k in keys:
-        if k in m and m[k] is not None:
-            lines.append(f"| {k} | {m[k]} |")
+    """The map and a table of the figures a reader looks for (all are in metrics.json)."""
+    odom = "with" if m.get("odometry_used") else "no"
+    rows = [("scans used", f"{m['scans_used']} ({odom} wheel odometry)"),
+            ("pose-graph nodes / submaps", f"{m['nodes']} / {m['submaps']}"),
+            ("loop closures (rejected as outliers)",
+             f"{m['loop_closures']} ({m.get('loop_closure_outliers', 0)})")]
+    if m.get("realtime_factor") is not None:
+        rows.append(("speed", f"{m['realtime_factor']:.1f}x real time "
+                              f"({m['wall_time_s']:.1f} s for {m['log_duration_s']:.1f} s of log)"))
+    if m.get("gt_ate_rmse_m") is not None:
+        rows.append(("position error vs ground truth (ATE, SE(2)-aligned)",
+                     f"RMSE {100 * m['gt_ate_rmse_m']:.2f} cm, max "
+                     f"{100 * m['gt_ate_max_m']:.2f} cm over {m['gt_ate_poses']} poses"))
+    if m.get("camera_poses"):
+        rows.append(("camera poses", f"{m['camera_poses']} (camera frames outside the scans' "
+                                     f"time span: {m['camera_frames_outside_scan_span']})"))
+    lines = [f"![map]({stage_id}/map.png)", "", "| figure | value |", "| --- | --- |"]
+    lines += [f"| {k} | {v} |" for k, v in rows]
     rel = m.get("relations")
     if rel and "trans_abs_mean_m" in rel:
         lines.append(f"| relations (n={rel['relations_used']}) | "
