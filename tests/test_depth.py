@@ -101,6 +101,39 @@ def test_onnx_backend_is_exact_on_a_tiny_model(tmp_path: Path, rgb: np.ndarray) 
         OnnxDepthBackend(C(model=path, kind="relative_depth", input_size=56)).predict(rgb)
 
 
+
+def test_onnx_device_choice(tmp_path: Path, rgb: np.ndarray) -> None:
+    import onnxruntime as ort
+
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig, execution_providers
+
+    cpu, cuda = "CPUExecutionProvider", "CUDAExecutionProvider"
+    assert execution_providers("auto", [cpu]) == [cpu]
+    assert execution_providers("auto", [cuda, cpu]) == [cuda, cpu]
+    assert execution_providers("cpu", [cuda, cpu]) == [cpu]
+    assert execution_providers("cuda", [cuda, cpu]) == [cuda, cpu]
+    with pytest.raises(ValueError, match="pip install onnxruntime-gpu"):
+        execution_providers("cuda", [cpu])
+    path = _export(tmp_path / "tiny.onnx", (28, 42))
+    be = OnnxDepthBackend(OnnxDepthConfig(model=path, kind="relative_depth", device="cpu"))
+    assert be.providers == [cpu] and be.describe()["providers"] == [cpu]
+    if cuda not in ort.get_available_providers():  # this machine's CPU-only build
+        with pytest.raises(ValueError, match="no CUDA provider"):
+            OnnxDepthBackend(OnnxDepthConfig(model=path, kind="relative_depth", device="cuda"))
+        # Through the stage: a clean error naming the fix, before any frame.
+        from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+        from toolkit.depth.stage import DepthStage
+        from toolkit.fusion.synthetic import write_box_room
+
+        seq = write_box_room(tmp_path / "seq", n_frames=2)
+        res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq)},
+                                    {"stage": "depth", "model": str(path),
+                                     "output": "relative_depth", "device": "cuda"}],
+                         {"t_sequence": SequenceFolder, "depth": DepthStage})
+        assert not res.ok and "onnxruntime-gpu" in res.error and "device: cpu" in res.error
+
+
 def test_onnx_dynamic_input_sizes_and_metadata(tmp_path: Path, rgb: np.ndarray) -> None:
     from toolkit.depth.onnx_backend import OnnxDepthBackend
     from toolkit.depth.onnx_backend import OnnxDepthConfig as C

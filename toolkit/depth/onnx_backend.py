@@ -58,6 +58,9 @@ class OnnxDepthConfig(BaseModel):
     output_index: int = 0
     output_scale: float = 1.0  # e.g. 0.001 for a network that outputs millimetres
     threads: int = 2  # onnxruntime intra-op threads
+    # Where the network runs: cuda needs the onnxruntime-gpu package (in place of
+    # onnxruntime); auto takes CUDA when that package finds a GPU, else the CPU.
+    device: Literal["auto", "cpu", "cuda"] = "auto"
     # Busy-waiting worker threads win a little latency on an idle machine but burn the
     # cores that SLAM and fusion need in the same process chain (and other jobs on a
     # shared machine), which made everything several times slower here; off by default.
@@ -72,6 +75,21 @@ class OnnxDepthConfig(BaseModel):
         if min(hw) <= 0:
             raise ValueError(f"input_size must be positive, got {v}")
         return v
+
+
+def execution_providers(device: str, available: list[str]) -> list[str]:
+    """onnxruntime providers, in order of preference, for ``device`` given the ones this
+    onnxruntime build has (``onnxruntime.get_available_providers()``)."""
+    cuda = "CUDAExecutionProvider" in available
+    if device == "cuda" and not cuda:
+        raise ValueError(
+            "device: cuda, but this onnxruntime has no CUDA provider (it has "
+            f"{', '.join(available)}): replace it with the GPU build (pip uninstall onnxruntime"
+            " && pip install onnxruntime-gpu) on a machine with an NVIDIA driver, or set "
+            "device: cpu")
+    if device in ("cuda", "auto") and cuda:
+        return ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    return ["CPUExecutionProvider"]
 
 
 def missing_model_message(path: Path) -> str:
@@ -101,7 +119,11 @@ class OnnxDepthBackend:
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.add_session_config_entry("session.intra_op.allow_spinning",
                                       "1" if config.spin else "0")
-        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self.session = ort.InferenceSession(
+            str(path), opts,
+            providers=execution_providers(config.device, ort.get_available_providers()))
+        # What onnxruntime actually uses (it falls back to the CPU when CUDA cannot start).
+        self.providers: list[str] = list(self.session.get_providers())
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
@@ -222,6 +244,7 @@ class OnnxDepthBackend:
                 "mean": self.mean.tolist(), "std": self.std.tolist(),
                 "channel_order": self.channel_order, "layout": self.config.layout,
                 "resize": self.config.resize, "threads": self.config.threads,
+                "providers": self.providers,
                 "spin": self.config.spin, "metadata": self.metadata,
                 **({"warning": self.warning} if self.warning else {})}
 

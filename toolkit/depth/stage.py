@@ -36,6 +36,7 @@ class DepthConfig(StageConfig):
     layout: Literal["nchw", "nhwc"] = "nchw"
     output_scale: float = 1.0
     threads: int = Field(2, ge=1)
+    device: Literal["auto", "cpu", "cuda"] = "auto"  # cuda: needs onnxruntime-gpu
     # --- simulated: a preset, then per-parameter overrides
     preset: Literal["paper", "scale_only", "hard", "groundtruth"] = "paper"
     simulated: dict[str, Any] = Field(default_factory=dict)
@@ -58,6 +59,12 @@ def _input_hw(size: tuple[int, int] | int | None) -> tuple[int, int]:
     return int(h), int(w)
 
 
+def _device(backend: Any) -> str:
+    """cuda or cpu: where the backend's network ran."""
+    providers = getattr(backend, "providers", ["CPUExecutionProvider"])
+    return "cuda" if providers[0] == "CUDAExecutionProvider" else "cpu"
+
+
 def make_backend(cfg: DepthConfig) -> Any:
     """The configured backend (onnxruntime is imported only for ``onnx``)."""
     if cfg.backend == "simulated":
@@ -74,7 +81,7 @@ def make_backend(cfg: DepthConfig) -> Any:
         model=cfg.model, kind=cfg.output, input_size=cfg.input_size, resize=cfg.resize,
         multiple_of=cfg.multiple_of, interpolation=cfg.interpolation, mean=cfg.mean,
         std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
-        output_scale=cfg.output_scale, threads=cfg.threads))
+        output_scale=cfg.output_scale, threads=cfg.threads, device=cfg.device))
 
 
 class DepthStage(Stage):
@@ -119,6 +126,8 @@ class DepthStage(Stage):
             backend = make_backend(cfg)
         except FileNotFoundError as e:
             raise StageError(str(e)) from None
+        except ValueError as e:  # settings the model or this machine cannot honour
+            raise StageError(f"depth: {e}") from None
         gt = seq.groundtruth
         if cfg.backend == "simulated" and (gt is None or gt.depth_paths is None):
             raise StageError(f"depth: backend 'simulated' needs ground-truth depth, which "
@@ -158,6 +167,7 @@ class DepthStage(Stage):
                    "frames_resumed": len(indices) - len(todo),
                    "latency_mean_s": float(lat.mean()), "latency_median_s": float(np.median(lat)),
                    "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None,
+                   "device": _device(backend),
                    **timer.metrics(len(todo))}
         if first_pred is None:  # every frame came from the interrupted run
             i = indices[0]
@@ -173,9 +183,11 @@ class DepthStage(Stage):
                     if random_weights else ""))
         resumed = (f" ({metrics['frames_resumed']} kept from an interrupted run)"
                    if metrics["frames_resumed"] else "")
+        where = "" if simulated else (" on the GPU (onnxruntime CUDA)" if (
+            metrics["device"] == "cuda") else f" on the CPU ({cfg.threads} threads)")
         md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames"
               f"{resumed}, network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
-              f"(median {metrics['latency_median_s'] * 1000:.1f} ms)."]
+              f"(median {metrics['latency_median_s'] * 1000:.1f} ms){where}."]
         if first_pred is not None:
             fig = ctx.stage_dir / "depth_sample.png"
             _sample_figure(fig, *first_pred)
