@@ -35,6 +35,8 @@ from toolkit.fusion.pipeline import (
 )
 from toolkit.fusion.projection import sample_depth
 from toolkit.fusion.refine import Refinement
+from toolkit.fusion.scale import SmoothedScale
+from toolkit.fusion.voxel_map import MapArrays
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.prefetch import WriteBehind, prefetched
@@ -101,6 +103,123 @@ class FuseProgress:
     t_core: float = 0.0  # wall seconds of the fusion's own work
     c_core: float = 0.0  # CPU seconds of the same: the machine may be shared
     fusion: dict[str, object] | None = None  # Fusion.state() when saved
+
+    def add_errors(self, fp: FramePairs, disparity: bool, scale_shift: tuple[float, float],
+                   pred: DepthPrediction, scaled: np.ndarray, refined: np.ndarray | None,
+                   valid: np.ndarray, g: np.ndarray | None, cap: float) -> None:
+        """One frame's depth against its lidar pairs and, if given, the true depth ``g``:
+        unscaled, ``scaled`` (the frame's scale) and ``refined`` (after the shape
+        correction; None without one). ``valid`` [H, W]: the pixels the map uses."""
+        unscaled_pairs = scaled_at_pairs(fp, disparity, 1.0, 0.0)
+        scaled_pairs = scaled_at_pairs(fp, disparity, *scale_shift)
+        z = fp.lidar.z
+        self.lid.add(z, unscaled_pairs, scaled_pairs)
+        v = fp.visible
+        self.lid_vis.add(z[v], unscaled_pairs[v], scaled_pairs[v])
+        if refined is not None:
+            # In-sample for the lidar: the correction was fitted to these pairs.
+            self.lid_ref_vis.add(z[v], unscaled_pairs[v],
+                                 sample_depth(refined, fp.lidar)[v].astype(np.float64))
+        if len(fp.lidar):
+            px = fp.lidar.pixel
+            ok = valid[np.clip(px[:, 1], 0, valid.shape[0] - 1),
+                       np.clip(px[:, 0], 0, valid.shape[1] - 1)]
+            self.lid_valid.add(z[ok], unscaled_pairs[ok], scaled_pairs[ok])
+        if g is not None:
+            self.acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cap)
+            self.acc_sc.add(scaled, g, max_depth=cap)
+            if refined is not None:
+                self.acc_ref.add(refined, g, max_depth=cap)
+
+
+def _depth_metrics(cfg: FuseConfig, st: FuseProgress, refined: bool, has_gt_depth: bool,
+                   disparity: bool, sm: SmoothedScale, oracle: np.ndarray) -> dict[str, object]:
+    """Depth errors against the lidar pairs and the true depth, scale errors, refine stats."""
+    metrics: dict[str, object] = {}
+    # The same depth cap as for the ground truth: a 2D lidar sees 12 m down a corridor,
+    # where the camera's depth is guesswork that the map does not use either.
+    cap = cfg.eval_max_depth_m
+    n_all = _pair_metrics(metrics, st.lid, "lidar_", cap)
+    # The same protocol on the pairs both sensors see: the lidar point is not hidden
+    # from the camera behind a nearer object and its pixel is not on a depth edge of the
+    # prediction. With ground-truth depth as the prediction the all-pairs RMSE is
+    # 0.185 m on the simulated house (occlusion alone) against 0.017 m on these pairs.
+    n_vis = _pair_metrics(metrics, st.lid_vis, "lidar_visible_", cap)
+    metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)
+    _pair_metrics(metrics, st.lid_valid, "lidar_valid_", cap)
+    if refined:
+        _pair_metrics(metrics, st.lid_ref_vis, "lidar_visible_refined_", cap)
+        done = [r for r in st.refinements if r.applied]
+        metrics.update({
+            "refine": cfg.refine, "refine_frames_applied": len(done),
+            "refine_anchors_floor_median": float(np.median(
+                [r.anchors_floor for r in st.refinements])) if st.refinements else 0.0,
+            "refine_anchors_lidar_median": float(np.median(
+                [r.anchors_lidar for r in st.refinements])) if st.refinements else 0.0,
+            "refine_field_rms_median": float(np.median(
+                [r.field_rms for r in done])) if done else 0.0,
+            "refine_field_max": float(max(r.field_max for r in done)) if done else 0.0,
+        })
+    if has_gt_depth:
+        g_un, g_sc = st.acc_un.result(), st.acc_sc.result()
+        metrics.update(g_un.as_dict("gt_unscaled_"))
+        metrics.update(g_sc.as_dict("gt_scaled_"))
+        if g_un.rmse_m > 0:
+            metrics["gt_rmse_ratio_scaled_unscaled"] = g_sc.rmse_m / g_un.rmse_m
+        if refined:
+            g_ref = st.acc_ref.result()
+            metrics.update(g_ref.as_dict("gt_refined_"))
+            if g_un.rmse_m > 0:
+                metrics["gt_rmse_ratio_refined_unscaled"] = g_ref.rmse_m / g_un.rmse_m
+        if not disparity:
+            metrics.update({f"{k}": v for k, v in scale_error(
+                sm.scale, oracle).items() if k != "frames"})
+            metrics.update({f"raw_{k}": v for k, v in scale_error(
+                sm.raw_scale, oracle).items() if k != "frames"})
+    return metrics
+
+
+def _map_metrics(cfg: FuseConfig, seq: Sequence, raw: MapArrays, masks: dict[str, np.ndarray],
+                 final: MapArrays, fused_poses: Trajectory | None,
+                 frame_clouds: list[np.ndarray], has_masks: bool) -> dict[str, object]:
+    """Moving-obstacle shares and distances of the map and per-frame clouds to the true mesh."""
+    metrics: dict[str, object] = {}
+    gt = seq.groundtruth
+    if has_masks and len(raw):
+        # The raw map already lacks what the lidar masked in the images; the fraction
+        # without any removal comes from a run with dynamic_removal: false.
+        metrics["dynamic_fraction_before_carving"] = float(np.mean(raw.label > 0.5))
+        metrics["dynamic_fraction"] = float(np.mean(final.label > 0.5)) if len(final) else 0.0
+        static = raw.label <= 0.5
+        metrics["static_points_removed_fraction"] = float(
+            np.mean(masks["dynamic"][static])) if static.any() else 0.0
+    if gt is not None and gt.mesh_path is not None:
+        from toolkit.eval.alignment import apply, map_to_world
+        from toolkit.eval.map_accuracy import MeshDistance, distance_stats
+
+        md = MeshDistance(gt.mesh_path)
+        # The SLAM map frame is not the simulator's world: one rigid transform first.
+        S = map_to_world(seq, fused_poses.stamps, fused_poses.poses) if (
+            fused_poses is not None) else None
+        static_final = final.select(final.label <= 0.5) if has_masks else final
+        # A fixed-stride subsample: point-to-mesh queries cost ~10 us each and the
+        # statistics settle long before a few million points.
+        step = max(1, len(static_final) // cfg.mesh_eval_points)
+        metrics.update({f"map_to_mesh_{k}": v for k, v in distance_stats(
+            md.distance(apply(S, static_final.points[::step]))).items()})
+        if has_masks:
+            # Static points the carving removed: if they lie off the true surface, the
+            # carving removed depth errors rather than good geometry.
+            gone = raw.select(masks["dynamic"] & (raw.label <= 0.5))
+            if len(gone):
+                step = max(1, len(gone) // 50_000)
+                metrics["carved_static_to_mesh_median_m"] = float(np.median(
+                    md.distance(apply(S, gone.points[::step]))))
+        meds = [float(np.median(md.distance(apply(S, p)))) for p in frame_clouds if len(p)]
+        if meds:
+            metrics["frame_to_mesh_median_m"] = float(np.median(meds))
+            metrics["frame_to_mesh_median_max_m"] = float(np.max(meds))
+    return metrics
 
 
 def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
@@ -253,26 +372,9 @@ class FuseStage(Stage):
                 st.t_core += time.perf_counter() - t0
                 st.c_core += time.process_time() - c0
                 st.refinements.append(refinement)
-                unscaled_pairs = scaled_at_pairs(fp, disparity, 1.0, 0.0)
-                scaled_pairs = scaled_at_pairs(fp, disparity, s, t)
-                st.lid.add(fp.lidar.z, unscaled_pairs, scaled_pairs)
-                v = fp.visible
-                st.lid_vis.add(fp.lidar.z[v], unscaled_pairs[v], scaled_pairs[v])
-                if fusion.refiner is not None:
-                    # In-sample for the lidar: the correction was fitted to these pairs.
-                    st.lid_ref_vis.add(fp.lidar.z[v], unscaled_pairs[v],
-                                       sample_depth(scaled, fp.lidar)[v].astype(np.float64))
-                if len(fp.lidar):
-                    px = fp.lidar.pixel
-                    ok = valid[
-                        np.clip(px[:, 1], 0, scaled.shape[0] - 1),
-                        np.clip(px[:, 0], 0, scaled.shape[1] - 1)]
-                    st.lid_valid.add(fp.lidar.z[ok], unscaled_pairs[ok], scaled_pairs[ok])
-                if g is not None:
-                    st.acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cfg.eval_max_depth_m)
-                    st.acc_sc.add(alpha_scaled, g, max_depth=cfg.eval_max_depth_m)
-                    if fusion.refiner is not None:
-                        st.acc_ref.add(scaled, g, max_depth=cfg.eval_max_depth_m)
+                st.add_errors(fp, disparity, (s, t), pred, alpha_scaled,
+                              scaled if fusion.refiner is not None else None, valid, g,
+                              cfg.eval_max_depth_m)
                 if j in eval_frames and gt is not None and gt.mesh_path is not None:
                     from toolkit.fusion.cloud import depth_to_points
 
@@ -345,80 +447,10 @@ class FuseStage(Stage):
             "checkpoints_saved": ckpt.saves, "checkpoint_seconds": ckpt.seconds,
             **work_metrics(st.t_core + t_finish, st.c_core + c_finish, used),
         }
-        # The same depth cap as for the ground truth: a 2D lidar sees 12 m down a corridor,
-        # where the camera's depth is guesswork that the map does not use either.
-        cap = cfg.eval_max_depth_m
-        n_all = _pair_metrics(metrics, st.lid, "lidar_", cap)
-        # The same protocol on the pairs both sensors see: the lidar point is not hidden
-        # from the camera behind a nearer object and its pixel is not on a depth edge of the
-        # prediction. With ground-truth depth as the prediction the all-pairs RMSE is
-        # 0.185 m on the simulated house (occlusion alone) against 0.017 m on these pairs.
-        n_vis = _pair_metrics(metrics, st.lid_vis, "lidar_visible_", cap)
-        metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)
-        _pair_metrics(metrics, st.lid_valid, "lidar_valid_", cap)
-        if fusion.refiner is not None:
-            _pair_metrics(metrics, st.lid_ref_vis, "lidar_visible_refined_", cap)
-            done = [r for r in st.refinements if r.applied]
-            metrics.update({
-                "refine": cfg.refine, "refine_frames_applied": len(done),
-                "refine_anchors_floor_median": float(np.median(
-                    [r.anchors_floor for r in st.refinements])) if st.refinements else 0.0,
-                "refine_anchors_lidar_median": float(np.median(
-                    [r.anchors_lidar for r in st.refinements])) if st.refinements else 0.0,
-                "refine_field_rms_median": float(np.median(
-                    [r.field_rms for r in done])) if done else 0.0,
-                "refine_field_max": float(max(r.field_max for r in done)) if done else 0.0,
-            })
-        if has_gt_depth:
-            g_un, g_sc = st.acc_un.result(), st.acc_sc.result()
-            metrics.update(g_un.as_dict("gt_unscaled_"))
-            metrics.update(g_sc.as_dict("gt_scaled_"))
-            if g_un.rmse_m > 0:
-                metrics["gt_rmse_ratio_scaled_unscaled"] = g_sc.rmse_m / g_un.rmse_m
-            if fusion.refiner is not None:
-                g_ref = st.acc_ref.result()
-                metrics.update(g_ref.as_dict("gt_refined_"))
-                if g_un.rmse_m > 0:
-                    metrics["gt_rmse_ratio_refined_unscaled"] = g_ref.rmse_m / g_un.rmse_m
-            if not disparity:
-                metrics.update({f"{k}": v for k, v in scale_error(
-                    sm.scale, oracle).items() if k != "frames"})
-                metrics.update({f"raw_{k}": v for k, v in scale_error(
-                    sm.raw_scale, oracle).items() if k != "frames"})
-        if has_masks and len(raw):
-            # The raw map already lacks what the lidar masked in the images; the fraction
-            # without any removal comes from a run with dynamic_removal: false.
-            metrics["dynamic_fraction_before_carving"] = float(np.mean(raw.label > 0.5))
-            metrics["dynamic_fraction"] = float(np.mean(final.label > 0.5)) if len(final) else 0.0
-            static = raw.label <= 0.5
-            metrics["static_points_removed_fraction"] = float(
-                np.mean(masks["dynamic"][static])) if static.any() else 0.0
-        if gt is not None and gt.mesh_path is not None:
-            from toolkit.eval.alignment import apply, map_to_world
-            from toolkit.eval.map_accuracy import MeshDistance, distance_stats
-
-            md = MeshDistance(gt.mesh_path)
-            # The SLAM map frame is not the simulator's world: one rigid transform first.
-            S = map_to_world(seq, fused_poses.stamps, fused_poses.poses) if (
-                fused_poses is not None) else None
-            static_final = final.select(final.label <= 0.5) if has_masks else final
-            # A fixed-stride subsample: point-to-mesh queries cost ~10 us each and the
-            # statistics settle long before a few million points.
-            step = max(1, len(static_final) // cfg.mesh_eval_points)
-            metrics.update({f"map_to_mesh_{k}": v for k, v in distance_stats(
-                md.distance(apply(S, static_final.points[::step]))).items()})
-            if has_masks:
-                # Static points the carving removed: if they lie off the true surface, the
-                # carving removed depth errors rather than good geometry.
-                gone = raw.select(masks["dynamic"] & (raw.label <= 0.5))
-                if len(gone):
-                    step = max(1, len(gone) // 50_000)
-                    metrics["carved_static_to_mesh_median_m"] = float(np.median(
-                        md.distance(apply(S, gone.points[::step]))))
-            meds = [float(np.median(md.distance(apply(S, p)))) for p in st.frame_clouds if len(p)]
-            if meds:
-                metrics["frame_to_mesh_median_m"] = float(np.median(meds))
-                metrics["frame_to_mesh_median_max_m"] = float(np.max(meds))
+        metrics.update(_depth_metrics(cfg, st, fusion.refiner is not None, has_gt_depth,
+                                      disparity, sm, oracle))
+        metrics.update(_map_metrics(cfg, seq, raw, masks, final, fused_poses, st.frame_clouds,
+                                    has_masks))
         ctx.add_metrics(metrics)
         # ---------------------------------------------------------------- report
         self._report(ctx, cfg, seq, metrics, pose_note, st.fig_data, frames, sm, oracle, store,
