@@ -251,3 +251,39 @@ def test_dynamic_beams_flag_what_other_scans_see_through() -> None:
     pts = np.array([[1.0, 0.0, 1.0], [1.0, 0.45, 0.5], [1.0, 0.0, 2.5], [3.0, 0.0, 1.0]])
     m = cylinder_mask(pts, np.array([[1.0, 0.0]]), 0.5, 2.0)
     assert m.tolist() == [True, True, False, False]
+
+
+def test_voxel_map_matches_a_one_shot_reduction_and_pickles_mid_way() -> None:
+    """Many frames in small batches (index insertions, row growth) give what reducing all
+    points at once gives; a map pickled half way (a checkpoint) carries on to the same map."""
+    import pickle
+
+    rng = np.random.default_rng(3)
+    frames = [(rng.uniform(-1, 1, (int(rng.integers(50, 400)), 3)),
+               rng.integers(0, 255, (1, 3)).astype(np.uint8)) for _ in range(40)]
+    vm = VoxelMap(0.1, batch_entries=300)
+    for f, (pts, col) in enumerate(frames):
+        vm.integrate(pts, np.repeat(col, len(pts), 0), f)
+        if f == 20:
+            vm = pickle.loads(pickle.dumps(vm))
+    m = vm.arrays()
+    allp = np.concatenate([p for p, _ in frames])
+    allc = np.concatenate([np.repeat(c, len(p), 0) for p, c in frames]).astype(np.float64)
+    fr = np.concatenate([np.full(len(p), f) for f, (p, _) in enumerate(frames)])
+    keys, inv, cnt = np.unique(voxel_keys(allp, 0.1), return_inverse=True, return_counts=True)
+    assert len(m) == len(keys)
+    np.testing.assert_array_equal(voxel_keys(m.points, 0.1), keys)  # sorted by key
+    np.testing.assert_array_equal(m.count, cnt)
+    mean = np.stack([np.bincount(inv, allp[:, k]) for k in range(3)], 1) / cnt[:, None]
+    np.testing.assert_allclose(m.points, mean, atol=1e-12)
+    rgb = np.stack([np.bincount(inv, allc[:, k]) for k in range(3)], 1) / cnt[:, None]
+    np.testing.assert_array_equal(m.colors, np.clip(np.rint(rgb), 0, 255).astype(np.uint8))
+    first = np.full(len(keys), 10**6)
+    np.minimum.at(first, inv, fr)
+    last = np.zeros(len(keys), int)
+    np.maximum.at(last, inv, fr)
+    np.testing.assert_array_equal(m.first, first)
+    np.testing.assert_array_equal(m.last, last)
+    seen = np.zeros((len(keys), len(frames)), bool)
+    seen[inv, fr] = True
+    np.testing.assert_array_equal(m.frames, seen.sum(1))
