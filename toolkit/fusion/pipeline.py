@@ -347,7 +347,7 @@ class Fusion:
         if self.consensus is not None and state["consensus"] is not None:
             self.consensus.restore(state["consensus"])  # type: ignore[arg-type]
 
-    def finish(self, progress: object = None) -> tuple[MapArrays, dict[str, np.ndarray]]:
+    def finish(self) -> tuple[MapArrays, dict[str, np.ndarray]]:
         """The final map and per-voxel masks ``dynamic``, ``consensus`` and ``outlier`` (of
         the raw map)."""
         raw = self.map.arrays(min_frames=self.cfg.min_voxel_frames)
