@@ -175,7 +175,7 @@ def test_tsdf_stage_scaled_depth_at_trajectory_poses(tmp_path: Path) -> None:
 
 def test_tsdf_stage_resumes_from_its_checkpoint(tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    from toolkit.baselines.tsdf import TSDFVolume, read_mesh
+    from toolkit.baselines.tsdf import TSDFVolume
 
     stages = [{"stage": "t_room", "frames": 8, "width": 160, "height": 120, "small": True},
               {"stage": "tsdf", "depth_source": "groundtruth", "views": 0,
@@ -200,11 +200,9 @@ def test_tsdf_stage_resumes_from_its_checkpoint(tmp_path: Path,
     # The volume came back with its 5 frames and took only the last 3.
     assert calls == [5, 6, 7] and again.metrics["tsdf"]["frames_resumed"] == 5
     assert not (tmp_path / "cut/run/tsdf/checkpoint.pkl").exists()
-    # The same mesh; Open3D lists its vertices in hash-map order, which a reload changes.
-    a, b = (read_mesh(tmp_path / d / "run/tsdf/mesh.ply") for d in ("full", "cut"))
-    assert len(a.triangles) == len(b.triangles)
-    va, vb = (np.hstack([np.asarray(m.vertices), np.asarray(m.vertex_colors)]) for m in (a, b))
-    np.testing.assert_array_equal(va[np.lexsort(va.T)], vb[np.lexsort(vb.T)])
+    # The same mesh, byte for byte (vertices and triangles in canonical order).
+    assert (tmp_path / "full/run/tsdf/mesh.ply").read_bytes() == (
+        tmp_path / "cut/run/tsdf/mesh.ply").read_bytes()
 
 
 

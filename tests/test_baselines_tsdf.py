@@ -115,3 +115,28 @@ def test_observed_mask_ignores_occluded_and_out_of_view_points() -> None:
                     [0.0, 0.0, -2.0]])  # behind the camera
     np.testing.assert_array_equal(observed_mask(pts, cam, np.eye(4)[None], [depth]),
                                   [True, False, False, False])
+
+
+def test_canonical_order_is_independent_of_how_the_mesh_was_listed() -> None:
+    import open3d as o3d
+
+    from toolkit.baselines.tsdf import canonical_order
+
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 3.0)
+    box.vertex_colors = o3d.utility.Vector3dVector(np.random.default_rng(0).random((8, 3)))
+    v, t, c = (np.asarray(x) for x in (box.vertices, box.triangles, box.vertex_colors))
+    perm = np.random.default_rng(1).permutation(len(v))
+    inv = np.argsort(perm)
+    shuffled = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v[perm]),
+                                         o3d.utility.Vector3iVector(
+                                             np.roll(inv[t], 1, axis=1)[::-1].astype(np.int32)))
+    shuffled.vertex_colors = o3d.utility.Vector3dVector(c[perm])
+    a, b = canonical_order(box), canonical_order(shuffled)
+    for f in ("vertices", "vertex_colors", "triangles"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)))
+    # Winding kept: the outward normals of the box are unchanged.
+    a.compute_triangle_normals()
+    box.compute_triangle_normals()
+    centre = np.asarray(a.vertices).mean(0)
+    tri_c = np.asarray(a.vertices)[np.asarray(a.triangles)].mean(1)
+    assert (np.sum(np.asarray(a.triangle_normals) * (tri_c - centre), 1) > 0).all()

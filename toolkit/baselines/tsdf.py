@@ -120,7 +120,7 @@ class TSDFVolume(GridCheckpoint):
         if self.frames == 0:
             raise ValueError("no frame integrated: the TSDF volume is empty")
         w = self.settings.weight_threshold
-        mesh = self.grid.extract_triangle_mesh(weight_threshold=w).to_legacy()
+        mesh = canonical_order(self.grid.extract_triangle_mesh(weight_threshold=w).to_legacy())
         if len(mesh.vertex_colors):
             mesh.vertex_colors = self._o3d.utility.Vector3dVector(
                 np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
@@ -133,6 +133,35 @@ class TSDFVolume(GridCheckpoint):
             raise ValueError("no frame integrated: the TSDF volume is empty")
         pcd = self.grid.extract_point_cloud(weight_threshold=self.settings.weight_threshold)
         return pcd.point.positions.numpy().astype(np.float64)
+
+
+def canonical_order(mesh: Any) -> Any:
+    """``mesh`` (legacy TriangleMesh) with vertices sorted by position (then colour) and
+    triangles by their vertices, winding kept.
+
+    Open3D's grid fills its hash map from several threads, so the same frames give the
+    same surface listed in another order each run - and everything sampled from the mesh
+    by index (the evaluation's surface samples) moved with it (F-scores +-0.001).
+    """
+    import open3d as o3d
+
+    v = np.asarray(mesh.vertices)
+    if len(v) == 0:
+        return mesh
+    c = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else np.zeros((len(v), 0))
+    keys = np.hstack([v, c])  # [V, 3 or 6]
+    order = np.lexsort(keys.T[::-1])  # x first
+    rank = np.empty(len(v), np.int64)
+    rank[order] = np.arange(len(v))
+    tri = rank[np.asarray(mesh.triangles)]  # [T, 3]
+    first = np.argmin(tri, axis=1)
+    tri = np.take_along_axis(tri, (first[:, None] + np.arange(3)) % 3, axis=1)  # same winding
+    tri = tri[np.lexsort(tri.T[::-1])]
+    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v[order]),
+                                    o3d.utility.Vector3iVector(tri.astype(np.int32)))
+    if c.shape[1]:
+        out.vertex_colors = o3d.utility.Vector3dVector(c[order])
+    return out
 
 
 def integrate_frames(
