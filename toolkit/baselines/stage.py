@@ -328,7 +328,6 @@ def _matched_database(ctx: StageContext, db: Path, image_dir: Path, names: list[
     return seconds, False
 
 
-
 class _ColmapKeys(StageConfig):
     """COLMAP keys shared by ``colmap`` and ``camera_only``."""
 
