@@ -644,6 +644,8 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     state = Checkpoint(path, "key-a", every_s=60).load()
     assert state["done"] == 3 and np.array_equal(state["sums"], np.arange(4.0))
     assert Checkpoint(path, "key-b", every_s=60).load() is None  # other settings
+    # Same settings, state of another shape (other code): rejected, not crashed on later.
+    assert Checkpoint(path, "key-a", every_s=60).load(lambda s: "rows" in s) is None
     assert Checkpoint(path, "key-a", every_s=1e-9).due()
     path.write_bytes(b"\x80\x05torn")  # not a pickle: start afresh, do not fail
     assert Checkpoint(path, "key-a", every_s=60).load() is None

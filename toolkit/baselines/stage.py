@@ -204,7 +204,8 @@ class TSDFStage(Stage):
         vol = TSDFVolume(settings)
         ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.cache_key,
                           cfg.checkpoint_every_s, ctx.log)
-        saved = ckpt.load()
+        saved = ckpt.load(lambda x: isinstance(x, dict) and {"volume", "done", "integrate_s"}
+                          <= x.keys())
         resumed, t_int = 0, 0.0
         if saved is not None:
             vol.restore(saved["volume"])

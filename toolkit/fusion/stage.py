@@ -14,7 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
@@ -292,8 +292,9 @@ class FuseStage(Stage):
         t_start = time.perf_counter()
         ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.cache_key,
                           cfg.checkpoint_every_s, ctx.log)
-        st: FuseProgress | None = ckpt.load()
-        if st is not None and len(st.oracle) == len(frames):
+        st: FuseProgress | None = ckpt.load(lambda x: isinstance(x, FuseProgress) and all(
+            hasattr(x, f.name) for f in fields(FuseProgress)) and len(x.oracle) == len(frames))
+        if st is not None:
             if st.fusion is not None:
                 fusion.restore(st.fusion)
             st.fusion = None

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import pickle
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +34,9 @@ class Checkpoint:
         self.seconds = 0.0  # spent saving
         self._last = time.monotonic()
 
-    def load(self) -> Any | None:
-        """The state saved under this key, or None (no file, another key, unreadable)."""
+    def load(self, valid: Callable[[Any], bool] | None = None) -> Any | None:
+        """The state saved under this key, or None (no file, another key, unreadable, or
+        rejected by ``valid``: a state written by other code under the same settings)."""
         if not self.path.exists():
             return None
         try:
@@ -47,6 +49,10 @@ class Checkpoint:
                 saved.get("key") != self.key):
             self.log.info("%s: checkpoint of other settings or inputs; starting afresh",
                           self.path)
+            return None
+        if valid is not None and not valid(saved["state"]):
+            self.log.warning("%s: checkpoint from another version of the stage; starting afresh",
+                             self.path)
             return None
         self._last = time.monotonic()
         return saved["state"]
