@@ -22,6 +22,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "atomic_write_text",
+    "leftover_temps",
     "to_jsonable",
 ]
 
@@ -32,6 +33,12 @@ def _temp_name(path: Path) -> Path:
     # extension (cv2.imwrite, np.save, open3d) still do the right thing.
     token = f"{os.getpid()}.{secrets.token_hex(4)}"
     return path.with_name(f".{path.stem}.{token}.tmp{path.suffix}")
+
+
+def leftover_temps(path: str | os.PathLike[str]) -> list[Path]:
+    """Temporary files that writes to ``path`` by killed processes left behind."""
+    target = Path(path)
+    return sorted(target.parent.glob(f".{target.stem}.*.tmp{target.suffix}"))
 
 
 @contextmanager

@@ -35,7 +35,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.image import psnr as psnr_fn
 from toolkit.eval.image import ssim as ssim_fn
 from toolkit.geometry import inv_se3
-from toolkit.io.atomic import atomic_path
+from toolkit.io.atomic import atomic_path, leftover_temps
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
 from toolkit.splat.rasterize import RenderOutput, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
@@ -389,7 +389,11 @@ class Trainer:
 
     def resume(self) -> bool:
         """Continue from the checkpoint in ``checkpoint_dir`` if there is a usable one."""
-        if self.checkpoint_dir is None or not self.checkpoint_path().exists():
+        if self.checkpoint_dir is None:
+            return False
+        for tmp in leftover_temps(self.checkpoint_path()):  # a save killed half way
+            tmp.unlink(missing_ok=True)
+        if not self.checkpoint_path().exists():
             return False
         try:
             ckpt = torch.load(self.checkpoint_path(), map_location="cpu", weights_only=False)
