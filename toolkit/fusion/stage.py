@@ -493,8 +493,8 @@ class FuseStage(Stage):
                       "were kept.")
         md.append(f"Scale estimator `{cfg.scale}` on `{store.kind}` predictions; "
                   f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
-                  f"flagged ({m['frames_few_pairs']} with too few lidar pairs, "
-                  f"{m['frames_outlier']} outlier frames); median "
+                  f"flagged (too few lidar pairs: {m['frames_few_pairs']}, scale an outlier "
+                  f"among its neighbours': {m['frames_outlier']}); median "
                   f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
                   f"({m['pairs_visible_per_frame_median']:.0f} seen by both sensors).")
         rows = [("vs lidar (paper's protocol), all pairs", "lidar_unscaled_", "lidar_scaled_"),
