@@ -203,7 +203,7 @@ class VoxelMap:
         # pending: merging them early would change the order of the float sums).
         state = self.__dict__.copy()
         for name in self._VALUES:
-            state[name] = state[name][..., : self._n].copy()
+            state[name] = state[name][..., : self._n]  # pickle writes only the view's data
         return state
 
     def __len__(self) -> int:

@@ -22,7 +22,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "atomic_write_text",
-    "leftover_temps",
+    "remove_leftover_temps",
     "to_jsonable",
 ]
 
@@ -35,10 +35,12 @@ def _temp_name(path: Path) -> Path:
     return path.with_name(f".{path.stem}.{token}.tmp{path.suffix}")
 
 
-def leftover_temps(path: str | os.PathLike[str]) -> list[Path]:
-    """Temporary files that writes to ``path`` by killed processes left behind."""
+def remove_leftover_temps(path: str | os.PathLike[str]) -> None:
+    """Delete the temporary files that writes to ``path`` by killed processes left behind
+    (call it where no other process can be writing ``path``)."""
     target = Path(path)
-    return sorted(target.parent.glob(f".{target.stem}.*.tmp{target.suffix}"))
+    for tmp in target.parent.glob(f".{target.stem}.*.tmp{target.suffix}"):
+        tmp.unlink(missing_ok=True)
 
 
 @contextmanager

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from toolkit.io.atomic import atomic_path, leftover_temps
+from toolkit.io.atomic import atomic_path, remove_leftover_temps
 
 _FORMAT = 1
 
@@ -37,7 +37,8 @@ class Checkpoint:
     def load(self, valid: Callable[[Any], bool] | None = None) -> Any | None:
         """The state saved under this key, or None (no file, another key, unreadable, or
         rejected by ``valid``: a state written by other code under the same settings)."""
-        self._remove_partial()
+        # A save killed half way leaves its temporary file, as big as the checkpoint.
+        remove_leftover_temps(self.path)
         if not self.path.exists():
             return None
         try:
@@ -76,10 +77,4 @@ class Checkpoint:
     def remove(self) -> None:
         """Drop the checkpoint once the stage's outputs are complete."""
         self.path.unlink(missing_ok=True)
-        self._remove_partial()
-
-    def _remove_partial(self) -> None:
-        # A save killed half way leaves its temporary file (as big as the checkpoint);
-        # the stage that would have finished it is gone.
-        for tmp in leftover_temps(self.path):
-            tmp.unlink(missing_ok=True)
+        remove_leftover_temps(self.path)

@@ -35,7 +35,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.image import psnr as psnr_fn
 from toolkit.eval.image import ssim as ssim_fn
 from toolkit.geometry import inv_se3
-from toolkit.io.atomic import atomic_path, leftover_temps
+from toolkit.io.atomic import atomic_path, remove_leftover_temps
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
 from toolkit.splat.rasterize import RenderOutput, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
@@ -391,8 +391,7 @@ class Trainer:
         """Continue from the checkpoint in ``checkpoint_dir`` if there is a usable one."""
         if self.checkpoint_dir is None:
             return False
-        for tmp in leftover_temps(self.checkpoint_path()):  # a save killed half way
-            tmp.unlink(missing_ok=True)
+        remove_leftover_temps(self.checkpoint_path())  # of a save killed half way
         if not self.checkpoint_path().exists():
             return False
         try:
