@@ -253,6 +253,82 @@ def test_dynamic_beams_flag_what_other_scans_see_through() -> None:
     assert m.tolist() == [True, True, False, False]
 
 
+def _seen_through_reference(scans: list[LaserScan], T_world_laser: np.ndarray,
+                            offsets: tuple[float, ...], margin_m: float, margin_rel: float,
+                            tol: float) -> list[np.ndarray]:
+    """Votes of ``dynamic_beams`` one scan and one partner at a time, with a linear
+    nearest-stamp search: the definition the batched version must reproduce."""
+    stamps = np.array([s.stamp for s in scans])
+    votes = []
+    for k, sk in enumerate(scans):
+        v = np.zeros(len(sk.ranges), np.int32)
+        ok_k = sk.valid_mask()
+        a = sk.angles()
+        p = T_world_laser[k] @ np.stack([np.where(ok_k, sk.ranges * np.cos(a), 0),
+                                         np.where(ok_k, sk.ranges * np.sin(a), 0),
+                                         np.zeros(len(a)), np.ones(len(a))])
+        for off in offsets:
+            j = int(np.argmin(np.abs(stamps - (sk.stamp + off))))
+            if abs(stamps[j] - sk.stamp) < 0.5 * abs(off) or j == k:
+                continue
+            sj = scans[j]
+            q = np.linalg.inv(T_world_laser[j]) @ p
+            rq = np.hypot(q[0], q[1])
+            n = len(sj.ranges)
+            full = abs(sj.angle_increment) * n >= 2 * np.pi - 1e-6
+            reach = np.where(np.isposinf(sj.ranges), sj.range_max, sj.ranges)
+            reach = np.where(np.isfinite(reach) & (reach >= sj.range_min), reach, -np.inf)
+            b = np.rint((np.arctan2(q[1], q[0]) - sj.angle_min) / sj.angle_increment)
+            far = np.full(len(b), np.inf)
+            for db in (-1, 0, 1):
+                bb = (b + db).astype(int) % n if full else (b + db).astype(int)
+                inside = (bb >= 0) & (bb < n)
+                far = np.where(inside, np.minimum(far, reach[np.clip(bb, 0, n - 1)]), -np.inf)
+            v += ok_k & (np.abs(q[2]) < tol) & (far > rq + margin_m + margin_rel * rq) & (
+                rq < sj.range_max)
+        votes.append(v)
+    return votes
+
+
+def test_dynamic_beams_batched_matches_one_scan_at_a_time() -> None:
+    """Two scanners (360 beams all round, 181 over the front), a moving robot, a person,
+    dropouts, max-range beams, duplicate stamps and a gap: the batched test (any chunk
+    size) flags what testing one scan against one partner at a time flags."""
+    from toolkit.fusion.dynamic import dynamic_beams
+
+    rng = np.random.default_rng(4)
+    stamps = np.r_[np.arange(0, 6, 0.25), 6.0, 6.0, np.arange(12.0, 14.0, 0.25)]
+    scans, poses = [], []
+    for i, t in enumerate(stamps):
+        n, a0, inc = (360, -np.pi, 2 * np.pi / 360) if i % 3 else (181, -np.pi / 2, np.pi / 180)
+        a = a0 + np.arange(n) * inc
+        c, sn = np.cos(0.05 * t), np.sin(0.05 * t)
+        T = se3(np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]), [0.1 * t, 0.02 * np.sin(t), 0.3])
+        # A square room 8 m wide seen from the pose: exact ranges to its walls
+        d = np.stack([np.cos(a + 0.05 * t), np.sin(a + 0.05 * t)], 1)
+        o = T[:2, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.min(np.abs(np.stack([(np.sign(d[:, 0]) * 4 - o[0]) / d[:, 0],
+                                        (np.sign(d[:, 1]) * 4 - o[1]) / d[:, 1]])), 0)
+        r += rng.normal(0, 0.01, n)
+        if 2.0 <= t <= 3.0:  # a person 1.5 m ahead for a second
+            r[np.abs(np.angle(np.exp(1j * a))) < 0.1] = 1.5
+        r[rng.random(n) < 0.03] = np.nan
+        r[rng.random(n) < 0.02] = np.inf
+        scans.append(LaserScan(float(t), r, a0, inc, 0.05, 5.0))
+        poses.append(T)
+    T_wl = np.stack(poses)
+    offsets = (-4.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 4.0)
+    votes = _seen_through_reference(scans, T_wl, offsets, 0.15, 0.03, 0.1)
+    expect = [v >= 2 for v in votes]
+    assert any(e.any() for e in expect)
+    for chunk in (256, 5):
+        got = dynamic_beams(scans, T_wl, offsets, 0.15, 0.03, 2, 0.1, isolated=True,
+                            chunk=chunk)
+        for g, e in zip(got, expect, strict=True):
+            assert np.array_equal(g, e)
+
+
 def test_voxel_map_matches_a_one_shot_reduction_and_pickles_mid_way() -> None:
     """Many frames in small batches (index insertions, row growth) give what reducing all
     points at once gives; a map pickled half way (a checkpoint) carries on to the same map."""

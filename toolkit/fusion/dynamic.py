@@ -223,7 +223,8 @@ def grow_dynamic(points: np.ndarray, first: np.ndarray, last: np.ndarray,
 def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
                   offsets_s: tuple[float, ...] = (-4.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 4.0),
                   margin_m: float = 0.15, margin_rel: float = 0.03, min_votes: int = 2,
-                  plane_tol_m: float = 0.1, isolated: bool = False) -> list[np.ndarray]:
+                  plane_tol_m: float = 0.1, isolated: bool = False,
+                  chunk: int = 256) -> list[np.ndarray]:
     """Per scan, [B] bool: beams whose end point other scans see through (a moving obstacle).
 
     Scan k's end points are moved into scan j's laser frame (j at the given time offsets);
@@ -234,54 +235,110 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
     spans several beams, while a lone flag is mostly a chair leg thinner than the beam
     spacing that other scans slip past (on the simulated house this took precision from
     0.60 to 0.94 at recall 0.83 -> 0.78).
+
+    Scans are tested ``chunk`` at a time against all their partners at once: one scan and
+    one offset at a time cost 0.15 ms of numpy overhead each, 50 s on an hour of 10 Hz
+    scans. Memory stays O(chunk x beams).
     """
-    stamps = np.array([s.stamp for s in scans])
+    S = len(scans)
     out = [np.zeros(len(s.ranges), bool) for s in scans]
-    T_laser_world = inv_se3(np.asarray(T_world_laser)) if len(scans) else None
-    for k, sk in enumerate(scans):
-        valid = sk.valid_mask()
-        if not valid.any():
-            continue
-        beams = np.flatnonzero(valid)
-        r = sk.ranges[beams].astype(np.float64)
-        a = sk.angles()[beams]
-        pl = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(r), np.ones_like(r)], 0)
-        pw = T_world_laser[k] @ pl  # [4, N]
-        votes = np.zeros(len(beams), np.int32)
-        for off in offsets_s:
-            j = int(np.argmin(np.abs(stamps - (sk.stamp + off))))
-            if abs(stamps[j] - sk.stamp) < 0.5 * abs(off) or j == k:
+    if S == 0:
+        return out
+    T_world_laser = np.asarray(T_world_laser, np.float64)  # [S, 4, 4]
+    T_laser_world = inv_se3(T_world_laser)
+    stamps = np.array([s.stamp for s in scans], np.float64)
+    partner = [_nearest_stamp(stamps, stamps + off) for off in offsets_s]  # [S] each
+    votes = [np.zeros(len(s.ranges), np.int32) for s in scans]
+    for k0 in range(0, S, chunk):
+        kk = np.arange(k0, min(k0 + chunk, S))  # [K]
+        js = [j[kk] for j in partner]
+        lo = int(min(kk[0], *(j.min() for j in js)))
+        hi = int(max(kk[-1], *(j.max() for j in js))) + 1
+        beams = _PaddedScans(scans[lo:hi])
+        for off, jj in zip(offsets_s, js, strict=True):
+            use = (np.abs(stamps[jj] - stamps[kk]) >= 0.5 * abs(off)) & (jj != kk)
+            if not use.any():
                 continue
-            sj = scans[j]
-            q = T_laser_world[j] @ pw  # type: ignore[index]
-            near = np.abs(q[2]) < plane_tol_m
-            rq = np.hypot(q[0], q[1])
-            b = np.rint((np.arctan2(q[1], q[0]) - sj.angle_min) / sj.angle_increment).astype(
-                np.int64)
-            n = len(sj.ranges)
-            full = abs(sj.angle_increment) * n >= 2 * np.pi - 1e-6
-            rng_j = sj.ranges.astype(np.float64)
-            # Beyond range_max (+inf) is free as far as the scanner reaches; NaN is unknown.
-            reach = np.where(np.isposinf(rng_j), sj.range_max, rng_j)
-            reach = np.where(np.isfinite(reach) & (reach >= sj.range_min), reach, -np.inf)
-            far = np.full(len(b), np.inf)
-            for db in (-1, 0, 1):
-                bb = b + db
-                bb = np.mod(bb, n) if full else bb
-                ok = (bb >= 0) & (bb < n)
-                far = np.where(ok, np.minimum(far, reach[np.clip(bb, 0, n - 1)]), -np.inf)
-            seen_through = near & (far > rq + margin_m + margin_rel * rq) & (rq < sj.range_max)
-            votes += seen_through
-        flag = np.zeros(len(sk.ranges), bool)
-        flag[beams[votes >= min_votes]] = True
+            k, j = kk[use], jj[use]
+            seen = beams.seen_through(k - lo, j - lo, T_laser_world[j] @ T_world_laser[k],
+                                      margin_m, margin_rel, plane_tol_m)  # [K', Bmax]
+            for row, kv in enumerate(k):
+                votes[kv] += seen[row, : len(votes[kv])]
+    for k, s in enumerate(scans):
+        flag = votes[k] >= min_votes
         if not isolated and flag.any():
-            wrap = abs(sk.angle_increment) * len(flag) >= 2 * np.pi - 1e-6
+            wrap = abs(s.angle_increment) * len(flag) >= 2 * np.pi - 1e-6
             left, right = np.roll(flag, 1), np.roll(flag, -1)
             if not wrap:
                 left[0] = right[-1] = False
             flag &= left | right
         out[k] = flag
     return out
+
+
+def _nearest_stamp(stamps: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """[T] index of the stamp nearest each target (the lowest index among equals, as
+    ``argmin(|stamps - t|)`` picks), in O((S + T) log S)."""
+    order = np.argsort(stamps, kind="stable")
+    ss = stamps[order]
+    hi = np.clip(np.searchsorted(ss, targets, side="left"), 0, len(ss) - 1)
+    lo = np.clip(hi - 1, 0, len(ss) - 1)
+    lo = np.searchsorted(ss, ss[lo], side="left")  # first of equal stamps
+    pick = np.where(np.abs(ss[lo] - targets) <= np.abs(ss[hi] - targets), lo, hi)
+    return order[pick]
+
+
+class _PaddedScans:
+    """A run of scans as [S, Bmax] arrays (beams past a scan's own count are invalid)."""
+
+    def __init__(self, scans: list[LaserScan]) -> None:
+        S, B = len(scans), max(len(s.ranges) for s in scans)
+        self.n = np.array([len(s.ranges) for s in scans])  # [S]
+        self.angle_min = np.array([s.angle_min for s in scans], np.float64)
+        self.angle_inc = np.array([s.angle_increment for s in scans], np.float64)
+        self.range_max = np.array([s.range_max for s in scans], np.float64)
+        self.full = np.abs(self.angle_inc) * self.n >= 2 * np.pi - 1e-6  # [S] wraps around
+        self.valid = np.zeros((S, B), bool)
+        self.x = np.zeros((S, B))  # end points in the scan's own laser frame
+        self.y = np.zeros((S, B))
+        # How far each beam saw free space: beyond range_max (+inf) is free as far as the
+        # scanner reaches; NaN and short returns say nothing (-inf).
+        self.reach = np.full((S, B), -np.inf)
+        for i, s in enumerate(scans):
+            m = len(s.ranges)
+            r = s.ranges.astype(np.float64)
+            v = s.valid_mask()
+            a = s.angles()
+            self.valid[i, :m] = v
+            self.x[i, :m] = np.where(v, r * np.cos(a), 0.0)
+            self.y[i, :m] = np.where(v, r * np.sin(a), 0.0)
+            reach = np.where(np.isposinf(r), s.range_max, r)
+            self.reach[i, :m] = np.where(np.isfinite(reach) & (reach >= s.range_min), reach,
+                                         -np.inf)
+
+    def seen_through(self, k: np.ndarray, j: np.ndarray, T_j_k: np.ndarray, margin_m: float,
+                     margin_rel: float, plane_tol_m: float) -> np.ndarray:
+        """[K, Bmax] bool: scan k's valid end points that scan j sees past (rows of the
+        padded run; ``T_j_k`` [K, 4, 4] maps scan k's laser frame into scan j's)."""
+        x, y = self.x[k], self.y[k]  # [K, B]
+        R, t = T_j_k[:, :3, :3], T_j_k[:, :3, 3]
+
+        def row(c: int) -> np.ndarray:
+            return R[:, c, 0, None] * x + R[:, c, 1, None] * y + t[:, c, None]
+
+        qx, qy, qz = row(0), row(1), row(2)
+        rq = np.hypot(qx, qy)
+        n = self.n[j, None]
+        b = np.rint((np.arctan2(qy, qx) - self.angle_min[j, None]) / self.angle_inc[j, None]
+                    ).astype(np.int64)
+        far = np.full(b.shape, np.inf)
+        for db in (-1, 0, 1):
+            bb = np.where(self.full[j, None], np.mod(b + db, n), b + db)
+            ok = (bb >= 0) & (bb < n)
+            far = np.where(ok, np.minimum(far, self.reach[j[:, None], np.clip(bb, 0, n - 1)]),
+                           -np.inf)
+        return (self.valid[k] & (np.abs(qz) < plane_tol_m)
+                & (far > rq + margin_m + margin_rel * rq) & (rq < self.range_max[j, None]))
 
 
 def cylinder_mask(points: np.ndarray, centres_xy: np.ndarray, radius: float,
