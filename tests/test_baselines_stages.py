@@ -126,12 +126,12 @@ def stages() -> Iterator[None]:
         registry.unregister(n)
 
 
-def _run(tmp_path: Path, stages: list[dict[str, Any]]) -> Any:
+def _run(tmp_path: Path, stages: list[dict[str, Any]], force: bool = False) -> Any:
     recipe = parse_recipe({"name": "baselines", "output": str(tmp_path / "run"),
                            "stages": stages})
     from rich.console import Console
 
-    return run_recipe(recipe, console=Console(quiet=True))
+    return run_recipe(recipe, force=force, console=Console(quiet=True))
 
 
 def test_tsdf_stage_groundtruth_depth_without_trajectory(tmp_path: Path) -> None:
@@ -230,6 +230,11 @@ def test_colmap_stage_keeps_the_database_of_a_killed_run(
     assert res.ok, res.error
     assert extractions == [] and res.metrics["colmap"]["database_resumed"]
     assert res.metrics["colmap"]["sfm"]["extract_s"] > 0  # the first run's time, reported
+    # Finished, the database is an output: a forced rerun extracts and matches afresh.
+    assert not (tmp_path / "run/colmap/database.json").exists()
+    res = _run(tmp_path, stages, force=True)
+    assert extractions == [1] and not res.metrics["colmap"]["database_resumed"]
+    extractions.clear()
     # Other settings: the database is not theirs.
     res = _run(tmp_path, [stages[0], {**stages[1], "max_features": 256}])
     assert res.ok, res.error
@@ -283,4 +288,5 @@ def test_camera_only_runs_colmap_itself_without_a_colmap_stage(tmp_path: Path) -
     o = res.metrics["camera_only"]
     assert not o["colmap_reused"] and not o["database_resumed"]
     assert o["registered_images"] >= 6 and o["scale_source"] == "network"
-    assert (tmp_path / "run/camera_only/database.json").exists()
+    assert (tmp_path / "run/camera_only/database.db").exists()
+    assert not (tmp_path / "run/camera_only/database.json").exists()  # not an interrupted run's

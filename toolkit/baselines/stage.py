@@ -314,7 +314,9 @@ def _matched_database(ctx: StageContext, db: Path, image_dir: Path, names: list[
     whether they came from an interrupted run of this stage.
 
     They are most of COLMAP's time, so a complete database that a killed run left (marked
-    with the stage's cache key in ``<db>.json`` once matching finished) is used again.
+    with the stage's cache key in ``<db>.json`` once matching finished) is used again. The
+    mark goes when the stage finishes (``_database_done``): a rerun of a finished stage
+    (``--force``) extracts and matches afresh.
     """
     from toolkit.baselines.colmap import extract_and_match
 
@@ -327,6 +329,11 @@ def _matched_database(ctx: StageContext, db: Path, image_dir: Path, names: list[
     seconds = extract_and_match(db, image_dir, names, cam, settings)
     atomic_write_json(marker, {"key": ctx.cache_key, "seconds": seconds})
     return seconds, False
+
+
+def _database_done(ctx: StageContext) -> None:
+    """The stage finished: its database is an output now, not an interrupted run's."""
+    (ctx.stage_dir / "database.json").unlink(missing_ok=True)
 
 
 class _ColmapKeys(StageConfig):
@@ -471,6 +478,7 @@ class ColmapStage(Stage):
         ctx.add_metrics(metrics)
         ctx.provide("colmap", ctx.stage_dir)
         ctx.report("\n\n".join(md))
+        _database_done(ctx)
 
     @staticmethod
     def _triangulate(ctx: StageContext, seq: Sequence, fp: Any, frame_of: dict[str, int],
@@ -667,6 +675,7 @@ class CameraOnlyStage(Stage):
             md.append(f"![camera only]({ctx.stage_id}/{ev['png']})")
         ctx.add_metrics(metrics)
         ctx.report("\n\n".join(md))
+        _database_done(ctx)
 
     @staticmethod
     def _evaluate(ctx: StageContext, seq: Sequence, res: Any, est: Any, store: Any,
