@@ -355,6 +355,11 @@ def test_set_overrides_are_validated(tmp_path: Path) -> None:
         load_recipe(path, ["t_double.factr=3"])
     with pytest.raises(RecipeError, match="expected KEY=VALUE"):
         load_recipe(path, ["t_double.factor"])
+    with pytest.raises(RecipeError, match=r"label: .*\n.*with --set t_source.label=off: "
+                       r"values are read as YAML, so quote"):
+        load_recipe(path, ["t_source.label=off"])  # YAML reads off as false
+    quoted = load_recipe(path, ['t_source.label="off"']).stages[0].config
+    assert quoted.label == "off"  # type: ignore[attr-defined]
     recipe = load_recipe(path, ["t_double.factor=5", "name=renamed", "output=elsewhere"])
     assert recipe.stages[1].config.factor == 5  # type: ignore[attr-defined]
     assert (recipe.name, recipe.output) == ("renamed", Path("elsewhere"))
@@ -409,9 +414,14 @@ def test_only_runs_one_stage(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {}
     _run(path)
     result = _run(path, only="t_double")
-    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "cached"}
+    # What read t_double's old output is stale now; --only leaves it alone ...
+    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "not run"}
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 2, "t_sink": 1}
-    # with changed settings the downstream stage is stale and --only leaves it alone
+    assert "t_sink" not in result.metrics
+    # ... and the next plain run brings it up to date (once)
+    assert _run(path).statuses == {"t_source": "cached", "t_double": "cached", "t_sink": "ran"}
+    assert _run(path).statuses["t_sink"] == "cached"
+    # with changed settings too
     result = _run(path, "t_double.factor=4", only="t_double")
     assert result.statuses["t_sink"] == "not run"
     assert "t_sink" not in result.metrics
@@ -423,6 +433,8 @@ def test_from_reruns_from_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="earlier stage 't_source' has not finished"):
         _run(path, from_stage="t_double")
+    # a refused run leaves no settings behind that no result came from
+    assert not (tmp_path / "run" / "recipe.resolved.yaml").exists()
     _run(path)
     result = _run(path, from_stage="t_double")
     assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "ran"}
@@ -434,7 +446,8 @@ def test_missing_output_or_external_change_reruns(tmp_path: Path) -> None:
     _run(path)
     (tmp_path / "run" / "t_double" / "doubled.txt").unlink()
     result = _run(path)
-    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "cached"}
+    # t_double made its output again: what read the old one runs again too
+    assert result.statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "ran"}
 
     source = tmp_path / "input.log"
     source.write_text("v1")
@@ -451,6 +464,34 @@ def test_missing_output_or_external_change_reruns(tmp_path: Path) -> None:
     assert _run(ext).statuses == {"t_external": "cached"}
     source.write_text("version 2")
     assert _run(ext).statuses == {"t_external": "ran"}
+
+
+def test_missing_external_input_stops_before_anything_runs(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    data["stages"].append({"stage": "t_external", "id": "late", "counter": str(
+        tmp_path / "calls.txt"), "source_file": "no/such/input.log"})
+    path = _write_recipe(tmp_path, data)
+    with pytest.raises(RecipeError, match=r"stages\[3\] \(late\): input no/such/input.log "
+                       r"does not exist \(relative to "):
+        _run(path)
+    assert _calls(tmp_path) == {}
+    assert not (tmp_path / "run").exists()
+    proc = _cli("validate", str(path), cwd=tmp_path)
+    assert proc.returncode == 2 and "input no/such/input.log does not exist" in proc.stderr
+    # a run that does not select the stage is not stopped by it
+    assert _run(path, only="t_source").statuses["t_source"] == "ran"
+
+
+def test_unreadable_recipe_and_output_in_the_way(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("name: caf\xe9\n".encode("latin-1"))
+    with pytest.raises(RecipeError, match="not UTF-8 text.*save the recipe as UTF-8"):
+        load_recipe(path)
+    (tmp_path / "afile").write_text("x")
+    data = _recipe_data(tmp_path)
+    data["output"] = str(tmp_path / "afile" / "run")
+    with pytest.raises(RecipeError, match="output: cannot make the run folder"):
+        _run(_write_recipe(tmp_path, data))
 
 
 # --- failure and resume -------------------------------------------------------------------
@@ -486,6 +527,42 @@ def test_resume_after_sigkill(tmp_path: Path) -> None:
     proc = _cli("run", str(path), cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 2}
+
+
+def test_failure_keeps_the_results_of_independent_later_stages(tmp_path: Path) -> None:
+    data = _recipe_data(tmp_path)
+    source = tmp_path / "input.log"
+    source.write_text("v1")
+    data["stages"].append({"stage": "t_external", "id": "side", "counter": str(
+        tmp_path / "calls.txt"), "source_file": str(source)})
+    path = _write_recipe(tmp_path, data)
+    assert _run(path).ok
+    result = _run(path, f"t_sink.fail_marker={tmp_path / 'failed_once'}")
+    assert result.statuses == {"t_source": "cached", "t_double": "cached", "t_sink": "failed",
+                               "side": "cached"}
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert list(metrics) == ["t_source", "t_double", "side"]
+    assert "| side | cached |" in (tmp_path / "run" / "report.md").read_text()
+
+
+def test_markers_without_a_token_stay_cached(tmp_path: Path) -> None:
+    """A run made before stages drew tokens (downstream keys were made of upstream keys,
+    the markers have no token) stays cached."""
+    import toolkit.recipe.runner as runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    keys: dict[str, str] = {}
+    for spec in load_recipe(path).stages:
+        upstream = {n: keys[sid] for n, sid in spec.sources.items()}
+        keys[spec.id] = runner._cache_key(spec, spec.cls(spec.config), upstream)
+        marker = tmp_path / "run" / spec.id / ".stage.json"
+        data = json.loads(marker.read_text())
+        data.pop("token")
+        data["key"] = keys[spec.id]
+        marker.write_text(json.dumps(data))
+    assert set(_run(path).statuses.values()) == {"cached"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
 
 
 def test_rerun_removes_old_marker_first(tmp_path: Path) -> None:
@@ -603,6 +680,10 @@ def test_inputs_pick_the_named_stage_and_results_are_readable(tmp_path: Path) ->
     result = _run(path, "five.value=6")
     assert result.metrics["table"]["rows"]["d5"]["doubled"] == 12
     assert _calls(tmp_path) == {"five": 1, "d5": 1, "table": 1}
+    # So does rerunning one of them as it was (a table of timings must show the new ones).
+    assert _run(path, "five.value=6", only="d5").statuses["table"] == "not run"
+    result = _run(path, "five.value=6")
+    assert {k for k, v in result.statuses.items() if v == "ran"} == {"table"}
 
 
 def test_inputs_errors_name_the_problem(tmp_path: Path) -> None:

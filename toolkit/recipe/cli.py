@@ -14,7 +14,7 @@ from types import FrameType
 from typing import Any
 
 from toolkit.recipe import registry
-from toolkit.recipe.runner import run_recipe
+from toolkit.recipe.runner import missing_inputs, run_recipe
 from toolkit.recipe.schema import Recipe, RecipeError, load_recipe
 
 
@@ -63,6 +63,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _list()
         recipe = load_recipe(args.file, args.set)
         if args.command == "validate":
+            problems = missing_inputs(recipe)
+            if problems:
+                raise RecipeError(problems)
             _describe(recipe)
             return 0
         previous = _sigterm_as_interrupt()
@@ -79,7 +82,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {problem}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted; rerun the same command to resume", file=sys.stderr)
+        redo = any(getattr(args, k, None) for k in ("force", "from_stage", "only"))
+        again = "it without --force, --from or --only (they would redo finished stages)" \
+            if redo else "the same command"
+        print(f"interrupted; run {again} to resume", file=sys.stderr)
         return 130
 
 

@@ -4,6 +4,12 @@ A stage is complete when ``<stage_dir>/.stage.json`` exists with the stage's cur
 key and its provided paths exist. The marker is written atomically after ``run`` returns
 and deleted before a rerun starts, so a stage killed at any point (exception, Ctrl-C,
 SIGKILL) is simply incomplete and the next run resumes there.
+
+A stage's cache key holds its type, version, settings and external files, and the *token*
+of every stage it reads from: a token is drawn each time a stage finishes running, so a
+stage rerun (``--force``, ``--only``, a lost output) makes everything downstream of it
+stale, as ``make`` does, even where its settings did not change (a rerun need not write
+the same bytes: new code, threads, timings that a later table reports).
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import json
 import logging
 import math
 import time
+import uuid
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -81,6 +88,7 @@ class _Record:
     status: str = "pending"
     reason: str = ""
     key: str | None = None
+    token: str | None = None  # drawn when the stage last finished running (module doc)
     seconds: float | None = None
     cpu_seconds: float | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
@@ -120,12 +128,19 @@ def run_recipe(
         raise RecipeError("--from and --only cannot be combined")
     from_index = recipe.index_of(from_stage, "--from") if from_stage is not None else None
     only_index = recipe.index_of(only, "--only") if only is not None else None
+    selected = [s.id for s in recipe.stages if (only_index is None or s.index == only_index)
+                and (from_index is None or s.index >= from_index)]
+    problems = missing_inputs(recipe, selected)
+    if problems:
+        raise RecipeError(problems)
     console = console or Console()
     run_dir = recipe.output if recipe.output.is_absolute() else Path.cwd() / recipe.output
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file in the way, no permission
+        raise RecipeError(f"output: cannot make the run folder {run_dir}: {exc}; set "
+                          f"'output' to a folder path") from None
     with _exclusive(run_dir), _run_logging(run_dir, console) as log:
-        resolved = yaml.safe_dump(recipe.resolved(), sort_keys=False, allow_unicode=True)
-        atomic_write_text(run_dir / RESOLVED_FILE, resolved)
         run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
         return run.execute()
 
@@ -154,6 +169,15 @@ class _Run:
         self.error: str | None = None
         self.failed_stage: str | None = None
         self.bar_active = False
+        self._resolved_written = False
+
+    def write_resolved(self) -> None:
+        """``recipe.resolved.yaml``, once something of this run is kept: an option check
+        that refuses to run must not leave settings no result in the folder came from."""
+        if not self._resolved_written:
+            text = yaml.safe_dump(self.recipe.resolved(), sort_keys=False, allow_unicode=True)
+            atomic_write_text(self.run_dir / RESOLVED_FILE, text)
+            self._resolved_written = True
 
     def selected(self, index: int) -> bool:
         if self.only_index is not None:
@@ -182,9 +206,7 @@ class _Run:
         for spec in self.recipe.stages:
             if not self.process(self.records[spec.id]):
                 break
-        for record in self.records.values():
-            if record.status == "pending":
-                record.status = "not run"
+        self.settle_pending()
         self.write_outputs()
         self.console.print(report.timing_table([r.summary() for r in self.records.values()]))
         return RunResult(
@@ -215,9 +237,7 @@ class _Run:
         start = time.perf_counter()
         try:
             stage = spec.cls(spec.config)
-            upstream = {n: self.records[s].key for n, s in spec.sources.items()}
-            upstream.update({f"results:{s}": self.records[s].key for s in spec.reads})
-            record.key = _cache_key(spec, stage, upstream)
+            record.key = _cache_key(spec, stage, self.upstream_tokens(spec))
         except Exception as exc:
             if not selected:
                 record.status, record.reason = "not run", f"cannot check its inputs: {exc}"
@@ -245,9 +265,37 @@ class _Run:
         self.write_outputs()
         return ok
 
+    def upstream_tokens(self, spec: StageSpec) -> dict[str, str | None]:
+        upstream = {n: self.records[s].token for n, s in spec.sources.items()}
+        upstream.update({f"results:{s}": self.records[s].token for s in spec.reads})
+        return upstream
+
+    def settle_pending(self) -> None:
+        """After a failed or interrupted stage: the stages not reached keep a finished result
+        that is still valid (an independent branch), so metrics.json and the report do not
+        lose it; the rest are 'not run'."""
+        for record in self.records.values():
+            if record.status != "pending":
+                continue
+            spec = record.spec
+            record.status, record.reason = "not run", "an earlier stage has not finished"
+            if any(not self.records[s].finished for s in (*spec.sources.values(), *spec.reads)):
+                continue
+            try:
+                key = _cache_key(spec, spec.cls(spec.config), self.upstream_tokens(spec))
+            except Exception:  # noqa: BLE001 - it is reported as not run, nothing more
+                continue
+            stored, _ = _read_marker(self.run_dir / spec.id, key, spec.cls.provides)
+            if stored is not None:
+                record.key = key
+                self.reuse(record, stored)
+
     def reuse(self, record: _Record, stored: Mapping[str, Any]) -> None:
         stage_dir = self.run_dir / record.spec.id
         record.status = "cached"
+        # Markers written before tokens existed stand for themselves by their key, which is
+        # what downstream keys were made of then: those runs stay cached.
+        record.token = str(stored.get("token") or stored["key"])
         record.seconds = stored.get("seconds")
         record.cpu_seconds = stored.get("cpu_seconds")
         record.metrics = dict(stored.get("metrics") or {})
@@ -264,6 +312,7 @@ class _Run:
         # The folder is kept (stages may keep checkpoints there), but the old marker goes
         # first: a rerun killed halfway must not look complete next time.
         (stage_dir / STAGE_FILE).unlink(missing_ok=True)
+        self.write_resolved()
         record.metrics, record.report, record.provides = {}, [], {}
         self.console.print(f"[bold]{spec.id}[/] running ({escape(record.reason)})")
         self.log.info(
@@ -277,8 +326,10 @@ class _Run:
             ctx.check_provided()
             record.seconds = time.perf_counter() - start
             record.cpu_seconds = _cpu_seconds() - cpu_start
+            record.token = uuid.uuid4().hex
             marker = {
                 "key": record.key,
+                "token": record.token,
                 "stage": spec.type,
                 "provides": {n: _relative(p, stage_dir) for n, p in record.provides.items()},
                 "metrics": record.metrics,
@@ -293,6 +344,7 @@ class _Run:
             return False
         except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
             self.fail(record, KeyboardInterrupt("interrupted"), start)
+            self.settle_pending()
             self.write_outputs()
             raise
         record.status = "ran"
@@ -323,6 +375,7 @@ class _Run:
         return to_jsonable({i: r.metrics for i, r in self.records.items() if r.finished})
 
     def write_outputs(self) -> None:
+        self.write_resolved()
         report.write_metrics(self.run_dir, self.finished_metrics())
         text = report.build_report(
             self.recipe.name,
@@ -455,6 +508,26 @@ class _Context(StageContext):
             elif not step and time.monotonic() - last >= 10.0:
                 last = time.monotonic()
                 self.log.info("%s: %d done", label, count)
+
+
+def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> list[str]:
+    """One problem per external input (a recording, a model) of the named stages (all by
+    default) that does not exist: found before hours of earlier stages, not after."""
+    wanted = None if stage_ids is None else set(stage_ids)
+    problems = []
+    for spec in recipe.stages:
+        if wanted is not None and spec.id not in wanted:
+            continue
+        try:
+            paths = spec.cls(spec.config).external_inputs()
+        except Exception:  # noqa: BLE001 - the stage reports it itself when it runs
+            continue
+        for path in paths:
+            if not Path(path).exists():
+                where = "" if Path(path).is_absolute() else f" (relative to {Path.cwd()})"
+                problems.append(f"{spec.label}: input {path} does not exist{where}; fix the "
+                                f"path, or run from the folder it is relative to")
+    return problems
 
 
 def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None]) -> str:

@@ -107,6 +107,9 @@ def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
         raise RecipeError(f"{path}: no such recipe file") from None
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read it: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise RecipeError(f"{path}: not UTF-8 text (byte {exc.start}); save the recipe as "
+                          f"UTF-8") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -170,6 +173,11 @@ def parse_recipe(
     if not problems:
         specs = _wire_artifacts(specs, problems)
     if problems:
+        if overrides:
+            # A --set value is YAML: off, yes, 1.10 and '#...' are not the text typed.
+            problems.append(
+                f"(with --set {' '.join(overrides)}: values are read as YAML, so quote text "
+                f"that YAML reads otherwise, e.g. --set 'ingest.topic=\"off\"')")
         raise RecipeError(problems)
     return Recipe(
         name=name,
