@@ -71,6 +71,8 @@ def test_read_robotlaser1_with_remissions_and_laser_offset(tmp_path: Path):
     assert s.stamp == 100.25 and len(s) == 5
     assert s.angle_min == -1.5 and s.angle_increment == 0.75 and s.range_max == 50.0
     assert np.isnan(s.ranges[4])
+    # A reading at max_range is a beam without return (+inf), not a wall 50 m away.
+    assert s.ranges[2] == np.inf and not s.valid_mask()[2]
     # Laser 0.2 m ahead of the robot along its heading (0.5 rad).
     assert np.allclose(log.T_base_laser[:2, 3], [0.2, 0.0], atol=1e-6)
 
@@ -103,6 +105,20 @@ def test_read_g2o_odometry_chain(tmp_path: Path):
     assert np.allclose(odo.poses[0], np.eye(4))
     expect = se2_to_se3(1.0 + np.cos(0.5), np.sin(0.5), 0.5)
     assert np.allclose(odo.poses[2], expect)
+    # Vertex ids 0 10 20 (a thinned graph): the chain runs from each id to the next one.
+    gap = tmp_path / "gap.g2o"
+    text = "\n".join(lines).replace("VERTEX_SE2 1 ", "VERTEX_SE2 10 ").replace(
+        "VERTEX_SE2 2 ", "VERTEX_SE2 20 ").replace("EDGE_SE2 0 1 ", "EDGE_SE2 0 10 ").replace(
+        "EDGE_SE2 1 2 ", "EDGE_SE2 10 20 ").replace("EDGE_SE2 0 2 ", "EDGE_SE2 0 20 ")
+    gap.write_text(text + "\n")
+    g = read_g2o(gap)
+    assert list(g.scan_vertex) == [0, 10, 20]
+    assert g.sequential_edges().tolist() == [True, True, False]
+    assert np.allclose(g.odometry().poses[2], expect)
+    # A chain with a hole names the missing edge.
+    gap.write_text(text.replace("EDGE_SE2 10 20 ", "EDGE_SE2 10 21 ") + "\n")
+    with pytest.raises(CarmenFormatError, match="no odometry edge 10 -> 20"):
+        read_g2o(gap).odometry()
 
 
 # ------------------------------------------------------------------ shipped logs

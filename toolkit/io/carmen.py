@@ -58,11 +58,13 @@ def _open_text(path: Path) -> Iterator[str]:
             yield from fh
 
 
-def _ranges(values: list[str]) -> np.ndarray:
+def _ranges(values: list[str], max_range: float) -> np.ndarray:
     r = np.array(values, dtype=np.float32)
     # CARMEN has no invalid marker but zero/negative readings; the project's LaserScan
-    # marks invalid as non-finite, never zero.
+    # marks invalid as non-finite, never zero. A reading at or past max_range is a beam
+    # without return, +inf as in REP 117 (free space, no surface).
     r[~(r > 0)] = np.nan
+    r[r >= max_range] = np.inf
     return r
 
 
@@ -115,7 +117,7 @@ def _increasing(stamps: np.ndarray) -> np.ndarray:
 def _parse_robotlaser1(f: list[str]) -> tuple[LaserScan, np.ndarray, np.ndarray]:
     start, fov, res, max_range = (float(v) for v in f[2:6])
     n = int(f[8])
-    ranges = _ranges(f[9 : 9 + n])
+    ranges = _ranges(f[9 : 9 + n], max_range)
     k = 9 + n
     n_rem = int(f[k])
     k += 1 + n_rem
@@ -153,7 +155,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
         try:
             if f[0] == "FLASER":
                 n = int(f[1])
-                ranges = _ranges(f[2 : 2 + n])
+                ranges = _ranges(f[2 : 2 + n], max_range)
                 if len(ranges) != n:
                     raise ValueError(f"{len(ranges)} ranges, expected {n}")
                 rest = f[2 + n :]
@@ -225,8 +227,16 @@ class G2OLog:
         return float(max(st) - min(st)) if st else 0.0
 
     def sequential_edges(self) -> np.ndarray:
-        """[E] bool: edges i -> i+1 (odometry); the others are someone's loop closures."""
-        return self.edges[:, 1] == self.edges[:, 0] + 1
+        """[E] bool: edges from a vertex to the next vertex id of the file (odometry; the
+        ids need not be consecutive numbers, 0 10 20 ... is a chain too); the others are
+        someone's loop closures."""
+        ids = np.unique(self.vertex_ids)  # [V] sorted
+        if len(ids) < 2 or len(self.edges) == 0:
+            return np.zeros(len(self.edges), dtype=bool)
+        pos = np.searchsorted(ids, self.edges[:, 0])
+        has_next = (pos < len(ids) - 1) & (ids[np.minimum(pos, len(ids) - 1)] == self.edges[:, 0])
+        nxt = ids[np.minimum(pos + 1, len(ids) - 1)]
+        return has_next & (self.edges[:, 1] == nxt)
 
     def odometry(self) -> Trajectory:
         """T_odom_base at the scan stamps: the sequential ``EDGE_SE2`` chain dead-reckoned
@@ -234,15 +244,18 @@ class G2OLog:
         seq = self.sequential_edges()
         step = {int(i): z for (i, _), z in zip(self.edges[seq], self.edge_measurements[seq],
                                                strict=True)}
-        order = np.argsort(self.scan_vertex)
-        vids = self.scan_vertex[order]
+        vids = np.sort(self.scan_vertex)
+        ids = np.unique(self.vertex_ids)
+        chain = ids[(ids >= vids[0]) & (ids <= vids[-1])]  # every vertex between the scans'
         pose = {int(vids[0]): np.zeros(3)}
         cur = np.zeros(3)
-        for v in range(int(vids[0]), int(vids[-1])):
-            if v not in step:
-                raise CarmenFormatError(f"{self.path}: no odometry edge {v} -> {v + 1}")
-            cur = se2_compose(cur, step[v])
-            pose[v + 1] = cur
+        for a, b in zip(chain[:-1].tolist(), chain[1:].tolist(), strict=True):
+            if a not in step:
+                raise CarmenFormatError(
+                    f"{self.path}: no odometry edge {a} -> {b} (the chain of EDGE_SE2 from "
+                    f"each vertex to the next is the odometry)")
+            cur = se2_compose(cur, step[a])
+            pose[b] = cur
         stamps = np.array([s.stamp for s in self.scans])
         P = np.stack([se2_to_se3(*pose[int(v)]) for v in self.scan_vertex])
         o = np.argsort(stamps, kind="stable")

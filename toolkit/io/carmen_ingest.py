@@ -100,7 +100,11 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
     if mode == "edges":
         if not g2o:
             raise IngestError(f"{path}: carmen.odometry: edges needs a g2o file")
-        odometry = data.odometry()
+        try:
+            odometry = data.odometry()
+        except CarmenFormatError as e:
+            raise IngestError(f"{e}; or set 'carmen.odometry: none' to map from the scans "
+                              "alone") from None
     elif mode == "scans":
         if g2o:
             raise IngestError(f"{path}: carmen.odometry: scans - a g2o file's ROBOTLASER1 "
