@@ -347,8 +347,12 @@ def test_sync_drops_frames_without_partner_and_decimates(tmp_path):
     assert seq.meta["ingest"]["dropped_no_scan"] == 3
     assert "dropped for lack of a scan within tolerance: 3" in res.summary()
 
-    res = convert(rec, tmp_path / "b", sync=SyncOptions(tolerance_s=0.05, depth_tolerance_s=0.001))
-    assert res.plan.dropped["no_depth"] == 5 and res.frames == 0
+    # No frame with a depth image near enough: an error naming the setting, not an empty
+    # sequence (depth is for evaluation; a colour/depth clock offset must not lose frames).
+    with pytest.raises(IngestError, match=r"none of the 5 camera frames has a depth image "
+                       r"within sync.depth_tolerance_s = 0.001 s .*median.*rosbag.topics.depth"):
+        convert(rec, tmp_path / "b", sync=SyncOptions(tolerance_s=0.05, depth_tolerance_s=0.001))
+    assert not (tmp_path / "b").exists()
 
     res = convert(rec, tmp_path / "c", decimate=DecimateOptions(by="time", min_interval_s=0.35))
     assert res.frames == 3 and res.plan.decimated == 2  # keeps 0.013, 0.413, 0.813
@@ -545,3 +549,16 @@ def test_depth_encodings():
     np.testing.assert_array_equal(compressed_to_depth(msg), mm.astype(np.float32) / 1000)
     with pytest.raises(BagError, match="'format'"):
         compressed_to_depth(b.compressed(0.0, png.tobytes(), "16UC1; compressedDepth rvl"))
+
+
+def test_ros1_bag_named_otherwise_is_recognised_by_its_header(tmp_path):
+    bag, _ = make_bag(tmp_path, "ros1")
+    active = bag.with_name("run.bag.active")
+    bag.rename(active)  # what 'rosbag record' leaves when killed
+    with pytest.raises(BagError, match=r"run.bag.active: a ROS 1 bag named other than \*.bag; "
+                       r".*rosbag reindex"):
+        read_rosbag(active)
+    upper = tmp_path / "RUN.BAG"
+    active.rename(upper)
+    with pytest.raises(BagError, match=r"rename it \(or link it\) to end in '.bag'"):
+        read_rosbag(upper)

@@ -202,6 +202,21 @@ def test_stamps_keep_and_decimation():
     with pytest.raises(IngestError, match=r"topic /x: stamps are not monotonic: message 2 "):
         stamps_keep(st, "topic /x", "error")
     assert stamps_keep(st, "x", "drop").tolist() == [True, True, False, False, True]
+    # One stamp glitched into the future (or the past) costs that message only.
+    ahead = np.array([0.0, 1.0, 2.0, 1000.0, 3.0, 4.0, 5.0])
+    assert stamps_keep(ahead, "x", "drop").tolist() == [True] * 3 + [False] + [True] * 3
+    behind = np.array([10.0, 11.0, 5.0, 12.0, 13.0])
+    assert stamps_keep(behind, "x", "drop").tolist() == [True, True, False, True, True]
+    # Integer nanoseconds compare exactly where float seconds would tie.
+    ns = np.array([1_700_000_000_000_000_000, 1_700_000_000_000_000_001,
+                   1_700_000_000_000_000_001], dtype=np.int64)
+    assert stamps_keep(ns, "x", "drop", unit_s=1e-9).tolist() == [True, True, False]
+    with pytest.raises(IngestError, match=r"message 2 at .* repeats"):
+        stamps_keep(ns, "x", "error", unit_s=1e-9)
+    # 10 Hz frames at Unix-epoch stamps: every other one at 0.2 s, as at small stamps.
+    for t0 in (0.0, 1.7e9):
+        kept = decimate_by_time(t0 + np.arange(100) * 0.1, 0.2)
+        assert kept.sum() == 50 and set(np.diff(np.flatnonzero(kept))) == {2}
     assert decimate_by_time(np.arange(0, 1.01, 0.1), 0.25).tolist() == [
         True, False, False, True, False, False, True, False, False, True, False]
 
@@ -227,6 +242,12 @@ def test_uniform_scans_resamples_odd_layouts():
     # bearings -1 and 1 lie outside b's span: no return there, never an invented range
     np.testing.assert_array_equal(out[1].ranges, [np.nan, 10, 11, 12, np.nan])
     assert out[0] is a and out[2] is c
+    # A message without beams (a driver's start-up or dropout) is a scan without returns.
+    empty = LaserScan(3.0, np.zeros(0, np.float32), 0.0, 0.1)
+    out, n = uniform_scans([empty, a, c])
+    assert n == 1 and len(out[0]) == 5 and np.isnan(out[0].ranges).all()
+    with pytest.raises(IngestError, match="all 1 scans have no beams"):
+        uniform_scans([empty])
 
 
 def test_sequence_writer_resume_mode(tmp_path):
@@ -255,3 +276,19 @@ def test_sequence_writer_resume_mode(tmp_path):
     assert [f.stamp for f in seq.frames] == [0.0, 1.0, 2.0, 3.0]
     assert [float(seq.groundtruth.depth(k)[0, 0]) for k in range(4)] == [1.0, 2.0, 3.0, 4.0]
     assert np.array_equal(seq.frames[1].image, img + 1)
+
+
+def test_frames_without_any_scan_name_the_setting(tmp_path):
+    from toolkit.camera import PinholeCamera
+    from toolkit.ingest.sync import SyncOptions
+    from toolkit.sensors import Rig
+
+    w = SequenceWriter(tmp_path / "in", Rig(PinholeCamera.from_fov(16, 12, 90.0)), "cam")
+    for i in range(3):
+        w.add_frame(100.0 + i, np.zeros((12, 16, 3), np.uint8))
+    w.close()
+    rec = read_sequence_recording(tmp_path / "in")
+    with pytest.raises(IngestError, match="3 camera frames but no lidar scans.*require_scan"):
+        convert(rec, tmp_path / "out")
+    res = convert(rec, tmp_path / "out", sync=SyncOptions(require_scan=False))
+    assert res.frames == 3

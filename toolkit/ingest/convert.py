@@ -19,7 +19,13 @@ from typing import Any, Literal, TypeVar
 import numpy as np
 
 from toolkit.ingest.recording import IngestError, Recording, uniform_scans
-from toolkit.ingest.sync import DecimateOptions, FramePlan, SyncOptions, plan_frames
+from toolkit.ingest.sync import (
+    DecimateOptions,
+    FramePlan,
+    SyncOptions,
+    match_nearest,
+    plan_frames,
+)
 from toolkit.io.sequence import SequenceWriter
 
 T = TypeVar("T")
@@ -127,6 +133,11 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
                        decimate, poses)
     pairs = plan.pairs()
     stamps = recording.frame_stamps[plan.frames] if len(pairs) else np.zeros(0)
+    if plan.candidates and sync.require_scan and not len(scan_stamps):
+        raise IngestError(
+            f"{recording.source}: the recording has {plan.candidates} camera frames but no "
+            "lidar scans. Fix: 'sync.require_scan: false' to convert the frames alone, or "
+            "name the scan source (e.g. rosbag.topics.scan)")
     if plan.candidates and plan.dropped.get("no_scan") == plan.candidates:
         fs = recording.frame_stamps
         raise IngestError(
@@ -135,6 +146,17 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             f"{scan_stamps[0]:.3f}..{scan_stamps[-1]:.3f} s): the sensors' clocks disagree. "
             "Fix: 'rosbag.stamps: bag' (recording time) for a bag, a larger "
             "'sync.tolerance_s', or 'sync.require_scan: false'")
+    with_scan = plan.candidates - plan.dropped.get("no_scan", 0)
+    if with_scan and plan.dropped.get("no_depth", 0) == with_scan:
+        # Depth is for evaluation: a clock offset between colour and depth streams must
+        # not turn into a sequence without frames.
+        gap = np.abs(recording.depth_stamps[match_nearest(
+            recording.frame_stamps, recording.depth_stamps, np.inf)] - recording.frame_stamps)
+        raise IngestError(
+            f"{recording.source}: none of the {with_scan} camera frames has a depth image "
+            f"within sync.depth_tolerance_s = {sync.depth_tolerance_s} s (the nearest is "
+            f"{np.median(gap):.3f} s away at the median). Fix: a larger "
+            "'sync.depth_tolerance_s', or leave depth out (rosbag.topics.depth: none)")
     if recording.has_camera:
         log.info("sync plan: %d of %d camera frames kept; dropped %d without a scan within "
                  "%g s, %d without a depth image within %g s; %d decimated (%s)",

@@ -93,7 +93,12 @@ def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
     def layout(s: LaserScan) -> tuple[int, float, float]:
         return len(s), round(s.angle_min, 9), round(s.angle_increment, 12)
 
-    common = Counter(layout(s) for s in scans).most_common(1)[0][0]
+    # A message without beams (drivers send them on start-up and dropouts) becomes a scan
+    # without returns: it must not set the layout, nor be indexed.
+    layouts = Counter(layout(s) for s in scans if len(s))
+    if not layouts:
+        raise IngestError(f"all {len(scans)} scans have no beams ('ranges' is empty)")
+    common = layouts.most_common(1)[0][0]
     ref = next(s for s in scans if layout(s) == common)
     target = ref.angles()  # [B]
     out: list[LaserScan] = []
@@ -103,6 +108,11 @@ def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
             out.append(s)
             continue
         changed += 1
+        if not len(s):
+            out.append(LaserScan(s.stamp, np.full(len(target), np.nan, np.float32),
+                                 ref.angle_min, ref.angle_increment, ref.range_min,
+                                 ref.range_max))
+            continue
         src = s.angles()
         # Nearest source beam of each target angle; beyond the scan's own span: no return.
         j = np.clip(np.round((target - s.angle_min) / s.angle_increment).astype(np.int64), 0,

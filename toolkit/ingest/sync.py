@@ -9,6 +9,7 @@ interrupted conversion resume at the first frame it had not written.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -47,29 +48,64 @@ class DecimateOptions(BaseModel):
     min_rotation_deg: float = Field(5.0, ge=0)  # by: motion
 
 
+# Float64 resolves Unix-epoch seconds (1.7e9) to 2.4e-7 s: 0.2 s between two such stamps
+# may come out as 0.1999998 s. Comparisons with a configured interval allow this much.
+STAMP_SLACK_S = 1e-6
+
+
 def stamps_keep(stamps: np.ndarray, where: str, policy: Literal["error", "drop"],
-                fix: str = "") -> np.ndarray:
-    """[N] bool mask keeping a strictly increasing subsequence of ``stamps``.
+                fix: str = "", unit_s: float = 1.0) -> np.ndarray:
+    """[N] bool mask keeping a strictly increasing subsequence of ``stamps`` (in units of
+    ``unit_s`` seconds: int64 nanoseconds compare exactly).
 
     ``policy="error"`` raises at the first stamp that is not after the one before it,
     naming ``where`` (file or topic), the message number and both stamps; ``"drop"``
-    skips such messages (each is compared with the last one kept).
+    keeps the longest strictly increasing subsequence (its earliest messages where several
+    are as long), so one stamp glitched far into the future or the past costs that one
+    message, not every message after it.
     """
-    st = np.asarray(stamps, dtype=np.float64)
-    keep = np.zeros(len(st), dtype=bool)
-    last = -np.inf
-    for i, t in enumerate(st):
-        if not np.isfinite(t):
-            raise IngestError(f"{where}: stamp of message {i} is not finite ({t!r})")
-        if t > last:
-            keep[i] = True
-            last = t
-        elif policy == "error":
-            what = "repeats" if t == last else "goes backwards"
+    st = np.asarray(stamps)
+    if st.dtype.kind == "f" and not np.isfinite(st).all():
+        i = int(np.flatnonzero(~np.isfinite(st))[0])
+        raise IngestError(f"{where}: stamp of message {i} is not finite ({st[i]!r})")
+    if policy == "error":
+        bad = np.flatnonzero(st[1:] <= st[:-1])
+        if len(bad):
+            i = int(bad[0]) + 1
+            t, last = float(st[i]) * unit_s, float(st[i - 1]) * unit_s
+            what = "repeats" if st[i] == st[i - 1] else "goes backwards"
             raise IngestError(
                 f"{where}: stamps are not monotonic: message {i} at {t!r} {what} "
-                f"(previous {last!r}, {t - last:+.6f} s). Fix: set 'on_non_monotonic: drop' "
-                f"to skip such messages{fix}")
+                f"(previous {last!r}, {float(st[i] - st[i - 1]) * unit_s:+.6f} s). Fix: set "
+                f"'on_non_monotonic: drop' to skip such messages{fix}")
+        return np.ones(len(st), dtype=bool)
+    return longest_increasing(st)
+
+
+def longest_increasing(values: np.ndarray) -> np.ndarray:
+    """[N] bool: the longest strictly increasing subsequence, earliest elements first among
+    equally long ones (O(N log N))."""
+    v = [x.item() for x in np.asarray(values)]  # Python scalars: exact ints stay exact
+    n = len(v)
+    # from_here[i]: length of the longest increasing run of values starting at i, found as
+    # the longest decreasing one ending at i when walking backwards (patience tails).
+    from_here = [0] * n
+    tails: list = []  # tails[k]: largest negated start of a run of length k + 1
+    for i in range(n - 1, -1, -1):
+        k = bisect.bisect_left(tails, -v[i])
+        if k == len(tails):
+            tails.append(-v[i])
+        else:
+            tails[k] = -v[i]
+        from_here[i] = k + 1
+    keep = np.zeros(n, dtype=bool)
+    need = len(tails)
+    last = None
+    for i in range(n):
+        if need and from_here[i] >= need and (last is None or v[i] > last):
+            keep[i] = True
+            last = v[i]
+            need -= 1
     return keep
 
 
@@ -84,7 +120,8 @@ def match_nearest(query: np.ndarray, ref: np.ndarray, tolerance: float) -> np.nd
         len(q), np.int64)
     lo = np.maximum(hi - 1, 0)
     pick = np.where(np.abs(r[lo] - q) <= np.abs(r[hi] - q), lo, hi)
-    return np.where(np.abs(r[pick] - q) <= tolerance, pick, -1).astype(np.int64)
+    return np.where(np.abs(r[pick] - q) <= tolerance + STAMP_SLACK_S, pick, -1).astype(
+        np.int64)
 
 
 def decimate_by_time(stamps: np.ndarray, min_interval_s: float) -> np.ndarray:
@@ -92,7 +129,7 @@ def decimate_by_time(stamps: np.ndarray, min_interval_s: float) -> np.ndarray:
     keep = np.zeros(len(stamps), dtype=bool)
     last = -np.inf
     for i, t in enumerate(stamps):
-        if t - last >= min_interval_s - 1e-9:
+        if t - last >= min_interval_s - STAMP_SLACK_S:
             keep[i] = True
             last = t
     return keep

@@ -137,7 +137,7 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
     for p in items:
         if not p.exists():
             raise BagError(f"{p}: bag not found")
-    ros1 = [p.suffix == ".bag" for p in items]
+    ros1 = [is_ros1_bag(p) for p in items]
     if any(ros1) and not all(ros1):
         raise BagError(f"{', '.join(map(str, items))}: mix of ROS 1 .bag files and other "
                        "paths; give either ROS 1 .bag files or one ROS 2 bag folder")
@@ -147,12 +147,26 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
     return items
 
 
+def is_ros1_bag(path: Path) -> bool:
+    """A ROS 1 bag file: by its header (``#ROSBAG V2.0``), whatever its name - ``rosbag
+    record`` leaves ``NAME.bag.active`` when it is killed, and names vary in case."""
+    if not path.is_file():
+        return False
+    if path.name.lower().endswith((".bag", ".bag.active")):
+        return True
+    try:
+        with path.open("rb") as fh:
+            return fh.read(8) == b"#ROSBAG "
+    except OSError:
+        return False
+
+
 def _text(e: BaseException) -> str:
     return str(e).strip().rstrip(".")
 
 
 def _storage_kind(paths: list[Path]) -> str:
-    if paths[0].suffix == ".bag":
+    if is_ros1_bag(paths[0]):
         return "ROS 1"
     p = paths[0]
     files = [p] if p.is_file() else list(p.iterdir())
@@ -190,6 +204,14 @@ class Bag:
         self.paths = paths
         self.kind = _storage_kind(paths)
         self.name = ", ".join(str(p) for p in paths)
+        odd = [p for p in paths if self.kind == "ROS 1" and p.suffix != ".bag"]
+        if odd:  # rosbags opens ROS 1 bags by their suffix
+            active = odd[0].name.lower().endswith(".active")
+            raise BagError(
+                f"{odd[0]}: a ROS 1 bag named other than *.bag; "
+                + ("'rosbag record' was killed before it indexed this one: rebuild the "
+                   "index with 'rosbag reindex FILE' (ROS 1 tools), then rename it to end in "
+                   "'.bag'" if active else "rename it (or link it) to end in '.bag'"))
         # Only used when a ROS 2 bag stores no message definitions (Foxy era).
         default = None if self.kind == "ROS 1" else get_typestore(Stores.ROS2_FOXY)
         try:
@@ -944,17 +966,9 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
 
 def _keep(stamps: list[int], where: str, policy: Literal["error", "drop"],
           dropped: dict[str, int], key: str) -> np.ndarray:
-    keep = stamps_keep(np.asarray(stamps, dtype=np.float64) / 1e9 if stamps else np.zeros(0),
-                       where, policy, fix=", or 'rosbag.stamps: bag' to use the recording time")
-    # Float seconds may tie where nanoseconds do not; the integer check is the exact one.
-    st = np.asarray(stamps, dtype=np.int64)
-    if len(st) > 1 and policy == "drop":
-        last = -1
-        for i in np.flatnonzero(keep):
-            if st[i] <= last:
-                keep[i] = False
-            else:
-                last = st[i]
+    # In integer nanoseconds: float seconds tie where nanoseconds do not.
+    keep = stamps_keep(np.asarray(stamps, dtype=np.int64), where, policy,
+                       fix=", or 'rosbag.stamps: bag' to use the recording time", unit_s=1e-9)
     dropped[key] = int((~keep).sum())
     return keep
 
