@@ -77,7 +77,70 @@ def test_scale_only_estimators_on_disparity_without_shift(method: str) -> None:
     p = 1.0 / (0.5 * z)  # 1/z = 0.5 * p
     est = estimate_scale(method, z, p, disparity=True)
     assert est.scale == pytest.approx(0.5, rel=1e-6)
-    assert est.shift == 0.0
+    assert est.shift == pytest.approx(0.0, abs=1e-9)
+
+
+def test_clustered_refits_the_disparity_shift_on_its_cluster() -> None:
+    """Depth Anything-like output (disparity up to scale and shift) with 30 % outliers."""
+    rng = np.random.default_rng(5)
+    n = 300
+    z = rng.uniform(0.6, 7.0, n)
+    s, t = 0.8, -0.05  # 1/z = s p + t
+    p = (1.0 / z - t) / s * (1 + 0.005 * rng.standard_normal(n))
+    bad = rng.random(n) < 0.3
+    z_meas = z.copy()
+    z_meas[bad] *= rng.uniform(1.1, 2.5, bad.sum())  # seen past an edge
+    est = estimate_scale("clustered", z_meas, p, disparity=True)
+    assert est.ok and est.scale == pytest.approx(s, rel=0.02)
+    assert est.shift == pytest.approx(t, abs=0.01)
+    zz = 1.0 / (est.scale * p[~bad] + est.shift)
+    assert np.median(np.abs(zz / z[~bad] - 1)) < 0.01
+    # Scale alone when asked (the paper's estimator)
+    assert estimate_scale("clustered", z_meas, p, disparity=True, fit_shift=False).shift == 0
+
+
+@pytest.mark.parametrize("n", [300, 1000, 3000])
+def test_clustered_keeps_one_sided_outliers_out_with_many_pairs(n: int) -> None:
+    """A dense lidar: 30 % of the pairs see past an edge (1.1-2.5x further). With a fixed
+    DBSCAN core count their ratios chained onto the true cluster above ~400 pairs (20 %
+    scale error, flagged ok)."""
+    rng = np.random.default_rng(n)
+    d = rng.uniform(0.5, 3.0, n)
+    l = 2.0 * d * np.exp(rng.normal(0, 0.03, n))
+    k = int(0.3 * n)
+    l[:k] *= rng.uniform(1.1, 2.5, k)
+    est = estimate_scale("clustered", l, d)
+    assert est.ok and est.scale == pytest.approx(2.0, rel=0.01)
+    assert est.inliers < 0.8 * n
+
+
+def test_shift_is_not_fitted_where_the_pairs_cannot_show_it() -> None:
+    """Facing a wall, every pair at about one depth: scale and shift are one unknown. The
+    estimators fit the scale alone instead of a confident nonsense pair."""
+    rng = np.random.default_rng(6)
+    z = 3.0 + 0.02 * rng.standard_normal(200)
+    p = (1.0 / z + 0.2) / 2.0  # 1/z = 2 p - 0.2
+    for method in ("robust", "clustered"):
+        est = estimate_scale(method, z, p, disparity=True)
+        assert est.ok and est.shift == 0.0, method
+        # the wall is where the lidar says
+        assert np.median(1.0 / (est.scale * p)) == pytest.approx(3.0, rel=0.01)
+
+
+def test_robust_scale_only_with_disparities_not_positive() -> None:
+    z = np.linspace(1.0, 5.0, 50)
+    est = estimate_scale("robust", z, -np.ones(50), disparity=True, fit_shift=False)
+    assert est.quality == FEW_PAIRS and est.pairs == 0
+
+
+def test_depth_kind_shift_is_applied() -> None:
+    from toolkit.depth.protocol import DepthPrediction
+
+    pred = DepthPrediction(np.array([[1.0, 2.0], [0.0, 0.1]], np.float32), "relative_depth")
+    z = pred.as_depth(2.0, 0.6)
+    np.testing.assert_allclose(z[0], [2.6, 4.6], rtol=1e-6)
+    assert np.isnan(z[1, 0]) and z[1, 1] == pytest.approx(0.8)
+    assert np.isnan(pred.as_depth(2.0, -1.0)[1, 1])  # not positive after the shift
 
 
 def test_few_pairs_flagged_and_invalid_pairs_ignored() -> None:

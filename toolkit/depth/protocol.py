@@ -42,10 +42,11 @@ class DepthPrediction:
         return self.kind == "relative_disparity"
 
     def as_depth(self, scale: float = 1.0, shift: float = 0.0) -> np.ndarray:
-        """[H, W] float32 z-depth after applying a scale (and shift for disparity).
+        """[H, W] float32 z-depth after applying a scale and shift.
 
-        Depth kinds: ``scale * values``. Disparity: ``1 / (scale * values + shift)``;
-        pixels whose corrected disparity is not positive are NaN (beyond infinity).
+        Depth kinds: ``scale * values + shift`` (NaN where the value or the result is not
+        positive). Disparity: ``1 / (scale * values + shift)``; pixels whose corrected
+        disparity is not positive are NaN (beyond infinity).
         """
         v = self.values  # float32 throughout: this runs on every pixel of every frame
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -53,7 +54,10 @@ class DepthPrediction:
                 disp = np.float32(scale) * v + np.float32(shift)
                 z = np.where(disp > 0, np.float32(1.0) / disp, np.float32(np.nan))
             else:
-                z = np.where(v > 0, np.float32(scale) * v, np.float32(np.nan))
+                z = np.float32(scale) * v
+                if shift:
+                    z += np.float32(shift)
+                z = np.where((v > 0) & (z > 0), z, np.float32(np.nan))
         return z.astype(np.float32, copy=False)
 
 

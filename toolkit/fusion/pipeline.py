@@ -51,8 +51,10 @@ class FusionConfig(BaseModel):
     cluster_algorithm: Literal["dbscan", "meanshift"] = "dbscan"
     cluster_eps: float = 0.03
     cluster_min_samples: int = 5
+    cluster_min_fraction: float = Field(0.03, ge=0, le=1)  # core points need this share too
     robust_threshold: float = 0.05
-    fit_shift: bool | None = None  # robust: None -> shift for disparity models only
+    # robust, clustered: None -> shift for disparity models only (ratio: never)
+    fit_shift: bool | None = None
     min_pairs: int = Field(20, ge=2)
     # temporal smoothing
     smoothing: Literal["median", "none"] = "median"
@@ -249,7 +251,8 @@ class Fusion:
                 opts["gate"] = c.ratio_gate
             elif c.scale == "clustered":
                 opts.update(algorithm=c.cluster_algorithm, eps=c.cluster_eps,
-                            min_samples=c.cluster_min_samples)
+                            min_samples=c.cluster_min_samples,
+                            min_fraction=c.cluster_min_fraction, fit_shift=c.fit_shift)
             else:
                 opts.update(threshold=c.robust_threshold, fit_shift=c.fit_shift)
             # From all pairs: the estimators reject the hidden ones as outliers anyway, and
@@ -444,4 +447,5 @@ def scaled_at_pairs(pairs: FramePairs, disparity: bool, scale: float, shift: flo
         with np.errstate(divide="ignore", invalid="ignore"):
             disp = scale * v + shift
             return np.where(disp > 0, 1.0 / disp, np.nan)
-    return scale * v
+    z = scale * v + shift
+    return np.where(z > 0, z, np.nan)

@@ -3,8 +3,10 @@
 Pairs are (l_j, d_j): lidar z-depth and predicted value at the same pixel. For depth kinds
 the model is ``l = s * d``. For ``relative_disparity`` it is ``1 / l = s * d + t`` (the
 prediction is affine in inverse depth), so every estimator works on y_j = 1 / l_j there;
-``ratio`` and ``clustered`` then fit the scale alone (t = 0) and only ``robust`` fits the
-shift too.
+``ratio`` fits the scale alone (t = 0, the paper's formula), ``clustered`` refits scale and
+shift on its cluster and ``robust`` fits both. A shift is only fitted where the pairs'
+predictions spread enough to tell it from the scale (``MIN_SPREAD``): a robot facing a wall
+gets the scale alone instead of a confident nonsense shift.
 
 Estimators (selected in the recipe):
 
@@ -12,7 +14,10 @@ Estimators (selected in the recipe):
   ratio is further than ``gate`` (in log) from the median ratio are not valid pairs; with
   ``gate=None`` it is the paper's formula over all pairs.
 - ``clustered``: the paper's per-pair ratios alpha_j = l_j / d_j, clustered in log space
-  with DBSCAN (or mean-shift); alpha = sum(l) / sum(d) over the dominant cluster.
+  with DBSCAN (or mean-shift); alpha = sum(l) / sum(d) over the dominant cluster. A core
+  point needs ``min_samples`` pairs, and at least ``min_fraction`` of all pairs, within
+  ``eps``: with a fixed count, the one-sided outliers of a dense lidar (hundreds of pairs)
+  chained onto the true cluster and moved the scale by 20 %.
 - ``robust``: RANSAC on minimal samples then iteratively reweighted least squares with a
   Tukey loss, in log space for scale only and in disparity space for scale and shift.
 
@@ -30,6 +35,11 @@ import numpy as np
 
 Method = Literal["ratio", "clustered", "robust"]
 METHODS: tuple[str, ...] = ("ratio", "clustered", "robust")
+
+# Relative spread (10th to 90th percentile over the median) of the lidar depths (inverse
+# depths for disparity) below which a shift is not fitted: at one depth scale and shift are
+# one unknown.
+MIN_SPREAD = 0.2
 
 # quality flags
 OK = "ok"
@@ -91,14 +101,39 @@ def estimate_ratio(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False,
     return _finish(s, 0.0, int(valid.sum()), n, "ratio", min_pairs)
 
 
+def _spread(y: np.ndarray) -> float:
+    """(p90 - p10) / median of the lidar side ``y`` [N] (1 / l for disparity): pairs at one
+    depth cannot separate a shift from a scale, whatever offset the prediction carries."""
+    lo, med, hi = np.percentile(y, [10, 50, 90])
+    return float((hi - lo) / abs(med)) if med != 0 else 0.0
+
+
+def _affine_refit(x: np.ndarray, y: np.ndarray) -> tuple[float, float] | None:
+    """(s, t) of ``y = s x + t`` by least squares with residuals relative to y, or None
+    where the pairs cannot separate them (too little spread, not a positive scale)."""
+    if len(x) < 3 or _spread(y) < MIN_SPREAD:
+        return None
+    w = 1.0 / (y * y)
+    A = np.stack([x, np.ones(len(x))], -1)  # [n, 2]
+    AtW = A.T * w
+    try:
+        s, t = np.linalg.solve(AtW @ A, AtW @ y)
+    except np.linalg.LinAlgError:
+        return None
+    return (float(s), float(t)) if s > 0 else None
+
+
 def estimate_clustered(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False,
                        algorithm: Literal["dbscan", "meanshift"] = "dbscan",
                        eps: float = 0.03, min_samples: int = 5, bandwidth: float = 0.05,
-                       min_pairs: int = 10) -> ScaleEstimate:
+                       min_pairs: int = 10, min_fraction: float = 0.03,
+                       fit_shift: bool | None = None) -> ScaleEstimate:
     """Dominant cluster of per-pair log ratios; alpha = sum(l) / sum(d) inside it.
 
     ``eps`` (DBSCAN) and ``bandwidth`` (mean-shift) are in log-ratio units: 0.03 groups
-    ratios within about 3 % of each other.
+    ratios within about 3 % of each other. A DBSCAN core point needs ``min_samples``
+    neighbours and ``min_fraction`` of the pairs. ``fit_shift`` (default: for disparity)
+    refits scale and shift on the cluster's pairs.
     """
     l, d = _clean_pairs(lidar, pred, disparity)
     if disparity:
@@ -117,7 +152,8 @@ def estimate_clustered(lidar: np.ndarray, pred: np.ndarray, disparity: bool = Fa
         if algorithm == "dbscan":
             from sklearn.cluster import DBSCAN
 
-            labels = DBSCAN(eps=eps, min_samples=min(min_samples, n),
+            core = max(min_samples, int(np.ceil(min_fraction * n)))
+            labels = DBSCAN(eps=eps, min_samples=min(core, n),
                             algorithm="kd_tree").fit_predict(r)
         elif algorithm == "meanshift":
             # About 50x slower than DBSCAN per frame (hundreds of ms): for studies only.
@@ -132,8 +168,14 @@ def estimate_clustered(lidar: np.ndarray, pred: np.ndarray, disparity: bool = Fa
     counts = np.bincount(labels[good])
     best = int(np.argmax(counts))
     members = labels == best
-    s = float(l[members].sum() / d[members].sum())
-    return _finish(s, 0.0, int(members.sum()), n, "clustered", min_pairs)
+    s, t = float(l[members].sum() / d[members].sum()), 0.0
+    if disparity if fit_shift is None else fit_shift:
+        # With a shift the ratios drift with the prediction, but smoothly: the cluster still
+        # holds the pairs on the curve, and the outliers stay out of it.
+        fit = _affine_refit(d[members], l[members])
+        if fit is not None:
+            s, t = fit
+    return _finish(s, t, int(members.sum()), n, "clustered", min_pairs)
 
 
 def _tukey_weights(res: np.ndarray, c: float) -> np.ndarray:
@@ -152,10 +194,14 @@ def estimate_robust(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False
         return _failed(n, "robust")
     fit_shift = disparity if fit_shift is None else fit_shift
     rng = np.random.default_rng(seed)
+    if fit_shift and _spread(1.0 / l if disparity else l) < MIN_SPREAD:
+        fit_shift = False  # pairs at one depth: the shift is not observable (module doc)
     if not fit_shift:
         y, x = (1.0 / l, d) if disparity else (l, d)
         keep = x > 0
         y, x = y[keep], x[keep]
+        if len(x) < min_pairs:  # disparities <= 0 are beyond infinity for a scale alone
+            return _failed(len(x), "robust")
         r = np.log(y / x)  # [n] log ratio: the scale model is a constant in log space
         # RANSAC with 1-point samples: the candidate with most ratios within the band.
         cand = r[rng.integers(0, len(r), min(iterations, len(r)))]
