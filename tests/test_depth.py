@@ -495,3 +495,74 @@ def test_training_resumes_from_its_checkpoint(tmp_path: Path) -> None:
     save_checkpoint(checkpoint_path(cfg.out), cfg, model, opt, rng, 7, 60.0, 50.0)
     with pytest.raises(ValueError, match="different training configuration"):
         train(other)
+
+
+def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
+                 props: dict[str, str] | None = None) -> Path:
+    """A model built node by node: mean over the channels, then softplus (depth > 0)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    nodes, x = [], "image"
+    if elem != TensorProto.FLOAT:
+        nodes.append(helper.make_node("Cast", [x], ["xf"], to=TensorProto.FLOAT))
+        x = "xf"
+    if nhwc:
+        nodes.append(helper.make_node("Transpose", [x], ["xt"], perm=[0, 3, 1, 2]))
+        x = "xt"
+    nodes += [helper.make_node("ReduceMean", [x], ["m"], axes=[1], keepdims=1),
+              helper.make_node("Softplus", ["m"], ["depth"])]
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("image", elem, shape)],
+                              [helper.make_tensor_value_info("depth", TensorProto.FLOAT, None)])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    if props:
+        helper.set_model_props(model, props)
+    onnx.save(model, str(path))
+    return path
+
+
+def test_onnx_model_shapes_and_settings_are_checked(tmp_path: Path, rgb: np.ndarray) -> None:
+    from onnx import TensorProto
+
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    # Channels last: named at load time, and run when the recipe says layout: nhwc.
+    nhwc = _graph_model(tmp_path / "nhwc.onnx", [1, 28, 42, 3], TensorProto.FLOAT, True)
+    with pytest.raises(ValueError, match=r"channels last; set layout: nhwc"):
+        OnnxDepthBackend(C(model=nhwc, kind="relative_depth"))
+    be = OnnxDepthBackend(C(model=nhwc, kind="relative_depth", layout="nhwc", threads=1))
+    assert be.preprocess(rgb).shape == (1, 28, 42, 3)
+    assert be.predict(rgb).values.shape == rgb.shape[:2]
+    # A half-precision input takes the image cast to float16.
+    half = _graph_model(tmp_path / "half.onnx", [1, 3, "h", "w"], TensorProto.FLOAT16, False,
+                        {"channel_order": "BGR"})  # metadata in capitals
+    be = OnnxDepthBackend(C(model=half, kind="relative_depth", input_size=(28, 42), threads=1))
+    assert be.preprocess(rgb).dtype == np.float16 and be.channel_order == "bgr"
+    assert np.isfinite(be.predict(rgb).values).all()
+    # mean/std in 0-255 units (mmcv configs) would feed a constant image.
+    with pytest.raises(ValueError, match="0-255 units; give them divided by 255"):
+        OnnxDepthBackend(C(model=half, kind="relative_depth", mean=(123.7, 116.3, 103.5),
+                           std=(58.4, 57.1, 57.4)))
+    with pytest.raises(ValueError, match=r"output_index 2, but the model has 1 output"):
+        OnnxDepthBackend(C(model=half, kind="relative_depth", output_index=2))
+    # A dynamic ViT-style model sees whole patches: stretch sizes round to multiple_of.
+    assert be.input_hw((480, 640)) == (28, 42)
+    vit = OnnxDepthBackend(C(model=half, kind="relative_depth", input_size=(480, 640)))
+    assert vit.input_hw((480, 640)) == (476, 644)
+
+
+def test_onnx_invalid_output_does_not_blend_into_valid_depth(tmp_path: Path) -> None:
+    """A network's 0 (no depth) next to 4 m, upsampled: bilinear would invent 1 and 3 m."""
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    be = OnnxDepthBackend(C(model=_export(tmp_path / "t.onnx", (28, 42)), kind="metric_depth"))
+    raw = np.array([[0.0, 0.0, 4.0, 4.0], [0.0, 0.0, 4.0, 4.0]], np.float32)[None, None]
+    out = be.postprocess(raw, (4, 8))
+    valid = out[np.isfinite(out)]
+    assert len(valid) >= 12 and np.all(valid == pytest.approx(4.0))
+    assert np.isnan(out[:, :3]).all()
+    # channels-last single-channel output [1, h, w, 1] is one depth map too
+    assert be.postprocess(np.full((1, 2, 3, 1), 2.0, np.float32), (2, 3)).shape == (2, 3)

@@ -127,7 +127,18 @@ class OnnxDepthBackend:
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         inp = self.session.get_inputs()[0]
         self.input_name = inp.name
-        self.output_name = self.session.get_outputs()[config.output_index].name
+        self._check_input(path, inp.shape, config.layout)
+        # A half-precision export takes float16: the image is cast, not refused.
+        self.input_dtype = {"tensor(float)": np.float32, "tensor(float16)": np.float16}.get(
+            inp.type)
+        if self.input_dtype is None:
+            raise ValueError(f"{path}: input {inp.name!r} is {inp.type}; expected a float or "
+                             "float16 image tensor")
+        outputs = self.session.get_outputs()
+        if not 0 <= config.output_index < len(outputs):
+            raise ValueError(f"{path}: output_index {config.output_index}, but the model has "
+                             f"{len(outputs)} output(s): {[o.name for o in outputs]}")
+        self.output_name = outputs[config.output_index].name
         self._fixed_hw = self._fixed_input_hw(inp.shape)
         kind = config.kind or self.metadata.get("depth_kind")
         if kind is None:
@@ -142,7 +153,18 @@ class OnnxDepthBackend:
                                dtype=np.float32)
         self.std = np.asarray(config.std or _floats(self.metadata.get("std")) or IMAGENET_STD,
                               dtype=np.float32)
-        self.channel_order = config.channel_order or self.metadata.get("channel_order", "rgb")
+        if self.mean.max() > 1.0 or self.std.max() > 1.0:
+            # mmcv/Metric3D configs give 123.675, 58.395...: the image here is in [0, 1].
+            raise ValueError(f"{path}: mean {self.mean.tolist()} / std {self.std.tolist()} are "
+                             "in 0-255 units; give them divided by 255 (the image is scaled "
+                             "to [0, 1] first)")
+        order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
+        if order not in ("rgb", "bgr"):
+            raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
+        self.channel_order = order
+        if ("input_height" in self.metadata) != ("input_width" in self.metadata):
+            raise ValueError(f"{path}: metadata names one of input_height / input_width "
+                             "without the other; give input_size in the recipe")
         self.last_timing: dict[str, float] = {}
         # A timing stand-in (``bench_latency --export``) runs like a real network; say
         # loudly that its depth is noise, in the log and in ``describe()``.
@@ -153,6 +175,20 @@ class OnnxDepthBackend:
             _log.warning("%s: %s", path, self.warning)
 
     # ------------------------------------------------------------------ sizes
+    @staticmethod
+    def _check_input(path: Path, shape: list[Any], layout: str) -> None:
+        """An image input of rank 4 whose channel axis is where ``layout`` says."""
+        if len(shape) != 4:
+            raise ValueError(f"{path}: input shape {shape}: expected an image batch "
+                             "[1, 3, H, W] (layout: nchw) or [1, H, W, 3] (layout: nhwc)")
+        c_first, c_last = shape[1], shape[3]
+        if layout == "nchw" and c_first != 3 and c_last == 3:
+            raise ValueError(f"{path}: input shape {shape} has its 3 channels last; set "
+                             "layout: nhwc in the depth stage")
+        if layout == "nhwc" and c_last != 3 and c_first == 3:
+            raise ValueError(f"{path}: input shape {shape} has its 3 channels first; set "
+                             "layout: nchw in the depth stage")
+
     @staticmethod
     def _fixed_input_hw(shape: list[Any]) -> tuple[int, int] | None:
         if len(shape) != 4:
@@ -176,10 +212,14 @@ class OnnxDepthBackend:
         if size is None:
             size = 518
         h, w = (size, size) if isinstance(size, int) else size
+        m = self.multiple_of
         if cfg.resize == "keep_aspect":
-            m = self.multiple_of
             h = max(m, int(round(h / m)) * m)
             w = max(m, int(round(h * image_hw[1] / image_hw[0] / m)) * m)
+        elif fixed is None and (h % m or w % m):
+            # A ViT/14 sees only whole patches: the rest of a 480x640 input would be cut off
+            # and its output stretched back over the whole image (edges moved by pixels).
+            h, w = max(m, int(round(h / m)) * m), max(m, int(round(w / m)) * m)
         if fixed is not None and (h, w) != fixed:
             raise ValueError(f"{cfg.model}: the model takes a fixed {fixed[1]}x{fixed[0]} input "
                              f"but the config asks for {w}x{h}; drop 'input_size' or re-export "
@@ -200,25 +240,27 @@ class OnnxDepthBackend:
         x = (img.astype(np.float32) / np.float32(255.0) - self.mean) / self.std  # [h, w, 3]
         if self.config.layout == "nchw":
             x = x.transpose(2, 0, 1)
-        return np.ascontiguousarray(x[None], dtype=np.float32)
+        return np.ascontiguousarray(x[None], dtype=self.input_dtype)
 
     def postprocess(self, raw: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
         """Network output ([1, 1, h, w], [1, h, w] or [h, w]) -> [H, W] float32, NaN invalid."""
         out = np.asarray(raw, dtype=np.float32)
-        while out.ndim > 2 and out.shape[0] == 1:
-            out = out[0]
+        if out.ndim > 2:  # [1, 1, h, w], [1, h, w, 1], [1, h, w]: drop the unit axes
+            out = out.reshape([n for n in out.shape if n != 1] or [1])
         if out.ndim != 2:
             raise ValueError(f"{self.config.model}: output {self.output_name!r} has shape "
-                             f"{np.shape(raw)}; expected one depth channel")
+                             f"{np.shape(raw)}; expected one depth channel (another output: "
+                             "set output_index)")
         out = out * np.float32(self.config.output_scale)
-        H, W = image_hw
-        if out.shape != (H, W):
-            # Bilinear with half-pixel centres, as torch's align_corners=False.
-            out = cv2.resize(out, (W, H), interpolation=cv2.INTER_LINEAR)
         bad = ~np.isfinite(out)
         if self.kind != "relative_disparity":
             bad |= out <= 0  # a depth of zero or less is no depth; disparity 0 is fine
-        if bad.any():
+        H, W = image_hw
+        if out.shape != (H, W):
+            # Bilinear with half-pixel centres, as torch's align_corners=False.
+            out = _resize_valid(out, bad, (H, W)) if bad.any() else cv2.resize(
+                out, (W, H), interpolation=cv2.INTER_LINEAR)
+        elif bad.any():
             out = out.copy()
             out[bad] = np.nan
         return out
@@ -247,6 +289,20 @@ class OnnxDepthBackend:
                 "providers": self.providers,
                 "spin": self.config.spin, "metadata": self.metadata,
                 **({"warning": self.warning} if self.warning else {})}
+
+
+def _resize_valid(values: np.ndarray, bad: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """[H, W] bilinear resize of ``values`` [h, w] from its valid pixels only (normalised
+    by the resized validity): a 0 or NaN must not blend into its neighbours as a depth
+    that exists nowhere. Pixels that take less than half their weight from valid ones
+    are NaN."""
+    H, W = hw
+    v = np.where(bad, np.float32(0), values).astype(np.float32)
+    w = (~bad).astype(np.float32)
+    rv = cv2.resize(v, (W, H), interpolation=cv2.INTER_LINEAR)
+    rw = cv2.resize(w, (W, H), interpolation=cv2.INTER_LINEAR)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(rw > 0.5, rv / rw, np.float32(np.nan)).astype(np.float32)
 
 
 def _floats(text: str | None) -> tuple[float, ...] | None:

@@ -34,6 +34,7 @@ class DepthConfig(StageConfig):
     std: tuple[float, float, float] | None = None
     channel_order: Literal["rgb", "bgr"] | None = None
     layout: Literal["nchw", "nhwc"] = "nchw"
+    output_index: int = Field(0, ge=0)  # which output is the depth (models with several)
     output_scale: float = 1.0
     threads: int = Field(2, ge=1)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # cuda: needs onnxruntime-gpu
@@ -81,7 +82,8 @@ def make_backend(cfg: DepthConfig) -> Any:
         model=cfg.model, kind=cfg.output, input_size=cfg.input_size, resize=cfg.resize,
         multiple_of=cfg.multiple_of, interpolation=cfg.interpolation, mean=cfg.mean,
         std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
-        output_scale=cfg.output_scale, threads=cfg.threads, device=cfg.device))
+        output_index=cfg.output_index, output_scale=cfg.output_scale, threads=cfg.threads,
+        device=cfg.device))
 
 
 class DepthStage(Stage):
