@@ -234,6 +234,21 @@ def test_inverse_transform_consistency() -> None:
     np.testing.assert_allclose(inv_se3(T) @ T, np.eye(4), atol=1e-12)
 
 
+def test_scans_of_a_frame_are_its_nearest_in_time() -> None:
+    """The n nearest scans (ties to the earlier one) within max_dt, found without sorting
+    every stamp per frame."""
+    rig = _rig()
+    stamps = np.r_[0.0, 0.1, 0.1, 0.2, 0.35, 0.5, 0.5, 0.9]
+    scans = [LaserScan(float(t), np.ones(3), 0.0, 0.1) for t in stamps]
+    seq = Sequence(rig, [], scans)
+    for n in (1, 2, 3):
+        proj = LidarProjector(seq, scans_per_frame=n, max_dt=0.3)
+        for t in np.linspace(-0.5, 1.5, 81):
+            order = np.argsort(np.abs(stamps - t), kind="stable")[:n]
+            expect = [int(k) for k in order if abs(stamps[k] - t) <= 0.3]
+            assert proj.scan_indices(float(t)) == expect, (n, t)
+
+
 def test_dynamic_beams_flag_what_other_scans_see_through() -> None:
     from toolkit.fusion.dynamic import cylinder_mask, dynamic_beams
 

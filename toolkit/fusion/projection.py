@@ -105,10 +105,19 @@ class LidarProjector:
 
     def scan_indices(self, t: float) -> list[int]:
         """Indices of the scans used for an image at stamp ``t`` (nearest first)."""
-        stamps = self.seq.scan_stamps
+        stamps = self.seq.scan_stamps  # sorted
         if len(stamps) == 0:
             return []
-        order = np.argsort(np.abs(stamps - t), kind="stable")[: self.scans_per_frame]
+        # The n nearest of sorted stamps lie within n places of t: no sort of every stamp
+        # per frame (an hour of 10 Hz scans and frames made that quadratic).
+        n = self.scans_per_frame
+        at = int(np.searchsorted(stamps, t))
+        lo, hi = max(0, at - n), min(len(stamps), at + n)
+        # ... and any scan stamped the same as the window's ends (ties go to the earlier).
+        lo = int(np.searchsorted(stamps, stamps[lo], "left"))
+        hi = int(np.searchsorted(stamps, stamps[hi - 1], "right")) if hi > lo else hi
+        cand = np.arange(lo, hi)
+        order = cand[np.argsort(np.abs(stamps[cand] - t), kind="stable")[:n]]
         return [int(k) for k in order if abs(stamps[k] - t) <= self.max_dt]
 
     def _laser_points(self, k: int) -> tuple[np.ndarray, np.ndarray]:
