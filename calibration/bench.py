@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 from calibration.board import BoardSpec, Detection
-from calibration.extrinsic import SolverOptions, transform_error
+from calibration.extrinsic import MIN_VIEWS, SolverOptions, transform_error
 from calibration.pipeline import BoardSearch, ViewCandidate, load_candidates, run_extrinsic
 from calibration.scans import StampedScan
 from toolkit.camera import PinholeCamera
@@ -111,12 +111,14 @@ def analytic_candidates(n_views: int, seed: int, image_noise: float, beams: int)
 
 def sweep(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     views = sorted(set(args.views) | {args.target_views})
+    if views[0] < MIN_VIEWS:
+        raise SystemExit(f"--views {views[0]}: the extrinsic needs at least {MIN_VIEWS} views")
     n_max = max(views)
     size = tuple(args.board_size) if args.board_size else None
     board = BoardSpec(11, 8, 0.05, size)
     errors: dict[int, list[tuple[float, float]]] = {n: [] for n in views}
     stds: dict[int, list[tuple[float, float]]] = {n: [] for n in views}
-    flagged: dict[int, list[bool]] = {n: [] for n in views}  # the result carried a warning
+    flagged: dict[int, list[bool]] = {n: [] for n in views}  # a warning or 'unreliable'
     corner_errors = []
     t0, c0 = time.time(), time.process_time()
     for seed in range(args.seeds):
@@ -139,7 +141,7 @@ def sweep(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             errors[n].append(transform_error(run.result.T_camera_laser, T_gt))
             stds[n].append((float(np.linalg.norm(run.result.std_rotation_deg)),
                             float(np.linalg.norm(run.result.std_translation_m))))
-            flagged[n].append(bool(run.result.warnings))
+            flagged[n].append(bool(run.result.warnings or run.result.unreliable))
         e = np.array(errors[args.target_views])
         print(f"seed {seed}: {args.target_views} views rotation {e[-1, 0]:.3f} deg, "
               f"translation {e[-1, 1] * 1000:.1f} mm ({time.time() - t0:.0f} s)", flush=True)
@@ -304,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--source", default="sim", choices=("sim", "analytic"),
                    help="simulator capture (default; analytic if the simulator is absent)")
     p.add_argument("--seeds", type=int, default=20)
-    p.add_argument("--views", type=int, nargs="+", default=[3, 4, 5, 6, 8, 10, 12, 15, 20])
+    p.add_argument("--views", type=int, nargs="+", default=[4, 5, 6, 8, 10, 12, 15, 20],
+                   help=f"view counts to measure (at least {MIN_VIEWS}: fewer are refused)")
     p.add_argument("--target-views", type=int, default=10)
     p.add_argument("--beams", type=int, default=1440,
                    help="lidar beams over 360 deg (default 1440: 0.25 deg)")

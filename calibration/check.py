@@ -34,6 +34,10 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import transform_points
 
 
+class CheckError(ValueError):
+    """The frames cannot give the requested score; the message says what to pass."""
+
+
 @dataclass
 class Projection:
     """Scan points that land in the image."""
@@ -214,11 +218,17 @@ def score_frames(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: P
     """Mean score over frames: depth agreement when every frame has depth, else edges."""
     if kind == "auto":
         kind = "depth" if frames and all(f.depth is not None for f in frames) else "edges"
+    missing = [f.name for f in frames if f.depth is None]
+    if kind == "depth" and missing:
+        raise CheckError(
+            f"the depth score needs a depth map for every frame, and {len(missing)} of "
+            f"{len(frames)} have none ({', '.join(missing[:5])}"
+            f"{', ...' if len(missing) > 5 else ''}). Give metric depth maps with --depth DIR "
+            "(<image stem> or <index:06d>, .npy or .png), or use --score edges.")
     vals, n = [], 0
     for f in frames:
         proj = project_scan(f.points, T_camera_laser, camera)
-        if kind == "depth":
-            assert f.depth is not None
+        if kind == "depth" and f.depth is not None:
             s, k = depth_agreement(f.depth, proj, rel_tol)
         else:
             s = edge_alignment(f.edges(), proj, f.jumps())

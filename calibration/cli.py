@@ -16,13 +16,14 @@ from typing import Any
 import numpy as np
 
 from calibration.board import BoardError, BoardSpec
+from calibration.check import CheckError
 from calibration.extrinsic import ExtrinsicError, SolverOptions
 from calibration.files import CalibrationFileError
 from calibration.intrinsics import IntrinsicsError
 from calibration.scans import PairingError, ScanFormatError
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
-    BoardError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
+    BoardError, CheckError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
     ScanFormatError, FileNotFoundError,
 )
 
@@ -106,7 +107,8 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
         if not (args.images and args.scans and camera is not None):
             raise CalibrationFileError("give --images, --scans and --camera, or --sequence")
         cands, skipped = load_candidates(Path(args.images), Path(args.scans), board, camera,
-                                         str(args.camera), args.max_dt, args.skip_unpaired)
+                                         str(args.camera), args.max_dt, args.skip_unpaired,
+                                         args.stamp_unit)
     assert camera is not None
     search = BoardSearch(
         angle_window_deg=tuple(args.angle_window) if args.angle_window else None,
@@ -180,6 +182,12 @@ def _print_extrinsic(T: np.ndarray, s: dict[str, Any]) -> None:
         print(f"  not used {name}: {why}")
     for w in s["warnings"]:
         print(f"WARNING: {w}")
+    # Last, so that it is what a user sees: the numbers above may look fine.
+    for why in s["unreliable_because"]:
+        print(f"UNRELIABLE: {why}")
+    if not s["reliable"]:
+        print("RESULT UNRELIABLE: do not use this extrinsic as it is (the file written says "
+              "'reliable: false'); see the reasons above.")
 
 
 # ---------------------------------------------------------------------------- check
@@ -211,7 +219,9 @@ def cmd_check(args: argparse.Namespace) -> int:
         camera = load_camera(Path(args.camera))
         T = load_extrinsic(Path(args.extrinsic or args.rig))
         frames = check_frames_from_pairs(Path(args.images), Path(args.scans), camera,
-                                         str(args.camera), args.max_dt)
+                                         str(args.camera), args.max_dt,
+                                         Path(args.depth) if args.depth else None,
+                                         args.stamp_unit)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for f in frames:
@@ -268,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Zhang & Pless (2004) style: board planes from PnP, board points found "
                     "in each scan, linear start, robust joint refinement, outlier views "
                     "rejected, covariance and leave-one-out stability.")
-    pe.add_argument("--images", help="folder of images named <stamp>.png (ns or s)")
+    pe.add_argument("--images", help="folder of images named <stamp>.png (see --stamp-unit)")
     pe.add_argument("--scans", help="folder of scans (.pcd, .csv, .npz) named <stamp>.ext, an "
                                     "npz of many scans, or a sequence folder")
     pe.add_argument("--camera", help="camera YAML (toolkit, rig or ROS camera_info)")
@@ -283,6 +293,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="largest image-scan time difference to pair (default 0.1 s)")
     pe.add_argument("--skip-unpaired", action="store_true",
                     help="use the paired images only instead of failing on unpaired ones")
+    _add_stamp_unit(pe)
     pe.add_argument("--angle-window", type=float, nargs=2, metavar=("MIN", "MAX"),
                     help="laser bearings (degrees, counter-clockwise from laser +x) where the "
                          "board is; overrides the automatic search direction")
@@ -326,11 +337,19 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--frames", type=int, default=12, help="frames to use (default 12)")
     pc.add_argument("--max-dt", type=float, default=0.05, metavar="S",
                     help="largest image-scan time difference (default 0.05 s)")
+    _add_stamp_unit(pc)
     pc.add_argument("--perturb-deg", type=float, default=2.0,
                     help="rotation of the sensitivity test (default 2 deg)")
     pc.add_argument("--out", default="calibration_check", help="output folder")
     pc.set_defaults(func=cmd_check)
     return p
+
+
+def _add_stamp_unit(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--stamp-unit", default="auto", choices=("auto", "s", "ms", "us", "ns"),
+                   help="unit of the stamps in image and scan file names; auto (default): "
+                        "integers of 10, 13, 16 or 19 digits are Unix times in s, ms, us or "
+                        "ns, decimals and shorter integers are seconds")
 
 
 def _models() -> dict[str, str]:

@@ -51,16 +51,59 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
         if "camera_matrix" in d or "image_width" in d:
             # ROS camera_calibration output (camera_info YAML).
             K = np.asarray(d["camera_matrix"]["data"], dtype=np.float64).reshape(3, 3)
-            dist = np.asarray(d.get("distortion_coefficients", {}).get("data", []),
-                              dtype=np.float64)
-            return PinholeCamera.from_K(K, int(d["image_width"]), int(d["image_height"]),
-                                        dist[:5])
+            dist = np.asarray((d.get("distortion_coefficients") or {}).get("data") or [],
+                              dtype=np.float64).reshape(-1)
+            dist = _plumb_bob(d.get("distortion_model"), dist, source,
+                              "distortion_coefficients")
+            return PinholeCamera.from_K(K, int(d["image_width"]), int(d["image_height"]), dist)
+        if "distortion_model" in d:
+            d = {**d, "distortion": _plumb_bob(d["distortion_model"],
+                                               np.asarray(d.get("distortion", []), np.float64)
+                                               .reshape(-1), source, "distortion")}
         return PinholeCamera.from_dict(d)
+    except CalibrationFileError:
+        raise
     except KeyError as e:
         raise CalibrationFileError(f"{source}: missing field {e} (need width, height, fx, fy, "
                                    "cx, cy[, distortion], or a ROS camera_info YAML)") from None
     except (TypeError, ValueError) as e:
         raise CalibrationFileError(f"{source}: bad camera field: {e}") from None
+
+
+# Names of the model the camera has (OpenCV's k1 k2 p1 p2 k3): ROS camera_info's, Kalibr's,
+# and the one ``write_camera`` writes.
+_PLUMB_BOB = {"plumb_bob", "radtan", "opencv", "opencv k1 k2 p1 p2 k3", "none", ""}
+
+
+def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str) -> np.ndarray:
+    """The k1 k2 p1 p2 k3 coefficients of a camera file, or an error naming the model.
+
+    Reading another model's coefficients as these projects wrongly without any error
+    (an equidistant fisheye's k1..k4 as plumb_bob's are hundreds of pixels off at the
+    image edge), so only models that are this one, or reduce to it, are accepted.
+    """
+    name = "" if model is None else str(model).strip().lower()
+    if name == "rational_polynomial" and len(dist) <= 8 and not np.any(dist[5:]):
+        return dist[:5]  # k4 = k5 = k6 = 0: the same model
+    if name == "none" and np.any(dist):
+        raise CalibrationFileError(f"{source}: field 'distortion_model' is 'none' but field "
+                                   f"'{field}' is not all zero; set distortion_model: plumb_bob "
+                                   "if those are k1 k2 p1 p2 k3")
+    if name not in _PLUMB_BOB:
+        extra = (f" with k4 k5 k6 = {dist[5:8].tolist()} (only k4 = k5 = k6 = 0 is accepted, "
+                 "the same model)" if name == "rational_polynomial" else "")
+        raise CalibrationFileError(
+            f"{source}: field 'distortion_model' is {model!r}{extra}; this tool's camera model is "
+            "OpenCV's plumb_bob (k1 k2 p1 p2 k3), so those coefficients cannot be used as "
+            "they are. Calibrate the camera with that model (python -m calibration "
+            "intrinsics --model opencv5), or undistort the images first and give "
+            "distortion_model: plumb_bob with zero coefficients.")
+    if len(dist) > 5:
+        raise CalibrationFileError(
+            f"{source}: field '{field}' has {len(dist)} coefficients; distortion_model "
+            f"{name or 'plumb_bob'} takes 5 at most (k1 k2 p1 p2 k3). For 8 coefficients set "
+            "distortion_model: rational_polynomial (accepted only with k4 = k5 = k6 = 0).")
+    return dist
 
 
 def load_camera(path: Path) -> PinholeCamera:

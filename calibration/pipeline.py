@@ -31,6 +31,7 @@ from calibration.board_lines import (
     select_board_segment,
 )
 from calibration.extrinsic import (
+    MIN_VIEWS,
     ExtrinsicError,
     ExtrinsicResult,
     LeaveOneOut,
@@ -38,9 +39,10 @@ from calibration.extrinsic import (
     View,
     calibrate_extrinsic,
     leave_one_out,
+    leave_one_out_warning,
     make_view,
 )
-from calibration.files import check_image_size
+from calibration.files import CalibrationFileError, check_image_size
 from calibration.frames import R_CAMERA_LASER_NOMINAL
 from calibration.scans import (
     PairingError,
@@ -106,6 +108,9 @@ class ExtrinsicRun:
     def summary(self) -> dict[str, Any]:
         r = self.result
         out: dict[str, Any] = {
+            "reliable": r.reliable,
+            "unreliable_because": r.unreliable,
+            "board_normal_spread_deg": r.normal_spread_deg,
             "views_used": len(r.views_used),
             "views_rejected": r.views_rejected,
             "images_skipped": self.skipped,
@@ -144,13 +149,13 @@ class ImageSource:
     stamps: np.ndarray  # [I] seconds
 
 
-def images_from_folder(folder: Path) -> ImageSource:
+def images_from_folder(folder: Path, stamp_unit: str = "auto") -> ImageSource:
     paths = list_images(folder)
-    return ImageSource(paths, np.array([stamp_from_name(p) for p in paths]))
+    return ImageSource(paths, np.array([stamp_from_name(p, stamp_unit) for p in paths]))
 
 
 def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | None,
-               camera_source: str = "camera YAML", min_found: int = 3) -> (
+               camera_source: str = "camera YAML", min_found: int = MIN_VIEWS) -> (
     tuple[dict[int, Detection], dict[str, str]]
 ):
     """Detect the board in every image; raise if it is found in fewer than ``min_found``.
@@ -179,8 +184,13 @@ def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | No
         raise BoardError(f"no {board} found in any of the {len(images.paths)} "
                          f"images in {folder}.{hint}")
     if len(found) < min_found:
-        hint = board_hint(first_image, board) if first_image is not None else ""
         names = ", ".join(d.name for d in found.values())
+        if missed and first_image is not None:
+            hint = board_hint(first_image, board)
+        else:  # every image shows the board: there are just too few of them
+            hint = (" Each board gives two constraints on the extrinsic's six unknowns; "
+                    "capture more views (10 or more), the board leaned forward and back and "
+                    "turned left and right by 20-45 degrees.")
         raise BoardError(f"the {board} was found in only {len(found)} of the "
                          f"{len(images.paths)} images in {folder} ({names}); at least "
                          f"{min_found} views are needed.{hint}")
@@ -283,6 +293,7 @@ def build_views(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCam
     skipped: dict[str, str] = {}
     for c in cands:
         plane_view = make_view(c.name, c.detection.corners, board, camera, np.zeros((0, 2)))
+        _check_board_distance(c.name, plane_view.plane.distance, board)
         if T_camera_laser is None:
             pts, why = _points_from_segments(c, plane_view.plane, board, search, guess)
         else:
@@ -299,6 +310,25 @@ def build_views(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCam
     return views, skipped
 
 
+# A board the camera resolves into corners stands between these distances; a square size
+# given in millimetres (50 for 0.05) puts it a thousand times too far.
+BOARD_DISTANCE_M = (0.05, 20.0)
+
+
+def _check_board_distance(name: str, distance_m: float, board: BoardSpec) -> None:
+    lo, hi = BOARD_DISTANCE_M
+    if lo <= distance_m <= hi:
+        return
+    # The distance scales with the square size: suggest the unit slip (mm or cm given as
+    # metres, or the reverse) that puts the board nearest a typical 1.5 m.
+    factors = (1e-3, 1e-2) if distance_m > hi else (1e2, 1e3)
+    f = min(factors, key=lambda k: abs(math.log(distance_m * k / 1.5)))
+    raise BoardError(
+        f"{name}: with --square {board.square:g} the board comes out {distance_m:.3g} m from "
+        f"the camera, outside {lo:g}-{hi:g} m. --square is the side of one square in metres "
+        f"(did you mean --square {board.square * f:g}?).")
+
+
 # ---------------------------------------------------------------------------- the run
 
 
@@ -309,14 +339,23 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
     board points re-selected around each predicted board plane and a final solve."""
     search = search or BoardSearch()
     opts = options or SolverOptions()
+    if opts.max_offset_m is None:
+        opts = SolverOptions(**{**opts.__dict__, "max_offset_m": search.max_offset_m})
     guess = mount_guess(search, init)
+    if len(cands) < opts.min_views:
+        raise ExtrinsicError(
+            f"only {len(cands)} image/scan pairs show the board; at least {opts.min_views} "
+            "views are needed (each board gives two constraints on the six unknowns). "
+            "Capture more views (10 or more), the board leaned forward and back and turned "
+            "left and right by 20-45 degrees.")
     views, skipped = build_views(cands, board, camera, search, guess=guess)
     if len(views) < opts.min_views:
         detail = "; ".join(f"{k}: {v}" for k, v in skipped.items())
         raise ExtrinsicError(
             f"the board was found in the scans of only {len(views)} of {len(cands)} paired "
-            f"views ({detail}). Pass --angle-window MIN MAX (degrees, laser frame) around the "
-            "board's direction, --max-offset if the sensors are far apart, or --board-size.")
+            f"views ({detail}); at least {opts.min_views} are needed. Pass --angle-window MIN "
+            "MAX (degrees, laser frame) around the board's direction, --max-offset if the "
+            "sensors are far apart, or --board-size.")
     first = calibrate_extrinsic(views, guess, opts, camera)
     tol = max(0.03, 3.0 * first.residual_rms_m)
     views2, skipped2 = build_views(cands, board, camera, search, first.T_camera_laser, tol)
@@ -329,16 +368,19 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
     else:
         result = first
     stab = leave_one_out(views, result, opts, camera, board.outline()) if loo else None
+    if stab is not None:
+        warning = leave_one_out_warning(result, stab)
+        if warning is not None:
+            result.warnings.append(warning)
     return ExtrinsicRun(result, stab, views, cands, skipped, board)
 
 
 def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera: PinholeCamera,
-                    camera_source: str, max_dt: float, skip_unpaired: bool = False) -> (
-    tuple[list[ViewCandidate], dict[str, str]]
-):
+                    camera_source: str, max_dt: float, skip_unpaired: bool = False,
+                    stamp_unit: str = "auto") -> tuple[list[ViewCandidate], dict[str, str]]:
     """Read images and scans from disk and pair the images that show the board."""
-    images = images_from_folder(images_dir)
-    scans = read_scans(scans_src)
+    images = images_from_folder(images_dir, stamp_unit)
+    scans = read_scans(scans_src, stamp_unit)
     if not scans:
         raise FileNotFoundError(f"{scans_src}: no scans")
     dets, missed = detect_all(images, board, camera, camera_source)
@@ -433,13 +475,18 @@ def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any
 
 
 def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCamera,
-                            camera_source: str, max_dt: float) -> list[Any]:
-    """Frames for ``check`` from an image folder and a scan folder (a calibration capture)."""
+                            camera_source: str, max_dt: float, depth_dir: Path | None = None,
+                            stamp_unit: str = "auto") -> list[Any]:
+    """Frames for ``check`` from an image folder and a scan folder (a calibration capture),
+    with the depth maps of ``depth_dir`` (named by image stem or image index)."""
     from calibration.check import CheckFrame
+    from toolkit.io.depth import read_depth
     from toolkit.sensors import load_rgb
 
-    images = images_from_folder(images_dir)
-    scans = read_scans(scans_src)
+    if depth_dir is not None and not Path(depth_dir).is_dir():
+        raise FileNotFoundError(f"{depth_dir}: depth folder (--depth) not found")
+    images = images_from_folder(images_dir, stamp_unit)
+    scans = read_scans(scans_src, stamp_unit)
     pairs, unpaired = pair_by_stamp(images.stamps, np.array([s.stamp for s in scans]), max_dt)
     if not pairs:
         raise PairingError(describe_unpaired(unpaired, [p.name for p in images.paths],
@@ -451,5 +498,13 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
         img = load_rgb(path)
         check_image_size(camera, camera_source, path, (img.shape[1], img.shape[0]))
         pts = scans[p.scan_index].points
-        frames.append(CheckFrame(path.name, img, np.c_[pts, np.zeros(len(pts))]))
+        depth = None
+        if depth_dir is not None:
+            depth = _depth_for(Path(depth_dir), path, p.image_index, read_depth)
+            if depth.shape != img.shape[:2]:
+                raise CalibrationFileError(
+                    f"{depth_dir}: the depth map of {path.name} is {depth.shape[1]}x"
+                    f"{depth.shape[0]} but the image is {img.shape[1]}x{img.shape[0]}; give "
+                    "depth maps at the images' resolution")
+        frames.append(CheckFrame(path.name, img, np.c_[pts, np.zeros(len(pts))], depth))
     return frames

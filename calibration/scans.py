@@ -3,9 +3,10 @@
 Formats: ASCII or binary PCD (one scan per file, as ROS ``pcl`` tools write them), CSV
 (``x,y[,z]`` or ``angle,range`` columns, one scan per file), npz (``points`` [N, 2|3], or
 the sequence format's ``stamps``/``ranges`` arrays holding many scans), and the project's
-sequence folder. A file's stamp comes from its name: an integer of 13+ digits is
-nanoseconds (``1773380642785313094.pcd``), anything else that parses as a number is
-seconds (``12.5.csv``).
+sequence folder. A file's stamp comes from its name (``stamp_from_name``): an integer of
+10, 13, 16 or 19 digits is a Unix time in seconds, milliseconds, microseconds or
+nanoseconds (``1773380642785313094.pcd``), a decimal number is seconds (``12.5.csv``);
+other integers name no unit, and ``stamp_unit`` must say it.
 """
 
 from __future__ import annotations
@@ -42,20 +43,40 @@ class StampedScan:
 # ---------------------------------------------------------------------------- stamps
 
 
-def stamp_from_name(path: Path) -> float:
-    """Seconds from a file name such as ``1773380642785313094.pcd`` or ``12.25.png``."""
+STAMP_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+# A Unix time between 2001-09 and 2286 has 10 digits in seconds, 13 in milliseconds, 16 in
+# microseconds and 19 in nanoseconds; any other length is not a Unix time in any of them.
+_EPOCH_DIGITS = {10: "s", 13: "ms", 16: "us", 19: "ns"}
+
+
+def stamp_from_name(path: Path, unit: str = "auto") -> float:
+    """Seconds from a file name such as ``1773380642785313094.pcd`` or ``12.25.png``.
+
+    ``unit`` "auto" reads an integer by its digit count (10 s, 13 ms, 16 us, 19 ns: a Unix
+    time in each), and up to 9 digits or a decimal number as seconds; "s", "ms", "us" or
+    "ns" scale whatever number the name holds.
+    """
+    if unit != "auto" and unit not in STAMP_UNITS:
+        raise ValueError(f"stamp unit {unit!r}: use auto, {', '.join(STAMP_UNITS)}")
     stem = Path(path).stem
-    if re.fullmatch(r"\d{13,}", stem):
-        return int(stem) * 1e-9
-    try:
-        return float(stem)
-    except ValueError:
-        m = re.search(r"(\d{13,})", stem)
-        if m:
-            return int(m.group(1)) * 1e-9
+    m = re.fullmatch(r"\d+(\.\d*)?", stem) or re.search(r"(\d{10,})", stem)
+    if m is None:
         raise ScanFormatError(
-            f"{path}: cannot read a timestamp from the file name; name files "
-            "<nanoseconds>.ext or <seconds>.ext, or pass a sequence folder") from None
+            f"{path}: cannot read a timestamp from the file name; name files by their stamp "
+            "(<nanoseconds>.ext, <seconds>.ext, ...), or pass a sequence folder")
+    text = m.group(0)
+    if unit != "auto":
+        return float(text) * STAMP_UNITS[unit]
+    digits = len(text.split(".")[0].lstrip("0"))
+    if "." in text or digits < 10:
+        return float(text)
+    found = _EPOCH_DIGITS.get(digits)
+    if found is None:
+        raise ScanFormatError(
+            f"{path}: the stamp {text} in the file name has {digits} digits, which is not a "
+            "Unix time in seconds (10), milliseconds (13), microseconds (16) or nanoseconds "
+            "(19), so its unit is unknown. Pass --stamp-unit s|ms|us|ns.")
+    return int(text) * STAMP_UNITS[found]
 
 
 # ---------------------------------------------------------------------------- readers
@@ -97,9 +118,9 @@ def read_pcd(path: Path) -> np.ndarray:
     fields = header.get("FIELDS")
     if not fields or "x" not in fields or "y" not in fields:
         raise ScanFormatError(f"{path}: PCD field 'FIELDS' must name x and y, got {fields}")
-    n = int(header.get("POINTS", header.get("WIDTH", ["0"]))[0])
-    counts = [int(c) for c in header.get("COUNT", ["1"] * len(fields))]
-    kind = header["DATA"][0].lower()
+    n = _pcd_int(header, "POINTS" if "POINTS" in header else "WIDTH", path)
+    counts = _pcd_ints(header, "COUNT", len(fields), path, ["1"] * len(fields))
+    kind = header["DATA"][0].lower() if header["DATA"] else ""
     ix, iy = fields.index("x"), fields.index("y")
     iz = fields.index("z") if "z" in fields else None
     if kind == "ascii":
@@ -109,6 +130,10 @@ def read_pcd(path: Path) -> np.ndarray:
             raise ScanFormatError(f"{path}: header field 'POINTS' says {n} but the file holds "
                                   f"{len(rows)} rows (truncated file?)")
         width = sum(counts)
+        short = next((k for k, r in enumerate(rows) if len(r) < width), None)
+        if short is not None:
+            raise ScanFormatError(f"{path}: data row {short + 1} has {len(rows[short])} values "
+                                  f"but header fields 'FIELDS'/'COUNT' make {width} per point")
         try:
             data = np.array([[float(v) for v in r[:width]] for r in rows], dtype=np.float64)
         except ValueError as e:
@@ -117,10 +142,18 @@ def read_pcd(path: Path) -> np.ndarray:
         cols = [offs[ix], offs[iy]] + ([offs[iz]] if iz is not None else [])
         return _planar(data[:, cols], str(path))
     if kind == "binary":
-        sizes = [int(s) for s in header["SIZE"]]
-        types = header["TYPE"]
+        sizes = _pcd_ints(header, "SIZE", len(fields), path)
+        types = header.get("TYPE")
+        if types is None or len(types) != len(fields):
+            raise ScanFormatError(f"{path}: binary PCD header field 'TYPE' must give one of F, I "
+                                  f"or U for each of the {len(fields)} FIELDS, got {types}")
         dt = np.dtype([(f"f{k}", _pcd_dtype(types[k], sizes[k], path), (counts[k],))
                        for k in range(len(fields))])
+        if len(raw) - pos < n * dt.itemsize:
+            raise ScanFormatError(
+                f"{path}: header field 'POINTS' says {n} points of {dt.itemsize} bytes "
+                f"(SIZE x COUNT) but the binary data holds {len(raw) - pos} bytes, "
+                f"{(len(raw) - pos) // max(dt.itemsize, 1)} points (truncated file?)")
         rec = np.frombuffer(raw, dtype=dt, count=n, offset=pos)
         cols = [rec[f"f{ix}"][:, 0], rec[f"f{iy}"][:, 0]]
         if iz is not None:
@@ -130,10 +163,40 @@ def read_pcd(path: Path) -> np.ndarray:
                           "pcl_convert_pcd_ascii_binary <in> <out> 0 (ascii)")
 
 
+def _pcd_int(header: dict[str, list[str]], key: str, path: Path) -> int:
+    vals = header.get(key)
+    try:
+        n = int(vals[0]) if vals else -1
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise ScanFormatError(f"{path}: PCD header field '{key}' must be a count of points, "
+                              f"got {vals}")
+    return n
+
+
+def _pcd_ints(header: dict[str, list[str]], key: str, n_fields: int, path: Path,
+              default: list[str] | None = None) -> list[int]:
+    """One positive integer per field from header line ``key`` (SIZE, COUNT)."""
+    vals = header.get(key, default)
+    try:
+        out = [int(v) for v in vals] if vals is not None else []
+    except ValueError:
+        out = []
+    if len(out) != n_fields or min(out, default=0) < 1:
+        raise ScanFormatError(f"{path}: PCD header field '{key}' must give a positive integer "
+                              f"for each of the {n_fields} FIELDS, got {vals}")
+    return out
+
+
 def _pcd_dtype(t: str, size: int, path: Path) -> str:
     kinds = {"F": "f", "I": "i", "U": "u"}
     if t.upper() not in kinds:
         raise ScanFormatError(f"{path}: PCD field 'TYPE' {t!r} unknown (F, I or U)")
+    valid = (4, 8) if t.upper() == "F" else (1, 2, 4, 8)
+    if size not in valid:
+        raise ScanFormatError(f"{path}: PCD field 'SIZE' {size} does not fit TYPE {t} "
+                              f"(sizes {', '.join(map(str, valid))})")
     return f"<{kinds[t.upper()]}{size}"
 
 
@@ -161,19 +224,20 @@ def read_csv_scan(path: Path) -> np.ndarray:
                           "angle,range (radians)")
 
 
-def read_scan_file(path: Path) -> list[StampedScan]:
+def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     """Scans of one file: one for PCD/CSV/npz-with-points, many for a sequence-style npz."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".pcd":
-        return [StampedScan(stamp_from_name(path), read_pcd(path), str(path))]
+        return [StampedScan(stamp_from_name(path, stamp_unit), read_pcd(path), str(path))]
     if suffix == ".csv":
-        return [StampedScan(stamp_from_name(path), read_csv_scan(path), str(path))]
+        return [StampedScan(stamp_from_name(path, stamp_unit), read_csv_scan(path), str(path))]
     if suffix == ".npz":
         with np.load(path) as data:
             arrays = {k: data[k] for k in data.files}
         if "points" in arrays:
-            stamp = float(arrays["stamp"]) if "stamp" in arrays else stamp_from_name(path)
+            stamp = (float(arrays["stamp"]) if "stamp" in arrays
+                     else stamp_from_name(path, stamp_unit))
             return [StampedScan(stamp, _planar(arrays["points"], str(path)), str(path))]
         if "ranges" in arrays:
             from toolkit.io.sequence import scans_from_arrays
@@ -186,13 +250,13 @@ def read_scan_file(path: Path) -> list[StampedScan]:
                           f"{', '.join(SCAN_SUFFIXES)} or a sequence folder")
 
 
-def read_scans(source: Path) -> list[StampedScan]:
+def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     """All scans of a folder of scan files, an npz of many scans, or a sequence folder."""
     source = Path(source)
     if not source.exists():
         raise FileNotFoundError(f"{source}: scan file or folder not found")
     if source.is_file():
-        scans = read_scan_file(source)
+        scans = read_scan_file(source, stamp_unit)
     elif (source / "scans.npz").exists() and (source / "rig.yaml").exists():
         from toolkit.io.sequence import read_scans as read_sequence_scans
 
@@ -204,7 +268,7 @@ def read_scans(source: Path) -> list[StampedScan]:
         if not files:
             raise FileNotFoundError(f"{source}: no scan files ({', '.join(SCAN_SUFFIXES)}) and "
                                     "not a sequence folder (rig.yaml + scans.npz)")
-        scans = [s for p in files for s in read_scan_file(p)]
+        scans = [s for p in files for s in read_scan_file(p, stamp_unit)]
     scans.sort(key=lambda s: s.stamp)
     return scans
 
@@ -262,5 +326,7 @@ def describe_unpaired(unpaired: list[int], image_names: list[str], image_stamps:
     return (f"{len(unpaired)} image(s) have no scan within {max_dt * 1000:.0f} ms:\n"
             + "\n".join(lines) + more
             + "\nFix: raise --max-dt if the sensors are not synchronised that well, check that "
-              "image and scan file names hold the same clock (nanoseconds or seconds), or pass "
-              "--skip-unpaired to calibrate from the paired views only.")
+              "image and scan file names hold the same clock in the same unit (names of 10, "
+              "13, 16 or 19 digits are read as Unix times in s, ms, us or ns; pass "
+              "--stamp-unit otherwise), or pass --skip-unpaired to calibrate from the paired "
+              "views only.")

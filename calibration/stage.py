@@ -54,7 +54,7 @@ class CalibrateConfig(StageConfig):
     scans: str | None = None
     camera: str | None = None
     # simulate
-    views: int = Field(10, ge=3)
+    views: int = Field(10, ge=4)  # calibration.extrinsic.MIN_VIEWS: fewer are refused
     seed: int = 0
     lidar_noise_m: float = Field(0.01, ge=0)
     lidar_beams: int | None = Field(None, gt=1)  # None: the simulator's lidar
@@ -63,6 +63,8 @@ class CalibrateConfig(StageConfig):
     square_m: float = Field(0.05, gt=0)
     board_size_m: tuple[float, float] | None = None
     max_dt_s: float = Field(0.1, gt=0)
+    # unit of the stamps in file names; auto: 10/13/16/19 digits are Unix s/ms/us/ns
+    stamp_unit: Literal["auto", "s", "ms", "us", "ns"] = "auto"
     angle_window_deg: tuple[float, float] | None = None
     max_offset_m: float = Field(0.5, gt=0)
     mount: Literal["forward", "any"] = "forward"
@@ -85,7 +87,8 @@ class CalibrateStage(Stage):
     optional_requires = ("sequence",)
     provides = ("rig", "calibration")
     # 2: mode check; overlays of the extrinsic turned by 2 degrees next to the checked one
-    version = 2
+    # 3: at least 4 views, the max-offset limit, outlier rule for 5 views, 'reliable'
+    version = 3
 
     config: CalibrateConfig
 
@@ -175,7 +178,7 @@ class CalibrateStage(Stage):
                 raise StageError("calibrate: no camera: give 'camera' (a camera YAML) or run "
                                  "after a stage that provides a sequence")
             cands, skipped = load_candidates(images, scans, board, camera, cam_src,
-                                             cfg.max_dt_s)
+                                             cfg.max_dt_s, stamp_unit=cfg.stamp_unit)
             search = BoardSearch(angle_window_deg=cfg.angle_window_deg,
                                  max_offset_m=cfg.max_offset_m, mount=cfg.mount,
                                  seed=cfg.ransac_seed)
@@ -193,6 +196,7 @@ class CalibrateStage(Stage):
             "rotation_std_deg": float(np.linalg.norm(res.std_rotation_deg)),
             "translation_std_m": float(np.linalg.norm(res.std_translation_m)),
             "weak_directions": len(res.weak_directions),
+            "reliable": res.reliable,
         }
         if run.loo is not None:
             metrics["loo_rotation_spread_deg"] = run.loo.rotation_spread_deg
@@ -226,6 +230,7 @@ class CalibrateStage(Stage):
                          f"{metrics['rotation_error_deg']:.3f} deg, "
                          f"{metrics['translation_error_m'] * 1000:.1f} mm.")
         lines += [f"**Warning:** {w}" for w in res.warnings]
+        lines += [f"**Unreliable:** {w}" for w in res.unreliable]
         if seq_dir is not None and cfg.check:
             lines += self._check(ctx, seq_dir, T, T_true, metrics)
         ctx.add_metrics(metrics)

@@ -25,6 +25,10 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3, se3
 from toolkit.io.atomic import atomic_path, atomic_write_text
 
+# Stamps are Unix times (2023-11), as real recordings name their files: file names of 19
+# digits are read as nanoseconds.
+EPOCH_S = 1_700_000_000.0
+
 
 def default_camera() -> PinholeCamera:
     """A 640x480 camera with mild distortion, like a typical robot camera."""
@@ -41,7 +45,7 @@ def default_extrinsic() -> np.ndarray:
 @dataclass
 class SyntheticView:
     name: str
-    stamp: float  # seconds (image); the scan is stamped ``stamp + scan_dt``
+    stamp: float  # Unix seconds (image); the scan is stamped ``stamp + scan_dt``
     T_camera_board: np.ndarray  # [4, 4]
     corners: np.ndarray  # [N, 2] noisy distorted pixels
     scan_points: np.ndarray  # [M, 2] laser frame, board and room
@@ -158,7 +162,7 @@ def make_capture(n_views: int = 10, seed: int = 0, board: BoardSpec | None = Non
         if on.sum() < 15:
             continue
         corners = uv + rng.normal(0.0, image_noise, uv.shape)
-        stamp = 1000.0 + 2.0 * len(views)
+        stamp = EPOCH_S + 2.0 * len(views)
         views.append(SyntheticView(f"view{len(views):02d}", stamp, T_cb, corners, pts, on))
     return SyntheticCapture(camera, board, (hi[0] - lo[0], hi[1] - lo[1]), T_cl, views, scan_dt)
 

@@ -34,6 +34,11 @@ def test_acfr_extrinsic(acfr: Path) -> None:
     # and the tilts are left open, which the result must say.
     assert res.warnings and res.std_translation_m[1] > 0.01
     assert any(abs(w.vector[4]) > 0.5 for w in res.weak_directions)
+    # Worse: with normals 1.3 degrees off one plane the height, pitch and roll are noise
+    # (leave-one-out moves them by 33 degrees and 0.77 m), so the result is marked.
+    assert not res.reliable and res.normal_spread_deg < 2.0
+    assert "camera y (down)" in res.unreliable[0]
+    assert run.summary()["reliable"] is False
     # Yaw is well determined.
     assert res.std_rotation_deg[1] < 0.5
     again = run_extrinsic(cands, ACFR_BOARD, ACFR_CAMERA, loo=False).result.T_camera_laser

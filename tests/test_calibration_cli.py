@@ -14,7 +14,8 @@ import yaml
 
 from calibration.cli import main
 from calibration.extrinsic import transform_error
-from calibration.synthetic import make_capture, write_capture
+from calibration.synthetic import _rays, board_outline, make_capture, write_capture
+from toolkit.io.depth import write_depth
 from toolkit.io.sequence import SequenceWriter, read_rig
 from toolkit.sensors import LaserScan, Rig
 
@@ -154,3 +155,98 @@ def test_skip_unpaired_uses_the_rest(capture: tuple[Path, object], tmp_path: Pat
     assert main(args) == 0
     res = json.loads((tmp_path / "r.json").read_text())
     assert res["views_used"] == 6 and len(res["images_skipped"]) == 2
+
+
+def _renamed(src: Path, dst: Path, scale: int) -> Path:
+    """A copy of a capture folder with the nanosecond file names divided by ``scale``."""
+    for sub in ("images", "lasers"):
+        (dst / sub).mkdir(parents=True)
+        for p in (src / sub).iterdir():
+            shutil.copy(p, dst / sub / f"{round(int(p.stem) / scale)}{p.suffix}")
+    shutil.copy(src / "camera.yaml", dst / "camera.yaml")
+    return dst
+
+
+def test_millisecond_file_names(capture: tuple[Path, object], tmp_path: Path,
+                                capsys: pytest.CaptureFixture[str]) -> None:
+    """13-digit names are milliseconds: the scans stay 12 ms from their images (read as
+    nanoseconds they were 12 ns away and any offset passed)."""
+    cap_dir, _ = capture
+    ms = _renamed(cap_dir, tmp_path / "ms", 1_000_000)
+    args = [a.replace(str(cap_dir), str(ms)) for a in _args(cap_dir, "--no-loo")]
+    assert main([*args, "--max-dt", "0.005"]) == 2
+    assert ".png: nearest scan 12.0 ms away" in capsys.readouterr().err
+    assert main(args) == 0
+    assert main([*args, "--stamp-unit", "ns", "--max-dt", "0.005"]) == 0  # told: ns
+    # Centiseconds (12 digits) name no unit by themselves.
+    cs = _renamed(cap_dir, tmp_path / "cs", 10_000_000)
+    assert main([a.replace(str(cap_dir), str(cs)) for a in _args(cap_dir, "--no-loo")]) == 2
+    assert "12 digits" in capsys.readouterr().err
+
+
+def test_too_few_views_and_square_in_millimetres(capture: tuple[Path, object], tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    cap_dir, _ = capture
+    few = tmp_path / "few"
+    for sub in ("images", "lasers"):
+        (few / sub).mkdir(parents=True)
+        for p in sorted((cap_dir / sub).iterdir())[:3]:
+            shutil.copy(p, few / sub / p.name)
+    args = [a.replace(str(cap_dir / "images"), str(few / "images"))
+            .replace(str(cap_dir / "lasers"), str(few / "lasers")) for a in _args(cap_dir)]
+    assert main([*args, "--out", str(tmp_path / "rig.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "found in only 3 of the 3 images" in err and "at least 4 views" in err
+    assert "capture more views" in err and not (tmp_path / "rig.yaml").exists()
+    args = _args(cap_dir, "--no-loo")
+    args[args.index("--square") + 1] = "50"
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "--square 50" in err and "in metres" in err and "--square 0.05?" in err
+
+
+def test_untilted_boards_print_unreliable(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    cap = make_capture(6, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01)
+    cap_dir = write_capture(cap, tmp_path / "cap")
+    assert main(_args(cap_dir, "--no-loo", "--json", str(tmp_path / "r.json"))) == 0
+    out = capsys.readouterr().out
+    assert "UNRELIABLE: the 6 board normals all lie within" in out
+    assert "RESULT UNRELIABLE" in out.splitlines()[-2]  # last before "wrote"
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["reliable"] is False and res["board_normal_spread_deg"] < 3.0
+
+
+def _board_depth_maps(cap: object, cap_dir: Path, out: Path) -> None:
+    """Exact depth of the board plane per image (0 off the board), named by image stem."""
+    camera = cap.camera  # type: ignore[attr-defined]
+    rays = _rays(camera, 1)  # [H*W, 3], z = 1: the distance along a ray is the depth
+    lo, hi = board_outline(cap.board, 0.08)  # type: ignore[attr-defined]
+    out.mkdir()
+    for v in cap.views:  # type: ignore[attr-defined]
+        R, t = v.T_camera_board[:3, :3], v.T_camera_board[:3, 3]
+        lam = (R[:, 2] @ t) / (rays @ R[:, 2])
+        local = (rays * lam[:, None] - t) @ R
+        on = (lam > 0) & np.all((local[:, :2] >= lo) & (local[:, :2] <= hi), axis=1)
+        depth = np.where(on, lam, 0.0).reshape(camera.height, camera.width)
+        write_depth(out / f"{round(v.stamp * 1e9)}.npy", depth)
+
+
+def test_check_with_depth_maps_on_image_folders(capture: tuple[Path, object], tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    cap_dir, cap = capture
+    rig = tmp_path / "true.yaml"
+    rig.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    base = ["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+            "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(rig), "--out",
+            str(tmp_path / "chk")]
+    assert main([*base, "--score", "depth"]) == 2  # once a bare AssertionError
+    assert "--depth DIR" in capsys.readouterr().err
+    assert main([*base, "--depth", str(tmp_path / "missing")]) == 2  # once silently ignored
+    assert "missing: depth folder (--depth) not found" in capsys.readouterr().err
+    _board_depth_maps(cap, cap_dir, tmp_path / "depth")
+    assert main([*base, "--depth", str(tmp_path / "depth")]) == 0
+    chk = json.loads((tmp_path / "chk" / "check.json").read_text())
+    # The true extrinsic puts the board's scan points at the board's depth.
+    assert chk["kind"] == "depth" and chk["score"] > 0.9
+    assert chk["relative_drop"]["ry+2deg"] > 0.3

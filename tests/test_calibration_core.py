@@ -10,16 +10,22 @@ from scipy.spatial.transform import Rotation
 
 from calibration.board import BoardError, BoardSpec, detect_corners
 from calibration.board_lines import board_edge_points, extract_segments, select_board_segment
+from calibration.check import CheckError, CheckFrame, score_frames
 from calibration.extrinsic import (
+    ExtrinsicError,
+    ExtrinsicResult,
+    LeaveOneOut,
     SolverOptions,
     View,
     calibrate_extrinsic,
+    leave_one_out_warning,
     linear_init,
     make_view,
     transform_error,
 )
 from calibration.files import (
     CalibrationFileError,
+    camera_from_mapping,
     extrinsic_from_mapping,
     extrinsic_to_mapping,
 )
@@ -102,6 +108,51 @@ def test_scan_readers(tmp_path: Path) -> None:
     np.savez(tmp_path / "6.npz", points=np.array([[1.0, 1.0]]), stamp=3.5)
     (s,) = read_scan_file(tmp_path / "6.npz")
     assert s.stamp == 3.5 and s.points.shape == (1, 2)
+
+
+def test_stamp_unit_from_digit_count() -> None:
+    """Unix times in s, ms, us and ns by their digit count; a 400 ms offset stays 400 ms."""
+    t = 1773380642.0
+    for name, unit in ((f"{round(t * 1e9)}.png", "ns"), (f"{round(t * 1e6)}.png", "us"),
+                       (f"{round(t * 1e3)}.png", "ms"), (f"{round(t)}.png", "s")):
+        assert stamp_from_name(Path(name)) == pytest.approx(t, abs=1e-6), unit
+    a, b = stamp_from_name(Path("1773380642000.png")), stamp_from_name(Path("1773380642400.pcd"))
+    assert b - a == pytest.approx(0.4)
+    assert stamp_from_name(Path("scan_1773380642785313094.pcd")) == pytest.approx(1773380642.785)
+    assert stamp_from_name(Path("000123.png")) == 123.0  # short integers: seconds
+    assert stamp_from_name(Path("1000012.png"), "ms") == pytest.approx(1000.012)
+    # 12 digits is no Unix time in any unit: the user must say which.
+    with pytest.raises(ScanFormatError, match=r"177338064200\.png.*12 digits.*--stamp-unit"):
+        stamp_from_name(Path("177338064200.png"))
+
+
+def _binary_pcd(head: str, rec: np.ndarray) -> bytes:
+    return ("VERSION 0.7\n" + head + "WIDTH 3\nHEIGHT 1\nPOINTS 3\nDATA binary\n").encode() + (
+        rec.tobytes())
+
+
+def test_malformed_binary_pcd_names_file_and_field(tmp_path: Path) -> None:
+    rec = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    rec["x"] = [1.0, 2.0, 3.0]
+    good = "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+    (tmp_path / "ok.pcd").write_bytes(_binary_pcd(good, rec))
+    assert np.allclose(read_pcd(tmp_path / "ok.pcd")[:, 0], [1, 2, 3])
+    cases = {
+        "nosize": ("FIELDS x y z\nTYPE F F F\nCOUNT 1 1 1\n", rec.tobytes(), "'SIZE'"),
+        "shortsize": ("FIELDS x y z\nSIZE 4 4\nTYPE F F F\n", rec.tobytes(), "'SIZE'"),
+        "notype": ("FIELDS x y z\nSIZE 4 4 4\n", rec.tobytes(), "'TYPE'"),
+        "badsize": ("FIELDS x y z\nSIZE 4 4 2\nTYPE F F F\n", rec.tobytes(), "'SIZE' 2"),
+        "badcount": ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 x 1\n", rec.tobytes(),
+                     "'COUNT'"),
+        "trunc": (good, rec.tobytes()[:20], "'POINTS' says 3 points of 12 bytes"),
+    }
+    for name, (head, body, field) in cases.items():
+        raw = _binary_pcd(head, rec)
+        raw = raw[: len(raw) - rec.nbytes] + body
+        (tmp_path / f"{name}.pcd").write_bytes(raw)
+        with pytest.raises(ScanFormatError) as e:
+            read_pcd(tmp_path / f"{name}.pcd")
+        assert f"{name}.pcd" in str(e.value) and field in str(e.value), str(e.value)
 
 
 def test_pairing_tolerance_and_one_scan_per_image() -> None:
@@ -215,9 +266,127 @@ def test_parallel_boards_are_reported_as_unconstrained() -> None:
     # Camera y (down) is the height of the laser: that is among the weak directions.
     assert any(abs(w.vector[4]) > 0.5 for w in res.weak_directions)
     assert res.std_translation_m[1] > 0.02
+    assert not res.reliable  # and the answer is not to be used at all
+
+
+def test_fewer_than_four_views_are_refused() -> None:
+    """Three boards fit several extrinsics exactly (the review saw one 157 degrees off)."""
+    views = _views(make_capture(3, seed=11))
+    with pytest.raises(ExtrinsicError, match="3 usable views; at least 4 are needed"):
+        calibrate_extrinsic(views)
+
+
+def test_solution_beyond_max_offset_is_refused() -> None:
+    cap = make_capture(6, seed=5)
+    offset = float(np.linalg.norm(cap.T_camera_laser[:3, 3]))  # 0.137 m
+    res = calibrate_extrinsic(_views(cap), options=SolverOptions(max_offset_m=0.5),
+                              camera=cap.camera)
+    assert transform_error(res.T_camera_laser, cap.T_camera_laser)[1] < 0.01
+    assert 0.13 < offset < 0.14
+    with pytest.raises(ExtrinsicError, match=r"laser 0\.1\d m from the camera.*"
+                                             r"0\.05 m, --max-offset"):
+        calibrate_extrinsic(_views(cap), options=SolverOptions(max_offset_m=0.05),
+                            camera=cap.camera)
+
+
+def test_untilted_boards_are_marked_unreliable() -> None:
+    """Boards only rolled in their plane (normals all facing the camera): the review's
+    near-degenerate case, tens of degrees off with a reported std of 1-2 degrees."""
+    cap = make_capture(10, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01)
+    res = calibrate_extrinsic(_views(cap), camera=cap.camera)
+    assert not res.reliable and res.normal_spread_deg < 3.0
+    assert "leaned forward and back" in res.unreliable[0]
+    assert "camera y (down)" in res.unreliable[0]
+    good = calibrate_extrinsic(_views(make_capture(10, seed=3)), camera=cap.camera)
+    assert good.reliable and good.normal_spread_deg > 15.0
+
+
+def _moved(points: np.ndarray, deg: float, shift_m: float) -> np.ndarray:
+    """A board's scan points as if it had turned and moved between image and scan."""
+    c = points.mean(0)
+    a = np.radians(deg)
+    q = (points - c) @ np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]) + c
+    normal = np.linalg.svd(q - q.mean(0))[2][1]
+    return q + shift_m * normal
+
+
+def test_moved_board_among_five_views_is_rejected() -> None:
+    """4 cm and 8 degrees: below the 5 cm gross limit, once kept silently (4 deg off)."""
+    cap = make_capture(5, seed=1, lidar_noise=0.005)
+    views = _views(cap)
+    views[2].points = _moved(views[2].points, 8.0, 0.04)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None), camera=cap.camera)
+    assert list(res.views_rejected) == [views[2].name]
+    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+    assert rot < 0.5 and tra < 0.01
+    # Clean five-view sets keep every view.
+    for seed in (0, 2):
+        clean = calibrate_extrinsic(_views(make_capture(5, seed=seed)), camera=cap.camera)
+        assert not clean.views_rejected and not any("kept, since" in w for w in clean.warnings)
+
+
+def test_disagreeing_view_among_four_is_named() -> None:
+    """Four views cannot spare one: the bad view is kept, with a warning naming it."""
+    cap = make_capture(4, seed=1, lidar_noise=0.005)
+    views = _views(cap)
+    views[1].points = _moved(views[1].points, 8.0, 0.04)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None), camera=cap.camera)
+    assert not res.views_rejected
+    named = [w for w in res.warnings if w.startswith(f"view {views[1].name}:")]
+    assert len(named) == 1 and "x the median of the other views" in named[0]
+
+
+def _loo_case(n_views: int, std_deg: float, move_deg: float) -> tuple[ExtrinsicResult,
+                                                                       LeaveOneOut]:
+    names = [f"v{i}" for i in range(n_views)]
+    cov = np.diag([np.radians(std_deg / np.sqrt(3)) ** 2] * 3 + [1e-6] * 3)
+    res = ExtrinsicResult(np.eye(4), 0.005, {}, names, {}, 100, cov, [], "test")
+    rot = {k: 0.1 for k in names} | {"v3": move_deg}
+    return res, LeaveOneOut(rot, dict.fromkeys(names, 0.001), move_deg, 0.001,
+                            np.zeros(3), np.zeros(3))
+
+
+def test_leave_one_out_spread_against_the_covariance() -> None:
+    assert leave_one_out_warning(*_loo_case(8, std_deg=0.2, move_deg=0.4)) is None
+    msg = leave_one_out_warning(*_loo_case(8, std_deg=0.2, move_deg=3.0))
+    assert msg is not None and "leaving out view v3 turns the result by 3.00 degrees" in msg
+    assert "reported rotation std 0.20" in msg
+    # Five views: four-view subsets can jump to another solution, no evidence either way.
+    assert leave_one_out_warning(*_loo_case(5, std_deg=0.2, move_deg=30.0)) is None
 
 
 # ---------------------------------------------------------------------------- files
+
+
+def _camera_info(model: str | None, coeffs: list[float]) -> dict:
+    d = {"image_width": 640, "image_height": 480,
+         "camera_matrix": {"rows": 3, "cols": 3, "data": [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1]},
+         "distortion_coefficients": {"rows": 1, "cols": len(coeffs), "data": coeffs}}
+    if model is not None:
+        d["distortion_model"] = model
+    return d
+
+
+def test_camera_info_distortion_model() -> None:
+    five = [-0.1, 0.02, 0.001, -0.002, 0.003]
+    for model in ("plumb_bob", None):
+        assert np.allclose(camera_from_mapping(_camera_info(model, five), "c.yaml").dist, five)
+    rational = camera_from_mapping(_camera_info("rational_polynomial", [*five, 0, 0, 0]), "c")
+    assert np.allclose(rational.dist, five)  # k4 = k5 = k6 = 0 is the same model
+    bad = {"equidistant": ("equidistant", [0.1, -0.05, 0.01, -0.002]),
+           "rational": ("rational_polynomial", [*five, 2.4, 1.1, 0.05]),
+           "eight plumb_bob": ("plumb_bob", [*five, 0.1, 0.0, 0.0])}
+    for what, (model, coeffs) in bad.items():
+        with pytest.raises(CalibrationFileError) as e:
+            camera_from_mapping(_camera_info(model, coeffs), "cam.yaml")
+        msg = str(e.value)
+        assert msg.startswith("cam.yaml: field 'distortion") and "plumb_bob" in msg, what
+
+
+def test_depth_score_without_depth_maps_names_the_fix() -> None:
+    frames = [CheckFrame("a.png", np.zeros((4, 4, 3), np.uint8), np.zeros((1, 3)))]
+    with pytest.raises(CheckError, match=r"1 of 1 have none \(a\.png\).*--depth DIR"):
+        score_frames(frames, np.eye(4), make_capture(1, seed=0).camera, "depth")
 
 
 def test_extrinsic_mappings_round_trip() -> None:
