@@ -119,3 +119,15 @@ def test_align_trajectory_sim3():
     aligned, S_found = g.align_trajectory(g.Trajectory(np.arange(10.0), est_P), ref, True)
     assert np.allclose(aligned.poses, P, atol=1e-9)
     assert np.allclose(S_found, S, atol=1e-9)
+
+
+def test_trajectory_covers_its_span_but_not_its_gaps():
+    from toolkit.geometry import Trajectory
+
+    st = np.r_[np.arange(0.0, 10.0, 0.1), np.arange(30.0, 40.0, 0.1)]  # a 20 s gap
+    traj = Trajectory(st, np.tile(np.eye(4), (len(st), 1, 1)))
+    q = np.array([-0.1, 0.0, 5.05, 9.9, 15.0, 30.0, 35.0, 39.9, 40.0, 39.95])
+    assert traj.covers(q).tolist() == [False, True, True, True, False, True, True, True,
+                                       False, False]
+    assert traj.covers(q, slack_s=0.2).tolist()[0] and traj.covers(q, slack_s=0.2)[-2]
+    assert traj.covers(np.array([15.0]), max_gap_s=25.0)[0]  # a gap one accepts

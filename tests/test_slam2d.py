@@ -266,3 +266,34 @@ def test_old_nodes_are_searched_against_new_submaps(old_nodes):
     rel_est = se2_between(res.poses[0], res.poses)
     rel_true = se2_between(truth[0], truth)
     assert np.hypot(*(rel_est[:, :2] - rel_true[:, :2]).T).max() < 0.1
+
+
+def test_short_range_lidar_marks_free_space_only_within_its_reach():
+    """A no-return beam of a 4 m lidar says the first 4 m are free, not the default 5 m."""
+    slam = LidarSlam2D()
+    scan = make_scan(np.array([6.0, 4.0, 0.0]), 1.0)
+    scan.range_max = 4.0
+    scan.ranges[scan.ranges > 4.0] = np.inf  # what such a lidar reports
+    hits, free = slam._preprocess(scan)
+    sensor = slam._sensor
+    assert len(free) and np.linalg.norm(free - sensor, axis=1).max() <= 4.0 + 1e-9
+    assert np.linalg.norm(hits - sensor, axis=1).max() <= 4.0 + 1e-6
+
+
+def test_scan_angles_must_be_finite():
+    with pytest.raises(ValueError, match=r"angle_min \(nan\) and angle_increment .* finite"):
+        LaserScan(stamp=1.0, ranges=np.ones(4), angle_min=float("nan"), angle_increment=0.1)
+
+
+def test_odometry_in_another_time_base_is_counted_not_claimed():
+    from toolkit.geometry import Trajectory
+    from toolkit.slam2d.pipeline import run_slam
+
+    poses = [np.array([6.0 + 0.05 * k, 4.0, 0.0]) for k in range(6)]
+    scans = [make_scan(p, float(k)) for k, p in enumerate(poses)]
+    odo = Trajectory(np.arange(6) + 1000.0, np.stack([se2_to_se3(*p) for p in poses]))
+    m = run_slam(scans, odo).metrics
+    assert m["scans_with_odometry"] == 0 and m["odometry_used"] is False
+    odo = Trajectory(np.arange(6) + 2.5, odo.poses)  # covers stamps 3..5 only
+    m = run_slam(scans, odo).metrics
+    assert m["scans_with_odometry"] == 3 and m["odometry_used"] is True

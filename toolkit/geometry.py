@@ -228,6 +228,25 @@ class Trajectory:
             self.child,
         )
 
+    def covers(self, query: np.ndarray, max_gap_s: float | None = None,
+               slack_s: float = 0.0) -> np.ndarray:
+        """[Q] bool: stamps an interpolated pose can be trusted at - within the span (give
+        or take ``slack_s``) and between two samples at most ``max_gap_s`` apart (default:
+        5 times the median spacing, at least 1 s). Across a longer gap (a blocked lidar,
+        dropped scans) a straight line between its ends is a guess, metres off."""
+        q = np.atleast_1d(np.asarray(query, dtype=np.float64))
+        st = self.stamps
+        if len(st) == 0:
+            return np.zeros(len(q), bool)
+        ok = (q >= st[0] - slack_s) & (q <= st[-1] + slack_s)
+        if len(st) < 2:
+            return ok
+        if max_gap_s is None:
+            max_gap_s = max(1.0, 5.0 * float(np.median(np.diff(st))))
+        j = np.clip(np.searchsorted(st, q), 1, len(st) - 1)
+        on_sample = (st[j] == q) | (st[j - 1] == q)
+        return ok & (on_sample | (st[j] - st[j - 1] <= max_gap_s))
+
     def transform(self, T_left: np.ndarray | None = None, T_right: np.ndarray | None = None) -> (
         Trajectory
     ):

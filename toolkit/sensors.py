@@ -47,6 +47,9 @@ class LaserScan:
                 )
         if self.angle_increment == 0:
             raise ValueError(f"scan at {self.stamp}: angle_increment is zero")
+        if not (np.isfinite(self.angle_min) and np.isfinite(self.angle_increment)):
+            raise ValueError(f"scan at {self.stamp}: angle_min ({self.angle_min}) and "
+                             f"angle_increment ({self.angle_increment}) must be finite")
 
     def __len__(self) -> int:
         return len(self.ranges)

@@ -167,13 +167,14 @@ class FramePairs:
 def pose_arrays(seq: Sequence, T_world_base: object) -> tuple[np.ndarray, np.ndarray,
                                                                 np.ndarray]:
     """``T_world_base`` at every frame [F, 4, 4] and scan [S, 4, 4] stamp, plus [F] bool of
-    frames inside the trajectory's time span (others have no trustworthy pose)."""
+    frames inside the trajectory's time span and not in a gap of it (others have no
+    trustworthy pose: ``Trajectory.covers``)."""
     from toolkit.geometry import Trajectory
 
     traj: Trajectory = T_world_base  # type: ignore[assignment]
     t0, t1 = traj.stamps[0], traj.stamps[-1]
     fs = seq.frame_stamps
-    inside = (fs >= t0 - 0.05) & (fs <= t1 + 0.05)
+    inside = traj.covers(fs, slack_s=0.05)
     frame_poses = traj.interpolate(np.clip(fs, t0, t1)).poses if len(fs) else np.zeros((0, 4, 4))
     ss = seq.scan_stamps
     scan_poses = traj.interpolate(np.clip(ss, t0, t1)).poses if len(ss) else np.zeros((0, 4, 4))

@@ -7,6 +7,7 @@ map_server representation.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
 
@@ -17,6 +18,8 @@ from toolkit.io.occupancy import OccupancyMap
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.grid import ProbabilityGrid
 from toolkit.slam2d.slam import LidarSlam2D, ScanLike, SlamResult
+
+_log = logging.getLogger(__name__)
 
 
 def odometry_at(odometry: Trajectory | None, stamps: np.ndarray) -> list[np.ndarray | None]:
@@ -49,6 +52,14 @@ def run_slam(
     slam = LidarSlam2D(config, T_base_laser)
     stamps = np.array([float(s.stamp) for s in scans], dtype=np.float64)
     odom = odometry_at(odometry, stamps)
+    with_odom = sum(o is not None for o in odom)
+    if odometry is not None and with_odom < len(scans):
+        # Odometry in another time base (or a shorter recording) leaves scans without it:
+        # the SLAM runs scan-only there, which the user should know.
+        _log.warning("odometry covers %d of %d scans (odometry %.3f..%.3f s, scans %.3f..%.3f"
+                     " s); the others are matched scan-only", with_odom, len(scans),
+                     odometry.stamps[0], odometry.stamps[-1], np.nanmin(stamps),
+                     np.nanmax(stamps))
     items: Iterable = zip(scans, odom, strict=True)
     if progress is not None:
         items = progress(items)
@@ -65,7 +76,8 @@ def run_slam(
     # CPU time of this process: the speed on an unloaded core when the machine is shared.
     result.metrics["cpu_time_s"] = round(cpu, 3)
     result.metrics["realtime_factor_cpu"] = round(span / cpu, 2) if cpu > 0 else None
-    result.metrics["odometry_used"] = odometry is not None
+    result.metrics["odometry_used"] = with_odom > 0
+    result.metrics["scans_with_odometry"] = with_odom
     return result
 
 

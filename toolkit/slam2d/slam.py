@@ -173,7 +173,8 @@ class LidarSlam2D:
             return None
         cs = np.stack([np.cos(ang), np.sin(ang)], -1)  # [B, 2]
         hits = (cs[hit] * r[hit, None]) @ self._A.T + self._sensor
-        free_len = min(c.missing_data_ray_length, c.max_range)
+        # Not past the sensor's own reach: a 4 m lidar's no-return says nothing at 5 m.
+        free_len = min(c.missing_data_ray_length, c.max_range, rmax)
         if free_len > 0 and free.any():
             free_pts = (cs[free] * free_len) @ self._A.T + self._sensor
         else:

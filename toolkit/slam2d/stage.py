@@ -77,9 +77,11 @@ class Slam2DStage(Stage):
         write_tum(out / "trajectory_base.tum", traj,
                   header="slam2d: T_world_base at the scan stamps")
 
-        # Camera poses: base poses interpolated at the camera stamps, times the mount.
+        # Camera poses: base poses interpolated at the camera stamps, times the mount; none
+        # outside the scans' span or across a gap in it (Trajectory.covers).
         fs = seq.frame_stamps
-        inside = (fs >= traj.stamps[0]) & (fs <= traj.stamps[-1])
+        span = (fs >= traj.stamps[0]) & (fs <= traj.stamps[-1])
+        inside = traj.covers(fs)
         cam = traj.interpolate(fs[inside]).transform(T_right=seq.rig.T_base_camera)
         cam.child = "camera"
         write_tum(out / "trajectory_camera.tum", cam,
@@ -91,7 +93,12 @@ class Slam2DStage(Stage):
         metrics.update(work_metrics(result.metrics["wall_time_s"], result.metrics["cpu_time_s"],
                                     frames))
         metrics["camera_poses"] = int(inside.sum())
-        metrics["camera_frames_outside_scan_span"] = int((~inside).sum())
+        metrics["camera_frames_outside_scan_span"] = int((~span).sum())
+        metrics["camera_frames_in_scan_gaps"] = int((span & ~inside).sum())
+        if metrics["camera_frames_in_scan_gaps"]:
+            ctx.log.warning("%d camera frames fall in gaps between scans (no scan for over "
+                            "%.1f s): they get no pose", metrics["camera_frames_in_scan_gaps"],
+                            max(1.0, 5.0 * float(np.median(np.diff(traj.stamps)))))
 
         occ = grid_to_occupancy(result.map)
         write_occupancy(out / "map.yaml", occ)
@@ -131,8 +138,10 @@ def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pa
 
 def _report(stage_id: str, m: dict) -> str:
     """The map and a table of the figures a reader looks for (all are in metrics.json)."""
-    odom = "with" if m.get("odometry_used") else "no"
-    rows = [("scans used", f"{m['scans_used']} ({odom} wheel odometry)"),
+    n_odom = m.get("scans_with_odometry")
+    odom = ("no wheel odometry" if not m.get("odometry_used") else "with wheel odometry"
+            if n_odom is None else f"{n_odom} of the input scans with wheel odometry")
+    rows = [("scans used", f"{m['scans_used']} ({odom})"),
             ("pose-graph nodes / submaps", f"{m['nodes']} / {m['submaps']}"),
             ("loop closures (rejected as outliers)",
              f"{m['loop_closures']} ({m.get('loop_closure_outliers', 0)})")]
@@ -144,8 +153,11 @@ def _report(stage_id: str, m: dict) -> str:
                      f"RMSE {100 * m['gt_ate_rmse_m']:.2f} cm, max "
                      f"{100 * m['gt_ate_max_m']:.2f} cm over {m['gt_ate_poses']} poses"))
     if m.get("camera_poses"):
+        gaps = m.get("camera_frames_in_scan_gaps", 0)
         rows.append(("camera poses", f"{m['camera_poses']} (camera frames outside the scans' "
-                                     f"time span: {m['camera_frames_outside_scan_span']})"))
+                                     f"time span: {m['camera_frames_outside_scan_span']}"
+                                     + (f"; in gaps between scans, without a pose: {gaps}"
+                                        if gaps else "") + ")"))
     lines = [f"![map]({stage_id}/map.png)", "", "| figure | value |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in rows]
     rel = m.get("relations")
