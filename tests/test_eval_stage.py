@@ -27,6 +27,7 @@ def _room_mesh() -> o3d.geometry.TriangleMesh:
 
 class FakeSourceConfig(StageConfig):
     stage: Literal["t_scene"] = "t_scene"
+    groundtruth: Literal["full", "partial", "none"] = "full"
 
 
 class FakeScene(Stage):
@@ -46,8 +47,11 @@ class FakeScene(Stage):
         for t in stamps:
             w.add_frame(float(t), np.zeros((12, 16, 3), np.uint8))
             w.add_scan(LaserScan(float(t), np.ones(8), 0.0, np.pi / 4))
-        w.groundtruth_poses = Trajectory(stamps, poses)
-        o3d.io.write_triangle_mesh(str(w.mesh_path()), _room_mesh())
+        gt = self.config.groundtruth  # type: ignore[attr-defined]
+        if gt != "none":
+            part = slice(5, 15) if gt == "partial" else slice(None)  # mocap started late
+            w.groundtruth_poses = Trajectory(stamps[part], poses[part])
+            o3d.io.write_triangle_mesh(str(w.mesh_path()), _room_mesh())
         w.close()
         # Exact trajectory, expressed in the SLAM frame.
         cams = T_SLAM_WORLD @ poses @ rig.T_base_camera
@@ -109,3 +113,23 @@ def test_map_to_world_recovers_the_slam_frame_offset() -> None:
     np.testing.assert_allclose(S @ T_map_world, np.eye(4), atol=1e-9)
     p = np.array([[1.0, 2.0, 0.5]])
     np.testing.assert_allclose(apply(S, apply(T_map_world, p)), p, atol=1e-9)
+
+
+@pytest.mark.parametrize("groundtruth", ["none", "partial"])
+def test_evaluate_without_or_with_partial_ground_truth(tmp_path: Path, fake_scene,
+                                                       groundtruth: str) -> None:
+    """A user's own recording (no ground truth) ends the recipe cleanly; ground truth over
+    part of it scores the part it covers."""
+    recipe = parse_recipe({"name": "ev", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "t_scene", "groundtruth": groundtruth},
+        {"stage": "evaluate", "mesh_spacing_m": 0.05},
+    ]})
+    res = run_recipe(recipe)
+    assert res.ok, res.error
+    m = res.metrics["evaluate"]
+    if groundtruth == "none":
+        assert m == {"ground_truth": False}
+        assert "No ground truth in this recording" in (tmp_path / "run/report.md").read_text()
+    else:
+        assert m["trajectory"]["poses"] == 10
+        assert m["trajectory"]["position_rmse_m"] < 1e-6

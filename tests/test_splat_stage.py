@@ -93,3 +93,62 @@ def test_stage_without_trajectory_uses_ground_truth_and_says_so(tmp_path: Path) 
     assert "heldout_psnr_db" not in res.metrics["splat"]
     report = (tmp_path / "run" / "report.md").read_text()
     assert "GROUND-TRUTH" in report
+
+
+def test_holdout_counts_the_frames_used_and_the_budget_caps_the_start(tmp_path: Path) -> None:
+    """With frame_stride 2 the 12 posed frames give 6 used ones; holdout_every 4 holds out
+    the 1st and 5th of those (every 4th of all frames would hold out half of them, and a
+    stride of 4 all). memory_budget_mb caps the initial model, not only its growth."""
+    from toolkit.splat.trainer import bytes_per_gaussian
+
+    budget_mb = 400 * bytes_per_gaussian(0) / 2**20
+    res = run_recipe(load_recipe(_recipe(tmp_path, with_traj=True, iterations=3,
+                                         frame_stride=2, sh_degree=0,
+                                         memory_budget_mb=budget_mb)))
+    assert res.ok, res.error
+    m = res.metrics["splat"]
+    assert m["heldout_frames"] == 2 and m["train_views"] == 4
+    assert m["n_gaussians"] <= 400
+
+
+def test_depth_targets_sample_each_training_pixel_at_its_centre() -> None:
+    """Training pixel x of a 4x smaller camera covers full-resolution x in [4x, 4x + 4), its
+    centre at 4x + 1.5: the depth target takes the value there, as the area-resized colour
+    does (nearest resizing took 4x, 1.5 pixels off at every edge)."""
+    from toolkit.camera import PinholeCamera
+    from toolkit.splat.stage import prepare_depth
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5)
+    u = np.arange(640, dtype=np.float32)
+    depth = np.tile(1.0 + u / 100.0, (480, 1))  # a ramp across the image: depth = f(u)
+    small = prepare_depth(depth, cam, (160, 120))
+    x = np.arange(160)
+    np.testing.assert_allclose(small[60], 1.0 + np.rint(4 * x + 1.5 + 1e-6) / 100.0,
+                               atol=1e-6)
+
+
+def test_lens_corners_without_a_source_are_neither_fitted_nor_scored() -> None:
+    """Undistorting a pincushion lens (k1 > 0) leaves black corners: a render that is right
+    everywhere else must score as right, and those pixels must carry no loss."""
+    import torch
+
+    from toolkit.camera import PinholeCamera
+    from toolkit.eval.image import psnr
+    from toolkit.splat.stage import image_validity, prepare_image
+    from toolkit.splat.trainer import TrainView
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5,
+                        np.array([0.12, 0.0, 0.0, 0.0, 0.0]))
+    valid = image_validity(cam, (160, 120))
+    assert valid is not None and 0.03 < 1 - float(valid.float().mean()) < 0.15
+    assert image_validity(cam.undistorted(), (160, 120)) is None  # nothing to mask
+    grey = np.full((480, 640, 3), 128, np.uint8)
+    img = torch.from_numpy(prepare_image(grey, cam, (160, 120)))
+    view = TrainView(img, cam.undistorted().scaled(160, 120), np.eye(4), mask=valid)
+    gt = view.target()
+    render = torch.full_like(gt, 128 / 255)  # right wherever the image has a source
+    assert psnr(render, gt) < 20  # the corners counted: a perfect render looks bad
+    masked = view.masked(render.requires_grad_(), gt)
+    assert psnr(masked, gt, mask=valid) > 40
+    (masked - gt).abs().mean().backward()
+    assert float(render.grad[~valid].abs().sum()) == 0.0

@@ -195,3 +195,16 @@ def test_memory_budget_caps_count(budget_mb: float) -> None:
     cfg = TrainConfig(memory_budget_mb=budget_mb, sh_degree=3)
     assert gaussian_cap(cfg) == int(budget_mb * 2**20 / bytes_per_gaussian(3))
     assert bytes_per_gaussian(3) == 59 * 16
+
+
+def test_a_view_that_sees_no_gaussian_is_a_step_without_gradient() -> None:
+    """Every Gaussian out of sight (50 m above the room): the reference rasteriser renders
+    the background alone, with no gradient to take; training goes on instead of raising."""
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    model = _start_model(300)
+    with torch.no_grad():
+        model.means.data[:, 2] += 50.0
+    cfg = TrainConfig(iterations=4, sh_degree=0, depth_weight=0.0, checkpoint_every=0,
+                      densify=StrategyConfig(enabled=False), backend="torch")
+    summary = Trainer(model, views, cfg).train()
+    assert summary.steps == 4 and np.isfinite(summary.final_loss)

@@ -97,16 +97,33 @@ class EvaluateStage(Stage):
 
         cfg: EvaluateConfig = self.config  # type: ignore[assignment]
         seq = read_sequence(ctx.artifact("sequence"))
+        from toolkit.io.atomic import atomic_write_json
+
         gt = seq.groundtruth
-        if gt is None or gt.poses_base is None:
-            raise StageError("evaluate: the sequence has no ground-truth poses "
-                             "(groundtruth/poses_base.tum); nothing to score against")
         out = ctx.stage_dir
+        if gt is None or gt.poses_base is None:
+            # A user's own recording: the recipe ends here with nothing to score, not failed.
+            ctx.log.warning("evaluate: the sequence has no ground-truth poses; nothing to "
+                            "score against")
+            ctx.add_metrics({"ground_truth": False})
+            ctx.report("No ground truth in this recording (`groundtruth/poses_base.tum`): "
+                       "nothing to score against. The maps and poses above are the result.")
+            atomic_write_json(out / "evaluation.json", {"ground_truth": False})
+            ctx.provide("evaluation", out / "evaluation.json")
+            return
         metrics: dict[str, object] = {}
         lines = []
         S = np.eye(4)
+        # Ground truth may cover only part of the recording (motion capture started late):
+        # scored are the stamps it covers, and the report says how many.
+        covered = gt.poses_base.covers
         if ctx.has_artifact("trajectory"):
             est = read_tum(ctx.artifact("trajectory") / "trajectory_camera.tum")
+            keep = covered(est.stamps, slack_s=0.05)
+            if keep.sum() < 3:
+                raise StageError(f"evaluate: ground truth covers {int(keep.sum())} of the "
+                                 f"{len(est)} trajectory poses; at least 3 are needed")
+            est = est.slice(keep)
             gt_cam = ground_truth_camera(seq, est.stamps)
             fig, aligned, g, S = trajectory_figures(est, gt_cam, cfg.max_time_diff_s)
             metrics["trajectory"] = fig
@@ -136,7 +153,8 @@ class EvaluateStage(Stage):
             from toolkit.baselines.common import observed_reference
 
             mesh = o3d.io.read_triangle_mesh(str(gt.mesh_path))
-            cams = ground_truth_camera(seq, seq.frame_stamps).poses
+            fs = seq.frame_stamps
+            cams = ground_truth_camera(seq, fs[covered(fs, slack_s=0.05)]).poses
             reference = observed_reference(mesh, seq.rig.camera.undistorted(), cams,
                                            cfg.mesh_spacing_m, max_views=cfg.completeness_views,
                                            max_depth_m=cfg.completeness_max_depth_m)
@@ -176,7 +194,5 @@ class EvaluateStage(Stage):
             lines.append("")
         ctx.add_metrics(metrics)
         ctx.report("\n".join(lines))
-        from toolkit.io.atomic import atomic_write_json
-
         atomic_write_json(out / "evaluation.json", metrics)
         ctx.provide("evaluation", out / "evaluation.json")

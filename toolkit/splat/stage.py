@@ -59,6 +59,7 @@ from toolkit.splat.trainer import (
     Trainer,
     TrainView,
     evaluate_views,
+    gaussian_cap,
 )
 
 
@@ -175,8 +176,10 @@ def groundtruth_to_trajectory_frame(seq: Sequence, poses: Trajectory) -> (
 
 
 def _at(traj: Trajectory, stamps: np.ndarray) -> Trajectory:
-    """Interpolated at ``stamps`` that lie inside the trajectory (others dropped)."""
-    inside = (stamps >= traj.stamps[0] - 1e-6) & (stamps <= traj.stamps[-1] + 1e-6)
+    """Interpolated at ``stamps`` the trajectory covers (others dropped): inside its span
+    and not across a gap in it (``Trajectory.covers``: slam2d gives frames in a gap
+    between scans no pose, and a straight line across one is metres off)."""
+    inside = traj.covers(stamps, slack_s=1e-6)
     out = traj.interpolate(stamps[inside], extrapolate_s=1e-6)
     out.extra["frame_index"] = np.nonzero(inside)[0]
     return out
@@ -207,16 +210,30 @@ def prepare_image(img: np.ndarray, camera: PinholeCamera, size: tuple[int, int])
     return img
 
 
+def image_validity(camera: PinholeCamera, size: tuple[int, int]) -> torch.Tensor | None:
+    """[h, w] bool: training pixels whose whole area lies inside the image after
+    ``prepare_image`` (undistorting a pincushion lens leaves corners without a source);
+    None when every pixel does."""
+    if not camera.has_distortion:
+        return None
+    ones = np.full((camera.height, camera.width), 255, np.uint8)
+    m = prepare_image(np.dstack([ones] * 3), camera, size)[..., 0]
+    valid = m >= 254  # any black source pixel in the area average
+    return None if valid.all() else torch.from_numpy(valid)
+
+
 def prepare_depth(depth: np.ndarray, camera: PinholeCamera, size: tuple[int, int]) -> np.ndarray:
-    """Undistort and resize a depth map with nearest neighbours (no mixing across edges)."""
+    """Undistort and resize a depth map with nearest neighbours (no mixing across edges),
+    in one remap that samples each target pixel's centre: the training camera
+    (``camera.undistorted().scaled``) puts pixel x at (x + 0.5) s - 0.5 of the full image,
+    where ``cv2.resize``'s nearest takes floor(s x), 1.5 pixels off at 4x."""
     d = np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    if camera.has_distortion:
-        m1, m2 = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K,
-                                             camera.size, cv2.CV_32FC1)
-        d = cv2.remap(d, m1, m2, cv2.INTER_NEAREST)
-    if (d.shape[1], d.shape[0]) != size:
-        d = cv2.resize(d, size, interpolation=cv2.INTER_NEAREST)
-    return d
+    if not camera.has_distortion and (d.shape[1], d.shape[0]) == size:
+        return d
+    target = camera.undistorted().scaled(*size)
+    m1, m2 = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, target.K, size,
+                                         cv2.CV_32FC1)
+    return cv2.remap(d, m1, m2, cv2.INTER_NEAREST)
 
 
 def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -315,7 +332,12 @@ class SplatStage(Stage):
         test_views: list[TrainView] = []
         test_gt_depth: list[np.ndarray | None] = []
         n_depth = 0
-        for k in ctx.progress(list(used), description="splat: load views"):
+        valid = image_validity(cam_full, (w, h))
+        if valid is not None:
+            ctx.log.info("splat: %.1f %% of each undistorted image has no source pixel "
+                         "(lens corners); neither fitted nor scored",
+                         100.0 * (1 - float(valid.float().mean())))
+        for j, k in enumerate(ctx.progress(list(used), description="splat: load views")):
             fi = int(index[k])
             img = prepare_image(seq.frames[fi].image, cam_full, (w, h))
             dpath = depth_file(depth_dir, fi)
@@ -325,9 +347,11 @@ class SplatStage(Stage):
 
                 depth = torch.from_numpy(prepare_depth(read_depth(dpath), cam_full, (w, h)))
                 n_depth += 1
-            held = cfg.holdout_every > 0 and k % cfg.holdout_every == 0
+            # Every holdout_every-th of the frames used (not of all posed frames: with a
+            # frame_stride that would hold out too many, or all).
+            held = cfg.holdout_every > 0 and j % cfg.holdout_every == 0
             view = TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
-                             inv_se3(poses.poses[k]), depth, f"frame {fi}")
+                             inv_se3(poses.poses[k]), depth, f"frame {fi}", valid)
             if held:
                 test_views.append(view)
                 g = None
@@ -340,7 +364,9 @@ class SplatStage(Stage):
             raise StageError("splat: no training views left (check frame_stride / "
                              "holdout_every)")
 
-        budget = min(cfg.init_budget, cfg.max_gaussians)
+        tcfg = TrainConfig(**{k: getattr(cfg, k) for k in TrainConfig.model_fields})
+        # The memory budget caps the initial model too, not only its growth.
+        budget = min(cfg.init_budget, gaussian_cap(tcfg))
         if cfg.init == "fused":
             assert fused is not None
             pts, cols = read_map(fused / "map.ply")
@@ -352,7 +378,6 @@ class SplatStage(Stage):
                                          budget, cfg.random_depth_m, sh_degree=cfg.sh_degree,
                                          init_opacity=cfg.init_opacity, seed=cfg.seed)
         n_init = len(model)
-        tcfg = TrainConfig(**{k: getattr(cfg, k) for k in TrainConfig.model_fields})
         data_key = _data_key(fused / "map.ply" if cfg.init == "fused" and fused else None,
                              [cfg.init, budget, cfg.init_opacity, list(cfg.random_depth_m),
                               depth_dir is not None],

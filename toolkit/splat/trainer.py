@@ -88,6 +88,9 @@ class TrainView:
     T_camera_world: np.ndarray  # [4, 4]
     depth: Tensor | None = None  # [H, W] float32 metres, 0 = no value
     name: str = ""
+    # [H, W] bool: pixels the image holds (undistorting a pincushion lens leaves corners no
+    # ray reaches: black, to be neither fitted nor scored); None: all of them.
+    mask: Tensor | None = None
 
     def __post_init__(self) -> None:
         h, w = self.image.shape[:2]
@@ -97,6 +100,16 @@ class TrainView:
         if self.depth is not None and tuple(self.depth.shape) != (h, w):
             raise ValueError(f"view {self.name}: depth {tuple(self.depth.shape)} vs image "
                              f"{(h, w)}")
+        if self.mask is not None and tuple(self.mask.shape) != (h, w):
+            raise ValueError(f"view {self.name}: mask {tuple(self.mask.shape)} vs image "
+                             f"{(h, w)}")
+
+    def masked(self, color: Tensor, target: Tensor) -> Tensor:
+        """``color`` [H, W, 3] with the pixels outside ``mask`` set to the target's: they add
+        no error and no gradient (to L1, SSIM and PSNR alike)."""
+        if self.mask is None:
+            return color
+        return torch.where(self.mask.to(color.device)[..., None], color, target)
 
     def target(self, device: torch.device | str = "cpu") -> Tensor:
         """[H, W, 3] float 0..1."""
@@ -262,10 +275,11 @@ class Trainer:
                      sh_degree=self.active_sh_degree(step), backend=cfg.backend)
         self.strategy.step_pre_backward(out.meta)
         gt = view.target(out.color.device)
-        l1 = (out.color - gt).abs().mean()
+        color = view.masked(out.color, gt)
+        l1 = (color - gt).abs().mean()
         loss = l1
         if cfg.lambda_dssim > 0:
-            loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_fn(out.color, gt))
+            loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_fn(color, gt))
         depth_l1 = torch.zeros(())
         if cfg.depth_weight > 0 and view.depth is not None:
             target = view.depth.to(out.depth.device)
@@ -273,18 +287,22 @@ class Trainer:
             if bool(valid.any()):
                 depth_l1 = (out.depth - target).abs()[valid].mean()
                 loss = loss + cfg.depth_weight * depth_l1
-        loss.backward()
-        for opt in self.optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-        if self.pose_opt is not None:
-            self.pose_opt.step()
-            self.pose_opt.zero_grad(set_to_none=True)
-        changes = self.strategy.step_post_backward(self.model, self.optimizers,
-                                                   self.strategy_state, step, out.meta,
-                                                   self.generator)
+        changes: dict[str, int] = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+        # A view that sees no Gaussian renders the background alone: no gradient to take
+        # (the reference rasteriser returns a constant; backward would raise).
+        if loss.requires_grad:
+            loss.backward()
+            for opt in self.optimizers.values():
+                opt.step()
+                opt.zero_grad(set_to_none=True)
+            if self.pose_opt is not None:
+                self.pose_opt.step()
+                self.pose_opt.zero_grad(set_to_none=True)
+            changes = self.strategy.step_post_backward(self.model, self.optimizers,
+                                                       self.strategy_state, step, out.meta,
+                                                       self.generator)
         with torch.no_grad():
-            p = float(psnr_fn(out.color.detach().clamp(0, 1), gt))
+            p = float(psnr_fn(out.color.detach().clamp(0, 1), gt, mask=view.mask))
         self.step += 1
         return {"step": step, "loss": float(loss.detach()), "l1": float(l1.detach()),
                 "depth_l1_m": float(depth_l1.detach()), "psnr_db": p,
@@ -478,9 +496,9 @@ def evaluate_views(model: GaussianModel, views: list[TrainView], backend: str = 
         out = render_view(model, v.camera, v.T_camera_world, background, backend)
         if on_render is not None:
             on_render(i, v, out)
-        pred = out.color.clamp(0, 1)
         gt = v.target()
-        ps.append(float(psnr_fn(pred, gt)))
+        pred = v.masked(out.color.clamp(0, 1), gt)
+        ps.append(float(psnr_fn(pred, gt, mask=v.mask)))
         ss.append(float(ssim_fn(pred, gt)))
         gd = gt_depths[i] if gt_depths is not None else None
         if gd is not None:
