@@ -320,6 +320,11 @@ class SplatStage(Stage):
                             "term is off (images only)", cfg.depth_weight)
         poses, pose_source = camera_poses(seq, ctx, cfg)
         index = poses.extra["frame_index"]
+        if len(index) == 0:
+            fs = seq.frame_stamps
+            raise StageError(f"splat: no camera frame has a pose ({pose_source} poses; frames "
+                             f"{fs[0]:.3f}..{fs[-1]:.3f} s): the trajectory covers none of "
+                             "them - another clock, or frames in gaps between scans")
         used = np.arange(0, len(index), cfg.frame_stride)
         cam_full = seq.rig.camera
         w, h = cam_full.width // cfg.downscale, cam_full.height // cfg.downscale
