@@ -4,8 +4,8 @@ Pairs are (l_j, d_j): lidar z-depth and predicted value at the same pixel. For d
 the model is ``l = s * d``. For ``relative_disparity`` it is ``1 / l = s * d + t`` (the
 prediction is affine in inverse depth), so every estimator works on y_j = 1 / l_j there;
 ``ratio`` fits the scale alone (t = 0, the paper's formula), ``clustered`` refits scale and
-shift on its cluster and ``robust`` fits both. A shift is only fitted where the pairs'
-predictions spread enough to tell it from the scale (``MIN_SPREAD``): a robot facing a wall
+shift on its cluster and ``robust`` fits both. A shift is only fitted where the frame's
+lidar depths spread enough to tell it from the scale (``MIN_SPREAD``): a robot facing a wall
 gets the scale alone instead of a confident nonsense shift.
 
 Estimators (selected in the recipe):

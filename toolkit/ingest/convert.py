@@ -150,13 +150,15 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     if with_scan and plan.dropped.get("no_depth", 0) == with_scan:
         # Depth is for evaluation: a clock offset between colour and depth streams must
         # not turn into a sequence without frames.
-        gap = np.abs(recording.depth_stamps[match_nearest(
-            recording.frame_stamps, recording.depth_stamps, np.inf)] - recording.frame_stamps)
+        ds = recording.depth_stamps
+        nearest = "there are no depth images" if not len(ds) else (
+            "the nearest is {:.3f} s away at the median".format(float(np.median(np.abs(
+                ds[match_nearest(recording.frame_stamps, ds, np.inf)]
+                - recording.frame_stamps)))))
         raise IngestError(
             f"{recording.source}: none of the {with_scan} camera frames has a depth image "
-            f"within sync.depth_tolerance_s = {sync.depth_tolerance_s} s (the nearest is "
-            f"{np.median(gap):.3f} s away at the median). Fix: a larger "
-            "'sync.depth_tolerance_s', or leave depth out (rosbag.topics.depth: none)")
+            f"within sync.depth_tolerance_s = {sync.depth_tolerance_s} s ({nearest}). Fix: a "
+            "larger 'sync.depth_tolerance_s', or leave depth out (rosbag.topics.depth: none)")
     if recording.has_camera:
         log.info("sync plan: %d of %d camera frames kept; dropped %d without a scan within "
                  "%g s, %d without a depth image within %g s; %d decimated (%s)",
