@@ -228,6 +228,13 @@ class Trajectory:
             self.child,
         )
 
+    def gap_limit_s(self) -> float:
+        """The longest gap between samples that ``covers`` bridges by default: 5 times the
+        median spacing, at least 1 s."""
+        if len(self.stamps) < 2:
+            return 1.0
+        return max(1.0, 5.0 * float(np.median(np.diff(self.stamps))))
+
     def covers(self, query: np.ndarray, max_gap_s: float | None = None,
                slack_s: float = 0.0) -> np.ndarray:
         """[Q] bool: stamps an interpolated pose can be trusted at - within the span (give
@@ -242,7 +249,7 @@ class Trajectory:
         if len(st) < 2:
             return ok
         if max_gap_s is None:
-            max_gap_s = max(1.0, 5.0 * float(np.median(np.diff(st))))
+            max_gap_s = self.gap_limit_s()
         j = np.clip(np.searchsorted(st, q), 1, len(st) - 1)
         on_sample = (st[j] == q) | (st[j - 1] == q)
         return ok & (on_sample | (st[j] - st[j - 1] <= max_gap_s))

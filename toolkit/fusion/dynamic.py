@@ -237,8 +237,8 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
     0.60 to 0.94 at recall 0.83 -> 0.78).
 
     Scans are tested ``chunk`` at a time against all their partners at once: one scan and
-    one offset at a time cost 0.15 ms of numpy overhead each, 50 s on an hour of 10 Hz
-    scans. Memory stays O(chunk x beams).
+    one offset at a time was mostly numpy call overhead (6440 scans: 9.0 s, batched 3.3 s).
+    Memory stays O(chunk x beams).
     """
     S = len(scans)
     out = [np.zeros(len(s.ranges), bool) for s in scans]

@@ -90,7 +90,7 @@ def longest_increasing(values: np.ndarray) -> np.ndarray:
     # from_here[i]: length of the longest increasing run of values starting at i, found as
     # the longest decreasing one ending at i when walking backwards (patience tails).
     from_here = [0] * n
-    tails: list = []  # tails[k]: largest negated start of a run of length k + 1
+    tails: list = []  # tails[k]: -(the largest start of a run of length k + 1 so far)
     for i in range(n - 1, -1, -1):
         k = bisect.bisect_left(tails, -v[i])
         if k == len(tails):

@@ -246,7 +246,7 @@ class G2OLog:
                                                strict=True)}
         vids = np.sort(self.scan_vertex)
         ids = np.unique(self.vertex_ids)
-        chain = ids[(ids >= vids[0]) & (ids <= vids[-1])]  # every vertex between the scans'
+        chain = ids[(ids >= vids[0]) & (ids <= vids[-1])]  # the vertices from first to last scan
         pose = {int(vids[0]): np.zeros(3)}
         cur = np.zeros(3)
         for a, b in zip(chain[:-1].tolist(), chain[1:].tolist(), strict=True):

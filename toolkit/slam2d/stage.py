@@ -98,7 +98,7 @@ class Slam2DStage(Stage):
         if metrics["camera_frames_in_scan_gaps"]:
             ctx.log.warning("%d camera frames fall in gaps between scans (no scan for over "
                             "%.1f s): they get no pose", metrics["camera_frames_in_scan_gaps"],
-                            max(1.0, 5.0 * float(np.median(np.diff(traj.stamps)))))
+                            traj.gap_limit_s())
 
         occ = grid_to_occupancy(result.map)
         write_occupancy(out / "map.yaml", occ)
