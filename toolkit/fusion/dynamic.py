@@ -18,6 +18,7 @@ import numpy as np
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3
+from toolkit.ingest.sync import match_nearest
 from toolkit.sensors import LaserScan
 
 
@@ -247,7 +248,8 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
     T_world_laser = np.asarray(T_world_laser, np.float64)  # [S, 4, 4]
     T_laser_world = inv_se3(T_world_laser)
     stamps = np.array([s.stamp for s in scans], np.float64)
-    partner = [_nearest_stamp(stamps, stamps + off) for off in offsets_s]  # [S] each
+    # [S] each: the scan nearest in time to each scan's stamp + offset (scans in time order)
+    partner = [match_nearest(stamps + off, stamps, np.inf) for off in offsets_s]
     votes = [np.zeros(len(s.ranges), np.int32) for s in scans]
     for k0 in range(0, S, chunk):
         kk = np.arange(k0, min(k0 + chunk, S))  # [K]
@@ -274,18 +276,6 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
             flag &= left | right
         out[k] = flag
     return out
-
-
-def _nearest_stamp(stamps: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """[T] index of the stamp nearest each target (the lowest index among equals, as
-    ``argmin(|stamps - t|)`` picks), in O((S + T) log S)."""
-    order = np.argsort(stamps, kind="stable")
-    ss = stamps[order]
-    hi = np.clip(np.searchsorted(ss, targets, side="left"), 0, len(ss) - 1)
-    lo = np.clip(hi - 1, 0, len(ss) - 1)
-    lo = np.searchsorted(ss, ss[lo], side="left")  # first of equal stamps
-    pick = np.where(np.abs(ss[lo] - targets) <= np.abs(ss[hi] - targets), lo, hi)
-    return order[pick]
 
 
 class _PaddedScans:

@@ -111,14 +111,15 @@ def longest_increasing(values: np.ndarray) -> np.ndarray:
 
 def match_nearest(query: np.ndarray, ref: np.ndarray, tolerance: float) -> np.ndarray:
     """[M] index into ``ref`` (sorted) of the stamp nearest each ``query`` stamp, -1 where
-    the nearest is further than ``tolerance`` (ties go to the earlier stamp)."""
+    the nearest is further than ``tolerance`` (ties go to the earlier stamp, and among equal
+    stamps to the first, as ``argmin(|ref - q|)`` picks)."""
     q = np.asarray(query, dtype=np.float64)
     r = np.asarray(ref, dtype=np.float64)
     if len(r) == 0:
         return np.full(len(q), -1, dtype=np.int64)
     hi = np.clip(np.searchsorted(r, q), 1, len(r) - 1) if len(r) > 1 else np.zeros(
         len(q), np.int64)
-    lo = np.maximum(hi - 1, 0)
+    lo = np.searchsorted(r, r[np.maximum(hi - 1, 0)], side="left")  # first of equal stamps
     pick = np.where(np.abs(r[lo] - q) <= np.abs(r[hi] - q), lo, hi)
     return np.where(np.abs(r[pick] - q) <= tolerance + STAMP_SLACK_S, pick, -1).astype(
         np.int64)

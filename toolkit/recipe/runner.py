@@ -222,8 +222,7 @@ class _Run:
         """Reuse, run or skip one stage; False stops the run (the stage failed)."""
         spec = record.spec
         selected = self.selected(spec.index)
-        waiting = [s for s in dict.fromkeys((*spec.sources.values(), *spec.reads))
-                   if not self.records[s].finished]
+        waiting = self.waiting_on(spec)
         if waiting:
             if selected:
                 upstream = self.records[waiting[0]]
@@ -265,6 +264,11 @@ class _Run:
         self.write_outputs()
         return ok
 
+    def waiting_on(self, spec: StageSpec) -> list[str]:
+        """The stages ``spec`` reads from that have not finished."""
+        return [s for s in dict.fromkeys((*spec.sources.values(), *spec.reads))
+                if not self.records[s].finished]
+
     def upstream_tokens(self, spec: StageSpec) -> dict[str, str | None]:
         upstream = {n: self.records[s].token for n, s in spec.sources.items()}
         upstream.update({f"results:{s}": self.records[s].token for s in spec.reads})
@@ -279,7 +283,7 @@ class _Run:
                 continue
             spec = record.spec
             record.status, record.reason = "not run", "an earlier stage has not finished"
-            if any(not self.records[s].finished for s in (*spec.sources.values(), *spec.reads)):
+            if self.waiting_on(spec):
                 continue
             try:
                 key = _cache_key(spec, spec.cls(spec.config), self.upstream_tokens(spec))

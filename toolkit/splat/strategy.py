@@ -86,13 +86,18 @@ class DefaultStrategy:
         if meta.means2d.requires_grad:
             meta.means2d.retain_grad()
 
+    @staticmethod
+    def no_changes() -> dict[str, int]:
+        """The counts ``step_post_backward`` returns for a step that changed nothing."""
+        return {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+
     @torch.no_grad()
     def step_post_backward(self, model: GaussianModel, optimizers: dict[str, Any],
                            state: dict[str, Any], step: int, meta: RenderMeta,
                            generator: torch.Generator | None = None) -> dict[str, int]:
         """Accumulate statistics and refine when due; returns counts of what changed."""
         cfg = self.cfg
-        report = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+        report = self.no_changes()
         if not cfg.enabled or step >= cfg.refine_stop_iter:
             return report
         self._accumulate(state, meta)

@@ -287,7 +287,7 @@ class Trainer:
             if bool(valid.any()):
                 depth_l1 = (out.depth - target).abs()[valid].mean()
                 loss = loss + cfg.depth_weight * depth_l1
-        changes: dict[str, int] = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
+        changes = self.strategy.no_changes()
         # A view that sees no Gaussian renders the background alone: no gradient to take
         # (the reference rasteriser returns a constant; backward would raise).
         if loss.requires_grad:
