@@ -52,6 +52,7 @@ class BagContent:
     """What a test bag holds: the truth the conversion is compared with."""
 
     scan_t: list[float] = field(default_factory=list)
+    time_increment: float = 0.0  # of every scan
     ranges: list[np.ndarray] = field(default_factory=list)
     intensities: list[np.ndarray] = field(default_factory=list)
     image_t: list[float] = field(default_factory=list)
@@ -106,10 +107,11 @@ class BagBuilder:
             return self.ts.serialize_ros1(msg, msgtype)
         return self.ts.serialize_cdr(msg, msgtype)
 
-    def scan(self, t, ranges, inten, frame="laser"):
+    def scan(self, t, ranges, inten, frame="laser", time_increment=0.0):
         return self.T["sensor_msgs/msg/LaserScan"](
             header=self.header(t, frame), angle_min=-1.5, angle_max=-1.5 + 89 * 0.0349,
-            angle_increment=0.0349, time_increment=0.0, scan_time=0.1, range_min=0.1,
+            angle_increment=0.0349, time_increment=time_increment, scan_time=0.1,
+            range_min=0.1,
             range_max=10.0, ranges=ranges, intensities=inten)
 
     def image(self, t, pixels: np.ndarray, encoding: str, frame="camera_optical",
@@ -182,7 +184,8 @@ def standard_messages(b: BagBuilder, c: BagContent, *, image="raw", depth=True, 
             b.transform(T0, "camera_link", "camera_optical", T_CAMLINK_OPT),
             b.transform(T0, "/base_link", "laser", T_BASE_LASER)])))
     for t, r, inten in zip(c.scan_t, c.ranges, c.intensities, strict=True):
-        out.append(("/scan", SCAN_T, t + 0.004, b.scan(t, r, inten)))
+        out.append(("/scan", SCAN_T, t + 0.004, b.scan(t, r, inten,
+                                                       time_increment=c.time_increment)))
     for i, t in enumerate(c.image_t):
         rgb = c.images[i]
         if image == "raw":
@@ -562,3 +565,25 @@ def test_ros1_bag_named_otherwise_is_recognised_by_its_header(tmp_path):
     active.rename(upper)
     with pytest.raises(BagError, match=r"rename it \(or link it\) to end in '.bag'"):
         read_rosbag(upper)
+
+
+# ---------------------------------------------------------------------------- beam timing
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_beam_timing_kept_checked_or_ignored(tmp_path, fmt):
+    # 90 beams at 0.5 ms: a 45 ms sweep in a 10 Hz stream is kept, bit for bit.
+    c = make_content()
+    c.time_increment = 0.0005
+    bag, _ = make_bag(tmp_path, fmt, content=c)
+    convert(read_rosbag(bag), tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert all(s.time_increment == np.float32(0.0005) for s in seq.scans)
+    assert seq.scans[0].sweep_s == pytest.approx(89 * 0.0005, rel=1e-6)
+    # A whole turn's time per beam (9 s sweeps every 0.1 s) is the driver's error.
+    c.time_increment = 0.1
+    bag, _ = make_bag(tmp_path, fmt, content=c, name="wrong")
+    with pytest.raises(BagError, match="beam_timing: ignore"):
+        read_rosbag(bag)
+    rec = read_rosbag(bag, RosbagOptions(beam_timing="ignore"))
+    assert all(s.time_increment == 0 for s in rec.scans)

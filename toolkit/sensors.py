@@ -24,7 +24,9 @@ class LaserScan:
     """One planar scan, as ``sensor_msgs/LaserScan``.
 
     Beam i points at ``angle_min + i * angle_increment`` (counter-clockwise about +z from
-    +x; the increment may be negative). Non-finite ranges and ranges outside
+    +x; the increment may be negative) and was measured at ``stamp + i * time_increment``
+    (ROS's convention, as ``laser_geometry`` reads it: the stamp is the first beam's time;
+    0 means the whole scan at the stamp). Non-finite ranges and ranges outside
     [range_min, range_max] are invalid; they are never stored as zero.
     """
 
@@ -35,6 +37,7 @@ class LaserScan:
     range_min: float = 0.0
     range_max: float = float("inf")
     intensities: np.ndarray | None = None  # [B]
+    time_increment: float = 0.0  # seconds between beams
 
     def __post_init__(self) -> None:
         self.ranges = np.asarray(self.ranges, dtype=np.float32).reshape(-1)
@@ -50,6 +53,9 @@ class LaserScan:
         if not (np.isfinite(self.angle_min) and np.isfinite(self.angle_increment)):
             raise ValueError(f"scan at {self.stamp}: angle_min ({self.angle_min}) and "
                              f"angle_increment ({self.angle_increment}) must be finite")
+        if not np.isfinite(self.time_increment):
+            raise ValueError(f"scan at {self.stamp}: time_increment ({self.time_increment}) "
+                             "must be finite (0 when the driver does not say)")
 
     def __len__(self) -> int:
         return len(self.ranges)
@@ -61,6 +67,15 @@ class LaserScan:
     def angles(self) -> np.ndarray:
         """[B] beam angles in radians."""
         return self.angle_min + np.arange(len(self.ranges)) * self.angle_increment
+
+    def beam_times(self) -> np.ndarray:
+        """[B] seconds from the stamp at which each beam was measured."""
+        return np.arange(len(self.ranges)) * self.time_increment
+
+    @property
+    def sweep_s(self) -> float:
+        """Seconds from the first beam to the last (0 for an instantaneous scan)."""
+        return max(len(self.ranges) - 1, 0) * self.time_increment
 
     def valid_mask(self) -> np.ndarray:
         """[B] bool: finite ranges inside [range_min, range_max]."""

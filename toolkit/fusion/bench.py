@@ -30,6 +30,7 @@ def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str
     run's frames/s: on a shared machine neighbours only ever slow a run down, so the
     fastest is the least disturbed estimate (what ``timeit`` reports too)."""
     from toolkit.depth.simulated import SimulatedDepthBackend
+    from toolkit.deskew import deskew_sequence
     from toolkit.fusion.pipeline import pose_arrays
     from toolkit.io.sequence import read_sequence
 
@@ -42,6 +43,7 @@ def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str
     for i in idx:
         imgs[i] = seq.frames[i].image
         preds[i] = backend.predict(imgs[i], gt_depth=gt.depth(i), frame_index=int(i))
+    seq = deskew_sequence(seq, gt.poses_base)
     fp, sp, _ = pose_arrays(seq, gt.poses_base)
     runs = [_timed_run(seq, fp, sp, idx, preds, imgs, method, stride, refine, consensus)
             for _ in range(max(1, repeat))]

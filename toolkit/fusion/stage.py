@@ -23,6 +23,7 @@ from pydantic import Field
 
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.depth.store import DepthStore
+from toolkit.deskew import deskew_sequence
 from toolkit.eval.depth import ErrorAccumulator, depth_errors, scale_error
 from toolkit.fusion.cloud import valid_pixels
 from toolkit.fusion.pipeline import (
@@ -280,6 +281,8 @@ class FuseStage(Stage):
         if traj is None:
             raise StageError("fuse: no poses - run slam2d before fuse, or use a sequence with "
                              "ground-truth poses (poses: groundtruth)")
+        # Scans swept while moving (time_increment) are placed beam by beam first.
+        seq = deskew_sequence(seq, traj)
         frame_poses, scan_poses, inside = pose_arrays(seq, traj)
         fusion = Fusion(seq, fcfg, frame_poses, scan_poses)
         disparity = store.kind == "relative_disparity"

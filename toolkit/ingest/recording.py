@@ -122,6 +122,9 @@ def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
         inten = None
         if s.intensities is not None:
             inten = np.where(inside, s.intensities[j], 0.0).astype(np.float32)
+        # Beam timing follows the source beams (the stamp stays the first beam's time,
+        # within one source beam when angle_min moved).
+        dt = s.time_increment * ref.angle_increment / s.angle_increment
         out.append(LaserScan(s.stamp, r, ref.angle_min, ref.angle_increment, s.range_min,
-                             s.range_max, inten))
+                             s.range_max, inten, dt))
     return out, changed

@@ -24,7 +24,7 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -123,6 +123,9 @@ class RosbagOptions(BaseModel):
     # Images already undistorted (image_rect): intrinsics from CameraInfo P, no distortion.
     # Default: true when the image topic's name contains "rect".
     rectified: bool | None = None
+    # Per-beam times (LaserScan time_increment) de-skew scans swept while the robot moved;
+    # "ignore" drops them, for a driver that publishes a wrong time_increment.
+    beam_timing: Literal["use", "ignore"] = "use"
 
 
 # ---------------------------------------------------------------------------- the bag
@@ -929,7 +932,8 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
                 scan = LaserScan(stamp / 1e9, np.array(msg.ranges, dtype=np.float32),
                                  float(msg.angle_min), float(msg.angle_increment),
                                  float(msg.range_min), float(msg.range_max),
-                                 inten if len(inten) == len(msg.ranges) else None)
+                                 inten if len(inten) == len(msg.ranges) else None,
+                                 float(msg.time_increment))
             except ValueError as e:
                 raise BagError(f"{where}: message {len(idx.scans)}: {e}") from None
             idx.scans.append(scan)
@@ -973,6 +977,24 @@ def _keep(stamps: list[int], where: str, policy: Literal["error", "drop"],
     return keep
 
 
+def _beam_timing(scans: list[LaserScan], use: str, where: str) -> list[LaserScan]:
+    """``scans`` with their time_increment, checked (a sweep longer than the time between
+    scans is a driver's error, e.g. a whole turn's time per beam), or dropped."""
+    if use == "ignore":
+        return [replace(s, time_increment=0.0) if s.time_increment else s for s in scans]
+    sweeps = np.array([abs(s.sweep_s) for s in scans])
+    if len(scans) < 2 or not sweeps.any():
+        return scans
+    period = float(np.median(np.diff([s.stamp for s in scans])))
+    sweep = float(np.median(sweeps))
+    if period > 0 and sweep > 1.5 * period:
+        raise BagError(
+            f"{where}: time_increment says one sweep takes {sweep:.4f} s, but scans come "
+            f"every {period:.4f} s; the driver's beam timing is wrong - set "
+            "'rosbag: {beam_timing: ignore}' to use the scans without it")
+    return scans
+
+
 def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: RosbagOptions,
            cal: Calibration | None, policy: Literal["error", "drop"], log: logging.Logger,
            name: str | None) -> Recording:
@@ -983,6 +1005,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     scans = [s for s, keep in zip(idx.scans, k, strict=True) if keep]
     if not scans:
         raise BagError(f"{bag_name}: topic {ch.scan} has no scans")
+    scans = _beam_timing(scans, opts.beam_timing, f"{bag_name}: topic {ch.scan}")
     img = _filtered(idx.image, f"{bag_name}: topic {ch.image}", policy, dropped, ch.image)
     dep = _filtered(idx.depth, f"{bag_name}: topic {ch.depth}", policy, dropped, ch.depth) \
         if ch.depth else None
@@ -1088,6 +1111,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
                    "laser": laser_frame},
         "extrinsics_from": sources,
         "stamps": opts.stamps,
+        "beam_timing": opts.beam_timing if any(s.time_increment for s in idx.scans) else
+        "none in the bag",
     }
     if rectified and has_camera:
         meta["rectified_images"] = True

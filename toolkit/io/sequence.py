@@ -126,6 +126,8 @@ def scans_to_arrays(scans: list[LaserScan], source: str = "scans") -> dict[str, 
             s.intensities if s.intensities is not None else np.zeros(len(s), np.float32)
             for s in scans
         ]).astype(np.float32)
+    if any(s.time_increment != 0 for s in scans):
+        out["time_increment"] = np.array([s.time_increment for s in scans], dtype=np.float64)
     return out
 
 
@@ -152,10 +154,17 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
     if np.any(per["angle_increment"] == 0):
         raise SequenceFormatError(f"{source}: 'angle_increment' is zero for some scans")
     inten = np.asarray(data["intensities"], np.float32) if "intensities" in data else None
+    # Written only when a scan has per-beam timing; files from before it hold none.
+    dt = np.broadcast_to(np.asarray(data["time_increment"] if "time_increment" in data else 0.0,
+                                       np.float64), (n,))
+    if not np.all(np.isfinite(dt)):
+        raise SequenceFormatError(f"{source}: 'time_increment' holds non-finite values "
+                                  "(0 for scans without per-beam timing)")
     return [
         LaserScan(float(stamps[i]), ranges[i], float(per["angle_min"][i]),
                   float(per["angle_increment"][i]), float(per["range_min"][i]),
-                  float(per["range_max"][i]), None if inten is None else inten[i])
+                  float(per["range_max"][i]), None if inten is None else inten[i],
+                  float(dt[i]))
         for i in range(n)
     ]
 

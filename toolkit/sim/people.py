@@ -75,7 +75,8 @@ def primitives_at(walkers: list[Walker], t: float) -> list[Primitive]:
 
 
 def intersect(prim: Primitive, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Ray parameters [N] (inf on a miss) of rays ``o + t d``, ``o`` [3], ``d`` [N, 3]."""
+    """Ray parameters [N] (inf on a miss) of rays ``o + t d``, ``d`` [N, 3], ``o`` [3] or
+    [N, 3] (rays of one height: a sweeping lidar)."""
     return intersect_cols(prim, o, d[:, 0], d[:, 1], d[:, 2])
 
 
@@ -89,10 +90,13 @@ def intersect_cols(prim: Primitive, o: np.ndarray, dx: np.ndarray, dy: np.ndarra
     """
     f = dx.dtype.type
     inf = f(np.inf)
+    o = np.asarray(o, np.float64)
+    if o.ndim == 2 and np.ptp(o[:, 2]) > 1e-9:
+        raise ValueError("rays from per-ray origins must share one height")
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         if prim.kind == "cyl":
             cx, cy, r, z0, z1 = (float(v) for v in prim.params)
-            ox, oy, oz = f(o[0] - cx), f(o[1] - cy), float(o[2])
+            ox, oy, oz = f(o[..., 0] - cx), f(o[..., 1] - cy), float(o[..., 2].flat[0])
             a = dx * dx + dy * dy
             b = ox * dx + oy * dy
             disc = b * b - a * f(ox * ox + oy * oy - r * r)
@@ -108,7 +112,7 @@ def intersect_cols(prim: Primitive, o: np.ndarray, dx: np.ndarray, dy: np.ndarra
                 t[okc] = tc[okc]
             return t
         cx, cy, cz, r = (float(v) for v in prim.params)
-        ox, oy, oz = f(o[0] - cx), f(o[1] - cy), f(o[2] - cz)
+        ox, oy, oz = f(o[..., 0] - cx), f(o[..., 1] - cy), f(o[..., 2] - cz)
         a = dx * dx + dy * dy + dz * dz
         b = ox * dx + oy * dy + oz * dz
         disc = b * b - a * f(ox * ox + oy * oy + oz * oz - r * r)

@@ -80,6 +80,15 @@ class LidarSpec:
     dropout: float = 0.01  # probability a beam returns nothing (NaN)
     mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.25)
     time_offset_s: float = 0.043  # first scan after the first image (not synchronised)
+    # True: the beams are measured one after another over a turn of 1 / rate_hz, as a
+    # spinning scanner does, while the robot moves (the scans carry time_increment);
+    # False: every beam at the scan's stamp.
+    sweep: bool = False
+
+    @property
+    def time_increment(self) -> float:
+        """Seconds between beams (0 without ``sweep``)."""
+        return abs(self.angle_increment) / (2 * np.pi * self.rate_hz) if self.sweep else 0.0
 
     @property
     def angle_min(self) -> float:
@@ -387,10 +396,15 @@ class LidarRenderer:
 
     def render(self, T_world_laser: np.ndarray, people: list[Primitive] | None = None,
                rng: np.random.Generator | None = None, noisy: bool = True) -> LidarReturn:
+        """One scan from ``T_world_laser`` [4, 4], or [B, 4, 4]: each beam's own pose (a
+        sweep while moving; the laser stays at one height)."""
         spec = self.spec
-        R = np.asarray(T_world_laser[:3, :3], np.float64)
-        o = np.asarray(T_world_laser[:3, 3], np.float64)
-        d = self.dirs_laser @ R.T  # [B, 3] unit, world
+        T = np.asarray(T_world_laser, np.float64)
+        R = T[..., :3, :3]
+        o = T[..., :3, 3]  # [3] or [B, 3]
+        d = self.dirs_laser @ R.T if R.ndim == 2 else np.einsum("bij,bj->bi", R, self.dirs_laser)
+        # [B, 3] unit, world
+        oz = float(o[..., 2].flat[0])
         rays = np.empty((len(d), 6), np.float32)
         rays[:, :3] = o
         rays[:, 3:] = d
@@ -403,9 +417,9 @@ class LidarRenderer:
             which = np.full(len(d), -1)
             for k, p in enumerate(people):
                 # Only people whose shape crosses the scan plane can be hit.
-                if p.kind == "cyl" and not (p.params[3] <= o[2] <= p.params[4]):
+                if p.kind == "cyl" and not (p.params[3] <= oz <= p.params[4]):
                     continue
-                if p.kind == "sphere" and abs(p.params[2] - o[2]) > p.params[3]:
+                if p.kind == "sphere" and abs(p.params[2] - oz) > p.params[3]:
                     continue
                 tp = intersect(p, o, d)
                 closer = tp < r
@@ -414,7 +428,8 @@ class LidarRenderer:
             dynamic = which >= 0
             for k in np.unique(which[dynamic]):
                 m = which == k
-                normal[m] = surface_normal(people[k], o + r[m, None] * d[m])
+                normal[m] = surface_normal(people[k], (o if o.ndim == 1 else o[m])
+                                           + r[m, None] * d[m])
         true = r.copy()
         out = r.copy()
         if noisy:

@@ -154,11 +154,16 @@ def simulate(config: SimConfig, out_dir: Path | str,
             # The scans up to this image first: a frame is "its image and its scans".
             t_next = cam_t[k + 1] if k + 1 < len(cam_t) else np.inf
             while si < len(las_t) and las_t[si] < t_next:
-                ret = las_r.render(T_wb_las[si] @ T_bl, primitives_at(world.walkers, las_t[si]),
-                                   las_rng)
+                T_wl = T_wb_las[si] @ T_bl
+                if spec.sweep:  # each beam from where the laser was when it fired
+                    tb = np.minimum(las_t[si] + np.arange(spec.beams) * spec.time_increment,
+                                    path.duration)
+                    T_wl = path.T_world_base(tb) @ T_bl
+                ret = las_r.render(T_wl, primitives_at(world.walkers, las_t[si]), las_rng)
                 writer.add_scan(LaserScan(t0 + las_t[si], ret.ranges.astype(np.float32),
                                           spec.angle_min, spec.angle_increment,
-                                          spec.range_min, spec.range_max), ret.dynamic)
+                                          spec.range_min, spec.range_max,
+                                          time_increment=spec.time_increment), ret.dynamic)
                 si += 1
             img = cam_r.render(T_wb_cam[k] @ T_bc, primitives_at(world.walkers, cam_t[k]),
                                config.camera.noise_std, cam_rng)

