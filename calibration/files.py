@@ -19,6 +19,7 @@ import yaml
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
+from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import Rig
 
 DIRECTION = "p_camera_optical = T_camera_laser @ p_laser (maps laser points into the camera)"
@@ -29,13 +30,7 @@ class CalibrationFileError(ValueError):
 
 
 def _load_yaml(path: Path, what: str) -> Any:
-    path = Path(path)
-    if not path.exists():
-        raise CalibrationFileError(f"{path}: {what} file not found")
-    try:
-        return yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise CalibrationFileError(f"{path}: not valid YAML: {e}") from None
+    return load_yaml(path, CalibrationFileError, f"{what} file not found")
 
 
 # ---------------------------------------------------------------------------- camera
@@ -136,12 +131,23 @@ def write_camera(path: Path, camera: PinholeCamera, info: dict[str, Any] | None 
 
 
 def _matrix(value: Any, source: str, field: str) -> np.ndarray:
-    M = np.asarray(value, dtype=np.float64)
+    if isinstance(value, dict):  # tf style, as ingest's calibration files allow
+        M = _tf(value, f"{source}: field '{field}'")
+    else:
+        try:
+            M = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            M = np.zeros(0)
     if M.shape != (4, 4) or not np.all(np.isfinite(M)):
         raise CalibrationFileError(f"{source}: field '{field}' must be a finite 4x4 matrix "
                                    f"(list of rows), got shape {M.shape}")
     if not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-5):
         raise CalibrationFileError(f"{source}: field '{field}' is not a rigid transform")
+    if np.linalg.det(M[:3, :3]) < 0:
+        raise CalibrationFileError(
+            f"{source}: field '{field}' is a reflection (det -1), not a rotation: frames are "
+            "right-handed (REP 103); check the optical-frame axes (x right, y down, z "
+            "forward)")
     return M
 
 

@@ -16,6 +16,8 @@ import numpy as np
 # OpenCV's iterative undistortion stops after 5 iterations by default, which leaves
 # errors of 1e-3 px on strong lenses; these criteria converge to machine precision.
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+# An undistorted ray must project back within this of its pixel (converged rays: 1e-9 px).
+UNDISTORT_TOL_PX = 0.05
 
 
 @dataclass(eq=False)
@@ -153,14 +155,22 @@ class PinholeCamera:
             )
 
     def undistort_points(self, uv: np.ndarray) -> np.ndarray:
-        """Normalised undistorted coordinates [N, 2] (z = 1 plane) of distorted pixels [N, 2]."""
+        """Normalised undistorted coordinates [N, 2] (z = 1 plane) of distorted pixels [N, 2];
+        NaN for pixels no ray reaches through the distortion model."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         if not self.has_distortion:
             return np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy], -1)
         out = cv2.undistortPoints(
             uv.reshape(-1, 1, 2), self.K, self.dist, None, None, None, _UNDISTORT_CRITERIA
-        )
-        return out.reshape(-1, 2)
+        ).reshape(-1, 2)
+        # With k3 < 0 (or k2 < 0) the distorted radius peaks and turns back: pixels beyond
+        # that peak come from no ray, and OpenCV returns its unconverged iterate for them
+        # (on the ACFR calibration a corner pixel's "ray" projected 40 px away). A ray
+        # that does not project back onto its pixel is none.
+        back, _ = self.project(np.concatenate([out, np.ones((len(out), 1))], -1))
+        with np.errstate(invalid="ignore"):
+            out[~(np.abs(back - uv).max(axis=1) <= UNDISTORT_TOL_PX)] = np.nan
+        return out
 
     def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
         """Pixels [N, 2] in the undistorted image of ``undistorted()``."""
@@ -174,7 +184,8 @@ class PinholeCamera:
         return np.concatenate([xy * z[:, None], z[:, None]], -1)
 
     def pixel_rays(self) -> np.ndarray:
-        """[H, W, 3] rays with z = 1 through every pixel centre (undistorted)."""
+        """[H, W, 3] rays with z = 1 through every pixel centre (undistorted); NaN where no
+        ray reaches the pixel (``undistort_points``)."""
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float64),
                            np.arange(self.height, dtype=np.float64))
         xy = self.undistort_points(np.stack([u.ravel(), v.ravel()], -1))

@@ -144,6 +144,10 @@ class Rig:
                 T[3], [0, 0, 0, 1]
             ):
                 raise ValueError(f"{name} is not a rigid transform (rotation not orthonormal)")
+            if np.linalg.det(T[:3, :3]) < 0:
+                raise ValueError(f"{name} is a reflection (det -1), not a rotation: frames are "
+                                 "right-handed (REP 103); check the optical-frame axes (x "
+                                 "right, y down, z forward)")
             setattr(self, name, T)
 
     @property

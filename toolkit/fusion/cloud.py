@@ -40,6 +40,10 @@ class RayCache:
         rays = camera.pixel_rays()[::stride, ::stride]  # [h, w, 3] with z = 1
         self.rays = np.ascontiguousarray(rays, dtype=np.float32)
         self.shape = rays.shape[:2]
+        # [h, w] bool: pixels a ray reaches (not beyond the lens model's turning radius);
+        # None when all do
+        finite = np.isfinite(rays[..., 0])
+        self.reachable: np.ndarray | None = None if finite.all() else finite
         h, w = self.shape
         # [h * w] flat full-resolution index of every strided pixel: gathering colours
         # from the contiguous image is 4x faster than from a strided view of it.
@@ -100,6 +104,8 @@ def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,
         raise ValueError(f"image {rgb.shape[:2]} does not match the depth {depth.shape}")
     ok = valid_pixels(depth, opts) if valid is None else valid
     ok = ok[::s, ::s]
+    if rays.reachable is not None:
+        ok = ok & rays.reachable
     if extra_mask is not None:
         ok = ok & ~extra_mask[::s, ::s]
     if opts.near_stride > s and opts.near_depth_m > 0:

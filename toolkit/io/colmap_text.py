@@ -253,62 +253,106 @@ def write_poses_as_colmap(folder: Path | str, camera: PinholeCamera, names: list
 # ---------------------------------------------------------------------------- reading
 
 
-def _data_lines(path: Path) -> list[str]:
+# Parameters of each camera model (COLMAP's src/colmap/sensor/models.h).
+MODEL_PARAMS = {
+    "SIMPLE_PINHOLE": "f cx cy", "PINHOLE": "fx fy cx cy", "SIMPLE_RADIAL": "f cx cy k",
+    "RADIAL": "f cx cy k1 k2", "OPENCV": "fx fy cx cy k1 k2 p1 p2",
+    "OPENCV_FISHEYE": "fx fy cx cy k1 k2 k3 k4",
+    "FULL_OPENCV": "fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6", "FOV": "fx fy cx cy omega",
+    "SIMPLE_RADIAL_FISHEYE": "f cx cy k", "RADIAL_FISHEYE": "f cx cy k1 k2",
+    "THIN_PRISM_FISHEYE": "fx fy cx cy k1 k2 p1 p2 k3 k4 sx1 sy1",
+}
+
+
+def _numbered_lines(path: Path) -> list[tuple[int, str]]:
+    """(line number, stripped text) of every line, as COLMAP reads them (trimmed)."""
     if not path.exists():
         raise FileNotFoundError(f"{path}: COLMAP model file not found")
-    return [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
+    text = path.read_text(encoding="utf-8-sig")
+    return [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
+
+
+def _data(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
+    return [(n, ln) for n, ln in lines if ln and not ln.startswith("#")]
+
+
+def _parse_camera(p: list[str], where: str) -> tuple[int, tuple[str, int, int, np.ndarray]]:
+    if len(p) < 4:
+        raise ValueError(f"{where}: camera line has {len(p)} fields; expected CAMERA_ID "
+                         "MODEL WIDTH HEIGHT PARAMS[]")
+    model, params = p[1], np.array([float(v) for v in p[4:]])
+    names = MODEL_PARAMS.get(model)
+    if names is not None and len(params) != len(names.split()):
+        raise ValueError(f"{where}: {model} has {len(names.split())} parameters ({names}), "
+                         f"this line gives {len(params)}")
+    return int(p[0]), (model, int(p[2]), int(p[3]), params)
 
 
 def read_colmap_model(folder: Path | str) -> ColmapModel:
     """Read a COLMAP text model folder (cameras.txt, images.txt, points3D.txt).
 
+    Lines are read as COLMAP reads them: trimmed, blank and ``#`` lines skipped, except
+    that the line after an image line is always its observations (possibly empty).
     COLMAP >= 3.12 may add rigs.txt and frames.txt; they are ignored (one image per frame).
+    Errors name the file and line.
     """
     folder = Path(folder)
     cameras: dict[int, tuple[str, int, int, np.ndarray]] = {}
-    for ln in _data_lines(folder / "cameras.txt"):
-        if not ln.strip():
-            continue
-        p = ln.split()
-        cameras[int(p[0])] = (p[1], int(p[2]), int(p[3]), np.array([float(v) for v in p[4:]]))
-    lines = _data_lines(folder / "images.txt")
-    # Each image is two lines; the second (observations) may be empty, so keep blank lines
-    # here and only drop trailing ones.
-    while lines and not lines[-1].strip():
-        lines.pop()
-    if len(lines) % 2 == 1:
-        lines.append("")
+    path = folder / "cameras.txt"
+    for n, ln in _data(_numbered_lines(path)):
+        try:
+            cid, cam = _parse_camera(ln.split(), f"{path}:{n}")
+        except (ValueError, IndexError) as e:
+            raise ValueError(e if str(e).startswith(str(path)) else f"{path}:{n}: {e}") from None
+        cameras[cid] = cam
+    path = folder / "images.txt"
+    lines = _numbered_lines(path)
     images = []
-    for k in range(0, len(lines), 2):
-        head = lines[k].split()
+    k = 0
+    while k < len(lines):
+        n, ln = lines[k]
+        k += 1
+        if not ln or ln.startswith("#"):
+            continue
+        where = f"{path}:{n}"
+        head = ln.split()
         if len(head) < 10:
-            raise ValueError(f"{folder / 'images.txt'}: image line {lines[k]!r} has "
-                             f"{len(head)} fields, expected 10")
-        obs = lines[k + 1].split()
+            raise ValueError(f"{where}: image line has {len(head)} fields; expected IMAGE_ID "
+                             "QW QX QY QZ TX TY TZ CAMERA_ID NAME")
+        obs_line = lines[k][1] if k < len(lines) else ""
+        k += 1
+        obs = obs_line.split()
         if len(obs) % 3:
-            raise ValueError(f"{folder / 'images.txt'}: observation line of image {head[0]} "
-                             "is not X Y POINT3D_ID triples")
-        o = np.array([float(v) for v in obs]).reshape(-1, 3)
-        images.append(ColmapImage(
-            image_id=int(head[0]),
-            qvec=np.array([float(v) for v in head[1:5]]),
-            tvec=np.array([float(v) for v in head[5:8]]),
-            camera_id=int(head[8]),
-            name=" ".join(head[9:]),
-            xys=o[:, :2].copy(),
-            point3d_ids=o[:, 2].astype(np.int64),
-        ))
+            raise ValueError(f"{path}:{n + 1}: observations of image {head[0]} are not "
+                             "X Y POINT3D_ID triples")
+        try:
+            o = np.array([float(v) for v in obs]).reshape(-1, 3)
+            images.append(ColmapImage(
+                image_id=int(head[0]),
+                qvec=np.array([float(v) for v in head[1:5]]),
+                tvec=np.array([float(v) for v in head[5:8]]),
+                camera_id=int(head[8]),
+                name=" ".join(head[9:]),
+                xys=o[:, :2].copy(),
+                point3d_ids=o[:, 2].astype(np.int64),
+            ))
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
     ids, pts, cols, errs, tracks = [], [], [], [], []
     points_path = folder / "points3D.txt"
-    for ln in (_data_lines(points_path) if points_path.exists() else []):
-        if not ln.strip():
-            continue
+    for n, ln in (_data(_numbered_lines(points_path)) if points_path.exists() else []):
         p = ln.split()
-        ids.append(int(p[0]))
-        pts.append([float(v) for v in p[1:4]])
-        cols.append([int(v) for v in p[4:7]])
-        errs.append(float(p[7]))
-        tracks.append(np.array([int(v) for v in p[8:]], dtype=np.int64).reshape(-1, 2))
+        if len(p) < 8 or (len(p) - 8) % 2:
+            raise ValueError(f"{points_path}:{n}: point line has {len(p)} fields; expected "
+                             "POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID, POINT2D_IDX) pairs")
+        try:
+            ids.append(int(p[0]))
+            pts.append([float(v) for v in p[1:4]])
+            cols.append([int(v) for v in p[4:7]])
+            errs.append(float(p[7]))
+            tracks.append(np.array([int(v) for v in p[8:]], dtype=np.int64).reshape(-1, 2))
+        except ValueError as e:
+            raise ValueError(f"{points_path}:{n}: {e}") from None
     return ColmapModel(
         cameras=cameras,
         images=images,

@@ -43,7 +43,14 @@ def read_depth(path: Path | str) -> np.ndarray:
     if path.suffix == ".npy":
         if not path.exists():
             raise FileNotFoundError(f"{path}: depth file not found")
-        return np.load(path).astype(np.float32, copy=False)
+        try:
+            d = np.load(path)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path}: not a readable .npy depth map ({e}); write it with "
+                             "numpy.save as [H, W] float32 metres") from None
+        if not isinstance(d, np.ndarray) or d.ndim != 2:
+            raise ValueError(f"{path}: depth .npy must hold one [H, W] array of metres")
+        return d.astype(np.float32, copy=False)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise FileNotFoundError(f"{path}: missing or unreadable depth PNG")

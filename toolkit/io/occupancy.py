@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 
 from toolkit.io.atomic import atomic_write_bytes, atomic_write_text
+from toolkit.io.yaml_file import load_yaml
 
 FREE, OCCUPIED, UNKNOWN = 254, 0, 205
 
@@ -98,6 +99,9 @@ def _read_pgm(path: Path) -> np.ndarray:
     magic, w, h, maxval = tokens[0], int(tokens[1]), int(tokens[2]), int(tokens[3])
     if magic != b"P5" or maxval > 255:
         raise ValueError(f"{path}: only 8-bit binary PGM (P5) is supported, got {magic!r}")
+    if len(data) < pos + 1 + w * h:
+        raise ValueError(f"{path}: truncated PGM: {len(data) - pos - 1} bytes of pixels for "
+                         f"{w}x{h}; write the map again")
     pixels = np.frombuffer(data, np.uint8, count=w * h, offset=pos + 1)
     return pixels.reshape(h, w)
 
@@ -105,16 +109,33 @@ def _read_pgm(path: Path) -> np.ndarray:
 def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     """Read a map_server YAML + image into map order (row 0 = lowest y).
 
-    Cells become 1.0 (occupied), 0.0 (free) or NaN (unknown) in trinary mode, or the
-    pixel's probability p in ``scale`` mode (NaN where map_server would say unknown).
+    Cells become 1.0 (occupied), 0.0 (free) or NaN (unknown) in trinary mode, the
+    pixel's probability p in ``scale`` mode (NaN where map_server would say unknown), or
+    pixel / 100 in ``raw`` mode (pixels above 100 unknown, as nav2's loader).
     """
     yaml_path = Path(yaml_path)
-    if not yaml_path.exists():
-        raise FileNotFoundError(f"{yaml_path}: map YAML not found")
-    meta = yaml.safe_load(yaml_path.read_text())
+    meta = load_yaml(yaml_path, ValueError, "map YAML not found", FileNotFoundError)
+    if not isinstance(meta, dict):
+        raise ValueError(f"{yaml_path}: expected a map_server mapping (image, resolution, "
+                         "origin, ...)")
     for key in ("image", "resolution", "origin"):
         if key not in meta:
             raise ValueError(f"{yaml_path}: missing field '{key}'")
+    try:
+        origin = tuple(float(v) for v in meta["origin"])
+        resolution = float(meta["resolution"])
+    except (TypeError, ValueError):
+        origin, resolution = (), float("nan")
+    if len(origin) != 3 or not np.all(np.isfinite(origin)):
+        raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, yaw] (3 numbers), got "
+                         f"{meta['origin']!r}")
+    if not (np.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"{yaml_path}: field 'resolution' must be a positive number of "
+                         f"metres per cell, got {meta['resolution']!r}")
+    mode = meta.get("mode", "trinary")
+    if mode not in ("trinary", "scale", "raw"):
+        raise ValueError(f"{yaml_path}: field 'mode' is {mode!r}; map_server knows trinary, "
+                         "scale and raw")
     img_path = (yaml_path.parent / meta["image"]).resolve()
     if img_path.suffix.lower() == ".pgm":
         img = _read_pgm(img_path)
@@ -128,13 +149,13 @@ def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     p = x / 255.0 if int(meta.get("negate", 0)) else (255.0 - x) / 255.0
     occ_t = float(meta.get("occupied_thresh", 0.65))
     free_t = float(meta.get("free_thresh", 0.196))
-    mode = meta.get("mode", "trinary")
     out = np.full(p.shape, np.nan, np.float32)
-    if mode == "scale":
+    if mode == "raw":  # the pixel is the occupancy in percent (negate does not apply)
+        out[x <= 100] = x[x <= 100] / 100.0
+    elif mode == "scale":
         known = (p > occ_t) | (p < free_t) | ((p >= free_t) & (p <= occ_t) & (x != UNKNOWN))
         out[known] = p[known]
     else:
         out[p > occ_t] = 1.0
         out[p < free_t] = 0.0
-    origin = tuple(float(v) for v in meta["origin"])
-    return OccupancyMap(out[::-1].copy(), float(meta["resolution"]), origin)  # type: ignore[arg-type]
+    return OccupancyMap(out[::-1].copy(), resolution, origin)  # type: ignore[arg-type]

@@ -31,7 +31,6 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict
 
 from toolkit.camera import PinholeCamera
@@ -44,6 +43,7 @@ from toolkit.ingest.recording import (
     placeholder_camera,
 )
 from toolkit.ingest.sync import stamps_keep
+from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import LaserScan, Rig
 
 _log = logging.getLogger("toolkit.io.rosbag")
@@ -599,6 +599,10 @@ def parse_transform(value: Any, where: str) -> tuple[np.ndarray, str | None, str
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
         raise BagError(f"{where}: not a rigid transform (rotation not orthonormal or last "
                        "row not 0 0 0 1)")
+    if np.linalg.det(R) < 0:
+        raise BagError(f"{where}: a reflection (det -1), not a rotation: frames are "
+                       "right-handed (REP 103); check the optical-frame axes (x right, y "
+                       "down, z forward)")
     return T, None, None
 
 
@@ -609,18 +613,19 @@ def load_calibration(path: Path | str) -> Calibration:
     (optical frame -> base), ``T_base_laser``, ``T_camera_laser`` (laser -> optical, what
     ``python -m calibration`` estimates), ``transforms`` (a list of tf-style entries with
     parent and child, added to the bag's tf tree). A rig.yaml written by this toolkit is
-    a valid calibration file.
+    a valid calibration file; of one written by ``python -m calibration`` the camera and
+    T_camera_laser are read (its base frame is not the robot's).
     """
     path = Path(path)
-    if not path.exists():
-        raise BagError(f"{path}: calibration file not found (rosbag.calibration)")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise BagError(f"{path}: not valid YAML: {e}") from None
+    data = load_yaml(path, BagError, "calibration file not found (rosbag.calibration)")
     if not isinstance(data, dict):
         raise BagError(f"{path}: expected a mapping with camera / T_base_camera / "
                        "T_base_laser / T_camera_laser / transforms")
+    if data.get("calibration") is not None and data.get("T_camera_laser") is not None:
+        # Written by ``python -m calibration``: what it estimated is T_camera_laser. Its
+        # T_base_* only place a base_link of its own (at the laser, without a rig given),
+        # which is not the robot's base the bag's tf and odometry speak of.
+        data = {k: data[k] for k in ("camera", "T_camera_laser") if k in data}
     known = {"camera", "T_base_camera", "T_base_laser", "T_camera_laser", "transforms",
              "frames", "convention"}
     unknown = set(data) - known

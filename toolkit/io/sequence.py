@@ -38,6 +38,7 @@ from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from toolkit.io.depth import write_depth
 from toolkit.io.tum import read_tum, write_tum
+from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import CameraFrame, GroundTruth, HeldOutViews, LaserScan, Rig, Sequence
 
 FORMAT_NAME = "lidarcam-sequence"
@@ -93,13 +94,8 @@ def write_rig(path: Path, rig: Rig) -> None:
 
 
 def read_rig(path: Path) -> Rig:
-    if not path.exists():
-        raise SequenceFormatError(f"{path}: rig file not found (camera intrinsics and "
-                                  "T_base_camera / T_base_laser are required)")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise SequenceFormatError(f"{path}: not valid YAML: {e}") from None
+    data = load_yaml(path, SequenceFormatError, "rig file not found (camera intrinsics and "
+                     "T_base_camera / T_base_laser are required)")
     return rig_from_dict(data, str(path))
 
 

@@ -35,7 +35,7 @@ def read_tum(
         raise FileNotFoundError(f"{path}: trajectory file not found")
     stamps, poses = [], []
     hdr_frame, hdr_child = "world", "base_link"
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), 1):
         s = line.strip()
         if not s:
             continue
@@ -57,6 +57,7 @@ def read_tum(
     if require_monotonic and len(st) > 1 and np.any(np.diff(st) <= 0):
         bad = int(np.argmax(np.diff(st) <= 0)) + 1
         raise ValueError(f"{path}: stamps not strictly increasing at pose {bad} "
-                         f"({st[bad - 1]!r} then {st[bad]!r})")
+                         f"({float(st[bad - 1])!r} then {float(st[bad])!r}, line order); "
+                         "sort the file by stamp and remove repeated stamps")
     return Trajectory(st, np.array(poses).reshape(-1, 4, 4), frame or hdr_frame,
                       child or hdr_child)

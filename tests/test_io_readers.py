@@ -1,0 +1,183 @@
+"""Readers of files users bring: map_server maps, rigs and calibrations, COLMAP text,
+KITTI, TUM, depth; the conventions of the tools that wrote them and errors that name the
+file, the line and the fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calibration.files import (
+    CalibrationFileError,
+    extrinsic_from_mapping,
+    rig_for_extrinsic,
+    write_rig_with_calibration,
+)
+from toolkit.camera import PinholeCamera
+from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points
+from toolkit.io.colmap_text import read_colmap_model
+from toolkit.io.depth import read_depth
+from toolkit.io.kitti import read_kitti
+from toolkit.io.occupancy import _pgm_bytes, read_occupancy
+from toolkit.io.rosbag import BagError, load_calibration, parse_transform
+from toolkit.io.sequence import SequenceFormatError, read_rig, rig_to_dict
+from toolkit.io.tum import read_tum
+from toolkit.sensors import Rig
+
+MIRROR = [[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]  # det -1
+
+
+# ---------------------------------------------------------------------------- map_server
+
+
+def _map(tmp_path: Path, pixels: list[int], **meta) -> Path:
+    (tmp_path / "m.pgm").write_bytes(_pgm_bytes(np.array([pixels], np.uint8), 0.05))
+    d = {"image": "m.pgm", "resolution": 0.05, "origin": [0.0, 0.0, 0.0], "negate": 0,
+         "occupied_thresh": 0.65, "free_thresh": 0.25, **meta}
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(d))
+    return tmp_path / "m.yaml"
+
+
+def test_occupancy_raw_mode_as_nav2(tmp_path):
+    # nav2 map_io: raw pixels <= 100 are the occupancy in percent, above it unknown.
+    occ = read_occupancy(_map(tmp_path, [0, 100, 40, 255], mode="raw")).occupancy
+    np.testing.assert_allclose(occ[0, :3], [0.0, 1.0, 0.4])
+    assert np.isnan(occ[0, 3])
+    # Trinary stays as map_server: 254 free, 0 occupied, 205 unknown.
+    occ = read_occupancy(_map(tmp_path, [254, 0, 205], free_thresh=0.196)).occupancy
+    assert occ[0, 0] == 0 and occ[0, 1] == 1 and np.isnan(occ[0, 2])
+
+
+@pytest.mark.parametrize("meta, match", [({"mode": "trinery"}, "mode"),
+                                         ({"origin": [1.0, 2.0]}, "origin"),
+                                         ({"resolution": float("nan")}, "resolution")])
+def test_occupancy_yaml_errors_name_the_field(tmp_path, meta, match):
+    with pytest.raises(ValueError, match=f"m.yaml: field '{match}'"):
+        read_occupancy(_map(tmp_path, [0, 254], **meta))
+
+
+def test_truncated_pgm_and_bad_yaml_name_the_file(tmp_path):
+    y = _map(tmp_path, [0, 254, 205])
+    data = (tmp_path / "m.pgm").read_bytes()
+    (tmp_path / "m.pgm").write_bytes(data[:-2])
+    with pytest.raises(ValueError, match="m.pgm: truncated PGM"):
+        read_occupancy(y)
+    y.write_text("image: m.pgm\nresolution: [0.05\n")
+    with pytest.raises(ValueError, match="m.yaml: not valid YAML"):
+        read_occupancy(y)
+
+
+# ---------------------------------------------------------------------------- rigs
+
+
+def test_mirrored_mounts_are_refused_everywhere(tmp_path):
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    with pytest.raises(ValueError, match="reflection"):
+        Rig(cam, np.array(MIRROR, float), np.eye(4))
+    d = rig_to_dict(Rig(cam, np.eye(4), np.eye(4)))
+    d["T_base_camera"] = MIRROR
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(SequenceFormatError, match="rig.yaml: T_base_camera is a reflection"):
+        read_rig(tmp_path / "rig.yaml")
+    with pytest.raises(BagError, match="reflection"):
+        parse_transform(MIRROR, "calib.yaml: field 'T_base_laser'")
+    with pytest.raises(CalibrationFileError, match="'T_camera_laser' is a reflection"):
+        extrinsic_from_mapping({"T_camera_laser": MIRROR}, "ext.yaml")
+
+
+def test_calibration_output_feeds_bag_ingest_and_back(tmp_path):
+    cam = PinholeCamera(640, 480, 519.3, 518.9, 331.1, 229.4)
+    T_cl = np.array([[0, -1, 0, 0.02], [0, 0, -1, 0.1], [1, 0, 0, -0.05], [0, 0, 0, 1.0]])
+    write_rig_with_calibration(tmp_path / "rig.yaml", rig_for_extrinsic(cam, T_cl),
+                               {"rms_m": 0.01})
+    cal = load_calibration(tmp_path / "rig.yaml")
+    # What was estimated is read; calibration's own base frame is not the robot's.
+    np.testing.assert_allclose(cal.T_camera_laser, T_cl)
+    assert cal.T_base_camera is None and cal.T_base_laser is None
+    assert cal.camera is not None and cal.camera.fx == cam.fx
+    # Ingest's calibration file with a tf-style entry reads in the calibration tool.
+    (tmp_path / "calib.yaml").write_text(
+        "T_base_camera: {parent: base_link, child: camera_optical, xyz: [0.1, 0.0, 0.3],\n"
+        "                quat_xyzw: [0.5, -0.5, 0.5, -0.5]}\n"
+        "T_base_laser: [[1, 0, 0, 0.2], [0, 1, 0, 0], [0, 0, 1, 0.15], [0, 0, 0, 1]]\n")
+    T = extrinsic_from_mapping(yaml.safe_load((tmp_path / "calib.yaml").read_text()), "c")
+    # The laser sits 0.1 m ahead of and 0.15 m below the camera: optical z 0.1, y 0.15.
+    np.testing.assert_allclose(T[:3, 3], [0.0, 0.15, 0.1], atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- lenses
+
+
+def test_pixels_no_ray_reaches_get_none():
+    # ACFR's calibration (k3 < 0): the distorted radius peaks at 0.699, the corners
+    # of the 640x480 image lie at 0.776 - OpenCV returned rays 40 px off for them.
+    cam = PinholeCamera(640, 480, 519.268, 518.894, 331.112, 229.434,
+                        np.array([0.11418, 0.19343, -0.00268, 0.00372, -1.09540]))
+    rays = cam.pixel_rays()
+    reach = np.isfinite(rays[..., 0])
+    assert not reach[0, 0] and reach[240, 320]
+    assert 6000 < (~reach).sum() < 8000  # 6753 pixels beyond the peak radius
+    uv, _ = cam.project(rays[reach])
+    v, u = np.nonzero(reach)
+    assert np.abs(uv - np.stack([u, v], -1)).max() < 0.05
+    # The fusion's clouds leave those pixels out instead of placing NaN points.
+    cache = RayCache(cam, 2)
+    pts, _, _ = depth_to_points(np.full((480, 640), 2.0, np.float32),
+                                np.zeros((480, 640, 3), np.uint8), cache, np.eye(4),
+                                CloudOptions(edge_threshold=0.0, stride=2))
+    assert np.isfinite(pts).all() and len(pts) == int(cache.reachable.sum())
+
+
+# ---------------------------------------------------------------------------- COLMAP
+
+
+def _colmap(tmp_path: Path, cameras: str, images: str) -> Path:
+    (tmp_path / "cameras.txt").write_text(cameras)
+    (tmp_path / "images.txt").write_text(images)
+    return tmp_path
+
+
+def test_colmap_text_read_as_colmap_reads_it(tmp_path):
+    # Trimmed lines, blank lines and indented comments between images (COLMAP and
+    # pycolmap skip them); the line after an image line is its observations, even empty.
+    folder = _colmap(tmp_path, "# cameras\n1 PINHOLE 640 480 500 500 320 240\n",
+                     "1 1 0 0 0 0 0 0 1 a.png\n\n\n   # comment\n"
+                     "2 1 0 0 0 0 -1 0 1 b.png\n10.5 20.5 -1\n")
+    m = read_colmap_model(folder)
+    assert [im.name for im in m.images] == ["a.png", "b.png"]
+    assert len(m.images[0].xys) == 0 and m.images[1].xys.tolist() == [[10.5, 20.5]]
+
+
+@pytest.mark.parametrize("cameras, images, match", [
+    ("1 OPENCV 640 480 500 500 320 240 0.1\n", "", r"cameras.txt:1: OPENCV has 8"),
+    ("1 PINHOLE 640 480 500\n", "", r"cameras.txt:1: PINHOLE has 4"),
+    ("1 PINHOLE 640 480 5x0 500 320 240\n", "", r"cameras.txt:1: could not convert"),
+    ("1 PINHOLE 640 480 500 500 320 240\n", "1 1 0 0 0 0 0 1 a.png\n", r"images.txt:1: image"),
+    ("1 PINHOLE 640 480 500 500 320 240\n", "1 1 0 0 0 0 0 0 1 a.png\n1 2\n",
+     r"images.txt:2: observations"),
+])
+def test_colmap_text_errors_name_file_and_line(tmp_path, cameras, images, match):
+    with pytest.raises(ValueError, match=match):
+        read_colmap_model(_colmap(tmp_path, cameras, images))
+
+
+# ---------------------------------------------------------------------------- poses, depth
+
+
+def test_kitti_tum_and_depth_readers_check_what_they_read(tmp_path):
+    (tmp_path / "k.txt").write_text("2 0 0 0 0 2 0 0 0 0 2 0\n")
+    with pytest.raises(ValueError, match="k.txt:1: not a rigid pose"):
+        read_kitti(tmp_path / "k.txt")
+    (tmp_path / "k.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 x\n")
+    with pytest.raises(ValueError, match="k.txt:1: could not convert"):
+        read_kitti(tmp_path / "k.txt")
+    # A byte-order mark before the header comment (Windows editors) is no data line.
+    (tmp_path / "t.tum").write_text("\ufeff# stamp tx ty tz qx qy qz qw\n1.0 0 0 0 0 0 0 1\n",
+                                    encoding="utf-8")
+    assert len(read_tum(tmp_path / "t.tum")) == 1
+    (tmp_path / "d.npy").write_bytes(b"\x93NUMPY garbage")
+    with pytest.raises(ValueError, match="d.npy: not a readable .npy depth map"):
+        read_depth(tmp_path / "d.npy")
