@@ -170,6 +170,11 @@ def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
     first = run_stages(tmp_path / "cut", stages, register)
     assert not first.ok and calls[-1] == -1
     assert (tmp_path / "cut/run/fuse/checkpoint.pkl").exists()
+    # The carving views wait on disk, not in the checkpoint (frames 0, 5, 10 fused).
+    views = tmp_path / "cut/run/fuse/carve_views"
+    if kill_in == "integrate":
+        assert sorted(p.name for p in views.glob("*.npy")) == [
+            "000000.npy", "000005.npy", "000010.npy"]
     calls.clear()
     calls.append(-1)  # no second kill
     again = run_stages(tmp_path / "cut", stages, register)
@@ -180,7 +185,7 @@ def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
         assert (m["frames_resumed_scales"], m["frames_resumed_map"]) == (12, 0)
     else:
         assert (m["frames_resumed_scales"], m["frames_resumed_map"]) == (20, 12)
-    assert not (tmp_path / "cut/run/fuse/checkpoint.pkl").exists()
+    assert not (tmp_path / "cut/run/fuse/checkpoint.pkl").exists() and not views.exists()
     a, b = tmp_path / "full/run/fuse", tmp_path / "cut/run/fuse"
     for name in ("map.ply", "scales.csv", "camera_poses.tum", "scaled_depth/index.csv",
                  "scaled_depth/000015.png"):
@@ -189,3 +194,29 @@ def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
     ref = {k: v for k, v in full.metrics["fuse"].items() if not any(t in k for t in timing)}
     assert {k: v for k, v in m.items() if k in ref} == ref
     assert "Resumed an interrupted run" in (tmp_path / "cut/run/report.md").read_text()
+
+
+def test_carve_views_on_disk_match_memory_and_restore(tmp_path: Path) -> None:
+    from toolkit.fusion.pipeline import CarveViews
+
+    rng = np.random.default_rng(0)
+    views = {i: rng.random((6, 8)).astype(np.float16) for i in (0, 5, 10)}
+    mem, disk = CarveViews(), CarveViews(tmp_path / "v")
+    for i, v in views.items():
+        mem.add(i, v)
+        disk.add(i, v)
+    for (i, a), (j, b) in zip(mem, disk, strict=True):
+        assert i == j and np.array_equal(a, b) and np.array_equal(a, views[i])
+    # A checkpoint of the disk store holds no pixels; restoring it reads the files.
+    state = disk.state()
+    assert state["arrays"] is None
+    back = CarveViews(tmp_path / "v")
+    back.restore(state)
+    assert [i for i, _ in back] == [0, 5, 10]
+    (tmp_path / "v/000005.npy").unlink()
+    with pytest.raises(FileNotFoundError, match="--force"):
+        CarveViews(tmp_path / "v").restore(state)
+    # Checkpoints written before the store held a list of (frame, view).
+    old = CarveViews(tmp_path / "w")
+    old.restore(list(views.items()))
+    assert [i for i, _ in old] == [0, 5, 10]

@@ -9,7 +9,9 @@ outliers are dropped.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -37,6 +39,7 @@ from toolkit.fusion.refine import DepthRefiner, Refinement, RefineOptions
 from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, smooth_scales
 from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
 from toolkit.geometry import inv_se3
+from toolkit.io.atomic import atomic_path
 from toolkit.sensors import Sequence
 
 
@@ -153,6 +156,59 @@ class FusionConfig(BaseModel):
                             self.lidar_plane_tol_m, self.min_free, self.free_ratio)
 
 
+class CarveViews:
+    """The strided depth views kept for carving until the map is finished: in memory, or
+    one ``.npy`` per view in ``folder``. An hour at 10 Hz keeps about 7200 views of 150 KB
+    (1.1 GB): in memory they would grow the process and every checkpoint pickles them."""
+
+    def __init__(self, folder: Path | None = None) -> None:
+        self.folder = folder
+        self.indices: list[int] = []
+        self._arrays: dict[int, np.ndarray] = {}
+        if folder is not None:
+            folder.mkdir(parents=True, exist_ok=True)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def _path(self, index: int) -> Path:
+        assert self.folder is not None
+        return self.folder / f"{index:06d}.npy"
+
+    def add(self, index: int, view: np.ndarray) -> None:
+        if self.folder is None:
+            self._arrays[index] = view
+        else:
+            with atomic_path(self._path(index)) as tmp:
+                np.save(tmp, view)
+        self.indices.append(index)
+
+    def __iter__(self) -> Iterator[tuple[int, np.ndarray]]:
+        for index in self.indices:
+            yield index, (self._arrays[index] if self.folder is None
+                          else np.load(self._path(index)))
+
+    def state(self) -> dict[str, object]:
+        """What a checkpoint holds: the views themselves only when they live in memory."""
+        return {"indices": list(self.indices),
+                "arrays": dict(self._arrays) if self.folder is None else None}
+
+    def restore(self, state: dict[str, object] | list[tuple[int, np.ndarray]]) -> None:
+        if isinstance(state, list):  # a checkpoint from before the views had a store
+            self.indices, self._arrays = [], {}
+            for index, view in state:
+                self.add(index, view)
+            return
+        self.indices = list(state["indices"])  # type: ignore[call-overload]
+        if self.folder is None:
+            self._arrays = dict(state["arrays"] or {})  # type: ignore[call-overload]
+            return
+        missing = [i for i in self.indices if not self._path(i).exists()]
+        if missing:
+            raise FileNotFoundError(f"{self.folder}: carving views of frames {missing[:5]} are "
+                                    "gone; run the stage again with --force")
+
+
 @dataclass
 class FramePairs:
     """Lidar vs prediction at the lidar pixels of one frame."""
@@ -185,7 +241,8 @@ class Fusion:
     """Per-frame pieces of the fusion, shared by the stage and the benchmark."""
 
     def __init__(self, seq: Sequence, config: FusionConfig, frame_poses: np.ndarray,
-                 scan_poses: np.ndarray) -> None:
+                 scan_poses: np.ndarray, views_dir: Path | None = None) -> None:
+        """``views_dir``: where the carving views wait for ``finish`` (None: in memory)."""
         self.seq = seq
         self.cfg = config
         self.camera = seq.rig.camera
@@ -210,7 +267,7 @@ class Fusion:
             self.consensus = ConsensusSurface(
                 self.camera, config.consensus_voxel_m, config.consensus_trunc_voxels,
                 config.max_depth_m, config.consensus_downsample)
-        self.views: list[tuple[int, np.ndarray]] = []  # (frame, strided scaled depth)
+        self.views = CarveViews(views_dir)  # frame -> strided scaled depth
         self.beam_dynamic: list[np.ndarray] = []
         self._dyn_xy: list[np.ndarray] = []
         self.points_masked_dynamic = 0
@@ -334,19 +391,19 @@ class Fusion:
                 index % self.cfg.carve_every == 0):
             s = self.rays.stride
             view = np.where(ok[::s, ::s], depth[::s, ::s], np.nan).astype(np.float16)
-            self.views.append((index, view))
+            self.views.add(index, view)
         return len(pts)
 
     def state(self) -> dict[str, object]:
         """What the fused frames built (voxel map, carving views, consensus volume), to be
         pickled: ``restore`` on a fusion of the same settings continues from it."""
-        return {"map": self.map, "views": self.views,
+        return {"map": self.map, "views": self.views.state(),
                 "points_masked_dynamic": self.points_masked_dynamic,
                 "consensus": None if self.consensus is None else self.consensus.state()}
 
     def restore(self, state: dict[str, object]) -> None:
         self.map = state["map"]  # type: ignore[assignment]
-        self.views = state["views"]  # type: ignore[assignment]
+        self.views.restore(state["views"])  # type: ignore[arg-type]
         self.points_masked_dynamic = int(state["points_masked_dynamic"])  # type: ignore
         if self.consensus is not None and state["consensus"] is not None:
             self.consensus.restore(state["consensus"])  # type: ignore[arg-type]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import io
+import shutil
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -284,7 +285,8 @@ class FuseStage(Stage):
         # Scans swept while moving (time_increment) are placed beam by beam first.
         seq = deskew_sequence(seq, traj)
         frame_poses, scan_poses, inside = pose_arrays(seq, traj)
-        fusion = Fusion(seq, fcfg, frame_poses, scan_poses)
+        views_dir = ctx.stage_dir / "carve_views"  # until the map is finished
+        fusion = Fusion(seq, fcfg, frame_poses, scan_poses, views_dir)
         disparity = store.kind == "relative_disparity"
         frames = [i for i in store.indices if i < len(seq.frames) and inside[i]]
         if not frames:
@@ -305,6 +307,9 @@ class FuseStage(Stage):
                          st.scales_done, len(frames), st.map_done)
         else:
             st = FuseProgress(oracle=np.full(len(frames), np.nan))
+            # Views of another run (other settings) must not be taken for this one's.
+            for old in views_dir.glob("*.npy"):
+                old.unlink()
         resumed = (st.scales_done, st.map_done)
 
         def save_checkpoint() -> None:
@@ -460,6 +465,7 @@ class FuseStage(Stage):
         self._report(ctx, cfg, seq, metrics, pose_note, st.fig_data, frames, sm, oracle, store,
                      raw, masks, final, traj)
         ckpt.remove()  # every output is written: a rerun has nothing to resume
+        shutil.rmtree(views_dir, ignore_errors=True)
 
     @staticmethod
     def _write_scales(path: Path, seq: Sequence, frames: list[int], estimates: list,
