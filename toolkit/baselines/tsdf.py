@@ -105,7 +105,7 @@ class TSDFVolume(GridCheckpoint):
         depth_img = o3d.t.geometry.Image(o3c.Tensor(d16))
         color_img = o3d.t.geometry.Image(
             o3c.Tensor(np.ascontiguousarray(np.asarray(color, dtype=np.uint8))))
-        K = o3c.Tensor(camera.K, o3c.float64)
+        K = o3c.Tensor(camera.open3d_K(), o3c.float64)
         extrinsic = o3c.Tensor(inv_se3(T_world_camera), o3c.float64)  # world -> camera
         # float(): Open3D's bindings reject a Python int where they declare a float.
         dmax, trunc = float(s.depth_max_m), float(s.trunc_voxels)

@@ -35,9 +35,9 @@ class ConsensusSurface(GridCheckpoint):
         # Never below 320 pixels across: a coarser image leaves holes between its rays
         # at a few metres that the 4 cm voxels cannot bridge.
         self.downsample = max(1, min(int(downsample), camera.width // 320))
-        w, h = camera.width // self.downsample, camera.height // self.downsample
-        self.volume_camera = camera.undistorted().scaled(w, h)
-        self.K = o3c.Tensor(self.volume_camera.K, o3c.float64)
+        # The volume sees every downsample-th pixel (a stride, not an area resize).
+        self.volume_camera = camera.undistorted().strided(self.downsample)
+        self.K = o3c.Tensor(self.volume_camera.open3d_K(), o3c.float64)
         self.trunc_voxels = float(trunc_voxels)
         self.depth_max_m = float(depth_max_m)
         # Depth units per metre for the uint16 depth image (Open3D's integrator wants it).
@@ -61,19 +61,15 @@ class ConsensusSurface(GridCheckpoint):
         if self.camera.has_distortion:
             d = np.asarray(depth, np.float32) if valid is None else np.where(
                 valid, depth, np.float32(0.0)).astype(np.float32)
+            # Nearest, and then every s-th pixel: averaging depth across an edge would
+            # make points that exist nowhere.
             d = self.camera.undistort_image(np.nan_to_num(d, nan=0.0), cv2.INTER_NEAREST)
-            if s > 1:
-                # Nearest: averaging depth across an edge would make points that exist
-                # nowhere.
-                d = cv2.resize(d, (self.volume_camera.width, self.volume_camera.height),
-                               interpolation=cv2.INTER_NEAREST)
+            d = np.ascontiguousarray(d[::s, ::s])
         else:
-            # Every s-th pixel first (what a nearest-neighbour resize by 1/s picks), then
-            # the masking on s^2 fewer pixels.
+            # Every s-th pixel first, then the masking on s^2 fewer pixels.
             d = np.asarray(depth[::s, ::s], np.float32)
             if valid is not None:
                 d = np.where(valid[::s, ::s], d, np.float32(0.0))
-            d = d[: self.volume_camera.height, : self.volume_camera.width]
         with np.errstate(invalid="ignore"):
             ok = (d > 0) & (d <= self.depth_max_m)
         d16 = np.where(ok, np.round(d * self.depth_scale), 0).astype(np.uint16)
