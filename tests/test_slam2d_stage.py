@@ -87,3 +87,35 @@ def test_stage_writes_trajectories_and_map(tmp_path: Path, monkeypatch: pytest.M
     assert json.loads((out / "slam2d_config.json").read_text())["grid"]["resolution"] == 0.05
     assert ctx.provided["trajectory"] == out
     assert "map.png" in ctx.text
+
+
+def test_stage_uses_a_calibrated_rig_over_the_sequences(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch):
+    """A ``rig`` artifact (the calibrate stage's) replaces the sequence's extrinsic."""
+    from toolkit.io.sequence import write_rig
+
+    truth = _drive(24)[:12]
+    stamps = np.arange(len(truth), dtype=float)
+    mount = np.array([0.3, 0.1, 0.0])  # where the laser really sits on the base
+    scans = [make_scan(p, t) for p, t in zip(se2_compose(truth, mount), stamps, strict=True)]
+    gt = Trajectory(stamps, np.stack([se2_to_se3(*p) for p in truth]))
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    T_base_camera = np.eye(4)
+    T_base_camera[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]
+    wrong = Rig(cam, T_base_camera, np.eye(4))  # the recording says: laser at the base
+    seq = Sequence(wrong, [], scans, groundtruth=GroundTruth(poses_base=gt), name="s")
+    monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
+    write_rig(tmp_path / "rig.yaml", Rig(cam, T_base_camera, se2_to_se3(*mount)))
+
+    class WithRig(_Ctx):
+        def artifact(self, name: str) -> Path:
+            return tmp_path / "rig.yaml" if name == "rig" else self.run_dir / "sequence"
+
+        def has_artifact(self, name: str) -> bool:
+            return name in ("sequence", "rig")
+
+    errors = {}
+    for name, ctx in (("own", _Ctx(tmp_path / "a")), ("calibrated", WithRig(tmp_path / "b"))):
+        Slam2DStage(Slam2DStage.Config(stage="slam2d")).run(ctx)
+        errors[name] = ctx.metrics["gt_ate_rmse_m"]
+    assert errors["calibrated"] < 0.02 < 0.05 < errors["own"], errors

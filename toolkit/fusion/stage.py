@@ -255,15 +255,18 @@ class FuseStage(Stage):
     name = "fuse"
     Config = FuseConfig
     requires = ("sequence", "depth")
-    optional_requires = ("trajectory",)
+    # rig: a calibrated extrinsic (calibrate) over the sequence's own
+    optional_requires = ("trajectory", "rig")
     provides = ("fused",)
 
     def run(self, ctx: StageContext) -> None:
-        from toolkit.io.sequence import read_sequence
+        from toolkit.io.sequence import read_sequence, sequence_with_rig
 
         cfg: FuseConfig = self.config  # type: ignore[assignment]
         fcfg = FusionConfig(**{k: getattr(cfg, k) for k in FusionConfig.model_fields})
         seq = read_sequence(ctx.artifact("sequence"))
+        if ctx.has_artifact("rig"):
+            seq = sequence_with_rig(seq, ctx.artifact("rig"))
         store = DepthStore(ctx.artifact("depth"))
         gt = seq.groundtruth
         # ---------------------------------------------------------------- poses

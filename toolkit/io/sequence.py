@@ -26,6 +26,7 @@ import io
 import json
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -89,11 +90,24 @@ def rig_from_dict(d: Any, source: str = "rig.yaml") -> Rig:
         raise SequenceFormatError(f"{source}: {e}") from None
 
 
+def sequence_with_rig(seq: Sequence, rig_path: Path | str) -> Sequence:
+    """``seq`` with the rig of ``rig_path`` (a calibrated extrinsic, e.g. the ``calibrate``
+    stage's ``rig``) instead of its own; the camera must be the sequence's size."""
+    rig = read_rig(Path(rig_path))
+    if seq.frames and rig.camera.size != seq.rig.camera.size:
+        raise SequenceFormatError(
+            f"{rig_path}: its camera is {rig.camera.width}x{rig.camera.height}, the images of "
+            f"{seq.name} are {seq.rig.camera.width}x{seq.rig.camera.height}: calibrate the "
+            "camera of this recording")
+    return replace(seq, rig=rig)
+
+
 def write_rig(path: Path, rig: Rig) -> None:
     atomic_write_text(path, yaml.safe_dump(rig_to_dict(rig), sort_keys=False))
 
 
-def read_rig(path: Path) -> Rig:
+def read_rig(path: Path | str) -> Rig:
+    path = Path(path)
     data = load_yaml(path, SequenceFormatError, "rig file not found (camera intrinsics and "
                      "T_base_camera / T_base_laser are required)")
     return rig_from_dict(data, str(path))

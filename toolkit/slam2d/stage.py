@@ -41,6 +41,7 @@ class Slam2DStage(Stage):
     name = "slam2d"
     Config = Slam2DStageConfig
     requires = ("sequence",)
+    optional_requires = ("rig",)  # a calibrated extrinsic (calibrate) over the sequence's
     provides = ("trajectory",)
 
     def external_inputs(self) -> list[Path]:
@@ -52,7 +53,7 @@ class Slam2DStage(Stage):
         from toolkit.eval.relations import read_relations, relations_metric
         from toolkit.io.atomic import atomic_write_json
         from toolkit.io.occupancy import write_occupancy
-        from toolkit.io.sequence import read_sequence
+        from toolkit.io.sequence import read_sequence, sequence_with_rig
         from toolkit.io.tum import write_tum
         from toolkit.slam2d.bench import ate_se2
         from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
@@ -61,6 +62,8 @@ class Slam2DStage(Stage):
         cfg = self.config
         assert isinstance(cfg, Slam2DStageConfig)
         seq = read_sequence(ctx.artifact("sequence"))
+        if ctx.has_artifact("rig"):
+            seq = sequence_with_rig(seq, ctx.artifact("rig"))
         if not seq.scans:
             raise StageError(f"sequence {seq.name} has no laser scans: slam2d needs a 2D lidar")
         odom = seq.odometry if cfg.use_odometry else None
