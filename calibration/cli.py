@@ -335,8 +335,8 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),
                     help="auto: depth when every frame has a depth map, else edges")
     pc.add_argument("--frames", type=int, default=12, help="frames to use (default 12)")
-    pc.add_argument("--max-dt", type=float, default=0.05, metavar="S",
-                    help="largest image-scan time difference (default 0.05 s)")
+    pc.add_argument("--max-dt", type=float, default=0.1, metavar="S",
+                    help="largest image-scan time difference (default 0.1 s, as extrinsic)")
     _add_stamp_unit(pc)
     pc.add_argument("--perturb-deg", type=float, default=2.0,
                     help="rotation of the sensitivity test (default 2 deg)")

@@ -492,6 +492,12 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
         raise PairingError(describe_unpaired(unpaired, [p.name for p in images.paths],
                                              images.stamps, np.array([s.stamp for s in scans]),
                                              max_dt))
+    if unpaired:
+        log.warning("check uses %d of %d images; the others have no scan within --max-dt "
+                    "%.3g s:\n%s", len(pairs), len(images.paths), max_dt,
+                    describe_unpaired(unpaired, [p.name for p in images.paths],
+                                      images.stamps, np.array([s.stamp for s in scans]),
+                                      max_dt))
     frames = []
     for p in pairs:
         path = images.paths[p.image_index]

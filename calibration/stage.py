@@ -94,9 +94,10 @@ class CalibrateStage(Stage):
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
+        # Missing paths are listed too: `validate` and `run` then name them before any
+        # stage starts.
         if cfg.mode == "check":
-            return [Path(cfg.extrinsic)] if cfg.extrinsic and Path(cfg.extrinsic).exists() \
-                else []
+            return [Path(cfg.extrinsic)] if cfg.extrinsic else []
         if cfg.source == "simulate":
             return []
         files: list[Path] = []
@@ -106,7 +107,7 @@ class CalibrateStage(Stage):
             path = Path(p)
             if path.is_dir():
                 files += sorted(q for q in path.rglob("*") if q.is_file())
-            elif path.exists():
+            else:
                 files.append(path)
         return files
 

@@ -58,3 +58,15 @@ def test_check_only_after_simulate_separates_a_2_degree_error(tmp_path: Path) ->
     for k in range(2):
         assert (tmp_path / "run" / "calibrate" / "check" / f"overlay_vs_rotated_{k}.png").exists()
         assert f"(calibrate/check/overlay_vs_rotated_{k}.png)" in report
+
+
+def test_missing_calibration_files_stop_validate(tmp_path: Path) -> None:
+    from toolkit.recipe.runner import missing_inputs
+    from toolkit.recipe.schema import parse_recipe
+
+    for stage in ({"stage": "calibrate", "mode": "check", "extrinsic": str(tmp_path / "e")},
+                  {"stage": "calibrate", "capture": str(tmp_path / "cap")}):
+        recipe = parse_recipe({"name": "t", "output": str(tmp_path / "run"),
+                               "stages": [stage]})
+        problems = missing_inputs(recipe)
+        assert len(problems) == 1 and "does not exist" in problems[0]

@@ -566,3 +566,15 @@ def test_onnx_invalid_output_does_not_blend_into_valid_depth(tmp_path: Path) -> 
     assert np.isnan(out[:, :3]).all()
     # channels-last single-channel output [1, h, w, 1] is one depth map too
     assert be.postprocess(np.full((1, 2, 3, 1), 2.0, np.float32), (2, 3)).shape == (2, 3)
+
+
+def test_simulated_settings_are_checked_with_the_recipe() -> None:
+    from pydantic import ValidationError
+
+    from toolkit.depth.stage import DepthConfig
+
+    with pytest.raises(ValidationError, match=r"unknown key\(s\) \['scal'\]"):
+        DepthConfig(stage="depth", backend="simulated", simulated={"scal": 2.0})
+    with pytest.raises(ValidationError, match="simulated"):
+        DepthConfig(stage="depth", backend="simulated", simulated={"scale": "big"})
+    assert DepthConfig(stage="depth", backend="simulated", simulated={"scale": 2.0})

@@ -208,3 +208,12 @@ def test_a_view_that_sees_no_gaussian_is_a_step_without_gradient() -> None:
                       densify=StrategyConfig(enabled=False), backend="torch")
     summary = Trainer(model, views, cfg).train()
     assert summary.steps == 4 and np.isfinite(summary.final_loss)
+
+
+def test_views_take_numpy_images_and_refuse_other_dtypes() -> None:
+    cam = PinholeCamera(8, 6, 10.0, 10.0, 3.5, 2.5)
+    v = TrainView(np.zeros((6, 8, 3), np.uint8), cam, np.eye(4), np.ones((6, 8), np.float32))
+    assert isinstance(v.image, torch.Tensor) and v.image.dtype == torch.uint8
+    assert isinstance(v.depth, torch.Tensor) and v.depth.dtype == torch.float32
+    with pytest.raises(ValueError, match="uint8"):
+        TrainView(np.zeros((6, 8, 3), np.float32), cam, np.eye(4))

@@ -239,6 +239,14 @@ class Sequence:
     def _nearest(stamps: np.ndarray, t: float) -> int:
         if len(stamps) == 0:
             raise IndexError("no data to look up")
+        span = float(stamps[-1] - stamps[0])
+        off = max(float(stamps[0]) - t, t - float(stamps[-1]))
+        if off > max(span, 1.0):
+            # Nearest to a time this far away is the first or last item whatever was meant
+            # (12.3 against stamps of 1.7e9 s: seconds into the recording, not its stamps).
+            raise ValueError(f"t={t!r} lies {off:.3g} s outside the recording "
+                             f"({float(stamps[0])!r} .. {float(stamps[-1])!r}); stamps are "
+                             "the recording's own: e.g. seq.time_span[0] + seconds")
         i = bisect.bisect_left(stamps.tolist(), t) if len(stamps) < 64 else int(
             np.searchsorted(stamps, t)
         )

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationError, model_validator
 
 from toolkit.depth.protocol import DepthKind
 from toolkit.depth.simulated import PRESETS, SimulatedDepthBackend, SimulatedDepthParams
@@ -47,6 +47,20 @@ class DepthConfig(StageConfig):
     # Decode the next images in a thread while the network runs (quickstart 13.4 -> 9.2 s);
     # the thread's CPU then counts in the measured work. Benchmarks that report it: false.
     prefetch: bool = True
+
+    @model_validator(mode="after")
+    def _simulated_keys(self) -> DepthConfig:
+        # Checked here, with the recipe, not when the stage finally runs: a typo under
+        # simulated: must stop `validate`, as any other unknown key does.
+        unknown = sorted(set(self.simulated) - set(SimulatedDepthParams.model_fields))
+        if unknown:
+            raise ValueError(f"simulated: unknown key(s) {unknown}; allowed: "
+                             f"{sorted(SimulatedDepthParams.model_fields)}")
+        try:
+            SimulatedDepthParams(**{**PRESETS[self.preset], **self.simulated})
+        except ValidationError as e:
+            raise ValueError(f"simulated: {e}") from None
+        return self
 
 
 def _input_hw(size: tuple[int, int] | int | None) -> tuple[int, int]:

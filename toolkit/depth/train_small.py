@@ -1,6 +1,9 @@
 """Train the project's small monocular depth network on simulator renders; export ONNX.
 
-    python -m toolkit.depth.train_small                # 45 min: datasets/models/small-depth.onnx
+    python -m toolkit.depth.train_small                # 45 min: runs/train_small/small-depth.onnx
+
+(the shipped ``datasets/models/small-depth.onnx`` was made so, with ``--out`` pointing there:
+the default leaves the shipped file and its card alone)
 
 A compact U-Net (0.59 M parameters, see ``make_model``) predicts log depth from one
 RGB image at 160x120. The loss is scale-invariant (Eigen et al. 2014 with lambda = 1,
@@ -15,8 +18,9 @@ house (seed 0, the quickstart's), rendered from poses along each house's robot r
 random yaw, height and pitch changes so that views are not all straight down the corridor.
 Renders are cached (``--cache``), so a second training run starts at once.
 
-The shipped file was made by this module's defaults (45 minutes, 24 houses) on an
-otherwise idle 2-core machine; the model card next to it has the figures.
+The shipped file was made by this module's defaults (45 minutes, 24 houses) with ``--out``
+``datasets/models/small-depth.onnx`` on an otherwise idle 2-core machine; the model card
+next to it has the figures.
 
     python -m toolkit.depth.train_small --eval-only MODEL.onnx \
         --sequence runs/quickstart/simulate/sequence
@@ -41,7 +45,7 @@ from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
 
 @dataclass
 class TrainConfig:
-    out: Path = Path("datasets/models/small-depth.onnx")
+    out: Path = Path("runs/train_small/small-depth.onnx")
     train_seeds: tuple[int, ...] = tuple(range(101, 125))  # 24 houses, none of them seed 0
     val_seed: int = 0  # the evaluation house: never trained on
     images_per_house: int = 150
@@ -513,8 +517,8 @@ resizes 640x480 frames with cubic interpolation; the graph takes any size); outp
 frame by the backend. Scale it with the lidar (`fuse` stage).
 
 **Training.** `python -m toolkit.depth.train_small --minutes {cfg.minutes:g} --houses
-{len(cfg.train_seeds)} --threads {cfg.threads}` on a 2-core CPU (1-minute load average
-{stats.get('loadavg', '?')}; about 2 is a machine doing nothing else; on a busier one the
+{len(cfg.train_seeds)} --threads {cfg.threads} --out {cfg.out}` on a 2-core CPU (1-minute load
+average {stats.get('loadavg', '?')}; about 2 is a machine doing nothing else; on a busier one the
 same minutes run fewer iterations).
 Data: {stats['images']} renders of {len(cfg.train_seeds)} simulated houses, seeds
 {cfg.train_seeds[0]}-{cfg.train_seeds[-1]} ({cfg.images_per_house} each; `toolkit.sim`,

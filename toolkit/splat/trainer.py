@@ -93,6 +93,15 @@ class TrainView:
     mask: Tensor | None = None
 
     def __post_init__(self) -> None:
+        # numpy arrays are welcome (what images load as); the trainer works on tensors.
+        self.image = torch.as_tensor(self.image)
+        if self.image.dtype != torch.uint8 or self.image.ndim != 3 or self.image.shape[2] != 3:
+            raise ValueError(f"view {self.name}: image must be uint8 [H, W, 3], got "
+                             f"{self.image.dtype} {tuple(self.image.shape)}")
+        if self.depth is not None:
+            self.depth = torch.as_tensor(self.depth, dtype=torch.float32)
+        if self.mask is not None:
+            self.mask = torch.as_tensor(self.mask, dtype=torch.bool)
         h, w = self.image.shape[:2]
         if (w, h) != self.camera.size:
             raise ValueError(f"view {self.name}: image is {w}x{h} but the camera "
