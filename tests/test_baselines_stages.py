@@ -25,6 +25,7 @@ class RoomConfig(StageConfig):
     width: int = 256
     height: int = 192
     small: bool = False  # a 3.2 x 2.6 m room: fewer surface samples to evaluate
+    poses: bool = True  # False: no ground-truth poses (a user's own recording)
 
 
 class RoomSequence(Stage):
@@ -47,6 +48,8 @@ class RoomSequence(Stage):
             poses = orbit_poses(room, cfg.frames, radius_m=0.8, sweep_deg=100.0)
         cam = default_camera(cfg.width, cfg.height, 70.0)
         root = write_room_sequence(ctx.stage_dir / "seq", room, cam, poses)
+        if not cfg.poses:
+            (root / "groundtruth" / "poses_base.tum").unlink()
         ctx.provide("sequence", root)
 
 
@@ -239,6 +242,18 @@ def test_colmap_stage_keeps_the_database_of_a_killed_run(
     res = _run(tmp_path, [stages[0], {**stages[1], "max_features": 256}])
     assert res.ok, res.error
     assert extractions == [1] and not res.metrics["colmap"]["database_resumed"]
+
+
+def test_colmap_without_any_poses_runs_sfm_alone(tmp_path: Path) -> None:
+    """A recording with neither slam2d upstream nor ground truth: the defaults (triangulate
+    and export at our poses) must not fail the stage after its SfM has run."""
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 6, "width": 320, "height": 240,
+                           "small": True, "poses": False},
+                          {"stage": "colmap", "overlap": 3, "max_features": 512}])
+    assert res.ok, res.error
+    m = res.metrics["colmap"]
+    assert "triangulation" not in m and "export" not in m and m["sfm"]["images"] == 6
+    assert "No poses of ours" in (tmp_path / "run/report.md").read_text()
 
 
 @pytest.mark.slow

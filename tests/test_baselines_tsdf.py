@@ -169,3 +169,17 @@ def test_open3d_volumes_read_the_pixel_the_camera_means(downsample: int) -> None
     cs.integrate(depth, np.eye(4))
     signed = cs.surface() @ n - d
     assert abs(signed.mean()) < 1e-3
+
+
+def test_reference_views_follow_motion_not_frame_count() -> None:
+    """A drive of 2 m then a full turn on the spot: evenly spaced frames would all but skip
+    the turn (its frames are few); views every 0.25 m or 15 deg take both."""
+    from toolkit.baselines.common import spread_views
+    from toolkit.geometry import se2_to_se3
+
+    drive = [se2_to_se3(x, 0.0, 0.0) for x in np.linspace(0, 2, 200)]
+    turn = [se2_to_se3(2.0, 0.0, a) for a in np.linspace(0, 2 * np.pi, 24)[1:]]
+    sel = spread_views(np.stack(drive + turn))
+    assert sum(sel < 200) == 8 and sum(sel >= 200) == 23  # 0.25 m apart; 15.7 deg apart
+    assert sel[0] == 0 and sel[-1] == 222
+    assert len(spread_views(np.stack(drive + turn), max_views=5)) == 5

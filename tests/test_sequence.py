@@ -200,3 +200,37 @@ def test_tum_file_round_trip_and_header(tmp_path):
     back = read_tum(tmp_path / "t.tum")
     assert (back.frame, back.child) == ("world", "camera")
     assert np.allclose(back.poses, traj.poses, atol=1e-15)
+
+
+def test_writing_over_an_earlier_sequence_leaves_none_of_it(tmp_path: Path) -> None:
+    """A new sequence written into the folder of an older one (simulate() twice into one
+    folder): the older's held-out views and extra images must not outlive it."""
+    root = tmp_path / "seq"
+    w = SequenceWriter(root, make_rig(), name="old", depth_format="npy")
+    for i in range(5):
+        w.add_frame(0.1 * i, np.zeros((H, W, 3), np.uint8), np.ones((H, W), np.float32))
+    w.add_heldout(0.05, np.eye(4), np.zeros((H, W, 3), np.uint8), np.ones((H, W), np.float32))
+    w.close()
+    assert read_sequence(root).groundtruth.heldout is not None
+    w = SequenceWriter(root, make_rig(), name="new")
+    for i in range(2):
+        w.add_frame(0.1 * i, np.zeros((H, W, 3), np.uint8))
+    w.close()
+    seq = read_sequence(root)
+    assert len(seq.frames) == 2 and seq.groundtruth is None
+    assert len(list((root / "camera" / "images").iterdir())) == 2
+    # A folder that holds such names but is no sequence is not emptied.
+    other = tmp_path / "mine"
+    (other / "camera").mkdir(parents=True)
+    with pytest.raises(SequenceFormatError, match="no sequence folder"):
+        SequenceWriter(other, make_rig())
+    assert (other / "camera").is_dir()
+
+
+def test_lookups_far_outside_the_recording_are_errors(tmp_path: Path) -> None:
+    write_small(tmp_path / "s")
+    seq = read_sequence(tmp_path / "s")
+    t0 = seq.time_span[0]
+    assert seq.scan_index_at(t0 + 0.21) == 2 and seq.frame_index_at(t0 + 1.2) == 3
+    with pytest.raises(ValueError, match="outside the recording"):
+        seq.scan_at(-1e9)  # seconds into the recording given as a stamp

@@ -206,3 +206,13 @@ def test_simulate_stage_writes_sequence_and_report(tmp_path: Path) -> None:
         SimulateConfig(stage="simulate", preset="castle")
     with pytest.raises(ValueError):
         SimulateConfig(stage="simulate", lidar={"beams": 360, "typo": 1})
+
+
+def test_a_drive_without_scans_is_refused_with_the_settings_to_change(tmp_path: Path) -> None:
+    from toolkit.sim.sensors import LidarSpec
+
+    cfg = SimConfig(seed=0, n_people=0, duration_s=3.0, n_heldout=0,
+                    lidar=LidarSpec(time_offset_s=3.5))
+    with pytest.raises(ValueError, match="0 scans: make duration_s longer than "
+                                         r"lidar.time_offset_s \(3.5 s\)"):
+        simulate(cfg, tmp_path / "seq")

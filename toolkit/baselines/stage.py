@@ -253,12 +253,15 @@ class TSDFStage(Stage):
             cfg.geometry) else None
         if ref is not None:
             from toolkit.eval.alignment import apply, map_to_world
-            from toolkit.eval.geometry import geometry_metrics, sample_mesh
+            from toolkit.eval.geometry import geometry_metrics, mesh_distances, sample_mesh
 
             # SLAM poses live in the map frame, the ground truth in the world: align first.
             S = map_to_world(seq, seq.frame_stamps[indices], poses) if (
                 fp.source != "groundtruth") else None
-            g = geometry_metrics(apply(S, sample_mesh(mesh, cfg.eval_spacing_m)), ref[1])
+            # Accuracy to the mesh itself, as evaluate scores maps: against the observed
+            # samples, surface the views did not test counted as error.
+            pts = apply(S, sample_mesh(mesh, cfg.eval_spacing_m))
+            g = geometry_metrics(pts, ref[1], accuracy_distances=mesh_distances(pts, ref[0]))
             metrics["geometry"] = g
             rows += _geometry_rows("vs GT mesh:", g)
         md = [f"TSDF fusion (Open3D VoxelBlockGrid, {cfg.voxel_size_m * 100:g} cm voxels, "
@@ -388,6 +391,19 @@ class ColmapStage(Stage):
         image_dir, names, cam = image_folder(seq, sel, ctx.stage_dir)
         frame_of = {n: int(i) for n, i in zip(names, sel, strict=True)}
         stamp_of = {n: float(seq.frame_stamps[i]) for n, i in frame_of.items()}
+        # Our poses, before the SfM that can take minutes: a recording of the user's own
+        # with neither slam2d upstream nor ground truth gets SfM alone (poses: auto).
+        fp, pose_note = None, ""
+        if cfg.triangulate or cfg.export:
+            gt = seq.groundtruth
+            if cfg.poses == "auto" and not ctx.has_artifact("trajectory") and (
+                    gt is None or gt.poses_base is None):
+                pose_note = ("No poses of ours (no slam2d upstream, no ground truth): SfM "
+                             "only, no triangulation or export at our poses.")
+                ctx.log.warning("colmap: %s", pose_note)
+            else:
+                fp = _poses(ctx, seq, cfg.poses)
+                pose_note = fp.note
         db = ctx.stage_dir / "database.db"
         ctx.log.info("colmap: %d images, %s matching", len(names), cfg.matching)
         seconds, database_kept = _matched_database(ctx, db, image_dir, names, cam, settings)
@@ -446,10 +462,9 @@ class ColmapStage(Stage):
               f"(intrinsics: {cfg.intrinsics})."
               + (" Features and matches from an interrupted run of the same settings."
                  if database_kept else "")]
-        if cfg.triangulate or cfg.export:
-            fp = _poses(ctx, seq, cfg.poses)
-            md.append(fp.note)
-        if cfg.triangulate:
+        if pose_note:
+            md.append(pose_note)
+        if cfg.triangulate and fp is not None:
             tri = self._triangulate(ctx, seq, fp, frame_of, image_dir, cam, db, settings)
             if tri is not None:
                 metrics["triangulation"] = tri
@@ -468,7 +483,7 @@ class ColmapStage(Stage):
             plot_topdown(ctx.stage_dir / "trajectories.png", curves,
                          "COLMAP camera centres vs reference (top view)")
             md.append(f"![COLMAP trajectories]({ctx.stage_id}/trajectories.png)")
-        if cfg.export:
+        if cfg.export and fp is not None:
             ex = self._export(ctx, seq, fp, cfg)
             metrics["export"] = ex
             md.append(f"Our poses and intrinsics as a COLMAP text model for Gaussian-splatting "
@@ -734,7 +749,7 @@ class CameraOnlyStage(Stage):
             mr = _mesh_reference(seq, poses_at_frames(gt_traj, seq)[1], max_depth_m,
                                  cfg.eval_spacing_m)
             if mr is not None:
-                from toolkit.eval.geometry import geometry_metrics
+                from toolkit.eval.geometry import geometry_metrics, mesh_distances
 
                 # A random subset, as evaluate scores maps: the statistics settle long
                 # before the ~2.5 M points of a house.
@@ -744,7 +759,8 @@ class CameraOnlyStage(Stage):
                 for tag in ("se3", "sim3"):
                     pts = apply_similarity(al[tag], res.points)
                     clouds[tag] = pts
-                    g = geometry_metrics(pts[sub], mr[1])
+                    g = geometry_metrics(pts[sub], mr[1],
+                                         accuracy_distances=mesh_distances(pts[sub], mr[0]))
                     m[f"geometry_{'own_scale' if tag == 'se3' else 'sim3'}"] = g
                     rows += _geometry_rows("own scale:" if tag == "se3" else "Sim(3):", g)
                 clouds["gt"] = mr[1]

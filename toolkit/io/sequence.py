@@ -335,6 +335,27 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
 # ---------------------------------------------------------------------------- writing
 
 
+JOURNAL_NAME = ".frames.journal.jsonl"
+# What a SequenceWriter writes into its folder.
+_SEQUENCE_ENTRIES = ("camera", "groundtruth", "scans.npz", "odometry.tum", "rig.yaml",
+                     "meta.yaml", JOURNAL_NAME)
+
+
+def _clear_sequence(root: Path) -> None:
+    """Remove an earlier sequence (finished or not) from ``root`` before writing a new one:
+    its images, held-out views or odometry must not outlive it. A folder holding such
+    names without being a sequence is left alone and refused."""
+    present = [n for n in _SEQUENCE_ENTRIES if (root / n).exists()]
+    if not present:
+        return
+    if not ((root / "meta.yaml").exists() or (root / JOURNAL_NAME).exists()):
+        raise SequenceFormatError(f"{root}: holds {present} but is no sequence folder; write "
+                                  "the sequence into an empty or new folder")
+    for n in present:
+        p = root / n
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
 class SequenceWriter:
     """Stream a recording into a sequence folder.
 
@@ -361,6 +382,8 @@ class SequenceWriter:
         self.source = source
         self.depth_format = depth_format
         self.root.mkdir(parents=True, exist_ok=True)
+        if not resume:
+            _clear_sequence(self.root)
         (self.root / "meta.yaml").unlink(missing_ok=True)
         self._rows: list[dict[str, str]] = []
         self._scans: list[LaserScan] = []
@@ -485,7 +508,6 @@ class SequenceWriter:
         return self.root
 
 
-JOURNAL_NAME = ".frames.journal.jsonl"
 _INDEXED = re.compile(r"^(\d{6})\.[a-z]+$")
 
 

@@ -69,7 +69,8 @@ class RobotPath:
 
     def T_world_base(self, t: np.ndarray) -> np.ndarray:
         """[M, 4, 4] base poses (z = 0: the base frame sits on the floor)."""
-        return np.stack([se2_to_se3(*p) for p in self.pose2d(t)])
+        poses = [se2_to_se3(*p) for p in self.pose2d(t)]
+        return np.stack(poses) if poses else np.zeros((0, 4, 4))
 
 
 def _speed_profile(s: np.ndarray, kappa: np.ndarray, lim: MotionLimits, v_max: float) -> (

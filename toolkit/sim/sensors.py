@@ -78,6 +78,8 @@ class LidarSpec:
     range_max: float = 12.0
     noise_std: float = 0.01  # metres
     dropout: float = 0.01  # probability a beam returns nothing (NaN)
+    # ... plus up to this at grazing incidence (cos < 0.2: little light comes back)
+    grazing_dropout: float = 0.5
     mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.25)
     time_offset_s: float = 0.043  # first scan after the first image (not synchronised)
     # True: the beams are measured one after another over a turn of 1 / rate_hz, as a
@@ -437,7 +439,8 @@ class LidarRenderer:
             out = out + rng.standard_normal(len(out)) * spec.noise_std
             # Dropouts: rare anywhere, frequent at grazing incidence (little light returns).
             cos_inc = np.abs(np.einsum("ij,ij->i", normal, d))
-            p_drop = spec.dropout + 0.5 * np.clip((0.2 - cos_inc) / 0.2, 0.0, 1.0)
+            p_drop = spec.dropout + spec.grazing_dropout * np.clip((0.2 - cos_inc) / 0.2, 0.0,
+                                                                   1.0)
             out[rng.random(len(out)) < p_drop] = np.nan
         with np.errstate(invalid="ignore"):
             out[out > spec.range_max] = np.inf

@@ -131,6 +131,11 @@ def simulate(config: SimConfig, out_dir: Path | str,
     timings["world_s"] = time.perf_counter() - t_start
     path, scene = world.path, world.scene
     cam_t, las_t = sensor_stamps(config, path.duration)
+    if not len(cam_t) or not len(las_t):
+        raise ValueError(
+            f"the {path.duration:.3f} s drive holds {len(cam_t)} camera frames and "
+            f"{len(las_t)} scans: make duration_s longer than lidar.time_offset_s "
+            f"({config.lidar.time_offset_s} s) and than one period of each sensor")
     t0 = config.start_time
 
     writer = SequenceWriter(out_dir, world.rig, name=config.name,

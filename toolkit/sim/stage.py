@@ -58,6 +58,7 @@ class LidarSettings(_Settings):
     range_max: float = Field(12.0, gt=0)
     noise_std: float = Field(0.01, ge=0)
     dropout: float = Field(0.01, ge=0, le=1)
+    grazing_dropout: float = Field(0.5, ge=0, le=1)  # more at grazing incidence (0: none)
     mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.25)
     time_offset_s: float = Field(0.043, ge=0)
     sweep: bool = False  # beams fired one after another over 1 / rate_hz (time_increment)
