@@ -47,7 +47,8 @@ EDGE_INTRA, EDGE_LOCAL, EDGE_ODOM, EDGE_LOOP = 0, 1, 2, 3
 
 
 class ScanLike(Protocol):
-    """What the SLAM reads from a scan (``toolkit.sensors.LaserScan`` fits)."""
+    """What the SLAM reads from a scan (``toolkit.sensors.LaserScan`` fits; a
+    ``LaserScan`` with a ``time_increment`` is de-skewed)."""
 
     stamp: float
     ranges: np.ndarray
@@ -55,8 +56,6 @@ class ScanLike(Protocol):
     angle_increment: float
     range_min: float
     range_max: float
-    # Optional: seconds between beams; a ``LaserScan`` with it set is de-skewed.
-    # time_increment: float
 
 
 @dataclass
@@ -108,10 +107,10 @@ def _mid_sweep_to_stamp(stamps: np.ndarray, sweep: np.ndarray, poses: np.ndarray
     step = se2_between(poses[:-1], poses[1:])  # [S-1, 3]
     vel = step / np.diff(t_mid)[:, None]  # [S-1, 3] per second, in the earlier frame
     centre = (t_mid[:-1] + t_mid[1:]) / 2  # [S-1] time each velocity holds at
-    for k in np.flatnonzero(sweep != 0):
-        t = stamps[k] + sweep[k] / 4  # the middle of the half sweep to undo
-        v = np.array([np.interp(t, centre, vel[:, i]) for i in range(3)])
-        out[k] = se2_compose(poses[k], se2_inverse(v * (sweep[k] / 2)))
+    k = np.flatnonzero(sweep != 0)
+    t = stamps[k] + sweep[k] / 4  # [K] the middle of the half sweep to undo
+    v = np.stack([np.interp(t, centre, vel[:, i]) for i in range(3)], -1)  # [K, 3]
+    out[k] = se2_compose(poses[k], se2_inverse(v * (sweep[k, None] / 2)))
     return out
 
 
@@ -310,7 +309,8 @@ class LidarSlam2D:
         return pose, ref.score
 
     def add_scan(self, scan: ScanLike, odometry: np.ndarray | None = None) -> np.ndarray | None:
-        """Process one scan; returns its T_world_base as (x, y, theta), None if skipped.
+        """Process one scan; returns its T_world_base as (x, y, theta), None if skipped
+        (at mid-sweep for a de-skewed scan: ``finish`` gives every scan's at its stamp).
 
         ``odometry``: T_odom_base at the scan stamp, as [4, 4] or (x, y, theta).
         """
