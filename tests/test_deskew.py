@@ -82,6 +82,19 @@ def test_deskew_keeps_codes_and_moves_intensities():
                                                        equal_nan=True)
 
 
+def test_range_max_readings_stay_no_returns():
+    """CARMEN and many drivers write no-return as exactly range_max: moved like returns,
+    half of them landed inside the limit and the SLAM saw a wall there."""
+    scan, motion, _ = swept_scan(1.0, 0.5, 1 / 3600)
+    r = scan.ranges.copy()
+    r[50:150] = 12.0
+    scan = replace(scan, ranges=r, range_max=12.0)
+    out = deskew_scan(scan, motion)
+    assert np.all((out.ranges[55:145] == 12.0) | np.isnan(out.ranges[55:145]))
+    moved = np.abs(out.ranges - r) > 1e-4
+    assert moved[200:300].any()  # real returns still move
+
+
 def test_deskew_scans_along_a_trajectory_and_only_covered():
     scan, motion, truth = swept_scan(0.8, 0.4, 1 / 3600)
     t = np.linspace(-1.0, 1.0, 201)

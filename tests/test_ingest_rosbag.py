@@ -587,3 +587,20 @@ def test_beam_timing_kept_checked_or_ignored(tmp_path, fmt):
         read_rosbag(bag)
     rec = read_rosbag(bag, RosbagOptions(beam_timing="ignore"))
     assert all(s.time_increment == 0 for s in rec.scans)
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+def test_beam_timing_needs_first_beam_stamps(tmp_path, fmt, caplog):
+    c = make_content()
+    c.time_increment = 0.0005
+    bag, _ = make_bag(tmp_path, fmt, content=c)
+    # A driver stamping the end of the sweep: stamps move back by the sweep.
+    rec = read_rosbag(bag, RosbagOptions(beam_timing="last_beam"))
+    sweep = 89 * np.float32(0.0005)
+    for s, t in zip(rec.scans, c.scan_t, strict=True):
+        assert s.stamp == pytest.approx(ns(t) / 1e9 - sweep, abs=1e-9)
+    # Recording times are no beam's time: the timing is not used.
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(bag, RosbagOptions(stamps="bag"))
+    assert all(s.time_increment == 0 for s in rec.scans)
+    assert "not its first beam's time" in caplog.text and rec.meta["beam_timing"] == "ignored"

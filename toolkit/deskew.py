@@ -42,13 +42,18 @@ def deskew_scan(scan: LaserScan, motion: np.ndarray) -> LaserScan:
     first; beam i has moved ``i / (B - 1)`` of it. The result has the same beams
     (angles, limits) and ``time_increment`` 0. Bins no point lands in keep the original
     beam's value when it had no return (no-return and too-close codes stay), else NaN.
+    A range of exactly ``range_max`` is such a code too (CARMEN and many drivers write
+    no-return so; the SLAM reads it so): moved, half of them would land just inside the
+    limit and read as a wall at range_max.
     """
     m = np.asarray(motion, np.float64).reshape(3)
     n = len(scan)
     done = replace(scan, time_increment=0.0)
     if scan.time_increment == 0 or n < 2 or not np.any(m):
         return done
-    ok = np.flatnonzero(scan.valid_mask())
+    with np.errstate(invalid="ignore"):
+        moves = scan.valid_mask() & (scan.ranges < scan.range_max)  # [B] real returns
+    ok = np.flatnonzero(moves)
     f = ok / (n - 1)  # [V] share of the sweep
     a = scan.angles()[ok]
     r = scan.ranges[ok].astype(np.float64)
@@ -66,7 +71,7 @@ def deskew_scan(scan: LaserScan, motion: np.ndarray) -> LaserScan:
         u = np.concatenate([u - n, u, u + n])
         rho = np.tile(rho, 3)
         src = np.tile(src, 3)
-    out = np.where(scan.valid_mask(), np.nan, scan.ranges).astype(np.float32)
+    out = np.where(moves, np.nan, scan.ranges).astype(np.float32)
     inten = None if scan.intensities is None else scan.intensities.copy()
     if len(u):
         k = np.arange(n, dtype=np.float64)

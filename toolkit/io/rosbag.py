@@ -123,9 +123,11 @@ class RosbagOptions(BaseModel):
     # Images already undistorted (image_rect): intrinsics from CameraInfo P, no distortion.
     # Default: true when the image topic's name contains "rect".
     rectified: bool | None = None
-    # Per-beam times (LaserScan time_increment) de-skew scans swept while the robot moved;
-    # "ignore" drops them, for a driver that publishes a wrong time_increment.
-    beam_timing: Literal["use", "ignore"] = "use"
+    # Per-beam times (LaserScan time_increment) de-skew scans swept while the robot moved.
+    # use: the stamp is the first beam's (ROS's convention); last_beam: the driver stamps
+    # the end of the sweep (the stamps move back by the sweep); ignore: drop the timing, for
+    # a driver that publishes a wrong time_increment.
+    beam_timing: Literal["use", "last_beam", "ignore"] = "use"
 
 
 # ---------------------------------------------------------------------------- the bag
@@ -982,9 +984,18 @@ def _keep(stamps: list[int], where: str, policy: Literal["error", "drop"],
     return keep
 
 
-def _beam_timing(scans: list[LaserScan], use: str, where: str) -> list[LaserScan]:
+def _beam_timing(scans: list[LaserScan], use: str, stamps: str, where: str,
+                 log: logging.Logger) -> list[LaserScan]:
     """``scans`` with their time_increment, checked (a sweep longer than the time between
-    scans is a driver's error, e.g. a whole turn's time per beam), or dropped."""
+    scans is a driver's error, e.g. a whole turn's time per beam), stamped at the first
+    beam (``last_beam``), or dropped."""
+    timed = any(s.time_increment for s in scans)
+    if timed and use != "ignore" and stamps == "bag":
+        # Recording times come after the sweep by an unknown delay: de-skewing from them
+        # doubled the error of ignoring the timing on a simulated drive.
+        log.warning("%s: rosbag.stamps is 'bag', so a scan's stamp is not its first beam's "
+                    "time; its beam timing (time_increment) is not used", where)
+        use = "ignore"
     if use == "ignore":
         return [replace(s, time_increment=0.0) if s.time_increment else s for s in scans]
     sweeps = np.array([abs(s.sweep_s) for s in scans])
@@ -997,6 +1008,9 @@ def _beam_timing(scans: list[LaserScan], use: str, where: str) -> list[LaserScan
             f"{where}: time_increment says one sweep takes {sweep:.4f} s, but scans come "
             f"every {period:.4f} s; the driver's beam timing is wrong - set "
             "'rosbag: {beam_timing: ignore}' to use the scans without it")
+    if use == "last_beam":
+        return [replace(s, stamp=s.stamp - s.sweep_s) if s.time_increment else s
+                for s in scans]
     return scans
 
 
@@ -1010,7 +1024,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     scans = [s for s, keep in zip(idx.scans, k, strict=True) if keep]
     if not scans:
         raise BagError(f"{bag_name}: topic {ch.scan} has no scans")
-    scans = _beam_timing(scans, opts.beam_timing, f"{bag_name}: topic {ch.scan}")
+    scans = _beam_timing(scans, opts.beam_timing, opts.stamps, f"{bag_name}: topic {ch.scan}",
+                         log)
     img = _filtered(idx.image, f"{bag_name}: topic {ch.image}", policy, dropped, ch.image)
     dep = _filtered(idx.depth, f"{bag_name}: topic {ch.depth}", policy, dropped, ch.depth) \
         if ch.depth else None
@@ -1116,8 +1131,9 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
                    "laser": laser_frame},
         "extrinsics_from": sources,
         "stamps": opts.stamps,
-        "beam_timing": opts.beam_timing if any(s.time_increment for s in idx.scans) else
-        "none in the bag",
+        "beam_timing": ("none in the bag" if not any(s.time_increment for s in idx.scans)
+                        else opts.beam_timing if any(s.time_increment for s in scans)
+                        else "ignored"),
     }
     if rectified and has_camera:
         meta["rectified_images"] = True
