@@ -52,6 +52,7 @@ def swept_scan(w: float, v: float, dt: float, beams: int = 360) -> tuple[LaserSc
                                       (1.0, 0.5, -1 / 3600)])
 def test_deskew_recovers_the_scan_at_the_stamp(w, v, dt):
     scan, motion, truth = swept_scan(w, v, dt)
+    assert scan.beam_times()[-1] == pytest.approx(scan.sweep_s) == pytest.approx(359 * dt)
     skewed = np.abs(scan.ranges - truth)
     assert np.nanmax(skewed) > 0.25  # the far walls moved by decimetres
     out = deskew_scan(scan, motion)
