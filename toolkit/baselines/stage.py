@@ -271,7 +271,8 @@ class TSDFStage(Stage):
             views = self._views(ctx, seq, mesh, ucam, indices, poses, cfg)
             metrics["views"] = views["metrics"]
             md.append(f"Camera image (left) and the TSDF mesh rendered at the same pose "
-                      f"(right); PSNR over covered pixels "
+                      f"(right), {cfg.views} of the integrated frames (first, last and between:"
+                      f" in-sample); PSNR over covered pixels "
                       f"{views['metrics']['psnr_db']:.1f} dB, coverage "
                       f"{views['metrics']['coverage']:.0%}.")
             md.append(f"![TSDF views]({ctx.stage_id}/{views['png']})")

@@ -49,6 +49,7 @@ def geometry_metrics(
     recon: np.ndarray, reference: np.ndarray,
     thresholds_m: tuple[float, ...] = DEFAULT_THRESHOLDS_M,
     accuracy_distances: np.ndarray | None = None,
+    complete_points: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Accuracy, completeness, Chamfer and precision/recall/F-score at each threshold.
 
@@ -56,6 +57,9 @@ def geometry_metrics(
     ``accuracy_mean_m``, ``chamfer_m``, ``fscore_5cm`` ... Pass ``accuracy_distances`` [N]
     (e.g. exact point-to-mesh distances from ``mesh_distances``) to avoid the bias of
     measuring accuracy against a sampled reference, whose spacing adds to every distance.
+    ``complete_points`` [K, 3]: the whole reconstruction when ``recon`` is a subsample of
+    it, so that completeness and recall see every point (a subsample's gaps would make a
+    denser map look less complete).
     """
     recon = np.asarray(recon, dtype=np.float64).reshape(-1, 3)
     reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
@@ -66,7 +70,8 @@ def geometry_metrics(
         accuracy_distances, dtype=np.float64).reshape(-1)
     if len(acc) != len(recon):
         raise ValueError(f"{len(acc)} accuracy distances for {len(recon)} points")
-    comp = point_distances(reference, recon)
+    comp = point_distances(reference, recon if complete_points is None else np.asarray(
+        complete_points, dtype=np.float64).reshape(-1, 3))
     out: dict[str, float] = {
         "accuracy_mean_m": float(acc.mean()),
         "accuracy_median_m": float(np.median(acc)),

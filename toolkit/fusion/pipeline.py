@@ -216,8 +216,12 @@ class FramePairs:
     lidar: LidarPixels
     pred: np.ndarray  # [N] predicted values at the lidar pixels
     estimate: ScaleEstimate
-    # [N] bool: pairs both sensors see (not occluded from the camera, not on a depth edge)
+    # [N] bool: pairs the shape correction anchors to (not occluded from the camera, not on
+    # a depth edge of the prediction)
     visible: np.ndarray
+    # [N] bool: pairs both sensors see (not occluded from the camera: geometry alone, the
+    # same pairs whatever the prediction, for the metrics); None in old checkpoints
+    covisible: np.ndarray | None = None
 
 
 def pose_arrays(seq: Sequence, T_world_base: object) -> tuple[np.ndarray, np.ndarray,
@@ -294,11 +298,12 @@ class Fusion:
         lidar = zbuffer_lidar(self.projector.project_frame(index), pred.values.shape)
         d = sample_depth(pred.values, lidar)
         c = self.cfg
-        vis = np.ones(len(d), bool)
+        covis = np.ones(len(d), bool)
         if c.pair_occlusion_beams > 0 and len(d) > 1:
-            vis &= ~occluded_lidar(lidar, self.camera.fx, self.camera.cx, self._beam_step,
-                                   c.pair_occlusion_beams, c.pair_occlusion_margin_m,
-                                   c.pair_occlusion_margin_rel)
+            covis &= ~occluded_lidar(lidar, self.camera.fx, self.camera.cx, self._beam_step,
+                                     c.pair_occlusion_beams, c.pair_occlusion_margin_m,
+                                     c.pair_occlusion_margin_rel)
+        vis = covis.copy()
         if c.pair_edge_filter and c.edge_threshold > 0:
             vis &= ~edge_pairs(pred.values, lidar, c.edge_threshold, self.cloud_opts.edge_window)
         if c.scale == "none":
@@ -318,7 +323,7 @@ class Fusion:
             # alone gave a slightly worse scale (simulated house: median error vs the oracle
             # 0.76 % instead of 0.70 %, worst frame 5.1 % instead of 3.1 %).
             est = estimate_scale(c.scale, lidar.z, d, pred.is_disparity, **opts)
-        return FramePairs(lidar, d, est, vis)
+        return FramePairs(lidar, d, est, vis, covis)
 
     def dynamic_hits(self, index: int) -> np.ndarray:
         """[K, 2] world xy of lidar hits on moving obstacles near frame ``index``'s time."""

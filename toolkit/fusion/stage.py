@@ -116,7 +116,10 @@ class FuseProgress:
         scaled_pairs = scaled_at_pairs(fp, disparity, *scale_shift)
         z = fp.lidar.z
         self.lid.add(z, unscaled_pairs, scaled_pairs)
-        v = fp.visible
+        # Pairs both sensors see by geometry alone: a set chosen by the prediction's own
+        # edges would drop its worst pairs (the simulated `paper` row kept 58 % of the
+        # pairs, the others 87 %, and scored 0.071 against 0.096 on these).
+        v = fp.visible if fp.covisible is None else fp.covisible
         self.lid_vis.add(z[v], unscaled_pairs[v], scaled_pairs[v])
         if refined is not None:
             # In-sample for the lidar: the correction was fitted to these pairs.
@@ -143,9 +146,9 @@ def _depth_metrics(cfg: FuseConfig, st: FuseProgress, refined: bool, has_gt_dept
     cap = cfg.eval_max_depth_m
     n_all = _pair_metrics(metrics, st.lid, "lidar_", cap)
     # The same protocol on the pairs both sensors see: the lidar point is not hidden
-    # from the camera behind a nearer object and its pixel is not on a depth edge of the
-    # prediction. With ground-truth depth as the prediction the all-pairs RMSE is
-    # 0.185 m on the simulated house (occlusion alone) against 0.017 m on these pairs.
+    # from the camera behind a nearer object (geometry only, the same pairs for every
+    # prediction). With ground-truth depth as the prediction the all-pairs RMSE is 0.206 m
+    # on the simulated house against 0.095 m on these pairs.
     n_vis = _pair_metrics(metrics, st.lid_vis, "lidar_visible_", cap)
     metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)
     _pair_metrics(metrics, st.lid_valid, "lidar_valid_", cap)
@@ -439,7 +442,8 @@ class FuseStage(Stage):
             "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
             "pairs_per_frame_median": float(np.median([e.pairs for e in estimates])),
             "pairs_visible_per_frame_median": float(np.median(
-                [int(pairs[i].visible.sum()) for i in frames])),
+                [int((pairs[i].visible if pairs[i].covisible is None
+                      else pairs[i].covisible).sum()) for i in frames])),
             "depth_kind": store.kind, "scale_method": cfg.scale,
             "poses": pose_source,
             "map_points": len(final), "map_points_raw": len(raw),
@@ -510,13 +514,13 @@ class FuseStage(Stage):
                   f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
                   f"({m['pairs_visible_per_frame_median']:.0f} seen by both sensors).")
         rows = [("vs lidar (paper's protocol), all pairs", "lidar_unscaled_", "lidar_scaled_"),
-                ("vs lidar, pairs both sensors see (no occlusion, no depth edge)",
+                ("vs lidar, pairs both sensors see (not occluded from the camera)",
                  "lidar_visible_unscaled_", "lidar_visible_scaled_"),
                 ("vs lidar, pairs on pixels the map uses", "lidar_valid_unscaled_",
                  "lidar_valid_scaled_")]
         if "lidar_visible_refined_scaled_count" in m:
             rows.append(("vs lidar, pairs both sensors see, after the shape correction "
-                         "(fitted to them: in-sample)", "lidar_visible_unscaled_",
+                         "(fitted to most of them: in-sample)", "lidar_visible_unscaled_",
                          "lidar_visible_refined_scaled_"))
         if "gt_scaled_rmse_m" in m:
             rows.append(("vs ground-truth depth, whole images", "gt_unscaled_", "gt_scaled_"))
