@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -332,6 +333,10 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError:
             print("toolkit.sim.calib_capture not available: using the analytic generator")
             args.source = "analytic"
+    if args.no_sweep and not Path(args.acfr).is_dir():
+        print(f"error: {args.acfr}: ACFR data not found, and --no-sweep leaves nothing to "
+              "measure; give --acfr DIR or drop --no-sweep", file=sys.stderr)
+        return 2
     res: dict[str, Any] = {}
     if not args.no_sweep:
         res["simulated"] = sweep(args, out)

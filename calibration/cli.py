@@ -24,8 +24,35 @@ from calibration.scans import PairingError, ScanFormatError
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
     BoardError, CheckError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
-    ScanFormatError, FileNotFoundError,
+    ScanFormatError, FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError,
+    PermissionError,
 )
+
+
+def _file_outputs(*paths: str | None) -> None:
+    """Refuse output files that cannot be written before any work (a folder in the way,
+    a file where a folder must be): nothing is written in part."""
+    for p in paths:
+        if not p:
+            continue
+        path = Path(p)
+        if path.is_dir():
+            raise CalibrationFileError(f"{path}: is a folder; give a file name to write")
+        parent = next((q for q in path.parents if q.exists()), None)
+        if parent is not None and not parent.is_dir():
+            raise CalibrationFileError(f"{path}: {parent} is a file, not a folder")
+
+
+def _dir_output(p: str | None) -> None:
+    if p and Path(p).exists() and not Path(p).is_dir():
+        raise CalibrationFileError(f"{p}: is a file; give a folder to write into")
+
+
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
 
 
 def _board(args: argparse.Namespace) -> BoardSpec:
@@ -99,6 +126,8 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
     )
 
     board = _board(args)
+    _file_outputs(args.out, args.json)
+    _dir_output(args.overlays)
     camera = load_camera(Path(args.camera)) if args.camera else None
     if args.sequence:
         cands, skipped, camera = load_candidates_from_sequence(
@@ -202,6 +231,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from toolkit.io.atomic import atomic_path, atomic_write_json
 
     out = Path(args.out)
+    _dir_output(args.out)
     if args.sequence:
         from toolkit.io.sequence import read_rig
 
@@ -222,6 +252,9 @@ def cmd_check(args: argparse.Namespace) -> int:
                                          str(args.camera), args.max_dt,
                                          Path(args.depth) if args.depth else None,
                                          args.stamp_unit)
+    # Scored first: a check that cannot score (no depth maps for --score depth) writes no
+    # overlays.
+    scores = sensitivity(frames, T, camera, args.perturb_deg, args.score)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for f in frames:
@@ -230,7 +263,6 @@ def cmd_check(args: argparse.Namespace) -> int:
         with atomic_path(p) as tmp:
             cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         written.append(p.name)
-    scores = sensitivity(frames, T, camera, args.perturb_deg, args.score)
     d = scores.to_dict()
     print(f"{len(frames)} frames, {scores.n_points} points; {scores.kind} score "
           f"{scores.score:.4f}")
@@ -334,7 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     ".npy or .png)")
     pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),
                     help="auto: depth when every frame has a depth map, else edges")
-    pc.add_argument("--frames", type=int, default=12, help="frames to use (default 12)")
+    pc.add_argument("--frames", type=_positive_int, default=12,
+                    help="frames to use (default 12)")
     pc.add_argument("--max-dt", type=float, default=0.1, metavar="S",
                     help="largest image-scan time difference (default 0.1 s, as extrinsic)")
     _add_stamp_unit(pc)
@@ -362,6 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("calibration.progress").setLevel(logging.INFO)
     try:
         return int(args.func(args))
     except USER_ERRORS as e:

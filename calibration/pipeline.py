@@ -56,6 +56,8 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3, se3
 
 log = logging.getLogger("calibration")
+# Progress of long loops; the CLI shows it without -v.
+progress_log = logging.getLogger("calibration.progress")
 
 
 @dataclass
@@ -166,7 +168,12 @@ def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | No
     found: dict[int, Detection] = {}
     missed: dict[str, str] = {}
     first_image = None
+    n = len(images.paths)
+    step = max(1, n // 10)  # about 0.35 s an image without a board: say how far it is
     for i, p in enumerate(images.paths):
+        if n > 20 and i % step == 0:
+            progress_log.info("board detection: %d/%d images, board found in %d", i, n,
+                              len(found))
         img = read_image(p)
         if first_image is None:
             first_image = img

@@ -250,3 +250,31 @@ def test_check_with_depth_maps_on_image_folders(capture: tuple[Path, object], tm
     # The true extrinsic puts the board's scan points at the board's depth.
     assert chk["kind"] == "depth" and chk["score"] > 0.9
     assert chk["relative_drop"]["ry+2deg"] > 0.3
+
+
+def test_wrong_paths_stop_before_any_output(capture: tuple[Path, object], tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder given for a YAML file, a folder in the way of an output file, a check that
+    cannot score: exit 2 with the path named, and nothing written in part."""
+    cap_dir, _ = capture
+    rc = main(["extrinsic", "--images", str(cap_dir / "images"), "--scans",
+               str(cap_dir / "lasers"), "--camera", str(cap_dir), "--board", "11x8",
+               "--square", "0.05"])
+    assert rc == 2 and "is a folder; give the YAML file" in capsys.readouterr().err
+    (tmp_path / "j").mkdir()
+    rc = main(_args(cap_dir, "--out", str(tmp_path / "rig.yaml"), "--json", str(tmp_path / "j")))
+    assert rc == 2 and not (tmp_path / "rig.yaml").exists()
+    assert "is a folder; give a file name" in capsys.readouterr().err
+    rc = main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+               "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(tmp_path / "no.yaml"),
+               "--out", str(tmp_path / "chk")])
+    assert rc == 2 and not (tmp_path / "chk").exists()
+    with pytest.raises(SystemExit) as e:
+        main(["check", "--frames", "0", "--sequence", str(tmp_path)])
+    assert e.value.code == 2
+
+
+def test_bench_without_anything_to_measure_fails() -> None:
+    from calibration.bench import main as bench_main
+
+    assert bench_main(["--no-sweep", "--acfr", "/nonexistent/acfr"]) == 2

@@ -321,6 +321,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--int8", action="store_true",
                     help="also time (with --export: write) a dynamic-int8 quantized copy")
     a = ap.parse_args(argv)
+    try:  # every argument checked before minutes of export or timing
+        sizes = [_parse_size(s) for s in (a.size if a.export is not None else a.sizes).split(",")]
+        threads = [int(t) for t in a.threads.split(",")]
+    except ValueError as e:
+        ap.error(f"--size(s)/--threads: {e}; give sizes as HxW (e.g. 266x350), threads as 1,2")
+    if min(threads) < 1 or a.runs < 1:
+        ap.error("--threads and --runs must be at least 1")
+    for path in (a.export, a.out):
+        if path is not None and path.is_dir():
+            ap.error(f"{path} is a folder; give the file to write")
     # Busy-waiting OpenMP threads (torch's default) cost many times the CPU on shared cores
     # (see train_small); set before torch loads OpenMP. onnxruntime has its own setting.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

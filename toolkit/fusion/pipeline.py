@@ -52,21 +52,21 @@ class FusionConfig(BaseModel):
     scale: Literal["ratio", "clustered", "robust", "none"] = "clustered"
     ratio_gate: float | None = 0.2  # log-ratio gate for valid pairs; None: paper's plain sum
     cluster_algorithm: Literal["dbscan", "meanshift"] = "dbscan"
-    cluster_eps: float = 0.03
+    cluster_eps: float = Field(0.03, gt=0)
     cluster_min_samples: int = 5
     cluster_min_fraction: float = Field(0.03, ge=0, le=1)  # core points need this share too
-    robust_threshold: float = 0.05
+    robust_threshold: float = Field(0.05, gt=0)
     # robust, clustered: None -> shift for disparity models only (ratio: never)
     fit_shift: bool | None = None
     min_pairs: int = Field(20, ge=2)
     # temporal smoothing
     smoothing: Literal["median", "none"] = "median"
     smoothing_window: int = Field(9, ge=1)
-    outlier_tol: float = 0.1  # log scale distance from the window median
+    outlier_tol: float = Field(0.1, gt=0)  # log scale distance from the window median
     few_pairs: Literal["smoothed", "skip"] = "smoothed"
     # lidar projection
     scans_per_frame: int = Field(1, ge=1)
-    max_scan_dt_s: float = 0.2
+    max_scan_dt_s: float = Field(0.2, gt=0)
     motion_compensation: bool = True
     # Which pairs both sensors see (metrics lidar_visible_*): a lidar point next to a
     # nearer one (within this many beam spacings in the image) is occluded from the camera

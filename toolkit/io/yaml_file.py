@@ -16,7 +16,11 @@ def load_yaml(path: Path | str, error: type[Exception] = ValueError,
     path = Path(path)
     if not path.exists():
         raise (missing_error or error)(f"{path}: {not_found}")
+    if path.is_dir():
+        raise error(f"{path}: is a folder; give the YAML file in it")
     try:
         return yaml.safe_load(path.read_text(encoding="utf-8-sig"))
     except yaml.YAMLError as e:
         raise error(f"{path}: not valid YAML: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise error(f"{path}: cannot be read as YAML text: {e}") from None

@@ -105,11 +105,15 @@ def run_bench(duration_s: float = 20.0, preset: str = "small_house", seed: int =
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of driving")
-    ap.add_argument("--preset", default="small_house")
+    ap.add_argument("--preset", default="small_house", choices=["small_house", "large_building"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quickstart", action="store_true", help="also time a full quickstart lap")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/sim_bench.json"))
     args = ap.parse_args(argv)
+    if not args.duration > 1.0:
+        ap.error(f"--duration {args.duration}: give more than 1 s of driving")
+    if args.out.is_dir():
+        ap.error(f"--out {args.out} is a folder; give the JSON file to write")
     res = run_bench(args.duration, args.preset, args.seed, args.quickstart)
     from toolkit.io.atomic import atomic_write_json
 

@@ -24,6 +24,7 @@ import yaml
 from toolkit.geometry import Trajectory, umeyama_alignment
 from toolkit.io.atomic import atomic_write_json
 from toolkit.io.occupancy import write_occupancy
+from toolkit.io.yaml_file import load_yaml
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
 from toolkit.slam2d.plot import save_map_png
@@ -62,9 +63,11 @@ def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
         node = data
         parts = key.split(".")
         for p in parts[:-1]:
+            if not isinstance(node, dict) or p not in node:
+                raise KeyError(f"--set {key}: unknown setting {p!r}")
             node = node[p]
-        if parts[-1] not in node:
-            raise SystemExit(f"--set {key}: unknown setting")
+        if not isinstance(node, dict) or parts[-1] not in node:
+            raise KeyError(f"--set {key}: unknown setting")
         node[parts[-1]] = yaml.safe_load(value)
     return Slam2DConfig.model_validate(data)
 
@@ -95,7 +98,12 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
     figures["read_s"] = round(time.perf_counter() - t_read, 3)
     figures["scans"] = len(scans)
 
-    result = run_slam(scans, odom, T_bl, config)
+    from rich.progress import track
+
+    # Killian takes minutes: show how far the SLAM is (timings are per stage, unaffected).
+    result = run_slam(scans, odom, T_bl, config,
+                      progress=lambda it: track(it, total=len(scans), description=name,
+                                                transient=True))
     figures["slam"] = result.metrics
     if name == "killian":
         rel = read_relations(data / "slam2d" / "killian" / "mit-killian.relations")
@@ -135,9 +143,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     config = Slam2DConfig()
-    if args.config:
-        config = Slam2DConfig.model_validate(yaml.safe_load(args.config.read_text()) or {})
-    config = _apply_overrides(config, args.set)
+    try:
+        if args.config:
+            config = Slam2DConfig.model_validate(
+                load_yaml(args.config, ValueError, "settings file not found (--config)") or {})
+        config = _apply_overrides(config, args.set)
+    except (ValueError, KeyError) as e:  # pydantic's ValidationError is a ValueError
+        print(f"error: {e.args[0] if isinstance(e, KeyError) else e}", file=sys.stderr)
+        return 2
     figures = run_benchmark(args.log, args.out, config)
     show = {k: v for k, v in figures.items() if k != "config"}
     json.dump(show, sys.stdout, indent=1)

@@ -148,7 +148,15 @@ def main(argv: list[str] | None = None) -> int:
                    help="C++ compositing threads (default: as torch)")
     p.add_argument("--device", default="cpu", help="cuda for the gsplat backend")
     a = p.parse_args(argv)
-    res = run_bench(a.gaussians, a.width, a.height, tuple(a.backends.split(",")), a.iters,
+    backends = tuple(a.backends.split(","))
+    unknown = sorted(set(backends) - {"cpp", "torch", "gsplat"})
+    if unknown:
+        p.error(f"--backends: unknown {unknown}; choose from cpp, torch, gsplat")
+    if a.iters < 1 or a.gaussians < 1:
+        p.error("--iters and --gaussians must be at least 1")
+    if a.out.is_dir():
+        p.error(f"--out {a.out} is a folder; give the JSON file to write")
+    res = run_bench(a.gaussians, a.width, a.height, backends, a.iters,
                     a.ref_iters, a.state, a.threads, a.device, a.composite_threads)
     atomic_write_json(a.out, res)
     for b, r in res["backends"].items():
