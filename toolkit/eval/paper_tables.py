@@ -309,8 +309,9 @@ class PaperTablesStage(Stage):
     def _table_iii(self, cfg: PaperTablesConfig, res: dict[str, StageResult],
                    tables: dict[str, Any], checks: list) -> list[str]:
         md = ["### Table III: maps against the ground-truth mesh and held-out views", "",
-              "Geometry: accuracy = map points (400000 at random) to the mesh, completeness = "
-              "the surface the cameras saw to every map point, F-score at 2 / 5 / 10 cm "
+              "Geometry: accuracy = map points (evaluate's `max_points` at random, 400000 by "
+              "default) to the mesh, completeness = the surface the cameras saw to every map "
+              "point, F-score at 2 / 5 / 10 cm "
               "(after the SE(3) alignment of the camera trajectory; no scale correction).", "",
               "| map | accuracy mean | completeness mean | Chamfer | F@2cm | F@5cm | F@10cm |",
               "|---|---|---|---|---|---|---|"]
