@@ -110,6 +110,9 @@ class OnnxDepthBackend:
 
         self.config = config
         path = Path(config.model)
+        if path.is_dir():
+            raise FileNotFoundError(f"{path}: is a folder; give the .onnx file in it as "
+                                    "'model'")
         if not path.is_file():
             raise FileNotFoundError(missing_model_message(path))
         opts = ort.SessionOptions()
