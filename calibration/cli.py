@@ -21,6 +21,7 @@ from calibration.extrinsic import ExtrinsicError, SolverOptions
 from calibration.files import CalibrationFileError
 from calibration.intrinsics import IntrinsicsError
 from calibration.scans import PairingError, ScanFormatError
+from toolkit.cli_types import positive_int
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
     BoardError, CheckError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
@@ -46,13 +47,6 @@ def _file_outputs(*paths: str | None) -> None:
 def _dir_output(p: str | None) -> None:
     if p and Path(p).exists() and not Path(p).is_dir():
         raise CalibrationFileError(f"{p}: is a file; give a folder to write into")
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-    return v
 
 
 def _board(args: argparse.Namespace) -> BoardSpec:
@@ -366,7 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     ".npy or .png)")
     pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),
                     help="auto: depth when every frame has a depth map, else edges")
-    pc.add_argument("--frames", type=_positive_int, default=12,
+    pc.add_argument("--frames", type=positive_int, default=12,
                     help="frames to use (default 12)")
     pc.add_argument("--max-dt", type=float, default=0.1, metavar="S",
                     help="largest image-scan time difference (default 0.1 s, as extrinsic)")

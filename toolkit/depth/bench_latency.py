@@ -337,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.export is not None:
         import torch
 
-        h, w = _parse_size(a.size)
+        h, w = sizes[0]
         torch.manual_seed(0)
         model = (vit_s14_dpt() if a.impl == "torch" else transformers_model()).eval()  # type: ignore
         secs = export_onnx(model, a.export, h, w)
@@ -350,9 +350,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{secs:.0f} s)\n{RANDOM_WEIGHTS_WARNING}.\nDepth stage: backend: onnx, model: "
               f"{a.export} (kind and preprocessing come from its metadata; threads: 2)")
         return 0
-    sizes = [_parse_size(s) for s in a.sizes.split(",")]
     load0 = os.getloadavg()
-    res = bench(sizes, [int(t) for t in a.threads.split(",")], a.runs, a.impl,  # type: ignore
+    res = bench(sizes, threads, a.runs, a.impl,  # type: ignore
                 a.spin, int8=a.int8)
     res.update({"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                 "loadavg_before": load0, "loadavg_after": os.getloadavg(),

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.cli_types import positive_int
+
 
 def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str = "none",
               consensus: bool = False, repeat: int = 1) -> dict:
@@ -94,22 +96,15 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, idx: np.ndarray, pre
     }
 
 
-def _positive(text: str) -> int:
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-    return v
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="fusion throughput (network excluded)")
     ap.add_argument("--sequence", type=Path, default=None)
-    ap.add_argument("--frames", type=_positive, default=300)
+    ap.add_argument("--frames", type=positive_int, default=300)
     ap.add_argument("--scale", default="clustered", choices=["ratio", "clustered", "robust"])
-    ap.add_argument("--stride", type=_positive, default=2)
+    ap.add_argument("--stride", type=positive_int, default=2)
     ap.add_argument("--refine", default="none", choices=["none", "floor_lidar", "lidar"])
     ap.add_argument("--consensus", action="store_true", help="multi-view consensus filter")
-    ap.add_argument("--repeat", type=_positive, default=3,
+    ap.add_argument("--repeat", type=positive_int, default=3,
                     help="timed runs; the figures are the fastest run's")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/fusion.json"))
     a = ap.parse_args(argv)

@@ -168,9 +168,6 @@ class CarveViews:
         if folder is not None:
             folder.mkdir(parents=True, exist_ok=True)
 
-    def __len__(self) -> int:
-        return len(self.indices)
-
     def _path(self, index: int) -> Path:
         assert self.folder is not None
         return self.folder / f"{index:06d}.npy"
@@ -222,6 +219,12 @@ class FramePairs:
     # [N] bool: pairs both sensors see (not occluded from the camera: geometry alone, the
     # same pairs whatever the prediction, for the metrics); None in old checkpoints
     covisible: np.ndarray | None = None
+
+    @property
+    def seen_by_both(self) -> np.ndarray:
+        """[N] bool: the pairs the metrics use (``covisible``; ``visible`` in checkpoints
+        written before it)."""
+        return self.visible if self.covisible is None else self.covisible
 
 
 def pose_arrays(seq: Sequence, T_world_base: object) -> tuple[np.ndarray, np.ndarray,

@@ -119,7 +119,7 @@ class FuseProgress:
         # Pairs both sensors see by geometry alone: a set chosen by the prediction's own
         # edges would drop its worst pairs (the simulated `paper` row kept 58 % of the
         # pairs, the others 87 %, and scored 0.071 against 0.096 on these).
-        v = fp.visible if fp.covisible is None else fp.covisible
+        v = fp.seen_by_both
         self.lid_vis.add(z[v], unscaled_pairs[v], scaled_pairs[v])
         if refined is not None:
             # In-sample for the lidar: the correction was fitted to these pairs.
@@ -442,8 +442,7 @@ class FuseStage(Stage):
             "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
             "pairs_per_frame_median": float(np.median([e.pairs for e in estimates])),
             "pairs_visible_per_frame_median": float(np.median(
-                [int((pairs[i].visible if pairs[i].covisible is None
-                      else pairs[i].covisible).sum()) for i in frames])),
+                [int(pairs[i].seen_by_both.sum()) for i in frames])),
             "depth_kind": store.kind, "scale_method": cfg.scale,
             "poses": pose_source,
             "map_points": len(final), "map_points_raw": len(raw),

@@ -253,8 +253,7 @@ class LidarSlam2D:
         margin = lin + 6 * res + 4 * self.config.grid.matching_sigma_m
         if not with_odom and self._last_delta is not None:
             margin += float(np.hypot(*self._last_delta[:2])) + lc.motion_tiebreak_linear_window_m
-        c, s = np.cos(pred[2]), np.sin(pred[2])
-        at_pred = points @ np.array([[c, s], [-s, c]]) + pred[:2]
+        at_pred = _se2_apply(pred, points)
         r_max = float(np.sqrt((points**2).sum(1)).max())
         swing = r_max * min(2.0, 2.0 * np.sin(min(ang + np.radians(10), np.pi) / 2))
         lo_xy = np.maximum(at_pred.min(0) - swing, pred[:2] - r_max) - margin
