@@ -5,11 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from toolkit.geometry import se2_between, se2_compose, se2_to_se3
+from toolkit.geometry import se2_between, se2_compose, se2_to_se3, se3_to_se2
 from toolkit.sensors import LaserScan
 from toolkit.slam2d import LidarSlam2D, Slam2DConfig
+from toolkit.slam2d.corridor import CorridorDrive, cast_rays, corridor_drive
 from toolkit.slam2d.grid import ProbabilityGrid
-from toolkit.slam2d.matcher import GridPyramid, correlative_search, interpolate, refine
+from toolkit.slam2d.matcher import (
+    GridPyramid,
+    correlative_search,
+    interpolate,
+    normal_spread,
+    refine,
+    translation_curvature,
+)
+from toolkit.slam2d.pipeline import run_slam
 from toolkit.slam2d.pose_graph import PoseGraph2D
 
 # A room with a few obstacles; walls deliberately off the 5 cm grid lines.
@@ -23,19 +32,7 @@ WALLS = np.array([
 
 def raycast(pose: np.ndarray, angles: np.ndarray, max_range: float = 30.0) -> np.ndarray:
     """[B] ranges from a laser at ``pose`` (x, y, theta) to the nearest wall."""
-    x, y, th = pose
-    d = np.stack([np.cos(angles + th), np.sin(angles + th)], -1)  # [B, 2]
-    a, b = WALLS[:, :2], WALLS[:, 2:]
-    e = b - a  # [S, 2]
-    w = a - np.array([x, y])  # [S, 2]
-    den = d[:, None, 0] * (-e[None, :, 1]) - d[:, None, 1] * (-e[None, :, 0])  # [B, S]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[None, :, 0] * (-e[None, :, 1]) - w[None, :, 1] * (-e[None, :, 0])) / den
-        u = (d[:, None, 0] * w[None, :, 1] - d[:, None, 1] * w[None, :, 0]) / den
-    ok = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
-    r = np.where(ok, t, np.inf).min(axis=1)
-    r[r > max_range] = np.inf
-    return r
+    return cast_rays(WALLS, pose, angles, max_range)
 
 
 def make_scan(pose: np.ndarray, stamp: float, n: int = 360, fov: float = 2 * np.pi,
@@ -141,6 +138,73 @@ def test_interpolation_gradient_matches_finite_differences():
         fd = (interpolate(prob, origin, 0.05, pts + dp)[0] -
               interpolate(prob, origin, 0.05, pts - dp)[0]) / (2 * h)
         assert np.allclose(grad[:, k], fd, rtol=1e-3, atol=1e-3)
+
+
+# ------------------------------------------------------------------ degeneracy
+
+def corridor_points(drive: CorridorDrive, k: int, max_range: float) -> np.ndarray:
+    """[N, 2] returns of scan ``k`` within ``max_range`` (range_max reads "no return")."""
+    pts = drive.scans[k].points()
+    return pts[np.hypot(*pts.T) < min(max_range, drive.scans[k].range_max - 0.01)]
+
+
+def test_curvature_and_normal_spread_see_a_featureless_corridor():
+    drive = corridor_drive(length=26.0, back=False, step=0.25)
+    g = ProbabilityGrid(0.05, center=(12.0, 1.0))
+    for k in range(34, 58):  # x = 9 .. 15 m
+        x = drive.truth.positions[k, :2]
+        g.insert(x, corridor_points(drive, k, 8.0) + x)
+    field, origin = g.matching_field(0.1)
+    pose = np.array([12.0, 1.0, 0.0])
+    assert np.allclose(drive.truth.positions[46, :2], pose[:2])
+    pts = corridor_points(drive, 46, 3.0)
+    M = translation_curvature(field, origin, g.resolution, pts, pose)
+    ev, vec = np.linalg.eigh(M)
+    assert ev[1] > 10.0  # across the corridor: held
+    assert abs(ev[0]) < 0.05 * ev[1] and abs(vec[0, 0]) > 0.99  # along it: free
+    assert normal_spread(pts) < 0.005
+    # The room's scans see walls every way: both held, normals spread.
+    room = grid_from([np.array([6.0, 4.0, 0.0]), np.array([8.0, 3.0, 1.0])])
+    f2, o2 = room.matching_field(0.1)
+    rp = scan_points(np.array([7.0, 3.5, 0.2]))
+    assert np.linalg.eigvalsh(translation_curvature(f2, o2, 0.05, rp,
+                                                    np.array([7.0, 3.5, 0.2])))[0] > 5.0
+    assert normal_spread(rp) > 0.1
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    assert normal_spread(np.stack([3 * np.cos(t), 3 * np.sin(t)], 1)) == pytest.approx(0.5)
+
+
+def _corridor_run(config: dict, back: bool) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Estimated and true poses [N, 3] and metrics of a drive down (and back) a 26 m
+    corridor with an 8 m lidar and 3 % odometry error."""
+    drive = corridor_drive(length=26.0, back=back)
+    cfg = Slam2DConfig.model_validate(config)
+    res = run_slam(drive.scans, drive.odometry, config=cfg)
+    return res.poses, se3_to_se2(drive.truth.poses), res.metrics
+
+
+def test_featureless_corridor_holds_the_odometry_along_it():
+    est, truth, m = _corridor_run({"local": {"degenerate_curvature": 2.0},
+                                   "loop_closure": {"enabled": False}}, back=False)
+    true_advance = truth[-1, 0] - truth[0, 0]
+    assert abs((est[-1, 0] - est[0, 0]) - true_advance) < 0.03 * true_advance
+    assert m["degenerate_matches"] > 0.5 * len(truth)
+    # Off (the default), the matcher slides back onto the walls it has mapped.
+    est0, _, m0 = _corridor_run({"loop_closure": {"enabled": False}}, back=False)
+    assert (est0[-1, 0] - est0[0, 0]) < 0.9 * true_advance
+    assert m0["degenerate_matches"] == 0
+
+
+def test_corridor_closures_along_its_axis_are_rejected():
+    hold = {"degenerate_curvature": 2.0}
+    est, truth, m = _corridor_run({"local": hold}, back=True)
+    assert m["loop_closures_degenerate"] > m["loop_closures"]
+    assert np.abs(est[:, :2] - truth[:, :2]).max() < 0.5
+    # Accepted on their score alone, closures metres off along the axis bend the map.
+    est0, _, m0 = _corridor_run({"local": hold, "loop_closure": {"degenerate_curvature": 0}},
+                                back=True)
+    assert m0["loop_closures_degenerate"] == 0
+    assert np.abs(est0[:, :2] - truth[:, :2]).max() > 0.5
 
 
 # ------------------------------------------------------------------ pose graph

@@ -1,11 +1,13 @@
 """Benchmarks of the 2D SLAM on the shipped real logs.
 
-    python -m toolkit.slam2d.bench killian|intel|aces [--out DIR] [--set local.x=1 ...]
+    python -m toolkit.slam2d.bench killian|intel|aces|corridor [--out DIR] [--set local.x=1 ...]
 
 killian: scans + the sequential EDGE_SE2 odometry of killian.g2o; the Freiburg relations
 metric on the relations whose two stamps are scans of the file (658). intel / aces: the
 Radish logs scan-only; ATE after SE(2) alignment against the GMapping-corrected poses
-stored in the log. Writes ``<out>/<log>.json``, the map (PGM + YAML) and a PNG.
+stored in the log. corridor: a simulated drive down a 40 m featureless corridor and back
+(8 m lidar, 3 % odometry error; ``toolkit.slam2d.corridor``), ATE against the true poses:
+the degenerate case. Writes ``<out>/<log>.json``, the map (PGM + YAML) and a PNG.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
 from toolkit.slam2d.plot import save_map_png
 
-LOGS = ("killian", "intel", "aces")
+LOGS = ("killian", "intel", "aces", "corridor")
 
 
 def shared_data_dir() -> Path:
@@ -93,6 +95,13 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
         scans, odom, T_bl = log.scans, None, log.T_base_laser
         reference = log.reference()
         figures["input"] = "scans only (the log's GMapping poses are the reference)"
+    elif name == "corridor":
+        from toolkit.slam2d.corridor import corridor_drive
+
+        drive = corridor_drive()
+        scans, odom, T_bl, reference = drive.scans, drive.odometry, None, drive.truth
+        figures["input"] = ("simulated: 40 m x 2 m corridor without features, down and back, "
+                            "8 m lidar, 0.1 m per scan, 3 % odometry error")
     else:
         raise ValueError(f"unknown log {name!r}; choose from {LOGS}")
     figures["read_s"] = round(time.perf_counter() - t_read, 3)

@@ -65,6 +65,16 @@ class LocalMatchingOptions(_Options):
     translation_weight: float = Field(1.0, ge=0)
     rotation_weight: float = Field(1.0, ge=0)
     max_iterations: int = Field(20, ge=1)
+    # Degeneracy (with odometry): where the scan barely constrains the translation in
+    # some direction (a corridor without features), the match is set from the odometry
+    # prediction along it; the matcher would otherwise slide backwards, where the walls
+    # ahead, not yet mapped, score like free space. Held fully where the curvature of the
+    # match score along its weakest direction (mean score per m^2) is below half of
+    # ``degenerate_curvature``, not at all above it, and only when the scan's surface
+    # normals spread less than ``degenerate_spread``. 0 (off) by default: it trusts the
+    # odometry, which on Killian cost more than it gained (docs/slam2d.md).
+    degenerate_curvature: float = Field(0.0, ge=0)
+    degenerate_spread: float = Field(0.01, ge=0, le=0.5)
     # Without odometry the prediction ("stood still") carries no information about the
     # translation: no translation cost in the search, and the refinement is only held to
     # the search result, weakly, so that it cannot slide along a corridor. A mild rotation
@@ -100,6 +110,14 @@ class LoopClosureOptions(_Options):
     # On the smoothed field (not Cartographer's raw grid) a wrong match in clutter scores
     # higher: 0.55 let hundreds of false closures through on the Intel log, 0.75 few.
     min_score: float = Field(0.75, gt=0, lt=1)
+    # A match in a corridor without features fixes the node's lateral offset and heading
+    # but not its position along the corridor: such a closure is rejected when both the
+    # match score's curvature along its weakest direction (mean score per m^2) and the
+    # spread of the scan's surface normals (0: all one way, 0.5: even) are below these.
+    # On a featureless corridor this rejects the closures metres off; on Intel / ACES /
+    # Killian it rejected 15 / 1 / 23 of 909 / 90 / 1952 (docs/slam2d.md).
+    degenerate_curvature: float = Field(2.0, ge=0)
+    degenerate_spread: float = Field(0.01, ge=0, le=0.5)
     linear_window_m: float = Field(7.0, ge=0)
     angular_window_deg: float = Field(30.0, ge=0)
     # A submap finished a short way back along the trajectory has drifted little from

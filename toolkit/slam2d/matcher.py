@@ -335,3 +335,57 @@ def refine(
             if lam > 1e6:
                 break
     return RefineResult(pose, float(np.mean(val)), it)
+
+
+def translation_curvature(prob: np.ndarray, origin: np.ndarray, resolution: float,
+                          points: np.ndarray, pose: np.ndarray, delta: float = 0.05,
+                          ) -> np.ndarray:
+    """[2, 2] M such that the mean interpolated value under the scan falls by about
+    ``d^T M d`` when the scan at ``pose`` moves by ``d`` (m, world axes).
+
+    Central finite differences over +-``delta``, not the Gauss-Newton ``J^T J``: at a
+    converged match the points sit on the ridges of the smoothed field where its gradient
+    vanishes, so ``J^T J`` says little; the curvature is what holds the pose. In a
+    corridor without features it is large across the corridor and near zero along it.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    wpts = pts @ np.array([[c, s], [-s, c]]) + np.asarray(pose[:2], np.float64)  # [N, 2]
+    offs = delta * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1],
+                             [1, 1], [1, -1], [-1, 1], [-1, -1]], np.float64)  # [9, 2]
+    val, _ = interpolate(prob, origin, resolution, (wpts[None] + offs[:, None]).reshape(-1, 2))
+    m = val.reshape(9, -1).mean(axis=1)  # [9]
+    hxx = (m[1] - 2 * m[0] + m[2]) / delta**2
+    hyy = (m[3] - 2 * m[0] + m[4]) / delta**2
+    hxy = (m[5] - m[6] - m[7] + m[8]) / (4 * delta**2)
+    return -0.5 * np.array([[hxx, hxy], [hxy, hyy]])
+
+
+def normal_spread(points: np.ndarray, radius: float = 0.15, min_neighbours: int = 3,
+                  ) -> float:
+    """Smallest eigenvalue of the mean ``n n^T`` over the scan's surface normals, in
+    [0, 0.5]: 0 when every surface the scan sees runs one way (a corridor without
+    features: nothing fixes the position along it), 0.5 when the normals point evenly in
+    all directions. ``points`` [N, 2]; a point's normal is the least-variance axis of its
+    neighbours within ``radius``; points with fewer neighbours are left out.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < min_neighbours + 1:
+        return 0.0
+    tree = cKDTree(pts)
+    nbr = tree.query_ball_point(pts, radius, return_length=True)  # [N]
+    ok = nbr >= min_neighbours + 1
+    if not ok.any():
+        return 0.0
+    idx = tree.query(pts[ok], k=min(8, len(pts)), distance_upper_bound=radius)[1]  # [M, k]
+    have = (idx < len(pts))[..., None]  # [M, k, 1]
+    nb = pts[np.minimum(idx, len(pts) - 1)] * have  # [M, k, 2]
+    mean = nb.sum(1) / have.sum(1)  # [M, 2]
+    d = (nb - mean[:, None]) * have  # [M, k, 2]
+    cov = np.einsum("mki,mkj->mij", d, d)  # [M, 2, 2]
+    _, vec = np.linalg.eigh(cov)
+    n = vec[:, :, 0]  # [M, 2] least-variance axis
+    info = n.T @ n / len(n)
+    return float(np.linalg.eigvalsh(info)[0])

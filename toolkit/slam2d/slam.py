@@ -37,7 +37,13 @@ from toolkit.sensors import LaserScan
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.grid import ProbabilityGrid
 from toolkit.slam2d.loop_closure import LoopCloser
-from toolkit.slam2d.matcher import GridPyramid, correlative_search, refine
+from toolkit.slam2d.matcher import (
+    GridPyramid,
+    correlative_search,
+    normal_spread,
+    refine,
+    translation_curvature,
+)
 from toolkit.slam2d.pose_graph import PoseGraph2D
 from toolkit.slam2d.submaps import ActiveSubmaps, Submap
 
@@ -236,8 +242,8 @@ class LidarSlam2D:
             return se2_compose(self._last_local, se2_between(self._last_odom, odom))
         return self._last_local.copy()
 
-    def _scan_match(self, pred: np.ndarray, points: np.ndarray, with_odom: bool) -> tuple[
-            np.ndarray, float]:
+    def _scan_match(self, pred: np.ndarray, points: np.ndarray, hits: np.ndarray,
+                    with_odom: bool) -> tuple[np.ndarray, float]:
         sm = self.submaps.matching
         assert sm is not None
         lc = self.config.local
@@ -304,8 +310,26 @@ class LidarSlam2D:
         self.timings["local_search_s"] += t2 - t1
         self.timings["local_refine_s"] += t3 - t2
         pose = ref.pose.copy()
+        if with_odom and lc.degenerate_curvature > 0:
+            pose[:2] = self._hold_degenerate_direction(field, f_origin, points, hits, pose,
+                                                       pred)
         pose[2] = wrap_angle(pose[2])
         return pose, ref.score
+
+    def _hold_degenerate_direction(self, field: np.ndarray, f_origin: np.ndarray,
+                                   points: np.ndarray, hits: np.ndarray, pose: np.ndarray,
+                                   pred: np.ndarray) -> np.ndarray:
+        """[2] the match's translation, moved to the prediction along a direction the
+        scan does not constrain (solution remapping, Zhang et al., ICRA 2016)."""
+        lc = self.config.local
+        M = translation_curvature(field, f_origin, self.config.grid.resolution, points, pose)
+        ev, V = np.linalg.eigh(M)  # ascending
+        hold = float(np.clip(2.0 - 2.0 * ev[0] / lc.degenerate_curvature, 0.0, 1.0))
+        if hold == 0.0 or normal_spread(hits) >= lc.degenerate_spread:
+            return pose[:2]
+        self.counts["degenerate_matches"] += 1
+        v = V[:, 0]
+        return pose[:2] + hold * v * float(v @ (pred[:2] - pose[:2]))
 
     def add_scan(self, scan: ScanLike, odometry: np.ndarray | None = None) -> np.ndarray | None:
         """Process one scan; returns its T_world_base as (x, y, theta), None if skipped
@@ -368,7 +392,7 @@ class LidarSlam2D:
                 self._T_global_local = odom.copy()
         else:
             pred = self._predict(stamp, odom)
-            local, score = self._scan_match(pred, match_pts, odom is not None and
+            local, score = self._scan_match(pred, match_pts, hits, odom is not None and
                                             self._last_odom is not None)
             self.counts["local_score_sum"] += score
             self._last_delta = se2_between(self._last_local, local)
@@ -487,6 +511,13 @@ class LidarSlam2D:
         if found is None:
             return False
         lc = self.config.loop_closure
+        if (0 < lc.degenerate_curvature and found.curvature < lc.degenerate_curvature
+                and normal_spread(node.hits.astype(np.float64)) < lc.degenerate_spread):
+            # Along a featureless corridor a match fixes the lateral offset and heading
+            # but not the position along it: such a closure is as likely metres off as
+            # right, and bends the map when it is wrong.
+            self.counts["loop_closures_degenerate"] += 1
+            return False
         self.graph.add_edge(sm.vertex, node.vertex, found.relative_pose, lc.translation_weight,
                             lc.rotation_weight, robust=lc.loss, robust_scale=lc.loss_scale,
                             kind=EDGE_LOOP)
@@ -574,6 +605,8 @@ class LidarSlam2D:
             "loop_closure_searches": self.loop.searches,
             "loop_closure_wide_searches": self.loop.wide_searches,
             "loop_closure_outliers": self.counts["loop_outliers"],
+            "loop_closures_degenerate": self.counts["loop_closures_degenerate"],
+            "degenerate_matches": self.counts["degenerate_matches"],
             "optimizations": self.counts["optimizations"],
             "motion_tiebreaks": self.counts["motion_tiebreaks"],
             "invalid_beams": self.counts["invalid_beams"],
