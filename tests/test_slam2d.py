@@ -332,6 +332,42 @@ def test_old_nodes_are_searched_against_new_submaps(old_nodes):
     assert np.hypot(*(rel_est[:, :2] - rel_true[:, :2]).T).max() < 0.1
 
 
+def _stand_still(seconds: int, stationary_nodes: bool) -> tuple[int, dict, np.ndarray,
+                                                                 np.ndarray]:
+    """A lap, then ``seconds`` standing still at one scan per second: closure searches
+    added while standing, metrics, the lap and the poses stood at."""
+    rng = np.random.default_rng(3)
+    lap = _drive(24)
+    config = Slam2DConfig.model_validate({
+        "submaps": {"num_range_data": 5},
+        "loop_closure": {"sampling_ratio": 1.0, "linear_window_m": 1.0,
+                         "angular_window_deg": 10.0, "stationary_nodes": stationary_nodes}})
+    slam = LidarSlam2D(config)
+    for k, p in enumerate(lap):
+        slam.add_scan(make_scan(p, float(k), 180, noise=0.01, rng=rng), p)
+    searches_after_lap = slam.loop.searches
+    for k in range(seconds):
+        slam.add_scan(make_scan(lap[-1], float(len(lap) + k), 180, noise=0.01, rng=rng),
+                      lap[-1])
+    res = slam.finish()
+    added = res.metrics["loop_closure_searches"] - searches_after_lap
+    return added, res.metrics, lap, res.poses[len(lap):]
+
+
+def test_a_robot_standing_still_adds_no_closure_searches():
+    """The motion filter adds a node after every 5 s for time alone; searched, those nodes
+    and the submaps made of them grow the search with the square of the time stood."""
+    short, _, _, _ = _stand_still(60, False)
+    added, m, lap, stood = _stand_still(150, False)
+    assert m["nodes_stationary"] == 25  # more than 5 s after the last: every 6th scan
+    assert added == short  # only the submaps the lap's last nodes went into
+    # The world frame starts on the odometry's (here the true poses).
+    assert np.hypot(*(stood[:, :2] - lap[-1, :2]).T).max() < 0.05
+    short_all, _, _, _ = _stand_still(60, True)
+    added_all, _, _, _ = _stand_still(150, True)
+    assert added_all > 2 * short_all > 2 * short
+
+
 def test_short_range_lidar_marks_free_space_only_within_its_reach():
     """A no-return beam of a 4 m lidar says the first 4 m are free, not the default 5 m."""
     slam = LidarSlam2D()

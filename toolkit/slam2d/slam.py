@@ -75,6 +75,9 @@ class Node:
     match_points: np.ndarray  # [K, 2] float64 loop-closure points, base frame
     odom: np.ndarray | None  # [3] T_odom_base, when odometry was given
     submaps: list[int] = field(default_factory=list)
+    # Added by the motion filter's time limit alone (the robot had not moved): not
+    # searched for loop closures, see LoopClosureOptions.stationary_nodes.
+    stationary: bool = False
 
 
 @dataclass
@@ -403,12 +406,13 @@ class LidarSlam2D:
 
         # Motion filter: a scan too close to the last node only gets a pose.
         mf = self.config.motion_filter
+        stationary = False
         if self.nodes:
             last = self.nodes[-1]
             d = se2_between(last.local_pose, local)
-            if (stamp - last.stamp <= mf.max_time_s
-                    and np.hypot(d[0], d[1]) <= mf.max_distance_m
-                    and abs(d[2]) <= np.radians(mf.max_angle_deg)):
+            stationary = bool(np.hypot(d[0], d[1]) <= mf.max_distance_m
+                              and abs(d[2]) <= np.radians(mf.max_angle_deg))
+            if stationary and stamp - last.stamp <= mf.max_time_s:
                 self._scan_stamps.append(stamp)
                 self._scan_sweep.append(sweep)
                 self._scan_ref.append(last.index)
@@ -417,7 +421,7 @@ class LidarSlam2D:
                 self.counts["scans_motion_filtered"] += 1
                 self.timings["local_s"] += time.perf_counter() - t_start
                 return se2_compose(self.graph.poses[last.vertex], d)
-        node = self._add_node(stamp, local, hits, free, odom)
+        node = self._add_node(stamp, local, hits, free, odom, stationary)
         self._scan_sweep.append(sweep)
         self.timings["local_s"] += time.perf_counter() - t_start
 
@@ -427,7 +431,7 @@ class LidarSlam2D:
         return self.graph.poses[node.vertex].copy()
 
     def _add_node(self, stamp: float, local: np.ndarray, hits: np.ndarray, free: np.ndarray,
-                  odom: np.ndarray | None) -> Node:
+                  odom: np.ndarray | None, stationary: bool = False) -> Node:
         pg = self.config.pose_graph
         c, s = np.cos(local[2]), np.sin(local[2])
         R = np.array([[c, -s], [s, c]])
@@ -442,7 +446,8 @@ class LidarSlam2D:
         lc = self.config.loop_closure
         match_pts = _adaptive_filter(hits, lc.max_points, 2 * self.config.grid.resolution)
         node = Node(idx, stamp, local, vertex, hits.astype(np.float32),
-                    free.astype(np.float32), match_pts, odom)
+                    free.astype(np.float32), match_pts, odom, stationary=stationary)
+        self.counts["nodes_stationary"] += stationary
         self.nodes.append(node)
         self._scan_stamps.append(stamp)
         self._scan_ref.append(idx)
@@ -479,7 +484,7 @@ class LidarSlam2D:
             t0 = time.perf_counter()
             self._search_old_nodes(node.index)
             for sm in self.submaps.all:
-                if not sm.finished or sm.index in node.submaps:
+                if not self._searchable(node) or not sm.finished or sm.index in node.submaps:
                     continue
                 self._try_closure(node, sm)
             self.timings["loop_search_s"] += time.perf_counter() - t0
@@ -502,8 +507,14 @@ class LidarSlam2D:
         skip = self.config.loop_closure.old_nodes_skip
         while self._newly_finished:
             sm = self._newly_finished.pop(0)
+            if not any(self._searchable(self.nodes[i]) for i in sm.nodes):
+                continue  # made while standing still: the place of the node before it
             for n in self.nodes[:max(0, min(before, sm.nodes[0] - skip))]:
-                self._try_closure(n, sm)
+                if self._searchable(n):
+                    self._try_closure(n, sm)
+
+    def _searchable(self, node: Node) -> bool:
+        return self.config.loop_closure.stationary_nodes or not node.stationary
 
     def _try_closure(self, node: Node, sm: Submap, force: bool = False) -> bool:
         poses = self.graph.poses
@@ -606,6 +617,7 @@ class LidarSlam2D:
             "loop_closure_wide_searches": self.loop.wide_searches,
             "loop_closure_outliers": self.counts["loop_outliers"],
             "loop_closures_degenerate": self.counts["loop_closures_degenerate"],
+            "nodes_stationary": self.counts["nodes_stationary"],
             "degenerate_matches": self.counts["degenerate_matches"],
             "optimizations": self.counts["optimizations"],
             "motion_tiebreaks": self.counts["motion_tiebreaks"],
