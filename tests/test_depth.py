@@ -176,6 +176,25 @@ def test_missing_model_says_where_to_put_it(tmp_path: Path) -> None:
     assert str(missing) in str(e.value) and "never downloads" in str(e.value)
 
 
+def test_a_folder_as_model_is_found_before_the_run(tmp_path: Path) -> None:
+    from toolkit.recipe.runner import missing_inputs
+    from toolkit.recipe.schema import load_recipe
+
+    (tmp_path / "models").mkdir()
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(f"""name: r
+output: {tmp_path / 'run'}
+stages:
+  - stage: simulate
+  - stage: depth
+    backend: onnx
+    output: relative_disparity
+    model: {tmp_path / 'models'}
+""")
+    problems = missing_inputs(load_recipe(recipe))
+    assert len(problems) == 1 and "is a folder; give the .onnx file in it" in problems[0]
+
+
 # ------------------------------------------------------------------ simulated
 
 

@@ -412,6 +412,7 @@ def test_only_runs_one_stage(tmp_path: Path) -> None:
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):
         _run(path, only="t_double")
     assert _calls(tmp_path) == {}
+    assert not (tmp_path / "run").exists()  # no folder of lock and log left behind
     _run(path)
     result = _run(path, only="t_double")
     # What read t_double's old output is stale now; --only leaves it alone ...

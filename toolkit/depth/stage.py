@@ -112,6 +112,10 @@ class DepthStage(Stage):
         cfg: DepthConfig = self.config  # type: ignore[assignment]
         return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
 
+    def input_problems(self) -> list[str]:
+        return [f"model {p} is a folder; give the .onnx file in it as 'model'"
+                for p in self.external_inputs() if p.is_dir()]
+
     @staticmethod
     def _random_model(cfg: DepthConfig, ctx: StageContext) -> DepthConfig:
         """Export the random-weight ViT-S/14 + DPT once into the stage folder; run it as an

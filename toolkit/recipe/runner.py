@@ -135,14 +135,28 @@ def run_recipe(
         raise RecipeError(problems)
     console = console or Console()
     run_dir = recipe.output if recipe.output.is_absolute() else Path.cwd() / recipe.output
+    created = not run_dir.exists()
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # a file in the way, no permission
         raise RecipeError(f"output: cannot make the run folder {run_dir}: {exc}; set "
                           f"'output' to a folder path") from None
-    with _exclusive(run_dir), _run_logging(run_dir, console) as log:
-        run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
-        return run.execute()
+    try:
+        with _exclusive(run_dir), _run_logging(run_dir, console) as log:
+            run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
+            return run.execute()
+    except RecipeError:
+        if created:  # a refused --only / --from leaves no folder of lock and log behind
+            _remove_if_only_bookkeeping(run_dir)
+        raise
+
+
+def _remove_if_only_bookkeeping(run_dir: Path) -> None:
+    names = {p.name for p in run_dir.iterdir()}
+    if names <= {LOCK_FILE, LOG_FILE}:
+        for name in names:
+            (run_dir / name).unlink()
+        run_dir.rmdir()
 
 
 class _Run:
@@ -516,21 +530,25 @@ class _Context(StageContext):
 
 def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> list[str]:
     """One problem per external input (a recording, a model) of the named stages (all by
-    default) that does not exist: found before hours of earlier stages, not after."""
+    default) that does not exist or is unusable (``Stage.input_problems``): found before
+    hours of earlier stages, not after."""
     wanted = None if stage_ids is None else set(stage_ids)
     problems = []
     for spec in recipe.stages:
         if wanted is not None and spec.id not in wanted:
             continue
         try:
-            paths = spec.cls(spec.config).external_inputs()
+            stage = spec.cls(spec.config)
+            paths = stage.external_inputs()
         except Exception:  # noqa: BLE001 - the stage reports it itself when it runs
             continue
-        for path in paths:
-            if not Path(path).exists():
-                where = "" if Path(path).is_absolute() else f" (relative to {Path.cwd()})"
-                problems.append(f"{spec.label}: input {path} does not exist{where}; fix the "
-                                f"path, or run from the folder it is relative to")
+        absent = [p for p in paths if not Path(p).exists()]
+        for path in absent:
+            where = "" if Path(path).is_absolute() else f" (relative to {Path.cwd()})"
+            problems.append(f"{spec.label}: input {path} does not exist{where}; fix the "
+                            f"path, or run from the folder it is relative to")
+        if not absent:
+            problems += [f"{spec.label}: {p}" for p in stage.input_problems()]
     return problems
 
 

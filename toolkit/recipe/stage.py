@@ -135,6 +135,11 @@ class Stage(ABC):
         """Files outside the run (a log, a model) whose change must rerun the stage."""
         return []
 
+    def input_problems(self) -> list[str]:
+        """What is wrong with existing ``external_inputs`` beyond their existence (a folder
+        where a file is needed), found before earlier stages run; one line each."""
+        return []
+
     @abstractmethod
     def run(self, ctx: StageContext) -> None:
         """Do the work, writing only inside ``ctx.stage_dir`` (atomically)."""
