@@ -17,8 +17,10 @@ import json
 import os
 import platform
 import shutil
+import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -35,8 +37,12 @@ def _per_call(fn: Any, n: int) -> tuple[float, float]:
 
 
 def run_bench(duration_s: float = 20.0, preset: str = "small_house", seed: int = 0,
-              quickstart: bool = False, workdir: Path | None = None) -> dict[str, Any]:
-    """Measure and return the figures (see the module docstring)."""
+              quickstart: bool = False, workdir: Path | None = None,
+              say: Callable[[str], None] | None = None,
+              progress: Callable[..., Iterator[Any]] | None = None) -> dict[str, Any]:
+    """Measure and return the figures (see the module docstring). ``say`` gets a line at
+    each phase, ``progress`` wraps the simulation's frame loop (as rich's ``track``)."""
+    say = say or (lambda _: None)
     from toolkit.io.depth import write_depth
     from toolkit.io.sequence import SequenceWriter
     from toolkit.sim.people import primitives_at
@@ -52,7 +58,9 @@ def run_bench(duration_s: float = 20.0, preset: str = "small_house", seed: int =
     try:
         cfg = SimConfig(preset=preset, seed=seed, duration_s=duration_s, n_heldout=0)
         c0 = time.process_time()
-        res = simulate(cfg, tmp / "seq")
+        say(f"simulating {duration_s:g} s of driving in the {preset} (building the world "
+            "first: tens of seconds)")
+        res = simulate(cfg, tmp / "seq", progress)
         cpu = time.process_time() - c0
         out["frames"] = res.frames
         out["scans"] = res.scans
@@ -61,6 +69,7 @@ def run_bench(duration_s: float = 20.0, preset: str = "small_house", seed: int =
         out["cpu_ms_per_frame"] = round(cpu / res.frames * 1e3, 2)
         out["timings_s"] = {k: round(v, 3) for k, v in res.timings.items()}
 
+        say("timing the parts (camera raycast and render, lidar scan, frame writes)")
         world = build_world(replace(cfg, n_people=2))
         cam_r = CameraRenderer(world.scene, world.rig.camera)
         las_r = LidarRenderer(world.scene, cfg.lidar)
@@ -89,7 +98,8 @@ def run_bench(duration_s: float = 20.0, preset: str = "small_house", seed: int =
                            for k, (w, c) in parts.items()}
         if quickstart:
             c0 = time.process_time()
-            q = simulate(SimConfig(preset="small_house", seed=seed), tmp / "quick")
+            say("simulating the quickstart's lap of the small house")
+            q = simulate(SimConfig(preset="small_house", seed=seed), tmp / "quick", progress)
             out["quickstart"] = {"frames": q.frames, "total_s": round(q.seconds, 2),
                                  "frames_per_s": round(q.frames_per_s, 2),
                                  "cpu_ms_per_frame": round(
@@ -114,7 +124,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--duration {args.duration}: give more than 1 s of driving")
     if args.out.is_dir():
         ap.error(f"--out {args.out} is a folder; give the JSON file to write")
-    res = run_bench(args.duration, args.preset, args.seed, args.quickstart)
+    from rich.progress import track
+
+    res = run_bench(args.duration, args.preset, args.seed, args.quickstart,
+                    say=lambda line: print(line, file=sys.stderr, flush=True),
+                    progress=lambda it, total=None, description="": track(
+                        it, total=total, description=description, transient=True))
     from toolkit.io.atomic import atomic_write_json
 
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -20,6 +20,7 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -91,15 +92,18 @@ def time_backend(g: Gaussians, cam: PinholeCamera, T_cw: np.ndarray, backend: st
 def run_bench(n: int = 50_000, width: int = 320, height: int = 240, backends: tuple[str, ...] = (
         "cpp", "torch"), iters: int = 10, ref_iters: int = 3, state: str = "trained",
         threads: int | None = None, device: str = "cpu",
-        composite_threads: int | None = None) -> dict[str, Any]:
+        composite_threads: int | None = None,
+        say: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Time each backend on the benchmark scene; the result dict is what the CLI writes.
 
     ``threads``: torch's thread count; ``composite_threads``: the C++ compositing kernels'
-    (None: the same as torch's).
+    (None: the same as torch's); ``say`` gets a line at each phase.
     """
+    say = say or (lambda _: None)
     if threads:
         torch.set_num_threads(threads)
     cpp_ext.set_threads(composite_threads)
+    say(f"building the scene: {n} Gaussians at {width}x{height} ({state})")
     g, cam, T_cw = bench_scene(n, width, height, state)
     if device != "cpu":
         g = Gaussians(*(t.detach().to(device).requires_grad_(True) for t in
@@ -117,6 +121,7 @@ def run_bench(n: int = 50_000, width: int = 320, height: int = 240, backends: tu
     }
     if "cpp" in backends:
         t0 = time.perf_counter()
+        say("loading the C++ extension (compiled on first use: about a minute)")
         cpp_ext.load_extension()
         result["cpp_extension_load_s"] = time.perf_counter() - t0
     for b in backends:
@@ -125,6 +130,7 @@ def run_bench(n: int = 50_000, width: int = 320, height: int = 240, backends: tu
             result["backends"]["cpp"] = {"error": f"unavailable: {cpp_ext.extension_error()}"}
             continue
         k = ref_iters if name == "torch" else iters
+        say(f"timing {b}: {k} iterations after warm-up")
         result["backends"][b] = time_backend(g, cam, T_cw, b, k)
     fast, ref = result["backends"].get("cpp", {}), result["backends"].get("torch", {})
     if "iters_per_s" in fast and "iters_per_s" in ref:
@@ -157,7 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.out.is_dir():
         p.error(f"--out {a.out} is a folder; give the JSON file to write")
     res = run_bench(a.gaussians, a.width, a.height, backends, a.iters,
-                    a.ref_iters, a.state, a.threads, a.device, a.composite_threads)
+                    a.ref_iters, a.state, a.threads, a.device, a.composite_threads,
+                    say=lambda line: print(line, file=sys.stderr, flush=True))
     atomic_write_json(a.out, res)
     for b, r in res["backends"].items():
         if "iters_per_s" in r:
