@@ -368,6 +368,20 @@ def test_a_robot_standing_still_adds_no_closure_searches():
     assert added_all > 2 * short_all > 2 * short
 
 
+def test_a_crawling_robot_keeps_searched_nodes():
+    """3 cm/s, a scan per second: the time limit lets every node through (0.18 m < 0.2 m
+    after 6 s), but measured from the last node that moved there, every other node has
+    moved more than 0.2 m and is searched."""
+    rng = np.random.default_rng(4)
+    slam = LidarSlam2D()
+    for k in range(120):
+        p = np.array([2.0 + 0.03 * k, 1.5, 0.0])
+        slam.add_scan(make_scan(p, float(k), 180, noise=0.01, rng=rng), p)
+    m = slam.finish().metrics
+    assert m["nodes"] == 20
+    assert m["nodes_stationary"] == 10  # every other node: 1, 3, ..., 19
+
+
 def test_short_range_lidar_marks_free_space_only_within_its_reach():
     """A no-return beam of a 4 m lidar says the first 4 m are free, not the default 5 m."""
     slam = LidarSlam2D()

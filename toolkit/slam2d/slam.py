@@ -174,6 +174,7 @@ class LidarSlam2D:
         self._last_local: np.ndarray | None = None
         self._last_odom: np.ndarray | None = None
         self._last_delta: np.ndarray | None = None  # [3] last scan-to-scan motion
+        self._last_moving: np.ndarray | None = None  # [3] last non-stationary node's local
         self._last_dt = 0.0  # seconds the last motion took
         self._T_global_local = np.zeros(3)
         self._nodes_since_opt = 0
@@ -410,9 +411,17 @@ class LidarSlam2D:
         if self.nodes:
             last = self.nodes[-1]
             d = se2_between(last.local_pose, local)
-            stationary = bool(np.hypot(d[0], d[1]) <= mf.max_distance_m
-                              and abs(d[2]) <= np.radians(mf.max_angle_deg))
-            if stationary and stamp - last.stamp <= mf.max_time_s:
+            close = bool(np.hypot(d[0], d[1]) <= mf.max_distance_m
+                         and abs(d[2]) <= np.radians(mf.max_angle_deg))
+            # Stationary: let through by the time limit alone and still within the
+            # filter's distance and angle of the last node that moved there. Measured
+            # from that node, not from the last one, a robot crawling less than
+            # max_distance_m per max_time_s still gets searched nodes.
+            if close and self._last_moving is not None:
+                m = se2_between(self._last_moving, local)
+                stationary = bool(np.hypot(m[0], m[1]) <= mf.max_distance_m
+                                  and abs(m[2]) <= np.radians(mf.max_angle_deg))
+            if close and stamp - last.stamp <= mf.max_time_s:
                 self._scan_stamps.append(stamp)
                 self._scan_sweep.append(sweep)
                 self._scan_ref.append(last.index)
@@ -422,6 +431,8 @@ class LidarSlam2D:
                 self.timings["local_s"] += time.perf_counter() - t_start
                 return se2_compose(self.graph.poses[last.vertex], d)
         node = self._add_node(stamp, local, hits, free, odom, stationary)
+        if not stationary:
+            self._last_moving = local.copy()
         self._scan_sweep.append(sweep)
         self.timings["local_s"] += time.perf_counter() - t_start
 
