@@ -1,4 +1,5 @@
-"""Full benchmark runs on the shipped real logs (slow: minutes each; ``pytest -m slow``).
+"""Full benchmark runs on the shipped real logs and the simulated corridor (slow: minutes
+each; ``pytest -m slow``).
 
 Bounds are the figures measured when the benchmarks were last run (docs/slam2d.md) with a
 margin, so that a regression shows; the issue's targets are in the docs next to them.
@@ -36,3 +37,15 @@ def test_radish_scan_only_ate(tmp_path: Path, name: str):
     f = run_benchmark(name, tmp_path, data_dir=_data())
     assert f["ate"]["ate_rmse_m"] < 0.12
     assert (tmp_path / f"{name}_map.png").exists()
+
+
+def test_corridor_benchmark(tmp_path: Path):
+    """The simulated featureless corridor: metres off by default (local matching slides),
+    centimetres with the odometry held along the corridor (docs/slam2d.md)."""
+    from toolkit.slam2d.config import Slam2DConfig
+
+    held = Slam2DConfig.model_validate({"local": {"degenerate_curvature": 2.0}})
+    f = run_benchmark("corridor", tmp_path, held)
+    assert f["ate"]["ate_rmse_m"] < 0.15
+    assert f["slam"]["loop_closures_degenerate"] > 0
+    assert (tmp_path / "corridor_map.png").exists()
