@@ -413,6 +413,10 @@ def test_only_runs_one_stage(tmp_path: Path) -> None:
         _run(path, only="t_double")
     assert _calls(tmp_path) == {}
     assert not (tmp_path / "run").exists()  # no folder of lock and log left behind
+    deep = dict(_recipe_data(tmp_path), output=str(tmp_path / "a" / "b" / "run"))
+    with pytest.raises(RecipeError, match="needs the output of stage"):
+        _run(_write_recipe(tmp_path, deep, "deep.yaml"), only="t_double")
+    assert not (tmp_path / "a").exists()  # nor the parents it made
     _run(path)
     result = _run(path, only="t_double")
     # What read t_double's old output is stale now; --only leaves it alone ...
@@ -428,6 +432,21 @@ def test_only_runs_one_stage(tmp_path: Path) -> None:
     assert "t_sink" not in result.metrics
     with pytest.raises(RecipeError, match="--only 'nope': no such stage id"):
         _run(path, only="nope")
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="fcntl locks")
+def test_a_run_folder_in_use_is_refused_and_left_alone(tmp_path: Path) -> None:
+    import fcntl
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    with open(run_dir / ".lock", "a") as held:  # another run holds the folder
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(RecipeError, match="is in use by another run"):
+            _run(path, only="t_double")
+        assert (run_dir / ".lock").exists()
+    assert _calls(tmp_path) == {}
 
 
 def test_from_reruns_from_stage(tmp_path: Path) -> None:

@@ -135,28 +135,39 @@ def run_recipe(
         raise RecipeError(problems)
     console = console or Console()
     run_dir = recipe.output if recipe.output.is_absolute() else Path.cwd() / recipe.output
-    created = not run_dir.exists()
+    # The folders this call makes: the run folder and any missing parents, top first.
+    made = [p for p in (*reversed(run_dir.parents), run_dir) if not p.exists()]
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # a file in the way, no permission
         raise RecipeError(f"output: cannot make the run folder {run_dir}: {exc}; set "
                           f"'output' to a folder path") from None
-    try:
-        with _exclusive(run_dir), _run_logging(run_dir, console) as log:
-            run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
-            return run.execute()
-    except RecipeError:
-        if created:  # a refused --only / --from leaves no folder of lock and log behind
-            _remove_if_only_bookkeeping(run_dir)
-        raise
+    with _exclusive(run_dir):
+        try:
+            with _run_logging(run_dir, console) as log:
+                run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
+                return run.execute()
+        except RecipeError:
+            # A refused --only / --from leaves no folders of lock and log behind; only
+            # what this call made, and only while it holds the lock (a run that took the
+            # folder first keeps it).
+            _remove_if_only_bookkeeping(made)
+            raise
 
 
-def _remove_if_only_bookkeeping(run_dir: Path) -> None:
+def _remove_if_only_bookkeeping(made: list[Path]) -> None:
+    if not made:
+        return
+    run_dir = made[-1]
     names = {p.name for p in run_dir.iterdir()}
-    if names <= {LOCK_FILE, LOG_FILE}:
-        for name in names:
-            (run_dir / name).unlink()
-        run_dir.rmdir()
+    if not names <= {LOCK_FILE, LOG_FILE}:
+        return
+    for name in names:
+        (run_dir / name).unlink()
+    for folder in reversed(made):
+        if any(folder.iterdir()):
+            break
+        folder.rmdir()
 
 
 class _Run:
