@@ -39,13 +39,11 @@ def test_radish_scan_only_ate(tmp_path: Path, name: str):
     assert (tmp_path / f"{name}_map.png").exists()
 
 
-def test_corridor_benchmark(tmp_path: Path):
-    """The simulated featureless corridor: metres off by default (local matching slides),
+@pytest.mark.parametrize("angle", [0.0, 35.0])
+def test_corridor_benchmark(tmp_path: Path, angle: float):
+    """The simulated featureless corridor, along the grid and at an angle to it:
     centimetres with the odometry held along the corridor (docs/slam2d.md)."""
-    from toolkit.slam2d.config import Slam2DConfig
-
-    held = Slam2DConfig.model_validate({"local": {"degenerate_curvature": 2.0}})
-    f = run_benchmark("corridor", tmp_path, held)
+    f = run_benchmark("corridor", tmp_path, corridor_angle_deg=angle)
     assert f["ate"]["ate_rmse_m"] < 0.15
     assert f["slam"]["loop_closures_degenerate"] > 0
     assert (tmp_path / "corridor_map.png").exists()

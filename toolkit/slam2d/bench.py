@@ -75,8 +75,9 @@ def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
 
 
 def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
-                  data_dir: Path | None = None) -> dict:
-    """Run one log; write JSON, map and PNG under ``out``; return the figures."""
+                  data_dir: Path | None = None, corridor_angle_deg: float = 0.0) -> dict:
+    """Run one log; write JSON, map and PNG under ``out``; return the figures.
+    ``corridor_angle_deg``: the corridor's angle to the SLAM grid (corridor only)."""
     from toolkit.eval.relations import read_relations, relations_metric, select_relations
     from toolkit.io.carmen import read_carmen, read_g2o
 
@@ -98,10 +99,11 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
     elif name == "corridor":
         from toolkit.slam2d.corridor import corridor_drive
 
-        drive = corridor_drive()
+        drive = corridor_drive(angle_deg=corridor_angle_deg)
         scans, odom, T_bl, reference = drive.scans, drive.odometry, None, drive.truth
         figures["input"] = ("simulated: 40 m x 2 m corridor without features, down and back, "
-                            "8 m lidar, 0.1 m per scan, 3 % odometry error")
+                            "8 m lidar, 0.1 m per scan, 3 % odometry error, "
+                            f"{corridor_angle_deg:g} deg to the grid")
     else:
         raise ValueError(f"unknown log {name!r}; choose from {LOGS}")
     figures["read_s"] = round(time.perf_counter() - t_read, 3)
@@ -147,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a setting, e.g. --set loop_closure.min_score=0.6")
     ap.add_argument("--config", type=Path, help="YAML file of settings (Slam2DConfig)")
+    ap.add_argument("--corridor-angle", type=float, default=0.0, metavar="DEG",
+                    help="corridor: its angle to the SLAM grid (walls as stair-steps)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
@@ -160,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, KeyError) as e:  # pydantic's ValidationError is a ValueError
         print(f"error: {e.args[0] if isinstance(e, KeyError) else e}", file=sys.stderr)
         return 2
-    figures = run_benchmark(args.log, args.out, config)
+    figures = run_benchmark(args.log, args.out, config, corridor_angle_deg=args.corridor_angle)
     show = {k: v for k, v in figures.items() if k != "config"}
     json.dump(show, sys.stdout, indent=1)
     print()

@@ -53,13 +53,16 @@ class CorridorDrive:
 def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 8.0,
                    step: float = 0.1, back: bool = True, odometry_error: float = 0.03,
                    heading_noise: float = 0.002, range_noise: float = 0.01,
-                   beams: int = 360, rate_hz: float = 10.0, seed: int = 0) -> CorridorDrive:
+                   beams: int = 360, rate_hz: float = 10.0, angle_deg: float = 0.0,
+                   seed: int = 0) -> CorridorDrive:
     """Drive along the corridor's centre line from x = 0.5 to 2.5 m short of its far end
     (``step`` m per scan), and with ``back`` turn on the spot and drive back.
 
     Odometry: each step's true motion times (1 + ``odometry_error`` N(0, 1)) per axis, plus
     ``heading_noise`` rad N(0, 1) of heading. Beams without a return read ``max_range``
-    (the ROS convention for "nothing within range").
+    (the ROS convention for "nothing within range"). ``angle_deg`` turns the whole world
+    (corridor, path, odometry) about the origin: the SLAM's grid axes follow the first
+    pose, so this sets the corridor's angle to the grid.
     """
     rng = np.random.default_rng(seed)
     walls = corridor_walls(length, width)
@@ -69,7 +72,10 @@ def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 
     if back:
         out += [np.array([end, y, a]) for a in np.linspace(0.0, np.pi, 19)[1:]]
         out += [np.array([x, y, np.pi]) for x in np.arange(end - step, 0.5 - 1e-9, -step)]
-    truth = np.array(out)  # [N, 3]
+    turn = np.array([0.0, 0.0, np.radians(angle_deg)])
+    truth = se2_compose(turn, np.array(out))  # [N, 3]
+    walls = np.concatenate([se2_compose(turn, np.c_[walls[:, :2], np.zeros(4)])[:, :2],
+                            se2_compose(turn, np.c_[walls[:, 2:], np.zeros(4)])[:, :2]], 1)
     angles = -np.pi + np.arange(beams) * 2 * np.pi / beams
     odo = [truth[0].copy()]
     for k in range(1, len(truth)):

@@ -18,7 +18,7 @@ import numpy as np
 
 from toolkit.geometry import se2_between, se2_compose
 from toolkit.slam2d.config import LoopClosureOptions
-from toolkit.slam2d.matcher import correlative_search, refine, translation_curvature
+from toolkit.slam2d.matcher import correlative_search, normal_spread, refine, weak_direction
 from toolkit.slam2d.submaps import PyramidCache, Submap
 
 if TYPE_CHECKING:
@@ -30,7 +30,9 @@ class Closure:
     relative_pose: np.ndarray  # [3] node pose in the submap frame
     score: float  # branch-and-bound score
     refined_score: float
-    curvature: float  # smallest curvature of the match score over translation, 1/m^2
+    # Least fall of the match score over +-0.2 m in any direction; inf when the node's
+    # scan has surfaces every way (not computed: the test is for featureless scans).
+    weak_drop: float
 
 
 class LoopCloser:
@@ -105,11 +107,16 @@ class LoopCloser:
                          occupied_weight=o.refine_occupied_space_weight,
                          translation_weight=o.refine_translation_weight,
                          rotation_weight=o.refine_rotation_weight)
-            pts = node.hits.astype(np.float64)
-            M = translation_curvature(prob, submap.grid.origin, submap.grid.resolution, pts,
-                                      ref.pose)
+            drop = np.inf
+            if o.degenerate_drop > 0:
+                if node.spread is None:
+                    node.spread = normal_spread(node.hits)
+                if node.spread < o.degenerate_spread:
+                    drop, _ = weak_direction(prob, submap.grid.origin,
+                                             submap.grid.resolution, node.match_points,
+                                             ref.pose)
             out = Closure(se2_between(submap.local_pose, ref.pose), found.score, ref.score,
-                          float(np.linalg.eigvalsh(M)[0]))
+                          drop)
             self.found += 1
         self.seconds += time.perf_counter() - t0
         return out

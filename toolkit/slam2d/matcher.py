@@ -337,55 +337,72 @@ def refine(
     return RefineResult(pose, float(np.mean(val)), it)
 
 
-def translation_curvature(prob: np.ndarray, origin: np.ndarray, resolution: float,
-                          points: np.ndarray, pose: np.ndarray, delta: float = 0.05,
-                          ) -> np.ndarray:
-    """[2, 2] M such that the mean interpolated value under the scan falls by about
-    ``d^T M d`` when the scan at ``pose`` moves by ``d`` (m, world axes).
+def voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
+    """First point [M, 2] of every occupied ``size`` voxel of ``points`` [N, 2] (keeps scan
+    order)."""
+    key = np.floor(points / size).astype(np.int64)
+    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
+    return points[np.sort(first)]
 
-    Central finite differences over +-``delta``, not the Gauss-Newton ``J^T J``: at a
-    converged match the points sit on the ridges of the smoothed field where its gradient
-    vanishes, so ``J^T J`` says little; the curvature is what holds the pose. In a
-    corridor without features it is large across the corridor and near zero along it.
+
+def weak_direction(prob: np.ndarray, origin: np.ndarray, resolution: float,
+                   points: np.ndarray, pose: np.ndarray, probe: float = 0.2,
+                   directions: int = 32) -> tuple[float, np.ndarray]:
+    """(drop, axis [2]): how little the mean interpolated value under the scan at ``pose``
+    falls when the scan moves by +-``probe`` m along some direction, and that direction
+    (world axes). Near 0 along a corridor without features, tenths where something in
+    view fixes the position.
+
+    Moves of twice the smoothed field's width over ``directions`` axes, not the curvature
+    at the match: at the scale of a cell, walls at an angle to the grid are stair-steps
+    whose ripple reads as curvature along a featureless corridor (a corridor at 27 deg
+    to the grid looked as held as a room).
     """
     pts = np.asarray(points, dtype=np.float64)
     c, s = np.cos(pose[2]), np.sin(pose[2])
     wpts = pts @ np.array([[c, s], [-s, c]]) + np.asarray(pose[:2], np.float64)  # [N, 2]
-    offs = delta * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1],
-                             [1, 1], [1, -1], [-1, 1], [-1, -1]], np.float64)  # [9, 2]
+    a = np.arange(directions) * np.pi / directions
+    axes = np.stack([np.cos(a), np.sin(a)], -1)  # [D, 2] half circle: +- covers the rest
+    offs = np.concatenate([np.zeros((1, 2)), probe * axes, -probe * axes])  # [2D + 1, 2]
     val, _ = interpolate(prob, origin, resolution, (wpts[None] + offs[:, None]).reshape(-1, 2))
-    m = val.reshape(9, -1).mean(axis=1)  # [9]
-    hxx = (m[1] - 2 * m[0] + m[2]) / delta**2
-    hyy = (m[3] - 2 * m[0] + m[4]) / delta**2
-    hxy = (m[5] - m[6] - m[7] + m[8]) / (4 * delta**2)
-    return -0.5 * np.array([[hxx, hxy], [hxy, hyy]])
+    m = val.reshape(len(offs), -1).mean(axis=1)  # [2D + 1]
+    drop = m[0] - 0.5 * (m[1 : directions + 1] + m[directions + 1 :])  # [D]
+    k = int(np.argmin(drop))
+    return float(drop[k]), axes[k]
 
 
-def normal_spread(points: np.ndarray, radius: float = 0.15, min_neighbours: int = 3,
-                  ) -> float:
+def normal_spread(points: np.ndarray, voxel: float = 0.05, radius: float = 0.5,
+                  window: int = 10, min_neighbours: int = 2) -> float:
     """Smallest eigenvalue of the mean ``n n^T`` over the scan's surface normals, in
     [0, 0.5]: 0 when every surface the scan sees runs one way (a corridor without
     features: nothing fixes the position along it), 0.5 when the normals point evenly in
-    all directions. ``points`` [N, 2]; a point's normal is the least-variance axis of its
-    neighbours within ``radius``; points with fewer neighbours are left out.
-    """
-    from scipy.spatial import cKDTree
+    all directions.
 
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) < min_neighbours + 1:
+    ``points`` [N, 2] in scan order (a scan's returns are) are thinned to one per
+    ``voxel`` first, so that the beam density and range noise do not decide the normals
+    (1440 beams with 2 cm noise read a flat corridor as 0.05 from raw neighbours); a
+    point's normal is the least-variance axis of the points up to ``window`` before and
+    after it in scan order that lie within ``radius``; points with fewer than
+    ``min_neighbours`` such are left out. Neighbours in scan order, not from a k-d tree,
+    and closed-form 2x2 axes: cheap enough for every scan.
+    """
+    pts = voxel_filter(np.asarray(points, dtype=np.float64), voxel)  # [M, 2]
+    m = len(pts)
+    if m < min_neighbours + 1:
         return 0.0
-    tree = cKDTree(pts)
-    nbr = tree.query_ball_point(pts, radius, return_length=True)  # [N]
-    ok = nbr >= min_neighbours + 1
+    idx = np.arange(m)[:, None] + np.arange(-window, window + 1)[None]  # [M, W]
+    nb = pts[np.clip(idx, 0, m - 1)]  # [M, W, 2]
+    near = (idx >= 0) & (idx < m) & (((nb - pts[:, None]) ** 2).sum(-1) <= radius**2)
+    cnt = near.sum(1)  # [M] the point itself counts
+    ok = cnt >= min_neighbours + 1
     if not ok.any():
         return 0.0
-    idx = tree.query(pts[ok], k=min(8, len(pts)), distance_upper_bound=radius)[1]  # [M, k]
-    have = (idx < len(pts))[..., None]  # [M, k, 1]
-    nb = pts[np.minimum(idx, len(pts) - 1)] * have  # [M, k, 2]
-    mean = nb.sum(1) / have.sum(1)  # [M, 2]
-    d = (nb - mean[:, None]) * have  # [M, k, 2]
-    cov = np.einsum("mki,mkj->mij", d, d)  # [M, 2, 2]
-    _, vec = np.linalg.eigh(cov)
-    n = vec[:, :, 0]  # [M, 2] least-variance axis
-    info = n.T @ n / len(n)
-    return float(np.linalg.eigvalsh(info)[0])
+    w = near[ok].astype(np.float64)  # [K, W]
+    x, y = nb[ok, :, 0], nb[ok, :, 1]  # [K, W]
+    mx, my = (w * x).sum(1) / cnt[ok], (w * y).sum(1) / cnt[ok]  # [K]
+    dx, dy = (x - mx[:, None]) * w, (y - my[:, None]) * w
+    sxx, syy, sxy = (dx * dx).sum(1), (dy * dy).sum(1), (dx * dy).sum(1)
+    major = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # [K] direction of most variance
+    nx, ny = -np.sin(major), np.cos(major)  # the normal: across it
+    a, b, c = (nx * nx).mean(), (nx * ny).mean(), (ny * ny).mean()
+    return float(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b))

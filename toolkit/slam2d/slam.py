@@ -40,9 +40,11 @@ from toolkit.slam2d.loop_closure import LoopCloser
 from toolkit.slam2d.matcher import (
     GridPyramid,
     correlative_search,
+    interpolate,
     normal_spread,
     refine,
-    translation_curvature,
+    voxel_filter,
+    weak_direction,
 )
 from toolkit.slam2d.pose_graph import PoseGraph2D
 from toolkit.slam2d.submaps import ActiveSubmaps, Submap
@@ -78,6 +80,7 @@ class Node:
     # Added by the motion filter's time limit alone (the robot had not moved): not
     # searched for loop closures, see LoopClosureOptions.stationary_nodes.
     stationary: bool = False
+    spread: float | None = None  # normal_spread of hits, once a closure needs it
 
 
 @dataclass
@@ -87,13 +90,6 @@ class SlamResult:
     nodes: np.ndarray  # [S] bool: the scan became a pose-graph node
     map: ProbabilityGrid  # all node scans re-inserted at their optimised poses
     metrics: dict
-
-
-def _voxel_filter(points: np.ndarray, size: float) -> np.ndarray:
-    """First point of every occupied voxel (keeps scan order)."""
-    key = np.floor(points / size).astype(np.int64)
-    _, first = np.unique(key[:, 0] * 1_000_003 + key[:, 1], return_index=True)
-    return points[np.sort(first)]
 
 
 def _se2_apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -129,10 +125,10 @@ def _adaptive_filter(points: np.ndarray, max_points: int, start: float) -> np.nd
     if len(points) <= max_points:
         return points
     size = start
-    out = _voxel_filter(points, size)
+    out = voxel_filter(points, size)
     while len(out) > max_points:
         size *= 1.5
-        out = _voxel_filter(points, size)
+        out = voxel_filter(points, size)
     return out
 
 
@@ -314,11 +310,15 @@ class LidarSlam2D:
         self.timings["local_search_s"] += t2 - t1
         self.timings["local_refine_s"] += t3 - t2
         pose = ref.pose.copy()
-        if with_odom and lc.degenerate_curvature > 0:
-            pose[:2] = self._hold_degenerate_direction(field, f_origin, points, hits, pose,
-                                                       pred)
+        score = ref.score
+        if with_odom and lc.degenerate_drop > 0:
+            held = self._hold_degenerate_direction(field, f_origin, points, hits, pose, pred)
+            if np.any(held != pose[:2]):
+                pose[:2] = held
+                score = float(interpolate(field, f_origin, res, _se2_apply(pose, points))[0]
+                              .mean())
         pose[2] = wrap_angle(pose[2])
-        return pose, ref.score
+        return pose, score
 
     def _hold_degenerate_direction(self, field: np.ndarray, f_origin: np.ndarray,
                                    points: np.ndarray, hits: np.ndarray, pose: np.ndarray,
@@ -326,13 +326,13 @@ class LidarSlam2D:
         """[2] the match's translation, moved to the prediction along a direction the
         scan does not constrain (solution remapping, Zhang et al., ICRA 2016)."""
         lc = self.config.local
-        M = translation_curvature(field, f_origin, self.config.grid.resolution, points, pose)
-        ev, V = np.linalg.eigh(M)  # ascending
-        hold = float(np.clip(2.0 - 2.0 * ev[0] / lc.degenerate_curvature, 0.0, 1.0))
-        if hold == 0.0 or normal_spread(hits) >= lc.degenerate_spread:
+        if normal_spread(hits) >= lc.degenerate_spread:  # the cheap test first
+            return pose[:2]
+        drop, v = weak_direction(field, f_origin, self.config.grid.resolution, points, pose)
+        hold = float(np.clip(2.0 - 2.0 * drop / lc.degenerate_drop, 0.0, 1.0))
+        if hold == 0.0:
             return pose[:2]
         self.counts["degenerate_matches"] += 1
-        v = V[:, 0]
         return pose[:2] + hold * v * float(v @ (pred[:2] - pose[:2]))
 
     def add_scan(self, scan: ScanLike, odometry: np.ndarray | None = None) -> np.ndarray | None:
@@ -533,8 +533,7 @@ class LidarSlam2D:
         if found is None:
             return False
         lc = self.config.loop_closure
-        if (0 < lc.degenerate_curvature and found.curvature < lc.degenerate_curvature
-                and normal_spread(node.hits.astype(np.float64)) < lc.degenerate_spread):
+        if found.weak_drop < lc.degenerate_drop:
             # Along a featureless corridor a match fixes the lateral offset and heading
             # but not the position along it: such a closure is as likely metres off as
             # right, and bends the map when it is wrong.
