@@ -58,8 +58,9 @@ def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 
     """Drive along the corridor's centre line from x = 0.5 to 2.5 m short of its far end
     (``step`` m per scan), and with ``back`` turn on the spot and drive back.
 
-    Odometry: each step's true motion times (1 + ``odometry_error`` N(0, 1)) per axis, plus
-    ``heading_noise`` rad N(0, 1) of heading. Beams without a return read ``max_range``
+    Odometry: each step's true motion times (1 + ``odometry_error`` N(0, 1)) per axis (so
+    no sideways error on the straight parts), plus ``heading_noise`` rad N(0, 1) of
+    heading. Beams without a return read ``max_range``
     (the ROS convention for "nothing within range"). ``angle_deg`` turns the whole world
     (corridor, path, odometry) about the origin: the SLAM's grid axes follow the first
     pose, so this sets the corridor's angle to the grid.
@@ -85,7 +86,7 @@ def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 
     scans = []
     for k, p in enumerate(truth):
         r = cast_rays(walls, p, angles, max_range) + rng.normal(0, range_noise, beams)
-        r = np.where(np.isfinite(r), r, max_range)
+        r = np.minimum(np.where(np.isfinite(r), r, max_range), max_range)
         scans.append(LaserScan(stamp=k / rate_hz, ranges=r.astype(np.float32),
                                angle_min=float(angles[0]), angle_increment=2 * np.pi / beams,
                                range_min=0.05, range_max=max_range))

@@ -355,8 +355,8 @@ def weak_direction(prob: np.ndarray, origin: np.ndarray, resolution: float,
 
     Moves of twice the smoothed field's width over ``directions`` axes, not the curvature
     at the match: at the scale of a cell, walls at an angle to the grid are stair-steps
-    whose ripple reads as curvature along a featureless corridor (a corridor at 27 deg
-    to the grid looked as held as a room).
+    whose ripple reads as curvature along a featureless corridor (one at 27 deg to the
+    grid read as held, and none of its closures was rejected).
     """
     pts = np.asarray(points, dtype=np.float64)
     c, s = np.cos(pose[2]), np.sin(pose[2])
