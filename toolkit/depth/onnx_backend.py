@@ -92,6 +92,10 @@ def execution_providers(device: str, available: list[str]) -> list[str]:
     return ["CPUExecutionProvider"]
 
 
+def folder_model_message(path: Path) -> str:
+    return f"{path}: is a folder; give the .onnx file in it as 'model'"
+
+
 def missing_model_message(path: Path) -> str:
     return (
         f"ONNX depth model not found at {path}. This toolkit never downloads weights: put the "
@@ -111,8 +115,7 @@ class OnnxDepthBackend:
         self.config = config
         path = Path(config.model)
         if path.is_dir():
-            raise FileNotFoundError(f"{path}: is a folder; give the .onnx file in it as "
-                                    "'model'")
+            raise FileNotFoundError(folder_model_message(path))
         if not path.is_file():
             raise FileNotFoundError(missing_model_message(path))
         opts = ort.SessionOptions()

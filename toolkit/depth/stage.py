@@ -113,8 +113,9 @@ class DepthStage(Stage):
         return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
 
     def input_problems(self) -> list[str]:
-        return [f"model {p} is a folder; give the .onnx file in it as 'model'"
-                for p in self.external_inputs() if p.is_dir()]
+        from toolkit.depth.onnx_backend import folder_model_message
+
+        return [folder_model_message(p) for p in self.external_inputs() if p.is_dir()]
 
     @staticmethod
     def _random_model(cfg: DepthConfig, ctx: StageContext) -> DepthConfig:

@@ -1,4 +1,4 @@
-"""Benchmarks of the 2D SLAM on the shipped real logs.
+"""Benchmarks of the 2D SLAM on the shipped real logs and a simulated corridor.
 
     python -m toolkit.slam2d.bench killian|intel|aces|corridor [--out DIR] [--set local.x=1 ...]
 

@@ -80,7 +80,7 @@ class Node:
     # Added by the motion filter's time limit alone (the robot had not moved): not
     # searched for loop closures, see LoopClosureOptions.stationary_nodes.
     stationary: bool = False
-    spread: float | None = None  # normal_spread of hits, once a closure needs it
+    spread: float | None = None  # normal_spread of hits, once a test has needed it
 
 
 @dataclass
@@ -242,7 +242,7 @@ class LidarSlam2D:
             return se2_compose(self._last_local, se2_between(self._last_odom, odom))
         return self._last_local.copy()
 
-    def _scan_match(self, pred: np.ndarray, points: np.ndarray, hits: np.ndarray,
+    def _scan_match(self, pred: np.ndarray, points: np.ndarray, spread: float | None,
                     with_odom: bool) -> tuple[np.ndarray, float]:
         sm = self.submaps.matching
         assert sm is not None
@@ -311,8 +311,8 @@ class LidarSlam2D:
         self.timings["local_refine_s"] += t3 - t2
         pose = ref.pose.copy()
         score = ref.score
-        if with_odom and lc.degenerate_drop > 0:
-            held = self._hold_degenerate_direction(field, f_origin, points, hits, pose, pred)
+        if with_odom and spread is not None and spread < lc.degenerate_spread:
+            held = self._hold_degenerate_direction(field, f_origin, points, pose, pred)
             if np.any(held != pose[:2]):
                 pose[:2] = held
                 score = float(interpolate(field, f_origin, res, _se2_apply(pose, points))[0]
@@ -321,13 +321,11 @@ class LidarSlam2D:
         return pose, score
 
     def _hold_degenerate_direction(self, field: np.ndarray, f_origin: np.ndarray,
-                                   points: np.ndarray, hits: np.ndarray, pose: np.ndarray,
+                                   points: np.ndarray, pose: np.ndarray,
                                    pred: np.ndarray) -> np.ndarray:
         """[2] the match's translation, moved to the prediction along a direction the
         scan does not constrain (solution remapping, Zhang et al., ICRA 2016)."""
         lc = self.config.local
-        if normal_spread(hits) >= lc.degenerate_spread:  # the cheap test first
-            return pose[:2]
         drop, v = weak_direction(field, f_origin, self.config.grid.resolution, points, pose)
         hold = float(np.clip(2.0 - 2.0 * drop / lc.degenerate_drop, 0.0, 1.0))
         if hold == 0.0:
@@ -376,6 +374,7 @@ class LidarSlam2D:
         if pre is None:
             return None
         hits, free = pre  # in the base frame at the stamp (the first beam)
+        spread: float | None = None  # normal_spread(hits), where a degeneracy test needs it
         self.counts["scans_used"] += 1
         if half is not None:
             # A de-skewed scan is placed at mid-sweep: an error in the assumed velocity
@@ -396,8 +395,12 @@ class LidarSlam2D:
                 self._T_global_local = odom.copy()
         else:
             pred = self._predict(stamp, odom)
-            local, score = self._scan_match(pred, match_pts, hits, odom is not None and
-                                            self._last_odom is not None)
+            with_odom = odom is not None and self._last_odom is not None
+            # The cheap test first: the score drop is only measured for flat scans. Kept on
+            # the node for the loop-closure test.
+            if with_odom and self.config.local.degenerate_drop > 0:
+                spread = normal_spread(hits)
+            local, score = self._scan_match(pred, match_pts, spread, with_odom)
             self.counts["local_score_sum"] += score
             self._last_delta = se2_between(self._last_local, local)
             self._last_dt = stamp - float(self._last_stamp)  # type: ignore[arg-type]
@@ -411,16 +414,13 @@ class LidarSlam2D:
         if self.nodes:
             last = self.nodes[-1]
             d = se2_between(last.local_pose, local)
-            close = bool(np.hypot(d[0], d[1]) <= mf.max_distance_m
-                         and abs(d[2]) <= np.radians(mf.max_angle_deg))
+            close = self._within_motion_filter(d)
             # Stationary: let through by the time limit alone and still within the
             # filter's distance and angle of the last node that moved there. Measured
             # from that node, not from the last one, a robot crawling less than
             # max_distance_m per max_time_s still gets searched nodes.
             if close and self._last_moving is not None:
-                m = se2_between(self._last_moving, local)
-                stationary = bool(np.hypot(m[0], m[1]) <= mf.max_distance_m
-                                  and abs(m[2]) <= np.radians(mf.max_angle_deg))
+                stationary = self._within_motion_filter(se2_between(self._last_moving, local))
             if close and stamp - last.stamp <= mf.max_time_s:
                 self._scan_stamps.append(stamp)
                 self._scan_sweep.append(sweep)
@@ -431,6 +431,7 @@ class LidarSlam2D:
                 self.timings["local_s"] += time.perf_counter() - t_start
                 return se2_compose(self.graph.poses[last.vertex], d)
         node = self._add_node(stamp, local, hits, free, odom, stationary)
+        node.spread = spread
         if not stationary:
             self._last_moving = local.copy()
         self._scan_sweep.append(sweep)
@@ -440,6 +441,13 @@ class LidarSlam2D:
         self._global_step(node)
         self.timings["global_s"] += time.perf_counter() - t_g
         return self.graph.poses[node.vertex].copy()
+
+    def _within_motion_filter(self, d: np.ndarray) -> bool:
+        """Whether the motion ``d`` (x, y, theta) is within the motion filter's distance
+        and angle."""
+        mf = self.config.motion_filter
+        return bool(np.hypot(d[0], d[1]) <= mf.max_distance_m
+                    and abs(d[2]) <= np.radians(mf.max_angle_deg))
 
     def _add_node(self, stamp: float, local: np.ndarray, hits: np.ndarray, free: np.ndarray,
                   odom: np.ndarray | None, stationary: bool = False) -> Node:

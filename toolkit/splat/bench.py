@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from toolkit.camera import PinholeCamera
+from toolkit.cli_types import positive_int
 from toolkit.io.atomic import atomic_write_json
 from toolkit.splat.model import Gaussians, init_from_points
 from toolkit.splat.rasterize import cpp_ext, render, resolve_backend
@@ -142,11 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("bench_splat.json"))
-    p.add_argument("-n", "--gaussians", type=int, default=50_000)
+    p.add_argument("-n", "--gaussians", type=positive_int, default=50_000)
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--backends", default="cpp,torch", help="comma list of cpp, torch, gsplat")
-    p.add_argument("--iters", type=int, default=10)
+    p.add_argument("--iters", type=positive_int, default=10)
     p.add_argument("--ref-iters", type=int, default=3, help="iterations for the slow reference")
     p.add_argument("--state", choices=("trained", "init"), default="trained")
     p.add_argument("--threads", type=int, default=None, help="torch threads")
@@ -158,8 +159,6 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(backends) - {"cpp", "torch", "gsplat"})
     if unknown:
         p.error(f"--backends: unknown {unknown}; choose from cpp, torch, gsplat")
-    if a.iters < 1 or a.gaussians < 1:
-        p.error("--iters and --gaussians must be at least 1")
     if a.out.is_dir():
         p.error(f"--out {a.out} is a folder; give the JSON file to write")
     res = run_bench(a.gaussians, a.width, a.height, backends, a.iters,
