@@ -8,8 +8,10 @@ import pytest
 from toolkit.geometry import se2_between, se2_compose, se2_to_se3, se3_to_se2
 from toolkit.sensors import LaserScan
 from toolkit.slam2d import LidarSlam2D, Slam2DConfig
+from toolkit.slam2d.config import LoopClosureOptions
 from toolkit.slam2d.corridor import CorridorDrive, cast_rays, corridor_drive
 from toolkit.slam2d.grid import ProbabilityGrid
+from toolkit.slam2d.loop_closure import LoopCloser
 from toolkit.slam2d.matcher import (
     GridPyramid,
     correlative_search,
@@ -20,6 +22,8 @@ from toolkit.slam2d.matcher import (
 )
 from toolkit.slam2d.pipeline import run_slam
 from toolkit.slam2d.pose_graph import PoseGraph2D
+from toolkit.slam2d.slam import Node
+from toolkit.slam2d.submaps import Submap
 
 # A room with a few obstacles; walls deliberately off the 5 cm grid lines.
 WALLS = np.array([
@@ -185,6 +189,35 @@ def test_normal_spread_does_not_depend_on_beam_density_or_noise():
         assert normal_spread(walls + rng.normal(0, noise, walls.shape)) < 0.002
     sparse = scan_points(np.array([6.0, 4.2, 0.3]), n=180)  # the room at 2 deg per beam
     assert normal_spread(sparse) > 0.1
+
+
+def test_closure_test_counts_only_the_returns_the_submap_explains():
+    # Near the end of a featureless corridor the scan sees the end wall (its normals
+    # spread), but a submap made further back holds only the side walls: against it the
+    # match is free along the corridor, so only the returns landing on its walls count.
+    drive = corridor_drive(length=26.0, back=False, step=0.25)
+    node_k = 78  # 20 m along: the end wall 5 m ahead
+    hits = corridor_points(drive, node_k, 8.0)
+    pose = se3_to_se2(drive.truth.poses[node_k])
+    node = Node(0, 0.0, pose, 0, hits.astype(np.float32), np.zeros((0, 2), np.float32),
+                hits, None)
+    closer = LoopCloser(LoopClosureOptions(), 0.05, 0.1)
+
+    def submap_of(scans: range) -> tuple[Submap, np.ndarray]:
+        g = ProbabilityGrid(0.05, center=tuple(drive.truth.positions[scans[0], :2]))
+        for k in scans:
+            p = se3_to_se2(drive.truth.poses[k])
+            c, s = np.cos(p[2]), np.sin(p[2])
+            g.insert(p[:2], corridor_points(drive, k, 8.0) @ np.array([[c, s], [-s, c]])
+                     + p[:2])
+        return Submap(0, np.zeros(3), g), g.matching_field(0.1)[0]
+
+    assert normal_spread(hits) > 0.01
+    behind, field = submap_of(range(34, 58))  # 9 .. 15 m along: no end wall
+    assert closer._matched_spread(node, behind, field, pose) < 0.003
+    ahead, field = submap_of(range(70, 89))  # 18 .. 22.5 m: the end wall mapped
+    assert closer._matched_spread(node, ahead, field, pose) == pytest.approx(
+        normal_spread(hits), rel=0.2)
 
 
 def _corridor_run(config: dict, back: bool, angle: float = 0.0) -> tuple[

@@ -72,7 +72,7 @@ class LocalMatchingOptions(_Options):
     # +-0.2 m along its weakest direction lowers the match score by less than half of
     # ``degenerate_drop``, not at all above it, and only when the scan's surface normals
     # spread less than ``degenerate_spread`` (0: off). Featureless corridor benchmark:
-    # 3.5 m -> 0.11 m ATE; Killian: 37 of 3873 scans held, relations 0.0350 -> 0.0345 m
+    # 3.5 m -> 0.036 m ATE; Killian: 37 of 3873 scans held, relations 0.0350 -> 0.0346 m
     # (docs/slam2d.md).
     degenerate_drop: float = Field(0.04, ge=0)
     degenerate_spread: float = Field(0.003, ge=0, le=0.5)
@@ -120,9 +120,10 @@ class LoopClosureOptions(_Options):
     # A match in a corridor without features fixes the node's lateral offset and heading
     # but not its position along the corridor: such a closure is rejected when both the
     # fall of the match score over +-0.2 m along its weakest direction and the spread of
-    # the scan's surface normals (0: all one way, 0.5: even) are below these (0: off).
-    # On the corridor benchmark this takes the map from 1.1 m to 0.11 m ATE; Killian /
-    # ACES / Intel lose 29 / 0 / 0 of 1947 / 90 / 911 closures (docs/slam2d.md).
+    # the surface normals of the scan's returns that land on the submap's walls (0: all
+    # one way, 0.5: even) are below these (0: off). On the corridor benchmark this takes
+    # the map from 1.1 m to 0.036 m ATE; Killian / ACES / Intel lose 56 / 4 / 10 of
+    # 1938 / 90 / 911 closures (the ACES and Intel ones 0.2-6.5 m wrong; docs/slam2d.md).
     degenerate_drop: float = Field(0.04, ge=0)
     degenerate_spread: float = Field(0.003, ge=0, le=0.5)
     linear_window_m: float = Field(7.0, ge=0)

@@ -18,7 +18,13 @@ import numpy as np
 
 from toolkit.geometry import se2_between, se2_compose
 from toolkit.slam2d.config import LoopClosureOptions
-from toolkit.slam2d.matcher import correlative_search, normal_spread, refine, weak_direction
+from toolkit.slam2d.matcher import (
+    correlative_search,
+    interpolate,
+    normal_spread,
+    refine,
+    weak_direction,
+)
 from toolkit.slam2d.submaps import PyramidCache, Submap
 
 if TYPE_CHECKING:
@@ -108,15 +114,36 @@ class LoopCloser:
                          translation_weight=o.refine_translation_weight,
                          rotation_weight=o.refine_rotation_weight)
             drop = np.inf
-            if o.degenerate_drop > 0:
-                if node.spread is None:
-                    node.spread = normal_spread(node.hits)
-                if node.spread < o.degenerate_spread:
-                    drop, _ = weak_direction(prob, submap.grid.origin,
-                                             submap.grid.resolution, node.match_points,
-                                             ref.pose)
+            if o.degenerate_drop > 0 and (
+                    self._matched_spread(node, submap, prob, ref.pose) < o.degenerate_spread):
+                drop, _ = weak_direction(prob, submap.grid.origin, submap.grid.resolution,
+                                         node.match_points, ref.pose)
             out = Closure(se2_between(submap.local_pose, ref.pose), found.score, ref.score,
                           drop)
             self.found += 1
         self.seconds += time.perf_counter() - t0
         return out
+
+    def _matched_spread(self, node: Node, submap: Submap, field: np.ndarray,
+                        pose: np.ndarray) -> float:
+        """normal_spread of the node's returns that land on the submap's walls at ``pose``
+        (within about the matching sigma of one).
+
+        Only those constrain the match: at the end of a featureless corridor a scan sees
+        the end wall, so its own normals spread, but against a submap made further along
+        the corridor the end wall lands where the submap has nothing and the match slides
+        along the corridor as freely as without it (corridor benchmark: six closures
+        1.2-6.4 m off passed the test on the whole scan's spread)."""
+        if node.spread is None:
+            node.spread = normal_spread(node.hits)
+        if node.spread < self.options.degenerate_spread:
+            return node.spread
+        g = submap.grid
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        hits = node.hits.astype(np.float64)
+        world = hits @ np.array([[c, s], [-s, c]]) + pose[:2]  # [N, 2] grid frame
+        val, _ = interpolate(field, g.origin, g.resolution, world)
+        on_wall = val > 0.5 * (g.p_min + g.p_max)  # [N]
+        if on_wall.all():
+            return node.spread
+        return normal_spread(hits[on_wall])
