@@ -429,6 +429,32 @@ def test_a_crawling_robot_keeps_searched_nodes():
     assert m["nodes_stationary"] == 10  # every other node: 1, 3, ..., 19
 
 
+@pytest.mark.parametrize(("dt", "max_speed", "tracked"),
+                         [(1.0, 2.0, True), (0.1, 2.0, False), (0.1, 10.0, True)])
+def test_scan_only_window_follows_the_time_between_scans(dt, max_speed, tracked):
+    """Scan-only, the search window is what the robot can cover since the last scan at
+    ``scan_only_max_speed_m_s`` (at least the window with odometry): a 1 m jump in 1 s
+    is found at 2 m/s, in 0.1 s only when the robot may move 10 m/s."""
+    config = Slam2DConfig.model_validate({"local": {"scan_only_max_speed_m_s": max_speed}})
+    slam = LidarSlam2D(config)
+    a = np.array([6.0, 1.5, 0.0])
+    slam.add_scan(make_scan(a, 0.0), None)  # the world frame starts here
+    pose = slam.add_scan(make_scan(a + np.array([1.0, 0.0, 0.0]), dt), None)
+    err = np.hypot(pose[0] - 1.0, pose[1])
+    assert (err < 0.03) if tracked else (err > 0.5)
+
+
+def test_scan_only_window_ignores_a_stamp_glitched_early():
+    """A scan stamped 0.01 s after the last in a log of one scan a second (Intel has such
+    stamps, with 34 deg turned between them) keeps the window of the usual spacing."""
+    slam = LidarSlam2D()
+    a = np.array([3.0, 1.5, 0.0])
+    for k in range(5):
+        slam.add_scan(make_scan(a + np.array([0.5 * k, 0.0, 0.0]), float(k)), None)
+    pose = slam.add_scan(make_scan(a + np.array([3.0, 0.0, 0.0]), 4.01), None)
+    assert np.hypot(pose[0] - 3.0, pose[1]) < 0.03
+
+
 def test_short_range_lidar_marks_free_space_only_within_its_reach():
     """A no-return beam of a 4 m lidar says the first 4 m are free, not the default 5 m."""
     slam = LidarSlam2D()

@@ -52,6 +52,13 @@ class LocalMatchingOptions(_Options):
     angular_window_deg: float = Field(5.0, ge=0)
     scan_only_linear_window_m: float = Field(1.2, ge=0)
     scan_only_angular_window_deg: float = Field(90.0, ge=0)
+    # ... but scan-only no wider than the robot can move since the last scan at these
+    # speeds (and no narrower than the windows with odometry): at 10 Hz the full window
+    # searched 36x the area and 5x the angles that 2 m/s and 180 deg/s can cover, and the
+    # search was 70 % of the scan-only time on the simulated house. Sparse logs (a scan
+    # every 2-3 s, Intel, ACES) keep the full window.
+    scan_only_max_speed_m_s: float = Field(2.0, gt=0)
+    scan_only_max_turn_rate_deg_s: float = Field(180.0, gt=0)
     angular_step_deg: float = Field(0.5, gt=0, description="search step, refined afterwards")
     translation_delta_cost_weight: float = Field(0.1, ge=0)
     rotation_delta_cost_weight: float = Field(0.1, ge=0)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -172,6 +172,7 @@ class LidarSlam2D:
         self._last_delta: np.ndarray | None = None  # [3] last scan-to-scan motion
         self._last_moving: np.ndarray | None = None  # [3] last non-stationary node's local
         self._last_dt = 0.0  # seconds the last motion took
+        self._recent_dt: deque[float] = deque(maxlen=21)  # the scan spacing, for the window
         self._T_global_local = np.zeros(3)
         self._nodes_since_opt = 0
         self._newly_finished: list[Submap] = []  # searched for old nodes at the next step
@@ -243,14 +244,20 @@ class LidarSlam2D:
         return self._last_local.copy()
 
     def _scan_match(self, pred: np.ndarray, points: np.ndarray, spread: float | None,
-                    with_odom: bool) -> tuple[np.ndarray, float]:
+                    with_odom: bool, dt: float) -> tuple[np.ndarray, float]:
         sm = self.submaps.matching
         assert sm is not None
         lc = self.config.local
         grid = sm.grid
         res = grid.resolution
-        lin = lc.linear_window_m if with_odom else lc.scan_only_linear_window_m
-        ang = np.radians(lc.angular_window_deg if with_odom else lc.scan_only_angular_window_deg)
+        if with_odom:
+            lin, ang_deg = lc.linear_window_m, lc.angular_window_deg
+        else:
+            lin = min(lc.scan_only_linear_window_m,
+                      max(lc.linear_window_m, lc.scan_only_max_speed_m_s * dt))
+            ang_deg = min(lc.scan_only_angular_window_deg,
+                          max(lc.angular_window_deg, lc.scan_only_max_turn_rate_deg_s * dt))
+        ang = np.radians(ang_deg)
         w = int(np.ceil(lin / res))
         depth = max(0, int(np.floor(np.log2(max(w, 1)))) - 1)
         t0 = time.perf_counter()
@@ -400,10 +407,15 @@ class LidarSlam2D:
             # the node for the loop-closure test.
             if with_odom and self.config.local.degenerate_drop > 0:
                 spread = normal_spread(hits)
-            local, score = self._scan_match(pred, match_pts, spread, with_odom)
+            dt = stamp - float(self._last_stamp)  # type: ignore[arg-type]
+            self._recent_dt.append(dt)
+            # The window's time is at least the usual scan spacing: a stamp glitched early
+            # (Intel: scans 0.01 s apart, 34 deg turned) must not shrink it.
+            local, score = self._scan_match(pred, match_pts, spread, with_odom,
+                                            max(dt, float(np.median(self._recent_dt))))
             self.counts["local_score_sum"] += score
             self._last_delta = se2_between(self._last_local, local)
-            self._last_dt = stamp - float(self._last_stamp)  # type: ignore[arg-type]
+            self._last_dt = dt
         self._last_local = local
         self._last_stamp = stamp
         self._last_odom = odom
