@@ -415,6 +415,36 @@ def test_a_robot_standing_still_adds_no_closure_searches():
     assert added_all > 2 * short_all > 2 * short
 
 
+def _laps(laps: int, caps: dict) -> tuple[list[int], float, LidarSlam2D]:
+    """Closure searches in each lap of the room driven ``laps`` times (80 scans a lap),
+    the largest position error and the SLAM."""
+    rng = np.random.default_rng(0)
+    lap = _drive(80)
+    slam = LidarSlam2D(Slam2DConfig.model_validate({"loop_closure": caps}))
+    per_lap = []
+    for i in range(laps):
+        before = slam.loop.searches
+        for k, p in enumerate(lap):
+            slam.add_scan(make_scan(p, float(i * len(lap) + k), 180, noise=0.01, rng=rng), p)
+        per_lap.append(slam.loop.searches - before)
+    res = slam.finish()
+    err = np.hypot(*(res.poses[:, :2] - np.concatenate([lap] * laps)[:, :2]).T).max()
+    return per_lap, float(err), slam
+
+
+def test_closure_search_per_lap_stays_bounded_on_a_route_driven_again_and_again():
+    """Each new node is searched against the submaps in reach; on a route driven again
+    and again those are all the submaps made there before, so the work per lap grew
+    with the laps. Submaps that have had their share of searches or closures drop out."""
+    caps = {"max_closures_per_submap": 30, "max_searches_per_submap": 120}
+    per_lap, err, slam = _laps(6, caps)
+    assert max(per_lap[3:]) <= 1.5 * per_lap[1]
+    assert max(slam.loop._searched.values()) <= 120
+    assert err < 0.05
+    grown, _, _ = _laps(4, {"max_closures_per_submap": 0, "max_searches_per_submap": 0})
+    assert grown[3] > 3 * grown[1]
+
+
 def test_a_crawling_robot_keeps_searched_nodes():
     """3 cm/s, a scan per second: the time limit lets every node through (0.18 m < 0.2 m
     after 6 s), but measured from the last node that moved there, every other node has

@@ -49,6 +49,8 @@ class LoopCloser:
         self._centres: dict[int, np.ndarray] = {}  # submap -> centre in its own frame [2]
         self._pulses: dict[int, int] = {}
         self._samples: dict[int, int] = {}
+        self._searched: dict[int, int] = {}  # by submap
+        self._closures: dict[int, int] = {}
         self.searches = 0
         self.wide_searches = 0  # with the wide window (the expensive ones)
         self.found = 0
@@ -63,6 +65,15 @@ class LoopCloser:
         pts = np.array([nodes[i].local_pose[:2] for i in submap.nodes])
         self._centres[submap.index] = pts.mean(0) - submap.local_pose[:2]
 
+    def saturated(self, submap: int) -> bool:
+        """The submap has had its share of searches or closures (not searched again)."""
+        o = self.options
+        return bool(
+            (o.max_searches_per_submap and
+             self._searched.get(submap, 0) >= o.max_searches_per_submap)
+            or (o.max_closures_per_submap and
+                self._closures.get(submap, 0) >= o.max_closures_per_submap))
+
     def _sample(self, submap: int) -> bool:
         p = self._pulses.get(submap, 0) + 1
         s = self._samples.get(submap, 0)
@@ -76,7 +87,7 @@ class LoopCloser:
                      node_global: np.ndarray, force: bool = False) -> Closure | None:
         o = self.options
         centre = self._centres.get(submap.index)
-        if centre is None:
+        if centre is None or self.saturated(submap.index):
             return None
         c, s = np.cos(submap_global[2]), np.sin(submap_global[2])
         centre_g = submap_global[:2] + np.array([c * centre[0] - s * centre[1],
@@ -100,6 +111,7 @@ class LoopCloser:
         t0 = time.perf_counter()
         self.searches += 1
         self.wide_searches += not recent
+        self._searched[submap.index] = self._searched.get(submap.index, 0) + 1
         pyr, prob = self.cache.get(submap, self._depth, self._w_cells)
         guess = se2_compose(submap.local_pose, relative_guess)  # grid (local) coordinates
         found = correlative_search(
@@ -121,6 +133,7 @@ class LoopCloser:
             out = Closure(se2_between(submap.local_pose, ref.pose), found.score, ref.score,
                           drop)
             self.found += 1
+            self._closures[submap.index] = self._closures.get(submap.index, 0) + 1
         self.seconds += time.perf_counter() - t0
         return out
 

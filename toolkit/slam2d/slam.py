@@ -541,6 +541,8 @@ class LidarSlam2D:
             if not any(self._searchable(self.nodes[i]) for i in sm.nodes):
                 continue  # made while standing still: the place of the node before it
             for n in self.nodes[:max(0, min(before, sm.nodes[0] - skip))]:
+                if self.loop.saturated(sm.index):
+                    break
                 if self._searchable(n):
                     self._try_closure(n, sm)
 
