@@ -440,6 +440,7 @@ def test_closure_search_per_lap_stays_bounded_on_a_route_driven_again_and_again(
     per_lap, err, slam = _laps(6, caps)
     assert max(per_lap[3:]) <= 1.5 * per_lap[1]
     assert max(slam.loop._searched.values()) <= 120
+    assert slam.metrics()["submaps_search_bounded"] > 0
     assert err < 0.05
     grown, _, _ = _laps(4, {"max_closures_per_submap": 0, "max_searches_per_submap": 0})
     assert grown[3] > 3 * grown[1]

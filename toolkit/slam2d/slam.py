@@ -650,6 +650,8 @@ class LidarSlam2D:
             "loop_closure_outliers": self.counts["loop_outliers"],
             "loop_closures_degenerate": self.counts["loop_closures_degenerate"],
             "nodes_stationary": self.counts["nodes_stationary"],
+            "submaps_search_bounded": sum(self.loop.saturated(sm.index)
+                                          for sm in self.submaps.all),
             "degenerate_matches": self.counts["degenerate_matches"],
             "optimizations": self.counts["optimizations"],
             "motion_tiebreaks": self.counts["motion_tiebreaks"],
