@@ -460,30 +460,80 @@ def test_a_crawling_robot_keeps_searched_nodes():
     assert m["nodes_stationary"] == 10  # every other node: 1, 3, ..., 19
 
 
-@pytest.mark.parametrize(("dt", "max_speed", "tracked"),
-                         [(1.0, 2.0, True), (0.1, 2.0, False), (0.1, 10.0, True)])
-def test_scan_only_window_follows_the_time_between_scans(dt, max_speed, tracked):
-    """Scan-only, the search window is what the robot can cover since the last scan at
-    ``scan_only_max_speed_m_s`` (at least the window with odometry): a 1 m jump in 1 s
-    is found at 2 m/s, in 0.1 s only when the robot may move 10 m/s."""
-    config = Slam2DConfig.model_validate({"local": {"scan_only_max_speed_m_s": max_speed}})
-    slam = LidarSlam2D(config)
+def _jump_after_standing(dt: float, jump: float, local: dict) -> tuple[float, dict]:
+    """Position error [m] of a scan-only robot that stood for 25 scans ``dt`` apart and
+    then moved ``jump`` m in the next ``dt``, and the metrics."""
+    slam = LidarSlam2D(Slam2DConfig.model_validate({"local": local}))
     a = np.array([6.0, 1.5, 0.0])
-    slam.add_scan(make_scan(a, 0.0), None)  # the world frame starts here
-    pose = slam.add_scan(make_scan(a + np.array([1.0, 0.0, 0.0]), dt), None)
-    err = np.hypot(pose[0] - 1.0, pose[1])
+    for k in range(25):
+        slam.add_scan(make_scan(a, k * dt), None)  # the world frame starts here
+    slam.add_scan(make_scan(a + np.array([jump, 0.0, 0.0]), 25 * dt), None)
+    res = slam.finish()
+    return float(np.hypot(res.poses[-1, 0] - jump, res.poses[-1, 1])), res.metrics
+
+
+@pytest.mark.parametrize(("dt", "local", "retries", "tracked"), [
+    (1.0, {}, 0, True),  # 2 m/s for 1 s: the full 1.2 m window
+    (0.1, {"scan_only_max_speed_m_s": 10.0}, 0, True),  # 1.0 m window
+    (0.1, {}, 1, True),  # 0.2 m window: the match scores low, searched again
+    (0.1, {"scan_only_retry_score_ratio": 0.0}, 0, False),  # ... and without the retry
+])
+def test_scan_only_window_follows_the_time_between_scans(dt, local, retries, tracked):
+    """Scan-only, the search window is what the robot can cover since the last scan at
+    ``scan_only_max_speed_m_s`` (at least the window with odometry), searched again with
+    the full window when the match scores far below the usual."""
+    err, m = _jump_after_standing(dt, 1.0, local)
+    assert m["scan_only_window_retries"] == retries
     assert (err < 0.03) if tracked else (err > 0.5)
 
 
 def test_scan_only_window_ignores_a_stamp_glitched_early():
     """A scan stamped 0.01 s after the last in a log of one scan a second (Intel has such
-    stamps, with 34 deg turned between them) keeps the window of the usual spacing."""
+    stamps, with 34 deg turned between them) keeps the window of the usual spacing: it
+    needs no second search."""
     slam = LidarSlam2D()
     a = np.array([3.0, 1.5, 0.0])
-    for k in range(5):
-        slam.add_scan(make_scan(a + np.array([0.5 * k, 0.0, 0.0]), float(k)), None)
-    pose = slam.add_scan(make_scan(a + np.array([3.0, 0.0, 0.0]), 4.01), None)
+    for k in range(25):
+        slam.add_scan(make_scan(a, float(k)), None)
+    for k in range(1, 5):
+        slam.add_scan(make_scan(a + np.array([0.5 * k, 0.0, 0.0]), 24.0 + k), None)
+    pose = slam.add_scan(make_scan(a + np.array([3.0, 0.0, 0.0]), 28.01), None)
     assert np.hypot(pose[0] - 3.0, pose[1]) < 0.03
+    assert slam.metrics()["scan_only_window_retries"] == 0
+
+
+def _turn_on_the_spot(deg_per_scan: float, stamps: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Largest heading error [deg] of a scan-only robot turning on the spot by
+    ``deg_per_scan`` between scans stamped ``stamps`` after standing there for 25 scans
+    (the full window is searched until 20 scores are known), and the metrics."""
+    slam = LidarSlam2D()
+    stamps = np.concatenate([np.arange(-25, 0) * 0.1 + stamps[0], stamps])
+    th = np.radians(deg_per_scan) * np.maximum(np.arange(len(stamps)) - 25, 0)
+    for t, a in zip(stamps, th, strict=True):
+        slam.add_scan(make_scan(np.array([6.0, 1.5, a]), float(t)), None)
+    res = slam.finish()
+    err = np.degrees(np.abs(np.angle(np.exp(1j * (res.poses[:, 2] - th)))))
+    return err.max(), res.metrics
+
+
+def test_scan_only_turn_faster_than_the_bound_is_searched_again_with_the_full_window():
+    # 10 Hz, 300 deg/s (the bound: 180 deg/s, 18 deg per scan): each bounded match scores
+    # far below the usual and is searched again with the full window.
+    err, m = _turn_on_the_spot(30.0, np.arange(12) * 0.1)
+    assert err < 1.0
+    assert m["scan_only_window_retries"] > 0
+    # Within the bound nothing is searched twice.
+    err, m = _turn_on_the_spot(12.0, np.arange(12) * 0.1)
+    assert err < 1.0 and m["scan_only_window_retries"] == 0
+
+
+def test_scan_only_window_with_stamps_in_bunches():
+    # A driver stamping scans in pairs 1 ms apart, one pair every 0.2 s: the time since
+    # the last scan is 1 ms every other scan, the mean spacing 0.1 s sizes the window.
+    stamps = np.repeat(np.arange(8) * 0.2, 2) + np.tile([0.0, 0.001], 8)
+    err, m = _turn_on_the_spot(15.0, stamps)
+    assert err < 1.0
+    assert m["scan_only_window_retries"] == 0
 
 
 def test_short_range_lidar_marks_free_space_only_within_its_reach():

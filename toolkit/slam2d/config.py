@@ -56,9 +56,13 @@ class LocalMatchingOptions(_Options):
     # speeds (and no narrower than the windows with odometry): at 10 Hz the full window
     # searched 36x the area and 5x the angles that 2 m/s and 180 deg/s can cover, and the
     # search was 70 % of the scan-only time on the simulated house. Sparse logs (a scan
-    # every 2-3 s, Intel, ACES) keep the full window.
+    # every 2-3 s, Intel, ACES) keep the full window, as do the first 20 scan-only
+    # matches. A match scoring below ``scan_only_retry_score_ratio`` times the median of
+    # the last 20 is searched again with the full window (a turn faster than the bound,
+    # a stamp off; docs/slam2d.md, "Scan-only speed bound").
     scan_only_max_speed_m_s: float = Field(2.0, gt=0)
     scan_only_max_turn_rate_deg_s: float = Field(180.0, gt=0)
+    scan_only_retry_score_ratio: float = Field(0.75, ge=0, le=1)
     angular_step_deg: float = Field(0.5, gt=0, description="search step, refined afterwards")
     translation_delta_cost_weight: float = Field(0.1, ge=0)
     rotation_delta_cost_weight: float = Field(0.1, ge=0)
@@ -130,7 +134,8 @@ class LoopClosureOptions(_Options):
     # the surface normals of the scan's returns that land on the submap's walls (0: all
     # one way, 0.5: even) are below these (0: off). On the corridor benchmark this takes
     # the map from 1.1 m to 0.036 m ATE; Killian / ACES / Intel lose 56 / 4 / 10 of
-    # 1938 / 90 / 911 closures (the ACES and Intel ones 0.2-6.5 m wrong; docs/slam2d.md).
+    # 1938 / 90 / 911 closures (all 4 ACES ones and 7 of the Intel ones 0.2-6.5 m wrong;
+    # docs/slam2d.md).
     degenerate_drop: float = Field(0.04, ge=0)
     degenerate_spread: float = Field(0.003, ge=0, le=0.5)
     linear_window_m: float = Field(7.0, ge=0)

@@ -39,6 +39,7 @@ from toolkit.slam2d.grid import ProbabilityGrid
 from toolkit.slam2d.loop_closure import LoopCloser
 from toolkit.slam2d.matcher import (
     GridPyramid,
+    SearchResult,
     correlative_search,
     interpolate,
     normal_spread,
@@ -172,7 +173,8 @@ class LidarSlam2D:
         self._last_delta: np.ndarray | None = None  # [3] last scan-to-scan motion
         self._last_moving: np.ndarray | None = None  # [3] last non-stationary node's local
         self._last_dt = 0.0  # seconds the last motion took
-        self._recent_dt: deque[float] = deque(maxlen=21)  # the scan spacing, for the window
+        self._recent_stamps: deque[float] = deque(maxlen=21)  # for the usual scan spacing
+        self._recent_scores: deque[float] = deque(maxlen=20)  # scan-only search scores
         self._T_global_local = np.zeros(3)
         self._nodes_since_opt = 0
         self._newly_finished: list[Submap] = []  # searched for old nodes at the next step
@@ -243,26 +245,16 @@ class LidarSlam2D:
             return se2_compose(self._last_local, se2_between(self._last_odom, odom))
         return self._last_local.copy()
 
-    def _scan_match(self, pred: np.ndarray, points: np.ndarray, spread: float | None,
-                    with_odom: bool, dt: float) -> tuple[np.ndarray, float]:
-        sm = self.submaps.matching
-        assert sm is not None
+    def _match_field(self, grid: ProbabilityGrid, pred: np.ndarray, points: np.ndarray,
+                     lin: float, ang: float, with_odom: bool) -> tuple[
+                         np.ndarray, np.ndarray, GridPyramid]:
+        """(field, its origin, search pyramid) of the submap cropped to where the scan can
+        land from ``pred`` within the window: the box of its points at the prediction,
+        grown by the largest shift the search can make (rotation included)."""
         lc = self.config.local
-        grid = sm.grid
         res = grid.resolution
-        if with_odom:
-            lin, ang_deg = lc.linear_window_m, lc.angular_window_deg
-        else:
-            lin = min(lc.scan_only_linear_window_m,
-                      max(lc.linear_window_m, lc.scan_only_max_speed_m_s * dt))
-            ang_deg = min(lc.scan_only_angular_window_deg,
-                          max(lc.angular_window_deg, lc.scan_only_max_turn_rate_deg_s * dt))
-        ang = np.radians(ang_deg)
         w = int(np.ceil(lin / res))
         depth = max(0, int(np.floor(np.log2(max(w, 1)))) - 1)
-        t0 = time.perf_counter()
-        # Crop the submap to where the scan can land: the box of its points at the
-        # prediction, grown by the largest shift the search can make (rotation included).
         margin = lin + 6 * res + 4 * self.config.grid.matching_sigma_m
         if not with_odom and self._last_delta is not None:
             margin += float(np.hypot(*self._last_delta[:2])) + lc.motion_tiebreak_linear_window_m
@@ -274,19 +266,58 @@ class LidarSlam2D:
         lo = grid.cell_of(lo_xy[None])[0]
         hi = grid.cell_of(hi_xy[None])[0] + 1
         field, f_origin = grid.matching_field(self.config.grid.matching_sigma_m, lo, hi)
-        pyr = GridPyramid(field, f_origin, res, depth, grid.p_min, w)
+        return field, f_origin, GridPyramid(field, f_origin, res, depth, grid.p_min, w)
+
+    def _scan_match(self, pred: np.ndarray, points: np.ndarray, spread: float | None,
+                    with_odom: bool, dt: float) -> tuple[np.ndarray, float]:
+        sm = self.submaps.matching
+        assert sm is not None
+        lc = self.config.local
+        grid = sm.grid
+        res = grid.resolution
+        full = (lc.scan_only_linear_window_m, np.radians(lc.scan_only_angular_window_deg))
+        if with_odom:
+            lin, ang = lc.linear_window_m, np.radians(lc.angular_window_deg)
+        elif len(self._recent_scores) < (self._recent_scores.maxlen or 0):
+            # The full window until the usual score is known: on the first scans every
+            # score is low (the map is young), a wrong match's too.
+            lin, ang = full
+        else:
+            lin = min(full[0], max(lc.linear_window_m, lc.scan_only_max_speed_m_s * dt))
+            ang = min(full[1], np.radians(max(lc.angular_window_deg,
+                                              lc.scan_only_max_turn_rate_deg_s * dt)))
+        t0 = time.perf_counter()
+        # Scan-only the pyramid also serves the motion tie-break's window below.
+        pyr_lin = lin if with_odom else max(lin, lc.motion_tiebreak_linear_window_m)
+        field, f_origin, pyr = self._match_field(grid, pred, points, pyr_lin, ang, with_odom)
         t1 = time.perf_counter()
         # Priors towards the prediction only mean something with odometry. Without it the
         # prediction is "stood still", and pulling towards it biases the match backwards
         # along corridors (measured on the Radish logs, docs/slam2d.md).
-        found = correlative_search(
-            pyr, points, pred, lin, ang, np.radians(lc.angular_step_deg),
-            min_score=0.0,
-            translation_cost=lc.translation_delta_cost_weight if with_odom else 0.0,
-            rotation_cost=(lc.rotation_delta_cost_weight if with_odom
-                           else lc.scan_only_rotation_delta_cost_weight),
-            max_candidates=lc.max_candidates,
-        )
+
+        def search(pyramid: GridPyramid, lin: float, ang: float) -> SearchResult:
+            return correlative_search(
+                pyramid, points, pred, lin, ang, np.radians(lc.angular_step_deg),
+                min_score=0.0,
+                translation_cost=lc.translation_delta_cost_weight if with_odom else 0.0,
+                rotation_cost=(lc.rotation_delta_cost_weight if with_odom
+                               else lc.scan_only_rotation_delta_cost_weight),
+                max_candidates=lc.max_candidates,
+            )
+
+        found = search(pyr, lin, ang)
+        if not with_odom:
+            usual = float(np.median(self._recent_scores)) if self._recent_scores else 0.0
+            if (lin < full[0] or ang < full[1]) and \
+                    found.score < lc.scan_only_retry_score_ratio * usual:
+                # The robot moved more than the bound allows (a fast turn, a stamp off):
+                # a match far below the usual score is searched again with the full window.
+                wide_field = self._match_field(grid, pred, points, *full, with_odom)
+                wide = search(wide_field[2], *full)
+                self.counts["scan_only_window_retries"] += 1
+                if wide.score > found.score:
+                    found, (field, f_origin, pyr) = wide, wide_field
+            self._recent_scores.append(found.score)
         if not with_odom and lc.motion_tiebreak_margin > 0 and self._last_delta is not None:
             # Repeat the last forward advance, not its turn: the turn ends with the bend.
             repeat = se2_compose(pred, np.array([max(self._last_delta[0], 0.0), 0.0, 0.0]))
@@ -407,17 +438,22 @@ class LidarSlam2D:
             # the node for the loop-closure test.
             if with_odom and self.config.local.degenerate_drop > 0:
                 spread = normal_spread(hits)
+            # The time since the last scan, but at least the usual spacing (the mean over
+            # the last 20: robust to a stamp glitched early, Intel has scans 0.01 s apart
+            # with 34 deg turned, and to a driver that stamps scans in bunches): it sizes
+            # the scan-only window and turns the last motion into the velocity de-skew uses.
             dt = stamp - float(self._last_stamp)  # type: ignore[arg-type]
-            self._recent_dt.append(dt)
-            # The window's time is at least the usual scan spacing: a stamp glitched early
-            # (Intel: scans 0.01 s apart, 34 deg turned) must not shrink it.
-            local, score = self._scan_match(pred, match_pts, spread, with_odom,
-                                            max(dt, float(np.median(self._recent_dt))))
+            if len(self._recent_stamps) > 1:
+                spacing = ((self._recent_stamps[-1] - self._recent_stamps[0])
+                           / (len(self._recent_stamps) - 1))
+                dt = max(dt, spacing)
+            local, score = self._scan_match(pred, match_pts, spread, with_odom, dt)
             self.counts["local_score_sum"] += score
             self._last_delta = se2_between(self._last_local, local)
             self._last_dt = dt
         self._last_local = local
         self._last_stamp = stamp
+        self._recent_stamps.append(stamp)
         self._last_odom = odom
 
         # Motion filter: a scan too close to the last node only gets a pose.
@@ -655,6 +691,7 @@ class LidarSlam2D:
             "degenerate_matches": self.counts["degenerate_matches"],
             "optimizations": self.counts["optimizations"],
             "motion_tiebreaks": self.counts["motion_tiebreaks"],
+            "scan_only_window_retries": self.counts["scan_only_window_retries"],
             "invalid_beams": self.counts["invalid_beams"],
             "scans_deskewed": self.counts["scans_deskewed"],
             "mean_local_score": (self.counts["local_score_sum"] / max(1, self.counts["nodes"] - 1)
