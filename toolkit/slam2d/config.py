@@ -83,7 +83,7 @@ class LocalMatchingOptions(_Options):
     # +-0.2 m along its weakest direction lowers the match score by less than half of
     # ``degenerate_drop``, not at all above it, and only when the scan's surface normals
     # spread less than ``degenerate_spread`` (0: off). Featureless corridor benchmark:
-    # 3.5 m -> 0.036 m ATE; Killian: 37 of 3873 scans held, relations 0.0350 -> 0.0346 m
+    # 3.2 m -> 0.036 m ATE; Killian: 37 of 3873 scans held, relations 0.0350 -> 0.0346 m
     # (docs/slam2d.md).
     degenerate_drop: float = Field(0.04, ge=0)
     degenerate_spread: float = Field(0.003, ge=0, le=0.5)
