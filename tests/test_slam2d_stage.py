@@ -119,3 +119,15 @@ def test_stage_uses_a_calibrated_rig_over_the_sequences(tmp_path: Path,
         Slam2DStage(Slam2DStage.Config(stage="slam2d")).run(ctx)
         errors[name] = ctx.metrics["gt_ate_rmse_m"]
     assert errors["calibrated"] < 0.02 < 0.05 < errors["own"], errors
+
+
+def test_report_shows_what_the_slam_did_about_hard_input_only_when_it_happened():
+    from toolkit.slam2d.stage import _report
+
+    m = {"scans_used": 10, "nodes": 5, "submaps": 2, "loop_closures": 3,
+         "loop_closure_outliers": 1, "loop_closures_degenerate": 2, "odometry_used": True,
+         "degenerate_matches": 4, "scan_only_window_retries": 0}
+    text = _report("slam2d", m)
+    assert "| 3 (1; 2) |" in text
+    assert "| scans held to the odometry along a corridor | 4 |" in text
+    assert "full window" not in text  # no retries: no row

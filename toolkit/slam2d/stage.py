@@ -146,8 +146,17 @@ def _report(stage_id: str, m: dict) -> str:
             if n_odom is None else f"{n_odom} of the input scans with wheel odometry")
     rows = [("scans used", f"{m['scans_used']} ({odom})"),
             ("pose-graph nodes / submaps", f"{m['nodes']} / {m['submaps']}"),
-            ("loop closures (rejected as outliers)",
-             f"{m['loop_closures']} ({m.get('loop_closure_outliers', 0)})")]
+            ("loop closures (outliers in the graph; rejected: degenerate along a corridor)",
+             f"{m['loop_closures']} ({m.get('loop_closure_outliers', 0)}; "
+             f"{m.get('loop_closures_degenerate', 0)})")]
+    # What the SLAM did about hard input, shown only when it happened.
+    for key, label in (("degenerate_matches", "scans held to the odometry along a corridor"),
+                       ("scan_only_window_retries",
+                        "scan-only matches searched again with the full window"),
+                       ("submaps_search_bounded", "submaps at their closure-search bound"),
+                       ("nodes_stationary", "nodes added standing still (not searched)")):
+        if m.get(key):
+            rows.append((label, str(m[key])))
     if m.get("realtime_factor") is not None:
         rows.append(("speed", f"{m['realtime_factor']:.1f}x real time "
                               f"({m['wall_time_s']:.1f} s for {m['log_duration_s']:.1f} s of log)"))
