@@ -111,7 +111,10 @@ def _mid_sweep_to_stamp(stamps: np.ndarray, sweep: np.ndarray, poses: np.ndarray
         return out
     t_mid = stamps + sweep / 2  # [S]
     step = se2_between(poses[:-1], poses[1:])  # [S-1, 3]
-    vel = step / np.diff(t_mid)[:, None]  # [S-1, 3] per second, in the earlier frame
+    # At least the usual spacing: a stamp glitched early would make a velocity of ten
+    # times the real one from a tenth of the time (the sweep is timed by its beams).
+    dt = np.diff(t_mid)  # [S-1]
+    vel = step / np.maximum(dt, np.median(dt))[:, None]  # [S-1, 3] per second, earlier frame
     centre = (t_mid[:-1] + t_mid[1:]) / 2  # [S-1] time each velocity holds at
     k = np.flatnonzero(sweep != 0)
     t = stamps[k] + sweep[k] / 4  # [K] the middle of the half sweep to undo
