@@ -101,3 +101,19 @@ def test_rejects_bad_intrinsics():
         PinholeCamera(640, 480, 0.0, 500, 320, 240)
     with pytest.raises(ValueError, match="size"):
         PinholeCamera(0, 480, 500, 500, 320, 240)
+
+
+def test_projection_and_transforms_refuse_points_of_the_wrong_shape():
+    from toolkit.eval.geometry import geometry_metrics
+    from toolkit.geometry import transform_points
+
+    cam = PinholeCamera(100, 80, 100.0, 100.0, 50.0, 40.0)
+    pts = np.array([[0.1, 0.2, 2.0], [0.0, 0.0, 1.0], [0.3, -0.1, 3.0]])
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        cam.project(pts[:, :2])  # a scan's [N, 2] laser points
+    with pytest.raises(ValueError, match="4x4"):
+        transform_points(np.eye(4), pts[:, :2])
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        geometry_metrics(pts.T[:, :2], pts)  # [3, N]
+    uv, z = cam.project(pts)
+    assert uv.shape == (3, 2) and np.allclose(z, pts[:, 2])

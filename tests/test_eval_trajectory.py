@@ -111,3 +111,17 @@ def test_per_axis_heading_error_is_yaw_for_optical_cameras():
     est = ref.transform(T_left=se3(Rotation.from_euler("z", 1, degrees=True).as_matrix()))
     e = per_axis_errors(est.transform(), ref)
     assert e["yaw_rmse_deg"] == pytest.approx(1.0) and e["pitch_rmse_deg"] < 1e-9
+
+
+def test_trajectory_report_refuses_poses_of_different_bodies():
+    from toolkit.eval.trajectory import trajectory_report
+    from toolkit.geometry import Trajectory
+
+    st = np.arange(10.0)
+    P = np.tile(np.eye(4), (10, 1, 1))
+    P[:, 0, 3] = st
+    base = Trajectory(st, P, "world", "base_link")
+    cam = Trajectory(st, P, "world", "camera")
+    with pytest.raises(ValueError, match="same body"):
+        trajectory_report(cam, base)
+    assert trajectory_report(base, base)["ate_rmse_m"] < 1e-9

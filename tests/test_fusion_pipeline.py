@@ -220,3 +220,41 @@ def test_carve_views_on_disk_match_memory_and_restore(tmp_path: Path) -> None:
     old = CarveViews(tmp_path / "w")
     old.restore(list(views.items()))
     assert [i for i, _ in old] == [0, 5, 10]
+
+
+def test_library_calls_refuse_inputs_that_would_give_silent_wrong_results(box_room: Path) -> None:
+    from dataclasses import replace
+
+    from toolkit.depth.protocol import DepthPrediction
+    from toolkit.geometry import Trajectory
+
+    seq = read_sequence(box_room)
+    base = seq.groundtruth.poses_base
+    cam = Trajectory(base.stamps, base.poses @ seq.rig.T_base_camera, "world", "camera")
+    with pytest.raises(ValueError, match="T_world_base"):
+        pose_arrays(seq, cam)  # camera poses taken as the base's: the map floats 0.2 m up
+    with pytest.raises(TypeError, match="Trajectory"):
+        pose_arrays(seq, base.poses)  # type: ignore[arg-type]
+    fp, sp, _ = pose_arrays(seq, base)
+    swept = replace(seq, scans=[replace(s, time_increment=1e-4) for s in seq.scans])
+    with pytest.raises(ValueError, match="deskew_sequence"):
+        Fusion(swept, FusionConfig(), fp, sp)
+    fu = Fusion(seq, FusionConfig(), fp, sp)
+    half = DepthPrediction(np.ones((60, 80), np.float32), "relative_depth")
+    with pytest.raises(ValueError, match="resize"):
+        fu.frame_pairs(0, half)
+
+
+def test_a_subset_of_frames_still_gets_carving_views(box_room: Path) -> None:
+    """Frames 1, 6, 11, 16 (none a multiple of carve_every 5, two of consensus_every 2):
+    one carving view per block of five frame indices and every frame in the consensus,
+    not none and half."""
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    fu = Fusion(seq, FusionConfig(scale="none", consensus=True, consensus_every=2), fp, sp)
+    for i in (1, 6, 11, 16):
+        d = gt.depth(i)
+        fu.integrate(i, np.where(d > 0, d, np.nan), seq.frames[i].image)
+    assert fu.views.indices == [1, 6, 11, 16]
+    assert fu.consensus is not None and fu.consensus.frames == 4

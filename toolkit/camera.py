@@ -149,7 +149,11 @@ class PinholeCamera:
 
         Points with z <= 0 get NaN pixels; check ``in_image`` before indexing.
         """
-        P = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        P = np.asarray(points_cam, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise ValueError(f"points_cam must be [N, 3] camera-frame points, got shape "
+                             f"{P.shape} (a scan's points() are [N, 2] in the laser frame: "
+                             f"transform_points(rig.T_camera_laser, scan.points_3d()))")
         z = P[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = P[:, :2] / z[:, None]

@@ -1,6 +1,6 @@
 """Rigid and similarity transforms, pose interpolation and trajectory alignment.
 
-Conventions (ARCHITECTURE.md): ``T_a_b`` maps points from frame b into frame a,
+Conventions (README, "Conventions"): ``T_a_b`` maps points from frame b into frame a,
 stored as 4x4 float64 (3x3 for SE(2)); quaternions are scipy's xyzw, as in TUM files.
 Rotation maths goes through ``scipy.spatial.transform`` rather than hand-written code.
 """
@@ -49,7 +49,12 @@ def compose(*Ts: np.ndarray) -> np.ndarray:
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply [4, 4] ``T`` to points [N, 3] (or [N, 2] with a [3, 3] SE(2) ``T``)."""
     points = np.asarray(points, dtype=np.float64)
+    T = np.asarray(T, dtype=np.float64)
     d = points.shape[-1]
+    if T.shape != (d + 1, d + 1):
+        raise ValueError(f"a {T.shape[0]}x{T.shape[1]} transform for points of {d} "
+                         f"coordinates: give [N, 3] points with a 4x4 transform or [N, 2] "
+                         f"with a 3x3 one")
     return points @ T[:d, :d].T + T[:d, d]
 
 

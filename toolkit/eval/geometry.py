@@ -18,7 +18,12 @@ DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.10)
 
 def sample_mesh(mesh: Any, spacing_m: float = 0.01, seed: int = 0,
                 max_points: int = 2_000_000) -> np.ndarray:
-    """[N, 3] points uniformly on an Open3D TriangleMesh, about one per ``spacing_m``^2."""
+    """[N, 3] points uniformly on an Open3D TriangleMesh, about one per ``spacing_m``^2
+    but at most ``max_points`` (a 2 M cap: spacing grows on large meshes).
+
+    The whole mesh: a map is only complete where the cameras looked, so the reports'
+    completeness and F-scores use ``toolkit.baselines.common.observed_reference`` (the
+    samples the cameras saw) instead."""
     import open3d as o3d
 
     area = mesh.get_surface_area()
@@ -61,8 +66,10 @@ def geometry_metrics(
     it, so that completeness and recall see every point (a subsample's gaps would make a
     denser map look less complete).
     """
-    recon = np.asarray(recon, dtype=np.float64).reshape(-1, 3)
-    reference = np.asarray(reference, dtype=np.float64).reshape(-1, 3)
+    recon, reference = np.asarray(recon, np.float64), np.asarray(reference, np.float64)
+    for name, a in (("recon", recon), ("reference", reference)):
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"{name} must be [N, 3] points, got shape {a.shape}")
     if len(recon) == 0 or len(reference) == 0:
         raise ValueError(f"need points on both sides, got {len(recon)} reconstructed and "
                          f"{len(reference)} reference points")

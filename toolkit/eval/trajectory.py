@@ -176,8 +176,15 @@ def per_axis_errors(est_aligned: Trajectory, ref: Trajectory) -> dict[str, float
 
 
 def trajectory_report(est: Trajectory, ref: Trajectory, align: str = "se3",
-                      max_diff: float = 0.01) -> dict[str, float]:
-    """ATE, rotation APE and Table-I columns after association and alignment, as a flat dict."""
+                      max_diff: float = 0.01) -> dict[str, float | str]:
+    """ATE, rotation APE and Table-I columns after association and alignment, as a flat dict
+    (figures in float, ``alignment`` the method). Both must hold the same body's poses
+    (``child``): a camera trajectory against the base's ground truth is refused."""
+    if est.child != ref.child:
+        raise ValueError(
+            f"the estimate holds {est.child} poses, the reference {ref.child} poses: compare "
+            f"the same body (move one with the rig, e.g. T_world_camera = T_world_base @ "
+            f"rig.T_base_camera)")
     e, r = synced(est, ref, max_diff)
     stats, aligned = ape(e, r, align, "trans")
     rot, _ = ape(e, r, align, "rot")

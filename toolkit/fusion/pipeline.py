@@ -38,7 +38,7 @@ from toolkit.fusion.projection import (
 from toolkit.fusion.refine import DepthRefiner, Refinement, RefineOptions
 from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, smooth_scales
 from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
-from toolkit.geometry import inv_se3
+from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
 from toolkit.sensors import Sequence
 
@@ -227,14 +227,31 @@ class FramePairs:
         return self.visible if self.covisible is None else self.covisible
 
 
-def pose_arrays(seq: Sequence, T_world_base: object) -> tuple[np.ndarray, np.ndarray,
-                                                                np.ndarray]:
+def _first_of_block(last: int | None, index: int, every: int) -> bool:
+    """Whether frame ``index`` is the first fused of its block of ``every`` frame indices
+    (``last``: the one taken before). With every frame fused in order that is every
+    ``every``-th (index 0, 5, 10, ...); with a caller's subset (81, 86, ...) still one per
+    block, where ``index % every == 0`` would take none."""
+    return last is None or last // every != index // every
+
+
+def pose_arrays(seq: Sequence, T_world_base: Trajectory) -> tuple[np.ndarray, np.ndarray,
+                                                                   np.ndarray]:
     """``T_world_base`` at every frame [F, 4, 4] and scan [S, 4, 4] stamp, plus [F] bool of
     frames inside the trajectory's time span and not in a gap of it (others have no
-    trustworthy pose: ``Trajectory.covers``)."""
-    from toolkit.geometry import Trajectory
+    trustworthy pose: ``Trajectory.covers``).
 
-    traj: Trajectory = T_world_base  # type: ignore[assignment]
+    The trajectory must hold the robot base's poses (``child`` "base_link", as the slam2d
+    stage's ``trajectory_base.tum`` and a sequence's ground truth), not the camera's."""
+    traj = T_world_base
+    if not isinstance(traj, Trajectory):
+        raise TypeError(f"T_world_base must be a toolkit.geometry.Trajectory, not "
+                        f"{type(traj).__name__} (read a file with toolkit.io.tum.read_tum)")
+    if traj.child != "base_link":
+        raise ValueError(
+            f"the trajectory holds T_{traj.frame}_{traj.child}, the fusion needs the robot "
+            f"base's (T_world_base_link: the slam2d stage's trajectory_base.tum); from camera "
+            f"poses: T_world_base = T_world_camera @ inv(rig.T_base_camera)")
     t0, t1 = traj.stamps[0], traj.stamps[-1]
     fs = seq.frame_stamps
     inside = traj.covers(fs, slack_s=0.05)
@@ -249,7 +266,10 @@ class Fusion:
 
     def __init__(self, seq: Sequence, config: FusionConfig, frame_poses: np.ndarray,
                  scan_poses: np.ndarray, views_dir: Path | None = None) -> None:
-        """``views_dir``: where the carving views wait for ``finish`` (None: in memory)."""
+        """``frame_poses`` [F, 4, 4] / ``scan_poses`` [S, 4, 4]: ``T_world_base`` at the
+        frame and scan stamps (``pose_arrays``); the sequence's scans de-skewed if they carry
+        per-beam timing (``toolkit.deskew.deskew_sequence``). ``views_dir``: where the
+        carving views wait for ``finish`` (None: in memory)."""
         self.seq = seq
         self.cfg = config
         self.camera = seq.rig.camera
@@ -278,6 +298,7 @@ class Fusion:
         self.beam_dynamic: list[np.ndarray] = []
         self._dyn_xy: list[np.ndarray] = []
         self.points_masked_dynamic = 0
+        self._consensus_last: int | None = None  # frame last integrated into the consensus
         if config.dynamic_removal and config.lidar_dynamic and len(seq.scans):
             T_wl = scan_poses @ seq.rig.T_base_laser
             self.beam_dynamic = dynamic_beams(seq.scans, T_wl)
@@ -298,6 +319,13 @@ class Fusion:
 
     # ------------------------------------------------------------------ scale
     def frame_pairs(self, index: int, pred: DepthPrediction) -> FramePairs:
+        """The lidar pairs of frame ``index`` with the prediction ``pred`` (at the image's
+        resolution) and its scale estimate."""
+        shape = (self.camera.height, self.camera.width)
+        if pred.values.shape != shape:
+            raise ValueError(f"frame {index}: prediction of {pred.values.shape[1]}x"
+                             f"{pred.values.shape[0]}, the camera's images are {shape[1]}x"
+                             f"{shape[0]}: resize it to the image (the depth backends do)")
         lidar = zbuffer_lidar(self.projector.project_frame(index), pred.values.shape)
         d = sample_depth(pred.values, lidar)
         c = self.cfg
@@ -392,11 +420,14 @@ class Fusion:
             # weight the nearer, more accurate views had at the plain stride.
             w = np.where(z < o.near_depth_m, (o.near_stride // o.stride) ** 2, 1)
         self.map.integrate(pts, col, index, lab, z, w)
-        if self.consensus is not None and index % self.cfg.consensus_every == 0:
+        if self.consensus is not None and _first_of_block(
+                self._consensus_last, index, self.cfg.consensus_every):
             self.consensus.integrate(depth, self.T_world_camera(index),
                                      ok if drop is None else ok & ~drop)
-        if self.cfg.dynamic_removal and self.cfg.carve_with_depth and (
-                index % self.cfg.carve_every == 0):
+            self._consensus_last = index
+        if self.cfg.dynamic_removal and self.cfg.carve_with_depth and _first_of_block(
+                self.views.indices[-1] if self.views.indices else None, index,
+                self.cfg.carve_every):
             s = self.rays.stride
             view = np.where(ok[::s, ::s], depth[::s, ::s], np.nan).astype(np.float16)
             self.views.add(index, view)
@@ -407,18 +438,25 @@ class Fusion:
         pickled: ``restore`` on a fusion of the same settings continues from it."""
         return {"map": self.map, "views": self.views.state(),
                 "points_masked_dynamic": self.points_masked_dynamic,
-                "consensus": None if self.consensus is None else self.consensus.state()}
+                "consensus": None if self.consensus is None else self.consensus.state(),
+                "consensus_last": self._consensus_last}
 
     def restore(self, state: dict[str, object]) -> None:
         self.map = state["map"]  # type: ignore[assignment]
         self.views.restore(state["views"])  # type: ignore[arg-type]
         self.points_masked_dynamic = int(state["points_masked_dynamic"])  # type: ignore
+        self._consensus_last = state.get("consensus_last")  # type: ignore[assignment]
         if self.consensus is not None and state["consensus"] is not None:
             self.consensus.restore(state["consensus"])  # type: ignore[arg-type]
 
     def finish(self) -> tuple[MapArrays, dict[str, np.ndarray]]:
-        """The final map and per-voxel masks ``dynamic``, ``consensus`` and ``outlier`` (of
-        the raw map)."""
+        """(raw map, per-voxel masks of it). The map to keep is ``raw.select(masks["keep"])``
+        (what the fuse stage writes): not on a moving obstacle, near the multi-view
+        surface when ``consensus`` is on, not a statistical outlier. Masks [V] bool:
+        ``keep``, ``dynamic`` (removed as moving: lidar-detected or carved), ``consensus``
+        (removed: off the consensus surface), ``outlier``; with ``dynamic_removal`` also
+        ``carved`` (seen through by later views) and ``free_views`` / ``hit_views`` [V] int
+        (views that saw through / hit each voxel's carving cell)."""
         raw = self.map.arrays(min_frames=self.cfg.min_voxel_frames)
         masks = {k: np.zeros(len(raw), bool) for k in ("dynamic", "consensus", "outlier")}
         c = self.cfg
