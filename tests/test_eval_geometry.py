@@ -51,3 +51,21 @@ def test_exact_accuracy_against_mesh():
     box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
     pts = np.array([[0.5, 0.5, 1.03], [0.5, 0.5, 0.5], [2.0, 0.5, 0.5]])
     assert np.allclose(mesh_distances(pts, box), [0.03, 0.5, 1.0], atol=1e-6)
+
+
+def test_mesh_functions_take_a_path_or_a_mesh(tmp_path):
+    import open3d as o3d
+
+    from toolkit.eval.geometry import mesh_distances, sample_mesh
+
+    box = o3d.geometry.TriangleMesh.create_box(1.0, 1.0, 1.0)
+    path = tmp_path / "box.ply"
+    o3d.io.write_triangle_mesh(str(path), box)
+    q = np.array([[0.5, 0.5, 2.0]])
+    assert mesh_distances(q, path) == pytest.approx([1.0], abs=1e-5)
+    assert mesh_distances(q, box) == pytest.approx([1.0], abs=1e-5)
+    assert len(sample_mesh(str(path), 0.1)) >= 600  # 6 m^2 at one per 0.01 m^2
+    with pytest.raises(TypeError, match="TriangleMesh"):
+        mesh_distances(q, np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="no triangles"):
+        sample_mesh(tmp_path / "missing.ply")

@@ -8,12 +8,28 @@ from the ground-truth mesh (``sample_mesh``) so both directions are point-to-poi
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.10)
+
+
+def load_mesh(mesh: Any) -> Any:
+    """An Open3D TriangleMesh as given, or read from a path (PLY, OBJ, ...)."""
+    import open3d as o3d
+
+    if isinstance(mesh, str | Path):
+        path = Path(mesh)
+        mesh = o3d.io.read_triangle_mesh(str(path))
+        if len(mesh.triangles) == 0:
+            raise ValueError(f"{path}: no triangles (missing or not a mesh)")
+    elif not isinstance(mesh, o3d.geometry.TriangleMesh):
+        raise TypeError(f"mesh must be an Open3D TriangleMesh or a path to one, not "
+                        f"{type(mesh).__name__}")
+    return mesh
 
 
 def sample_mesh(mesh: Any, spacing_m: float = 0.01, seed: int = 0,
@@ -26,6 +42,7 @@ def sample_mesh(mesh: Any, spacing_m: float = 0.01, seed: int = 0,
     samples the cameras saw) instead."""
     import open3d as o3d
 
+    mesh = load_mesh(mesh)
     area = mesh.get_surface_area()
     n = int(min(max_points, max(1000, area / spacing_m**2)))
     o3d.utility.random.seed(seed)
@@ -33,11 +50,12 @@ def sample_mesh(mesh: Any, spacing_m: float = 0.01, seed: int = 0,
 
 
 def mesh_distances(points: np.ndarray, mesh: Any) -> np.ndarray:
-    """[N] exact distance from each point [N, 3] to the surface of an Open3D TriangleMesh."""
+    """[N] exact distance from each point [N, 3] to the surface of an Open3D TriangleMesh
+    (or a path to one)."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(load_mesh(mesh)))
     q = o3d.core.Tensor(np.asarray(points, dtype=np.float32))
     return scene.compute_distance(q).numpy().astype(np.float64)
 

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from toolkit.eval.geometry import load_mesh
 
 
 class MeshDistance:
@@ -14,13 +15,8 @@ class MeshDistance:
     def __init__(self, mesh: Any) -> None:
         import open3d as o3d
 
-        if isinstance(mesh, str | Path):
-            path = Path(mesh)
-            mesh = o3d.io.read_triangle_mesh(str(path))
-            if len(mesh.triangles) == 0:
-                raise ValueError(f"{path}: no triangles (missing or not a mesh)")
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(load_mesh(mesh)))
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """[N] metres from points [N, 3] to the nearest surface."""
