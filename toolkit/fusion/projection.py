@@ -93,7 +93,7 @@ class LidarProjector:
                                         or len(scan_poses) != len(sequence.scans)):
             raise ValueError(f"{len(frame_poses)} frame poses / {len(scan_poses)} scan poses for "
                              f"{len(sequence.frames)} frames / {len(sequence.scans)} scans")
-        swept = sum(s.time_increment != 0 for s in sequence.scans)
+        swept = sum(s.time_increment != 0 and len(s) > 1 for s in sequence.scans)
         if swept:
             # Each beam was measured at its own time; projected as one instant, the scans
             # of a moving robot land centimetres off (5 cm median on a 5 Hz simulated run).
