@@ -502,7 +502,7 @@ def test_scan_only_window_ignores_a_stamp_glitched_early():
     assert slam.metrics()["scan_only_window_retries"] == 0
 
 
-def _turn_on_the_spot(deg_per_scan: float, stamps: np.ndarray) -> tuple[np.ndarray, dict]:
+def _turn_on_the_spot(deg_per_scan: float, stamps: np.ndarray) -> tuple[float, dict]:
     """Largest heading error [deg] of a scan-only robot turning on the spot by
     ``deg_per_scan`` between scans stamped ``stamps`` after standing there for 25 scans
     (the full window is searched until 20 scores are known), and the metrics."""
@@ -513,7 +513,7 @@ def _turn_on_the_spot(deg_per_scan: float, stamps: np.ndarray) -> tuple[np.ndarr
         slam.add_scan(make_scan(np.array([6.0, 1.5, a]), float(t)), None)
     res = slam.finish()
     err = np.degrees(np.abs(np.angle(np.exp(1j * (res.poses[:, 2] - th)))))
-    return err.max(), res.metrics
+    return float(err.max()), res.metrics
 
 
 def test_scan_only_turn_faster_than_the_bound_is_searched_again_with_the_full_window():
