@@ -125,3 +125,17 @@ def test_trajectory_report_refuses_poses_of_different_bodies():
     with pytest.raises(ValueError, match="same body"):
         trajectory_report(cam, base)
     assert trajectory_report(base, base)["ate_rmse_m"] < 1e-9
+
+
+def test_ground_truth_camera_poses_are_labelled_as_the_camera(tmp_path):
+    from toolkit.eval.alignment import ground_truth_camera
+    from toolkit.eval.trajectory import trajectory_report
+    from toolkit.fusion.synthetic import write_box_room
+    from toolkit.io.sequence import read_sequence
+
+    seq = read_sequence(write_box_room(tmp_path / "seq", n_frames=6))
+    cam = ground_truth_camera(seq, seq.frame_stamps)
+    assert cam.child == "camera"
+    assert np.allclose(cam.poses[0], seq.groundtruth.poses_base.interpolate(
+        seq.frame_stamps[:1]).poses[0] @ seq.rig.T_base_camera)
+    assert trajectory_report(cam, cam)["ate_rmse_m"] < 1e-9

@@ -19,7 +19,9 @@ def ground_truth_camera(seq: Sequence, stamps: np.ndarray,
                         extrapolate_s: float = 0.05) -> Trajectory:
     """T_world_camera from the sequence's ground-truth base poses at ``stamps``."""
     gt = seq.groundtruth.poses_base.interpolate(stamps, extrapolate_s=extrapolate_s)
-    return gt.transform(T_right=seq.rig.T_base_camera)
+    cam = gt.transform(T_right=seq.rig.T_base_camera)
+    cam.child = "camera"  # what the poses now hold (trajectory_report compares children)
+    return cam
 
 
 def map_to_world(seq: Sequence, stamps: np.ndarray, T_map_camera: np.ndarray,
