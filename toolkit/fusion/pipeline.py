@@ -251,7 +251,9 @@ def pose_arrays(seq: Sequence, T_world_base: Trajectory) -> tuple[np.ndarray, np
         raise ValueError(
             f"the trajectory holds T_{traj.frame}_{traj.child}, the fusion needs the robot "
             f"base's (T_world_base_link: the slam2d stage's trajectory_base.tum); from camera "
-            f"poses: T_world_base = T_world_camera @ inv(rig.T_base_camera)")
+            f"poses: T_world_base = T_world_camera @ inv(rig.T_base_camera); if these are the "
+            f"base's poses under another name, set child='base_link' (a TUM file's header "
+            f"'# T_world_base_link')")
     t0, t1 = traj.stamps[0], traj.stamps[-1]
     fs = seq.frame_stamps
     inside = traj.covers(fs, slack_s=0.05)
