@@ -97,6 +97,11 @@ def deskew_scan(scan: LaserScan, motion: np.ndarray) -> LaserScan:
     return replace(done, ranges=out, intensities=inten)
 
 
+def is_swept(scan: LaserScan) -> bool:
+    """Whether the scan's beams carry their own times (``deskew_scans`` de-skews it)."""
+    return scan.time_increment != 0 and len(scan) > 1
+
+
 def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndarray,
                  covered_only: bool = False) -> list[LaserScan]:
     """Every scan with per-beam timing de-skewed with the motion of ``traj`` (T_base in
@@ -104,7 +109,7 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
     are. Sweeps reaching outside the trajectory take its end poses (no motion there), or
     with ``covered_only`` keep their timing for someone else to de-skew."""
     lo, hi = (traj.stamps[0], traj.stamps[-1]) if len(traj) else (np.inf, -np.inf)
-    timed = [k for k, s in enumerate(scans) if s.time_increment != 0 and len(s) > 1
+    timed = [k for k, s in enumerate(scans) if is_swept(s)
              and (not covered_only or (lo <= min(s.stamp, s.stamp + s.sweep_s)
                                        and max(s.stamp, s.stamp + s.sweep_s) <= hi))]
     if not timed or not len(traj):

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.deskew import is_swept
 from toolkit.geometry import inv_se3, transform_points
 from toolkit.sensors import LaserScan, Sequence
 
@@ -93,7 +94,7 @@ class LidarProjector:
                                         or len(scan_poses) != len(sequence.scans)):
             raise ValueError(f"{len(frame_poses)} frame poses / {len(scan_poses)} scan poses for "
                              f"{len(sequence.frames)} frames / {len(sequence.scans)} scans")
-        swept = sum(s.time_increment != 0 and len(s) > 1 for s in sequence.scans)
+        swept = sum(is_swept(s) for s in sequence.scans)
         if swept:
             # Each beam was measured at its own time; projected as one instant, the scans
             # of a moving robot land centimetres off (5 cm median on a 5 Hz simulated run).

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from toolkit.geometry import se2_between, se2_compose
+from toolkit.geometry import se2_between, se2_compose, se2_to_matrix, transform_points
 from toolkit.slam2d.config import LoopClosureOptions
 from toolkit.slam2d.matcher import (
     correlative_search,
@@ -152,10 +152,9 @@ class LoopCloser:
         if node.spread < self.options.degenerate_spread:
             return node.spread
         g = submap.grid
-        c, s = np.cos(pose[2]), np.sin(pose[2])
         hits = node.hits.astype(np.float64)
-        world = hits @ np.array([[c, s], [-s, c]]) + pose[:2]  # [N, 2] grid frame
-        val, _ = interpolate(field, g.origin, g.resolution, world)
+        at_pose = transform_points(se2_to_matrix(*pose), hits)  # [N, 2] grid frame
+        val, _ = interpolate(field, g.origin, g.resolution, at_pose)
         on_wall = val > 0.5 * (g.p_min + g.p_max)  # [N]
         if on_wall.all():
             return node.spread

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from toolkit.geometry import se2_to_matrix, transform_points
+
 
 @dataclass
 class SearchResult:
@@ -358,9 +360,7 @@ def weak_direction(prob: np.ndarray, origin: np.ndarray, resolution: float,
     whose ripple reads as curvature along a featureless corridor (one at 27 deg to the
     grid read as held, and none of its closures was rejected).
     """
-    pts = np.asarray(points, dtype=np.float64)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    wpts = pts @ np.array([[c, s], [-s, c]]) + np.asarray(pose[:2], np.float64)  # [N, 2]
+    wpts = transform_points(se2_to_matrix(*pose), points)  # [N, 2]
     a = np.arange(directions) * np.pi / directions
     axes = np.stack([np.cos(a), np.sin(a)], -1)  # [D, 2] half circle: +- covers the rest
     offs = np.concatenate([np.zeros((1, 2)), probe * axes, -probe * axes])  # [2D + 1, 2]

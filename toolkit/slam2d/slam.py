@@ -29,8 +29,10 @@ from toolkit.geometry import (
     se2_between,
     se2_compose,
     se2_inverse,
+    se2_to_matrix,
     se2_to_se3,
     se3_to_se2,
+    transform_points,
     wrap_angle,
 )
 from toolkit.sensors import LaserScan
@@ -95,8 +97,7 @@ class SlamResult:
 
 def _se2_apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """[N, 2] ``points`` moved by ``pose`` (x, y, theta)."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    return points @ np.array([[c, s], [-s, c]]) + pose[:2]
+    return transform_points(se2_to_matrix(*pose), points)
 
 
 def _mid_sweep_to_stamp(stamps: np.ndarray, sweep: np.ndarray, poses: np.ndarray) -> (
