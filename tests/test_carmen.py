@@ -84,6 +84,13 @@ def test_bad_line_names_file_and_line(tmp_path: Path):
         read_carmen(path)
 
 
+def test_scan_without_beams_is_a_line_error(tmp_path: Path):
+    path = tmp_path / "empty.log"
+    path.write_text(FLASER + "FLASER 0 0 0 0 0 0 0 13.0 host 13.1\n")
+    with pytest.raises(CarmenFormatError, match=r"empty.log:2: bad FLASER line: 0 beams"):
+        read_carmen(path)
+
+
 def test_read_g2o_odometry_chain(tmp_path: Path):
     lines = [
         "VERTEX_SE2 0 5.0 5.0 1.0",  # corrected poses: must not leak into odometry

@@ -604,3 +604,143 @@ def test_beam_timing_needs_first_beam_stamps(tmp_path, fmt, caplog):
         rec = read_rosbag(bag, RosbagOptions(stamps="bag"))
     assert all(s.time_increment == 0 for s in rec.scans)
     assert "not its first beam's time" in caplog.text and rec.meta["beam_timing"] == "ignored"
+
+
+# ---------------------------------------------------------------------------- what a user's
+# bag gets wrong: clocks, another camera's topics, conventions, broken messages
+
+
+def _shifted(messages, topic: str, dt: float):
+    """``messages`` with the header stamps of ``topic`` moved by ``dt`` seconds (a driver on
+    another clock); the recording times stay."""
+    b = BagBuilder(True)
+    out = []
+    for top, msgtype, t, msg in messages:
+        if top == topic:
+            st = msg.header.stamp
+            t_new = st.sec + st.nanosec * 1e-9 + dt
+            msg.header.stamp = b.T["builtin_interfaces/msg/Time"](
+                sec=int(ns(t_new) // 10**9), nanosec=int(ns(t_new) % 10**9))
+        out.append((top, msgtype, t, msg))
+    return out
+
+
+def test_drivers_on_different_clocks_are_refused(tmp_path):
+    c = make_content()
+    b = BagBuilder(True)
+    # The lidar stamps in TAI (UTC + 37 s): every frame would be paired with a scan taken
+    # 37 s away, or dropped.
+    bag = write_bag(tmp_path / "tai", "ros1",
+                    _shifted(standard_messages(b, c, odom=False), "/scan", 37.0))
+    with pytest.raises(BagError, match=r"different clocks.*\+36\.99.*-0\.030.*rosbag.stamps: bag"):
+        read_rosbag(bag)
+    rec = read_rosbag(bag, RosbagOptions(stamps="bag"))
+    assert len(rec.scans) == len(c.scan_t)
+    # A topic that really reached the recorder late may switch the check off.
+    rec = read_rosbag(bag, RosbagOptions(max_clock_offset_s=None))
+    assert rec.scans[0].stamp == pytest.approx(c.scan_t[0] + 37.0)
+
+
+def test_odometry_on_another_clock_is_refused(tmp_path):
+    c = make_content()
+    c.odom_t = [t - T0 + 100.0 for t in c.odom_t]  # seconds since the base's MCU booted
+    bag, _ = make_bag(tmp_path, "ros1", c)  # (recorded at those times too)
+    with pytest.raises(BagError, match=r"/odom.*covers none of the scans.*odometry: none"):
+        read_rosbag(bag)
+
+
+def test_camera_info_of_another_camera_is_not_used(tmp_path):
+    c = make_content()
+    b = BagBuilder(True)
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/camera/color/camera_info"]
+    msgs.append(("/camera/depth/camera_info", INFO_T, c.image_t[0],
+                 b.camera_info(c.image_t[0], frame="camera_depth_optical_frame")))
+    bag = write_bag(tmp_path / "other_info", "ros1", sorted(msgs, key=lambda m: m[2]))
+    with pytest.raises(BagError, match=r"no sensor_msgs/CameraInfo.*camera_depth_optical_frame"
+                       r".*rosbag.topics.camera_info"):
+        read_rosbag(bag)
+    rec = read_rosbag(bag, RosbagOptions(topics={"camera_info": "/camera/depth/camera_info"}))
+    assert np.array_equal(rec.rig.camera.K, K)
+
+
+def test_depth_of_another_optical_frame_is_not_reference_depth(tmp_path):
+    c = make_content()
+    b = BagBuilder(True)
+    msgs = standard_messages(b, c, depth=False)
+    for t, d in zip(c.depth_t, c.depth_mm, strict=True):  # unregistered: the depth camera's
+        msgs.append(("/camera/depth/image_rect_raw", IMAGE_T, t + 0.035,
+                     b.image(t, d, "16UC1", frame="camera_depth_optical_frame")))
+    bag = write_bag(tmp_path / "unregistered", "ros1", sorted(msgs, key=lambda m: m[2]))
+    rec = read_rosbag(bag)
+    assert rec.depth_stamps is None and "depth" not in rec.meta["topics"]
+
+
+def test_empty_scan_messages_are_dropouts(tmp_path):
+    c = make_content()
+    b = BagBuilder(True)
+    msgs = standard_messages(b, c)
+    empty = b.scan(c.scan_t[5] + 0.05, np.zeros(0, np.float32), np.zeros(0, np.float32))
+    empty.angle_increment = 0.0  # a default-constructed message
+    msgs.append(("/scan", SCAN_T, c.scan_t[5] + 0.054, empty))
+    bag = write_bag(tmp_path / "dropout", "ros1", sorted(msgs, key=lambda m: m[2]))
+    convert(read_rosbag(bag), tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert len(seq.scans) == len(c.scan_t) + 1
+    assert not seq.scans[6].valid_mask().any()
+
+
+def test_empty_compressed_image_is_a_bag_error(tmp_path):
+    c = make_content()
+    b = BagBuilder(True)
+    msgs = standard_messages(b, c, image="compressed", depth=False)
+    msgs = [(t, m, s, b.compressed(s - 0.03, b"", "rgb8; png compressed bgr8"))
+            if t.endswith("/compressed") and abs(s - 0.03 - c.image_t[3]) < 1e-9 else (t, m, s, x)
+            for t, m, s, x in msgs]
+    bag = write_bag(tmp_path / "empty_image", "ros1", msgs)
+    with pytest.raises(BagError, match=r"/compressed.*0 bytes.*does not decode"):
+        convert(read_rosbag(bag), tmp_path / "seq")
+
+
+def test_folder_of_ros1_bags_asks_for_the_list(tmp_path):
+    folder = tmp_path / "recording"
+    folder.mkdir()
+    make_bag(folder, "ros1", name="run_0")
+    make_bag(folder, "ros1", name="run_1")
+    with pytest.raises(BagError, match=r"(?s)folder of ROS 1 bags.*run_0.bag.*run_1.bag"):
+        read_rosbag(folder)
+
+
+def test_rectified_images_use_the_rectified_frame(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    c = make_content()
+    b = BagBuilder(True)
+    R = Rotation.from_euler("xyz", [0.01, -0.04, 0.02]).as_matrix()  # X_rect = R @ X_camera
+    msgs = []
+    for top, msgtype, t, msg in standard_messages(b, c, depth=False):
+        if top == "/camera/color/camera_info":
+            msg.R = R.reshape(-1)
+        msgs.append((top.replace("image_raw", "image_rect"), msgtype, t, msg))
+    bag = write_bag(tmp_path / "rect", "ros1", msgs)
+    rec = read_rosbag(bag)
+    assert rec.meta["rectified_images"] is True
+    T_rect = np.eye(4)
+    T_rect[:3, :3] = R.T
+    np.testing.assert_allclose(rec.rig.T_base_camera, T_BASE_CAMLINK @ T_CAMLINK_OPT @ T_rect,
+                               atol=1e-12)
+
+
+def test_camera_frame_in_the_wrong_convention_is_warned(tmp_path, caplog):
+    bag, _ = make_bag(tmp_path, "ros1", depth=False)
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        read_rosbag(bag)
+    assert "convention" not in caplog.text
+    # camera_link (x forward, pitched down) read as an optical frame looks up and sideways.
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        read_rosbag(bag, RosbagOptions(frames={"camera": "camera_link"}))
+    assert "camera_convention: body" in caplog.text
+    caplog.clear()
+    # An optical frame read as a body frame.
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        read_rosbag(bag, RosbagOptions(frames={"camera_convention": "body"}))
+    assert "camera_convention: optical" in caplog.text

@@ -161,6 +161,12 @@ def test_carmen_log_is_a_lidar_only_sequence(tmp_path):
     rec = read_carmen_recording(corrected, CarmenOptions(odometry="odom_lines"))
     assert len(rec.odometry) == 6
 
+    # A raw log named as such in some collections is not a corrected one.
+    uncorrected = tmp_path / "intel-uncorrected.log"
+    uncorrected.write_text(log.read_text())
+    rec = read_carmen_recording(uncorrected)
+    assert rec.odometry is not None and rec.groundtruth is None
+
 
 def test_carmen_stage(tmp_path):
     log = tmp_path / "aces.log"

@@ -169,7 +169,7 @@ def test_tum_errors_name_file_and_line(tmp_path):
     (tmp_path / "a" / "rgb.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(IngestError) as e:
         read_tum_rgbd(tmp_path / "a", TumRgbdOptions(camera=CAM))
-    assert "rgb.txt" in str(e.value) and "message 2" in str(e.value)
+    assert "rgb.txt" in str(e.value) and "line 5 " in str(e.value)
     rec = read_tum_rgbd(tmp_path / "a", TumRgbdOptions(camera=CAM), on_non_monotonic="drop")
     assert rec.dropped == {"rgb.txt": 1}
 

@@ -10,6 +10,7 @@ interrupted conversion resume at the first frame it had not written.
 from __future__ import annotations
 
 import bisect
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -54,7 +55,8 @@ STAMP_SLACK_S = 1e-6
 
 
 def stamps_keep(stamps: np.ndarray, where: str, policy: Literal["error", "drop"],
-                fix: str = "", unit_s: float = 1.0) -> np.ndarray:
+                fix: str = "", unit_s: float = 1.0,
+                lines: Sequence[int] | None = None) -> np.ndarray:
     """[N] bool mask keeping a strictly increasing subsequence of ``stamps`` (in units of
     ``unit_s`` seconds: int64 nanoseconds compare exactly).
 
@@ -62,12 +64,13 @@ def stamps_keep(stamps: np.ndarray, where: str, policy: Literal["error", "drop"]
     naming ``where`` (file or topic), the message number and both stamps; ``"drop"``
     keeps the longest strictly increasing subsequence (its earliest messages where several
     are as long), so one stamp glitched far into the future or the past costs that one
-    message, not every message after it.
+    message, not every message after it. ``lines``: the file line of each stamp, named in
+    the error instead of the message number (text files).
     """
     st = np.asarray(stamps)
     if st.dtype.kind == "f" and not np.isfinite(st).all():
         i = int(np.flatnonzero(~np.isfinite(st))[0])
-        raise IngestError(f"{where}: stamp of message {i} is not finite ({st[i]!r})")
+        raise IngestError(f"{where}: stamp of {_message(i, lines)} is not finite ({st[i]!r})")
     if policy == "error":
         bad = np.flatnonzero(st[1:] <= st[:-1])
         if len(bad):
@@ -75,11 +78,15 @@ def stamps_keep(stamps: np.ndarray, where: str, policy: Literal["error", "drop"]
             t, last = float(st[i]) * unit_s, float(st[i - 1]) * unit_s
             what = "repeats" if st[i] == st[i - 1] else "goes backwards"
             raise IngestError(
-                f"{where}: stamps are not monotonic: message {i} at {t!r} {what} "
+                f"{where}: stamps are not monotonic: {_message(i, lines)} at {t!r} {what} "
                 f"(previous {last!r}, {float(st[i] - st[i - 1]) * unit_s:+.6f} s). Fix: set "
                 f"'on_non_monotonic: drop' to skip such messages{fix}")
         return np.ones(len(st), dtype=bool)
     return longest_increasing(st)
+
+
+def _message(i: int, lines: Sequence[int] | None) -> str:
+    return f"message {i}" if lines is None else f"line {lines[i]}"
 
 
 def longest_increasing(values: np.ndarray) -> np.ndarray:

@@ -155,6 +155,9 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
         try:
             if f[0] == "FLASER":
                 n = int(f[1])
+                if n < 2:
+                    raise ValueError(f"{n} beams; a scan needs at least 2 to have an angle "
+                                     "step (delete the line, or fix the beam count)")
                 ranges = _ranges(f[2 : 2 + n], max_range)
                 if len(ranges) != n:
                     raise ValueError(f"{len(ranges)} ranges, expected {n}")

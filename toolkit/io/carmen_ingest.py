@@ -75,7 +75,10 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
     path = Path(path)
     if not path.exists():
         raise IngestError(f"{path}: CARMEN log / g2o file not found")
-    corrected = "corrected" in path.name.lower()
+    # Radish names GMapping-corrected logs *-corrected.log; raw ones are *-raw.log or, in
+    # some collections, *-uncorrected.log.
+    lower = path.name.lower()
+    corrected = "corrected" in lower and "uncorrected" not in lower
     g2o = _is_g2o(path, opts.format)
     try:
         data = read_g2o(path) if g2o else read_carmen(path, max_range=opts.max_range_m)

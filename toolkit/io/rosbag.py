@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory, inv_se3, pose_from_xyz_quat, rotation_angle
@@ -120,6 +120,11 @@ class RosbagOptions(BaseModel):
     frames: RosbagFrames = RosbagFrames()
     calibration: str | None = None  # YAML with camera / T_base_camera / T_base_laser
     stamps: Literal["header", "bag"] = "header"  # bag: the time the message was recorded
+    # With header stamps: when (header stamp - recording time) differs between the scans
+    # and another topic by more than this, their drivers stamp on different clocks (TAI,
+    # time since boot) and pairing by stamp would be wrong: an error. null: no check (a
+    # topic that reached the recorder this late).
+    max_clock_offset_s: float | None = Field(2.0, gt=0)
     # Images already undistorted (image_rect): intrinsics from CameraInfo P, no distortion.
     # Default: true when the image topic's name contains "rect".
     rectified: bool | None = None
@@ -142,6 +147,13 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
     for p in items:
         if not p.exists():
             raise BagError(f"{p}: bag not found")
+        if p.is_dir() and not (p / "metadata.yaml").exists():
+            ros1_files = sorted(str(f) for f in p.iterdir() if is_ros1_bag(f))
+            if ros1_files:
+                listed = "".join(f"\n  - {f}" for f in ros1_files)
+                raise BagError(f"{p}: a folder of ROS 1 bags, not a ROS 2 bag folder (no "
+                               "metadata.yaml). Fix: list the bags of the recording under "
+                               f"'path:' (a split recording is read as one):{listed}")
     ros1 = [is_ros1_bag(p) for p in items]
     if any(ros1) and not all(ros1):
         raise BagError(f"{', '.join(map(str, items))}: mix of ROS 1 .bag files and other "
@@ -358,7 +370,11 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     if "compresseddepth" in fmt.lower():
         raise BagError(f"{where}: field 'format' is {fmt!r}, a depth image; give it as "
                        "rosbag.topics.depth")
-    img = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    try:  # OpenCV asserts on an empty buffer instead of returning None
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error:
+        img = None
     if img is None:
         raise BagError(f"{where}: the {fmt!r} data (field 'data', {len(msg.data)} bytes) does "
                        "not decode; the message is corrupt or the format unknown "
@@ -388,7 +404,10 @@ def compressed_to_depth(msg: Any, where: str = "depth") -> np.ndarray:
         raise BagError(f"{where}: field 'format' is {fmt!r}; depth CompressedImages must be "
                        "'16UC1; compressedDepth png' or '32FC1; compressedDepth png' "
                        "(rvl is not read). Republish raw depth or set rosbag.topics.depth: none")
-    img = cv2.imdecode(np.frombuffer(raw[off:], np.uint8), cv2.IMREAD_UNCHANGED)
+    try:
+        img = cv2.imdecode(np.frombuffer(raw[off:], np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
     if img is None or img.dtype != np.uint16 or img.ndim != 2:
         raise BagError(f"{where}: compressedDepth data (field 'data') does not decode to a "
                        "16-bit single-channel PNG; the message is corrupt")
@@ -448,6 +467,19 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
     raise BagError(f"{where}: field 'distortion_model' is {model!r}; only plumb_bob (OpenCV "
                    "k1 k2 p1 p2 k3) is supported. Use the rectified image topic (image_rect, "
                    "with rosbag.rectified: true) or " + fix)
+
+
+def rectification_rotation(msg: Any, where: str = "camera_info") -> np.ndarray:
+    """[3, 3] CameraInfo R (X_rect = R @ X_camera); identity when it is all zero (drivers
+    of single cameras often leave it unset)."""
+    R = np.asarray(_field(msg, "r", "R"), dtype=np.float64).reshape(3, 3)
+    if not np.any(R):
+        return np.eye(3)
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0):
+        raise BagError(f"{where}: field 'R' is not a rotation ({np.round(R, 4).tolist()}); "
+                       "give the intrinsics in the calibration YAML and set "
+                       "rosbag.calibration")
+    return R
 
 
 def transform_to_matrix(tf: Any) -> np.ndarray:
@@ -784,10 +816,11 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     if ch.image is None:
         ch.depth = None
     elif not given and depth:
-        same = [t for t in depth if _size(peek[t], f"{bag.name}: topic {t}") == ch.image_size]
+        same = [t for t in depth if _size(peek[t], f"{bag.name}: topic {t}") == ch.image_size
+                and _frame(str(peek[t].header.frame_id)) == ch.image_frame]
         for t in sorted(set(depth) - set(same)):
             ch.notes.append(f"depth topic {t} is not registered to {ch.image} (another image "
-                            "size); not used")
+                            "size or frame_id); not used")
         pref = [t for t in same if "align" in t or "regist" in t]
         ch.depth = _one(bag, "depth", "registered depth", same, pref[:1] if len(pref) == 1
                         else ())
@@ -795,6 +828,11 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
         ch.depth_compressed = bag.topics[ch.depth].msgtype == COMPRESSED
         msg = peek.get(ch.depth) or bag.first(ch.depth)
         size = _size(msg, f"{bag.name}: topic {ch.depth}") if msg is not None else None
+        frame = _frame(str(msg.header.frame_id)) if msg is not None else ""
+        if given and frame and ch.image_frame and frame != ch.image_frame:
+            ch.notes.append(f"depth topic {ch.depth} is in frame {frame!r}, the images in "
+                            f"{ch.image_frame!r}: kept as named, but a depth image registered "
+                            "to the colour camera carries its frame_id")
         if size != ch.image_size:
             raise BagError(f"{bag.name}: depth topic {ch.depth} is {size} but the image topic "
                            f"{ch.image} is {ch.image_size} (width, height); the depth must be "
@@ -805,10 +843,23 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     if not given and ch.image is not None:
         infos = bag.of_type(CAMERA_INFO)
         same_ns = [t for t in infos if _namespace(t) == _namespace(ch.image)]
-        ch.camera_info = same_ns[0] if same_ns else (infos[0] if len(infos) == 1 else None)
+        # Outside the image's namespace only a CameraInfo of the same optical frame and
+        # size describes these pixels: a depth or infrared camera's has its own.
+        frames = {t: bag.first(t) for t in infos} if not same_ns else {}
+        same_cam = [t for t, m in frames.items() if m is not None
+                    and _frame(str(m.header.frame_id)) == ch.image_frame
+                    and (int(m.width), int(m.height)) == ch.image_size]
+        ch.camera_info = same_ns[0] if same_ns else (same_cam[0] if len(same_cam) == 1
+                                                      else None)
         if ch.camera_info is None and infos:
-            ch.notes.append(f"several CameraInfo topics ({', '.join(infos)}) and none in the "
-                            f"namespace of {ch.image}; set rosbag.topics.camera_info")
+            ch.notes.append(
+                "CameraInfo topics in the bag: " + ", ".join(
+                    f"{t} (frame {_frame(str(m.header.frame_id))!r}, {m.width}x{m.height})"
+                    for t, m in ((t, frames.get(t) or bag.first(t)) for t in infos)
+                    if m is not None)
+                + f"; none is in the namespace of {ch.image} or of its frame "
+                f"{ch.image_frame!r} and size {ch.image_size}, so none is used. If one "
+                "describes these images, name it with rosbag.topics.camera_info")
 
     given, ch.odometry = _override(bag, "odometry", topics.odometry, (ODOMETRY,))
     if not given:
@@ -897,9 +948,11 @@ def read_rosbag(path: Path | str | Sequence[Path | str], options: RosbagOptions 
 class _Index:
     scans: list[LaserScan] = field(default_factory=list)
     scan_ns: list[int] = field(default_factory=list)
+    scan_bag_ns: list[int] = field(default_factory=list)
     image: _Stream = field(default_factory=_Stream)
     depth: _Stream = field(default_factory=_Stream)
     odom_ns: list[int] = field(default_factory=list)
+    odom_bag_ns: list[int] = field(default_factory=list)
     odom: list[np.ndarray] = field(default_factory=list)
     odom_frames: tuple[str, str] = ("odom", "base_link")
     info: Any = None
@@ -936,8 +989,13 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             stamp = _stamp(msg, ns, opts, where)
             try:
                 inten = np.array(msg.intensities, dtype=np.float32)
+                inc = float(msg.angle_increment)
+                if not len(msg.ranges) and inc == 0:
+                    # A default-constructed message (a driver's dropout): its layout is
+                    # replaced by the common one (uniform_scans), so any step will do.
+                    inc = 1.0
                 scan = LaserScan(stamp / 1e9, np.array(msg.ranges, dtype=np.float32),
-                                 float(msg.angle_min), float(msg.angle_increment),
+                                 float(msg.angle_min), inc,
                                  float(msg.range_min), float(msg.range_max),
                                  inten if len(inten) == len(msg.ranges) else None,
                                  float(msg.time_increment))
@@ -945,6 +1003,7 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
                 raise BagError(f"{where}: message {len(idx.scans)}: {e}") from None
             idx.scans.append(scan)
             idx.scan_ns.append(stamp)
+            idx.scan_bag_ns.append(ns)
         elif topic in (ch.image, ch.depth):
             s = idx.image if topic == ch.image else idx.depth
             s.stamps.append(_stamp(msg, ns, opts, where))
@@ -960,6 +1019,7 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             except ValueError as e:
                 raise BagError(f"{where}: field 'pose.pose.orientation': {e}") from None
             idx.odom_ns.append(_stamp(msg, ns, opts, where))
+            idx.odom_bag_ns.append(ns)
             idx.odom.append(T)
             idx.odom_frames = (_frame(str(msg.header.frame_id)) or "odom",
                                _frame(str(msg.child_frame_id)) or opts.frames.base)
@@ -973,6 +1033,35 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
                                    f"{tr.child_frame_id}: {e}") from None
                 idx.tf.add(str(tr.header.frame_id), str(tr.child_frame_id), T, static, topic)
     return idx
+
+
+def _check_clocks(idx: _Index, ch: TopicChoice, opts: RosbagOptions, bag_name: str) -> None:
+    """Refuse header stamps of topics whose drivers use different clocks: the recorder
+    receives them all within a fraction of a second, so the median of (header stamp -
+    recording time) is about the same for every topic on one clock."""
+    limit = opts.max_clock_offset_s
+    if opts.stamps != "header" or limit is None or not idx.scan_ns:
+        return
+
+    def offset_s(stamps: list[int], bag_ns: list[int]) -> float:
+        return float(np.median(np.subtract(stamps, bag_ns, dtype=np.int64))) / 1e9
+
+    ref = offset_s(idx.scan_ns, idx.scan_bag_ns)
+    for topic, stamps, bag_ns in ((ch.image, idx.image.stamps, idx.image.bag_ns),
+                                  (ch.depth, idx.depth.stamps, idx.depth.bag_ns),
+                                  (ch.odometry, idx.odom_ns, idx.odom_bag_ns)):
+        if not topic or not stamps:
+            continue
+        off = offset_s(stamps, bag_ns)
+        if abs(off - ref) > limit:
+            raise BagError(
+                f"{bag_name}: the drivers stamp on different clocks: header stamp minus "
+                f"recording time is {ref:+.3f} s on {ch.scan} but {off:+.3f} s on {topic} "
+                f"(medians), so messages {abs(off - ref):.2f} s apart would be paired. One "
+                "driver stamps in another time base (TAI/GPS time, time since boot). Fix: "
+                "'rosbag.stamps: bag' (the recording time for every topic), or correct that "
+                "driver's clock; if the recorder really received this topic that late, set "
+                f"'rosbag.max_clock_offset_s' above {abs(off - ref):.1f} (or null)")
 
 
 def _keep(stamps: list[int], where: str, policy: Literal["error", "drop"],
@@ -1018,6 +1107,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
            cal: Calibration | None, policy: Literal["error", "drop"], log: logging.Logger,
            name: str | None) -> Recording:
     bag_name = ", ".join(str(p) for p in paths)
+    _check_clocks(idx, ch, opts, bag_name)
     dropped: dict[str, int] = {}
     # --- stamps
     k = _keep(idx.scan_ns, f"{bag_name}: topic {ch.scan}", policy, dropped, str(ch.scan))
@@ -1048,8 +1138,10 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         camera = camera_info_to_camera(idx.info, f"{bag_name}: topic {ch.camera_info}",
                                        rectified=bool(rectified))
     else:
+        about = [n for n in ch.notes if n.startswith("CameraInfo topics")]
         raise BagError(
-            f"{bag_name}: no sensor_msgs/CameraInfo for image topic {ch.image}. Fix: name one "
+            f"{bag_name}: no sensor_msgs/CameraInfo for image topic {ch.image}"
+            + (f" ({about[0]})" if about else "") + ". Fix: name one "
             "with rosbag.topics.camera_info, or give the intrinsics in a calibration YAML "
             "('camera: {width, height, fx, fy, cx, cy, distortion: [k1, k2, p1, p2, k3]}') "
             "and set rosbag.calibration")
@@ -1084,7 +1176,15 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
             if opts.frames.camera_convention == "body":
                 T_base_camera = T_base_camera @ optical_mount()
             sources["T_base_camera"] = f"tf {base} <- {cam_frame}"
-            _warn_if_not_optical(T_base_camera, cam_frame, opts, log)
+            if rectified and idx.info is not None and not (cal is not None and
+                                                           cal.camera is not None):
+                # Rectified pixels belong to the frame turned by CameraInfo's R (stereo
+                # rectification; identity for a single camera): X_rect = R @ X_camera.
+                T_camera_rect = np.eye(4)
+                T_camera_rect[:3, :3] = rectification_rotation(
+                    idx.info, f"{bag_name}: topic {ch.camera_info}").T
+                T_base_camera = T_base_camera @ T_camera_rect
+            _warn_if_not_upright(T_base_camera, cam_frame, opts, log)
     else:
         T_base_camera = optical_mount()
         sources["T_base_camera"] = "placeholder (no camera)"
@@ -1120,6 +1220,18 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
                 log.warning("odometry on %s is for frame %r, which tf does not connect to %r; "
                             "using it as the base pose", ch.odometry, child, base)
         odometry = Trajectory(st, P, "odom", "base_link")
+        scan_t = np.array([sc.stamp for sc in scans])
+        covered = float(odometry.covers(scan_t, slack_s=0.1).mean())
+        if covered == 0.0:
+            raise BagError(
+                f"{bag_name}: topic {ch.odometry}: the odometry (stamps {st[0]:.3f} .. "
+                f"{st[-1]:.3f} s) covers none of the scans ({scan_t[0]:.3f} .. "
+                f"{scan_t[-1]:.3f} s): its driver stamps on another clock. Fix: "
+                "'rosbag.stamps: bag', or leave it out with 'rosbag.topics.odometry: none'")
+        if covered < 0.5:
+            log.warning("%s: the odometry on %s covers %.0f %% of the scans' times; the rest "
+                        "are matched without an odometry prior", bag_name, ch.odometry,
+                        100 * covered)
 
     frame_stamps = np.asarray(img.stamps, dtype=np.int64) / 1e9 if has_camera else np.zeros(0)
     meta = {
@@ -1187,16 +1299,24 @@ def _lookup(tree: TfTree, base: str, frame: str, role: str, bag_name: str, ch: T
         f"rosbag.frames.base / rosbag.frames.{role}")
 
 
-def _warn_if_not_optical(T: np.ndarray, frame: str, opts: RosbagOptions,
+def _warn_if_not_upright(T: np.ndarray, frame: str, opts: RosbagOptions,
                          log: logging.Logger) -> None:
-    # An optical frame looks along its +z; if that is the base's up axis the frame is
-    # probably camera_link (x forward), and projecting into the image would be wrong.
-    z_in_base = T[:3, 2]
-    if opts.frames.camera_convention == "optical" and abs(z_in_base[2]) > 0.9:
-        log.warning("camera frame %r points its z axis up or down in the base frame: it looks "
-                    "like a body frame (x forward), not an optical one. If so, set "
-                    "rosbag.frames.camera to the *_optical_frame or "
-                    "rosbag.frames.camera_convention: body", frame)
+    """Warn when the image's down direction (optical +y, ``T_base_camera[:3, 1]``) is more
+    than 60 deg from the base's down: on a ground robot that is almost always a frame
+    taken in the wrong convention (camera_link read as optical turns the view up or
+    sideways; an optical frame read as body turns it by 90 deg)."""
+    down = -float(T[2, 1])
+    if down >= 0.5:
+        return
+    angle = float(np.degrees(np.arccos(np.clip(down, -1.0, 1.0))))
+    other = "body" if opts.frames.camera_convention == "optical" else "optical"
+    log.warning("camera frame %r read as %s: the image's down direction is %.0f deg from "
+                "the base's down and the camera looks along %s in the base frame. If the "
+                "camera is not mounted rolled, upside down or straight down, the convention "
+                "is wrong: set rosbag.frames.camera_convention: %s (camera_link frames are "
+                "body, *_optical_frame ones optical), or name the optical frame with "
+                "rosbag.frames.camera", frame, opts.frames.camera_convention, angle,
+                np.round(T[:3, 2], 2).tolist(), other)
 
 
 def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _Stream,

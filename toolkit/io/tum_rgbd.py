@@ -97,6 +97,7 @@ def read_list(path: Path, policy: Literal["error", "drop"] = "error") -> (
                           "(and optionally groundtruth.txt)")
     stamps: list[float] = []
     files: list[Path] = []
+    lines: list[int] = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
@@ -115,8 +116,9 @@ def read_list(path: Path, policy: Literal["error", "drop"] = "error") -> (
                               "(an incomplete download?)")
         stamps.append(t)
         files.append(f)
+        lines.append(lineno)
     st = np.asarray(stamps, dtype=np.float64)
-    keep = stamps_keep(st, str(path), policy)
+    keep = stamps_keep(st, str(path), policy, lines=lines)
     return st[keep], [f for f, k in zip(files, keep, strict=True) if k], int((~keep).sum())
 
 
@@ -192,13 +194,17 @@ class VirtualLidar:
         self.beams = max(beams, 2)
         self.angle_increment = (angle_max - self.angle_min) / (self.beams - 1)
 
-    def scan(self, depth: np.ndarray, stamp: float) -> LaserScan:
-        """The scan [beams] of a depth image [H, W] (metres, 0 = invalid)."""
+    def scan(self, depth: np.ndarray, stamp: float, where: str = "depth image") -> LaserScan:
+        """The scan [beams] of a depth image [H, W] (metres, 0 = invalid); ``where`` names
+        the image in errors."""
         d = np.asarray(depth, dtype=np.float64).reshape(-1)
         if len(d) != len(self.rays):
             w, h = self.camera.size
-            raise IngestError(f"depth image is {depth.shape[1]}x{depth.shape[0]}, the camera "
-                              f"{w}x{h}")
+            raise IngestError(
+                f"{where}: depth image is {depth.shape[1]}x{depth.shape[0]}, the camera model "
+                f"{w}x{h} (tum_rgbd.camera). Fix: name the camera these images come from, or "
+                "give its intrinsics as a mapping ('tum_rgbd.camera: {width, height, fx, fy, "
+                "cx, cy}')")
         o = self.opts
         p = self.rays * d[:, None]  # [HW, 3] in the base frame
         z = p[:, 2] - o.height_m
@@ -283,7 +289,7 @@ def read_tum_rgbd(root: Path | str, options: TumRgbdOptions | None = None,
             depth = read_depth(f)
         except (OSError, ValueError) as e:
             raise IngestError(f"{f}: {e}") from None
-        s = lidar.scan(depth, float(t))
+        s = lidar.scan(depth, float(t), str(f))
         valid += int(s.valid_mask().sum())
         scans.append(s)
     frac = valid / (len(scans) * lidar.beams)
