@@ -597,3 +597,84 @@ def test_simulated_settings_are_checked_with_the_recipe() -> None:
     with pytest.raises(ValidationError, match="simulated"):
         DepthConfig(stage="depth", backend="simulated", simulated={"scale": "big"})
     assert DepthConfig(stage="depth", backend="simulated", simulated={"scale": 2.0})
+
+
+def _two_output_model(path: Path, two_inputs: bool = False) -> Path:
+    """UniDepth's export layout: the intrinsics [1, 3, 3] first, the depth second (or an
+    intrinsics input beside the image)."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    k = helper.make_tensor("k", TensorProto.FLOAT, [1, 3, 3], np.eye(3).reshape(-1).tolist())
+    nodes = [helper.make_node("ReduceMean", ["image"], ["m"], axes=[1], keepdims=1),
+             helper.make_node("Softplus", ["m"], ["depth"]),
+             helper.make_node("Constant", [], ["out_K"], value=k)]
+    inputs = [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])]
+    if two_inputs:
+        inputs.append(helper.make_tensor_value_info("K", TensorProto.FLOAT, [1, 3, 3]))
+    graph = helper.make_graph(
+        nodes, "g", inputs,
+        [helper.make_tensor_value_info("out_K", TensorProto.FLOAT, [1, 3, 3]),
+         helper.make_tensor_value_info("depth", TensorProto.FLOAT, [1, 1, "h", "w"])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return path
+
+
+def test_onnx_models_of_other_shapes_are_named_before_they_run(tmp_path: Path,
+                                                               rgb: np.ndarray) -> None:
+    from onnx import TensorProto
+
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    uni = _two_output_model(tmp_path / "uni.onnx")
+    # output 0 is the intrinsics: refused, with the outputs listed (it was stretched over
+    # the image as a depth map)
+    with pytest.raises(ValueError, match=r"output 0 \('out_K'\) has shape \[1, 3, 3\].*"
+                       r"1: 'depth'.*output_index"):
+        OnnxDepthBackend(C(model=uni, kind="metric_depth"))
+    be = OnnxDepthBackend(C(model=uni, kind="metric_depth", output_index=1, input_size=28))
+    assert be.predict(rgb).values.shape == rgb.shape[:2]
+    assert be.describe()["output"] == "depth" and be.describe()["input_hw"] == [28, 28]
+    with pytest.raises(ValueError, match=r"takes 2 inputs \('image'.*'K'"):
+        OnnxDepthBackend(C(model=_two_output_model(tmp_path / "k.onnx", True),
+                           kind="metric_depth", output_index=1))
+    # keep_aspect on a fixed input would stretch silently
+    fixed = _graph_model(tmp_path / "fixed.onnx", [1, 3, 28, 42], TensorProto.FLOAT, False)
+    with pytest.raises(ValueError, match="keep_aspect needs a model exported with dynamic"):
+        OnnxDepthBackend(C(model=fixed, kind="relative_depth", resize="keep_aspect"))
+    dyn = _graph_model(tmp_path / "dyn.onnx", [1, 3, "h", "w"], TensorProto.FLOAT, False,
+                       {"mean": "[0.5, 0.5, 0.5]"})  # a bracketed list is read too
+    with pytest.raises(ValueError, match=r"keep_aspect takes one input_size"):
+        OnnxDepthBackend(C(model=dyn, kind="relative_depth", resize="keep_aspect",
+                           input_size=(28, 42)))
+    assert OnnxDepthBackend(C(model=dyn, kind="relative_depth")).mean.tolist() == [0.5] * 3
+    # metadata errors name the key; no kind anywhere names the recipe's setting
+    bad = _graph_model(tmp_path / "bad.onnx", [1, 3, "h", "w"], TensorProto.FLOAT, False,
+                       {"input_height": "518.5", "input_width": "518"})
+    with pytest.raises(ValueError, match=r"metadata 'input_height' is '518.5'"):
+        OnnxDepthBackend(C(model=bad, kind="relative_depth"))
+    with pytest.raises(ValueError, match=r"depth stage's 'output' setting"):
+        OnnxDepthBackend(C(model=dyn))
+
+
+def test_depth_threads_and_device_neither_rerun_nor_discard_frames(tmp_path: Path) -> None:
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.synthetic import write_box_room
+
+    seq = write_box_room(tmp_path / "seq", n_frames=3)
+    register = {"t_sequence": SequenceFolder, "depth": DepthStage}
+
+    def stages(**depth: object) -> list[dict[str, object]]:
+        return [{"stage": "t_sequence", "path": str(seq)},
+                {"stage": "depth", "backend": "simulated", **depth}]
+
+    assert run_stages(tmp_path, stages(), register).ok
+    again = run_stages(tmp_path, stages(threads=1, device="cpu", prefetch=False), register)
+    assert again.ok and again.statuses == {"t_sequence": "cached", "depth": "cached"}
+    other = run_stages(tmp_path, stages(every=2), register)  # changes what is written
+    assert other.ok and other.statuses["depth"] == "ran"

@@ -8,6 +8,8 @@ from toolkit.fusion.scale import (
     OK,
     OUTLIER_FRAME,
     ScaleEstimate,
+    depth_order_agreement,
+    estimate_clustered,
     estimate_scale,
     smooth_scales,
 )
@@ -171,3 +173,46 @@ def test_smoothing_rejects_outlier_frames_and_fills_flagged_ones() -> None:
     assert not skip.used[10] and not skip.used[20] and skip.used.sum() == 38
     own = smooth_scales(ests, window=7, mode="none")
     assert own.scale[5] == ests[5].scale
+
+
+def test_clustered_disparity_with_a_shift_and_outliers() -> None:
+    """Ratios drift with depth under a shift: the cluster takes in outliers, and a plain
+    least-squares refit on it tilted the line (12-24 % depth error per frame)."""
+    s0, t0 = 2.0, 0.1
+    errs = []
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        z = np.exp(rng.uniform(np.log(0.5), np.log(6.0), 150))  # [N] true depth
+        disp = (1.0 / z - t0) / s0 * (1 + 0.01 * rng.standard_normal(150))
+        lidar = z.copy()
+        out = rng.random(150) < 0.2  # the lidar sees past the surface
+        lidar[out] *= rng.uniform(1.2, 2.5, out.sum())
+        e = estimate_clustered(lidar, disp, disparity=True, min_pairs=20)
+        zz = np.linspace(0.5, 6.0, 50)
+        scaled = 1.0 / (e.scale * (1.0 / zz - t0) / s0 + e.shift)
+        errs.append(np.max(np.abs(scaled / zz - 1)))
+    assert np.median(errs) < 0.01 and np.mean(np.array(errs) < 0.05) >= 0.9
+
+
+def test_smoothing_keeps_each_frames_scale_and_shift_pair() -> None:
+    est = [ScaleEstimate(s, t, 50, 60, "ok", "robust")
+           for s, t in [(2.0, 0.1), (2.1, 0.05), (1.9, 0.15), (2.05, 0.08), (2.0, 0.1)]]
+    est[2] = ScaleEstimate(float("nan"), 0.0, 3, 60, "few_pairs", "robust")
+    sm = smooth_scales(est, window=5)
+    assert sm.scale[1] == 2.1 and sm.shift[1] == 0.05  # its own pair, not the medians
+    j = int(np.argmin([abs(np.log(e.scale) - np.median(np.log([2.0, 2.1, 2.05, 2.0])))
+                       for e in est[:2] + est[3:]]))
+    want = (est[:2] + est[3:])[j]
+    assert (sm.scale[2], sm.shift[2]) == (want.scale, want.shift)  # one frame's pair
+
+
+def test_depth_order_agreement_tells_depth_from_disparity() -> None:
+    rng = np.random.default_rng(0)
+    frames = []
+    for _ in range(5):
+        z = rng.uniform(0.5, 6.0, 40)
+        frames.append((z, rng.uniform(0.5, 3.0) * z))
+    rho, n = depth_order_agreement(frames)
+    assert n == 5 and rho > 0.99
+    rho, _ = depth_order_agreement((z, 1.0 / z + 0.2) for z, _ in frames)
+    assert rho < -0.99

@@ -131,7 +131,14 @@ class OnnxDepthBackend:
         # What onnxruntime actually uses (it falls back to the CPU when CUDA cannot start).
         self.providers: list[str] = list(self.session.get_providers())
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
-        inp = self.session.get_inputs()[0]
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1:
+            raise ValueError(
+                f"{path}: the model takes {len(inputs)} inputs ("
+                + ", ".join(f"{i.name!r} {i.shape}" for i in inputs) + "); this backend feeds "
+                "one image. Re-export it with the other inputs fixed inside the graph (e.g. "
+                "the camera intrinsics of a UniDepth / Metric3D export as constants)")
+        inp = inputs[0]
         self.input_name = inp.name
         self._check_input(path, inp.shape, config.layout)
         # A half-precision export takes float16: the image is cast, not refused.
@@ -145,20 +152,28 @@ class OnnxDepthBackend:
             raise ValueError(f"{path}: output_index {config.output_index}, but the model has "
                              f"{len(outputs)} output(s): {[o.name for o in outputs]}")
         self.output_name = outputs[config.output_index].name
+        self._outputs_text = ", ".join(f"{i}: {o.name!r} {o.shape}"
+                                       for i, o in enumerate(outputs))
+        shape = outputs[config.output_index].shape
+        if all(isinstance(d, int) for d in shape) and not (
+                _image_shaped(shape) and min(d for d in shape if d != 1) >= 4):
+            raise ValueError(self._not_depth_message(shape))
         self._fixed_hw = self._fixed_input_hw(inp.shape)
         kind = config.kind or self.metadata.get("depth_kind")
         if kind is None:
             raise ValueError(
-                f"{path}: say what the network outputs with 'kind' (one of {DEPTH_KINDS}); "
-                "the model has no 'depth_kind' metadata")
+                f"{path}: the model has no 'depth_kind' metadata; say what the network "
+                f"outputs with the depth stage's 'output' setting (OnnxDepthConfig.kind from "
+                f"Python), one of {DEPTH_KINDS}")
         if kind not in DEPTH_KINDS:
             raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
         self.kind: DepthKind = kind  # type: ignore[assignment]
-        self.multiple_of = int(config.multiple_of or self.metadata.get("multiple_of", 14))
-        self.mean = np.asarray(config.mean or _floats(self.metadata.get("mean")) or IMAGENET_MEAN,
-                               dtype=np.float32)
-        self.std = np.asarray(config.std or _floats(self.metadata.get("std")) or IMAGENET_STD,
-                              dtype=np.float32)
+        self.multiple_of = int(config.multiple_of or _meta_int(path, self.metadata,
+                                                               "multiple_of") or 14)
+        self.mean = np.asarray(config.mean or _floats(path, self.metadata, "mean")
+                               or IMAGENET_MEAN, dtype=np.float32)
+        self.std = np.asarray(config.std or _floats(path, self.metadata, "std")
+                              or IMAGENET_STD, dtype=np.float32)
         if self.mean.max() > 1.0 or self.std.max() > 1.0:
             # mmcv/Metric3D configs give 123.675, 58.395...: the image here is in [0, 1].
             raise ValueError(f"{path}: mean {self.mean.tolist()} / std {self.std.tolist()} are "
@@ -171,6 +186,19 @@ class OnnxDepthBackend:
         if ("input_height" in self.metadata) != ("input_width" in self.metadata):
             raise ValueError(f"{path}: metadata names one of input_height / input_width "
                              "without the other; give input_size in the recipe")
+        self._meta_hw = (_meta_int(path, self.metadata, "input_height"),
+                         _meta_int(path, self.metadata, "input_width"))
+        if config.resize == "keep_aspect":
+            if self._fixed_hw is not None and config.layout == "nchw" or (
+                    config.layout == "nhwc" and all(isinstance(d, int) for d in inp.shape[1:3])):
+                raise ValueError(f"{path}: resize: keep_aspect needs a model exported with "
+                                 f"dynamic height/width; this one takes a fixed input "
+                                 f"{inp.shape}: use resize: stretch")
+            if isinstance(config.input_size, tuple | list):
+                raise ValueError(f"{path}: resize: keep_aspect takes one input_size (the "
+                                 f"height; the width follows the image), not "
+                                 f"{list(config.input_size)}")
+        self.last_input_hw: tuple[int, int] | None = None
         self.last_timing: dict[str, float] = {}
         # A timing stand-in (``bench_latency --export``) runs like a real network; say
         # loudly that its depth is noise, in the log and in ``describe()``.
@@ -213,8 +241,8 @@ class OnnxDepthBackend:
         size = cfg.input_size
         if size is None and fixed is not None:
             return fixed
-        if size is None and "input_height" in self.metadata:
-            size = (int(self.metadata["input_height"]), int(self.metadata["input_width"]))
+        if size is None and self._meta_hw[0] is not None:
+            size = self._meta_hw  # type: ignore[assignment]
         if size is None:
             size = 518
         h, w = (size, size) if isinstance(size, int) else size
@@ -225,7 +253,13 @@ class OnnxDepthBackend:
         elif fixed is None and (h % m or w % m):
             # A ViT/14 sees only whole patches: the rest of a 480x640 input would be cut off
             # and its output stretched back over the whole image (edges moved by pixels).
-            h, w = max(m, int(round(h / m)) * m), max(m, int(round(w / m)) * m)
+            # Said in the log: a network of 16 or 32 px patches needs multiple_of set.
+            rh, rw = max(m, int(round(h / m)) * m), max(m, int(round(w / m)) * m)
+            if (rh, rw) != getattr(self, "_warned_round", None):
+                _log.warning("%s: input %dx%d rounded to %dx%d (multiple_of %d)", cfg.model,
+                             w, h, rw, rh, m)
+                self._warned_round = (rh, rw)
+            h, w = rh, rw
         if fixed is not None and (h, w) != fixed:
             raise ValueError(f"{cfg.model}: the model takes a fixed {fixed[1]}x{fixed[0]} input "
                              f"but the config asks for {w}x{h}; drop 'input_size' or re-export "
@@ -248,15 +282,19 @@ class OnnxDepthBackend:
             x = x.transpose(2, 0, 1)
         return np.ascontiguousarray(x[None], dtype=self.input_dtype)
 
+    def _not_depth_message(self, shape: Any) -> str:
+        return (f"{self.config.model}: output {self.config.output_index} "
+                f"({self.output_name!r}) has shape {list(shape)}, not one depth image; the "
+                f"model's outputs are {self._outputs_text}. Set output_index to the depth "
+                "map's")
+
     def postprocess(self, raw: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
         """Network output ([1, 1, h, w], [1, h, w] or [h, w]) -> [H, W] float32, NaN invalid."""
         out = np.asarray(raw, dtype=np.float32)
         if out.ndim > 2:  # [1, 1, h, w], [1, h, w, 1], [1, h, w]: drop the unit axes
             out = out.reshape([n for n in out.shape if n != 1] or [1])
-        if out.ndim != 2:
-            raise ValueError(f"{self.config.model}: output {self.output_name!r} has shape "
-                             f"{np.shape(raw)}; expected one depth channel (another output: "
-                             "set output_index)")
+        if not _image_shaped(out.shape, self.last_input_hw):
+            raise ValueError(self._not_depth_message(np.shape(raw)))
         out = out * np.float32(self.config.output_scale)
         bad = ~np.isfinite(out)
         if self.kind != "relative_disparity":
@@ -275,16 +313,24 @@ class OnnxDepthBackend:
         """Run the network on one RGB frame [H, W, 3] uint8."""
         t0 = time.perf_counter()
         x = self.preprocess(rgb)
+        hw = x.shape[2:4] if self.config.layout == "nchw" else x.shape[1:3]
+        self.last_input_hw = (int(hw[0]), int(hw[1]))
         t1 = time.perf_counter()
-        raw = self.session.run([self.output_name], {self.input_name: x})[0]
+        try:
+            raw = self.session.run([self.output_name], {self.input_name: x})[0]
+        except Exception as e:  # onnxruntime's own exception types, from its C++ core
+            raise ValueError(
+                f"{self.config.model}: onnxruntime failed on a {hw[1]}x{hw[0]} input: "
+                f"{str(e).strip()[:400]}. If the network takes only sizes that are multiples "
+                f"of 32 (MiDaS, ZoeDepth) or 16 (DPT-BEiT), set multiple_of (now "
+                f"{self.multiple_of}) or an input_size it takes") from e
         t2 = time.perf_counter()
         values = self.postprocess(raw, rgb.shape[:2])
         t3 = time.perf_counter()
         self.last_timing = {"preprocess_s": t1 - t0, "network_s": t2 - t1,
                             "postprocess_s": t3 - t2}
         return DepthPrediction(values, self.kind, latency_s=t2 - t1,
-                               extra={"input_hw": x.shape[2:4] if self.config.layout == "nchw"
-                                      else x.shape[1:3], **self.last_timing})
+                               extra={"input_hw": hw, **self.last_timing})
 
     def describe(self) -> dict[str, Any]:
         """Settings actually used (for the report and the depth index)."""
@@ -292,6 +338,10 @@ class OnnxDepthBackend:
                 "mean": self.mean.tolist(), "std": self.std.tolist(),
                 "channel_order": self.channel_order, "layout": self.config.layout,
                 "resize": self.config.resize, "threads": self.config.threads,
+                "input_hw": list(self.last_input_hw) if self.last_input_hw else None,
+                "multiple_of": self.multiple_of, "interpolation": self.config.interpolation,
+                "output_index": self.config.output_index, "output": self.output_name,
+                "output_scale": self.config.output_scale,
                 "providers": self.providers,
                 "spin": self.config.spin, "metadata": self.metadata,
                 **({"warning": self.warning} if self.warning else {})}
@@ -311,10 +361,43 @@ def _resize_valid(values: np.ndarray, bad: np.ndarray, hw: tuple[int, int]) -> n
         return np.where(rw > 0.5, rv / rw, np.float32(np.nan)).astype(np.float32)
 
 
-def _floats(text: str | None) -> tuple[float, ...] | None:
+def _image_shaped(shape: Any, input_hw: tuple[int, int] | None = None) -> bool:
+    """Two axes other than unit ones: a depth map, not a vector or a batch of maps; with the
+    network input's (h, w) at least 1/32 of it on each axis - not the intrinsics ([3, 3])
+    a UniDepth export puts first."""
+    dims = [d for d in shape if d != 1]
+    if len(dims) != 2:
+        return False
+    if input_hw is None:
+        return True
+    return all(d * 32 >= n for d, n in zip(dims, input_hw, strict=True))
+
+
+def _floats(path: Path, metadata: dict[str, str], key: str) -> tuple[float, ...] | None:
+    """Three numbers of ONNX metadata ``key`` ("0.485 0.456 0.406", commas or a bracketed
+    list also read)."""
+    text = metadata.get(key)
     if not text:
         return None
-    vals = tuple(float(v) for v in text.replace(",", " ").split())
+    try:
+        vals = tuple(float(v) for v in text.translate({ord(c): " " for c in "[](),"}).split())
+    except ValueError:
+        vals = ()
     if len(vals) != 3:
-        raise ValueError(f"ONNX metadata mean/std needs 3 numbers, got {text!r}")
+        raise ValueError(f"{path}: ONNX metadata {key!r} is {text!r}, not 3 numbers; give "
+                         f"'{key}' in the depth stage (it wins over the metadata)")
     return vals
+
+
+def _meta_int(path: Path, metadata: dict[str, str], key: str) -> int | None:
+    text = metadata.get(key)
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value.is_integer() and value > 0):
+        raise ValueError(f"{path}: ONNX metadata {key!r} is {text!r}, not a positive whole "
+                         f"number; give it in the depth stage (input_size / multiple_of)")
+    return int(value)

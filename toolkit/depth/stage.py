@@ -107,6 +107,8 @@ class DepthStage(Stage):
     Config = DepthConfig
     requires = ("sequence",)
     provides = ("depth",)
+    # The same depth maps on any thread count or device (up to float rounding).
+    runtime_settings = frozenset({"threads", "device", "prefetch"})
 
     def external_inputs(self) -> list[Path]:
         cfg: DepthConfig = self.config  # type: ignore[assignment]

@@ -37,7 +37,7 @@ from toolkit.fusion.pipeline import (
 )
 from toolkit.fusion.projection import sample_depth
 from toolkit.fusion.refine import Refinement
-from toolkit.fusion.scale import SmoothedScale
+from toolkit.fusion.scale import SmoothedScale, depth_order_agreement
 from toolkit.fusion.voxel_map import MapArrays
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_write_text
@@ -345,6 +345,18 @@ class FuseStage(Stage):
             if ckpt.due():
                 save_checkpoint()
         pairs, oracle = st.pairs, st.oracle
+        rho, rho_frames = depth_order_agreement((pairs[i].lidar.z, pairs[i].pred)
+                                                for i in frames)
+        if rho_frames and (rho > 0.3 if disparity else rho < -0.3):
+            said, meant = (("relative_disparity", "relative_depth or metric_depth")
+                           if disparity else (store.kind, "relative_disparity"))
+            raise StageError(
+                f"fuse: the predictions {'rise' if disparity else 'fall'} as the lidar depth "
+                f"rises (median rank correlation {rho:+.2f} over {rho_frames} frames): the "
+                f"network outputs {'depth' if disparity else 'disparity'}, but the depth "
+                f"stage says output: {said}. Fix: set the depth stage's output to {meant} "
+                "(what the network's documentation says it outputs) and rerun from it "
+                "(--from depth)")
         estimates = [pairs[i].estimate for i in frames]
         sm = fusion.smooth(estimates)
         if not sm.used.any():

@@ -567,7 +567,8 @@ def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None]
     payload = {
         "stage": spec.type,
         "version": getattr(stage, "version", 1),
-        "config": config_data(spec.config),
+        "config": {k: v for k, v in config_data(spec.config).items()
+                   if k not in stage.runtime_settings},
         "upstream": dict(sorted(upstream.items())),
         "external": [_fingerprint(Path(p)) for p in stage.external_inputs()],
     }

@@ -122,6 +122,10 @@ class Stage(ABC):
     provides: ClassVar[tuple[str, ...]] = ()
     # Bump when a code change alters what the stage writes, so cached results rerun.
     version: ClassVar[int] = 1
+    # Settings that change how fast the stage runs, never what it writes (threads, device):
+    # left out of the cache key, so changing them neither reruns a finished stage nor
+    # discards an interrupted one's work (``--force`` re-times it).
+    runtime_settings: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config
