@@ -127,6 +127,17 @@ class BoardExpectation:
     expected_length_m: float = 0.0  # shorter segments pay the shortfall in the cost
 
 
+def in_bearing_window(angle: np.ndarray | float, lo: float, hi: float,
+                      turn: float = 2 * np.pi) -> np.ndarray:
+    """Whether ``angle`` lies on the arc from ``lo`` counter-clockwise to ``hi`` (one
+    unit throughout: radians, or degrees with ``turn`` 360). Arcs cross +-180 deg: 150..210
+    and 170..-170 both face backwards; an arc of a whole turn or more holds every angle."""
+    a = np.asarray(angle, dtype=np.float64)
+    if hi - lo >= turn:
+        return np.ones(a.shape, bool)
+    return np.mod(a - lo, turn) <= np.mod(hi - lo, turn)
+
+
 def select_board_segment(segments: list[Segment], expect: BoardExpectation) -> (
     tuple[Segment | None, str]
 ):
@@ -136,7 +147,7 @@ def select_board_segment(segments: list[Segment], expect: BoardExpectation) -> (
     for sg in segments:
         if expect.bearing_window_rad is not None:
             lo, hi = expect.bearing_window_rad
-            if not lo <= sg.bearing <= hi:
+            if not in_bearing_window(sg.bearing, lo, hi):
                 reasons["outside the angular window"] = reasons.get(
                     "outside the angular window", 0) + 1
                 continue

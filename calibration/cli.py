@@ -23,6 +23,9 @@ from calibration.intrinsics import IntrinsicsError
 from calibration.scans import PairingError, ScanFormatError
 from toolkit.cli_types import positive_int
 
+# The extrinsic was estimated but the views do not pin it down (scripts must not go on).
+EXIT_UNRELIABLE = 3
+
 USER_ERRORS: tuple[type[BaseException], ...] = (
     BoardError, CheckError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
     ScanFormatError, FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError,
@@ -149,8 +152,14 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
 
             base = read_rig(Path(args.rig))
         rig = rig_for_extrinsic(camera, run.result.T_camera_laser, base)
-        write_rig_with_calibration(Path(args.out), rig, _np(summary))
-        print(f"wrote {args.out}")
+        out_path = Path(args.out)
+        if not summary["reliable"]:
+            # --out is what the rest of a workflow reads: an unreliable result goes beside
+            # it, so that it never replaces a good one.
+            out_path = unreliable_path(out_path)
+        write_rig_with_calibration(out_path, rig, _np(summary))
+        print(f"wrote {out_path}" + ("" if summary["reliable"] else
+                                     f" (not {args.out}: the result is unreliable)"))
     if args.json:
         from calibration.files import extrinsic_to_mapping
         from toolkit.io.atomic import atomic_write_json
@@ -175,7 +184,13 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
             with atomic_path(out / f"{Path(c.name).stem}_overlay.png") as tmp:
                 cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         print(f"wrote {len(run.candidates)} overlays to {out}")
-    return 0
+    return 0 if summary["reliable"] else EXIT_UNRELIABLE
+
+
+def unreliable_path(path: Path) -> Path:
+    """Where an unreliable extrinsic is written instead of ``path``: rig.yaml ->
+    rig.unreliable.yaml."""
+    return path.with_name(f"{path.stem}.unreliable{path.suffix}")
 
 
 def _sequence_image(root: Path, name: str) -> Path:
@@ -210,7 +225,8 @@ def _print_extrinsic(T: np.ndarray, s: dict[str, Any]) -> None:
         print(f"UNRELIABLE: {why}")
     if not s["reliable"]:
         print("RESULT UNRELIABLE: do not use this extrinsic as it is (the file written says "
-              "'reliable: false'); see the reasons above.")
+              "'reliable: false', and is not --out itself); see the reasons above. Exit "
+              f"code {EXIT_UNRELIABLE}.")
 
 
 # ---------------------------------------------------------------------------- check

@@ -51,16 +51,30 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
             dist = _plumb_bob(d.get("distortion_model"), dist, source,
                               "distortion_coefficients")
             return PinholeCamera.from_K(K, int(d["image_width"]), int(d["image_height"]), dist)
-        if "distortion_model" in d:
-            d = {**d, "distortion": _plumb_bob(d["distortion_model"],
+        if ("k" in d or "K" in d) and "fx" not in d:
+            # ``ros2 topic echo --once .../camera_info`` (ROS 2: k, d; ROS 1: K, D).
+            K = np.asarray(d.get("k", d.get("K")), dtype=np.float64).reshape(3, 3)
+            dist = np.asarray(d.get("d", d.get("D")) or [], dtype=np.float64).reshape(-1)
+            dist = _plumb_bob(d.get("distortion_model"), dist, source, "d")
+            return PinholeCamera.from_K(K, int(d["width"]), int(d["height"]), dist)
+        # The toolkit's own layout names its lens model under "model" (to_dict writes
+        # "pinhole"); COLMAP-style names such as OPENCV_FISHEYE mean another lens.
+        model = d.get("distortion_model", d.get("model"))
+        if model is not None and str(model).strip().lower() != "pinhole":
+            d = {**d, "distortion": _plumb_bob(model,
                                                np.asarray(d.get("distortion", []), np.float64)
-                                               .reshape(-1), source, "distortion")}
+                                               .reshape(-1), source, "distortion",
+                                               "distortion_model" if "distortion_model" in d
+                                               else "model")}
         return PinholeCamera.from_dict(d)
     except CalibrationFileError:
         raise
     except KeyError as e:
         raise CalibrationFileError(f"{source}: missing field {e} (need width, height, fx, fy, "
-                                   "cx, cy[, distortion], or a ROS camera_info YAML)") from None
+                                   "cx, cy[, distortion]; or a ROS camera_calibration YAML: "
+                                   "image_width, image_height, camera_matrix, "
+                                   "distortion_coefficients; or a CameraInfo message dump: "
+                                   "width, height, k, d)") from None
     except (TypeError, ValueError) as e:
         raise CalibrationFileError(f"{source}: bad camera field: {e}") from None
 
@@ -70,7 +84,8 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
 _PLUMB_BOB = {"plumb_bob", "radtan", "opencv", "opencv k1 k2 p1 p2 k3", "none", ""}
 
 
-def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str) -> np.ndarray:
+def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str,
+               model_field: str = "distortion_model") -> np.ndarray:
     """The k1 k2 p1 p2 k3 coefficients of a camera file, or an error naming the model.
 
     Reading another model's coefficients as these projects wrongly without any error
@@ -88,7 +103,7 @@ def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str) -> np.ndar
         extra = (f" with k4 k5 k6 = {dist[5:8].tolist()} (only k4 = k5 = k6 = 0 is accepted, "
                  "the same model)" if name == "rational_polynomial" else "")
         raise CalibrationFileError(
-            f"{source}: field 'distortion_model' is {model!r}{extra}; this tool's camera model is "
+            f"{source}: field '{model_field}' is {model!r}{extra}; this tool's camera model is "
             "OpenCV's plumb_bob (k1 k2 p1 p2 k3), so those coefficients cannot be used as "
             "they are. Calibrate the camera with that model (python -m calibration "
             "intrinsics --model opencv5), or undistort the images first and give "

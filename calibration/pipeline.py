@@ -27,6 +27,7 @@ from calibration.board_lines import (
     BoardExpectation,
     board_edge_points,
     extract_segments,
+    in_bearing_window,
     points_near_plane,
     select_board_segment,
 )
@@ -267,7 +268,7 @@ def _points_from_segments(cand: ViewCandidate, plane: Any, board: BoardSpec,
     if search.angle_window_deg is not None:
         a = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
         lo, hi = search.angle_window_deg
-        keep = np.nonzero((a >= lo) & (a <= hi))[0]
+        keep = np.nonzero(in_bearing_window(a, lo, hi, 360.0))[0]
         pts = pts[keep]
     segs = extract_segments(pts, seed=search.seed, inlier_m=search.inlier_m)
     seg, why = select_board_segment(segs, _expectation(plane, board, search, guess))
@@ -361,8 +362,10 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
         raise ExtrinsicError(
             f"the board was found in the scans of only {len(views)} of {len(cands)} paired "
             f"views ({detail}); at least {opts.min_views} are needed. Pass --angle-window MIN "
-            "MAX (degrees, laser frame) around the board's direction, --max-offset if the "
-            "sensors are far apart, or --board-size.")
+            "MAX (degrees, laser frame, e.g. 150 210 behind it) around the board's "
+            "direction, --mount any (or --init) if the laser's 0 deg does not point where "
+            "the camera looks (a lidar mounted turned), --max-offset if the sensors are far "
+            "apart, --board-size, and check --square (the size of one square in metres).")
     first = calibrate_extrinsic(views, guess, opts, camera)
     tol = max(0.03, 3.0 * first.residual_rms_m)
     views2, skipped2 = build_views(cands, board, camera, search, first.T_camera_laser, tol)

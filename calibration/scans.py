@@ -59,6 +59,11 @@ def stamp_from_name(path: Path, unit: str = "auto") -> float:
     if unit != "auto" and unit not in STAMP_UNITS:
         raise ValueError(f"stamp unit {unit!r}: use auto, {', '.join(STAMP_UNITS)}")
     stem = Path(path).stem
+    # <seconds>_<nanoseconds> (ROS's sec and nsec fields, nanoseconds zero-padded to 9
+    # digits): the first run of digits alone would drop the fraction.
+    pair = re.search(r"(?<!\d)(\d{9,10})[_-](\d{9})(?!\d)", stem)
+    if pair is not None and unit == "auto":
+        return int(pair.group(1)) + int(pair.group(2)) * 1e-9
     m = re.fullmatch(r"\d+(\.\d*)?", stem) or re.search(r"(\d{10,})", stem)
     if m is None:
         raise ScanFormatError(
@@ -219,6 +224,11 @@ def read_csv_scan(path: Path) -> np.ndarray:
         return _planar(data[:, cols], str(path))
     if {"angle", "range"} <= set(head):
         a, r = data[:, head.index("angle")], data[:, head.index("range")]
+        if np.nanmax(np.abs(a), initial=0.0) > 2 * np.pi + 1e-6:
+            raise ScanFormatError(
+                f"{path}: column 'angle' reaches {np.nanmax(np.abs(a)):.1f}, more than 2 pi: "
+                "the angles look like degrees; this reader takes radians (convert the "
+                "column, or write x,y columns)")
         return _planar(np.stack([r * np.cos(a), r * np.sin(a)], -1), str(path))
     raise ScanFormatError(f"{path}: CSV header {head} must name columns x,y[,z] or "
                           "angle,range (radians)")

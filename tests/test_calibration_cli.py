@@ -209,7 +209,8 @@ def test_untilted_boards_print_unreliable(tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     cap = make_capture(6, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01)
     cap_dir = write_capture(cap, tmp_path / "cap")
-    assert main(_args(cap_dir, "--no-loo", "--json", str(tmp_path / "r.json"))) == 0
+    # estimated but unreliable: exit 3, so that a script does not go on with it
+    assert main(_args(cap_dir, "--no-loo", "--json", str(tmp_path / "r.json"))) == 3
     out = capsys.readouterr().out
     assert "UNRELIABLE: the 6 board normals all lie within" in out
     assert "RESULT UNRELIABLE" in out.splitlines()[-2]  # last before "wrote"
@@ -278,3 +279,31 @@ def test_bench_without_anything_to_measure_fails() -> None:
     from calibration.bench import main as bench_main
 
     assert bench_main(["--no-sweep", "--acfr", "/nonexistent/acfr"]) == 2
+
+
+def test_unreliable_result_never_replaces_a_good_rig(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    good = write_capture(make_capture(8, seed=1), tmp_path / "good")
+    rig = tmp_path / "rig.yaml"
+    assert main(_args(good, "--no-loo", "--out", str(rig))) == 0
+    before = rig.read_bytes()
+    flat = write_capture(make_capture(6, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01),
+                         tmp_path / "flat")
+    assert main(_args(flat, "--no-loo", "--out", str(rig))) == 3
+    assert rig.read_bytes() == before
+    side = tmp_path / "rig.unreliable.yaml"
+    assert yaml.safe_load(side.read_text())["calibration"]["reliable"] is False
+    assert "not " + str(rig) in capsys.readouterr().out
+
+
+def test_wrong_square_size_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The boards' distances scale with --square: 10 % off moved the extrinsic 0.2 m with a
+    5 mm residual, marked reliable."""
+    cap_dir = write_capture(make_capture(10, seed=2), tmp_path / "cap")
+    args = _args(cap_dir, "--no-loo", "--json", str(tmp_path / "r.json"))
+    assert main(args) == 0
+    assert json.loads((tmp_path / "r.json").read_text())["reliable"] is True
+    args[args.index("--square") + 1] = "0.045"  # the true squares are 0.05 m
+    assert main(args) == 3
+    out = capsys.readouterr().out
+    assert "square size (--square) is probably 1.1" in out

@@ -404,3 +404,36 @@ def test_extrinsic_mappings_round_trip() -> None:
     with pytest.raises(CalibrationFileError, match="camera_link"):
         extrinsic_from_mapping({"parent": "base_link", "child": "laser", "translation": [0] * 3,
                                 "rotation": [0, 0, 0, 1]}, "f.yaml")
+
+
+def test_scan_name_stamps_and_degree_angles(tmp_path: Path) -> None:
+    # ROS's sec_nsec naming: the nanoseconds are the fraction, not dropped
+    for name in ("1773380642_900000000.pcd", "frame_1773380642-900000000.png"):
+        assert stamp_from_name(Path(name)) == pytest.approx(1773380642.9, abs=1e-6)
+    path = tmp_path / "deg.csv"
+    path.write_text("angle,range\n-135,1.0\n0,2.0\n135,1.5\n")
+    with pytest.raises(ScanFormatError, match="look like degrees"):
+        read_csv_scan(path)
+
+
+def test_camera_files_of_other_lenses_and_message_dumps() -> None:
+    fisheye = {"model": "OPENCV_FISHEYE", "width": 640, "height": 480, "fx": 300.0,
+               "fy": 300.0, "cx": 320.0, "cy": 240.0, "distortion": [0.1, 0.01, 0.0, 0.0]}
+    with pytest.raises(CalibrationFileError, match="field 'model' is 'OPENCV_FISHEYE'"):
+        camera_from_mapping(fisheye, "cam.yaml")
+    assert camera_from_mapping({**fisheye, "model": "pinhole"}, "cam.yaml").fx == 300.0
+    echo = {"width": 640, "height": 480, "distortion_model": "plumb_bob",
+            "d": [-0.1, 0.02, 0.0, 0.0, 0.0], "k": [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1]}
+    cam = camera_from_mapping(echo, "ros2_echo.yaml")  # ros2 topic echo of a CameraInfo
+    assert cam.fx == 500.0 and cam.dist[0] == -0.1
+
+
+def test_angle_window_across_the_back_of_the_laser() -> None:
+    from calibration.board_lines import in_bearing_window
+
+    a = np.radians([-170.0, 170.0, 0.0, 90.0])
+    np.testing.assert_array_equal(in_bearing_window(a, np.radians(150), np.radians(210)),
+                                  [True, True, False, False])
+    np.testing.assert_array_equal(in_bearing_window(np.degrees(a), 170, -170, 360.0),
+                                  [True, True, False, False])
+    assert in_bearing_window(np.degrees(a), -180, 180, 360.0).all()

@@ -117,3 +117,19 @@ def test_projection_and_transforms_refuse_points_of_the_wrong_shape():
         geometry_metrics(pts.T[:, :2], pts)  # [3, N]
     uv, z = cam.project(pts)
     assert uv.shape == (3, 2) and np.allclose(z, pts[:, 2])
+
+
+def test_rays_past_the_distortion_peak_do_not_fold_back_into_the_image(cam):
+    """With k3 < 0 the distorted radius peaks (37 deg off-axis for this lens) and turns
+    back: a ray 45 deg off-axis landed inside the image, on the calibration board."""
+    r2 = cam.max_radius2()
+    assert 0.5 < r2 < 0.7  # undistorted radius 0.765
+    k1, k2, _, _, k3 = DIST
+    s = np.array([r2 * 0.99, r2, r2 * 1.01])
+    slope = 1 + 3 * k1 * s + 5 * k2 * s**2 + 7 * k3 * s**3
+    assert slope[0] > 0 and abs(slope[1]) < 1e-9 and slope[2] < 0
+    off_axis = np.radians([30.0, 45.0])
+    P = np.stack([np.tan(off_axis), np.zeros(2), np.ones(2)], -1)
+    uv, _ = cam.project(P)
+    assert cam.in_image(uv[:1]).all() and np.isnan(uv[1]).all()
+    assert PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0).max_radius2() == np.inf

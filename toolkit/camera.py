@@ -144,10 +144,21 @@ class PinholeCamera:
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         return np.stack([xd, yd], -1)
 
+    def max_radius2(self) -> float:
+        """Squared normalised radius up to which the radial distortion grows with the
+        radius (inf when it always does). Past it (k2 or k3 < 0) the model turns back:
+        a ray 40 deg off-axis can land inside the image next to one at 30 deg."""
+        k1, k2, _, _, k3 = self.dist
+        # d(r * (1 + k1 r^2 + k2 r^4 + k3 r^6)) / dr = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3, s = r^2
+        roots = np.roots(np.trim_zeros([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0], "f"))
+        s = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
+        return float(min(s)) if s else float("inf")
+
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels [N, 2] and depths z [N] of camera-frame points [N, 3].
 
-        Points with z <= 0 get NaN pixels; check ``in_image`` before indexing.
+        Points with z <= 0, or beyond the radius where the distortion model turns back
+        (``max_radius2``), get NaN pixels; check ``in_image`` before indexing.
         """
         P = np.asarray(points_cam, dtype=np.float64)
         if P.ndim != 2 or P.shape[1] != 3:
@@ -159,6 +170,8 @@ class PinholeCamera:
             xy = P[:, :2] / z[:, None]
         xy[z <= 0] = np.nan
         if self.has_distortion:
+            with np.errstate(invalid="ignore"):
+                xy[(xy * xy).sum(1) >= self.max_radius2()] = np.nan
             xy = self.distort_normalized(xy)
         uv = np.empty_like(xy)
         uv[:, 0] = self.fx * xy[:, 0] + self.cx

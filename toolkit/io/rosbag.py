@@ -655,6 +655,11 @@ def load_calibration(path: Path | str) -> Calibration:
     if not isinstance(data, dict):
         raise BagError(f"{path}: expected a mapping with camera / T_base_camera / "
                        "T_base_laser / T_camera_laser / transforms")
+    info = data.get("calibration")
+    if isinstance(info, dict) and info.get("reliable") is False:
+        _log.warning("%s: this extrinsic was marked unreliable when it was estimated (%s); "
+                     "calibrate again with more varied board views", path,
+                     "; ".join(map(str, info.get("unreliable_because") or [])) or "no reason")
     if data.get("calibration") is not None and data.get("T_camera_laser") is not None:
         # Written by ``python -m calibration``: what it estimated is T_camera_laser. Its
         # T_base_* only place a base_link of its own (at the laser, without a rig given),

@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import re
 import shutil
 from dataclasses import replace
@@ -41,6 +42,8 @@ from toolkit.io.depth import write_depth
 from toolkit.io.tum import read_tum, write_tum
 from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import CameraFrame, GroundTruth, HeldOutViews, LaserScan, Rig, Sequence
+
+_log = logging.getLogger(__name__)
 
 FORMAT_NAME = "lidarcam-sequence"
 FORMAT_VERSION = 1
@@ -110,6 +113,11 @@ def read_rig(path: Path | str) -> Rig:
     path = Path(path)
     data = load_yaml(path, SequenceFormatError, "rig file not found (camera intrinsics and "
                      "T_base_camera / T_base_laser are required)")
+    info = data.get("calibration") if isinstance(data, dict) else None
+    if isinstance(info, dict) and info.get("reliable") is False:
+        _log.warning("%s: its extrinsic was marked unreliable when it was estimated (%s); "
+                     "calibrate again with more varied board views", path,
+                     "; ".join(map(str, info.get("unreliable_because") or [])) or "no reason")
     return rig_from_dict(data, str(path))
 
 
