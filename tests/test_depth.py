@@ -678,3 +678,14 @@ def test_depth_threads_and_device_neither_rerun_nor_discard_frames(tmp_path: Pat
     assert again.ok and again.statuses == {"t_sequence": "cached", "depth": "cached"}
     other = run_stages(tmp_path, stages(every=2), register)  # changes what is written
     assert other.ok and other.statuses["depth"] == "ran"
+
+
+def test_depth_settings_that_cannot_run_are_refused_with_the_recipe() -> None:
+    from pydantic import ValidationError
+
+    from toolkit.depth.stage import DepthConfig
+
+    with pytest.raises(ValidationError, match="backend 'onnx' needs 'model'"):
+        DepthConfig(stage="depth", backend="onnx", model=None)
+    with pytest.raises(ValidationError, match="needs input_size"):
+        DepthConfig(stage="depth", backend="dav2s_random")

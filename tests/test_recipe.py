@@ -756,3 +756,81 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     ck.remove()
     assert not path.exists()
     assert [p.name for p in path.parent.iterdir()] == []  # no temporary files left
+
+
+# --- stale files, lost outputs, recipe text ------------------------------------------------
+
+
+class FolderStage(Stage):
+    """Provide its whole folder, two files in it (test stage)."""
+
+    name = "t_folder"
+    Config = SourceConfig
+    provides = ("folder",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        atomic_write_text(ctx.stage_dir / "a.txt", "a" * cfg.value)
+        atomic_write_text(ctx.stage_dir / "b.txt", "b")
+        ctx.provide("folder", ctx.stage_dir)
+
+
+def test_other_settings_start_from_an_empty_stage_folder(tmp_path: Path) -> None:
+    """Files an earlier run wrote under other settings must not be read as this run's (an
+    old per-frame depth beside the new, an old capture); an interrupted run of the same
+    settings keeps them (resume)."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    stray = tmp_path / "run" / "t_double" / "from_factor_2.txt"
+    stray.write_text("written under factor 2")
+    assert _run(path).statuses["t_double"] == "cached" and stray.exists()
+    assert _run(path, "t_double.factor=3").statuses["t_double"] == "ran"
+    assert not stray.exists()
+    stray.write_text("x")
+    assert _run(path, "t_double.factor=3", force=True).ok and not stray.exists()
+    # files of nobody's run are never deleted: the run stops before touching them
+    mine = tmp_path / "run" / "t_sink"
+    for child in mine.iterdir():
+        child.unlink()
+    (mine / "my_notes.txt").write_text("keep me")
+    with pytest.raises(RecipeError, match=r"holds files but no record of a run"):
+        _run(path, "t_sink.stage_error=true")
+    assert (mine / "my_notes.txt").read_text() == "keep me"
+
+
+def test_a_lost_file_inside_a_provided_folder_reruns_the_stage(tmp_path: Path) -> None:
+    counter = str(tmp_path / "calls.txt")
+    registry.register("t_folder", FolderStage)
+    try:
+        path = _write_recipe(tmp_path, {"name": "f", "output": str(tmp_path / "run"),
+                                        "stages": [{"stage": "t_folder", "counter": counter}]})
+        assert _run(path).statuses == {"t_folder": "ran"}
+        assert _run(path).statuses == {"t_folder": "cached"}
+        (tmp_path / "run" / "t_folder" / "b.txt").unlink()
+        assert _run(path).statuses == {"t_folder": "ran"}
+        (tmp_path / "run" / "t_folder" / "a.txt").write_text("truncated")
+        assert _run(path).statuses == {"t_folder": "ran"}
+    finally:
+        registry.unregister("t_folder")
+
+
+def test_recipe_text_surprises_are_caught(tmp_path: Path) -> None:
+    counter = str(tmp_path / "calls.txt")
+    twice = tmp_path / "twice.yaml"
+    twice.write_text(f"name: t\noutput: run\nstages:\n  - stage: t_source\n    counter: {counter}"
+                     "\n    value: 2\n    value: 3\n")
+    with pytest.raises(RecipeError, match=r"key 'value' is given twice \(lines 6 and 7\)"):
+        load_recipe(twice)
+    # an alias shares one mapping between stages; --set on one must not change the other
+    shared = tmp_path / "shared.yaml"
+    shared.write_text(
+        "name: t\noutput: ~/lidarcam_test_run\nstages:\n"
+        f"  - {{stage: t_source, id: a, counter: {counter}}}\n"
+        f"  - {{stage: t_source, id: b, counter: {counter}}}\n"
+        f"  - {{stage: t_double, id: d1, counter: {counter}, inputs: &from_a {{number: a}}}}\n"
+        f"  - {{stage: t_double, id: d2, counter: {counter}, inputs: *from_a}}\n")
+    recipe = load_recipe(shared, ["d1.inputs.number=b"])
+    assert recipe.stages[2].config.inputs == {"number": "b"}
+    assert recipe.stages[3].config.inputs == {"number": "a"}
+    assert recipe.output == Path.home() / "lidarcam_test_run"  # ~ is the home folder

@@ -62,6 +62,20 @@ class DepthConfig(StageConfig):
             raise ValueError(f"simulated: {e}") from None
         return self
 
+    @model_validator(mode="after")
+    def _backend_needs(self) -> DepthConfig:
+        # With the recipe too, so that `validate` refuses what the stage would refuse
+        # after hours of earlier stages.
+        if self.backend == "onnx" and self.model is None:
+            raise ValueError("backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
+                             "datasets/models/small-depth.onnx")
+        if self.backend == "dav2s_random":
+            try:
+                _input_hw(self.input_size)
+            except StageError as e:
+                raise ValueError(str(e).removeprefix("depth: ")) from None
+        return self
+
 
 def _input_hw(size: tuple[int, int] | int | None) -> tuple[int, int]:
     if size is None:

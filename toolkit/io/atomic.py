@@ -60,6 +60,13 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         if not tmp.exists():
             raise FileNotFoundError(f"nothing was written for {target} (temporary path {tmp})")
         os.replace(tmp, target)
+    except OSError as e:
+        _remove(tmp)
+        if e.filename is None and e.errno is not None:
+            # A failed write() names no file (a full disk: "[Errno 28] No space left on
+            # device"): say which one, so the message is worth reading.
+            raise OSError(e.errno, f"{e.strerror} (writing {target})", str(target)) from e
+        raise
     except BaseException:
         _remove(tmp)
         raise

@@ -81,6 +81,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         for problem in exc.problems:
             print(f"error: {problem}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the run's own files (report, metrics) could not be written
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         redo = any(getattr(args, k, None) for k in ("force", "from_stage", "only"))
         again = "it without --force, --from or --only (they would redo finished stages)" \

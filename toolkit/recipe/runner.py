@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import math
+import shutil
 import time
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
@@ -57,6 +58,9 @@ except ImportError:  # Windows: CPU time of this process only
 T = TypeVar("T")
 
 STAGE_FILE = ".stage.json"
+# Written when a stage starts, removed when it finishes: the key of the settings an
+# interrupted run's files belong to (resumed only under that key).
+STARTED_FILE = ".stage.started.json"
 RESOLVED_FILE = "recipe.resolved.yaml"
 LOG_FILE = "run.log"
 LOCK_FILE = ".lock"
@@ -334,14 +338,46 @@ class _Run:
         self.console.print(f"[cyan]{record.spec.id}[/] cached")
         self.log.info("stage %s cached (key %s)", record.spec.id, record.key, extra=_FILE_ONLY)
 
+    def prepare_stage_dir(self, record: _Record) -> None:
+        """Empty the stage's folder unless it holds an interrupted run of these very
+        settings (which the stage resumes): files of other settings would otherwise be
+        read as this run's (an old per-frame depth beside the new, an old capture, old
+        renders), and ``--force`` means from scratch."""
+        stage_dir = self.run_dir / record.spec.id
+        if not stage_dir.exists() or not any(stage_dir.iterdir()):
+            return
+        done, started = _marker_key(stage_dir / STAGE_FILE), _marker_key(stage_dir / STARTED_FILE)
+        if done is None and started is None:
+            raise RecipeError(
+                f"{stage_dir} holds files but no record of a run of stage {record.spec.id!r} "
+                f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
+                "of an older version of the toolkit. Move or delete the folder, then run "
+                "again (nothing was changed)")
+        if not self.force and record.key in (done, started):
+            return
+        for child in stage_dir.iterdir():
+            if child.is_dir() and not child.is_symlink():
+                shutil.rmtree(child)
+            else:
+                child.unlink()
+
     def run_stage(self, record: _Record, stage: Stage) -> bool:
         spec = record.spec
         stage_dir = self.run_dir / spec.id
-        stage_dir.mkdir(parents=True, exist_ok=True)
-        # The folder is kept (stages may keep checkpoints there), but the old marker goes
-        # first: a rerun killed halfway must not look complete next time.
-        (stage_dir / STAGE_FILE).unlink(missing_ok=True)
-        self.write_resolved()
+        start = time.perf_counter()
+        try:
+            self.prepare_stage_dir(record)
+            stage_dir.mkdir(parents=True, exist_ok=True)
+            # The old marker goes first: a rerun killed halfway must not look complete next
+            # time; the started marker says which settings its files belong to.
+            (stage_dir / STAGE_FILE).unlink(missing_ok=True)
+            atomic_write_json(stage_dir / STARTED_FILE, {"key": record.key}, fsync=True)
+            self.write_resolved()
+        except RecipeError:
+            raise
+        except OSError as exc:  # a full disk, a read-only folder: before any work
+            self.fail(record, exc, start)
+            return False
         record.metrics, record.report, record.provides = {}, [], {}
         self.console.print(f"[bold]{spec.id}[/] running ({escape(record.reason)})")
         self.log.info(
@@ -366,8 +402,10 @@ class _Run:
                 "seconds": record.seconds,
                 "cpu_seconds": record.cpu_seconds,
                 "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
+                "manifest": {n: _manifest(p) for n, p in record.provides.items()},
             }
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
+            (stage_dir / STARTED_FILE).unlink(missing_ok=True)
         except Exception as exc:
             self.fail(record, exc, start)
             return False
@@ -622,7 +660,50 @@ def _read_marker(
     missing = [name for name, rel in stored.items() if not (stage_dir / rel).exists()]
     if missing:
         return None, f"output {missing[0]!r} is missing"
+    # Markers written before manifests existed are trusted by the paths alone.
+    for name, files in (data.get("manifest") or {}).items():
+        if name not in stored:
+            continue
+        changed = _manifest_changes(stage_dir / stored[name], files)
+        if changed:
+            return None, f"output {name!r}: {changed}"
     return data, "up to date"
+
+
+def _marker_key(path: Path) -> str | None:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return str(data.get("key")) if isinstance(data, dict) and data.get("key") else None
+
+
+def _manifest(path: Path) -> list[list[Any]]:
+    """[[relative path, size], ...] of an output (every file of a folder): what a later run
+    checks before it trusts the output (a deleted map inside a provided folder)."""
+    if path.is_dir():
+        # Hidden files are the runner's markers (a stage may provide its own folder) and
+        # leftover temporaries of killed writes: not outputs.
+        files = []
+        for p in sorted(path.rglob("*")):
+            rel = p.relative_to(path).as_posix()
+            if p.is_file() and not any(part.startswith(".") for part in rel.split("/")):
+                files.append([rel, p.stat().st_size])
+        return files
+    return [[".", path.stat().st_size]] if path.exists() else []
+
+
+def _manifest_changes(path: Path, files: list[list[Any]]) -> str | None:
+    """What differs from a stored manifest: the first missing or resized file."""
+    for rel, size in files:
+        f = path if rel == "." else path / rel
+        try:
+            now = f.stat().st_size
+        except OSError:
+            return f"{f} is missing"
+        if now != size:
+            return f"{f} changed size ({size} -> {now} bytes)"
+    return None
 
 
 def _relative(path: Path, stage_dir: Path) -> str:

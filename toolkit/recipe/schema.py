@@ -6,8 +6,8 @@ in the last stage of a long recipe fails in a second instead of after an hour of
 
 from __future__ import annotations
 
-import copy
 import difflib
+import os
 import re
 import types
 import typing
@@ -98,6 +98,31 @@ def config_data(config: StageConfig) -> dict[str, Any]:
     return data
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping (YAML keeps the last one
+    without a word: a stage's setting written twice silently loses the first)."""
+
+
+def _mapping_without_repeats(loader: _UniqueKeyLoader, node: yaml.MappingNode,
+                             deep: bool = False) -> dict[Any, Any]:
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *defaults'
+            continue
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                "while reading a mapping", node.start_mark,
+                f"key {key!r} is given twice (lines {seen[key] + 1} and "
+                f"{key_node.start_mark.line + 1}); keep one", key_node.start_mark)
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
+                                 _mapping_without_repeats)
+
+
 def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
     """Read and validate a recipe file; ``overrides`` are ``--set`` items (``KEY=VALUE``)."""
     path = Path(path)
@@ -111,7 +136,7 @@ def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
         raise RecipeError(f"{path}: not UTF-8 text (byte {exc.start}); save the recipe as "
                           f"UTF-8") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
         raise RecipeError(f"{path}: not valid YAML: {exc}") from None
     return parse_recipe(data, overrides, source=path)
@@ -127,7 +152,9 @@ def parse_recipe(
             f"{where}: a recipe is a mapping with keys {', '.join(TOP_LEVEL_KEYS)}; "
             f"got {type(data).__name__}"
         )
-    data = copy.deepcopy(data)
+    # A fresh tree: YAML aliases (&a / *a) share one mapping between stages, which a
+    # --set on one stage would change in all of them (deepcopy keeps the sharing).
+    data = _unshared(data)
     apply_overrides(data, overrides)
 
     problems: list[str] = []
@@ -339,6 +366,19 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
                 raise RecipeError(f"--set {item!r}: {inner} is {child!r}, not a mapping")
             target = child
         target[path[-1]] = value
+
+
+def _unshared(value: Any) -> Any:
+    """A copy of YAML data with every mapping and list its own, and paths written from the
+    home folder (``~/data/run.bag``) expanded: a string starting with ``~/`` is nothing
+    else in a recipe (recorded topic names are absolute)."""
+    if isinstance(value, dict):
+        return {k: _unshared(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_unshared(v) for v in value]
+    if isinstance(value, str) and value.startswith("~/"):
+        return os.path.expanduser(value)
+    return value
 
 
 def _stage_mapping(data: dict[str, Any], stage_id: str, item: str) -> dict[str, Any]:
