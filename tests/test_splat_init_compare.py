@@ -149,6 +149,15 @@ def test_mesh_view_renderer_background_coverage_and_colour(tmp_path: Path) -> No
     # Splats black vs red on the covered pixels: MSE 1/3 over the channels.
     assert m["heldout_psnr_on_tsdf_covered_db"] == pytest.approx(10 * np.log10(3.0), abs=1e-4)
     assert m["tsdf_heldout_coverage"] == pytest.approx(out.covered.mean())
+    # Pixels the splats are not scored on (lens corners without a source pixel) do not
+    # count against the mesh either: a wrong colour there changes nothing.
+    valid = torch.ones(target.shape[:2], dtype=torch.bool)
+    valid[:, :5] = False
+    off = target.clone()
+    off[:, :5] = 0.5
+    masked = Comparison()
+    masked.add(type(out)(off, out.coverage), splat, target, valid)
+    assert masked.metrics("heldout")["tsdf_heldout_psnr_db"] > 60
 
 
 def test_stage_reports_tsdf_mesh_at_the_same_heldout_views(tmp_path: Path) -> None:

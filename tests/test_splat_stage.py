@@ -152,3 +152,16 @@ def test_lens_corners_without_a_source_are_neither_fitted_nor_scored() -> None:
     assert psnr(masked, gt, mask=valid) > 40
     (masked - gt).abs().mean().backward()
     assert float(render.grad[~valid].abs().sum()) == 0.0
+
+
+def test_settings_that_cannot_run_are_refused_with_the_recipe() -> None:
+    from pydantic import ValidationError
+
+    from toolkit.splat.stage import SplatConfig
+
+    with pytest.raises(ValidationError, match=r"random_depth_m \[5.0, 0.3\]"):
+        SplatConfig(stage="splat", random_depth_m=(5.0, 0.3))
+    with pytest.raises(ValidationError, match="this stage trains on the CPU"):
+        SplatConfig(stage="splat", backend="gsplat")
+    with pytest.raises(ValidationError):
+        SplatConfig(stage="splat", backend="gpu")

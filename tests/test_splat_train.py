@@ -110,7 +110,7 @@ def test_checkpoint_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
     assert len(straight.model) != 600
 
 
-def test_resume_refuses_other_settings_or_data_and_finished_runs(tmp_path: Path) -> None:
+def test_resume_refuses_other_settings_or_data_and_takes_finished_runs(tmp_path: Path) -> None:
     views = _views(n=2, width=24, height=18, n_gauss=300)
     t = Trainer(_start_model(300), views, _cfg(), tmp_path)
     t.train_step()
@@ -122,9 +122,20 @@ def test_resume_refuses_other_settings_or_data_and_finished_runs(tmp_path: Path)
     assert not other_data.resume()
     same = Trainer(_start_model(300), views, _cfg(), tmp_path)
     assert same.resume() and same.step == 2
-    same.train()  # finishes: its final checkpoint is not resumed by a rerun
+    done = same.train()  # finishes: a rerun takes its model, without training again
     again = Trainer(_start_model(300), views, _cfg(), tmp_path)
-    assert not again.resume() and again.step == 0
+    assert again.resume() and again.step == done.steps
+    summary = again.train()
+    assert summary.steps == done.steps and summary.final_loss == done.final_loss
+    assert torch.equal(again.model.means, same.model.means)
+    # another scene (the trainer's own key: views and model size) does not resume it
+    other_scene = Trainer(_start_model(200), _views(n=3, width=24, height=18, n_gauss=200),
+                          _cfg(), tmp_path)
+    assert not other_scene.resume() and other_scene.step == 0
+    # a truncated checkpoint is ignored, not a crash on every rerun
+    (tmp_path / "checkpoint.pt").write_bytes(b"")
+    fresh = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    assert not fresh.resume() and fresh.step == 0
 
 
 def _meta_for(model: GaussianModel, grads: torch.Tensor) -> RenderMeta:

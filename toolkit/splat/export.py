@@ -50,7 +50,12 @@ def model_to_array(model: GaussianModel) -> np.ndarray:
 
 def write_ply(path: Path | str, model: GaussianModel) -> None:
     """Write the model atomically as a binary 3DGS PLY."""
-    el = PlyElement.describe(model_to_array(model), "vertex")
+    arr = model_to_array(model)
+    bad = ~np.all(np.isfinite(np.stack([arr[a] for a in arr.dtype.names], 1)), axis=1)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of {len(arr)} Gaussians have non-finite "
+                         "parameters (training diverged); not written")
+    el = PlyElement.describe(arr, "vertex")
     with atomic_path(Path(path)) as tmp:
         PlyData([el], text=False, byte_order="<").write(str(tmp))
 

@@ -90,11 +90,20 @@ class Comparison:
         self.psnr_all, self.ssim_all, self.psnr_covered = [], [], []
         self.splat_psnr_covered, self.coverage = [], []
 
-    def add(self, mesh: MeshRender, splat: torch.Tensor, target: torch.Tensor) -> None:
-        """``splat`` and ``target``: [h, w, 3] float 0..1 (the stage's evaluation tensors)."""
-        self.psnr_all.append(float(psnr_fn(mesh.color, target)))
-        self.ssim_all.append(float(ssim_fn(mesh.color, target)))
+    def add(self, mesh: MeshRender, splat: torch.Tensor, target: torch.Tensor,
+            valid: torch.Tensor | None = None) -> None:
+        """``splat`` and ``target``: [h, w, 3] float 0..1 (the stage's evaluation tensors);
+        ``valid`` [h, w] bool: the pixels the splats are scored on (lens corners of an
+        undistorted image have no source pixel), so that both are scored alike."""
+        color = mesh.color
+        if valid is not None:
+            # As the splats' scores treat them: outside, the target itself.
+            color = torch.where(valid[..., None], color, target)
+        self.psnr_all.append(float(psnr_fn(color, target, mask=valid)))
+        self.ssim_all.append(float(ssim_fn(color, target)))
         m = torch.from_numpy(mesh.covered)
+        if valid is not None:
+            m = m & valid
         self.coverage.append(float(m.float().mean()))
         if bool(m.any()):
             self.psnr_covered.append(float(psnr_fn(mesh.color, target, mask=m)))

@@ -172,13 +172,21 @@ def init_from_points(
     if len(pts) == 0:
         raise ValueError("cannot initialise Gaussians from an empty point cloud")
     finite = np.all(np.isfinite(pts), axis=1)
-    pts = pts[finite]
     if colors is None:
         rgb = np.full((len(pts), 3), 0.5)
     else:
-        rgb = np.asarray(colors, dtype=np.float64).reshape(-1, 3)[finite]
-        if rgb.max(initial=0.0) > 1.0:
-            rgb = rgb / 255.0
+        rgb = np.asarray(colors, dtype=np.float64).reshape(-1, 3)
+        if len(rgb) != len(pts):
+            raise ValueError(f"{len(rgb)} colours for {len(pts)} points; give one RGB per "
+                             "point")
+        # A NaN colour trains NaN Gaussians that spread to their neighbours' gradients.
+        finite &= np.all(np.isfinite(rgb), axis=1)
+        if np.asarray(colors).dtype.kind in "ui" or rgb.max(initial=0.0) > 1.5:
+            rgb = rgb / 255.0  # 8-bit colours (a float cloud a hair over 1 is still 0..1)
+        rgb = np.clip(rgb, 0.0, 1.0)
+    pts, rgb = pts[finite], rgb[finite]
+    if len(pts) == 0:
+        raise ValueError("no point of the cloud has a finite position and colour")
     if budget is not None and len(pts) > budget:
         keep = np.random.default_rng(seed).choice(len(pts), size=budget, replace=False)
         keep.sort()

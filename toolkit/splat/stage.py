@@ -43,7 +43,7 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory, inv_se3, umeyama_alignment
@@ -93,6 +93,21 @@ class SplatConfig(TrainConfig, StageConfig):
     # A safety net for the quickstart's 4-minute budget on slow machines; benchmark recipes
     # set it to null.
     max_seconds: float | None = Field(220.0, gt=0)
+
+    @model_validator(mode="after")
+    def _runnable(self) -> SplatConfig:
+        # Checked with the recipe (`validate`), not after the upstream stages have run.
+        lo, hi = self.random_depth_m
+        if not 0 < lo < hi:
+            raise ValueError(f"random_depth_m {list(self.random_depth_m)}: give [near, far] "
+                             "in metres, 0 < near < far")
+        if self.backend == "gsplat":
+            raise ValueError(
+                "backend gsplat: this stage trains on the CPU (the model stays in CPU "
+                "memory); the gsplat CUDA backend is used through the library "
+                "(toolkit.splat.render, toolkit.splat.bench --device cuda). Use backend "
+                "auto, cpp or torch")
+        return self
 
 
 def choose_threads(setting: int | str) -> int:
@@ -328,6 +343,10 @@ class SplatStage(Stage):
         used = np.arange(0, len(index), cfg.frame_stride)
         cam_full = seq.rig.camera
         w, h = cam_full.width // cfg.downscale, cam_full.height // cfg.downscale
+        if min(w, h) < 11:
+            raise StageError(f"splat: {cam_full.width}x{cam_full.height} images at downscale "
+                             f"{cfg.downscale} are {w}x{h}, smaller than the 11-pixel SSIM "
+                             "window the held-out views are scored with; lower downscale")
         cam = cam_full.undistorted().scaled(w, h)
         # Depth targets are read only when the loss uses them.
         depth_dir = find_depth_dir(fused) if fused is not None and cfg.depth_weight > 0 else None
@@ -457,7 +476,7 @@ class SplatStage(Stage):
                 if mesh_r is not None and comp is not None:
                     t = time.perf_counter()
                     mr = mesh_r.render(v.T_camera_world)
-                    comp.add(mr, out.color.clamp(0, 1), v.target())
+                    comp.add(mr, out.color.clamp(0, 1), v.target(), v.mask)
                     mesh_img = _to_u8(mr.color)
                     t_mesh[0] += time.perf_counter() - t
                 if i in picks:

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -64,7 +64,7 @@ class TrainConfig(BaseModel):
     lr_sh0: float = 2.5e-3
     lr_shN: float = 2.5e-3 / 20
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    backend: str = "auto"
+    backend: Literal["auto", "cpp", "torch", "gsplat"] = "auto"
     densify: StrategyConfig = StrategyConfig()
     max_gaussians: int = Field(300_000, ge=1)
     memory_budget_mb: float | None = Field(
@@ -220,7 +220,10 @@ class Trainer:
         self.views = views
         self.cfg = config
         self.checkpoint_dir = checkpoint_dir
-        self.data_key = data_key  # identity of the views/initial model, checked on resume
+        # Identity of the views / initial model, checked on resume; without one from the
+        # caller, what the trainer itself sees of them (another scene must not resume).
+        self.data_key = data_key or _default_data_key(model, views)
+        self.done: dict[str, Any] | None = None  # a finished run's summary, once resumed
         self.step = 0
         self.cap = gaussian_cap(config)
         self.scene_scale = config.scene_scale or scene_scale_of(views, model.means)
@@ -296,6 +299,12 @@ class Trainer:
             if bool(valid.any()):
                 depth_l1 = (out.depth - target).abs()[valid].mean()
                 loss = loss + cfg.depth_weight * depth_l1
+        if not bool(torch.isfinite(loss)):
+            raise FloatingPointError(
+                f"training step {step}: the loss is {float(loss)} on view {view.name!r}: a "
+                "Gaussian parameter or the view's image/depth is not finite (check the "
+                "initial cloud's colours, and lower the learning rates if it happened "
+                "after many steps)")
         changes = self.strategy.no_changes()
         # A view that sees no Gaussian renders the background alone: no gradient to take
         # (the reference rasteriser returns a constant; backward would raise).
@@ -325,6 +334,10 @@ class Trainer:
         progress bar); without one a rich bar with loss and PSNR is shown on a terminal.
         """
         cfg = self.cfg
+        if self.done is not None:  # resumed a finished run: its model is the result
+            return TrainSummary(steps=self.step, n_gaussians=len(self.model),
+                                resumed_from=self.resumed_from, history=self.history,
+                                **self.done)
         start = self.step
         t0 = time.perf_counter()
         steps = range(start, cfg.iterations)
@@ -351,14 +364,15 @@ class Trainer:
                                 self.step, cfg.max_seconds)
                     break
         seconds = time.perf_counter() - t0
-        if self.checkpoint_dir is not None:
-            self.save_checkpoint(finished=True)
         done = self.step - start
-        return TrainSummary(
-            steps=self.step, seconds=seconds, iters_per_s=done / seconds if seconds > 0 else 0.0,
-            n_gaussians=len(self.model), final_loss=ema.get("loss", last["loss"]),
-            final_psnr_db=ema.get("psnr_db", last["psnr_db"]), stopped_early=stopped,
-            resumed_from=self.resumed_from, history=self.history)
+        outcome = {"seconds": seconds, "iters_per_s": done / seconds if seconds > 0 else 0.0,
+                   "final_loss": ema.get("loss", last["loss"]),
+                   "final_psnr_db": ema.get("psnr_db", last["psnr_db"]),
+                   "stopped_early": stopped}
+        if self.checkpoint_dir is not None:
+            self.save_checkpoint(finished=True, outcome=outcome)
+        return TrainSummary(steps=self.step, n_gaussians=len(self.model),
+                            resumed_from=self.resumed_from, history=self.history, **outcome)
 
     # ---------------------------------------------------------------- checkpoints
     def checkpoint_path(self) -> Path:
@@ -366,9 +380,11 @@ class Trainer:
             raise ValueError("this trainer has no checkpoint folder")
         return self.checkpoint_dir / CHECKPOINT_NAME
 
-    def state_dict(self, finished: bool = False) -> dict[str, Any]:
+    def state_dict(self, finished: bool = False,
+                   outcome: dict[str, Any] | None = None) -> dict[str, Any]:
         return {
             "finished": finished,
+            "outcome": outcome,
             "format": "toolkit-splat-checkpoint/1",
             "step": self.step,
             "config_digest": config_digest(self.cfg),
@@ -382,15 +398,17 @@ class Trainer:
             "history": self.history,
         }
 
-    def save_checkpoint(self, finished: bool = False) -> Path:
+    def save_checkpoint(self, finished: bool = False,
+                        outcome: dict[str, Any] | None = None) -> Path:
         """Write the checkpoint atomically (a kill mid-write leaves the previous one).
 
-        ``finished`` marks the end of a training run: ``resume`` only continues runs that
-        were interrupted, so rerunning a finished one starts afresh.
+        ``finished`` marks the end of a training run (with its ``outcome``: time, final
+        loss and PSNR, early stop): ``resume`` then takes its model as the result instead
+        of training again (a stage interrupted while evaluating).
         """
         path = self.checkpoint_path()
         with atomic_path(path) as tmp:
-            torch.save(self.state_dict(finished), tmp)
+            torch.save(self.state_dict(finished, outcome), tmp)
         return path
 
     def load_state_dict(self, ckpt: dict[str, Any]) -> None:
@@ -423,16 +441,36 @@ class Trainer:
             return False
         try:
             ckpt = torch.load(self.checkpoint_path(), map_location="cpu", weights_only=False)
-            if ckpt.get("finished"):
-                log.info("checkpoint %s is of a finished run; training afresh",
-                         self.checkpoint_path())
+            if not isinstance(ckpt, dict):
+                raise ValueError("not a checkpoint of this trainer")
+            if ckpt.get("finished") and not ckpt.get("outcome"):
+                log.info("checkpoint %s is of a finished run written before runs kept their "
+                         "outcome; training afresh", self.checkpoint_path())
                 return False
             self.load_state_dict(ckpt)
-        except (ValueError, KeyError, RuntimeError, OSError) as exc:
-            log.warning("ignoring checkpoint %s: %s", self.checkpoint_path(), exc)
+        except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: start afresh
+            log.warning("ignoring checkpoint %s (%s: %s); training from the start",
+                        self.checkpoint_path(), type(exc).__name__, exc)
+            self.step, self.resumed_from, self.history = 0, None, []
             return False
+        if ckpt.get("finished"):
+            self.done = dict(ckpt["outcome"])
+            log.info("training had finished (step %d) in %s; its model is the result",
+                     self.step, self.checkpoint_path())
+            return True
         log.info("resumed training at step %d from %s", self.step, self.checkpoint_path())
         return True
+
+
+def _default_data_key(model: GaussianModel, views: list[TrainView]) -> str:
+    """What the trainer sees of its inputs: the model's size and the views' names, image
+    sizes and poses."""
+    h = hashlib.sha256()
+    h.update(f"{len(model)}:{model.max_sh_degree}".encode())
+    for v in views:
+        h.update(f"{v.name}:{tuple(v.image.shape)}".encode())
+        h.update(np.ascontiguousarray(v.T_camera_world, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
 
 
 class _progress:
