@@ -181,9 +181,20 @@ def groundtruth_to_trajectory_frame(seq: Sequence, poses: Trajectory) -> (
     inside = (st >= gt_cam.stamps[0] - 1e-6) & (st <= gt_cam.stamps[-1] + 1e-6)
     if inside.sum() < 3:
         return None
-    src = gt_cam.interpolate(st[inside], extrapolate_s=1e-6).poses[:, :3, 3]
+    gt_poses = gt_cam.interpolate(st[inside], extrapolate_s=1e-6).poses  # [N, 4, 4]
+    src = gt_poses[:, :3, 3]
     dst = poses.poses[inside, :3, 3]
-    R, t, _ = umeyama_alignment(src, dst)
+    sv = np.linalg.svd(src - src.mean(0), compute_uv=False)
+    if sv[1] < max(0.05 * sv[0], 0.05 * np.sqrt(len(src))):
+        # Positions along a line (a straight corridor) leave the turn about it free: a fit
+        # 180 deg wrong had a 2 mm residual. The cameras' orientations fix it: the
+        # rotation closest to the mean of R_traj R_gt^T, then the mean offset.
+        M = np.einsum("nij,nkj->ik", poses.poses[inside, :3, :3], gt_poses[:, :3, :3])
+        U, _, Vt = np.linalg.svd(M)
+        R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        t = (dst - src @ R.T).mean(0)
+    else:
+        R, t, _ = umeyama_alignment(src, dst)
     rmse = float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
