@@ -113,3 +113,10 @@ def test_non_finite_inputs_and_models_are_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="1 of 3 Gaussians have non-finite"):
         write_ply(tmp_path / "m.ply", m)
     assert not (tmp_path / "m.ply").exists()
+
+
+def test_unreadable_ply_names_the_file(tmp_path: Path) -> None:
+    bad = tmp_path / "cut.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\n")
+    with pytest.raises(ValueError, match=r"cut.ply: not a readable PLY file"):
+        read_ply(bad)

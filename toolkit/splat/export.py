@@ -65,7 +65,11 @@ def read_ply(path: Path | str, dtype: torch.dtype = torch.float32) -> GaussianMo
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: splat file not found")
-    ply = PlyData.read(str(path))
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as e:  # noqa: BLE001 - plyfile raises several kinds, none naming the file
+        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e}); a "
+                         "truncated download or another format") from e
     if "vertex" not in ply:
         raise ValueError(f"{path}: no 'vertex' element; not a Gaussian splat PLY")
     v = ply["vertex"].data
