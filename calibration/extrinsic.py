@@ -819,7 +819,7 @@ def _joint_refine(views: list[View], T: np.ndarray, camera: PinholeCamera, loss:
         out = []
         for i, v in enumerate(views):
             assert v.object_points is not None and v.corners is not None
-            uv, _ = camera.project(v.object_points @ Rb[i].T + tb[i])
+            uv, _ = camera.project(v.object_points @ Rb[i].T + tb[i], past_peak=True)
             out.append(((uv - v.corners) / sigma_px).ravel())
             n = Rb[i][:, 2]
             out.append(((P3[i] @ Re.T + te) @ n - n @ tb[i]) / sigma_m)

@@ -133,3 +133,9 @@ def test_rays_past_the_distortion_peak_do_not_fold_back_into_the_image(cam):
     uv, _ = cam.project(P)
     assert cam.in_image(uv[:1]).all() and np.isnan(uv[1]).all()
     assert PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0).max_radius2() == np.inf
+
+
+def test_optimisers_may_project_past_the_peak(cam):
+    P = np.array([[np.tan(np.radians(45.0)), 0.0, 1.0]])
+    assert np.isnan(cam.project(P)[0]).all()
+    assert np.isfinite(cam.project(P, past_peak=True)[0]).all()

@@ -660,24 +660,37 @@ def test_onnx_models_of_other_shapes_are_named_before_they_run(tmp_path: Path,
         OnnxDepthBackend(C(model=dyn))
 
 
-def test_depth_threads_and_device_neither_rerun_nor_discard_frames(tmp_path: Path) -> None:
+def test_depth_threads_keep_an_interrupted_runs_frames(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """threads / device / prefetch change how fast the stage runs, not what it writes: an
+    interrupted run's frames are kept under new ones (they were all predicted again); a
+    finished stage reruns for its timings."""
     from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
 
     from toolkit.depth.stage import DepthStage
     from toolkit.fusion.synthetic import write_box_room
 
-    seq = write_box_room(tmp_path / "seq", n_frames=3)
+    seq = write_box_room(tmp_path / "seq", n_frames=4)
     register = {"t_sequence": SequenceFolder, "depth": DepthStage}
 
     def stages(**depth: object) -> list[dict[str, object]]:
         return [{"stage": "t_sequence", "path": str(seq)},
                 {"stage": "depth", "backend": "simulated", **depth}]
 
-    assert run_stages(tmp_path, stages(), register).ok
+    predict = SimulatedDepthBackend.predict
+
+    def dies_at_frame_2(self: SimulatedDepthBackend, rgb: np.ndarray, **kw: object) -> object:
+        if kw["frame_index"] == 2:
+            raise RuntimeError("killed")
+        return predict(self, rgb, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(SimulatedDepthBackend, "predict", dies_at_frame_2)
+    assert not run_stages(tmp_path, stages(), register).ok
+    monkeypatch.setattr(SimulatedDepthBackend, "predict", predict)
     again = run_stages(tmp_path, stages(threads=1, device="cpu", prefetch=False), register)
-    assert again.ok and again.statuses == {"t_sequence": "cached", "depth": "cached"}
-    other = run_stages(tmp_path, stages(every=2), register)  # changes what is written
-    assert other.ok and other.statuses["depth"] == "ran"
+    assert again.ok and again.metrics["depth"]["frames_resumed"] == 2
+    timed = run_stages(tmp_path, stages(threads=2), register)
+    assert timed.statuses["depth"] == "ran" and timed.metrics["depth"]["frames_resumed"] == 0
 
 
 def test_depth_settings_that_cannot_run_are_refused_with_the_recipe() -> None:

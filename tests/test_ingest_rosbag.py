@@ -744,3 +744,20 @@ def test_camera_frame_in_the_wrong_convention_is_warned(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="toolkit"):
         read_rosbag(bag, RosbagOptions(frames={"camera_convention": "body"}))
     assert "camera_convention: optical" in caplog.text
+
+
+def test_a_bag_replayed_at_another_rate_is_one_clock(tmp_path):
+    """Recorded again while replaying at another rate (or from a simulator slower than
+    real time): header - recording time drifts through the bag for every topic alike, and
+    a camera starting later than the lidar must not look like another clock."""
+    c = make_content()
+    b = BagBuilder(True)
+    # Recording time runs 20 times as fast (a 2 s bag becomes 40 s), the camera starts
+    # 1.2 s (24 s recorded) after the lidar: the whole-stream medians of the offset differ
+    # by 6.7 s, the offsets at the same recording time by nothing.
+    msgs = [(top, mt, T0 + 20.0 * (t - T0), m)
+            for top, mt, t, m in standard_messages(b, c, odom=False)
+            if not (top.startswith("/camera") and t < T0 + 1.2)]
+    bag = write_bag(tmp_path / "replayed", "ros1", msgs)
+    rec = read_rosbag(bag)
+    assert len(rec.scans) == len(c.scan_t) and rec.frame_stamps[0] >= T0 + 1.2

@@ -789,6 +789,8 @@ def test_other_settings_start_from_an_empty_stage_folder(tmp_path: Path) -> None
     assert not stray.exists()
     stray.write_text("x")
     assert _run(path, "t_double.factor=3", force=True).ok and not stray.exists()
+    stray.write_text("x")  # --only / --from rerun a finished stage from scratch too
+    assert _run(path, "t_double.factor=3", only="t_double").ok and not stray.exists()
     # files of nobody's run are never deleted: the run stops before touching them
     mine = tmp_path / "run" / "t_sink"
     for child in mine.iterdir():
@@ -834,3 +836,5 @@ def test_recipe_text_surprises_are_caught(tmp_path: Path) -> None:
     assert recipe.stages[2].config.inputs == {"number": "b"}
     assert recipe.stages[3].config.inputs == {"number": "a"}
     assert recipe.output == Path.home() / "lidarcam_test_run"  # ~ is the home folder
+    recipe = load_recipe(shared, ["output=~/other_run"])  # in --set values too
+    assert recipe.output == Path.home() / "other_run"

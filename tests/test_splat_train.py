@@ -128,6 +128,9 @@ def test_resume_refuses_other_settings_or_data_and_takes_finished_runs(tmp_path:
     summary = again.train()
     assert summary.steps == done.steps and summary.final_loss == done.final_loss
     assert torch.equal(again.model.means, same.model.means)
+    # more steps asked of a finished run: another training (the rates decay over the run)
+    longer = Trainer(_start_model(300), views, _cfg(iterations=done.steps + 4), tmp_path)
+    assert not longer.resume() and longer.step == 0
     # another scene (the trainer's own key: views and model size) does not resume it
     other_scene = Trainer(_start_model(200), _views(n=3, width=24, height=18, n_gauss=200),
                           _cfg(), tmp_path)

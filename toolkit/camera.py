@@ -154,11 +154,14 @@ class PinholeCamera:
         s = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
         return float(min(s)) if s else float("inf")
 
-    def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, points_cam: np.ndarray, past_peak: bool = False) -> (
+            tuple[np.ndarray, np.ndarray]):
         """Pixels [N, 2] and depths z [N] of camera-frame points [N, 3].
 
         Points with z <= 0, or beyond the radius where the distortion model turns back
         (``max_radius2``), get NaN pixels; check ``in_image`` before indexing.
+        ``past_peak``: project those too, where the model folds them back (an optimiser
+        whose iterate strays there needs finite residuals).
         """
         P = np.asarray(points_cam, dtype=np.float64)
         if P.ndim != 2 or P.shape[1] != 3:
@@ -169,7 +172,7 @@ class PinholeCamera:
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = P[:, :2] / z[:, None]
         xy[z <= 0] = np.nan
-        if self.has_distortion:
+        if self.has_distortion and not past_peak:
             with np.errstate(invalid="ignore"):
                 xy[(xy * xy).sum(1) >= self.max_radius2()] = np.nan
             xy = self.distort_normalized(xy)

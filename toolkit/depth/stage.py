@@ -121,8 +121,9 @@ class DepthStage(Stage):
     Config = DepthConfig
     requires = ("sequence",)
     provides = ("depth",)
-    # The same depth maps on any thread count or device (up to float rounding).
-    runtime_settings = frozenset({"threads", "device", "prefetch"})
+    # The same depth maps on any thread count or device (up to float rounding): an
+    # interrupted run's frames stay (a finished run reruns, for its timings).
+    resume_settings = frozenset({"threads", "device", "prefetch"})
 
     def external_inputs(self) -> list[Path]:
         cfg: DepthConfig = self.config  # type: ignore[assignment]
@@ -172,7 +173,7 @@ class DepthStage(Stage):
         out = ctx.stage_dir / "depth"
         info = backend.describe()
         writer = DepthStoreWriter(out, backend.kind, info, cfg.dtype,
-                                  resume_key=ctx.cache_key or None)
+                                  resume_key=ctx.resume_key or None)
         indices = list(range(0, len(seq.frames), cfg.every))
         done = writer.done
         todo = [i for i in indices if i not in done]

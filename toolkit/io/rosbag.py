@@ -121,10 +121,10 @@ class RosbagOptions(BaseModel):
     calibration: str | None = None  # YAML with camera / T_base_camera / T_base_laser
     stamps: Literal["header", "bag"] = "header"  # bag: the time the message was recorded
     # With header stamps: when (header stamp - recording time) differs between the scans
-    # and another topic by more than this, their drivers stamp on different clocks (TAI,
-    # time since boot) and pairing by stamp would be wrong: an error. null: no check (a
-    # topic that reached the recorder this late).
-    max_clock_offset_s: float | None = Field(2.0, gt=0)
+    # and another topic, recorded at the same moment, by more than this, their drivers
+    # stamp on different clocks (TAI +37 s, GPS +18 s, time since boot) and pairing by stamp
+    # would be wrong: an error. null: no check (a topic that reached the recorder this late).
+    max_clock_offset_s: float | None = Field(5.0, gt=0)
     # Images already undistorted (image_rect): intrinsics from CameraInfo P, no distortion.
     # Default: true when the image topic's name contains "rect".
     rectified: bool | None = None
@@ -1042,31 +1042,39 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
 
 def _check_clocks(idx: _Index, ch: TopicChoice, opts: RosbagOptions, bag_name: str) -> None:
     """Refuse header stamps of topics whose drivers use different clocks: the recorder
-    receives them all within a fraction of a second, so the median of (header stamp -
-    recording time) is about the same for every topic on one clock."""
+    receives them all within a fraction of a second, so (header stamp - recording time)
+    is about the same for every topic on one clock at any one moment of the recording.
+    Compared moment by moment (the scans' offset interpolated at each message's recording
+    time), not as whole-stream medians: replayed at another rate, or from a simulator
+    slower than real time, the offset drifts through the recording for every topic alike."""
     limit = opts.max_clock_offset_s
     if opts.stamps != "header" or limit is None or not idx.scan_ns:
         return
-
-    def offset_s(stamps: list[int], bag_ns: list[int]) -> float:
-        return float(np.median(np.subtract(stamps, bag_ns, dtype=np.int64))) / 1e9
-
-    ref = offset_s(idx.scan_ns, idx.scan_bag_ns)
+    scan_bag = np.asarray(idx.scan_bag_ns, dtype=np.int64)
+    order = np.argsort(scan_bag, kind="stable")
+    scan_bag_s = (scan_bag[order] - scan_bag[order][0]) / 1e9
+    scan_off_s = (np.asarray(idx.scan_ns, dtype=np.int64)[order] - scan_bag[order]) / 1e9
+    ref = float(np.median(scan_off_s))
     for topic, stamps, bag_ns in ((ch.image, idx.image.stamps, idx.image.bag_ns),
                                   (ch.depth, idx.depth.stamps, idx.depth.bag_ns),
                                   (ch.odometry, idx.odom_ns, idx.odom_bag_ns)):
         if not topic or not stamps:
             continue
-        off = offset_s(stamps, bag_ns)
-        if abs(off - ref) > limit:
+        bag = np.asarray(bag_ns, dtype=np.int64)
+        own = (np.asarray(stamps, dtype=np.int64) - bag) / 1e9
+        at = np.interp((bag - scan_bag[order][0]) / 1e9, scan_bag_s, scan_off_s)
+        diff = float(np.median(own - at))
+        off = ref + diff
+        if abs(diff) > limit:
             raise BagError(
                 f"{bag_name}: the drivers stamp on different clocks: header stamp minus "
                 f"recording time is {ref:+.3f} s on {ch.scan} but {off:+.3f} s on {topic} "
-                f"(medians), so messages {abs(off - ref):.2f} s apart would be paired. One "
+                f"(medians, at the same recording times), so messages {abs(diff):.2f} s "
+                "apart would be paired. One "
                 "driver stamps in another time base (TAI/GPS time, time since boot). Fix: "
                 "'rosbag.stamps: bag' (the recording time for every topic), or correct that "
                 "driver's clock; if the recorder really received this topic that late, set "
-                f"'rosbag.max_clock_offset_s' above {abs(off - ref):.1f} (or null)")
+                f"'rosbag.max_clock_offset_s' above {abs(diff):.1f} (or null)")
 
 
 def _keep(stamps: list[int], where: str, policy: Literal["error", "drop"],

@@ -92,6 +92,9 @@ class _Record:
     status: str = "pending"
     reason: str = ""
     key: str | None = None
+    # The key without the stage's resume_settings: an interrupted run's files are resumed
+    # under it.
+    folder_key: str | None = None
     token: str | None = None  # drawn when the stage last finished running (module doc)
     seconds: float | None = None
     cpu_seconds: float | None = None
@@ -266,6 +269,8 @@ class _Run:
         try:
             stage = spec.cls(spec.config)
             record.key = _cache_key(spec, stage, self.upstream_tokens(spec))
+            record.folder_key = _cache_key(spec, stage, self.upstream_tokens(spec),
+                                           stage.resume_settings)
         except Exception as exc:
             if not selected:
                 record.status, record.reason = "not run", f"cannot check its inputs: {exc}"
@@ -346,14 +351,17 @@ class _Run:
         stage_dir = self.run_dir / record.spec.id
         if not stage_dir.exists() or not any(stage_dir.iterdir()):
             return
-        done, started = _marker_key(stage_dir / STAGE_FILE), _marker_key(stage_dir / STARTED_FILE)
-        if done is None and started is None:
+        done = (stage_dir / STAGE_FILE).exists()
+        started = _marker_key(stage_dir / STARTED_FILE, "folder_key")
+        if not done and started is None:
             raise RecipeError(
                 f"{stage_dir} holds files but no record of a run of stage {record.spec.id!r} "
                 f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
                 "of an older version of the toolkit. Move or delete the folder, then run "
                 "again (nothing was changed)")
-        if not self.force and record.key in (done, started):
+        # Only an interrupted run is resumed: a finished one reruns from scratch (--force,
+        # --from, --only, other settings, a lost output).
+        if not self.force and not done and started == record.folder_key:
             return
         for child in stage_dir.iterdir():
             if child.is_dir() and not child.is_symlink():
@@ -371,7 +379,8 @@ class _Run:
             # The old marker goes first: a rerun killed halfway must not look complete next
             # time; the started marker says which settings its files belong to.
             (stage_dir / STAGE_FILE).unlink(missing_ok=True)
-            atomic_write_json(stage_dir / STARTED_FILE, {"key": record.key}, fsync=True)
+            atomic_write_json(stage_dir / STARTED_FILE,
+                              {"key": record.key, "folder_key": record.folder_key}, fsync=True)
             self.write_resolved()
         except RecipeError:
             raise
@@ -461,6 +470,7 @@ class _Context(StageContext):
         self.stage_id = spec.id
         self.recipe_name = run.recipe.name
         self.cache_key = record.key or ""
+        self.resume_key = record.folder_key or self.cache_key
         self.log = logging.getLogger(f"toolkit.run.{spec.id}")
         self._run = run
         self._record = record
@@ -601,12 +611,12 @@ def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> li
     return problems
 
 
-def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None]) -> str:
+def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None],
+               leave_out: frozenset[str] = frozenset()) -> str:
     payload = {
         "stage": spec.type,
         "version": getattr(stage, "version", 1),
-        "config": {k: v for k, v in config_data(spec.config).items()
-                   if k not in stage.runtime_settings},
+        "config": {k: v for k, v in config_data(spec.config).items() if k not in leave_out},
         "upstream": dict(sorted(upstream.items())),
         "external": [_fingerprint(Path(p)) for p in stage.external_inputs()],
     }
@@ -670,12 +680,12 @@ def _read_marker(
     return data, "up to date"
 
 
-def _marker_key(path: Path) -> str | None:
+def _marker_key(path: Path, name: str = "key") -> str | None:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    return str(data.get("key")) if isinstance(data, dict) and data.get("key") else None
+    return str(data.get(name)) if isinstance(data, dict) and data.get(name) else None
 
 
 def _manifest(path: Path) -> list[list[Any]]:

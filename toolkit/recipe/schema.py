@@ -156,6 +156,7 @@ def parse_recipe(
     # --set on one stage would change in all of them (deepcopy keeps the sharing).
     data = _unshared(data)
     apply_overrides(data, overrides)
+    data = _unshared(data)  # ~/ in --set values too (the shell leaves it in KEY=~/x)
 
     problems: list[str] = []
     for key in data:

@@ -67,6 +67,9 @@ class StageContext(ABC):
     # This run's cache key of the stage (settings, upstream keys, external files): partial
     # work a killed run left in stage_dir under the same key may be resumed.
     cache_key: str = ""
+    # The key an interrupted run's partial work is kept under: the cache key without the
+    # stage's ``resume_settings`` (the same key for stages without any).
+    resume_key: str = ""
 
     @abstractmethod
     def artifact(self, name: str) -> Path:
@@ -122,10 +125,10 @@ class Stage(ABC):
     provides: ClassVar[tuple[str, ...]] = ()
     # Bump when a code change alters what the stage writes, so cached results rerun.
     version: ClassVar[int] = 1
-    # Settings that change how fast the stage runs, never what it writes (threads, device):
-    # left out of the cache key, so changing them neither reruns a finished stage nor
-    # discards an interrupted one's work (``--force`` re-times it).
-    runtime_settings: ClassVar[frozenset[str]] = frozenset()
+    # Settings whose change leaves an interrupted run's files valid for the stage to resume
+    # from (thread count, iteration count): a finished stage reruns when they change (they
+    # are in its cache key), but an interrupted one keeps its folder.
+    resume_settings: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config

@@ -318,6 +318,8 @@ class CameraRenderer:
         if np.any(pc[:, 2] <= 0.05):
             return 0, 0, self.camera.width, self.camera.height
         uv, _ = self.camera.project(pc)
+        if np.isnan(uv).any():  # part of it past the lens model's field of view
+            return 0, 0, self.camera.width, self.camera.height
         m = 3
         u0, v0 = np.floor(uv.min(0)).astype(int) - m
         u1, v1 = np.ceil(uv.max(0)).astype(int) + m

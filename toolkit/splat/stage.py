@@ -310,6 +310,10 @@ class SplatStage(Stage):
     # fused: the initial cloud and depth targets (init: random trains without it);
     # tsdf_mesh: rendered at the held-out views for the comparison.
     optional_requires = ("trajectory", "fused", "tsdf_mesh")
+    # An interrupted training continues under a new step count or time limit (the
+    # trainer's checkpoint ignores them too: ``config_digest``).
+    resume_settings = frozenset({"iterations", "max_seconds", "log_every", "checkpoint_every",
+                                 "threads"})
     provides = ("splats",)
 
     def run(self, ctx: StageContext) -> None:

@@ -198,11 +198,13 @@ def _adam(params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
         return torch.optim.Adam(params, lr=lr, eps=1e-15, foreach=True)
 
 
-def config_digest(cfg: TrainConfig) -> str:
-    """What a checkpoint must agree with to be resumed (iterations may change)."""
+def config_digest(cfg: TrainConfig, whole: bool = False) -> str:
+    """What a checkpoint must agree with to be resumed (iterations may change); ``whole``:
+    every setting, what a finished run's model must agree with to be taken as the result."""
     d = cfg.model_dump(mode="json")
-    for k in ("iterations", "checkpoint_every", "log_every", "max_seconds"):
-        d.pop(k, None)
+    if not whole:
+        for k in ("iterations", "checkpoint_every", "log_every", "max_seconds"):
+            d.pop(k, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -370,7 +372,8 @@ class Trainer:
                    "final_psnr_db": ema.get("psnr_db", last["psnr_db"]),
                    "stopped_early": stopped}
         if self.checkpoint_dir is not None:
-            self.save_checkpoint(finished=True, outcome=outcome)
+            self.save_checkpoint(finished=True, outcome={
+                **outcome, "settings": config_digest(cfg, whole=True)})
         return TrainSummary(steps=self.step, n_gaussians=len(self.model),
                             resumed_from=self.resumed_from, history=self.history, **outcome)
 
@@ -443,9 +446,13 @@ class Trainer:
             ckpt = torch.load(self.checkpoint_path(), map_location="cpu", weights_only=False)
             if not isinstance(ckpt, dict):
                 raise ValueError("not a checkpoint of this trainer")
-            if ckpt.get("finished") and not ckpt.get("outcome"):
-                log.info("checkpoint %s is of a finished run written before runs kept their "
-                         "outcome; training afresh", self.checkpoint_path())
+            outcome = ckpt.get("outcome") or {}
+            if ckpt.get("finished") and outcome.get("settings") != config_digest(
+                    self.cfg, whole=True):
+                # Another step count or time limit asks for another training, not more of
+                # this one (the learning rates decay over the whole run).
+                log.info("checkpoint %s is of a finished run with other settings; training "
+                         "afresh", self.checkpoint_path())
                 return False
             self.load_state_dict(ckpt)
         except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: start afresh
@@ -454,7 +461,7 @@ class Trainer:
             self.step, self.resumed_from, self.history = 0, None, []
             return False
         if ckpt.get("finished"):
-            self.done = dict(ckpt["outcome"])
+            self.done = {k: v for k, v in outcome.items() if k != "settings"}
             log.info("training had finished (step %d) in %s; its model is the result",
                      self.step, self.checkpoint_path())
             return True
