@@ -363,7 +363,10 @@ class _Run:
         # --from, --only, other settings, a lost output).
         if not self.force and not done and started == record.folder_key:
             return
-        for child in stage_dir.iterdir():
+        # The markers go last: a run interrupted while this empties the folder leaves it
+        # recognisably the runner's, to be emptied again.
+        markers = (STAGE_FILE, STARTED_FILE)
+        for child in sorted(stage_dir.iterdir(), key=lambda p: p.name in markers):
             if child.is_dir() and not child.is_symlink():
                 shutil.rmtree(child)
             else:
