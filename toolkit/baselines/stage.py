@@ -202,7 +202,7 @@ class TSDFStage(Stage):
                                 min_observations=cfg.min_observations or (
                                     1 if cfg.depth_source == "groundtruth" else 2))
         vol = TSDFVolume(settings)
-        ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.cache_key,
+        ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.resume_key,
                           cfg.checkpoint_every_s, ctx.log)
         saved = ckpt.load(lambda x: isinstance(x, dict) and {"volume", "done", "integrate_s"}
                           <= x.keys())
@@ -326,12 +326,12 @@ def _matched_database(ctx: StageContext, db: Path, image_dir: Path, names: list[
 
     marker = db.with_suffix(".json")
     done = json.loads(marker.read_text()) if marker.exists() and db.exists() else {}
-    if ctx.cache_key and done.get("key") == ctx.cache_key:
+    if ctx.resume_key and done.get("key") == ctx.resume_key:
         ctx.log.info("%s: features and matches kept from an interrupted run", ctx.stage_id)
         return done["seconds"], True
     marker.unlink(missing_ok=True)
     seconds = extract_and_match(db, image_dir, names, cam, settings)
-    atomic_write_json(marker, {"key": ctx.cache_key, "seconds": seconds})
+    atomic_write_json(marker, {"key": ctx.resume_key, "seconds": seconds})
     return seconds, False
 
 

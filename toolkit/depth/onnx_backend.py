@@ -199,6 +199,7 @@ class OnnxDepthBackend:
                                  f"height; the width follows the image), not "
                                  f"{list(config.input_size)}")
         self.last_input_hw: tuple[int, int] | None = None
+        self._warned_round: tuple[int, int] | None = None  # the rounding said in the log
         self.last_timing: dict[str, float] = {}
         # A timing stand-in (``bench_latency --export``) runs like a real network; say
         # loudly that its depth is noise, in the log and in ``describe()``.
@@ -255,7 +256,7 @@ class OnnxDepthBackend:
             # and its output stretched back over the whole image (edges moved by pixels).
             # Said in the log: a network of 16 or 32 px patches needs multiple_of set.
             rh, rw = max(m, int(round(h / m)) * m), max(m, int(round(w / m)) * m)
-            if (rh, rw) != getattr(self, "_warned_round", None):
+            if (rh, rw) != self._warned_round:
                 _log.warning("%s: input %dx%d rounded to %dx%d (multiple_of %d)", cfg.model,
                              w, h, rw, rh, m)
                 self._warned_round = (rh, rw)

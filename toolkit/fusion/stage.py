@@ -301,7 +301,7 @@ class FuseStage(Stage):
         has_masks = gt is not None and gt.mask_paths is not None
         # ---------------------------------------------------------------- resume
         t_start = time.perf_counter()
-        ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.cache_key,
+        ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.resume_key,
                           cfg.checkpoint_every_s, ctx.log)
         st: FuseProgress | None = ckpt.load(lambda x: isinstance(x, FuseProgress) and all(
             hasattr(x, f.name) for f in fields(FuseProgress)) and len(x.oracle) == len(frames))

@@ -64,11 +64,11 @@ class StageContext(ABC):
     stage_id: str
     recipe_name: str
     log: logging.Logger
-    # This run's cache key of the stage (settings, upstream keys, external files): partial
-    # work a killed run left in stage_dir under the same key may be resumed.
+    # This run's cache key of the stage (settings, upstream keys, external files).
     cache_key: str = ""
-    # The key an interrupted run's partial work is kept under: the cache key without the
-    # stage's ``resume_settings`` (the same key for stages without any).
+    # The key to keep partial work under (checkpoints, journals): a killed run's work left
+    # in stage_dir under the same key may be resumed. The cache key without the stage's
+    # ``resume_settings`` (the same key for stages without any).
     resume_key: str = ""
 
     @abstractmethod
