@@ -139,3 +139,5 @@ def test_optimisers_may_project_past_the_peak(cam):
     P = np.array([[np.tan(np.radians(45.0)), 0.0, 1.0]])
     assert np.isnan(cam.project(P)[0]).all()
     assert np.isfinite(cam.project(P, past_peak=True)[0]).all()
+    inside = points_in_view(50)  # the same pixels either way where the model is regular
+    np.testing.assert_array_equal(cam.project(inside, past_peak=True)[0], cam.project(inside)[0])

@@ -172,9 +172,10 @@ class PinholeCamera:
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = P[:, :2] / z[:, None]
         xy[z <= 0] = np.nan
-        if self.has_distortion and not past_peak:
-            with np.errstate(invalid="ignore"):
-                xy[(xy * xy).sum(1) >= self.max_radius2()] = np.nan
+        if self.has_distortion:
+            if not past_peak:
+                with np.errstate(invalid="ignore"):
+                    xy[(xy * xy).sum(1) >= self.max_radius2()] = np.nan
             xy = self.distort_normalized(xy)
         uv = np.empty_like(xy)
         uv[:, 0] = self.fx * xy[:, 0] + self.cx
