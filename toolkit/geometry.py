@@ -342,15 +342,36 @@ def sim3(R: np.ndarray, t: np.ndarray, s: float = 1.0) -> np.ndarray:
     return T
 
 
+def rigid_alignment(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) with ``dst ~= R @ src + t`` for corresponding poses ``src``, ``dst`` [N, 4, 4]:
+    Umeyama on the positions, unless they lie along a line (a straight drive: the turn
+    about it is then free, and 1 mm of noise picked it 180 deg wrong with a 2 mm residual).
+    Then the orientations fix it: the rotation nearest the mean of ``R_dst R_src^T``, and
+    the mean offset."""
+    p, q = src[:, :3, 3], dst[:, :3, 3]
+    sv = np.linalg.svd(p - p.mean(0), compute_uv=False) if len(p) > 1 else np.zeros(2)
+    if len(p) >= 3 and sv[1] >= max(0.05 * sv[0], 0.05 * np.sqrt(len(p))):
+        R, t, _ = umeyama_alignment(p, q)
+        return R, t
+    M = np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3])  # sum R_dst R_src^T
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return R, (q - p @ R.T).mean(0)
+
+
 def align_trajectory(
     est: Trajectory, ref: Trajectory, with_scale: bool = False
 ) -> tuple[Trajectory, np.ndarray]:
-    """Align ``est`` onto ``ref`` (same length, associated) by SE(3) or Sim(3) Umeyama.
+    """Align ``est`` onto ``ref`` (same length, associated) by SE(3) or Sim(3) Umeyama
+    (SE(3) of positions along a line: by the orientations, ``rigid_alignment``).
 
     Returns the aligned trajectory (rotations stay orthonormal; positions scaled) and the
     [4, 4] similarity that was applied.
     """
-    R, t, s = umeyama_alignment(est.positions, ref.positions, with_scale)
+    if with_scale:
+        R, t, s = umeyama_alignment(est.positions, ref.positions, with_scale)
+    else:
+        (R, t), s = rigid_alignment(est.poses, ref.poses), 1.0
     S = sim3(R, t, s)
     P = est.poses.copy()
     P[:, :3, :3] = R @ P[:, :3, :3]

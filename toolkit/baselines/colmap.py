@@ -291,7 +291,7 @@ def evaluate_sfm_trajectory(est: Trajectory, ref: Trajectory) -> dict[str, Any]:
     """
     from toolkit.eval.trajectory import trajectory_report
 
-    inside = (est.stamps >= ref.stamps[0]) & (est.stamps <= ref.stamps[-1])
+    inside = ref.covers(est.stamps)  # in its span and not across a gap of it
     if inside.sum() < 3:
         raise ValueError(f"only {int(inside.sum())} SfM poses lie inside the reference span")
     est = est.slice(inside)

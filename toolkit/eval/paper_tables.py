@@ -184,7 +184,7 @@ class PaperTablesStage(Stage):
     # ------------------------------------------------------------------ Table I
     def _table_i(self, ctx: StageContext, cfg: PaperTablesConfig, res: dict[str, StageResult],
                  seq: Any, tables: dict[str, Any], checks: list) -> list[str]:
-        from toolkit.eval.alignment import ground_truth_camera
+        from toolkit.eval.alignment import covered_ground_truth
         from toolkit.eval.stage import trajectory_figures
         from toolkit.eval.trajectory import per_axis_errors, synced
         from toolkit.io.tum import read_tum
@@ -195,9 +195,9 @@ class PaperTablesStage(Stage):
         curves: dict[str, np.ndarray] = {}
         gt_all = None
         if cfg.slam and (res[cfg.slam].stage_dir / "trajectory_camera.tum").exists():
-            est = read_tum(res[cfg.slam].stage_dir / "trajectory_camera.tum")
-            fig, aligned, g, _ = trajectory_figures(est, ground_truth_camera(seq, est.stamps),
-                                                    cfg.max_time_diff_s)
+            est, gt_cam = covered_ground_truth(
+                seq, read_tum(res[cfg.slam].stage_dir / "trajectory_camera.tum"))
+            fig, aligned, g, _ = trajectory_figures(est, gt_cam, cfg.max_time_diff_s)
             rows.append(("with lidar: 2D lidar SLAM (SE(3)-aligned)", fig))
             curves["with lidar (SE(3))"] = aligned.positions
             gt_all = g
@@ -212,8 +212,8 @@ class PaperTablesStage(Stage):
                 path = d / f"trajectory_{tag}.tum"
                 if not path.exists():
                     continue
-                est = read_tum(path)
-                e, g = synced(est, ground_truth_camera(seq, est.stamps), cfg.max_time_diff_s)
+                est, gt_cam = covered_ground_truth(seq, read_tum(path))
+                e, g = synced(est, gt_cam, cfg.max_time_diff_s)
                 if len(e) < 3:
                     continue
                 fig = per_axis_errors(e, g)

@@ -47,25 +47,27 @@ def associate(est: Trajectory, ref: Trajectory, max_diff: float = 0.01, offset: 
     Same rule as TUM's associate.py and evo's ``associate_trajectories``.
     """
     t_est = est.stamps + offset
-    j = np.searchsorted(ref.stamps, t_est)
-    cand = []
-    for jj in (j - 1, j):
-        ok = (jj >= 0) & (jj < len(ref.stamps))
-        d = np.full(len(t_est), np.inf)
-        d[ok] = np.abs(ref.stamps[jj[ok]] - t_est[ok])
-        cand.append((d, np.clip(jj, 0, len(ref.stamps) - 1)))
-    d = np.where(cand[0][0] <= cand[1][0], cand[0][0], cand[1][0])
-    jr = np.where(cand[0][0] <= cand[1][0], cand[0][1], cand[1][1])
-    order = np.argsort(d, kind="stable")
+    # Every pair within max_diff, nearest first; a stamp already paired passes its next
+    # candidate on (taking each one's nearest only dropped pairs associate.py keeps).
+    lo = np.searchsorted(ref.stamps, t_est - max_diff, side="left")
+    hi = np.searchsorted(ref.stamps, t_est + max_diff, side="right")
+    counts = hi - lo
+    i_all = np.repeat(np.arange(len(t_est)), counts)  # [C]
+    j_all = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+             + np.repeat(lo, counts))
+    d_all = np.abs(ref.stamps[j_all] - t_est[i_all])
+    keep = d_all < max_diff
+    i_all, j_all, d_all = i_all[keep], j_all[keep], d_all[keep]
+    used_est: set[int] = set()
     used_ref: set[int] = set()
     pairs = []
-    for i in order:
-        if d[i] >= max_diff:
-            break
-        if int(jr[i]) in used_ref:
+    for k in np.argsort(d_all, kind="stable"):
+        i, jr = int(i_all[k]), int(j_all[k])
+        if i in used_est or jr in used_ref:
             continue
-        used_ref.add(int(jr[i]))
-        pairs.append((int(i), int(jr[i])))
+        used_est.add(i)
+        used_ref.add(jr)
+        pairs.append((i, jr))
     pairs.sort()
     if not pairs:
         raise ValueError(f"no stamps of the two trajectories lie within {max_diff} s of each other")

@@ -46,7 +46,7 @@ import torch
 from pydantic import Field, model_validator
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import Trajectory, inv_se3, umeyama_alignment
+from toolkit.geometry import Trajectory, inv_se3, rigid_alignment
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.sensors import Sequence, load_rgb
@@ -184,17 +184,7 @@ def groundtruth_to_trajectory_frame(seq: Sequence, poses: Trajectory) -> (
     gt_poses = gt_cam.interpolate(st[inside], extrapolate_s=1e-6).poses  # [N, 4, 4]
     src = gt_poses[:, :3, 3]
     dst = poses.poses[inside, :3, 3]
-    sv = np.linalg.svd(src - src.mean(0), compute_uv=False)
-    if sv[1] < max(0.05 * sv[0], 0.05 * np.sqrt(len(src))):
-        # Positions along a line (a straight corridor) leave the turn about it free: a fit
-        # 180 deg wrong had a 2 mm residual. The cameras' orientations fix it: the
-        # rotation closest to the mean of R_traj R_gt^T, then the mean offset.
-        M = np.einsum("nij,nkj->ik", poses.poses[inside, :3, :3], gt_poses[:, :3, :3])
-        U, _, Vt = np.linalg.svd(M)
-        R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-        t = (dst - src @ R.T).mean(0)
-    else:
-        R, t, _ = umeyama_alignment(src, dst)
+    R, t = rigid_alignment(gt_poses, poses.poses[inside])
     rmse = float(np.sqrt(np.mean(np.sum((src @ R.T + t - dst) ** 2, axis=1))))
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
