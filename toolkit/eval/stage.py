@@ -14,7 +14,7 @@ from typing import Literal
 
 import numpy as np
 
-from toolkit.eval.alignment import ground_truth_camera
+from toolkit.eval.alignment import covered_ground_truth, ground_truth_camera
 from toolkit.eval.geometry import (
     DEFAULT_THRESHOLDS_M,
     geometry_metrics,
@@ -118,13 +118,11 @@ class EvaluateStage(Stage):
         # scored are the stamps it covers, and the report says how many.
         covered = gt.poses_base.covers
         if ctx.has_artifact("trajectory"):
-            est = read_tum(ctx.artifact("trajectory") / "trajectory_camera.tum")
-            keep = covered(est.stamps, slack_s=0.05)
-            if keep.sum() < 3:
-                raise StageError(f"evaluate: ground truth covers {int(keep.sum())} of the "
-                                 f"{len(est)} trajectory poses; at least 3 are needed")
-            est = est.slice(keep)
-            gt_cam = ground_truth_camera(seq, est.stamps)
+            full = read_tum(ctx.artifact("trajectory") / "trajectory_camera.tum")
+            est, gt_cam = covered_ground_truth(seq, full)
+            if len(est) < 3:
+                raise StageError(f"evaluate: ground truth covers {len(est)} of the "
+                                 f"{len(full)} trajectory poses; at least 3 are needed")
             fig, aligned, g, S = trajectory_figures(est, gt_cam, cfg.max_time_diff_s)
             metrics["trajectory"] = fig
             plot_trajectories(aligned, g, out / "trajectory.png",

@@ -43,6 +43,7 @@ from toolkit.ingest.recording import (
     placeholder_camera,
 )
 from toolkit.ingest.sync import stamps_keep
+from toolkit.io.sequence import warn_if_unreliable
 from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import LaserScan, Rig
 
@@ -655,11 +656,7 @@ def load_calibration(path: Path | str) -> Calibration:
     if not isinstance(data, dict):
         raise BagError(f"{path}: expected a mapping with camera / T_base_camera / "
                        "T_base_laser / T_camera_laser / transforms")
-    info = data.get("calibration")
-    if isinstance(info, dict) and info.get("reliable") is False:
-        _log.warning("%s: this extrinsic was marked unreliable when it was estimated (%s); "
-                     "calibrate again with more varied board views", path,
-                     "; ".join(map(str, info.get("unreliable_because") or [])) or "no reason")
+    warn_if_unreliable(path, data)
     if data.get("calibration") is not None and data.get("T_camera_laser") is not None:
         # Written by ``python -m calibration``: what it estimated is T_camera_laser. Its
         # T_base_* only place a base_link of its own (at the laser, without a rig given),
@@ -849,7 +846,8 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
         infos = bag.of_type(CAMERA_INFO)
         same_ns = [t for t in infos if _namespace(t) == _namespace(ch.image)]
         # Outside the image's namespace only a CameraInfo of the same optical frame and
-        # size describes these pixels: a depth or infrared camera's has its own.
+        # size describes these pixels: a depth or infrared camera's has its own. (Without
+        # one in the namespace every CameraInfo's first message is read, once.)
         frames = {t: bag.first(t) for t in infos} if not same_ns else {}
         same_cam = [t for t, m in frames.items() if m is not None
                     and _frame(str(m.header.frame_id)) == ch.image_frame
@@ -860,8 +858,7 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
             ch.notes.append(
                 "CameraInfo topics in the bag: " + ", ".join(
                     f"{t} (frame {_frame(str(m.header.frame_id))!r}, {m.width}x{m.height})"
-                    for t, m in ((t, frames.get(t) or bag.first(t)) for t in infos)
-                    if m is not None)
+                    for t, m in frames.items() if m is not None)
                 + f"; none is in the namespace of {ch.image} or of its frame "
                 f"{ch.image_frame!r} and size {ch.image_size}, so none is used. If one "
                 "describes these images, name it with rosbag.topics.camera_info")

@@ -113,12 +113,18 @@ def read_rig(path: Path | str) -> Rig:
     path = Path(path)
     data = load_yaml(path, SequenceFormatError, "rig file not found (camera intrinsics and "
                      "T_base_camera / T_base_laser are required)")
+    warn_if_unreliable(path, data)
+    return rig_from_dict(data, str(path))
+
+
+def warn_if_unreliable(path: Path, data: Any) -> None:
+    """Log a warning when a rig / calibration mapping written by ``python -m calibration``
+    says its extrinsic was estimated unreliable (``calibration.reliable: false``)."""
     info = data.get("calibration") if isinstance(data, dict) else None
     if isinstance(info, dict) and info.get("reliable") is False:
         _log.warning("%s: its extrinsic was marked unreliable when it was estimated (%s); "
                      "calibrate again with more varied board views", path,
                      "; ".join(map(str, info.get("unreliable_because") or [])) or "no reason")
-    return rig_from_dict(data, str(path))
 
 
 # ---------------------------------------------------------------------------- scans

@@ -352,7 +352,7 @@ class _Run:
         if not stage_dir.exists() or not any(stage_dir.iterdir()):
             return
         done = (stage_dir / STAGE_FILE).exists()
-        started = _marker_key(stage_dir / STARTED_FILE, "folder_key")
+        started = _started_folder_key(stage_dir / STARTED_FILE)
         if not done and started is None:
             raise RecipeError(
                 f"{stage_dir} holds files but no record of a run of stage {record.spec.id!r} "
@@ -683,12 +683,14 @@ def _read_marker(
     return data, "up to date"
 
 
-def _marker_key(path: Path, name: str = "key") -> str | None:
+def _started_folder_key(path: Path) -> str | None:
+    """The folder key in a started marker (None: no readable one)."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    return str(data.get(name)) if isinstance(data, dict) and data.get(name) else None
+    key = data.get("folder_key") if isinstance(data, dict) else None
+    return str(key) if key else None
 
 
 def _manifest(path: Path) -> list[list[Any]]:
