@@ -81,25 +81,31 @@ def stages():
 def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     fuse = {"work_seconds": 3.0, "work_cpu_seconds": 3.0, "work_frames": 100,
             "lidar_unscaled_rmse_m": 1.5, "lidar_scaled_rmse_m": 0.12,
-            "lidar_rmse_ratio_scaled_unscaled": 0.08, "gt_scaled_absrel": 0.03}
+            "lidar_rmse_ratio_scaled_unscaled": 0.08, "gt_scaled_absrel": 0.03,
+            "dynamic_fraction": 0.004}
     geo = {"accuracy_mean_m": 0.02, "completeness_mean_m": 0.03, "chamfer_m": 0.025,
            "fscore_2cm": 0.5, "fscore_5cm": 0.92, "fscore_10cm": 0.97}
-    recipe = parse_recipe({"name": "tables", "output": str(tmp_path / "run"), "stages": [
-        {"stage": "t_pscene", "id": "slam"},
-        {"stage": "t_figures", "id": "depth_a",
-         "figures": {"work_seconds": 1.0, "work_cpu_seconds": 2.0, "work_frames": 100}},
-        {"stage": "t_figures", "id": "fuse_a", "figures": fuse},
-        {"stage": "t_figures", "id": "eval_a", "figures": {"fused_map": geo}},
-        {"stage": "t_figures", "id": "depth_b",
-         "figures": {"work_seconds": 30.0, "work_cpu_seconds": 60.0, "work_frames": 100}},
-        {"stage": "paper_tables", "slam": "slam", "position_rmse_target_m": 0.02, "rows": [
-            {"label": "A", "depth": "depth_a", "fuse": "fuse_a", "evaluate": "eval_a",
-             "fps_target": 10, "fscore_5cm_target": 0.9},
-            {"label": "B", "depth": "depth_b", "fusion_time_from": "fuse_a",
-             "timing_only": True, "fps_target": 3},
-        ]},
-    ]})
-    res = run_recipe(recipe)
+
+    def recipe_dict() -> dict[str, Any]:
+        return {"name": "tables", "output": str(tmp_path / "run"), "stages": [
+            {"stage": "t_pscene", "id": "slam"},
+            {"stage": "t_figures", "id": "depth_a",
+             "figures": {"work_seconds": 1.0, "work_cpu_seconds": 2.0, "work_frames": 100}},
+            {"stage": "t_figures", "id": "fuse_a", "figures": fuse},
+            {"stage": "t_figures", "id": "eval_a", "figures": {"fused_map": geo}},
+            {"stage": "t_figures", "id": "fuse_a_kept", "figures": {"dynamic_fraction": 0.06}},
+            {"stage": "t_figures", "id": "depth_b",
+             "figures": {"work_seconds": 30.0, "work_cpu_seconds": 60.0, "work_frames": 100}},
+            {"stage": "paper_tables", "slam": "slam", "position_rmse_target_m": 0.02, "rows": [
+                {"label": "A", "depth": "depth_a", "fuse": "fuse_a", "evaluate": "eval_a",
+                 "fuse_without_removal": "fuse_a_kept", "fps_target": 10,
+                 "fscore_5cm_target": 0.9},
+                {"label": "B", "depth": "depth_b", "fusion_time_from": "fuse_a",
+                 "timing_only": True, "fps_target": 3},
+            ]},
+        ]}
+
+    res = run_recipe(parse_recipe(recipe_dict()))
     assert res.ok, res.error
     t = json.loads((tmp_path / "run" / "paper_tables" / "tables.json").read_text())
     row = t["table_i"]["with lidar: 2D lidar SLAM (SE(3)-aligned)"]
@@ -118,7 +124,17 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     assert by_label["A: fused cloud: F-score at 5 cm >= 0.9"] is True
     assert any(k.startswith("A: scaled / unscaled RMSE vs lidar") and v for k, v in
                by_label.items())
+    # Moving obstacles: 0.4 % of the map with the removal, 6 % in the run without it.
+    assert by_label["A: map points on moving obstacles <= 1 % (without the removal: 6.00 %)"]
+    assert t["table_iv"]["A"]["dynamic_fraction_without_removal"] == pytest.approx(0.06)
+
     report = (tmp_path / "run" / "report.md").read_text()
     for heading in ("Table I", "Table II", "Table III", "Table IV", "Targets"):
         assert heading in report
     assert (tmp_path / "run" / "paper_tables" / "figure5_trajectories.png").exists()
+
+    # A "without removal" stage that did remove moving obstacles is refused, by name.
+    spec = recipe_dict()
+    spec["stages"][4]["figures"] = {"dynamic_fraction": 0.004, "dynamic_removal": True}
+    res = run_recipe(parse_recipe(spec))
+    assert not res.ok and "fuse_a_kept" in res.error and "dynamic_removal: false" in res.error

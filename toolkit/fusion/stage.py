@@ -188,7 +188,7 @@ def _map_metrics(cfg: FuseConfig, seq: Sequence, raw: MapArrays, masks: dict[str
                  final: MapArrays, fused_poses: Trajectory | None,
                  frame_clouds: list[np.ndarray], has_masks: bool) -> dict[str, object]:
     """Moving-obstacle shares and distances of the map and per-frame clouds to the true mesh."""
-    metrics: dict[str, object] = {}
+    metrics: dict[str, object] = {"dynamic_removal": cfg.dynamic_removal}
     gt = seq.groundtruth
     if has_masks and len(raw):
         # The raw map already lacks what the lidar masked in the images; the fraction
