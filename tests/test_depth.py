@@ -516,6 +516,17 @@ def test_training_resumes_from_its_checkpoint(tmp_path: Path) -> None:
         train(other)
 
 
+def test_training_widths_from_the_command_line() -> None:
+    import argparse
+
+    from toolkit.depth.train_small import _widths
+
+    assert _widths("16,32,64,96,128") == (16, 32, 64, 96, 128)
+    for bad in ("16,32", "16,32,a,64,96", "16,0,48,64,96"):
+        with pytest.raises(argparse.ArgumentTypeError, match="--widths"):
+            _widths(bad)
+
+
 def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
                  props: dict[str, str] | None = None) -> Path:
     """A model built node by node: mean over the channels, then softplus (depth > 0)."""

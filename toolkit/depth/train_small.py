@@ -517,7 +517,8 @@ resizes 640x480 frames with cubic interpolation; the graph takes any size); outp
 frame by the backend. Scale it with the lidar (`fuse` stage).
 
 **Training.** `python -m toolkit.depth.train_small --minutes {cfg.minutes:g} --houses
-{len(cfg.train_seeds)} --threads {cfg.threads} --out {cfg.out}` on a 2-core CPU (1-minute load
+{len(cfg.train_seeds)} --threads {cfg.threads} --widths {",".join(map(str, cfg.widths))}
+--out {cfg.out}` on a 2-core CPU (1-minute load
 average {stats.get('loadavg', '?')}; about 2 is a machine doing nothing else; on a busier one the
 same minutes run fewer iterations).
 Data: {stats['images']} renders of {len(cfg.train_seeds)} simulated houses, seeds
@@ -547,6 +548,18 @@ images. Relative depth only: no metric scale without the lidar.
     atomic_write_text(path, text)
 
 
+def _widths(text: str) -> tuple[int, ...]:
+    try:
+        w = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--widths {text!r}: give five whole numbers, "
+                                         "e.g. 16,32,48,64,96") from None
+    if len(w) != 5 or min(w) < 1:
+        raise argparse.ArgumentTypeError(f"--widths {text!r}: five positive channel counts "
+                                         "(stages at 1/2 .. 1/32 resolution), e.g. 16,32,48,64,96")
+    return w
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=TrainConfig.out)
@@ -555,6 +568,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--houses", type=int, default=len(TrainConfig.train_seeds),
                     help="train on house seeds 101 .. 100 + N")
     ap.add_argument("--threads", type=int, default=TrainConfig.threads)
+    ap.add_argument("--widths", type=_widths, default=TrainConfig.widths,
+                    help="channels of the five stages at 1/2 .. 1/32 resolution, "
+                         "comma-separated (default %(default)s)")
     ap.add_argument("--cache", type=Path, default=TrainConfig.cache,
                     help="folder for rendered training images (git-ignored by default)")
     ap.add_argument("--no-cache", action="store_true")
@@ -582,7 +598,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     cfg = TrainConfig(out=a.out, minutes=a.minutes, images_per_house=a.images_per_house,
                       train_seeds=tuple(101 + i for i in range(a.houses)), threads=a.threads,
-                      cache=None if a.no_cache else a.cache,
+                      cache=None if a.no_cache else a.cache, widths=a.widths,
                       checkpoint_minutes=a.checkpoint_minutes)
     stats = train(cfg)
     if a.sequence is not None:
