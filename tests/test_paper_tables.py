@@ -93,7 +93,8 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
              "figures": {"work_seconds": 1.0, "work_cpu_seconds": 2.0, "work_frames": 100}},
             {"stage": "t_figures", "id": "fuse_a", "figures": fuse},
             {"stage": "t_figures", "id": "eval_a", "figures": {"fused_map": geo}},
-            {"stage": "t_figures", "id": "fuse_a_kept", "figures": {"dynamic_fraction": 0.06}},
+            {"stage": "t_figures", "id": "fuse_a_kept",
+             "figures": {"dynamic_fraction": 0.06, "dynamic_removal": False}},
             {"stage": "t_figures", "id": "depth_b",
              "figures": {"work_seconds": 30.0, "work_cpu_seconds": 60.0, "work_frames": 100}},
             {"stage": "paper_tables", "slam": "slam", "position_rmse_target_m": 0.02, "rows": [
@@ -138,3 +139,7 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     spec["stages"][4]["figures"] = {"dynamic_fraction": 0.004, "dynamic_removal": True}
     res = run_recipe(parse_recipe(spec))
     assert not res.ok and "fuse_a_kept" in res.error and "dynamic_removal: false" in res.error
+    # ... and so is one that does not say (another kind of stage, an older fuse result).
+    spec["stages"][4]["figures"] = {"dynamic_fraction": 0.004}
+    res = run_recipe(parse_recipe(spec))
+    assert not res.ok and "does not record dynamic_removal" in res.error

@@ -64,7 +64,7 @@ class TrainConfig:
     crop_height: int | None = None
     crop_width: int | None = None
     # Channels at 1/2 .. 1/32 resolution. The wider deep stages (48/64/96 before) cost
-    # little: their maps are small, so an iteration took 20 % longer for 1.8x the weights.
+    # little: their maps are small, so an iteration took 10 % longer for 1.8x the weights.
     widths: tuple[int, ...] = (16, 32, 64, 96, 128)
     batch: int = 8
     lr: float = 2e-3
@@ -151,7 +151,7 @@ def load_or_render(seed: int, n: int, cfg: TrainConfig) -> tuple[np.ndarray, np.
 # ---------------------------------------------------------------------------- model
 
 
-def make_model(widths: tuple[int, ...] = (16, 32, 48, 64, 96)) -> object:
+def make_model(widths: tuple[int, ...] = TrainConfig.widths) -> object:
     """The U-Net: stride-2 residual stages at 1/2 .. 1/32 resolution, an image-wide
     context vector at the bottom, a decoder that upsamples bilinearly and concatenates
     the skips, and a thin full-resolution refinement that sees the input pixels.
@@ -363,6 +363,12 @@ def train(cfg: TrainConfig) -> dict:
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
     t0, c0 = time.perf_counter(), time.process_time()
+    ckpt = checkpoint_path(cfg.out)
+    state = None
+    if cfg.checkpoint_minutes > 0 and ckpt.is_file():
+        state = torch.load(ckpt, weights_only=False)
+        # Before the renders: a checkpoint that cannot be resumed should not cost them.
+        _check_resumable(ckpt, state["config"], cfg)
     parts = [load_or_render(s, cfg.images_per_house, cfg) for s in cfg.train_seeds]
     X = np.concatenate([p[0] for p in parts])
     D = np.concatenate([p[1] for p in parts])
@@ -375,13 +381,8 @@ def train(cfg: TrainConfig) -> dict:
     n_params = sum(p.numel() for p in model.parameters())  # type: ignore[attr-defined]
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)  # type: ignore
     budget = cfg.minutes * 60.0
-    ckpt = checkpoint_path(cfg.out)
     it, used, used_cpu = 0, 0.0, 0.0
-    if cfg.checkpoint_minutes > 0 and ckpt.is_file():
-        state = torch.load(ckpt, weights_only=False)
-        if state["config"] != _resumable(cfg):
-            raise ValueError(f"{ckpt}: checkpoint of a different training configuration "
-                             f"({state['config']}); delete it to start afresh")
+    if state is not None:
         model.load_state_dict(state["model"])  # type: ignore[attr-defined]
         opt.load_state_dict(state["opt"])
         rng.bit_generator.state = state["rng"]
@@ -432,6 +433,22 @@ def train(cfg: TrainConfig) -> dict:
                        "(1-minute load average sampled every 100 iterations)",
             "data_seconds": t_data, "images": int(len(X)), "final_loss": float(
                 np.mean(losses[-100:])) if losses else None, "validation": val}
+
+
+def _check_resumable(ckpt: Path, saved: dict, cfg: TrainConfig) -> None:
+    """Refuse a checkpoint made under other settings, naming them (the defaults change
+    between releases: a checkpoint of an older default run names what it was made with)."""
+    now = _resumable(cfg)
+    diff = {k: (saved.get(k), now[k]) for k in now if _norm(saved.get(k)) != _norm(now[k])}
+    if diff:
+        said = "; ".join(f"{k}: checkpoint {a}, now {b}" for k, (a, b) in diff.items())
+        raise ValueError(f"{ckpt}: checkpoint of a different training configuration ({said}); "
+                         "train with the checkpoint's settings to resume it (--houses, "
+                         "--widths), or delete it to start afresh")
+
+
+def _norm(v: object) -> object:
+    return tuple(v) if isinstance(v, list) else v
 
 
 def checkpoint_path(out: Path) -> Path:
@@ -496,6 +513,7 @@ it, pixels up to 10 m, oracle scale): AbsRel {seq['absrel']:.3f}, RMSE {seq['rms
 delta<1.25 {seq['delta1']:.3f}; network {seq['network_ms_median']:.1f} ms per frame (median,
 {cfg.threads} threads, load average {seq['loadavg']}).
 """
+    seq_arg = f" --sequence {seq['sequence']}" if seq else ""
     crop_text = (f"random {cfg.crop_width}x{cfg.crop_height} crops (same pixel scale), "
                  if cfg.crop_height else "whole frames, ")
     text = f"""# small-depth.onnx: the project's small monocular depth network
@@ -520,9 +538,9 @@ frame by the backend. Scale it with the lidar (`fuse` stage).
 
 **Training.** `python -m toolkit.depth.train_small --minutes {cfg.minutes:g} --houses
 {len(cfg.train_seeds)} --threads {cfg.threads} --widths {",".join(map(str, cfg.widths))}
---out {cfg.out}` on a 2-core CPU (load average {stats.get('loadavg', '?')}; the
-training's own 2 threads make about 1.5-2; on a busier machine the same minutes run fewer
-iterations).
+--out {cfg.out}{seq_arg}` on a 2-core CPU (load average {stats.get('loadavg', '?')}; the
+training's own {cfg.threads} thread(s) make about {cfg.threads * 0.75:g}-{cfg.threads:g}; on a
+busier machine the same minutes run fewer iterations).
 Data: {stats['images']} renders of {len(cfg.train_seeds)} simulated houses, seeds
 {cfg.train_seeds[0]}-{cfg.train_seeds[-1]} ({cfg.images_per_house} each; `toolkit.sim`,
 small_house preset, people included; **seed 0, the quickstart house, is never trained

@@ -161,11 +161,18 @@ class PaperTablesStage(Stage):
         res = {i: ctx.stage_result(i) for i in _ids(cfg)}
         for row in cfg.rows:
             off = row.fuse_without_removal
-            # Fuse stages from before the key was recorded say nothing: taken as asked.
-            if off and res[off].metrics.get("dynamic_removal", False):
+            if not off:
+                continue
+            # The fuse stage records whether it removed moving obstacles; a result without
+            # that record (another kind of stage, a fuse stage from before) proves nothing.
+            said = res[off].metrics.get("dynamic_removal")
+            if said is not False:
+                why = ("removed moving obstacles" if said else
+                       f"does not record dynamic_removal (a {res[off].type} stage, or a fuse "
+                       "stage run before it was recorded: run it again with --force)")
                 raise StageError(
                     f"{ctx.stage_id}: row '{row.label}': its fuse_without_removal stage "
-                    f"'{off}' removed moving obstacles; set dynamic_removal: false in it")
+                    f"'{off}' {why}; it must be a fuse stage with dynamic_removal: false")
         seq = read_sequence(ctx.artifact("sequence"))
         tables: dict[str, Any] = {}
         checks: list[tuple[str, str, bool | None]] = []
@@ -421,7 +428,7 @@ class PaperTablesStage(Stage):
               "moving-obstacle points |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
         out = {}
-        first = True
+        first = first_dyn = True
         for row in cfg.rows:
             if not row.fuse or row.timing_only:
                 continue
@@ -440,7 +447,8 @@ class PaperTablesStage(Stage):
             if row.fuse_without_removal:
                 dyn_off = res[row.fuse_without_removal].metrics.get("dynamic_fraction")
                 out[row.label]["dynamic_fraction_without_removal"] = dyn_off
-            if dyn is not None and (first or row.fuse_without_removal):
+            if dyn is not None and (first_dyn or row.fuse_without_removal):
+                first_dyn = False
                 checks.append((f"{row.label}: map points on moving obstacles <= "
                                f"{100 * cfg.dynamic_fraction_target:g} %"
                                + (f" (without the removal: {100 * dyn_off:.2f} %)"

@@ -553,8 +553,11 @@ class FuseStage(Stage):
                       f"per frame: {m['refine_anchors_floor_median']:.0f} floor, "
                       f"{m['refine_anchors_lidar_median']:.0f} lidar; median field RMS "
                       f"{100 * m['refine_field_rms_median']:.1f} %, largest "
-                      f"{100 * m['refine_field_max']:.1f} %. The map and the scaled depth "
-                      "written for later stages are the corrected ones; the rows without "
+                      f"{100 * m['refine_field_max']:.1f} %. "
+                      + ("The map and the scaled depth written for later stages are the "
+                         "corrected ones" if cfg.write_depth != "none" else
+                         "The map is built from the corrected depth")
+                      + "; the rows without "
                       "'shape correction' are the per-frame scale alone (the paper's method).")
         consensus = (f"{m['map_points_removed_consensus']} farther than "
                      f"{cfg.consensus_m * 100:g} cm from the multi-view consensus surface, "
@@ -567,11 +570,16 @@ class FuseStage(Stage):
                  "excluded" + ("; files were read and written meanwhile in a thread, "
                                "`prefetch: false` times the fusion alone)" if cfg.prefetch
                                else ")")]
-        if "dynamic_fraction" in m:
+        if "dynamic_fraction" in m and cfg.dynamic_removal:
             extra.append(f"map points on moving obstacles: {100 * m['dynamic_fraction']:.2f} % "
                          f"({100 * m['dynamic_fraction_before_carving']:.2f} % before carving; "
                          f"{m['points_masked_dynamic']} image points masked by lidar-detected "
                          "moving obstacles)")
+        elif "dynamic_fraction" in m:
+            extra.append(f"map points on moving obstacles, nothing removing them "
+                         f"(`dynamic_removal: false`): {100 * m['dynamic_fraction']:.2f} % "
+                         f"({100 * m['dynamic_fraction_before_carving']:.2f} % before the "
+                         "consensus and outlier steps, which drop some of them too)")
         if "map_to_mesh_mean_m" in m:
             extra.append(f"map to ground-truth mesh: mean {100 * m['map_to_mesh_mean_m']:.1f} cm,"
                          f" RMSE {100 * m['map_to_mesh_rmse_m']:.1f} cm; per-frame median "
@@ -599,6 +607,7 @@ class FuseStage(Stage):
         figures.map_views(ctx.stage_dir / "map_views.png", final.points,  # type: ignore
                           final.colors, xy, "fused map", removed)  # type: ignore[attr-defined]
         md.append(f"![coloured map]({sid}/map_views.png)")
-        md.append(f"Files: [map.ply]({sid}/map.ply), [scales.csv]({sid}/scales.csv), "
-                  f"scaled depth in `{sid}/scaled_depth/`.")
+        md.append(f"Files: [map.ply]({sid}/map.ply), [scales.csv]({sid}/scales.csv)"
+                  + (f", scaled depth in `{sid}/scaled_depth/`." if cfg.write_depth != "none"
+                     else " (no scaled depth: `write_depth: none`)."))
         ctx.report("\n\n".join(md))
