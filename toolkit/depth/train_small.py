@@ -439,16 +439,12 @@ def _check_resumable(ckpt: Path, saved: dict, cfg: TrainConfig) -> None:
     """Refuse a checkpoint made under other settings, naming them (the defaults change
     between releases: a checkpoint of an older default run names what it was made with)."""
     now = _resumable(cfg)
-    diff = {k: (saved.get(k), now[k]) for k in now if _norm(saved.get(k)) != _norm(now[k])}
+    diff = {k: (saved.get(k), now[k]) for k in now if saved.get(k) != now[k]}
     if diff:
         said = "; ".join(f"{k}: checkpoint {a}, now {b}" for k, (a, b) in diff.items())
         raise ValueError(f"{ckpt}: checkpoint of a different training configuration ({said}); "
                          "train with the checkpoint's settings to resume it (--houses, "
                          "--widths), or delete it to start afresh")
-
-
-def _norm(v: object) -> object:
-    return tuple(v) if isinstance(v, list) else v
 
 
 def checkpoint_path(out: Path) -> Path:
@@ -569,11 +565,11 @@ images. Relative depth only: no metric scale without the lidar.
 
 
 def _widths(text: str) -> tuple[int, ...]:
+    """``--widths``: five positive channel counts, comma-separated."""
     try:
         w = tuple(int(v) for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--widths {text!r}: give five whole numbers, "
-                                         "e.g. 16,32,48,64,96") from None
+        w = ()
     if len(w) != 5 or min(w) < 1:
         raise argparse.ArgumentTypeError(f"--widths {text!r}: five positive channel counts "
                                          "(stages at 1/2 .. 1/32 resolution), e.g. 16,32,48,64,96")
