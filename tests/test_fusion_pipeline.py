@@ -138,6 +138,31 @@ def test_fusion_bench_reports_the_fastest_of_its_runs(box_room: Path) -> None:
     assert 0 < res["fps_including_finish"] <= res["fps_per_frame_work"]
 
 
+def test_fusion_bench_times_a_recipe_stage_as_it_runs(box_room: Path, tmp_path: Path) -> None:
+    """``--recipe``/``--stage`` take every fusion setting from the stage (the network row's
+    refine grid and gates), flags beside them override, and a stage of another type is
+    refused with the recipe's fuse stages named."""
+    import json
+
+    from toolkit.fusion.bench import main
+
+    recipe = Path(__file__).parents[1] / "recipes" / "paper_benchmark.yaml"
+    out = tmp_path / "fusion.json"
+    assert main(["--sequence", str(box_room), "--frames", "4", "--repeat", "1",
+                 "--recipe", str(recipe), "--stage", "fuse_net", "--stride", "4",
+                 "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    cfg = res["fusion_config"]
+    assert (cfg["refine_grid"], cfg["refine_gate"], cfg["refine_gate_final"]) == ([12, 9], 0.2, 0.1)
+    assert (cfg["refine"], cfg["consensus"], cfg["smoothing"]) == ("floor_lidar", True, "none")
+    assert res["stride"] == 4 and res["stage"] == "fuse_net" and res["frames"] == 4
+    with pytest.raises(SystemExit):
+        main(["--sequence", str(box_room), "--recipe", str(recipe), "--stage", "depth_net",
+              "--out", str(out)])
+    with pytest.raises(SystemExit):
+        main(["--sequence", str(box_room), "--stage", "fuse_net", "--out", str(out)])
+
+
 @pytest.mark.parametrize("kill_in", ["frame_pairs", "integrate"])
 def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch,

@@ -1,6 +1,7 @@
 """Fusion throughput at 640x480, network and file reading excluded.
 
     python -m toolkit.fusion.bench --sequence PATH --frames 150 --out runs/bench/fusion.json
+    python -m toolkit.fusion.bench --recipe recipes/paper_benchmark.yaml --stage fuse_net
 
 Each configuration runs ``--repeat`` times (3) and the fastest run's figures are reported,
 with every run's frames/s beside them.
@@ -11,6 +12,11 @@ given. The timed part is what the ``fuse`` stage does per frame - lidar projecti
 scale estimation, scaling, shape correction (``--refine``), flying-pixel filtering,
 back-projection, voxel integration (and the consensus TSDF, ``--consensus``) -
 plus, separately, the end-of-run work (carving moving obstacles, outlier removal).
+
+``--recipe`` with ``--stage`` takes every fusion setting from that ``fuse`` stage of the
+recipe (its refine grid and gates, smoothing, consensus, ...), so a recipe's row is timed
+as it runs; ``--scale``, ``--stride``, ``--refine`` and ``--consensus`` given beside them
+override the stage's values.
 """
 
 from __future__ import annotations
@@ -24,13 +30,18 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.cli_types import positive_int
+from toolkit.fusion.pipeline import FusionConfig
 
 
-def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str = "none",
-              consensus: bool = False, repeat: int = 1) -> dict:
+def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: int = 2,
+              refine: str = "none", consensus: bool = False, repeat: int = 1,
+              config: FusionConfig | None = None) -> dict:
     """Figures of the best of ``repeat`` timed runs (each with a fresh fusion) and every
     run's frames/s: on a shared machine neighbours only ever slow a run down, so the
-    fastest is the least disturbed estimate (what ``timeit`` reports too)."""
+    fastest is the least disturbed estimate (what ``timeit`` reports too).
+
+    ``config``: every fusion setting (``method``, ``stride``, ``refine`` and ``consensus``
+    are then ignored); None builds one from those four and the defaults."""
     from toolkit.depth.simulated import SimulatedDepthBackend
     from toolkit.deskew import deskew_sequence
     from toolkit.fusion.pipeline import pose_arrays
@@ -47,13 +58,17 @@ def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str
         preds[i] = backend.predict(imgs[i], gt_depth=gt.depth(i), frame_index=int(i))
     seq = deskew_sequence(seq, gt.poses_base)
     fp, sp, _ = pose_arrays(seq, gt.poses_base)
-    runs = [_timed_run(seq, fp, sp, idx, preds, imgs, method, stride, refine, consensus)
-            for _ in range(max(1, repeat))]
+    if config is None:
+        config = FusionConfig(scale=method, stride=stride, refine=refine,  # type: ignore[arg-type]
+                              consensus=consensus)
+    runs = [_timed_run(seq, fp, sp, idx, preds, imgs, config) for _ in range(max(1, repeat))]
     best = max(runs, key=lambda r: r["fps_including_finish"])
     h, w = seq.rig.camera.height, seq.rig.camera.width
     return {
-        "sequence": str(seq_path), "image": f"{w}x{h}", "frames": int(n), "scale": method,
-        "refine": refine, "consensus": consensus, "stride": stride, "repeat": len(runs),
+        "sequence": str(seq_path), "image": f"{w}x{h}", "frames": int(n),
+        "scale": config.scale, "refine": config.refine, "consensus": config.consensus,
+        "stride": config.stride, "repeat": len(runs),
+        "fusion_config": config.model_dump(mode="json"),
         **best,
         "runs_fps_per_frame_work": [r["fps_per_frame_work"] for r in runs],
         "runs_fps_including_finish": [r["fps_including_finish"] for r in runs],
@@ -61,12 +76,10 @@ def run_bench(seq_path: Path, frames: int, method: str, stride: int, refine: str
 
 
 def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, idx: np.ndarray, preds: dict,
-               imgs: dict, method: str, stride: int, refine: str, consensus: bool) -> dict:
-    from toolkit.fusion.pipeline import Fusion, FusionConfig
+               imgs: dict, cfg: FusionConfig) -> dict:
+    from toolkit.fusion.pipeline import Fusion
 
     n = len(idx)
-    cfg = FusionConfig(scale=method, stride=stride, refine=refine,  # type: ignore[arg-type]
-                       consensus=consensus)
     fusion = Fusion(seq, cfg, fp, sp)  # type: ignore[arg-type]
     fusion.frame_pairs(int(idx[0]), preds[idx[0]])  # warm caches outside the clock
     # Wall clock and CPU time: on a shared machine the wall clock measures the neighbours.
@@ -100,10 +113,17 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="fusion throughput (network excluded)")
     ap.add_argument("--sequence", type=Path, default=None)
     ap.add_argument("--frames", type=positive_int, default=300)
-    ap.add_argument("--scale", default="clustered", choices=["ratio", "clustered", "robust"])
-    ap.add_argument("--stride", type=positive_int, default=2)
-    ap.add_argument("--refine", default="none", choices=["none", "floor_lidar", "lidar"])
-    ap.add_argument("--consensus", action="store_true", help="multi-view consensus filter")
+    ap.add_argument("--scale", default=None, choices=["ratio", "clustered", "robust"],
+                    help="scale estimator (default: the --stage's, else clustered)")
+    ap.add_argument("--stride", type=positive_int, default=None,
+                    help="pixel stride of the map (default: the --stage's, else 2)")
+    ap.add_argument("--refine", default=None, choices=["none", "floor_lidar", "lidar"],
+                    help="shape correction (default: the --stage's, else none)")
+    ap.add_argument("--consensus", action="store_true", default=None,
+                    help="multi-view consensus filter (default: the --stage's, else off)")
+    ap.add_argument("--recipe", type=Path, default=None,
+                    help="take the fusion settings from a fuse stage of this recipe")
+    ap.add_argument("--stage", default=None, help="id of that fuse stage (with --recipe)")
     ap.add_argument("--repeat", type=positive_int, default=3,
                     help="timed runs; the figures are the fastest run's")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/fusion.json"))
@@ -112,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--out {a.out} is a folder; give the JSON file to write")
     if a.sequence is not None and not (a.sequence / "meta.yaml").is_file():
         ap.error(f"--sequence {a.sequence}: no sequence folder (meta.yaml) there")
+    if (a.recipe is None) != (a.stage is None):
+        ap.error("--recipe and --stage go together: the recipe file and the id of its fuse "
+                 "stage (for example --recipe recipes/paper_benchmark.yaml --stage fuse_net)")
+    config = _config_from(a, ap)
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         seq = a.sequence
@@ -120,8 +144,9 @@ def main(argv: list[str] | None = None) -> int:
 
             seq = write_box_room(Path(tmp) / "box", n_frames=min(a.frames, 60), width=640,
                                  height=480)
-        res = run_bench(seq, a.frames, a.scale, a.stride, a.refine, a.consensus,
-                        a.repeat)
+        res = run_bench(seq, a.frames, repeat=a.repeat, config=config)
+    if a.recipe is not None:
+        res.update({"recipe": str(a.recipe), "stage": a.stage})
     res.update({"cores": os.cpu_count(), "loadavg_before": load0,
                 "loadavg_after": os.getloadavg()})
     for k, v in res.items():
@@ -130,6 +155,29 @@ def main(argv: list[str] | None = None) -> int:
 
     atomic_write_json(a.out, res)
     return 0
+
+
+def _config_from(a: argparse.Namespace, ap: argparse.ArgumentParser) -> FusionConfig:
+    """The fusion settings: the recipe stage's (or the defaults), then the flags given."""
+    flags = {k: v for k, v in (("scale", a.scale), ("stride", a.stride),
+                               ("refine", a.refine), ("consensus", a.consensus))
+             if v is not None}
+    base: dict = {}
+    if a.recipe is not None:
+        from toolkit.fusion.stage import FuseConfig
+        from toolkit.recipe.schema import RecipeError, load_recipe
+
+        try:
+            recipe = load_recipe(a.recipe)
+            spec = recipe.stages[recipe.index_of(a.stage, "--stage")]
+        except RecipeError as exc:
+            ap.error(str(exc))
+        if not isinstance(spec.config, FuseConfig):
+            fuse_ids = [s.id for s in recipe.stages if isinstance(s.config, FuseConfig)]
+            ap.error(f"--stage {a.stage}: a {spec.type} stage of {a.recipe}, not a fuse stage; "
+                     f"its fuse stages: {', '.join(fuse_ids) or 'none'}")
+        base = {k: getattr(spec.config, k) for k in FusionConfig.model_fields}
+    return FusionConfig(**{**base, **flags})
 
 
 if __name__ == "__main__":
