@@ -355,14 +355,36 @@ def test_set_overrides_are_validated(tmp_path: Path) -> None:
         load_recipe(path, ["t_double.factr=3"])
     with pytest.raises(RecipeError, match="expected KEY=VALUE"):
         load_recipe(path, ["t_double.factor"])
-    with pytest.raises(RecipeError, match=r"label: .*\n.*with --set t_source.label=off: "
+    with pytest.raises(RecipeError, match=r"label: .*\n.*with --set t_source.label=true: "
                        r"values are read as YAML, so quote"):
-        load_recipe(path, ["t_source.label=off"])  # YAML reads off as false
-    quoted = load_recipe(path, ['t_source.label="off"']).stages[0].config
-    assert quoted.label == "off"  # type: ignore[attr-defined]
+        load_recipe(path, ["t_source.label=true"])
+    quoted = load_recipe(path, ['t_source.label="true"']).stages[0].config
+    assert quoted.label == "true"  # type: ignore[attr-defined]
     recipe = load_recipe(path, ["t_double.factor=5", "name=renamed", "output=elsewhere"])
     assert recipe.stages[1].config.factor == 5  # type: ignore[attr-defined]
     assert (recipe.name, recipe.output) == ("renamed", Path("elsewhere"))
+
+
+def test_recipes_read_scalars_by_the_yaml_1_2_core_schema(tmp_path: Path) -> None:
+    """``seed: 010`` is ten and ``label: off`` is text, in the file and in --set alike (YAML
+    1.1 made them 8 and false); exponents without a dot are numbers; the resolved recipe
+    the runner writes reads back as it was, here and with PyYAML's own 1.1 loader."""
+    from toolkit.recipe.schema import dump_recipe_data, read_yaml_value
+
+    assert [read_yaml_value(t) for t in ("010", "0o10", "0x1f", "1e-3", "off", "yes", "1:30",
+                                         "2026-11-26", "true", "~")] == [
+        10, 8, 31, 0.001, "off", "yes", "1:30", "2026-11-26", True, None]
+    path = tmp_path / "chain.yaml"
+    path.write_text(f"name: chain\noutput: {tmp_path / 'run'}\nstages:\n"
+                    f"  - stage: t_source\n    counter: {tmp_path / 'calls.txt'}\n"
+                    f"    value: 010\n    label: off\n")
+    cfg = load_recipe(path).stages[0].config
+    assert (cfg.value, cfg.label) == (10, "off")  # type: ignore[attr-defined]
+    cfg = load_recipe(path, ["t_source.value=012", "t_source.label=no"]).stages[0].config
+    assert (cfg.value, cfg.label) == (12, "no")  # type: ignore[attr-defined]
+    data = {"name": "1e3", "stages": [{"label": v} for v in ("yes", "1e3", "010", "2026-11-26")]}
+    text = dump_recipe_data(data)
+    assert read_yaml_value(text) == data and yaml.safe_load(text) == data
 
 
 # --- caching, --set, --force, --only, --from ----------------------------------------------

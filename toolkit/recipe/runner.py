@@ -28,7 +28,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
 from rich.console import Console
 from rich.logging import RichHandler
 from rich.markup import escape
@@ -43,7 +42,7 @@ from rich.progress import (
 
 from toolkit.io.atomic import atomic_write_json, atomic_write_text, to_jsonable
 from toolkit.recipe import registry, report
-from toolkit.recipe.schema import Recipe, RecipeError, StageSpec, config_data
+from toolkit.recipe.schema import Recipe, RecipeError, StageSpec, config_data, dump_recipe_data
 from toolkit.recipe.stage import Stage, StageContext, StageError, StageResult
 
 try:
@@ -207,7 +206,7 @@ class _Run:
         """``recipe.resolved.yaml``, once something of this run is kept: an option check
         that refuses to run must not leave settings no result in the folder came from."""
         if not self._resolved_written:
-            text = yaml.safe_dump(self.recipe.resolved(), sort_keys=False, allow_unicode=True)
+            text = dump_recipe_data(self.recipe.resolved())
             atomic_write_text(self.run_dir / RESOLVED_FILE, text)
             self._resolved_written = True
 

@@ -100,7 +100,65 @@ def config_data(config: StageConfig) -> dict[str, Any]:
 
 class _UniqueKeyLoader(yaml.SafeLoader):
     """SafeLoader that refuses a key given twice in one mapping (YAML keeps the last one
-    without a word: a stage's setting written twice silently loses the first)."""
+    without a word: a stage's setting written twice silently loses the first), and reads
+    plain scalars by the YAML 1.2 core schema (below)."""
+
+
+# PyYAML reads YAML 1.1: ``seed: 010`` is 8 (octal), ``topic: off`` and ``name: no`` are
+# booleans, ``1:30`` is 90 and ``1e-3`` is the text "1e-3". Recipes are read by the YAML 1.2
+# core schema instead (what ruamel.yaml, libyaml-based tools in other languages and the
+# spec since 2009 do): only true/false are booleans, integers are decimal (0o / 0x
+# prefixed otherwise), floats take exponents without a dot, no sexagesimals and no dates. The
+# settings' own types still accept yes / on for a boolean setting.
+_YAML11_TAGS = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float",
+                "tag:yaml.org,2002:timestamp"}  # a date in a name stays text
+_UniqueKeyLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag not in _YAML11_TAGS]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+    list("tTfF"))
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:int", re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"),
+    list("-+0123456789"))
+_UniqueKeyLoader.add_implicit_resolver(  # after int: "1" is an int, not a float
+    "tag:yaml.org,2002:float",
+    re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+               r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+    list("-+.0123456789"))
+
+
+def _yaml12_int(loader: _UniqueKeyLoader, node: yaml.ScalarNode) -> int:
+    text = str(loader.construct_scalar(node))
+    if text.startswith(("0o", "0x")):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text)  # decimal, leading zeros and all: 010 is ten
+
+
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:int", _yaml12_int)
+
+
+class _RecipeDumper(yaml.SafeDumper):
+    """SafeDumper that quotes text either YAML 1.1 or the 1.2 core schema would read as
+    something else ("yes" and "1e3" alike), so a written recipe reads back the same here
+    and in other YAML tools."""
+
+
+for _first, _resolvers in _UniqueKeyLoader.yaml_implicit_resolvers.items():
+    for _tag, _rx in _resolvers:
+        _RecipeDumper.add_implicit_resolver(_tag, _rx, [_first])
+
+
+def dump_recipe_data(data: Mapping[str, Any]) -> str:
+    """YAML text of recipe data (recipe.resolved.yaml) that ``load_recipe`` reads back as
+    it was."""
+    return yaml.dump(dict(data), Dumper=_RecipeDumper, sort_keys=False, allow_unicode=True)
+
+
+def read_yaml_value(text: str) -> Any:
+    """One YAML value as a recipe file reads it (YAML 1.2 core scalars): ``--set`` items."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
 
 
 def _mapping_without_repeats(loader: _UniqueKeyLoader, node: yaml.MappingNode,
@@ -202,10 +260,10 @@ def parse_recipe(
         specs = _wire_artifacts(specs, problems)
     if problems:
         if overrides:
-            # A --set value is YAML: off, yes, 1.10 and '#...' are not the text typed.
+            # A --set value is YAML: true, null, 1.10, [a] and '#...' are not the text typed.
             problems.append(
                 f"(with --set {' '.join(overrides)}: values are read as YAML, so quote text "
-                f"that YAML reads otherwise, e.g. --set 'ingest.topic=\"off\"')")
+                f"that YAML reads otherwise, e.g. --set 'ingest.topic=\"null\"')")
         raise RecipeError(problems)
     return Recipe(
         name=name,
@@ -330,8 +388,9 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
     """Apply ``--set`` items to raw recipe data in place.
 
     ``<stage id>.<key>[.<subkey>...]=VALUE`` sets a stage setting and ``name=``, ``output=``
-    or ``description=`` the top-level field; VALUE is read with ``yaml.safe_load`` so
-    ``0.5``, ``true``, ``[1, 2]`` and ``null`` mean what they do in the recipe file.
+    or ``description=`` the top-level field; VALUE is read as the recipe file is
+    (``read_yaml_value``) so ``0.5``, ``true``, ``[1, 2]`` and ``null`` mean what they do
+    there.
     """
     for item in overrides:
         key, sep, text = item.partition("=")
@@ -339,7 +398,7 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
         if not sep or not key:
             raise RecipeError(f"--set {item!r}: expected KEY=VALUE, e.g. slam2d.window_m=0.5")
         try:
-            value = yaml.safe_load(text)
+            value = read_yaml_value(text)
         except yaml.YAMLError as exc:
             raise RecipeError(f"--set {item!r}: value is not valid YAML: {exc}") from None
         parts = key.split(".")

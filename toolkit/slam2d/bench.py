@@ -21,12 +21,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from toolkit.geometry import Trajectory, umeyama_alignment
 from toolkit.io.atomic import atomic_write_json
 from toolkit.io.occupancy import write_occupancy
 from toolkit.io.yaml_file import load_yaml
+from toolkit.recipe.schema import read_yaml_value
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
 from toolkit.slam2d.plot import save_map_png
@@ -70,7 +70,7 @@ def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
             node = node[p]
         if not isinstance(node, dict) or parts[-1] not in node:
             raise KeyError(f"--set {key}: unknown setting")
-        node[parts[-1]] = yaml.safe_load(value)
+        node[parts[-1]] = read_yaml_value(value)  # as a recipe's --set reads it
     return Slam2DConfig.model_validate(data)
 
 
