@@ -108,6 +108,38 @@ def test_floor_and_lidar_remove_a_smooth_distortion(outliers: bool) -> None:
     assert after < 0.25 * before, (before, after)
 
 
+@pytest.mark.parametrize("base_height_m", [0.0, 0.3])
+def test_floor_lies_floor_height_below_base_link(base_height_m: float) -> None:
+    """base_link 0.3 m above the floor (a robot's body frame, not REP 105's footprint):
+    with ``floor_height_m`` 0.3 the floor reference is the true floor, and the columns
+    through the lidar points start on it; the correction then removes the distortion."""
+    T = camera_pose()  # the camera 0.45 m above the floor, whatever base_link's height
+    T_world_base = np.eye(4)
+    T_world_base[2, 3] = base_height_m
+    truth = scene_depth(T)
+    refiner = DepthRefiner(CAM, RefineOptions(grid=(6, 5), step_px=4),
+                           floor_height_m=base_height_m)
+    ref = refiner.floor_reference(T, T_world_base)  # [M]
+    rays = CAM.pixel_rays()[refiner.rows, refiner.cols] @ T[:3, :3].T
+    on_floor = np.isfinite(ref) & (rays[:, 0] * ref / np.linalg.norm(rays, axis=1) < 3.0)
+    true_at = truth[refiner.rows, refiner.cols]
+    assert on_floor.sum() > 50
+    np.testing.assert_allclose(ref[on_floor], true_at[on_floor], rtol=1e-4)
+    px, z = wall_lidar(T, truth)
+    pts = np.column_stack([(px[:, 0] - CAM.cx) / CAM.fx * z, (px[:, 1] - CAM.cy) / CAM.fy * z, z])
+    cols_px, cols_z = refiner.column_anchors(pts, T, T_world_base)
+    # Column points lie on the wall, between the floor and column_top_m above it.
+    Xw = (np.column_stack([(cols_px[:, 0] - CAM.cx) / CAM.fx, (cols_px[:, 1] - CAM.cy) / CAM.fy,
+                           np.ones(len(cols_z))]) * cols_z[:, None]) @ T[:3, :3].T + T[:3, 3]
+    assert Xw[:, 2].min() == pytest.approx(0.0, abs=0.05)
+    assert Xw[:, 2].max() <= RefineOptions().column_top_m + 0.05
+    pred = truth * np.exp(distortion(*truth.shape))
+    out, info = refiner.refine(pred, T, T_world_base, px, z)
+    valid = np.isfinite(truth)
+    assert info.applied and info.anchors_floor > 100
+    assert log_error(out, truth, valid) < 0.25 * log_error(pred, truth, valid)
+
+
 def test_lidar_only_corrects_the_lidar_row_and_needs_anchors() -> None:
     T = camera_pose()
     truth = scene_depth(T)

@@ -193,7 +193,7 @@ class DepthRefiner:
         if self.floor_height_m is None:
             return np.full(len(self.rows), np.inf)
         normal = T_world_base[:3, 2]
-        point = T_world_base[:3, 3] + self.floor_height_m * normal
+        point = T_world_base[:3, 3] - self.floor_height_m * normal  # below base_link
         d = self.rays @ T_world_camera[:3, :3].T
         t = floor_depth(d, T_world_camera[:3, 3], normal, point)
         return np.where(t <= self.opts.max_depth_m, t, np.inf)
@@ -213,7 +213,8 @@ class DepthRefiner:
         # Height of each point above the floor (or the lidar plane's own height).
         pw = pc @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
         base_z = (pw - T_world_base[:3, 3]) @ T_world_base[:3, 2]  # [C] above base_link
-        floor = self.floor_height_m
+        # The floor's height along base z (floor_height_m below base_link)
+        floor = -self.floor_height_m if self.floor_height_m is not None else None
         lo = (floor - base_z) if floor is not None else np.full(len(pc), -0.25)
         top = (floor if floor is not None else 0.0) + o.column_top_m - base_z
         offs = np.arange(0.0, o.column_top_m + 0.25 + 1e-9, o.column_step_m)  # [S]
