@@ -269,6 +269,17 @@ def test_colmap_and_camera_only_stages(tmp_path: Path) -> None:
     assert c["sfm_vs_groundtruth"]["ate_sim3_rmse_m"] < 0.01
     # Against the lidar trajectory (ground truth + 3 cm in x) the shape is the same too.
     assert c["sfm_vs_lidar"]["ate_sim3_rmse_m"] < 0.01
+    # The written Sim(3)-aligned trajectory is the one the figure scores.
+    from toolkit.baselines.common import groundtruth_camera_trajectory
+    from toolkit.io.sequence import read_sequence
+    from toolkit.io.tum import read_tum
+
+    aligned = read_tum(tmp_path / "run" / "colmap" / "sfm" / "trajectory_sim3.tum")
+    gt = groundtruth_camera_trajectory(read_sequence(tmp_path / "run" / "t_room" / "seq"))
+    assert gt is not None
+    err = aligned.positions - gt.interpolate(aligned.stamps).positions  # [N, 3]
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) == pytest.approx(
+        c["sfm_vs_groundtruth"]["ate_sim3_rmse_m"], abs=1e-5)
     # Triangulation at the (shifted) trajectory poses: consistent tracks; the rigid 3 cm
     # shift of the whole trajectory is undone by the map-to-world alignment before the
     # points are compared with the mesh.

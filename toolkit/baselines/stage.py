@@ -448,8 +448,12 @@ class ColmapStage(Stage):
             if ref is not None and f"sfm_vs_{ref_name}" in metrics:
                 from toolkit.baselines.camera_only import alignments
 
-                ref_at = ref.interpolate(np.clip(est.stamps, ref.stamps[0], ref.stamps[-1]))
-                al = alignments(est.positions, ref_at.positions)
+                # Fitted on the poses the metrics score (inside the reference's span, not
+                # across a gap of it): a pose beyond its end, compared with the end pose,
+                # bent the written alignment away from the one the figures describe.
+                inside = ref.covers(est.stamps)
+                ref_at = ref.interpolate(est.stamps[inside])
+                al = alignments(est.positions[inside], ref_at.positions)
                 for tag, label in (("sim3", "COLMAP, Sim(3)-aligned"),
                                    ("se3", "COLMAP, SE(3), own scale")):
                     S = al[tag]
