@@ -127,6 +127,44 @@ def test_projection_matches_simulator_ground_truth(tmp_path: Path) -> None:
     assert np.mean(err < 0.05) > 0.9
 
 
+def test_scans_beyond_the_trajectory_carve_nothing(tmp_path: Path) -> None:
+    """A static room and a trajectory that ends half way: the scans after its end have no
+    pose (``pose_arrays`` gives them the last one); used, they "saw through" the walls and
+    carved the static map. Now they are left out: the same frames make the same map as
+    with the whole trajectory, and nothing is removed as moving."""
+    from toolkit.fusion.pipeline import Fusion, FusionConfig, pose_arrays, scans_covered
+    from toolkit.geometry import Trajectory
+
+    seq = read_sequence(write_box_room(tmp_path / "static", n_frames=20, moving_box=False))
+    gt = seq.groundtruth
+    full = gt.poses_base
+    half = full.stamps <= full.stamps[-1] / 2
+    cut = Trajectory(full.stamps[half], full.poses[half], full.frame, full.child)
+    covered = scans_covered(seq, cut)
+    assert 0 < covered.sum() < len(covered)
+
+    def fuse(traj: Trajectory, frames: np.ndarray | None = None) -> tuple[int, int, Fusion]:
+        fp, sp, inside = pose_arrays(seq, traj)
+        fusion = Fusion(seq, FusionConfig(scale="none"), fp, sp,
+                        scan_covered=scans_covered(seq, traj))
+        for i in np.flatnonzero(inside) if frames is None else frames:
+            d = gt.depth(i)
+            fusion.integrate(int(i), np.where(d > 0, d, np.nan), seq.frames[i].image)
+        raw, masks = fusion.finish()
+        return len(raw), int(masks["dynamic"].sum()), fusion
+
+    _, _, inside_cut = pose_arrays(seq, cut)
+    voxels_cut, removed_cut, f_cut = fuse(cut)
+    voxels_full, removed_full, _ = fuse(full, np.flatnonzero(inside_cut))
+    assert removed_cut == removed_full == 0
+    assert sum(int(b.sum()) for b in f_cut.beam_dynamic) == 0
+    assert f_cut.points_masked_dynamic == 0
+    assert voxels_cut == voxels_full
+    # Frames near the end of the cut trajectory take their lidar pairs from covered scans.
+    last = int(np.flatnonzero(inside_cut)[-1])
+    assert all(covered[k] for k in f_cut.projector.scan_indices(seq.frame_stamps[last]))
+
+
 def test_fusion_bench_reports_the_fastest_of_its_runs(box_room: Path) -> None:
     from toolkit.fusion.bench import run_bench
 

@@ -44,7 +44,7 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     are then ignored); None builds one from those four and the defaults."""
     from toolkit.depth.simulated import SimulatedDepthBackend
     from toolkit.deskew import deskew_sequence
-    from toolkit.fusion.pipeline import pose_arrays
+    from toolkit.fusion.pipeline import pose_arrays, scans_covered
     from toolkit.io.sequence import read_sequence
 
     seq = read_sequence(seq_path)
@@ -58,10 +58,12 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
         preds[i] = backend.predict(imgs[i], gt_depth=gt.depth(i), frame_index=int(i))
     seq = deskew_sequence(seq, gt.poses_base)
     fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    covered = scans_covered(seq, gt.poses_base)
     if config is None:
         config = FusionConfig(scale=method, stride=stride, refine=refine,  # type: ignore[arg-type]
                               consensus=consensus)
-    runs = [_timed_run(seq, fp, sp, idx, preds, imgs, config) for _ in range(max(1, repeat))]
+    runs = [_timed_run(seq, fp, sp, covered, idx, preds, imgs, config)
+            for _ in range(max(1, repeat))]
     best = max(runs, key=lambda r: r["fps_including_finish"])
     h, w = seq.rig.camera.height, seq.rig.camera.width
     return {
@@ -75,12 +77,12 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     }
 
 
-def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, idx: np.ndarray, preds: dict,
-               imgs: dict, cfg: FusionConfig) -> dict:
+def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
+               idx: np.ndarray, preds: dict, imgs: dict, cfg: FusionConfig) -> dict:
     from toolkit.fusion.pipeline import Fusion
 
     n = len(idx)
-    fusion = Fusion(seq, cfg, fp, sp)  # type: ignore[arg-type]
+    fusion = Fusion(seq, cfg, fp, sp, scan_covered=covered)  # type: ignore[arg-type]  # type: ignore[arg-type]
     fusion.frame_pairs(int(idx[0]), preds[idx[0]])  # warm caches outside the clock
     # Wall clock and CPU time: on a shared machine the wall clock measures the neighbours.
     t0, c0 = time.perf_counter(), time.process_time()

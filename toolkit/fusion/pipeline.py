@@ -263,24 +263,41 @@ def pose_arrays(seq: Sequence, T_world_base: Trajectory) -> tuple[np.ndarray, np
     return frame_poses, scan_poses, inside
 
 
+def scans_covered(seq: Sequence, T_world_base: Trajectory) -> np.ndarray:
+    """[S] bool: scans stamped where ``T_world_base`` has a trustworthy pose (inside its
+    span, not in a gap: ``Trajectory.covers``). ``pose_arrays`` gives the others the pose
+    at the trajectory's nearest end; placed there, a scan taken elsewhere "sees through"
+    walls and carves the static map."""
+    return T_world_base.covers(seq.scan_stamps, slack_s=0.05)
+
+
 class Fusion:
     """Per-frame pieces of the fusion, shared by the stage and the benchmark."""
 
     def __init__(self, seq: Sequence, config: FusionConfig, frame_poses: np.ndarray,
-                 scan_poses: np.ndarray, views_dir: Path | None = None) -> None:
+                 scan_poses: np.ndarray, views_dir: Path | None = None,
+                 scan_covered: np.ndarray | None = None) -> None:
         """``frame_poses`` [F, 4, 4] / ``scan_poses`` [S, 4, 4]: ``T_world_base`` at the
         frame and scan stamps (``pose_arrays``); the sequence's scans de-skewed if they carry
         per-beam timing (``toolkit.deskew.deskew_sequence``). ``views_dir``: where the
-        carving views wait for ``finish`` (None: in memory)."""
+        carving views wait for ``finish`` (None: in memory). ``scan_covered`` [S] bool: scans
+        whose pose is trustworthy (``scans_covered``; None: all); the others place no lidar
+        pairs, flag no moving obstacle and carve nothing."""
         self.seq = seq
         self.cfg = config
         self.camera = seq.rig.camera
         self.frame_poses = frame_poses  # [F, 4, 4] T_world_base
         self.scan_poses = scan_poses  # [S, 4, 4]
+        self.scan_covered = (np.ones(len(seq.scans), bool) if scan_covered is None
+                             else np.asarray(scan_covered, bool))  # [S]
+        if len(self.scan_covered) != len(seq.scans):
+            raise ValueError(f"scan_covered has {len(self.scan_covered)} entries for "
+                             f"{len(seq.scans)} scans")
         self.projector = LidarProjector(
             seq, frame_poses if config.motion_compensation else None,
             scan_poses if config.motion_compensation else None,
-            config.scans_per_frame, config.max_scan_dt_s)
+            config.scans_per_frame, config.max_scan_dt_s,
+            scan_usable=self.scan_covered if config.motion_compensation else None)
         self.rays = RayCache(self.camera, config.stride)
         self.cloud_opts = config.cloud_options(self.camera.fx)
         # One beam spacing for the occlusion test of the pairs (scanners of one sequence
@@ -303,7 +320,11 @@ class Fusion:
         self._consensus_last: int | None = None  # frame last integrated into the consensus
         if config.dynamic_removal and config.lidar_dynamic and len(seq.scans):
             T_wl = scan_poses @ seq.rig.T_base_laser
-            self.beam_dynamic = dynamic_beams(seq.scans, T_wl)
+            self.beam_dynamic = [np.zeros(len(s.ranges), bool) for s in seq.scans]
+            placed = np.flatnonzero(self.scan_covered)
+            for k, flags in zip(placed, dynamic_beams([seq.scans[k] for k in placed],
+                                                      T_wl[placed]), strict=True):
+                self.beam_dynamic[k] = flags
             for k, s in enumerate(seq.scans):
                 b = np.flatnonzero(self.beam_dynamic[k])
                 r = s.ranges[b].astype(np.float64)
@@ -483,7 +504,9 @@ class Fusion:
             if c.carve_with_lidar and len(self.seq.scans):
                 T_bl = self.seq.rig.T_base_laser
                 for k in range(0, len(self.seq.scans), c.carve_scans_every):
-                    counter.add_scan(self.seq.scans[k], inv_se3(self.scan_poses[k] @ T_bl))
+                    if self.scan_covered[k]:
+                        counter.add_scan(self.seq.scans[k],
+                                         inv_se3(self.scan_poses[k] @ T_bl))
             dyn = counter.dynamic_mask()[inv]
             masks["carved"] = dyn
             if c.grow_radius_m > 0:

@@ -82,12 +82,14 @@ class LidarProjector:
     and scan stamps; when given, scan k is placed with the pose at its own stamp and brought
     into the camera with the pose at the image stamp (motion compensation between sensors).
     ``scans_per_frame`` > 1 adds the neighbouring scans, which gives more pairs for the
-    scale estimate when the robot moves slowly.
+    scale estimate when the robot moves slowly. ``scan_usable`` [S] bool: the scans that
+    may be chosen (with poses: those the trajectory covers; None: all).
     """
 
     def __init__(self, sequence: Sequence, frame_poses: np.ndarray | None = None,
                  scan_poses: np.ndarray | None = None, scans_per_frame: int = 1,
-                 max_dt: float = 0.2, min_z: float = 0.05) -> None:
+                 max_dt: float = 0.2, min_z: float = 0.05,
+                 scan_usable: np.ndarray | None = None) -> None:
         if (frame_poses is None) != (scan_poses is None):
             raise ValueError("give both frame_poses and scan_poses, or neither")
         if frame_poses is not None and (len(frame_poses) != len(sequence.frames)
@@ -103,9 +105,14 @@ class LidarProjector:
                 "(time_increment): de-skew them first, "
                 "sequence = toolkit.deskew.deskew_sequence(sequence, T_world_base) with the "
                 "trajectory the poses come from (the fuse stage does this)")
+        if scan_usable is not None and len(scan_usable) != len(sequence.scans):
+            raise ValueError(f"scan_usable has {len(scan_usable)} entries for "
+                             f"{len(sequence.scans)} scans")
         self.seq = sequence
         self.frame_poses = frame_poses
         self.scan_poses = scan_poses
+        # [S] bool or None: scans that may be used (those with a trustworthy pose)
+        self.scan_usable = None if scan_usable is None else np.asarray(scan_usable, bool)
         self.scans_per_frame = max(1, int(scans_per_frame))
         self.max_dt = max_dt
         self.min_z = min_z
@@ -127,6 +134,8 @@ class LidarProjector:
         lo = int(np.searchsorted(stamps, stamps[lo], "left"))
         hi = int(np.searchsorted(stamps, stamps[hi - 1], "right")) if hi > lo else hi
         cand = np.arange(lo, hi)
+        if self.scan_usable is not None:
+            cand = cand[self.scan_usable[cand]]
         order = cand[np.argsort(np.abs(stamps[cand] - t), kind="stable")[:n]]
         return [int(k) for k in order if abs(stamps[k] - t) <= self.max_dt]
 

@@ -34,6 +34,7 @@ from toolkit.fusion.pipeline import (
     PairStats,
     pose_arrays,
     scaled_at_pairs,
+    scans_covered,
 )
 from toolkit.fusion.projection import sample_depth
 from toolkit.fusion.refine import Refinement
@@ -292,7 +293,8 @@ class FuseStage(Stage):
         seq = deskew_sequence(seq, traj)
         frame_poses, scan_poses, inside = pose_arrays(seq, traj)
         views_dir = ctx.stage_dir / "carve_views"  # until the map is finished
-        fusion = Fusion(seq, fcfg, frame_poses, scan_poses, views_dir)
+        fusion = Fusion(seq, fcfg, frame_poses, scan_poses, views_dir,
+                        scan_covered=scans_covered(seq, traj))
         disparity = store.kind == "relative_disparity"
         frames = [i for i in store.indices if i < len(seq.frames) and inside[i]]
         if not frames:
