@@ -206,6 +206,40 @@ def test_smoothing_keeps_each_frames_scale_and_shift_pair() -> None:
     assert (sm.scale[2], sm.shift[2]) == (want.scale, want.shift)  # one frame's pair
 
 
+def test_smoothing_needs_three_frames_to_call_one_an_outlier() -> None:
+    """Two good frames that disagree: the window's median is their mean, and both were
+    flagged (a two-frame run then had no scale at all). Neither is known to be wrong."""
+    two = [ScaleEstimate(1.5, 0.0, 50, 60, OK, "x"), ScaleEstimate(1.9, 0.0, 50, 60, OK, "x")]
+    sm = smooth_scales(two, window=9, outlier_tol=0.1, mode="none")
+    assert sm.flag == [OK, OK] and list(sm.scale) == [1.5, 1.9]
+    three = two + [ScaleEstimate(1.52, 0.0, 50, 60, OK, "x")]
+    assert smooth_scales(three, window=9, outlier_tol=0.1).flag == [OK, OUTLIER_FRAME, OK]
+
+
+def test_a_wall_frame_keeps_its_scale_among_scale_and_shift_fits() -> None:
+    """Per-image affine disparity; frame 4 faces a wall, so its shift cannot be told from
+    its scale and it is fitted with the scale alone. That scale is not comparable with the
+    neighbours' affine ones: it was flagged and given a neighbour's pair (35 % depth error
+    on the wall); now it keeps its own, and a flagged frame borrows only an affine pair."""
+    rng = np.random.default_rng(0)
+    data = []
+    for i in range(9):
+        s, t = 2.0 * (1 + 0.08 * rng.standard_normal()), -0.3 * (1 + 0.3 * rng.standard_normal())
+        z = rng.uniform(1.95, 2.05, 150) if i == 4 else rng.uniform(1.0, 5.0, 150)
+        data.append((z, (1.0 / z - t) / s))
+    for method in ("clustered", "robust"):
+        est = [estimate_scale(method, z, d, True, min_pairs=20) for z, d in data]
+        assert est[4].shift == 0.0 and all(e.shift != 0.0 for e in est[:4] + est[5:])
+        for mode, tol in (("median", 0.1), ("none", 0.25)):
+            sm = smooth_scales(est, 9, tol, mode)  # type: ignore[arg-type]
+            z, d = data[4]
+            wall = 1.0 / (sm.scale[4] * d + sm.shift[4])
+            assert sm.flag[4] == OK and np.median(np.abs(wall / z - 1)) < 0.01
+        est[6] = ScaleEstimate(float("nan"), 0.0, 3, 60, FEW_PAIRS, method)
+        sm = smooth_scales(est, 9, 0.1, "median")
+        assert sm.shift[6] != 0.0  # an affine frame's pair, not the wall's scale alone
+
+
 def test_depth_order_agreement_tells_depth_from_disparity() -> None:
     rng = np.random.default_rng(0)
     frames = []

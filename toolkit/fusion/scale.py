@@ -316,9 +316,10 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     """Reject outlier frames and smooth the scale (and shift) over ``window`` frames.
 
     A good frame is an outlier when its log scale is more than ``outlier_tol`` from the
-    median of the good frames in its window. ``mode="median"`` gives every frame the
-    median of the good frames' values in its window (the scale wanders slowly, a single
-    frame's fit does not); ``"none"`` keeps good frames' own values, and so do estimates
+    median of the good frames in its window (at least three of them; with shifts, frames
+    fitted with a shift only, and a frame fitted with the scale alone keeps it).
+    ``mode="median"`` gives every frame the median of the good frames' values in its
+    window (the scale wanders slowly, a single frame's fit does not); ``"none"`` keeps good frames' own values, and so do estimates
     with a shift in either mode (a scale and shift pair is the image's own). Flagged frames
     take the smoothed value (with shifts: the pair of the frame nearest the median) when
     ``fill="smoothed"``, or are skipped.
@@ -350,11 +351,25 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
             idx = np.flatnonzero(mask)
         return int(idx[np.argmin(np.abs(values[idx] - target))])
 
+    # In a sequence of (scale, shift) fits, a frame fitted with the scale alone (a wall
+    # filling the view: estimate_scale keeps its shift at 0) holds another quantity: its
+    # scale absorbed the shift. It is neither compared with the pairs around it (it was
+    # flagged and handed a neighbour's pair: 0.35 % -> 35 % depth error on the wall) nor
+    # lent to another frame.
+    fitted_shift = shift != 0  # [F]
+    affine = bool(fitted_shift[good].any())
+    comparable = good & fitted_shift if affine else good  # [F]
     for i in range(n):
-        if good[i]:
-            med = window_median(logs, good, i)
-            if np.isfinite(med) and abs(logs[i] - med) > outlier_tol:
-                flags[i] = OUTLIER_FRAME
+        if not comparable[i]:
+            continue
+        lo, hi = max(0, i - half), min(n, i + half + 1)
+        # With two frames in the window, the median is their mean: both would be flagged
+        # when they differ, and neither is known to be the wrong one.
+        if comparable[lo:hi].sum() < 3:
+            continue
+        med = window_median(logs, comparable, i)
+        if np.isfinite(med) and abs(logs[i] - med) > outlier_tol:
+            flags[i] = OUTLIER_FRAME
     good2 = good & np.array([f == OK for f in flags])
     out_s = np.full(n, np.nan)
     out_t = np.zeros(n)
@@ -363,16 +378,16 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     # frame's scale with another's shift, fits neither (AbsRel 0.0007 -> 0.009 on exact
     # affine disparity). Good frames keep their own pair; the others take the pair of the
     # frame whose scale is nearest the window's median.
-    affine = bool(shift[good2].any())
+    lenders = good2 & fitted_shift if affine and (good2 & fitted_shift).any() else good2
     for i in range(n):
         if good2[i] and (mode == "none" or affine):
             out_s[i], out_t[i] = raw[i], shift[i]
             continue
         if not good2[i] and fill == "skip":
             continue
-        m = window_median(logs, good2, i)
+        m = window_median(logs, lenders, i)
         if np.isfinite(m) and affine:
-            j = nearest_good(logs, good2, i, m)
+            j = nearest_good(logs, lenders, i, m)
             out_s[i], out_t[i] = raw[j], shift[j]
             continue
         out_s[i] = np.exp(m) if np.isfinite(m) else np.nan
