@@ -165,6 +165,27 @@ def test_scans_beyond_the_trajectory_carve_nothing(tmp_path: Path) -> None:
     assert all(covered[k] for k in f_cut.projector.scan_indices(seq.frame_stamps[last]))
 
 
+def test_an_empty_map_names_the_settings_that_emptied_it(box_room: Path,
+                                                        tmp_path: Path) -> None:
+    """No voxel left (seen in fewer frames than min_voxel_frames, or all removed): the
+    stage says which settings did it, where Open3D's refusal to write an empty cloud
+    blamed the file; a depth range no depth can reach is refused with the recipe."""
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.stage import FuseConfig, FuseStage
+
+    res = run_stages(tmp_path, [
+        {"stage": "t_sequence", "path": str(box_room)},
+        {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+        {"stage": "fuse", "mesh_eval_frames": 3, "min_voxel_frames": 50},
+    ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
+    assert not res.ok and "the map is empty" in res.error and "min_voxel_frames=50" in res.error
+    assert not (tmp_path / "run" / "fuse" / "map.ply").exists()
+    with pytest.raises(ValueError, match="min_depth_m .* must be below max_depth_m"):
+        FuseConfig(stage="fuse", min_depth_m=7.0)
+    with pytest.raises(ValueError, match="eval_max_depth_m"):
+        FuseConfig(stage="fuse", eval_max_depth_m=0.0)
+
+
 def test_fusion_bench_reports_the_fastest_of_its_runs(box_room: Path) -> None:
     from toolkit.fusion.bench import run_bench
 

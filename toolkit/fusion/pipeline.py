@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, valid_pixels
@@ -96,8 +96,8 @@ class FusionConfig(BaseModel):
     # voxel_size * fx / (2 near_stride), 1.3 m for 2 cm voxels at fx 525): a 1 m wall gives
     # 25 points per voxel at stride 2, which cost time and average into one voxel. 0: off.
     near_stride: int = Field(4, ge=0)
-    min_depth_m: float = 0.2
-    max_depth_m: float = 6.0
+    min_depth_m: float = Field(0.2, ge=0)
+    max_depth_m: float = Field(6.0, gt=0)
     edge_threshold: float = 0.06
     voxel_size_m: float = Field(0.02, gt=0)
     min_voxel_frames: int = Field(1, ge=1)
@@ -138,6 +138,13 @@ class FusionConfig(BaseModel):
     grow_slack_frames: int = 2
     grow_iterations: int = 6
     grow_max_frames: int = 4
+
+    @model_validator(mode="after")
+    def _depth_range(self) -> FusionConfig:
+        if self.min_depth_m >= self.max_depth_m:
+            raise ValueError(f"min_depth_m ({self.min_depth_m}) must be below max_depth_m "
+                             f"({self.max_depth_m}): no depth would reach the map")
+        return self
 
     def cloud_options(self, fx: float = 0.0) -> CloudOptions:
         """Cloud settings; ``fx`` (pixels) sets the depth below which ``near_stride`` holds."""

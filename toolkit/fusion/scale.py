@@ -319,10 +319,10 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     median of the good frames in its window (at least three of them; with shifts, frames
     fitted with a shift only, and a frame fitted with the scale alone keeps it).
     ``mode="median"`` gives every frame the median of the good frames' values in its
-    window (the scale wanders slowly, a single frame's fit does not); ``"none"`` keeps good frames' own values, and so do estimates
-    with a shift in either mode (a scale and shift pair is the image's own). Flagged frames
-    take the smoothed value (with shifts: the pair of the frame nearest the median) when
-    ``fill="smoothed"``, or are skipped.
+    window (the scale wanders slowly, a single frame's fit does not); ``"none"`` keeps good
+    frames' own values, and so do estimates with a shift in either mode (a scale and shift
+    pair is the image's own). Flagged frames take the smoothed value (with shifts: the pair
+    of the frame nearest the median) when ``fill="smoothed"``, or are skipped.
     """
     n = len(estimates)
     raw = np.array([e.scale for e in estimates], dtype=np.float64)

@@ -60,7 +60,8 @@ class FuseConfig(FusionConfig, StageConfig):
     # sooner (quickstart 80 -> 61-71 s), but its measured fusion time then includes that
     # thread's competition for the cores. Benchmarks that report the fusion's time: false.
     prefetch: bool = True
-    eval_max_depth_m: float = 10.0  # depth comparisons (lidar and truth) nearer than this
+    # depth comparisons (lidar and truth) nearer than this
+    eval_max_depth_m: float = Field(10.0, gt=0)
     mesh_eval_frames: int = Field(30, ge=0)  # frames whose clouds are measured to the mesh
     mesh_eval_points: int = Field(200_000, ge=1)  # map points measured to the mesh (subsample)
     figure_frame: int | None = None  # frame shown in the report (None: the middle one)
@@ -226,6 +227,23 @@ def _map_metrics(cfg: FuseConfig, seq: Sequence, raw: MapArrays, masks: dict[str
             metrics["frame_to_mesh_median_m"] = float(np.median(meds))
             metrics["frame_to_mesh_median_max_m"] = float(np.max(meds))
     return metrics
+
+
+def _empty_map_message(cfg: FuseConfig, frames: int, voxels: int,
+                       masks: dict[str, np.ndarray]) -> str:
+    """Why no voxel is left, with the settings that decide it (Open3D would refuse to
+    write the empty cloud with a message about the file)."""
+    if voxels == 0:
+        return (f"fuse: the map is empty: {frames} frame(s) fused, no voxel seen in "
+                f"min_voxel_frames={cfg.min_voxel_frames} of them with a depth between "
+                f"min_depth_m={cfg.min_depth_m} and max_depth_m={cfg.max_depth_m} (scaled "
+                f"depths: see scales.csv and the depth stage's predictions); lower "
+                f"min_voxel_frames or widen the depth range")
+    steps = ", ".join(f"{k} {int(masks[k].sum())}" for k in ("dynamic", "consensus", "outlier")
+                      if k in masks and masks[k].any())
+    return (f"fuse: the map is empty: all {voxels} voxels were removed ({steps}); "
+            f"switch off the step that took them (dynamic_removal, consensus, "
+            f"outlier_neighbors: 0) to see the map it started from")
 
 
 def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
@@ -430,6 +448,8 @@ class FuseStage(Stage):
         t_finish = time.perf_counter() - t0
         c_finish = time.process_time() - c0
         final = raw.select(masks["keep"])
+        if len(final) == 0:
+            raise StageError(_empty_map_message(cfg, len(frames), len(raw), masks))
         wall = time.perf_counter() - t_start
         # ---------------------------------------------------------------- outputs
         from toolkit.fusion.voxel_map import write_map_ply
