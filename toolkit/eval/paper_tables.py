@@ -186,8 +186,8 @@ class PaperTablesStage(Stage):
             cm = res[cfg.calibrate].metrics
             if cm.get("check_true_beats_rotated_2deg") is not None:
                 checks.append(("extrinsic check: the true extrinsic scores above every 2-degree "
-                               "rotation of it", f"{cm.get('check_score_true', float('nan')):.3f}"
-                               f" vs yaw +2 deg {cm.get('check_score_true_rotated_2deg', 0):.3f}",
+                               "rotation of it", f"{_num(cm.get('check_score_true'))}"
+                               f" vs yaw +2 deg {_num(cm.get('check_score_true_rotated_2deg'))}",
                                bool(cm["check_true_beats_rotated_2deg"])))
         if checks:
             md += ["### Targets", "", "| target | ours | met |", "|---|---|---|"]

@@ -505,7 +505,10 @@ class _Context(StageContext):
                 f"stage {self.stage_id!r} asked for the results of {stage_id!r} without "
                 f"declaring it; {self._spec.cls.__name__}.reads_results must name it")
         rec = self._run.records[stage_id]
-        return StageResult(id=stage_id, type=rec.spec.type, metrics=dict(rec.metrics),
+        # As a cached stage's record reads them back (NaN as None, numpy as Python): a
+        # reader must not work on a fresh run and fail on the next.
+        metrics = to_jsonable(dict(rec.metrics))
+        return StageResult(id=stage_id, type=rec.spec.type, metrics=metrics,
                            seconds=rec.seconds, cpu_seconds=rec.cpu_seconds,
                            stage_dir=self._run.run_dir / stage_id, provides=dict(rec.provides))
 
