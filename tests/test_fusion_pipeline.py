@@ -186,6 +186,34 @@ def test_an_empty_map_names_the_settings_that_emptied_it(box_room: Path,
         FuseConfig(stage="fuse", eval_max_depth_m=0.0)
 
 
+def test_no_scale_from_invalid_predictions_blames_the_predictions(
+        box_room: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The lidar lands in the image but every prediction there is invalid: the stage
+    points at the depth stage's output, not at the extrinsics."""
+    from dataclasses import replace
+
+    from toolkit.depth.simulated import SimulatedDepthBackend
+    from toolkit.depth.stage import DepthConfig, DepthStage
+    from toolkit.fusion.stage import FuseStage
+
+    real = SimulatedDepthBackend.predict
+
+    def zero(self: SimulatedDepthBackend, *a: object, **kw: object) -> object:
+        pred = real(self, *a, **kw)
+        return replace(pred, values=np.zeros_like(pred.values))
+
+    monkeypatch.setattr(SimulatedDepthBackend, "predict", zero)
+    res = run_stages(tmp_path, [
+        {"stage": "t_sequence", "path": str(box_room)},
+        {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+        {"stage": "fuse", "mesh_eval_frames": 3},
+    ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
+    assert not res.ok and "only 0 have a valid prediction" in res.error, res.error
+    assert "Check the depth stage's predictions" in res.error
+    with pytest.raises(ValueError, match="output_scale"):
+        DepthConfig(stage="depth", output_scale=0.0)
+
+
 def test_fusion_bench_reports_the_fastest_of_its_runs(box_room: Path) -> None:
     from toolkit.fusion.bench import run_bench
 

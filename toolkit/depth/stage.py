@@ -35,7 +35,7 @@ class DepthConfig(StageConfig):
     channel_order: Literal["rgb", "bgr"] | None = None
     layout: Literal["nchw", "nhwc"] = "nchw"
     output_index: int = Field(0, ge=0)  # which output is the depth (models with several)
-    output_scale: float = 1.0
+    output_scale: float = Field(1.0, gt=0)
     threads: int = Field(2, ge=1)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # cuda: needs onnxruntime-gpu
     # --- simulated: a preset, then per-parameter overrides

@@ -380,11 +380,21 @@ class FuseStage(Stage):
         estimates = [pairs[i].estimate for i in frames]
         sm = fusion.smooth(estimates)
         if not sm.used.any():
+            landed = float(np.median([len(pairs[i].lidar) for i in frames]))
+            valid = float(np.median([e.pairs for e in estimates]))
+            if landed >= cfg.min_pairs and valid < cfg.min_pairs:
+                # The lidar lands in the image; the predictions there are not usable.
+                raise StageError(
+                    f"fuse: no frame got a scale - a median {landed:g} lidar points per frame "
+                    f"land in the image, but only {valid:g} have a valid prediction there "
+                    f"(finite and positive; min_pairs {cfg.min_pairs}). Check the depth "
+                    f"stage's predictions (its output kind and output_scale) in "
+                    f"{store.root}")
             raise StageError(
-                f"fuse: no frame got a scale - median {np.median([e.pairs for e in estimates])}"
-                f" lidar pairs per frame (min_pairs {cfg.min_pairs}). Check T_base_laser / "
-                "T_base_camera (does the lidar land in the image?), the scan stamps, or use "
-                "scale: none for a metric network")
+                f"fuse: no frame got a scale - median {landed:g} lidar points per frame land "
+                f"in the image, {valid:g} pairs with a valid prediction (min_pairs "
+                f"{cfg.min_pairs}). Check T_base_laser / T_base_camera (does the lidar land in "
+                "the image?), the scan stamps, or use scale: none for a metric network")
         # ---------------------------------------------------------------- pass 2: map
         out_depth = ctx.stage_dir / "scaled_depth"
         if cfg.write_depth != "none":
