@@ -99,6 +99,17 @@ def test_onnx_backend_is_exact_on_a_tiny_model(tmp_path: Path, rgb: np.ndarray) 
     np.testing.assert_allclose(be2.predict(rgb).values, ref2, rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="fixed 42x28 input"):
         OnnxDepthBackend(C(model=path, kind="relative_depth", input_size=56)).predict(rgb)
+    # A BGR network with the default normalisation: ImageNet's mean and std in its channel
+    # order, so an image of the ImageNet mean colour goes in as zeros (they were applied
+    # R, G, B to B, G, R channels: -0.34 / +0.36).
+    be3 = OnnxDepthBackend(C(model=path, kind="relative_depth", channel_order="bgr",
+                             threads=1))
+    grey = np.empty_like(rgb)
+    grey[:] = np.round(np.array(IMAGENET_MEAN) * 255).astype(np.uint8)
+    assert np.abs(be3.preprocess(grey)).max() < 0.01
+    ref3 = _reference(rgb, (28, 42), np.array(IMAGENET_MEAN[::-1], np.float32),
+                      np.array(IMAGENET_STD[::-1], np.float32), bgr=True)
+    np.testing.assert_allclose(be3.predict(rgb).values, ref3, rtol=1e-5, atol=1e-6)
 
 
 

@@ -170,18 +170,21 @@ class OnnxDepthBackend:
         self.kind: DepthKind = kind  # type: ignore[assignment]
         self.multiple_of = int(config.multiple_of or _meta_int(path, self.metadata,
                                                                "multiple_of") or 14)
+        order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
+        if order not in ("rgb", "bgr"):
+            raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
+        # mean / std are per network input channel, in its order; ImageNet's defaults are
+        # written R, G, B, so a BGR network takes them reversed.
+        flip = slice(None, None, -1 if order == "bgr" else 1)
         self.mean = np.asarray(config.mean or _floats(path, self.metadata, "mean")
-                               or IMAGENET_MEAN, dtype=np.float32)
+                               or IMAGENET_MEAN[flip], dtype=np.float32)
         self.std = np.asarray(config.std or _floats(path, self.metadata, "std")
-                              or IMAGENET_STD, dtype=np.float32)
+                              or IMAGENET_STD[flip], dtype=np.float32)
         if self.mean.max() > 1.0 or self.std.max() > 1.0:
             # mmcv/Metric3D configs give 123.675, 58.395...: the image here is in [0, 1].
             raise ValueError(f"{path}: mean {self.mean.tolist()} / std {self.std.tolist()} are "
                              "in 0-255 units; give them divided by 255 (the image is scaled "
                              "to [0, 1] first)")
-        order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
-        if order not in ("rgb", "bgr"):
-            raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
         self.channel_order = order
         if ("input_height" in self.metadata) != ("input_width" in self.metadata):
             raise ValueError(f"{path}: metadata names one of input_height / input_width "

@@ -30,6 +30,8 @@ class DepthConfig(StageConfig):
     resize: Literal["stretch", "keep_aspect"] = "stretch"
     multiple_of: int | None = None
     interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
+    # per network input channel, in its channel_order (None: the model's metadata, else
+    # ImageNet's, reversed for bgr)
     mean: tuple[float, float, float] | None = None
     std: tuple[float, float, float] | None = None
     channel_order: Literal["rgb", "bgr"] | None = None
