@@ -254,6 +254,11 @@ def test_simulated_errors_are_seeded_and_as_documented() -> None:
     assert not np.allclose(a, c)
     be = SimulatedDepthBackend(params)
     scales = np.array([be.frame_scale(i) for i in range(2000)])
+    # Frame i's scale does not depend on which frames were asked for before (a depth stage
+    # resumed at frame 300 predicts what an uninterrupted one did).
+    resumed = SimulatedDepthBackend(params)
+    asked = [300, 0, 1999, 7, 256, 255, 1024, 511]
+    assert [resumed.frame_scale(i) for i in asked] == [scales[i] for i in asked]
     assert 0.02 < np.std(np.log(scales)) < 0.1  # wander near its stationary std
     assert abs(np.log(scales[1:] / scales[:-1])).max() < 0.05  # and slow
     # Worse on the flat half than on the textured half (same depth: the wall at 4 m).

@@ -121,9 +121,15 @@ class SimulatedDepthBackend:
         p = self.params
         if p.wander_sigma == 0:
             return 0.0
-        if index >= len(self._log_wander):
-            # Generated in order from the seed so any frame can be asked for first.
-            n = max(index + 1, 2 * len(self._log_wander), 256)
+        # Frame i reads the series generated to length n(i) = 256, 512, 1024, ... (the
+        # first that holds it), whatever frames were asked for before: a depth stage resumed
+        # at frame 300 predicts what an uninterrupted one did. (The length was the history's:
+        # the series' first value is drawn after its steps, so it changed with the length.)
+        # These are the lengths a run in frame order generated, so its values are kept.
+        n = 256
+        while n <= index:
+            n *= 2
+        if len(self._log_wander) != n:
             rng = np.random.default_rng([p.seed, 2])
             a = np.exp(-1.0 / p.wander_frames)
             steps = rng.normal(0.0, p.wander_sigma * np.sqrt(1 - a * a), n)
