@@ -319,6 +319,26 @@ def test_depth_store_keeps_an_interrupted_writers_frames_under_the_same_key(
     assert w.resumed == 0 and not list((root / "frames").glob("*.npy"))
 
 
+def test_depth_stage_records_the_network_input_it_used(tmp_path: Path) -> None:
+    """meta.json's input_hw is the input after rounding to whole patches (it was null)."""
+    import json
+
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.synthetic import write_box_room
+
+    path = _export(tmp_path / "dyn.onnx", None, squeeze=True)
+    seq = write_box_room(tmp_path / "seq", n_frames=2)  # 160x120 images
+    res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq)},
+                                {"stage": "depth", "model": str(path), "threads": 1,
+                                 "output": "relative_depth", "input_size": [120, 160]}],
+                     {"t_sequence": SequenceFolder, "depth": DepthStage})
+    assert res.ok, res.error
+    meta = json.loads((tmp_path / "run" / "depth" / "depth" / "meta.json").read_text())
+    assert meta["input_hw"] == [126, 154]  # multiples of 14
+
+
 def test_depth_stage_resumes_after_an_interruption(tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path

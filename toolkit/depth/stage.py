@@ -174,6 +174,11 @@ class DepthStage(Stage):
                              f"sequence {seq.name} lacks; use backend 'onnx' for real data")
         out = ctx.stage_dir / "depth"
         info = backend.describe()
+        input_hw = getattr(backend, "input_hw", None)
+        if callable(input_hw) and info.get("input_hw") is None:
+            # The network input these frames take (after rounding to whole patches), known
+            # before the first prediction: meta.json recorded null.
+            info["input_hw"] = list(input_hw((seq.rig.camera.height, seq.rig.camera.width)))
         writer = DepthStoreWriter(out, backend.kind, info, cfg.dtype,
                                   resume_key=ctx.resume_key or None)
         indices = list(range(0, len(seq.frames), cfg.every))
