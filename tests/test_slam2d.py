@@ -254,6 +254,31 @@ def test_corridor_closures_along_its_axis_are_rejected(angle):
     assert np.hypot(*(est0[:, :2] - truth[:, :2]).T).max() > 0.5
 
 
+def test_closure_cap_counts_the_closures_in_the_graph() -> None:
+    """max_closures_per_submap closes a submap to search after that many closures went into
+    the graph; corridor matches rejected as degenerate counted too, and closed submaps
+    that had given the graph none."""
+    from collections import Counter
+
+    from toolkit.slam2d.pipeline import odometry_at
+    from toolkit.slam2d.slam import EDGE_LOOP
+
+    drive = corridor_drive(length=26.0, back=True)
+    cap = 10
+    slam = LidarSlam2D(Slam2DConfig.model_validate(
+        {"loop_closure": {"max_closures_per_submap": cap}}))
+    stamps = np.array([s.stamp for s in drive.scans])
+    for scan, odom in zip(drive.scans, odometry_at(drive.odometry, stamps), strict=True):
+        slam.add_scan(scan, odom)
+    m = slam.finish().metrics
+    assert m["loop_closures_degenerate"] > 0
+    submap_of = {sm.vertex: sm.index for sm in slam.submaps.all}
+    i, _, _ = slam.graph.edges(EDGE_LOOP)
+    in_graph = Counter(submap_of[int(v)] for v in i)
+    closed = [sm.index for sm in slam.submaps.all if slam.loop.saturated(sm.index)]
+    assert closed and all(in_graph[k] == cap for k in closed)
+
+
 # ------------------------------------------------------------------ pose graph
 
 
@@ -407,6 +432,8 @@ def test_a_robot_standing_still_adds_no_closure_searches():
     short, _, _, _ = _stand_still(60, False)
     added, m, lap, stood = _stand_still(150, False)
     assert m["nodes_stationary"] == 25  # more than 5 s after the last: every 6th scan
+    # A mean over the scans matched, standing ones too (it was divided by the nodes: 4.3).
+    assert 0.5 < m["mean_local_score"] <= 0.9
     assert added == short  # only the submaps the lap's last nodes went into
     # The world frame starts on the odometry's (here the true poses).
     assert np.hypot(*(stood[:, :2] - lap[-1, :2]).T).max() < 0.05

@@ -133,9 +133,14 @@ class LoopCloser:
             out = Closure(se2_between(submap.local_pose, ref.pose), found.score, ref.score,
                           drop)
             self.found += 1
-            self._closures[submap.index] = self._closures.get(submap.index, 0) + 1
         self.seconds += time.perf_counter() - t0
         return out
+
+    def accepted(self, submap: int) -> None:
+        """A closure found with ``submap`` went into the graph: it counts towards the
+        submap's ``max_closures_per_submap`` (one rejected as degenerate does not, or a
+        corridor's submaps were closed to search with no closure in the graph)."""
+        self._closures[submap] = self._closures.get(submap, 0) + 1
 
     def _matched_spread(self, node: Node, submap: Submap, field: np.ndarray,
                         pose: np.ndarray) -> float:
