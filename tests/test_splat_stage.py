@@ -191,5 +191,7 @@ def test_groundtruth_alignment_on_a_straight_drive() -> None:
     found = groundtruth_to_trajectory_frame(seq, Trajectory(stamps, cam, "world", "camera"))
     assert found is not None
     T, rmse = found
-    np.testing.assert_allclose(T[:3, :3], T_true[:3, :3], atol=1e-6)
+    # The line's direction from the positions (1 mm noise over 10 m), the turn about it
+    # from the orientations.
+    np.testing.assert_allclose(T[:3, :3], T_true[:3, :3], atol=1e-3)
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.002 and rmse < 0.003
