@@ -218,13 +218,15 @@ def apply_similarity(S: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.asarray(points, dtype=np.float64) @ S[:3, :3].T + S[:3, 3]
 
 
-def alignments(est_positions: np.ndarray, ref_positions: np.ndarray) -> dict[str, np.ndarray]:
-    """{"se3": [4, 4], "sim3": [4, 4]} mapping the estimate's frame onto the reference."""
-    from toolkit.geometry import sim3, umeyama_alignment
+def alignments(est_poses: np.ndarray, ref_poses: np.ndarray) -> dict[str, np.ndarray]:
+    """{"se3": [4, 4], "sim3": [4, 4]} mapping the estimate's frame onto the reference, from
+    corresponding poses [N, 4, 4] (``pose_alignment``: a straight drive's turn about its
+    line comes from the orientations; positions alone left it to noise, 35 deg off)."""
+    from toolkit.geometry import pose_alignment, sim3
 
     out = {}
     for tag, with_scale in (("se3", False), ("sim3", True)):
-        R, t, c = umeyama_alignment(est_positions, ref_positions, with_scale)
+        R, t, c = pose_alignment(est_poses, ref_poses, with_scale)
         out[tag] = sim3(R, t, c)
     return out
 

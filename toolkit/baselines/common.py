@@ -78,10 +78,11 @@ def load_camera_trajectory(path: Path, seq: Sequence) -> Trajectory:
 def poses_at_frames(traj: Trajectory, seq: Sequence, max_extrapolate_s: float = 0.05) -> (
     tuple[np.ndarray, np.ndarray]
 ):
-    """Frame indices [K] inside the trajectory's span and their poses [K, 4, 4]."""
+    """Frame indices [K] the trajectory covers and their poses [K, 4, 4]: inside its span
+    (give or take ``max_extrapolate_s``) and not in a gap of it (``Trajectory.covers``; a
+    straight line across a gap is a guess, the SLAM gives those frames no pose)."""
     st = seq.frame_stamps
-    ok = (st >= traj.stamps[0] - max_extrapolate_s) & (st <= traj.stamps[-1] + max_extrapolate_s)
-    idx = np.flatnonzero(ok)
+    idx = np.flatnonzero(traj.covers(st, slack_s=max_extrapolate_s))
     if len(idx) == 0:
         return idx, np.zeros((0, 4, 4))
     return idx, traj.interpolate(st[idx], extrapolate_s=max_extrapolate_s).poses

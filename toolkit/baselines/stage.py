@@ -453,7 +453,7 @@ class ColmapStage(Stage):
                 # bent the written alignment away from the one the figures describe.
                 inside = ref.covers(est.stamps)
                 ref_at = ref.interpolate(est.stamps[inside])
-                al = alignments(est.positions[inside], ref_at.positions)
+                al = alignments(est.poses[inside], ref_at.poses)
                 for tag, label in (("sim3", "COLMAP, Sim(3)-aligned"),
                                    ("se3", "COLMAP, SE(3), own scale")):
                     S = al[tag]
@@ -732,9 +732,10 @@ class CameraOnlyStage(Stage):
         rows += [(f"ATE vs {ref_name}, own scale (SE(3)) [m]", te["ate_se3_rmse_m"]),
                  (f"ATE vs {ref_name}, Sim(3) [m]", te["ate_sim3_rmse_m"]),
                  ("scale error (Sim(3) scale - 1)", te["scale_to_reference"] - 1.0)]
-        inside = (est.stamps >= ref.stamps[0]) & (est.stamps <= ref.stamps[-1])
+        # On the poses the ATE scores: inside the reference's span, not across its gaps.
+        inside = ref.covers(est.stamps)
         ref_at = ref.interpolate(est.stamps[inside])
-        al = alignments(est.positions[inside], ref_at.positions)
+        al = alignments(est.poses[inside], ref_at.poses)
         for tag in ("se3", "sim3"):
             _write_aligned(ctx.stage_dir / f"trajectory_{tag}.tum", est, al[tag],
                            f"camera-only poses, {tag}-aligned to {ref_name}")
