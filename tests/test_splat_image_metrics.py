@@ -53,6 +53,22 @@ def test_torch_version_is_differentiable_and_agrees() -> None:
     assert abs(float(psnr(ta.detach(), tb)) - psnr(a, b)) < 1e-9
 
 
+def test_masked_ssim_scores_the_windows_on_valid_pixels() -> None:
+    """Pixels outside the mask hold the target (the lens corners of an undistorted image):
+    SSIM is the mean over windows wholly inside the mask, the same as cropping to it."""
+    a, b = _pair(3)
+    mask = np.zeros(a.shape[:2], bool)
+    mask[5:35, 10:45] = True
+    filled = np.where(mask[..., None], a, b)  # outside the mask: the target itself
+    crop = (slice(5, 35), slice(10, 45))
+    assert ssim(filled, b) > ssim(a[crop], b[crop]) + 0.05  # unmasked: lifted by the fill
+    assert abs(ssim(filled, b, mask=mask) - ssim(a[crop], b[crop])) < 1e-12
+    t = ssim(torch.tensor(filled), torch.tensor(b), mask=torch.tensor(mask))
+    assert abs(float(t) - ssim(a[crop], b[crop])) < 1e-12
+    with pytest.raises(ValueError, match="no pixel"):
+        ssim(a, b, mask=np.zeros(a.shape[:2], bool))
+
+
 def test_errors() -> None:
     a, b = _pair()
     with pytest.raises(ValueError, match="shape"):

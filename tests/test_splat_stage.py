@@ -195,3 +195,38 @@ def test_groundtruth_alignment_on_a_straight_drive() -> None:
     # from the orientations.
     np.testing.assert_allclose(T[:3, :3], T_true[:3, :3], atol=1e-3)
     assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.002 and rmse < 0.003
+
+
+def test_simulator_held_out_views_are_scored_on_the_lens_pixels(tmp_path: Path) -> None:
+    """The simulator's held-out views are undistorted like the path's, so their lens corners
+    have no source pixel either: they carry the same mask (a perfect render scored 13 dB)."""
+    from types import SimpleNamespace
+
+    import cv2
+    import torch
+
+    from toolkit.camera import PinholeCamera
+    from toolkit.sensors import GroundTruth, HeldOutViews
+    from toolkit.splat.model import GaussianModel
+    from toolkit.splat.stage import SplatStage, image_validity
+    from toolkit.splat.trainer import evaluate_views
+
+    cam_full = PinholeCamera(128, 96, 90.0, 90.0, 63.5, 47.5,
+                             np.array([0.3, 0.0, 0.0, 0.0, 0.0]))  # pincushion
+    w, h = 64, 48
+    cam = cam_full.undistorted().scaled(w, h)
+    cv2.imwrite(str(tmp_path / "h0.png"), np.full((96, 128, 3), 128, np.uint8))
+    held = HeldOutViews(Trajectory(np.array([0.0]), np.eye(4)[None], "world", "camera"),
+                        [tmp_path / "h0.png"], [])
+    seq = SimpleNamespace(groundtruth=GroundTruth(heldout=held))
+    valid = image_validity(cam_full, (w, h))
+    assert valid is not None and float(valid.float().mean()) < 0.9
+    found = SplatStage._sim_heldout(seq, cam_full, cam, (w, h), np.eye(4), valid)
+    assert found is not None
+    views, _ = found
+    assert views[0].mask is valid
+    model = GaussianModel.empty(1, sh_degree=0)
+    with torch.no_grad():
+        model.params["means"][:] = torch.tensor([0.0, 0.0, -5.0])  # behind: renders nothing
+    res = evaluate_views(model, views, "torch", (128 / 255,) * 3)  # the wall's own grey
+    assert res["psnr_db"] == float("inf") and res["ssim"] == pytest.approx(1.0)

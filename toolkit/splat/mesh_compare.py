@@ -100,7 +100,7 @@ class Comparison:
             # As the splats' scores treat them: outside, the target itself.
             color = torch.where(valid[..., None], color, target)
         self.psnr_all.append(float(psnr_fn(color, target, mask=valid)))
-        self.ssim_all.append(float(ssim_fn(color, target)))
+        self.ssim_all.append(float(ssim_fn(color, target, mask=valid)))
         m = torch.from_numpy(mesh.covered)
         if valid is not None:
             m = m & valid

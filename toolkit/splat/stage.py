@@ -462,7 +462,7 @@ class SplatStage(Stage):
             if al is not None:
                 T_traj_gt = al[0]
                 metrics["sim_heldout_alignment_rmse_m"] = al[1]
-        sim_views = self._sim_heldout(seq, cam_full, cam, (w, h), T_traj_gt)
+        sim_views = self._sim_heldout(seq, cam_full, cam, (w, h), T_traj_gt, valid)
         # Pictures: every held-out view as a PNG; in the strip, views spread along the path
         # and, when the simulator gave some, off-path ones as well.
         n_path = cfg.strip_views - cfg.strip_views // 2 if sim_views else cfg.strip_views
@@ -540,8 +540,11 @@ class SplatStage(Stage):
 
     @staticmethod
     def _sim_heldout(seq: Sequence, cam_full: PinholeCamera, cam: PinholeCamera,
-                     size: tuple[int, int], T_traj_gt: np.ndarray) -> (
+                     size: tuple[int, int], T_traj_gt: np.ndarray,
+                     valid: torch.Tensor | None) -> (
                          tuple[list[TrainView], list[np.ndarray | None]] | None):
+        """The simulator's held-out views, scored on ``valid`` as the path's are (the lens
+        corners of an undistorted image have no source pixel)."""
         gt = seq.groundtruth
         if gt is None or gt.heldout is None or not gt.heldout.image_paths:
             return None
@@ -553,7 +556,7 @@ class SplatStage(Stage):
             img = prepare_image(load_rgb(p), cam_full, size)
             views.append(TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
                                    inv_se3(T_traj_gt @ h.poses_camera.poses[i]), None,
-                                   f"held-out {i}"))
+                                   f"held-out {i}", valid))
             d = None
             if h.depth_paths and i < len(h.depth_paths):
                 d = prepare_depth(read_depth(h.depth_paths[i]), cam_full, size)

@@ -553,7 +553,7 @@ def evaluate_views(model: GaussianModel, views: list[TrainView], backend: str = 
         gt = v.target()
         pred = v.masked(out.color.clamp(0, 1), gt)
         ps.append(float(psnr_fn(pred, gt, mask=v.mask)))
-        ss.append(float(ssim_fn(pred, gt)))
+        ss.append(float(ssim_fn(pred, gt, mask=v.mask)))
         gd = gt_depths[i] if gt_depths is not None else None
         if gd is not None:
             gdt = torch.as_tensor(gd, dtype=torch.float32)
