@@ -108,6 +108,12 @@ def test_deskew_scans_along_a_trajectory_and_only_covered():
         np.array([scan.sweep_s])).poses[0]), motion, atol=1e-4)
     late = replace(scan, stamp=0.95)  # sweep ends after the trajectory
     assert deskew_scans([late], traj, np.eye(4), covered_only=True)[0] is late
+    # A sweep in a gap of the trajectory (odometry silent for 1.6 s) is not de-skewed with
+    # the straight line across it either; the ones beside the gap are.
+    holed = traj.slice((t < -0.8) | (t > 0.8))
+    assert deskew_scans([scan], holed, np.eye(4), covered_only=True)[0] is scan
+    early = replace(scan, stamp=-0.95)
+    assert deskew_scans([early], holed, np.eye(4), covered_only=True)[0] is not early
 
 
 def test_scan_files_store_beam_timing(tmp_path: Path):

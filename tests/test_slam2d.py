@@ -617,3 +617,35 @@ def test_odometry_in_another_time_base_is_counted_not_claimed():
     odo = Trajectory(np.arange(6) + 2.5, odo.poses)  # covers stamps 3..5 only
     m = run_slam(scans, odo).metrics
     assert m["scans_with_odometry"] == 3 and m["odometry_used"] is True
+
+
+def test_odometry_gaps_are_not_interpolated_across() -> None:
+    """The odometry is silent for 1.5 s while the robot spins -270 deg on the spot: a
+    straight interpolation across the gap (slerp: the shorter way, +90 deg) was a prediction
+    the SLAM trusted, 1.8 m / 177 deg off; in the gap the scans are matched scan-only."""
+    from toolkit.geometry import Trajectory, se2_between, wrap_angle
+    from toolkit.slam2d.pipeline import odometry_at
+
+    def truth_at(t: np.ndarray) -> np.ndarray:
+        x = np.where(t < 4, 1.5 + 0.5 * t, 3.5)
+        th = np.where(t < 4, 0.0, np.where(t < 5.5, -np.pi * (t - 4), -1.5 * np.pi))
+        y = np.where(t < 5.5, 1.0, 1.0 + 0.5 * (t - 5.5))
+        return np.stack([x, y, wrap_angle(th)], -1)
+
+    scan_t = np.arange(0, 10.0, 0.1)
+    truth = truth_at(scan_t)
+    rng = np.random.default_rng(0)
+    scans = [make_scan(p, t, noise=0.01, rng=rng) for p, t in zip(truth, scan_t, strict=True)]
+    odo_t = np.arange(0, 10.0, 0.02)
+    odo_t = odo_t[(odo_t <= 4.0) | (odo_t >= 5.5)]
+    odom = Trajectory(odo_t, np.stack([se2_to_se3(*p) for p in truth_at(odo_t)]), "odom",
+                      "base_link")
+    given = odometry_at(odom, scan_t)
+    in_gap = (scan_t > 4.05) & (scan_t < 5.45)
+    assert all(given[k] is None for k in np.flatnonzero(in_gap))
+    assert all(given[k] is not None for k in np.flatnonzero(~in_gap & (scan_t < 9.98)))
+    res = run_slam(scans, odom)
+    est = se2_between(res.poses[0], res.poses)
+    ref = se2_between(truth[0], truth)
+    assert np.hypot(*(est[:, :2] - ref[:, :2]).T).max() < 0.1
+    assert np.degrees(np.abs(wrap_angle(est[:, 2] - ref[:, 2]))).max() < 3.0

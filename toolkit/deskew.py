@@ -107,11 +107,14 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
     """Every scan with per-beam timing de-skewed with the motion of ``traj`` (T_base in
     any fixed frame: world, odom) over its sweep; scans without timing come back as they
     are. Sweeps reaching outside the trajectory take its end poses (no motion there), or
-    with ``covered_only`` keep their timing for someone else to de-skew."""
+    with ``covered_only`` keep their timing for someone else to de-skew - as do sweeps in
+    a gap of it then (``Trajectory.covers``: a straight line across a gap is a guess)."""
     lo, hi = (traj.stamps[0], traj.stamps[-1]) if len(traj) else (np.inf, -np.inf)
-    timed = [k for k, s in enumerate(scans) if is_swept(s)
-             and (not covered_only or (lo <= min(s.stamp, s.stamp + s.sweep_s)
-                                       and max(s.stamp, s.stamp + s.sweep_s) <= hi))]
+    timed = [k for k, s in enumerate(scans) if is_swept(s)]
+    if covered_only and timed and len(traj):
+        ends = np.array([[scans[k].stamp, scans[k].stamp + scans[k].sweep_s] for k in timed])
+        ok = traj.covers(ends.ravel()).reshape(-1, 2).all(1)
+        timed = [k for k, keep in zip(timed, ok, strict=True) if keep]
     if not timed or not len(traj):
         return scans
     t0 = np.array([scans[k].stamp for k in timed])
