@@ -210,3 +210,24 @@ def test_relations_metric_hand_computed():
     assert m["rot_abs_mean_deg"] == pytest.approx(5.0)
     assert m["rot_sq_mean_deg2"] == pytest.approx(50.0)
     assert m["rot_sq_std_deg2"] == pytest.approx(50.0)
+
+
+def test_a_laser_facing_backwards_keeps_its_heading(tmp_path):
+    """ROBOTLASER1 offsets of a laser mounted backwards wrap to +pi-e on some lines and
+    -pi+e on others: their per-component median heading was 0 (facing forwards)."""
+    from toolkit.geometry import se3_to_se2
+    from toolkit.io.carmen import read_carmen
+
+    def line(stamp: int, robot_th: float) -> str:
+        laser_th = (robot_th + 2 * np.pi) % (2 * np.pi) - np.pi  # robot heading + pi
+        lx, ly = -0.2 * np.cos(robot_th), -0.2 * np.sin(robot_th)  # 0.2 m behind
+        ranges = " ".join(["2.0"] * 180)
+        return (f"ROBOTLASER1 0 -1.570796 3.141593 0.017453 50.0 0.01 0 180 {ranges} 0 "
+                f"{lx:.6f} {ly:.6f} {laser_th:.6f} 0.000000 0.000000 {robot_th:.6f} 0 0 0 0 0 "
+                f"{stamp:.6f} host {stamp:.6f}\n")
+
+    path = tmp_path / "rear.log"
+    path.write_text("".join(line(t, th) for t, th in enumerate([0.1, -0.1, 0.2, -0.2])))
+    x, y, th = se3_to_se2(read_carmen(path).T_base_laser)
+    assert (x, y) == pytest.approx((-0.2, 0.0), abs=1e-5)
+    assert abs(abs(np.degrees(th)) - 180.0) < 1e-3

@@ -183,7 +183,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
             raise CarmenFormatError(f"{path}:{lineno}: bad {f[0]} line: {e}") from None
     T_base_laser = np.eye(4)
     if laser_offsets:
-        T_base_laser = se2_to_se3(*np.median(np.array(laser_offsets), axis=0))
+        T_base_laser = _median_offset(laser_offsets)
     elif "robot_frontlaser_offset" in params:
         T_base_laser[0, 3] = float(params["robot_frontlaser_offset"])
     return CarmenLog(
@@ -196,6 +196,15 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
         T_base_laser=T_base_laser,
         params=params,
     )
+
+
+def _median_offset(offsets: list) -> np.ndarray:
+    """T_base_laser [4, 4] from per-line (x, y, yaw) offsets [N, 3]: the median of x and y,
+    the heading of the median direction (a laser facing backwards logs +pi-e and -pi+e;
+    the median yaw of an even split was 0, forwards)."""
+    o = np.asarray(offsets, dtype=np.float64)
+    yaw = np.arctan2(np.median(np.sin(o[:, 2])), np.median(np.cos(o[:, 2])))
+    return se2_to_se3(float(np.median(o[:, 0])), float(np.median(o[:, 1])), float(yaw))
 
 
 def _laser_offset(laser: np.ndarray, robot: np.ndarray) -> np.ndarray:
@@ -314,7 +323,7 @@ def read_g2o(path: Path | str) -> G2OLog:
                 offsets.append(_laser_offset(laser, robot))
         except (ValueError, IndexError) as e:
             raise CarmenFormatError(f"{path}:{lineno}: bad {f[0]} line: {e}") from None
-    T_base_laser = se2_to_se3(*np.median(np.array(offsets), axis=0)) if offsets else np.eye(4)
+    T_base_laser = _median_offset(offsets) if offsets else np.eye(4)
     return G2OLog(
         path=path,
         vertex_ids=np.array(vids, dtype=np.int64),
