@@ -133,3 +133,48 @@ def test_evaluate_without_or_with_partial_ground_truth(tmp_path: Path, fake_scen
     else:
         assert m["trajectory"]["poses"] == 10
         assert m["trajectory"]["position_rmse_m"] < 1e-6
+
+
+class LidarOnlyConfig(StageConfig):
+    stage: Literal["t_lidar_only"] = "t_lidar_only"
+
+
+class LidarOnly(Stage):
+    """A lidar-only recording with ground-truth base poses (what ingest makes of a CARMEN or
+    g2o log): scans in a square room along a known path, no camera frames."""
+
+    name = "t_lidar_only"
+    Config = LidarOnlyConfig
+    provides = ("sequence",)
+
+    def run(self, ctx: StageContext) -> None:
+        from test_slam2d import _drive, make_scan  # the tests folder is on sys.path
+
+        rig = Rig(PinholeCamera(16, 12, 10.0, 10.0, 7.5, 5.5),
+                  se3(R_BASE_OPTICAL, [0.1, 0.0, 0.5]), np.eye(4))
+        w = SequenceWriter(ctx.stage_dir / "seq", rig, "lidar_only")
+        truth = _drive(40)
+        stamps = np.arange(40, dtype=float)
+        for p, t in zip(truth, stamps, strict=True):
+            w.add_scan(make_scan(p, t))
+        w.groundtruth_poses = Trajectory(stamps, np.stack([se2_to_se3(*p) for p in truth]))
+        w.close()
+        ctx.provide("sequence", ctx.stage_dir / "seq")
+
+
+def test_evaluate_scores_the_base_of_a_lidar_only_recording(tmp_path: Path) -> None:
+    """No camera frames, so no camera poses: the robot base's trajectory is scored (the
+    stage failed with "ground truth covers 0 of the 0 trajectory poses")."""
+    registry.register("t_lidar_only", LidarOnly)
+    try:
+        res = run_recipe(parse_recipe({"name": "lo", "output": str(tmp_path / "run"), "stages": [
+            {"stage": "t_lidar_only"}, {"stage": "slam2d", "submaps": {"num_range_data": 8}},
+            {"stage": "evaluate"}]}))
+    finally:
+        registry.unregister("t_lidar_only")
+    assert res.ok, res.error
+    m = res.metrics["evaluate"]
+    assert m["trajectory_body"] == "robot base" and m["trajectory"]["poses"] >= 30
+    assert m["trajectory"]["position_rmse_m"] == pytest.approx(
+        res.metrics["slam2d"]["gt_ate_rmse_m"], abs=0.01)
+    assert m["trajectory"]["position_rmse_m"] < 0.05

@@ -118,18 +118,28 @@ class EvaluateStage(Stage):
         # scored are the stamps it covers, and the report says how many.
         covered = gt.poses_base.covers
         if ctx.has_artifact("trajectory"):
+            body = "camera"
             full = read_tum(ctx.artifact("trajectory") / "trajectory_camera.tum")
-            est, gt_cam = covered_ground_truth(seq, full)
+            if not seq.frames and (ctx.artifact("trajectory") / "trajectory_base.tum").exists():
+                # A lidar-only recording (CARMEN, g2o, a bag without images): no camera
+                # poses, so the robot base's are scored (they failed "0 of 0 poses").
+                body = "robot base"
+                full = read_tum(ctx.artifact("trajectory") / "trajectory_base.tum")
+                est = full.slice(gt.poses_base.covers(full.stamps, slack_s=0.05))
+                gt_cam = gt.poses_base.interpolate(est.stamps, extrapolate_s=0.05)
+            else:
+                est, gt_cam = covered_ground_truth(seq, full)
             if len(est) < 3:
                 raise StageError(f"evaluate: ground truth covers {len(est)} of the "
                                  f"{len(full)} trajectory poses; at least 3 are needed")
             fig, aligned, g, S = trajectory_figures(est, gt_cam, cfg.max_time_diff_s)
             metrics["trajectory"] = fig
+            metrics["trajectory_body"] = body
             plot_trajectories(aligned, g, out / "trajectory.png",
-                              "camera trajectory (lidar SLAM) vs ground truth")
+                              f"{body} trajectory (lidar SLAM) vs ground truth")
             lines += [
-                "Camera trajectory from lidar SLAM against ground truth (SE(3)-aligned; "
-                "the paper's Table I columns):", "",
+                f"{body.capitalize()} trajectory from lidar SLAM against ground truth "
+                "(SE(3)-aligned; the paper's Table I columns):", "",
                 "| x | y | z | roll | pitch | yaw | position | orientation |",
                 "|---|---|---|---|---|---|---|---|",
                 "| " + " | ".join(f"{fig[k] * 100:.2f} cm" for k in
