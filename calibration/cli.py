@@ -80,6 +80,12 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     board = _board(args)
     dets, missed = detect_folder(Path(args.images), board)
     res = calibrate_intrinsics(dets, board, args.model, args.max_image_rms)
+    # The intrinsics do not depend on the square size, but the file keeps it for the
+    # extrinsic step: a size in millimetres is caught here, not there.
+    from calibration.pipeline import check_board_distance
+
+    check_board_distance(f"the {len(res.used)} views (median)",
+                         float(np.median(list(res.board_distance_m.values()))), board)
     res.rejected = {**missed, **res.rejected}
     cam = res.camera
     print(f"camera {cam.width}x{cam.height}, model {args.model}: fx {cam.fx:.2f} fy {cam.fy:.2f}"

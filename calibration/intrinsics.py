@@ -55,6 +55,8 @@ class IntrinsicsResult:
     rejected: dict[str, str] = field(default_factory=dict)  # image -> reason
     model: str = "opencv"
     std: dict[str, float] = field(default_factory=dict)  # fx fy cx cy k1 ... standard deviations
+    # image -> distance of the board from the camera, in the units of the square size given
+    board_distance_m: dict[str, float] = field(default_factory=dict)
 
     def info(self) -> dict[str, object]:
         """The block written under ``calibration`` in the camera YAML."""
@@ -110,7 +112,9 @@ def calibrate_intrinsics(detections: list[Detection], board: BoardSpec, model: s
     cam = PinholeCamera.from_K(K, size[0], size[1], d5)
     names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]
     std = {n: float(s) for n, s in zip(names, np.ravel(std_intr)[:9], strict=True)}
-    return IntrinsicsResult(cam, float(rms), per, [d.name for d in dets], rejected, model, std)
+    dist_m = {d.name: float(np.linalg.norm(t)) for d, t in zip(dets, tvecs, strict=True)}
+    return IntrinsicsResult(cam, float(rms), per, [d.name for d in dets], rejected, model, std,
+                            dist_m)
 
 
 def detect_folder(folder: Path, board: BoardSpec) -> tuple[list[Detection], dict[str, str]]:

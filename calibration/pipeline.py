@@ -301,7 +301,7 @@ def build_views(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCam
     skipped: dict[str, str] = {}
     for c in cands:
         plane_view = make_view(c.name, c.detection.corners, board, camera, np.zeros((0, 2)))
-        _check_board_distance(c.name, plane_view.plane.distance, board)
+        check_board_distance(c.name, plane_view.plane.distance, board)
         if T_camera_laser is None:
             pts, why = _points_from_segments(c, plane_view.plane, board, search, guess)
         else:
@@ -323,7 +323,9 @@ def build_views(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCam
 BOARD_DISTANCE_M = (0.05, 20.0)
 
 
-def _check_board_distance(name: str, distance_m: float, board: BoardSpec) -> None:
+def check_board_distance(name: str, distance_m: float, board: BoardSpec) -> None:
+    """A ``BoardError`` suggesting the unit slip when a board at ``distance_m`` (in units
+    of ``board.square``) cannot be one a camera resolves."""
     lo, hi = BOARD_DISTANCE_M
     if lo <= distance_m <= hi:
         return

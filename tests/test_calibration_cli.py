@@ -87,6 +87,10 @@ def test_intrinsics_command(capture: tuple[Path, object], tmp_path: Path) -> Non
     true = cap.camera  # type: ignore[attr-defined]
     assert abs(d["fx"] / true.fx - 1) < 0.01 and abs(d["cx"] - true.cx) < 5
     assert d["calibration"]["rms_px"] < 0.3 and d["calibration"]["images_used"] == 8
+    # A square size in millimetres is refused with the fix, and the file is not written.
+    rc = main(["intrinsics", "--images", str(cap_dir / "images"), "--board", "11x8", "--square",
+               "50", "--model", "radial", "--out", str(tmp_path / "mm.yaml")])
+    assert rc == 2 and not (tmp_path / "mm.yaml").exists()
 
 
 def test_sequence_folder_input(capture: tuple[Path, object], tmp_path: Path) -> None:
