@@ -388,6 +388,25 @@ def test_recipes_read_scalars_by_the_yaml_1_2_core_schema(tmp_path: Path) -> Non
     assert read_yaml_value(text) == data and yaml.safe_load(text) == data
 
 
+def test_environment_variables_in_values(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """${NAME} and ${NAME:-default} in a value read the environment, as a shell does (data
+    shared between checkouts: ${TOOLKIT_SHARED_DATA:-../shared/data}/...); an unset one
+    without a default is an error naming it."""
+    data = _recipe_data(tmp_path)
+    data["stages"][0]["label"] = "${T_LABEL:-plain}-${T_SUFFIX:-x}"
+    path = _write_recipe(tmp_path, data)
+    monkeypatch.delenv("T_LABEL", raising=False)
+    monkeypatch.setenv("T_SUFFIX", "y")
+    assert load_recipe(path).stages[0].config.label == "plain-y"  # type: ignore[attr-defined]
+    monkeypatch.setenv("T_LABEL", "set")
+    assert load_recipe(path).stages[0].config.label == "set-y"  # type: ignore[attr-defined]
+    cfg = load_recipe(path, ["t_source.label=${T_LABEL}"]).stages[0].config
+    assert cfg.label == "set"  # type: ignore[attr-defined]
+    monkeypatch.delenv("T_LABEL")
+    with pytest.raises(RecipeError, match="environment variable T_LABEL is not set"):
+        load_recipe(path, ["t_source.label=${T_LABEL}"])
+
+
 # --- caching, --set, --force, --only, --from ----------------------------------------------
 
 

@@ -428,14 +428,35 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
         target[path[-1]] = value
 
 
+# ${NAME} or ${NAME:-default}: an environment variable, as a POSIX shell reads it.
+_ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+
+
+def _expand_env(text: str) -> str:
+    def value(m: re.Match[str]) -> str:
+        name, default = m.group(1), m.group(2)
+        got = os.environ.get(name)
+        if got:
+            return got
+        if default is not None:
+            return default
+        raise RecipeError(f"{text!r}: environment variable {name} is not set; set it, or "
+                          f"give a default: ${{{name}:-...}}")
+    return _ENV_RE.sub(value, text)
+
+
 def _unshared(value: Any) -> Any:
-    """A copy of YAML data with every mapping and list its own, and paths written from the
-    home folder (``~/data/run.bag``) expanded: a string starting with ``~/`` is nothing
-    else in a recipe (recorded topic names are absolute)."""
+    """A copy of YAML data with every mapping and list its own, environment variables in
+    strings expanded (``${TOOLKIT_SHARED_DATA:-../shared/data}/killian.g2o``: data a
+    recipe shares with other checkouts), and paths written from the home folder
+    (``~/data/run.bag``) expanded: a string starting with ``~/`` is nothing else in a
+    recipe (recorded topic names are absolute)."""
     if isinstance(value, dict):
         return {k: _unshared(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [_unshared(v) for v in value]
+    if isinstance(value, str) and "${" in value:
+        value = _expand_env(value)
     if isinstance(value, str) and value.startswith("~/"):
         return os.path.expanduser(value)
     return value
