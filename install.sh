@@ -15,6 +15,15 @@ if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then
   fi
 fi
 
-# constraints.txt pins torch to the CPU build 2.13.0 so no CUDA wheels are pulled.
+# constraints.txt pins torch 2.13.0. On Linux, PyPI's torch is the CUDA build (several GB
+# of nvidia-* wheels), so the CPU build comes from PyTorch's own index first - unless a
+# torch is installed already (a CUDA one you chose stays) or a wheel of the pinned version
+# is at hand without any index (a local wheel folder in pip's configuration).
+TORCH_PIN="$(grep -E '^torch==' constraints.txt)"
+if ! python -c "import torch" >/dev/null 2>&1 \
+    && ! python -m pip install --dry-run --no-index --no-deps -q "$TORCH_PIN" >/dev/null 2>&1; then
+  python -m pip install -c constraints.txt "$TORCH_PIN" \
+    --index-url "${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}"
+fi
 python -m pip install --upgrade-strategy only-if-needed -c constraints.txt -e ".[dev,export]"
 python -c "import toolkit, open3d, torch, cv2; print('toolkit', toolkit.__version__, '| torch', torch.__version__, '| open3d', open3d.__version__)"
