@@ -222,3 +222,16 @@ def test_fallback_without_compiler(monkeypatch: pytest.MonkeyPatch) -> None:
     g, T = _one_gaussian(torch.float32)
     out = render(g, PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5), T, backend="auto")
     assert out.meta.backend == "torch"
+
+
+def test_bench_refuses_cuda_without_a_cuda_device(capsys: pytest.CaptureFixture[str]) -> None:
+    """--device cuda on a CPU-only torch says what is missing (it ended in a traceback)."""
+    import torch
+
+    from toolkit.splat.bench import main
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(SystemExit) as exc:
+        main(["--device", "cuda", "--backends", "gsplat"])
+    assert exc.value.code == 2 and "sees no CUDA device" in capsys.readouterr().err

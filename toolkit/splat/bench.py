@@ -153,8 +153,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=None, help="torch threads")
     p.add_argument("--composite-threads", type=int, default=None,
                    help="C++ compositing threads (default: as torch)")
-    p.add_argument("--device", default="cpu", help="cuda for the gsplat backend")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                   help="cuda for the gsplat backend")
     a = p.parse_args(argv)
+    if a.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            p.error("--device cuda: this torch "
+                    f"({torch.__version__}) sees no CUDA device; run on a machine with an "
+                    "NVIDIA GPU and a CUDA build of torch (plus pip install gsplat)")
     backends = tuple(a.backends.split(","))
     unknown = sorted(set(backends) - {"cpp", "torch", "gsplat"})
     if unknown:
