@@ -509,6 +509,25 @@ def test_non_monotonic_stamps(tmp_path, fmt):
     assert len(read_rosbag(bag, RosbagOptions(stamps="bag")).scans) == 20
 
 
+def test_a_dropped_image_with_a_kept_ones_stamp_does_not_replace_it(tmp_path):
+    """Image 1 carries image 3's header stamp (a glitch into the future): dropped while
+    indexing, it was still found first by that stamp and its pixels written as frame 3."""
+    c = make_content()
+    b = BagBuilder(ros1=False)
+    msgs = standard_messages(b, c, depth=False)
+    imgs = [i for i, m in enumerate(msgs) if m[0] == "/camera/color/image_raw"]
+    topic, mtype, t, _ = msgs[imgs[1]]
+    msgs[imgs[1]] = (topic, mtype, t, b.image(c.image_t[3], c.images[1], "rgb8"))
+    rec = read_rosbag(write_bag(tmp_path / "dup", "mcap", msgs), on_non_monotonic="drop")
+    assert rec.dropped["/camera/color/image_raw"] == 1
+    convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert len(seq.frames) == len(c.images) - 1
+    for f in seq.frames:
+        k = int(np.argmin(np.abs(np.array(c.image_t) - f.stamp)))
+        assert np.array_equal(f.image, c.images[k]), k
+
+
 def test_image_size_differs_from_camera_info(tmp_path):
     c = make_content(n_images=3)
     b = BagBuilder(ros1=True)

@@ -1335,14 +1335,16 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
     def load(pairs: Sequence[tuple[int, int]]) -> Iterator[FrameData]:
         if not pairs:
             return
-        want_img: dict[int, int] = {}
-        want_dep: dict[int, list[int]] = {}
+        # Planned messages by (stamp, bag time): a message dropped as glitched may carry
+        # exactly a kept one's stamp, and came first (its pixels went under that frame).
+        want_img: dict[tuple[int, int], int] = {}
+        want_dep: dict[tuple[int, int], list[int]] = {}
         start = math.inf
         for k, (f, d) in enumerate(pairs):
-            want_img[img.stamps[f]] = k
+            want_img[(img.stamps[f], img.bag_ns[f])] = k
             start = min(start, img.bag_ns[f])
             if d >= 0 and dep is not None:
-                want_dep.setdefault(dep.stamps[d], []).append(k)
+                want_dep.setdefault((dep.stamps[d], dep.bag_ns[d]), []).append(k)
                 start = min(start, dep.bag_ns[d])
         # slot k: [rgb, depth, depth expected]
         slots: dict[int, list[Any]] = {}
@@ -1353,8 +1355,8 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
             for topic, ns, msg in bag.messages(topics, start_ns=int(start)):
                 where = f"{bag.name}: topic {topic}"
                 stamp = ns if opts.stamps == "bag" else header_ns(msg)
-                if topic == ch.image and stamp in want_img:
-                    k = want_img.pop(stamp)
+                if topic == ch.image and (stamp, ns) in want_img:
+                    k = want_img.pop((stamp, ns))
                     rgb = compressed_to_rgb(msg, where) if ch.image_compressed else \
                         image_to_rgb(msg, where)
                     if rgb.shape[1] != w or rgb.shape[0] != h:
@@ -1364,13 +1366,13 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
                             "changed size. Fix: give intrinsics matching these images in the "
                             "calibration YAML ('camera:') or convert a part of constant size")
                     slots.setdefault(k, [None, None, pairs[k][1] >= 0])[0] = rgb
-                elif topic == ch.depth and stamp in want_dep:
+                elif topic == ch.depth and (stamp, ns) in want_dep:
                     d = compressed_to_depth(msg, where) if ch.depth_compressed else \
                         image_to_depth(msg, where)
                     if d.shape != (h, w):
                         raise BagError(f"{where}: depth at {stamp / 1e9:.9f} s is "
                                        f"{d.shape[1]}x{d.shape[0]}, the images {w}x{h}")
-                    for k in want_dep.pop(stamp):
+                    for k in want_dep.pop((stamp, ns)):
                         slots.setdefault(k, [None, None, True])[1] = d
                 while nxt in slots and slots[nxt][0] is not None and (
                         slots[nxt][1] is not None or not slots[nxt][2]):
