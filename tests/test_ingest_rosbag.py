@@ -747,6 +747,24 @@ def test_rectified_images_use_the_rectified_frame(tmp_path):
     T_rect[:3, :3] = R.T
     np.testing.assert_allclose(rec.rig.T_base_camera, T_BASE_CAMLINK @ T_CAMLINK_OPT @ T_rect,
                                atol=1e-12)
+    # The same intrinsics from a calibration YAML: the pixels are still the rectified ones
+    # (R was dropped: 2.6 deg off).
+    (tmp_path / "calib.yaml").write_text(yaml.safe_dump({"camera": rec.rig.camera.to_dict()}))
+    rec2 = read_rosbag(bag, RosbagOptions(calibration=str(tmp_path / "calib.yaml")))
+    np.testing.assert_allclose(rec2.rig.T_base_camera, rec.rig.T_base_camera, atol=1e-12)
+
+
+def test_rect_is_a_word_of_the_topic_name_not_part_of_one(tmp_path):
+    """image_color_corrected is a raw stream: its distortion stays (it was read as
+    rectified: intrinsics from P, no distortion)."""
+    c = make_content()
+    b = BagBuilder(ros1=True)
+    for name, rectified in (("image_color_corrected", False), ("image_rect_color", True)):
+        msgs = [(t.replace("image_raw", name), mt, st, m)
+                for t, mt, st, m in standard_messages(b, c, depth=False)]
+        rec = read_rosbag(write_bag(tmp_path / name, "ros1", msgs))
+        assert bool(rec.meta.get("rectified_images", False)) is rectified, name
+        assert bool((rec.rig.camera.dist == 0).all()) is rectified, name
 
 
 def test_camera_frame_in_the_wrong_convention_is_warned(tmp_path, caplog):

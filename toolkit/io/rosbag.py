@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -1137,9 +1138,10 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         for parent, child, T in cal.transforms:
             tree.add(parent, child, T, True, str(cal.path))
     has_camera = ch.image is not None
-    # image_rect / image_rect_color carry undistorted pixels (image_proc's names).
+    # image_rect / image_rect_color / image_mono_rect carry undistorted pixels (image_proc's
+    # names): "rect" as a word of the name, not inside one (image_color_corrected is raw).
     rectified = opts.rectified if opts.rectified is not None else (
-        has_camera and "rect" in _base_name(str(ch.image)))
+        has_camera and re.search(r"(^|_)rect(_|$)", _base_name(str(ch.image))) is not None)
     if not has_camera:
         camera = placeholder_camera()
     elif cal is not None and cal.camera is not None:
@@ -1186,10 +1188,10 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
             if opts.frames.camera_convention == "body":
                 T_base_camera = T_base_camera @ optical_mount()
             sources["T_base_camera"] = f"tf {base} <- {cam_frame}"
-            if rectified and idx.info is not None and not (cal is not None and
-                                                           cal.camera is not None):
+            if rectified and idx.info is not None:
                 # Rectified pixels belong to the frame turned by CameraInfo's R (stereo
-                # rectification; identity for a single camera): X_rect = R @ X_camera.
+                # rectification; identity for a single camera): X_rect = R @ X_camera -
+                # wherever the intrinsics come from (a calibration YAML's camera too).
                 T_camera_rect = np.eye(4)
                 T_camera_rect[:3, :3] = rectification_rotation(
                     idx.info, f"{bag_name}: topic {ch.camera_info}").T
