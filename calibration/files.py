@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from toolkit.camera import PinholeCamera
+from toolkit.camera import PLUMB_BOB_NAMES, PinholeCamera
 from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.yaml_file import load_yaml
@@ -81,7 +81,7 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
 
 # Names of the model the camera has (OpenCV's k1 k2 p1 p2 k3): ROS camera_info's, Kalibr's,
 # and the one ``write_camera`` writes.
-_PLUMB_BOB = {"plumb_bob", "radtan", "opencv", "opencv k1 k2 p1 p2 k3", "none", ""}
+_PLUMB_BOB = PLUMB_BOB_NAMES - {"pinhole"}
 
 
 def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str,

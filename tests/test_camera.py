@@ -101,6 +101,31 @@ def test_rejects_bad_intrinsics():
         PinholeCamera(640, 480, 0.0, 500, 320, 240)
     with pytest.raises(ValueError, match="size"):
         PinholeCamera(0, 480, 500, 500, 320, 240)
+    # Non-finite values fail here, not in a LinAlgError far from the file that gave them.
+    with pytest.raises(ValueError, match="cx must be finite"):
+        PinholeCamera(640, 480, 500, 500, float("nan"), 240)
+    with pytest.raises(ValueError, match="distortion .* finite"):
+        PinholeCamera(640, 480, 500, 500, 320, 240, np.array([np.nan, 0, 0, 0, 0]))
+
+
+def test_camera_mappings_name_their_lens_model():
+    """An empty ``distortion:`` is none; another lens model's coefficients (a fisheye's
+    k1..k4 read as k1 k2 p1 p2) are refused; rational_polynomial with k4-k6 zero is ours."""
+    base = {"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 319.5, "cy": 239.5}
+    assert not PinholeCamera.from_dict({**base, "distortion": None}).dist.any()
+    five = [0.1, -0.05, 0.001, -0.002, 0.01]
+    for model in ("pinhole", "plumb_bob", "radtan", None):
+        cam = PinholeCamera.from_dict({**base, "distortion": five, "distortion_model": model})
+        assert cam.dist.tolist() == five
+    cam = PinholeCamera.from_dict({**base, "distortion": [*five, 0, 0, 0],
+                                   "distortion_model": "rational_polynomial"})
+    assert cam.dist.tolist() == five
+    for key, model in (("distortion_model", "equidistant"), ("model", "OPENCV_FISHEYE"),
+                       ("distortion_model", "rational_polynomial")):
+        with pytest.raises(ValueError, match=f"field '{key}' is"):
+            PinholeCamera.from_dict({**base, "distortion": [*five, 0.3, 0, 0], key: model})
+    cam = PinholeCamera(640, 480, 500, 500, 319.5, 239.5, np.array(five))
+    assert PinholeCamera.from_dict(cam.to_dict()) == cam  # round trip
 
 
 def test_projection_and_transforms_refuse_points_of_the_wrong_shape():

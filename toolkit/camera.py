@@ -20,6 +20,12 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-
 UNDISTORT_TOL_PX = 0.05
 
 
+# Names of this camera's lens model (OpenCV's k1 k2 p1 p2 k3): ``to_dict``'s, ROS
+# camera_info's, Kalibr's, and none at all.
+PLUMB_BOB_NAMES = frozenset({"pinhole", "plumb_bob", "radtan", "opencv", "opencv k1 k2 p1 p2 k3",
+                             "none", ""})
+
+
 @dataclass(eq=False)
 class PinholeCamera:
     """Intrinsics of one camera: image size, focal lengths, principal point, distortion."""
@@ -34,7 +40,12 @@ class PinholeCamera:
 
     def __post_init__(self) -> None:
         d = np.zeros(5)
-        given = np.asarray(self.dist, dtype=np.float64).reshape(-1)
+        given = np.asarray([] if self.dist is None else self.dist, dtype=np.float64).reshape(-1)
+        if not np.isfinite(given).all():
+            raise ValueError(f"distortion {given.tolist()} is not all finite numbers")
+        bad = [k for k in ("fx", "fy", "cx", "cy") if not np.isfinite(float(getattr(self, k)))]
+        if bad:
+            raise ValueError(f"{', '.join(bad)} must be finite numbers")
         if len(given) > 5:
             raise ValueError(f"distortion has {len(given)} coefficients; k1 k2 p1 p2 k3 at most")
         d[: len(given)] = given
@@ -71,12 +82,26 @@ class PinholeCamera:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> PinholeCamera:
-        """From the rig/camera YAML mapping (see ``to_dict``)."""
+        """From the rig/camera YAML mapping (see ``to_dict``). A lens model other than this
+        one (``model`` or ``distortion_model``: an equidistant fisheye's k1..k4 read as
+        k1 k2 p1 p2 project hundreds of pixels off at the edge) is a ``ValueError``."""
         missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in d]
         if missing:
             raise KeyError(f"camera is missing {missing}")
-        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"],
-                   np.asarray(d.get("distortion", [0.0] * 5), dtype=np.float64))
+        given = d.get("distortion")
+        dist = np.asarray([] if given is None else given, dtype=np.float64).reshape(-1)
+        key = "distortion_model" if "distortion_model" in d else "model"
+        model = d.get(key)
+        name = "" if model is None else str(model).strip().lower()
+        if name == "rational_polynomial" and len(dist) <= 8 and not np.any(dist[5:]):
+            dist = dist[:5]  # k4 = k5 = k6 = 0: the same model
+        elif name not in PLUMB_BOB_NAMES:
+            raise ValueError(
+                f"field '{key}' is {model!r}: the camera model here is OpenCV's plumb_bob "
+                "(k1 k2 p1 p2 k3; also named pinhole, radtan, opencv), so these coefficients "
+                "cannot be used as they are; calibrate with that model (python -m calibration "
+                "intrinsics) or undistort the images first")
+        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], dist)
 
     def to_dict(self) -> dict[str, Any]:
         return {
