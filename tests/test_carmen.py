@@ -231,3 +231,19 @@ def test_a_laser_facing_backwards_keeps_its_heading(tmp_path):
     x, y, th = se3_to_se2(read_carmen(path).T_base_laser)
     assert (x, y) == pytest.approx((-0.2, 0.0), abs=1e-5)
     assert abs(abs(np.degrees(th)) - 180.0) < 1e-3
+
+
+def test_a_zip_with_a_readme_reads_the_log(tmp_path):
+    """The log member is read before a README.txt listed first in the zip."""
+    import zipfile
+
+    from toolkit.io.carmen import read_carmen
+
+    ranges = " ".join(["2.0"] * 180)
+    log = "".join(f"FLASER 180 {ranges} 0 0 0 0 0 0 {t}.0 host {t}.0\n" for t in range(5))
+    with zipfile.ZipFile(tmp_path / "run.zip", "w") as zf:
+        zf.writestr("README.txt", "Recorded at the lab.\n")
+        zf.writestr("intel.log", log)
+    (tmp_path / "intel.log").write_text(log)
+    assert len(read_carmen(tmp_path / "run.zip").scans) == len(
+        read_carmen(tmp_path / "intel.log").scans) == 5

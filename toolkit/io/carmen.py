@@ -46,6 +46,8 @@ def _open_text(path: Path) -> Iterator[str]:
         with zipfile.ZipFile(path) as zf:
             names = [n for n in zf.namelist() if not n.startswith("__MACOSX")
                      and n.lower().endswith((".g2o", ".log", ".clf", ".txt", ".gz"))]
+            # A log's own suffixes first: a README.txt beside intel.log was read as the log.
+            names.sort(key=lambda n: n.lower().endswith((".txt", ".gz")))
             if not names:
                 raise CarmenFormatError(f"{path}: zip holds no .g2o/.log/.clf member")
             with zf.open(names[0]) as raw:
