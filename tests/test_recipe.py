@@ -405,6 +405,19 @@ def test_environment_variables_in_values(tmp_path: Path, monkeypatch: pytest.Mon
     monkeypatch.delenv("T_LABEL")
     with pytest.raises(RecipeError, match="environment variable T_LABEL is not set"):
         load_recipe(path, ["t_source.label=${T_LABEL}"])
+    # --set replaces a value naming an unset variable before it is read; a variable's value
+    # is not expanded again; empty is a value (the default only with :-).
+    data["stages"][0]["label"] = "${T_UNSET}"
+    path = _write_recipe(tmp_path, data)
+    assert load_recipe(path, ["t_source.label=ok"]).stages[0].config.label == "ok"  # type: ignore[attr-defined]
+    monkeypatch.setenv("T_LABEL", "run_${T_UNSET}")
+    monkeypatch.setenv("T_EMPTY", "")
+    cfg = load_recipe(path, ["t_source.label=${T_LABEL}${T_EMPTY}-${T_EMPTY:-d}"]).stages[0].config
+    assert cfg.label == "run_${T_UNSET}-d"  # type: ignore[attr-defined]
+    # A list as a key is a YAML error with the line, not a traceback.
+    path.write_text(path.read_text() + "? [1, 2]\n: 3\n")
+    with pytest.raises(RecipeError, match=r"(?s)not valid YAML.*a list as a key \(line 12\)"):
+        load_recipe(path)
 
 
 # --- caching, --set, --force, --only, --from ----------------------------------------------

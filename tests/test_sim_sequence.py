@@ -206,6 +206,8 @@ def test_simulate_stage_writes_sequence_and_report(tmp_path: Path) -> None:
         SimulateConfig(stage="simulate", preset="castle")
     with pytest.raises(ValueError):
         SimulateConfig(stage="simulate", lidar={"beams": 360, "typo": 1})
+    with pytest.raises(ValueError, match="range_min .* must be below range_max"):
+        SimulateConfig(stage="simulate", lidar={"range_min": 5.0, "range_max": 1.0})
 
 
 def test_a_drive_without_scans_is_refused_with_the_settings_to_change(tmp_path: Path) -> None:

@@ -168,6 +168,13 @@ def _mapping_without_repeats(loader: _UniqueKeyLoader, node: yaml.MappingNode,
         if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *defaults'
             continue
         key = loader.construct_object(key_node, deep=deep)
+        try:
+            hash(key)
+        except TypeError:
+            raise yaml.constructor.ConstructorError(
+                "while reading a mapping", node.start_mark,
+                f"found a {type(key).__name__} as a key (line {key_node.start_mark.line + 1});"
+                " keys are names", key_node.start_mark) from None
         if key in seen:
             raise yaml.constructor.ConstructorError(
                 "while reading a mapping", node.start_mark,
@@ -212,9 +219,11 @@ def parse_recipe(
         )
     # A fresh tree: YAML aliases (&a / *a) share one mapping between stages, which a
     # --set on one stage would change in all of them (deepcopy keeps the sharing).
-    data = _unshared(data)
+    data = _unshared(data, environment=False)
     apply_overrides(data, overrides)
-    data = _unshared(data)  # ~/ in --set values too (the shell leaves it in KEY=~/x)
+    # ~/ in --set values too (the shell leaves it in KEY=~/x); ${NAME} once, after --set,
+    # which may replace a value naming a variable that is not set here.
+    data = _unshared(data, environment=True)
 
     problems: list[str] = []
     for key in data:
@@ -436,26 +445,26 @@ def _expand_env(text: str) -> str:
     def value(m: re.Match[str]) -> str:
         name, default = m.group(1), m.group(2)
         got = os.environ.get(name)
-        if got:
+        if default is not None:  # ${NAME:-default}: the default when unset or empty
+            return got or default
+        if got is not None:
             return got
-        if default is not None:
-            return default
         raise RecipeError(f"{text!r}: environment variable {name} is not set; set it, or "
                           f"give a default: ${{{name}:-...}}")
     return _ENV_RE.sub(value, text)
 
 
-def _unshared(value: Any) -> Any:
+def _unshared(value: Any, environment: bool = True) -> Any:
     """A copy of YAML data with every mapping and list its own, environment variables in
     strings expanded (``${TOOLKIT_SHARED_DATA:-../shared/data}/killian.g2o``: data a
     recipe shares with other checkouts), and paths written from the home folder
     (``~/data/run.bag``) expanded: a string starting with ``~/`` is nothing else in a
     recipe (recorded topic names are absolute)."""
     if isinstance(value, dict):
-        return {k: _unshared(v) for k, v in value.items()}
+        return {k: _unshared(v, environment) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_unshared(v) for v in value]
-    if isinstance(value, str) and "${" in value:
+        return [_unshared(v, environment) for v in value]
+    if environment and isinstance(value, str) and "${" in value:
         value = _expand_env(value)
     if isinstance(value, str) and value.startswith("~/"):
         return os.path.expanduser(value)

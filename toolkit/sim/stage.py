@@ -17,7 +17,7 @@ from __future__ import annotations
 import shutil
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from toolkit.recipe.stage import Stage, StageConfig, StageContext
 from toolkit.sim.robot import MotionLimits, OdometryNoise
@@ -62,6 +62,13 @@ class LidarSettings(_Settings):
     mount_xyz: tuple[float, float, float] = (0.0, 0.0, 0.25)
     time_offset_s: float = Field(0.043, ge=0)
     sweep: bool = False  # beams fired one after another over 1 / rate_hz (time_increment)
+
+    @model_validator(mode="after")
+    def _range(self) -> LidarSettings:
+        if self.range_min >= self.range_max:
+            raise ValueError(f"range_min ({self.range_min}) must be below range_max "
+                             f"({self.range_max}): no beam would return")
+        return self
 
     def spec(self) -> LidarSpec:
         return LidarSpec(**self.model_dump())
