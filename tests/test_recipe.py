@@ -855,9 +855,12 @@ def test_other_settings_start_from_an_empty_stage_folder(tmp_path: Path) -> None
     for child in mine.iterdir():
         child.unlink()
     (mine / "my_notes.txt").write_text("keep me")
+    (tmp_path / "calls.txt").unlink()
     with pytest.raises(RecipeError, match=r"holds files but no record of a run"):
-        _run(path, "t_sink.stage_error=true")
+        _run(path, "t_source.value=9", "t_sink.stage_error=true")
     assert (mine / "my_notes.txt").read_text() == "keep me"
+    # ... before any stage ran (t_source's new value would have run it first)
+    assert not (tmp_path / "calls.txt").exists()
 
 
 def test_a_lost_file_inside_a_provided_folder_reruns_the_stage(tmp_path: Path) -> None:

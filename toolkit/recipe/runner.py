@@ -150,6 +150,9 @@ def run_recipe(
                           f"'output' to a folder path") from None
     with _exclusive(run_dir):
         try:
+            foreign = foreign_stage_folders(recipe, run_dir)
+            if foreign:
+                raise RecipeError(foreign)
             with _run_logging(run_dir, console) as log:
                 run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
                 return run.execute()
@@ -159,6 +162,26 @@ def run_recipe(
             # folder first keeps it).
             _remove_if_only_bookkeeping(made)
             raise
+
+
+def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
+    return (f"{stage_dir} holds files but no record of a run of stage {stage_id!r} "
+            f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
+            "of an older version of the toolkit. Move or delete the folder, then run "
+            "again (nothing was changed)")
+
+
+def foreign_stage_folders(recipe: Recipe, run_dir: Path) -> list[str]:
+    """Messages for stage folders in ``run_dir`` that hold files but no record of a run of
+    the runner's: checked before any stage runs (found when the stage's turn came, the
+    stages before it had run and the exit code said nothing had)."""
+    out = []
+    for spec in recipe.stages:
+        d = run_dir / spec.id
+        if (d.is_dir() and any(d.iterdir()) and not (d / STAGE_FILE).exists()
+                and _started_folder_key(d / STARTED_FILE) is None):
+            out.append(_foreign_folder_message(d, spec.id))
+    return out
 
 
 def _remove_if_only_bookkeeping(made: list[Path]) -> None:
@@ -353,11 +376,7 @@ class _Run:
         done = (stage_dir / STAGE_FILE).exists()
         started = _started_folder_key(stage_dir / STARTED_FILE)
         if not done and started is None:
-            raise RecipeError(
-                f"{stage_dir} holds files but no record of a run of stage {record.spec.id!r} "
-                f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
-                "of an older version of the toolkit. Move or delete the folder, then run "
-                "again (nothing was changed)")
+            raise RecipeError(_foreign_folder_message(stage_dir, record.spec.id))
         # Only an interrupted run is resumed: a finished one reruns from scratch (--force,
         # --from, --only, other settings, a lost output).
         if not self.force and not done and started == record.folder_key:
