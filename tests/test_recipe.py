@@ -835,6 +835,39 @@ class FolderStage(Stage):
         ctx.provide("folder", ctx.stage_dir)
 
 
+class FigureStage(Stage):
+    """Provide one file and link a figure beside it in the report (test stage)."""
+
+    name = "t_figure"
+    Config = SourceConfig
+    provides = ("number",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        atomic_write_text(ctx.stage_dir / "number.txt", str(cfg.value))
+        atomic_write_text(ctx.stage_dir / "plot.png", "a figure")
+        ctx.provide("number", ctx.stage_dir / "number.txt")
+        ctx.report(f"![plot]({ctx.stage_id}/plot.png) and [elsewhere](https://example.org)")
+
+
+def test_a_lost_report_figure_reruns_the_stage(tmp_path: Path) -> None:
+    """A figure the report links to but no artifact holds (simulate/preview.png): lost, the
+    stage stayed cached and report.md linked a missing file."""
+    counter = str(tmp_path / "calls.txt")
+    registry.register("t_figure", FigureStage)
+    try:
+        path = _write_recipe(tmp_path, {"name": "f", "output": str(tmp_path / "run"),
+                                        "stages": [{"stage": "t_figure", "counter": counter}]})
+        assert _run(path).statuses == {"t_figure": "ran"}
+        assert _run(path).statuses == {"t_figure": "cached"}
+        (tmp_path / "run" / "t_figure" / "plot.png").unlink()
+        assert _run(path).statuses == {"t_figure": "ran"}
+        assert (tmp_path / "run" / "t_figure" / "plot.png").exists()
+    finally:
+        registry.unregister("t_figure")
+
+
 def test_other_settings_start_from_an_empty_stage_folder(tmp_path: Path) -> None:
     """Files an earlier run wrote under other settings must not be read as this run's (an
     old per-frame depth beside the new, an old capture); an interrupted run of the same

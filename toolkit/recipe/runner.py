@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import math
+import re
 import shutil
 import time
 import uuid
@@ -701,7 +702,15 @@ def _read_marker(
         changed = _manifest_changes(stage_dir / stored[name], files)
         if changed:
             return None, f"output {name!r}: {changed}"
+    # The stage's own files its report links to (figures outside its artifacts, such as
+    # simulate/preview.png): a lost one reruns the stage, not a report with a dead link.
+    for target in _REPORT_LINK_RE.findall(str(data.get("report") or "")):
+        if target.startswith(f"{stage_dir.name}/") and not (stage_dir.parent / target).exists():
+            return None, f"report file {target!r} is missing"
     return data, "up to date"
+
+
+_REPORT_LINK_RE = re.compile(r"\]\(([^)\s]+)\)")  # [text](target) and ![alt](target)
 
 
 def _started_folder_key(path: Path) -> str | None:
