@@ -399,9 +399,13 @@ class LidarRenderer:
         self.dirs_laser = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])  # [B, 3]
 
     def render(self, T_world_laser: np.ndarray, people: list[Primitive] | None = None,
-               rng: np.random.Generator | None = None, noisy: bool = True) -> LidarReturn:
+               rng: np.random.Generator | None = None, noisy: bool = True,
+               people_by_beams: list[tuple[np.ndarray, list[Primitive]]] | None = None) -> (
+                   LidarReturn):
         """One scan from ``T_world_laser`` [4, 4], or [B, 4, 4]: each beam's own pose (a
-        sweep while moving; the laser stays at one height)."""
+        sweep while moving; the laser stays at one height). ``people_by_beams``: instead of
+        ``people``, (beam indices [K], the people then) for groups of beams fired at
+        different times (people walk on during a sweep)."""
         spec = self.spec
         T = np.asarray(T_world_laser, np.float64)
         R = T[..., :3, :3]
@@ -417,23 +421,29 @@ class LidarRenderer:
         r = self.scene.refine_t(o, d, prim)  # [B] float64
         normal = hit["primitive_normals"].astype(np.float64)
         dynamic = np.zeros(len(d), bool)
-        if people:
-            which = np.full(len(d), -1)
-            for k, p in enumerate(people):
+        groups = people_by_beams if people_by_beams is not None else (
+            [(np.arange(len(d)), people)] if people else [])
+        hit_by: list[Primitive] = []  # primitives hit, by the index ``which`` holds
+        which = np.full(len(d), -1)
+        for beams, group in groups:
+            ob = o if o.ndim == 1 else o[beams]
+            for p in group:
                 # Only people whose shape crosses the scan plane can be hit.
                 if p.kind == "cyl" and not (p.params[3] <= oz <= p.params[4]):
                     continue
                 if p.kind == "sphere" and abs(p.params[2] - oz) > p.params[3]:
                     continue
-                tp = intersect(p, o, d)
-                closer = tp < r
-                r = np.where(closer, tp, r)
-                which[closer] = k
-            dynamic = which >= 0
-            for k in np.unique(which[dynamic]):
-                m = which == k
-                normal[m] = surface_normal(people[k], (o if o.ndim == 1 else o[m])
-                                           + r[m, None] * d[m])
+                tp = intersect(p, ob, d[beams])
+                closer = tp < r[beams]
+                if closer.any():
+                    r[beams[closer]] = tp[closer]
+                    which[beams[closer]] = len(hit_by)
+                    hit_by.append(p)
+        dynamic = which >= 0
+        for k in np.unique(which[dynamic]):
+            m = which == k
+            normal[m] = surface_normal(hit_by[k], (o if o.ndim == 1 else o[m])
+                                       + r[m, None] * d[m])
         true = r.copy()
         out = r.copy()
         if noisy:

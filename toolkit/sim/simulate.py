@@ -114,6 +114,10 @@ def sensor_stamps(config: SimConfig, duration: float) -> tuple[np.ndarray, np.nd
 
     cam = stream(config.camera.rate_hz, 0.5 * j + 1e-3)
     las = stream(config.lidar.rate_hz, config.lidar.time_offset_s)
+    if config.lidar.sweep:
+        # A swept scan's beams run on past its stamp: only sweeps that end on the drive
+        # (its last beams were rendered from the end pose, stamped past the ground truth).
+        las = las[las + (config.lidar.beams - 1) * config.lidar.time_increment <= duration]
     return cam, las
 
 
@@ -160,11 +164,18 @@ def simulate(config: SimConfig, out_dir: Path | str,
             t_next = cam_t[k + 1] if k + 1 < len(cam_t) else np.inf
             while si < len(las_t) and las_t[si] < t_next:
                 T_wl = T_wb_las[si] @ T_bl
+                people = primitives_at(world.walkers, las_t[si])
+                by_beams = None
                 if spec.sweep:  # each beam from where the laser was when it fired
                     tb = np.minimum(las_t[si] + np.arange(spec.beams) * spec.time_increment,
                                     path.duration)
                     T_wl = path.T_world_base(tb) @ T_bl
-                ret = las_r.render(T_wl, primitives_at(world.walkers, las_t[si]), las_rng)
+                    # ... and the people where they were then (they walk 0.1 m in a sweep):
+                    # in groups of beams a few milliseconds long.
+                    by_beams = [(g, primitives_at(world.walkers, float(tb[g].mean())))
+                                for g in np.array_split(np.arange(spec.beams),
+                                                        max(1, spec.beams // 12))]
+                ret = las_r.render(T_wl, people, las_rng, people_by_beams=by_beams)
                 writer.add_scan(LaserScan(t0 + las_t[si], ret.ranges.astype(np.float32),
                                           spec.angle_min, spec.angle_increment,
                                           spec.range_min, spec.range_max,
@@ -184,7 +195,10 @@ def simulate(config: SimConfig, out_dir: Path | str,
     _heldout(world, writer, cam_r, _rng(config, "heldout"), config.n_heldout)
     scene.write_ply(writer.mesh_path())
 
-    stamps = np.unique(np.concatenate([cam_t, las_t]))
+    sweep_ends = las_t + (spec.beams - 1) * spec.time_increment if spec.sweep else las_t[:0]
+    # Ground truth and odometry at every sensor time, a sweep's last beam included (each
+    # beam has a pose to be checked or de-skewed with).
+    stamps = np.unique(np.concatenate([cam_t, las_t, sweep_ends]))
     poses2d = path.pose2d(stamps)
     writer.groundtruth_poses = Trajectory(t0 + stamps, path.T_world_base(stamps), "world",
                                           "base_link")
