@@ -251,10 +251,22 @@ def _expectation(view_plane: Any, board: BoardSpec, search: BoardSearch,
     if search.angle_window_deg is not None:
         win = (math.radians(search.angle_window_deg[0]), math.radians(search.angle_window_deg[1]))
     bearing = None
-    if guess is not None and win is None:
-        c_l = inv_se3(guess) @ np.r_[c, 1.0]
-        bearing = float(np.arctan2(c_l[1], c_l[0]))
-    return BoardExpectation(view_plane.distance, rng, inc, lo, hi, search.max_offset_m, win,
+    distance = view_plane.distance
+    if guess is not None:
+        c_l = (inv_se3(guess) @ np.r_[c, 1.0])[:3]  # the board's middle, laser frame
+        if win is None:
+            bearing = float(np.arctan2(c_l[1], c_l[0]))
+        # The scan sees the board as the line where the laser plane cuts it: compare the
+        # segments with that line's offset and in-plane incidence, not the plane's 3D
+        # distance and incidence (a leaned board's differ by 0.4 m and 20 deg, and a wall
+        # matching the 3D figures was taken for it).
+        n_l = guess[:3, :3].T @ view_plane.normal  # board normal, laser frame
+        s = float(np.hypot(n_l[0], n_l[1]))
+        if s > 0.3:  # the laser plane cuts the board at a usable angle
+            distance = (view_plane.distance - view_plane.normal @ guess[:3, 3]) / s
+            inc = float(np.arccos(np.clip(abs(n_l[:2] @ c_l[:2]) / s
+                                          / max(float(np.hypot(*c_l[:2])), 1e-9), 0.0, 1.0)))
+    return BoardExpectation(float(distance), rng, inc, lo, hi, search.max_offset_m, win,
                             bearing, expected_length_m=min(board.pattern_extent))
 
 
