@@ -64,7 +64,9 @@ def stamp_from_name(path: Path, unit: str = "auto") -> float:
     pair = re.search(r"(?<!\d)(\d{9,10})[_-](\d{9})(?!\d)", stem)
     if pair is not None and unit == "auto":
         return int(pair.group(1)) + int(pair.group(2)) * 1e-9
-    m = re.fullmatch(r"\d+(\.\d*)?", stem) or re.search(r"(\d{10,})", stem)
+    # A bare number, or a Unix time inside a name with its decimals (cam_1700000000.990:
+    # the integer part alone paired it with a scan 0.9 s away, reported as 0 ms).
+    m = re.fullmatch(r"\d+(\.\d*)?", stem) or re.search(r"(?<!\d)\d{10,}(\.\d+)?", stem)
     if m is None:
         raise ScanFormatError(
             f"{path}: cannot read a timestamp from the file name; name files by their stamp "

@@ -119,6 +119,8 @@ def test_stamp_unit_from_digit_count() -> None:
     a, b = stamp_from_name(Path("1773380642000.png")), stamp_from_name(Path("1773380642400.pcd"))
     assert b - a == pytest.approx(0.4)
     assert stamp_from_name(Path("scan_1773380642785313094.pcd")) == pytest.approx(1773380642.785)
+    # Decimal seconds inside a name keep their decimals (the integer part alone was read).
+    assert stamp_from_name(Path("cam_1773380642.990.png")) == pytest.approx(1773380642.99)
     assert stamp_from_name(Path("000123.png")) == 123.0  # short integers: seconds
     assert stamp_from_name(Path("1000012.png"), "ms") == pytest.approx(1000.012)
     # 12 digits is no Unix time in any unit: the user must say which.
