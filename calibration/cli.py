@@ -257,7 +257,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         T = load_extrinsic(Path(args.extrinsic)) if args.extrinsic else rig.T_camera_laser
         frames, _ = check_frames_from_sequence(
             root, T, args.frames, args.max_dt, Path(args.depth) if args.depth else None,
-            use_gt_depth=args.score != "edges")
+            use_gt_depth=args.score != "edges", camera=camera,
+            camera_source=str(args.rig) if args.rig else str(root / "rig.yaml"))
     else:
         if not (args.images and args.scans and args.camera and (args.extrinsic or args.rig)):
             raise CalibrationFileError("give --sequence, or --images, --scans, --camera and "

@@ -439,12 +439,14 @@ def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
 
 def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frames: int = 12,
                                max_dt: float = 0.05, depth_dir: Path | None = None,
-                               use_gt_depth: bool = True) -> tuple[list[Any], Any]:
+                               use_gt_depth: bool = True, camera: PinholeCamera | None = None,
+                               camera_source: str | None = None) -> tuple[list[Any], Any]:
     """Frames of a sequence for ``check``: evenly spread images with their nearest scans.
 
     When the sequence has odometry (or ground-truth poses) the scan is moved to the
     image's time, so robot motion between the two stamps is not blamed on the extrinsic.
-    Returns the frames and the sequence.
+    ``camera`` (from ``camera_source``, e.g. a ``--rig`` file) must be the images' size,
+    and so must depth maps. Returns the frames and the sequence.
     """
     from calibration.check import CheckFrame
     from toolkit.io.depth import read_depth
@@ -478,13 +480,27 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
                 p = p @ M[:3, :3].T + M[:3, 3]
             except ValueError:
                 pass  # stamps outside the trajectory: use the scan as it is
+        name = f.path.name if f.path else f"frame{i:06d}"
+        img = f.image
+        if camera is not None:
+            check_image_size(camera, camera_source or f"{root / 'rig.yaml'}",
+                             f.path or Path(name), (img.shape[1], img.shape[0]))
         depth = None
         if depth_dir is not None:
             depth = _depth_for(depth_dir, f.path, i, read_depth)
+            _check_depth_size(depth, img, depth_dir, name)
         elif use_gt_depth and seq.groundtruth is not None and seq.groundtruth.depth_paths:
             depth = seq.groundtruth.depth(i)
-        frames.append(CheckFrame(f.path.name if f.path else f"frame{i:06d}", f.image, p, depth))
+        frames.append(CheckFrame(name, img, p, depth))
     return frames, seq
+
+
+def _check_depth_size(depth: np.ndarray, img: np.ndarray, depth_dir: Path, name: str) -> None:
+    if depth.shape != img.shape[:2]:
+        raise CalibrationFileError(
+            f"{depth_dir}: the depth map of {name} is {depth.shape[1]}x{depth.shape[0]} but "
+            f"the image is {img.shape[1]}x{img.shape[0]}; give depth maps at the images' "
+            "resolution")
 
 
 def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any) -> np.ndarray:
@@ -531,10 +547,6 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
         depth = None
         if depth_dir is not None:
             depth = _depth_for(Path(depth_dir), path, p.image_index, read_depth)
-            if depth.shape != img.shape[:2]:
-                raise CalibrationFileError(
-                    f"{depth_dir}: the depth map of {path.name} is {depth.shape[1]}x"
-                    f"{depth.shape[0]} but the image is {img.shape[1]}x{img.shape[0]}; give "
-                    "depth maps at the images' resolution")
+            _check_depth_size(depth, img, depth_dir, path.name)
         frames.append(CheckFrame(path.name, img, np.c_[pts, np.zeros(len(pts))], depth))
     return frames

@@ -192,3 +192,27 @@ def test_stage_check_only_needs_a_sequence(tmp_path) -> None:  # noqa: ANN001
     res = run_stages(tmp_path, [{"stage": "calibrate", "mode": "check"}],
                      {"calibrate": CalibrateStage})
     assert not res.ok and "needs a sequence" in str(res.error)
+
+
+def test_check_on_a_sequence_refuses_a_rig_or_depth_of_another_size(scene, tmp_path) -> None:  # noqa: ANN001
+    """check --sequence with a --rig for another resolution, or depth maps of another
+    size, stops with exit 2 naming the file (it scored 0.02 and blamed the extrinsic)."""
+    from calibration.cli import main
+    from toolkit.io.sequence import read_rig, write_rig
+    from toolkit.sensors import Rig
+
+    _write_sequence(scene, tmp_path / "seq")
+    rig = read_rig(tmp_path / "seq" / "rig.yaml")
+    w, h = rig.camera.size
+    write_rig(tmp_path / "big.yaml", Rig(rig.camera.scaled(2 * w, 2 * h), rig.T_base_camera,
+                                         rig.T_base_laser))
+    args = ["check", "--sequence", str(tmp_path / "seq"), "--frames", "3", "--score", "edges"]
+    assert main([*args, "--out", str(tmp_path / "own")]) == 0
+    assert main([*args, "--rig", str(tmp_path / "big.yaml"), "--out", str(tmp_path / "b")]) == 2
+    assert not (tmp_path / "b" / "check.json").exists()
+    depth = tmp_path / "depth"
+    depth.mkdir()
+    for i in range(len(scene[0])):
+        np.save(depth / f"{i:06d}.npy", np.ones((h // 2, w // 2), np.float32))
+    assert main(["check", "--sequence", str(tmp_path / "seq"), "--frames", "3", "--depth",
+                 str(depth), "--out", str(tmp_path / "d")]) == 2
