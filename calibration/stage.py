@@ -77,6 +77,9 @@ class CalibrateConfig(StageConfig):
     # mode check: the extrinsic to check (T_camera_laser, a rig, a tf mapping); None: the
     # upstream sequence's rig
     extrinsic: str | None = None
+    # An extrinsic the checks call unreliable stops the stage (as the CLI exits 3), its
+    # result kept in calibration.unreliable.yaml; true passes it on as the rig anyway.
+    allow_unreliable: bool = False
 
 
 class CalibrateStage(Stage):
@@ -88,7 +91,9 @@ class CalibrateStage(Stage):
     provides = ("rig", "calibration")
     # 2: mode check; overlays of the extrinsic turned by 2 degrees next to the checked one
     # 3: at least 4 views, the max-offset limit, outlier rule for 5 views, 'reliable'
-    version = 3
+    # 4: an unreliable extrinsic stops the stage (allow_unreliable); segments compared with
+    #    the laser plane's cut of the board
+    version = 4
 
     config: CalibrateConfig
 
@@ -210,9 +215,18 @@ class CalibrateStage(Stage):
             metrics["translation_error_m"] = tra
             summary["error_vs_ground_truth"] = {"rotation_deg": rot, "translation_m": tra}
 
+        calib_text = yaml.safe_dump(to_jsonable({**extrinsic_to_mapping(T), **summary}),
+                                    sort_keys=False)
+        if not res.reliable and not cfg.allow_unreliable:
+            # The later stages would place every lidar point with it.
+            atomic_write_text(ctx.stage_dir / "calibration.unreliable.yaml", calib_text)
+            raise StageError(
+                f"calibrate: the extrinsic from {len(res.views_used)} views is unreliable: "
+                f"{'; '.join(res.unreliable)}. It is in "
+                f"{ctx.stage_dir / 'calibration.unreliable.yaml'}; capture more views (boards "
+                "tilted differently, nearer), or set allow_unreliable: true to use it anyway")
         calib_path = ctx.stage_dir / "calibration.yaml"
-        atomic_write_text(calib_path, yaml.safe_dump(
-            to_jsonable({**extrinsic_to_mapping(T), **summary}), sort_keys=False))
+        atomic_write_text(calib_path, calib_text)
         rig = rig_for_extrinsic(camera, T, base_rig)
         rig_path = ctx.stage_dir / "rig.yaml"
         write_rig_with_calibration(rig_path, rig, to_jsonable(summary))

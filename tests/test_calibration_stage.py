@@ -32,6 +32,25 @@ def test_calibrate_stage_writes_rig_and_metrics(tmp_path: Path) -> None:
     assert "Extrinsic from 6 board views" in (tmp_path / "run" / "report.md").read_text()
 
 
+def test_an_unreliable_extrinsic_stops_the_stage(tmp_path: Path) -> None:
+    """Eight upright boards turned only about the vertical leave the extrinsic's height
+    and pitch free: the checks call it unreliable, and the stage stops (it passed the
+    result on as the rig, 16 deg / 0.3 m off) unless allow_unreliable says otherwise."""
+    cap = make_capture(8, seed=7, min_tilt_deg=0.0, max_tilt_deg=0.0)
+    write_capture(cap, tmp_path / "capture")
+    stage = {"stage": "calibrate", "capture": str(tmp_path / "capture"), "board": "11x8",
+             "square_m": 0.05, "leave_one_out": False}
+    (tmp_path / "a").mkdir()
+    res = run_stages(tmp_path / "a", [stage], {"calibrate": CalibrateStage})
+    assert not res.ok and "unreliable" in res.error and "allow_unreliable" in res.error
+    out = tmp_path / "a" / "run" / "calibrate"
+    assert (out / "calibration.unreliable.yaml").exists() and not (out / "rig.yaml").exists()
+    (tmp_path / "b").mkdir()
+    res = run_stages(tmp_path / "b", [{**stage, "allow_unreliable": True}],
+                     {"calibrate": CalibrateStage})
+    assert res.ok and res.metrics["calibrate"]["reliable"] is False
+
+
 @pytest.mark.slow  # renders a 4 s drive through the house: 10 s CPU, a minute on a busy machine
 def test_check_only_after_simulate_separates_a_2_degree_error(tmp_path: Path) -> None:
     """What the quickstart runs: `calibrate` with `mode: check` after `simulate`.
