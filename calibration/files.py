@@ -147,6 +147,7 @@ def write_camera(path: Path, camera: PinholeCamera, info: dict[str, Any] | None 
 
 def _matrix(value: Any, source: str, field: str) -> np.ndarray:
     if isinstance(value, dict):  # tf style, as ingest's calibration files allow
+        _check_tf_direction(value, source, field)
         M = _tf(value, f"{source}: field '{field}'")
     else:
         try:
@@ -187,6 +188,26 @@ def _tf(d: dict[str, Any], source: str) -> np.ndarray:
 
 _CAMERA_NAMES = {"camera", "camera_optical", "camera_optical_frame", "cam", "camera_link_optical"}
 _LASER_NAMES = {"laser", "lidar", "laser_frame", "scan", "base_scan", "lidar_link", "laser_link"}
+
+
+_BASE_NAMES = {"base_link", "base", "base_footprint"}
+_ROLE_NAMES = {"camera": _CAMERA_NAMES, "laser": _LASER_NAMES, "base": _BASE_NAMES}
+
+
+def _check_tf_direction(value: dict[str, Any], source: str, field: str) -> None:
+    """A tf-style ``T_a_b`` whose parent / child name b's and a's frames: the key fixes the
+    direction, so the transform would be used inverted (bag ingest refuses it too)."""
+    roles = field.split("_")[1:]
+    parent = str(value.get("parent", value.get("frame_id", ""))).strip("/")
+    child = str(value.get("child", value.get("child_frame_id", ""))).strip("/")
+    if len(roles) != 2 or not all(r in _ROLE_NAMES for r in roles):
+        return
+    a, b = roles
+    if parent in _ROLE_NAMES[b] and child in _ROLE_NAMES[a]:
+        raise CalibrationFileError(
+            f"{source}: field '{field}' has parent {parent!r} and child {child!r}, which is "
+            f"reversed: {field} maps {b} points into the {a} frame, so parent: {a} frame and "
+            f"child: {b} frame (swap them, or invert the transform)")
 
 
 def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:

@@ -406,6 +406,11 @@ def test_extrinsic_mappings_round_trip() -> None:
     with pytest.raises(CalibrationFileError, match="camera_link"):
         extrinsic_from_mapping({"parent": "base_link", "child": "laser", "translation": [0] * 3,
                                 "rotation": [0, 0, 0, 1]}, "f.yaml")
+    # Under a key, the key fixes the direction: frames named the other way are refused
+    # (the transform was used inverted: 115 deg / 0.25 m off).
+    assert np.allclose(extrinsic_from_mapping({"T_camera_laser": {**d["tf"]}}, "x"), T)
+    with pytest.raises(CalibrationFileError, match="T_camera_laser' has parent 'laser'.*reversed"):
+        extrinsic_from_mapping({"T_camera_laser": tf_inverse}, "f.yaml")
 
 
 def test_scan_name_stamps_and_degree_angles(tmp_path: Path) -> None:
