@@ -134,7 +134,8 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
     camera = load_camera(Path(args.camera)) if args.camera else None
     if args.sequence:
         cands, skipped, camera = load_candidates_from_sequence(
-            Path(args.sequence), board, args.max_dt, args.skip_unpaired, camera)
+            Path(args.sequence), board, args.max_dt, args.skip_unpaired, camera,
+            str(args.camera) if args.camera else None)
     else:
         if not (args.images and args.scans and camera is not None):
             raise CalibrationFileError("give --images, --scans and --camera, or --sequence")

@@ -414,9 +414,10 @@ def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera:
 
 def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
                                   skip_unpaired: bool = False, camera: PinholeCamera | None
-                                  = None) -> tuple[list[ViewCandidate], dict[str, str],
-                                                   PinholeCamera]:
-    """Pairs from a sequence folder (camera from its rig.yaml unless ``camera`` is given)."""
+                                  = None, camera_source: str | None = None) -> tuple[
+                                      list[ViewCandidate], dict[str, str], PinholeCamera]:
+    """Pairs from a sequence folder (camera from its rig.yaml unless ``camera`` is given,
+    read from ``camera_source``: the file a size mismatch is blamed on)."""
     from toolkit.io.sequence import read_sequence
 
     seq = read_sequence(root)
@@ -429,7 +430,8 @@ def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
                          np.array([f.stamp for f in seq.frames]))
     scans = [StampedScan(s.stamp, s.points(), f"{root / 'scans.npz'}[{i}]")
              for i, s in enumerate(seq.scans)]
-    dets, missed = detect_all(images, board, cam, str(root / "rig.yaml"))
+    source = camera_source if camera is not None and camera_source else str(root / "rig.yaml")
+    dets, missed = detect_all(images, board, cam, source)
     cands, skipped = pair_views(images, dets, scans, max_dt, skip_unpaired)
     return cands, {**missed, **skipped}, cam
 

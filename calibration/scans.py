@@ -300,8 +300,10 @@ def pair_by_stamp(image_stamps: np.ndarray, scan_stamps: np.ndarray, max_dt: flo
 ):
     """Nearest scan for each image within ``max_dt`` seconds; and the images left unpaired.
 
-    A scan is used at most once (by the image nearest to it) so that two images taken
-    while the board moved cannot share one scan.
+    A scan is used at most once (the closest pairs first) so that two images taken while
+    the board moved cannot share one scan; an image whose nearest scan went to another
+    takes its next one within ``max_dt`` (it was left unpaired, "nearest scan 30 ms
+    away" under a 100 ms limit).
     """
     image_stamps = np.asarray(image_stamps, dtype=np.float64)  # [I]
     scan_stamps = np.asarray(scan_stamps, dtype=np.float64)  # [S]
@@ -311,14 +313,15 @@ def pair_by_stamp(image_stamps: np.ndarray, scan_stamps: np.ndarray, max_dt: flo
     sorted_stamps = scan_stamps[order]
     cand: list[Pair] = []
     for i, t in enumerate(image_stamps):
-        k = int(np.searchsorted(sorted_stamps, t))
-        best = min((j for j in (k - 1, k) if 0 <= j < len(sorted_stamps)),
-                   key=lambda j: abs(sorted_stamps[j] - t))
-        cand.append(Pair(i, int(order[best]), float(sorted_stamps[best] - t)))
+        lo = int(np.searchsorted(sorted_stamps, t - max_dt, "left"))
+        hi = int(np.searchsorted(sorted_stamps, t + max_dt, "right"))
+        cand += [Pair(i, int(order[j]), float(sorted_stamps[j] - t)) for j in range(lo, hi)]
     taken: dict[int, Pair] = {}
+    images_done: set[int] = set()
     for p in sorted(cand, key=lambda p: abs(p.dt)):
-        if abs(p.dt) <= max_dt and p.scan_index not in taken:
+        if p.scan_index not in taken and p.image_index not in images_done:
             taken[p.scan_index] = p
+            images_done.add(p.image_index)
     pairs = sorted(taken.values(), key=lambda p: p.image_index)
     paired = {p.image_index for p in pairs}
     return pairs, [i for i in range(len(image_stamps)) if i not in paired]

@@ -164,6 +164,10 @@ def test_pairing_tolerance_and_one_scan_per_image() -> None:
     # Image 1.02 is nearer to scan 1.015 than image 1.0 is, so it gets that scan.
     assert [(p.image_index, p.scan_index) for p in pairs] == [(0, 0), (2, 1)]
     assert unpaired == [1, 3]
+    # An image whose nearest scan went to another takes its next one within the limit.
+    pairs, unpaired = pair_by_stamp(np.array([0.0, 0.04]), np.array([0.03, 0.09]), max_dt=0.1)
+    assert sorted((p.image_index, p.scan_index) for p in pairs) == [(0, 1), (1, 0)]
+    assert unpaired == []
 
 
 # ---------------------------------------------------------------------------- scan segments
