@@ -710,8 +710,8 @@ def test_onnx_models_of_other_shapes_are_named_before_they_run(tmp_path: Path,
 def test_depth_threads_keep_an_interrupted_runs_frames(tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """threads / device / prefetch change how fast the stage runs, not what it writes: an
-    interrupted run's frames are kept under new ones (they were all predicted again); a
-    finished stage reruns for its timings."""
+    interrupted run's frames are kept under new ones (they were all predicted again), and
+    a finished stage stays cached (it reran, and made every later stage rerun)."""
     from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
 
     from toolkit.depth.stage import DepthStage
@@ -736,8 +736,8 @@ def test_depth_threads_keep_an_interrupted_runs_frames(tmp_path: Path,
     monkeypatch.setattr(SimulatedDepthBackend, "predict", predict)
     again = run_stages(tmp_path, stages(threads=1, device="cpu", prefetch=False), register)
     assert again.ok and again.metrics["depth"]["frames_resumed"] == 2
-    timed = run_stages(tmp_path, stages(threads=2), register)
-    assert timed.statuses["depth"] == "ran" and timed.metrics["depth"]["frames_resumed"] == 0
+    same = run_stages(tmp_path, stages(threads=2), register)
+    assert same.statuses["depth"] == "cached" and same.metrics["depth"]["frames_resumed"] == 2
 
 
 def test_depth_settings_that_cannot_run_are_refused_with_the_recipe() -> None:

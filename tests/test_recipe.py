@@ -868,6 +868,40 @@ def test_a_lost_report_figure_reruns_the_stage(tmp_path: Path) -> None:
         registry.unregister("t_figure")
 
 
+class SpeedyConfig(SourceConfig):
+    threads: int = 1
+
+
+class SpeedyStage(Source):
+    """A source whose ``threads`` changes only how fast it runs (test stage)."""
+
+    name = "t_speedy"
+    Config = SpeedyConfig
+    speed_settings = frozenset({"threads"})
+
+
+def test_a_speed_setting_leaves_a_finished_stage_and_its_readers_cached(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """depth.threads changed nothing the stage writes, yet reran it and every stage after
+    it (hours on a long recording); now it stays cached, says why, and --only reruns it."""
+    counter = str(tmp_path / "calls.txt")
+    registry.register("t_speedy", SpeedyStage)
+    try:
+        path = _write_recipe(tmp_path, {"name": "s", "output": str(tmp_path / "run"), "stages": [
+            {"stage": "t_speedy", "counter": counter, "value": 4},
+            {"stage": "t_double", "counter": counter}]})
+        assert _run(path).statuses == {"t_speedy": "ran", "t_double": "ran"}
+        capsys.readouterr()
+        res = _run(path, "t_speedy.threads=2")
+        assert res.statuses == {"t_speedy": "cached", "t_double": "cached"}
+        assert "only threads 1 -> 2 changed" in capsys.readouterr().out.replace("\n", " ")
+        res = _run(path, "t_speedy.threads=2", only="t_speedy")
+        assert res.statuses["t_speedy"] == "ran"
+        assert _run(path, "t_speedy.value=5").statuses["t_double"] == "ran"  # output changed
+    finally:
+        registry.unregister("t_speedy")
+
+
 def test_other_settings_start_from_an_empty_stage_folder(tmp_path: Path) -> None:
     """Files an earlier run wrote under other settings must not be read as this run's (an
     old per-frame depth beside the new, an old capture); an interrupted run of the same

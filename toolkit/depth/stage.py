@@ -124,8 +124,10 @@ class DepthStage(Stage):
     requires = ("sequence",)
     provides = ("depth",)
     # The same depth maps on any thread count or device (up to float rounding): an
-    # interrupted run's frames stay (a finished run reruns, for its timings).
+    # interrupted run's frames stay, and a finished run stays cached (--only reruns it
+    # for its timings).
     resume_settings = frozenset({"threads", "device", "prefetch"})
+    speed_settings = frozenset({"threads", "device", "prefetch"})
 
     def external_inputs(self) -> list[Path]:
         cfg: DepthConfig = self.config  # type: ignore[assignment]

@@ -280,6 +280,7 @@ class FuseStage(Stage):
     # rig: a calibrated extrinsic (calibrate) over the sequence's own
     optional_requires = ("trajectory", "rig")
     provides = ("fused",)
+    speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.io.sequence import read_sequence, sequence_with_rig

@@ -291,9 +291,10 @@ class _Run:
         start = time.perf_counter()
         try:
             stage = spec.cls(spec.config)
-            record.key = _cache_key(spec, stage, self.upstream_tokens(spec))
+            record.key = _cache_key(spec, stage, self.upstream_tokens(spec),
+                                    stage.speed_settings)
             record.folder_key = _cache_key(spec, stage, self.upstream_tokens(spec),
-                                           stage.resume_settings)
+                                           stage.resume_settings | stage.speed_settings)
         except Exception as exc:
             if not selected:
                 record.status, record.reason = "not run", f"cannot check its inputs: {exc}"
@@ -363,6 +364,15 @@ class _Run:
         text = stored.get("report") or ""
         record.report = [text] if text else []
         record.provides = {n: stage_dir / rel for n, rel in stored["provides"].items()}
+        then, now = stored.get("speed_settings") or {}, _speed_values(record.spec)
+        changed = [f"{k} {then.get(k)!r} -> {v!r}" for k, v in now.items()
+                   if k in then and then[k] != v]
+        if changed:
+            # Its figures (timings) are the earlier run's: say so, and how to redo them.
+            self.console.print(f"[cyan]{record.spec.id}[/] cached (only {', '.join(changed)}"
+                               f" changed, which does not change its output; --only "
+                               f"{record.spec.id} reruns it for its timings)")
+            return
         self.console.print(f"[cyan]{record.spec.id}[/] cached")
         self.log.info("stage %s cached (key %s)", record.spec.id, record.key, extra=_FILE_ONLY)
 
@@ -427,6 +437,7 @@ class _Run:
                 "key": record.key,
                 "token": record.token,
                 "stage": spec.type,
+                "speed_settings": _speed_values(spec),
                 "provides": {n: _relative(p, stage_dir) for n, p in record.provides.items()},
                 "metrics": record.metrics,
                 "report": "\n\n".join(record.report),
@@ -647,6 +658,12 @@ def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None]
     }
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _speed_values(spec: StageSpec) -> dict[str, Any]:
+    """The stage's speed settings as this recipe gives them (plain data)."""
+    data = config_data(spec.config)
+    return {k: data.get(k) for k in sorted(spec.cls.speed_settings)}
 
 
 def _cpu_seconds() -> float:

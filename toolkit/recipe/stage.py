@@ -129,6 +129,11 @@ class Stage(ABC):
     # from (thread count, iteration count): a finished stage reruns when they change (they
     # are in its cache key), but an interrupted one keeps its folder.
     resume_settings: ClassVar[frozenset[str]] = frozenset()
+    # Settings that change only how fast the stage runs, never what it writes (thread
+    # count, device, prefetching): left out of the cache key, so a finished stage stays
+    # cached when they change (rerunning an hour of depth, and every stage after it, for
+    # a thread count was the cost); ``--force`` / ``--only`` rerun it for its timings.
+    speed_settings: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config
