@@ -140,12 +140,23 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "name the scan source (e.g. rosbag.topics.scan)")
     if plan.candidates and plan.dropped.get("no_scan") == plan.candidates:
         fs = recording.frame_stamps
-        raise IngestError(
-            f"{recording.source}: none of the {plan.candidates} camera frames has a scan "
-            f"within {sync.tolerance_s} s (frames span {fs[0]:.3f}..{fs[-1]:.3f} s, scans "
-            f"{scan_stamps[0]:.3f}..{scan_stamps[-1]:.3f} s): the sensors' clocks disagree. "
-            "Fix: 'rosbag.stamps: bag' (recording time) for a bag, a larger "
-            "'sync.tolerance_s', or 'sync.require_scan: false'")
+        gap = float(np.median(np.abs(scan_stamps[match_nearest(fs, scan_stamps, np.inf)] - fs)))
+        overlap = fs[0] <= scan_stamps[-1] and scan_stamps[0] <= fs[-1]
+        period = float(np.median(np.diff(scan_stamps))) if len(scan_stamps) > 1 else np.inf
+        if overlap and gap <= period:
+            # The clocks agree: unsynchronised sensors (a 10 Hz camera 40 ms out of phase
+            # with a 10 Hz lidar) just have no scan that near.
+            why = (f"the nearest scan is {gap * 1000:.0f} ms away at the median, within one "
+                   f"scan period ({period * 1000:.0f} ms): the sensors are not synchronised. "
+                   f"Fix: 'sync.tolerance_s' of about half the scan period "
+                   f"({period / 2:.3f} s; scans are placed at the image time with the poses)")
+        else:
+            why = (f"frames span {fs[0]:.3f}..{fs[-1]:.3f} s, scans {scan_stamps[0]:.3f}.."
+                   f"{scan_stamps[-1]:.3f} s, the nearest scan {gap:.3f} s away at the median:"
+                   " the sensors' clocks disagree. Fix: 'rosbag.stamps: bag' (recording time)"
+                   " for a bag, a larger 'sync.tolerance_s', or 'sync.require_scan: false'")
+        raise IngestError(f"{recording.source}: none of the {plan.candidates} camera frames "
+                          f"has a scan within sync.tolerance_s = {sync.tolerance_s} s: {why}")
     with_scan = plan.candidates - plan.dropped.get("no_scan", 0)
     if with_scan and plan.dropped.get("no_depth", 0) == with_scan:
         # Depth is for evaluation: a clock offset between colour and depth streams must
