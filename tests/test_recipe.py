@@ -516,7 +516,8 @@ def test_from_reruns_from_stage(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 2, "t_sink": 2}
 
 
-def test_missing_output_or_external_change_reruns(tmp_path: Path) -> None:
+def test_missing_output_or_external_change_reruns(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     _run(path)
     (tmp_path / "run" / "t_double" / "doubled.txt").unlink()
@@ -539,6 +540,12 @@ def test_missing_output_or_external_change_reruns(tmp_path: Path) -> None:
     assert _run(ext).statuses == {"t_external": "cached"}
     source.write_text("version 2")
     assert _run(ext).statuses == {"t_external": "ran"}
+    # The same file named relative to another folder is the same input.
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    for cwd, name in ((tmp_path, "input.log"), (sub, "../input.log"), (sub, "./../input.log")):
+        monkeypatch.chdir(cwd)
+        assert _run(ext, f"t_external.source_file={name}").statuses == {"t_external": "cached"}
 
 
 def test_missing_external_input_stops_before_anything_runs(tmp_path: Path) -> None:

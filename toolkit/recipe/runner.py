@@ -19,6 +19,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import re
 import shutil
 import time
@@ -649,12 +650,16 @@ def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> li
 
 def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None],
                leave_out: frozenset[str] = frozenset()) -> str:
+    external = [Path(p) for p in stage.external_inputs()]
+    config = {k: v for k, v in config_data(spec.config).items() if k not in leave_out}
     payload = {
         "stage": spec.type,
         "version": getattr(stage, "version", 1),
-        "config": {k: v for k, v in config_data(spec.config).items() if k not in leave_out},
+        # The files a stage reads by the folder-independent path: the same bag named from
+        # another folder (or absolutely) is the same input, not "settings changed".
+        "config": _absolute_inputs(config, {p: os.path.abspath(p) for p in external}),
         "upstream": dict(sorted(upstream.items())),
-        "external": [_fingerprint(Path(p)) for p in stage.external_inputs()],
+        "external": [_fingerprint(p) for p in external],
     }
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
@@ -676,9 +681,21 @@ def _cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
+def _absolute_inputs(value: Any, inputs: Mapping[Path, str]) -> Any:
+    """``value`` with every string naming one of ``inputs`` (as given) in its absolute
+    form."""
+    if isinstance(value, dict):
+        return {k: _absolute_inputs(v, inputs) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_absolute_inputs(v, inputs) for v in value]
+    if isinstance(value, str) and value and Path(value) in inputs:
+        return inputs[Path(value)]
+    return value
+
+
 def _fingerprint(path: Path) -> dict[str, Any]:
     """Size and mtime of a file (every file, for a folder): cheap, unlike hashing a bag."""
-    path = path.absolute()
+    path = Path(os.path.abspath(path))
     if path.is_dir():
         files = sorted(p for p in path.rglob("*") if p.is_file())
         entries = [[p.relative_to(path).as_posix(), *_stat(p)] for p in files]
