@@ -225,6 +225,10 @@ def test_stamps_keep_and_decimation():
         assert kept.sum() == 50 and set(np.diff(np.flatnonzero(kept))) == {2}
     assert decimate_by_time(np.arange(0, 1.01, 0.1), 0.25).tolist() == [
         True, False, False, True, False, False, True, False, False, True, False]
+    # Stamps jittering by +-2 ms: still every other frame (0.2 and 0.3 s apart in turn).
+    jitter = np.random.default_rng(0).uniform(-0.002, 0.002, 250)
+    kept = decimate_by_time(1.7e9 + np.arange(250) * 0.1 + jitter, 0.2)
+    assert kept.sum() == 125 and set(np.diff(np.flatnonzero(kept))) == {2}
 
 
 def test_plan_counts_each_reason():
