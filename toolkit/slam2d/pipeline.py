@@ -55,6 +55,7 @@ def run_slam(
     t0 = time.perf_counter()
     c0 = time.process_time()
     slam = LidarSlam2D(config, T_base_laser)
+    by_odometry = 0
     if odometry is not None and len(odometry) > 1:
         # Wheel odometry knows the motion during each sweep (forward of the stamp, which
         # the SLAM's own velocity cannot): simulated house at 5 Hz, scans de-skewed
@@ -63,7 +64,9 @@ def run_slam(
         laser = np.eye(4) if T_base_laser is None else np.asarray(T_base_laser, np.float64)
         timed = [s for s in scans if isinstance(s, LaserScan)]
         if len(timed) == len(scans) and any(s.time_increment for s in timed):
-            scans = deskew_scans(timed, odometry, laser, covered_only=True)
+            deskewed = deskew_scans(timed, odometry, laser, covered_only=True)
+            by_odometry = sum(a is not b for a, b in zip(timed, deskewed, strict=True))
+            scans = deskewed
     stamps = np.array([float(s.stamp) for s in scans], dtype=np.float64)
     odom = odometry_at(odometry, stamps)
     with_odom = sum(o is not None for o in odom)
@@ -91,6 +94,8 @@ def run_slam(
     result.metrics["cpu_time_s"] = round(cpu, 3)
     result.metrics["realtime_factor_cpu"] = round(span / cpu, 2) if cpu > 0 else None
     result.metrics["odometry_used"] = with_odom > 0
+    # scans_deskewed counts the SLAM's own (with its velocity); these went in de-skewed
+    result.metrics["scans_deskewed_odometry"] = by_odometry
     result.metrics["scans_with_odometry"] = with_odom
     return result
 
