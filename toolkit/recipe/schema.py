@@ -268,8 +268,9 @@ def parse_recipe(
     if not problems:
         specs = _wire_artifacts(specs, problems)
     if problems:
-        if overrides:
-            # A --set value is YAML: true, null, 1.10, [a] and '#...' are not the text typed.
+        if overrides and any("unknown key" not in q for q in problems):
+            # A --set value is YAML: true, null, 1.10, [a] and '#...' are not the text typed
+            # (said for a bad value; a misspelt key has its own "did you mean").
             problems.append(
                 f"(with --set {' '.join(overrides)}: values are read as YAML, so quote text "
                 f"that YAML reads otherwise, e.g. --set 'ingest.topic=\"null\"')")
