@@ -123,6 +123,7 @@ class DepthStage(Stage):
     Config = DepthConfig
     requires = ("sequence",)
     provides = ("depth",)
+    version = 2  # 2: BGR default normalisation; input_hw recorded; order-free wander
     # The same depth maps on any thread count or device (up to float rounding): an
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
     # for its timings).

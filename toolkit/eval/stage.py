@@ -89,6 +89,9 @@ class EvaluateStage(Stage):
     requires = ("sequence",)
     optional_requires = ("trajectory", "fused", "tsdf_mesh")
     provides = ("evaluation",)
+    # 2: a TSDF mesh's completeness to its surface; 'points' is the map's size; a
+    #    lidar-only recording scores the base trajectory
+    version = 2
 
     def run(self, ctx: StageContext) -> None:
         import open3d as o3d
@@ -168,16 +171,22 @@ class EvaluateStage(Stage):
                                            max_depth_m=cfg.completeness_max_depth_m)
         rng = np.random.default_rng(cfg.seed)
 
-        def score(points: np.ndarray, label: str) -> dict[str, float]:
+        def score(points: np.ndarray, label: str,
+                  surface: o3d.geometry.TriangleMesh | None = None) -> dict[str, float]:
             # Accuracy on a random subset (exact mesh distances are the cost), completeness
-            # against every point.
+            # against every point - or, for a mesh (``surface``), against its surface.
             full = points @ S[:3, :3].T + S[:3, 3]
             pts = full
             if len(full) > cfg.max_points:
                 pts = full[rng.choice(len(full), cfg.max_points, replace=False)]
+            to_surface = None
+            if surface is not None:
+                moved = o3d.geometry.TriangleMesh(surface)
+                moved.transform(S)
+                to_surface = mesh_distances(reference, moved)
             return geometry_metrics(pts, reference, DEFAULT_THRESHOLDS_M,
                                     accuracy_distances=mesh_distances(pts, mesh),
-                                    complete_points=full)
+                                    complete_points=full, completeness_distances=to_surface)
 
         table = []
         if reference is not None and ctx.has_artifact("fused"):
@@ -188,7 +197,7 @@ class EvaluateStage(Stage):
         if reference is not None and ctx.has_artifact("tsdf_mesh"):
             tm = o3d.io.read_triangle_mesh(str(ctx.artifact("tsdf_mesh")))
             if len(tm.triangles) > 0:
-                m = score(sample_mesh(tm, cfg.mesh_spacing_m, cfg.seed), "tsdf")
+                m = score(sample_mesh(tm, cfg.mesh_spacing_m, cfg.seed), "tsdf", tm)
                 metrics["tsdf_mesh"] = m
                 table.append(("TSDF mesh", m))
         if table:
@@ -196,7 +205,8 @@ class EvaluateStage(Stage):
                       f"{cfg.max_points} map points at random to the mesh; completeness: the "
                       f"surface the cameras saw within "
                       f"{cfg.completeness_max_depth_m:g} m, {len(reference)} samples every "
-                      f"{cfg.mesh_spacing_m * 100:g} cm, to every map point):", "",
+                      f"{cfg.mesh_spacing_m * 100:g} cm, to every map point, or to the TSDF "
+                      f"mesh's surface):", "",
                       "| map | points | accuracy mean | completeness mean | Chamfer | "
                       "F@2cm | F@5cm | F@10cm |", "|---|---|---|---|---|---|---|---|"]
             for label, m in table:

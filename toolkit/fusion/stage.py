@@ -280,6 +280,7 @@ class FuseStage(Stage):
     # rig: a calibrated extrinsic (calibrate) over the sequence's own
     optional_requires = ("trajectory", "rig")
     provides = ("fused",)
+    version = 2  # 2: floor below base_link; scans off the trajectory unused; smoothing
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:

@@ -76,6 +76,7 @@ class IngestStage(Stage):
     name = "ingest"
     Config = IngestConfig
     provides = ("sequence",)
+    version = 2  # 2: frames by (stamp, bag time); rectified R; lens models; decimation
 
     config: IngestConfig
 

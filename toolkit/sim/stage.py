@@ -115,6 +115,7 @@ class SimulateStage(Stage):
     name = "simulate"
     Config = SimulateConfig
     provides = ("sequence",)
+    version = 2  # 2: swept scans: ground truth to the last beam, people per beam group
 
     config: SimulateConfig
 

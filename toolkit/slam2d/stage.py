@@ -43,6 +43,7 @@ class Slam2DStage(Stage):
     requires = ("sequence",)
     optional_requires = ("rig",)  # a calibrated extrinsic (calibrate) over the sequence's
     provides = ("trajectory",)
+    version = 2  # 2: no odometry across its gaps; closure cap counts accepted closures
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config

@@ -305,6 +305,7 @@ class SplatStage(Stage):
     resume_settings = frozenset({"iterations", "max_seconds", "log_every", "checkpoint_every",
                                  "threads"})
     provides = ("splats",)
+    version = 2  # 2: off-path views masked like the path's; SSIM over valid windows
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]
