@@ -204,6 +204,15 @@ stages:
 """)
     problems = missing_inputs(load_recipe(recipe))
     assert len(problems) == 1 and "is a folder; give the .onnx file in it" in problems[0]
+    # A Git LFS pointer or any file that is no ONNX model: found by validate too (it failed
+    # in onnxruntime with INVALID_PROTOBUF after the stages before depth had run).
+    for text, why in (("version https://git-lfs.github.com/spec/v1\n", "Git LFS pointer"),
+                      ("<html>not found</html>", "not an ONNX model")):
+        model = tmp_path / "model.onnx"
+        model.write_text(text)
+        recipe.write_text(recipe.read_text().replace(str(tmp_path / "models"), str(model)))
+        problems = missing_inputs(load_recipe(recipe))
+        assert len(problems) == 1 and why in problems[0], problems
 
 
 # ------------------------------------------------------------------ simulated

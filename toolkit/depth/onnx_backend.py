@@ -96,6 +96,26 @@ def folder_model_message(path: Path) -> str:
     return f"{path}: is a folder; give the .onnx file in it as 'model'"
 
 
+def model_file_problem(path: Path) -> str | None:
+    """Why the file at ``path`` cannot be an ONNX model, from its first bytes (cheap enough
+    for ``validate``: a Git LFS pointer or a text file failed in onnxruntime with
+    INVALID_PROTOBUF after the stages before depth had run); None when it may be one."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+    except OSError as e:
+        return f"{path}: cannot read the model: {e}"
+    if head.startswith(b"version https://git-lfs"):
+        return (f"{path}: a Git LFS pointer, not the model: fetch the file itself "
+                "(git lfs pull) or copy the exported .onnx there")
+    # An ONNX file is a protobuf ModelProto: its first field (ir_version, field 1, varint)
+    # starts with the byte 0x08; text, HTML or a zip never do.
+    if not head or head[0] != 0x08:
+        return (f"{path}: not an ONNX model (it starts {head[:16]!r}); give the .onnx file "
+                "the network was exported to (torch.onnx.export)")
+    return None
+
+
 def missing_model_message(path: Path) -> str:
     return (
         f"ONNX depth model not found at {path}. This toolkit never downloads weights: put the "
@@ -125,9 +145,18 @@ class OnnxDepthBackend:
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.add_session_config_entry("session.intra_op.allow_spinning",
                                       "1" if config.spin else "0")
-        self.session = ort.InferenceSession(
-            str(path), opts,
-            providers=execution_providers(config.device, ort.get_available_providers()))
+        problem = model_file_problem(path)
+        if problem:
+            raise ValueError(problem)
+        try:
+            self.session = ort.InferenceSession(
+                str(path), opts,
+                providers=execution_providers(config.device, ort.get_available_providers()))
+        except (RuntimeError, ort.capi.onnxruntime_pybind11_state.Fail,
+                ort.capi.onnxruntime_pybind11_state.InvalidProtobuf,
+                ort.capi.onnxruntime_pybind11_state.InvalidGraph) as e:
+            raise ValueError(f"{path}: onnxruntime cannot load the model ({e}); re-export "
+                             "it (torch.onnx.export, opset 17 or newer)") from None
         # What onnxruntime actually uses (it falls back to the CPU when CUDA cannot start).
         self.providers: list[str] = list(self.session.get_providers())
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)

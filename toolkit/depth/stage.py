@@ -135,9 +135,15 @@ class DepthStage(Stage):
         return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
 
     def input_problems(self) -> list[str]:
-        from toolkit.depth.onnx_backend import folder_model_message
+        from toolkit.depth.onnx_backend import folder_model_message, model_file_problem
 
-        return [folder_model_message(p) for p in self.external_inputs() if p.is_dir()]
+        out = []
+        for p in self.external_inputs():
+            why = folder_model_message(p) if p.is_dir() else (
+                model_file_problem(p) if p.is_file() else None)
+            if why:
+                out.append(why)
+        return out
 
     @staticmethod
     def _random_model(cfg: DepthConfig, ctx: StageContext) -> DepthConfig:

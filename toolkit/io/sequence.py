@@ -27,6 +27,7 @@ import json
 import logging
 import re
 import shutil
+import zipfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -82,7 +83,11 @@ def rig_from_dict(d: Any, source: str = "rig.yaml") -> Rig:
     for key in ("T_base_camera", "T_base_laser"):
         if key not in d:
             raise SequenceFormatError(f"{source}: missing field '{key}' (4x4 list of rows)")
-        M = np.asarray(d[key], dtype=np.float64)
+        try:
+            M = np.asarray(d[key], dtype=np.float64)
+        except (TypeError, ValueError) as e:  # a short row, "0.2m"
+            raise SequenceFormatError(f"{source}: field '{key}' must be a 4x4 list of rows of "
+                                      f"numbers: {e}") from None
         if M.shape != (4, 4) or not np.all(np.isfinite(M)):
             raise SequenceFormatError(f"{source}: field '{key}' must be a finite 4x4 matrix, "
                                       f"got shape {M.shape}")
@@ -205,10 +210,11 @@ def read_scans(path: Path) -> list[LaserScan]:
     try:
         with np.load(path) as data:
             return scans_from_arrays({k: data[k] for k in data.files}, str(path))
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:  # truncated: the last two
         if isinstance(e, SequenceFormatError):
             raise
-        raise SequenceFormatError(f"{path}: not a readable npz scan file: {e}") from None
+        raise SequenceFormatError(f"{path}: not a readable npz scan file ({e}); write it "
+                                  "again (toolkit.io.sequence.write_scans)") from None
 
 
 # ---------------------------------------------------------------------------- frames.csv
