@@ -126,6 +126,9 @@ def test_camera_mappings_name_their_lens_model():
             PinholeCamera.from_dict({**base, "distortion": [*five, 0.3, 0, 0], key: model})
     cam = PinholeCamera(640, 480, 500, 500, 319.5, 239.5, np.array(five))
     assert PinholeCamera.from_dict(cam.to_dict()) == cam  # round trip
+    for key in ("distorsion", "distortion_coeffs", "distortion_coefficients"):
+        with pytest.raises(ValueError, match=f"unknown key.*{key}.*'distortion'"):
+            PinholeCamera.from_dict({**base, key: five})
 
 
 def test_projection_and_transforms_refuse_points_of_the_wrong_shape():

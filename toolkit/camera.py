@@ -88,6 +88,13 @@ class PinholeCamera:
         missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in d]
         if missing:
             raise KeyError(f"camera is missing {missing}")
+        # A misspelt distortion key (distorsion, distortion_coeffs) read as no distortion
+        # without a word.
+        odd = [k for k in d if "dist" in str(k).lower()
+               and k not in ("distortion", "distortion_model")]
+        if odd:
+            raise ValueError(f"unknown key(s) {odd}: the lens distortion is 'distortion' "
+                             "[k1, k2, p1, p2, k3] (its model: 'distortion_model')")
         given = d.get("distortion")
         dist = np.asarray([] if given is None else given, dtype=np.float64).reshape(-1)
         key = "distortion_model" if "distortion_model" in d else "model"
