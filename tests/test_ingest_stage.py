@@ -324,3 +324,24 @@ def test_unsynchronised_sensors_are_told_apart_from_clocks_that_disagree(tmp_pat
         rec = read_sequence_recording(tmp_path / name)
         with pytest.raises(IngestError, match=match):
             convert(rec, tmp_path / f"{name}_out", sync=SyncOptions(tolerance_s=0.03))
+
+
+def test_a_broken_image_in_a_sequence_is_named_at_ingest(tmp_path):
+    """A truncated PNG at frame 3 was copied unread; depth failed later naming the run's
+    copy, which a rerun overwrote with the bad source. Now ingest names the source file; a
+    frame of another size is caught there too."""
+    import cv2
+
+    from toolkit.fusion.synthetic import write_box_room
+
+    src = write_box_room(tmp_path / "seq", n_frames=6)
+    bad = sorted((src / "camera" / "images").glob("*.png"))[3]
+    good = bad.read_bytes()
+    bad.write_bytes(good[: len(good) // 3])
+    res = run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src))))
+    assert not res.ok and str(bad) in res.error and "not a readable PNG" in res.error
+    cv2.imwrite(str(bad), np.zeros((24, 32, 3), np.uint8))
+    res = run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src))))
+    assert not res.ok and "is 32x24, the camera 160x120" in res.error
+    bad.write_bytes(good)
+    assert run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src)))).ok

@@ -443,13 +443,26 @@ class SequenceWriter:
         rel = f"images/{i:06d}.png"
         dst = self.root / "camera" / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
+        w, h = self.rig.camera.size
         if image_path is not None and Path(image_path).suffix.lower() == ".png":
+            # Decoded once here: a truncated or foreign file copied unread failed stages
+            # later, naming this copy (which a rerun then overwrote with the bad source).
+            pixels = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED)
+            if pixels is None:
+                raise ValueError(f"{image_path}: frame {i} is not a readable PNG image "
+                                 "(truncated or another format); replace it and run again")
+            if pixels.shape[:2] != (h, w):
+                raise ValueError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
+                                 f"{pixels.shape[0]}, the camera {w}x{h}")
             with atomic_path(dst) as tmp:
                 shutil.copyfile(image_path, tmp)
         else:
             if image is None:
                 raise ValueError(f"frame {i}: neither pixels nor an image path")
             _write_rgb(dst, image)
+        if gt_depth is not None and np.shape(gt_depth)[:2] != (h, w):
+            raise ValueError(f"frame {i}: ground-truth depth of {np.shape(gt_depth)[1]}x"
+                             f"{np.shape(gt_depth)[0]}, the camera {w}x{h}")
         row = {"index": str(i), "stamp": repr(float(stamp)), "image": rel}
         if gt_depth is not None:
             row["gt_depth"] = f"../groundtruth/depth/{i:06d}.{self.depth_format}"
