@@ -181,3 +181,41 @@ def test_kitti_tum_and_depth_readers_check_what_they_read(tmp_path):
     (tmp_path / "d.npy").write_bytes(b"\x93NUMPY garbage")
     with pytest.raises(ValueError, match="d.npy: not a readable .npy depth map"):
         read_depth(tmp_path / "d.npy")
+
+
+def test_scan_arrays_and_frame_rows_name_what_is_wrong(tmp_path):
+    """NaN range limits, range_min >= range_max and intensities for fewer scans were read
+    (the lidar pairs then failed, blaming the extrinsics); a frames.csv row without its
+    image field was a TypeError."""
+    from toolkit.io.sequence import SequenceFormatError, scans_from_arrays
+
+    good = {"stamps": np.array([0.0, 0.1]), "ranges": np.ones((2, 4), np.float32),
+            "angle_min": np.zeros(2), "angle_increment": np.full(2, 0.1),
+            "range_min": np.full(2, 0.1), "range_max": np.full(2, np.inf)}
+    assert len(scans_from_arrays(good, "s.npz")) == 2  # range_max inf: no limit
+    for key, value, match in (("range_max", np.array([10.0, np.nan]), "'range_max' holds non-"),
+                              ("range_min", np.array([np.nan, 0.1]), "'range_min' holds non-"),
+                              ("range_min", np.array([0.1, 20.0]), "'range_min' is not below"),
+                              ("intensities", np.ones((1, 4)), "'intensities' has 1 rows")):
+        bad = {**good, key: value}
+        if "below" in match:
+            bad["range_max"] = np.full(2, 10.0)
+        with pytest.raises(SequenceFormatError, match=rf"s\.npz: {match}"):
+            scans_from_arrays(bad, "s.npz")
+    from toolkit.io.sequence import _frames_from_rows
+
+    with pytest.raises(SequenceFormatError, match=r"frames\.csv:2: field 'image' is empty"):
+        _frames_from_rows([{"index": "0", "stamp": "1.0", "image": None}], tmp_path,
+                          tmp_path / "frames.csv")
+
+
+def test_empty_odometry_runs_scan_only():
+    """An odometry file of comments only: the SLAM runs scan-only (an IndexError before)."""
+    from test_slam2d import _drive, make_scan  # the tests folder is on sys.path
+
+    from toolkit.geometry import Trajectory
+    from toolkit.slam2d.pipeline import run_slam
+
+    scans = [make_scan(p, float(k)) for k, p in enumerate(_drive(6))]
+    res = run_slam(scans, Trajectory(np.zeros(0), np.zeros((0, 4, 4)), "odom", "base_link"))
+    assert res.metrics["scans_with_odometry"] == 0 and len(res.poses) == len(scans)

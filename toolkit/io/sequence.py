@@ -182,7 +182,19 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
         per[key] = a
     if np.any(per["angle_increment"] == 0):
         raise SequenceFormatError(f"{source}: 'angle_increment' is zero for some scans")
+    for key, a in per.items():
+        bad = np.isnan(a) if key == "range_max" else ~np.isfinite(a)  # range_max may be inf
+        if bad.any():
+            raise SequenceFormatError(f"{source}: '{key}' holds non-finite values (scan "
+                                      f"{int(np.flatnonzero(bad)[0])})")
+    if np.any(per["range_min"] >= per["range_max"]):
+        raise SequenceFormatError(f"{source}: 'range_min' is not below 'range_max' (scan "
+                                  f"{int(np.argmax(per['range_min'] >= per['range_max']))}): "
+                                  "no return would count")
     inten = np.asarray(data["intensities"], np.float32) if "intensities" in data else None
+    if inten is not None and inten.shape[:1] != (n,):
+        rows = inten.shape[0] if inten.ndim else 0
+        raise SequenceFormatError(f"{source}: 'intensities' has {rows} rows for {n} scans")
     # Written only when a scan has per-beam timing; files from before it hold none.
     dt = np.broadcast_to(np.asarray(data["time_increment"] if "time_increment" in data else 0.0,
                                        np.float64), (n,))
@@ -251,6 +263,9 @@ def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) ->
             raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' not strictly increasing "
                                       f"({prev!r} then {stamp!r})")
         prev = stamp
+        if not row.get("image"):
+            raise SequenceFormatError(f"{csv_path}:{line}: field 'image' is empty or missing "
+                                      "(a row: index,stamp,image[,gt_depth,gt_mask])")
         img = base / row["image"]
         if not img.exists():
             raise SequenceFormatError(f"{csv_path}:{line}: field 'image' names {img}, which "

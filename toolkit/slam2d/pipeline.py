@@ -55,6 +55,9 @@ def run_slam(
     t0 = time.perf_counter()
     c0 = time.process_time()
     slam = LidarSlam2D(config, T_base_laser)
+    if odometry is not None and len(odometry) == 0:
+        _log.warning("the odometry holds no poses; every scan is matched scan-only")
+        odometry = None
     by_odometry = 0
     if odometry is not None and len(odometry) > 1:
         # Wheel odometry knows the motion during each sweep (forward of the stamp, which
