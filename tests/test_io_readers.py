@@ -219,3 +219,16 @@ def test_empty_odometry_runs_scan_only():
     scans = [make_scan(p, float(k)) for k, p in enumerate(_drive(6))]
     res = run_slam(scans, Trajectory(np.zeros(0), np.zeros((0, 4, 4)), "odom", "base_link"))
     assert res.metrics["scans_with_odometry"] == 0 and len(res.poses) == len(scans)
+
+
+def test_a_broken_meta_yaml_names_the_file(tmp_path):
+    """A parse error or a version that is no number named neither file nor field."""
+    from toolkit.fusion.synthetic import write_box_room
+    from toolkit.io.sequence import SequenceFormatError, read_sequence
+
+    root = write_box_room(tmp_path / "seq", n_frames=2)
+    for text, match in (("version: one\n", "field 'version' is 'one'"),
+                        ("[a, b\n", "not valid YAML"), ("- x\n", "expected a mapping")):
+        (root / "meta.yaml").write_text(text)
+        with pytest.raises(SequenceFormatError, match=rf"meta\.yaml: {match}"):
+            read_sequence(root)

@@ -293,11 +293,19 @@ def read_sequence(root: Path | str) -> Sequence:
     meta: dict[str, Any] = {}
     meta_path = root / "meta.yaml"
     if meta_path.exists():
-        meta = yaml.safe_load(meta_path.read_text()) or {}
+        meta = load_yaml(meta_path, SequenceFormatError) or {}
+        if not isinstance(meta, dict):
+            raise SequenceFormatError(f"{meta_path}: expected a mapping (format, version, "
+                                      f"name, ...), got {type(meta).__name__}")
+        try:
+            version = int(meta.get("version", FORMAT_VERSION))
+        except (TypeError, ValueError):
+            raise SequenceFormatError(f"{meta_path}: field 'version' is "
+                                      f"{meta.get('version')!r}, not a whole number") from None
         if meta.get("format", FORMAT_NAME) != FORMAT_NAME:
             raise SequenceFormatError(f"{meta_path}: field 'format' is {meta.get('format')!r}, "
                                       f"expected {FORMAT_NAME!r}")
-        if int(meta.get("version", FORMAT_VERSION)) > FORMAT_VERSION:
+        if version > FORMAT_VERSION:
             raise SequenceFormatError(f"{meta_path}: field 'version' {meta['version']} is newer "
                                       f"than this toolkit reads ({FORMAT_VERSION}); upgrade it")
     rig = read_rig(root / "rig.yaml")
