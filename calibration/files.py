@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from toolkit.camera import PLUMB_BOB_NAMES, PinholeCamera
+from toolkit.camera import PinholeCamera, plumb_bob_distortion
 from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.yaml_file import load_yaml
@@ -81,9 +81,6 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
 
 # Names of the model the camera has (OpenCV's k1 k2 p1 p2 k3): ROS camera_info's, Kalibr's,
 # and the one ``write_camera`` writes.
-_PLUMB_BOB = PLUMB_BOB_NAMES - {"pinhole"}
-
-
 def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str,
                model_field: str = "distortion_model") -> np.ndarray:
     """The k1 k2 p1 p2 k3 coefficients of a camera file, or an error naming the model.
@@ -93,13 +90,12 @@ def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str,
     image edge), so only models that are this one, or reduce to it, are accepted.
     """
     name = "" if model is None else str(model).strip().lower()
-    if name == "rational_polynomial" and len(dist) <= 8 and not np.any(dist[5:]):
-        return dist[:5]  # k4 = k5 = k6 = 0: the same model
     if name == "none" and np.any(dist):
         raise CalibrationFileError(f"{source}: field 'distortion_model' is 'none' but field "
                                    f"'{field}' is not all zero; set distortion_model: plumb_bob "
                                    "if those are k1 k2 p1 p2 k3")
-    if name not in _PLUMB_BOB:
+    coefficients = plumb_bob_distortion(model, dist)
+    if coefficients is None:
         extra = (f" with k4 k5 k6 = {dist[5:8].tolist()} (only k4 = k5 = k6 = 0 is accepted, "
                  "the same model)" if name == "rational_polynomial" else "")
         raise CalibrationFileError(
@@ -108,12 +104,12 @@ def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str,
             "they are. Calibrate the camera with that model (python -m calibration "
             "intrinsics --model opencv5), or undistort the images first and give "
             "distortion_model: plumb_bob with zero coefficients.")
-    if len(dist) > 5:
+    if len(coefficients) > 5:
         raise CalibrationFileError(
             f"{source}: field '{field}' has {len(dist)} coefficients; distortion_model "
             f"{name or 'plumb_bob'} takes 5 at most (k1 k2 p1 p2 k3). For 8 coefficients set "
             "distortion_model: rational_polynomial (accepted only with k4 = k5 = k6 = 0).")
-    return dist
+    return coefficients
 
 
 def load_camera(path: Path) -> PinholeCamera:

@@ -26,6 +26,17 @@ PLUMB_BOB_NAMES = frozenset({"pinhole", "plumb_bob", "radtan", "opencv", "opencv
                              "none", ""})
 
 
+def plumb_bob_distortion(model: Any, dist: np.ndarray) -> np.ndarray | None:
+    """The coefficients ``dist`` of a lens named ``model`` as this camera's k1 k2 p1 p2 k3,
+    or None for another model (an equidistant fisheye's k1..k4 read as these project
+    hundreds of pixels off at the edge). rational_polynomial with k4 = k5 = k6 = 0 is the
+    same model."""
+    name = "" if model is None else str(model).strip().lower()
+    if name == "rational_polynomial" and len(dist) <= 8 and not np.any(dist[5:]):
+        return dist[:5]
+    return dist if name in PLUMB_BOB_NAMES else None
+
+
 @dataclass(eq=False)
 class PinholeCamera:
     """Intrinsics of one camera: image size, focal lengths, principal point, distortion."""
@@ -99,16 +110,14 @@ class PinholeCamera:
         dist = np.asarray([] if given is None else given, dtype=np.float64).reshape(-1)
         key = "distortion_model" if "distortion_model" in d else "model"
         model = d.get(key)
-        name = "" if model is None else str(model).strip().lower()
-        if name == "rational_polynomial" and len(dist) <= 8 and not np.any(dist[5:]):
-            dist = dist[:5]  # k4 = k5 = k6 = 0: the same model
-        elif name not in PLUMB_BOB_NAMES:
+        coefficients = plumb_bob_distortion(model, dist)
+        if coefficients is None:
             raise ValueError(
                 f"field '{key}' is {model!r}: the camera model here is OpenCV's plumb_bob "
                 "(k1 k2 p1 p2 k3; also named pinhole, radtan, opencv), so these coefficients "
                 "cannot be used as they are; calibrate with that model (python -m calibration "
                 "intrinsics) or undistort the images first")
-        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], dist)
+        return cls(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], coefficients)
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -127,7 +127,6 @@ class DepthStage(Stage):
     # The same depth maps on any thread count or device (up to float rounding): an
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
     # for its timings).
-    resume_settings = frozenset({"threads", "device", "prefetch"})
     speed_settings = frozenset({"threads", "device", "prefetch"})
 
     def external_inputs(self) -> list[Path]:

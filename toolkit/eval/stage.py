@@ -121,16 +121,17 @@ class EvaluateStage(Stage):
         # scored are the stamps it covers, and the report says how many.
         covered = gt.poses_base.covers
         if ctx.has_artifact("trajectory"):
-            body = "camera"
-            full = read_tum(ctx.artifact("trajectory") / "trajectory_camera.tum")
-            if not seq.frames and (ctx.artifact("trajectory") / "trajectory_base.tum").exists():
+            traj_dir = ctx.artifact("trajectory")
+            if not seq.frames and (traj_dir / "trajectory_base.tum").exists():
                 # A lidar-only recording (CARMEN, g2o, a bag without images): no camera
                 # poses, so the robot base's are scored (they failed "0 of 0 poses").
                 body = "robot base"
-                full = read_tum(ctx.artifact("trajectory") / "trajectory_base.tum")
+                full = read_tum(traj_dir / "trajectory_base.tum")
                 est = full.slice(gt.poses_base.covers(full.stamps, slack_s=0.05))
                 gt_cam = gt.poses_base.interpolate(est.stamps, extrapolate_s=0.05)
             else:
+                body = "camera"
+                full = read_tum(traj_dir / "trajectory_camera.tum")
                 est, gt_cam = covered_ground_truth(seq, full)
             if len(est) < 3:
                 raise StageError(f"evaluate: ground truth covers {len(est)} of the "

@@ -470,15 +470,15 @@ class SequenceWriter:
         if image_path is not None and Path(image_path).suffix.lower() == ".png":
             # Decoded once here: a truncated or foreign file copied unread failed stages
             # later, naming this copy (which a rerun then overwrote with the bad source).
-            pixels = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED)
+            data = Path(image_path).read_bytes()
+            pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
             if pixels is None:
                 raise ValueError(f"{image_path}: frame {i} is not a readable PNG image "
                                  "(truncated or another format); replace it and run again")
             if pixels.shape[:2] != (h, w):
                 raise ValueError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
                                  f"{pixels.shape[0]}, the camera {w}x{h}")
-            with atomic_path(dst) as tmp:
-                shutil.copyfile(image_path, tmp)
+            atomic_write_bytes(dst, data)
         else:
             if image is None:
                 raise ValueError(f"frame {i}: neither pixels nor an image path")

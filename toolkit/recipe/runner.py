@@ -368,13 +368,10 @@ class _Run:
         then, now = stored.get("speed_settings") or {}, _speed_values(record.spec)
         changed = [f"{k} {then.get(k)!r} -> {v!r}" for k, v in now.items()
                    if k in then and then[k] != v]
-        if changed:
-            # Its figures (timings) are the earlier run's: say so, and how to redo them.
-            self.console.print(f"[cyan]{record.spec.id}[/] cached (only {', '.join(changed)}"
-                               f" changed, which does not change its output; --only "
-                               f"{record.spec.id} reruns it for its timings)")
-            return
-        self.console.print(f"[cyan]{record.spec.id}[/] cached")
+        # Its figures (timings) are the earlier run's: say so, and how to redo them.
+        why = (f" (only {', '.join(changed)} changed, which does not change its output; "
+               f"--only {record.spec.id} reruns it for its timings)") if changed else ""
+        self.console.print(f"[cyan]{record.spec.id}[/] cached{why}")
         self.log.info("stage %s cached (key %s)", record.spec.id, record.key, extra=_FILE_ONLY)
 
     def prepare_stage_dir(self, record: _Record) -> None:
