@@ -230,3 +230,27 @@ def test_simulator_held_out_views_are_scored_on_the_lens_pixels(tmp_path: Path) 
         model.params["means"][:] = torch.tensor([0.0, 0.0, -5.0])  # behind: renders nothing
     res = evaluate_views(model, views, "torch", (128 / 255,) * 3)  # the wall's own grey
     assert res["psnr_db"] == float("inf") and res["ssim"] == pytest.approx(1.0)
+
+
+def test_views_read_on_demand_train_the_same_splats_and_keep_the_cache(
+        tmp_path: Path) -> None:
+    """A recording larger than view_cache_mb is read from disk as training asks (a long
+    recording does not fill the memory); the splats are the same, and the setting only
+    changes speed: a finished stage stays cached when it changes."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    held = run_recipe(load_recipe(_recipe(tmp_path / "a", with_traj=True, iterations=12)))
+    lazy = run_recipe(load_recipe(_recipe(tmp_path / "b", with_traj=True, iterations=12,
+                                          view_cache_mb=0.05)))
+    assert held.ok and lazy.ok, (held.error, lazy.error)
+    a = read_ply(tmp_path / "a" / "run" / "splat" / "splats.ply")
+    b = read_ply(tmp_path / "b" / "run" / "splat" / "splats.ply")
+    for k, p in a.params.items():
+        assert np.array_equal(p.detach().numpy(), b.params[k].detach().numpy()), k
+    for key in ("heldout_psnr_db", "sim_heldout_psnr_db", "heldout_depth_mae_m"):
+        assert held.metrics["splat"][key] == lazy.metrics["splat"][key], key
+    log = (tmp_path / "b" / "run" / "run.log").read_text()
+    assert "read from disk as training asks for them" in log
+    again = run_recipe(load_recipe(_recipe(tmp_path / "a", with_traj=True, iterations=12,
+                                           view_cache_mb=0.05)))
+    assert again.statuses["splat"] == "cached"

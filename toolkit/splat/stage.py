@@ -61,6 +61,7 @@ from toolkit.splat.trainer import (
     evaluate_views,
     gaussian_cap,
 )
+from toolkit.splat.views import LazyList, ViewSet
 
 
 class SplatConfig(TrainConfig, StageConfig):
@@ -69,6 +70,10 @@ class SplatConfig(TrainConfig, StageConfig):
     downscale: int = Field(4, ge=1, description="image size divisor for training")
     frame_stride: int = Field(1, ge=1, description="use every n-th frame")
     holdout_every: int = Field(8, ge=0, description="hold out every n-th used frame (0: none)")
+    # A recording whose views fit is read once, up front; a longer one is read from disk as
+    # training asks for views (the next one while a step trains), holding this much. Same
+    # results either way.
+    view_cache_mb: float = Field(2048.0, gt=0, description="memory for training views (MB)")
     # At the quickstart's 160x120, 40k initial Gaussians trained to a higher held-out PSNR
     # within the time limit than 100k (more steps; densification adds where needed).
     init_budget: int = Field(40_000, ge=1, description="at most this many initial Gaussians")
@@ -304,6 +309,8 @@ class SplatStage(Stage):
     # trainer's checkpoint ignores them too: ``config_digest``).
     resume_settings = frozenset({"iterations", "max_seconds", "log_every", "checkpoint_every",
                                  "threads"})
+    # Reading views on demand or up front gives the same model.
+    speed_settings = frozenset({"view_cache_mb"})
     provides = ("splats",)
     version = 2  # 2: off-path views masked like the path's; SSIM over valid windows
 
@@ -358,16 +365,13 @@ class SplatStage(Stage):
         depth_dir = find_depth_dir(fused) if fused is not None and cfg.depth_weight > 0 else None
         gt = seq.groundtruth
 
-        train_views: list[TrainView] = []
-        test_views: list[TrainView] = []
-        test_gt_depth: list[np.ndarray | None] = []
-        n_depth = 0
         valid = image_validity(cam_full, (w, h))
         if valid is not None:
             ctx.log.info("splat: %.1f %% of each undistorted image has no source pixel "
                          "(lens corners); neither fitted nor scored",
                          100.0 * (1 - float(valid.float().mean())))
-        for j, k in enumerate(ctx.progress(list(used), description="splat: load views")):
+
+        def load_view(k: int) -> TrainView:
             fi = int(index[k])
             img = prepare_image(seq.frames[fi].image, cam_full, (w, h))
             dpath = depth_file(depth_dir, fi)
@@ -376,23 +380,42 @@ class SplatStage(Stage):
                 from toolkit.io.depth import read_depth
 
                 depth = torch.from_numpy(prepare_depth(read_depth(dpath), cam_full, (w, h)))
-                n_depth += 1
-            # Every holdout_every-th of the frames used (not of all posed frames: with a
-            # frame_stride that would hold out too many, or all).
-            held = cfg.holdout_every > 0 and j % cfg.holdout_every == 0
-            view = TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
+            return TrainView(torch.from_numpy(np.ascontiguousarray(img)), cam,
                              inv_se3(poses.poses[k]), depth, f"frame {fi}", valid)
-            if held:
-                test_views.append(view)
-                g = None
-                if gt is not None and gt.depth_paths is not None:
-                    g = prepare_depth(gt.depth(fi), cam_full, (w, h))
-                test_gt_depth.append(g)
-            else:
-                train_views.append(view)
-        if not train_views:
+
+        def view_set(ks: list[int], cache_bytes: int) -> ViewSet:
+            return ViewSet(np.array([inv_se3(poses.poses[k]) for k in ks]).reshape(-1, 4, 4),
+                           [f"frame {int(index[k])}" for k in ks],
+                           lambda i: load_view(ks[i]), cache_bytes,
+                           lambda it, total, desc: ctx.progress(it, total=total,
+                                                                description=desc))
+
+        # Every holdout_every-th of the frames used (not of all posed frames: with a
+        # frame_stride that would hold out too many, or all).
+        held = [cfg.holdout_every > 0 and j % cfg.holdout_every == 0 for j in range(len(used))]
+        train_k = [int(k) for k, hd in zip(used, held, strict=True) if not hd]
+        test_k = [int(k) for k, hd in zip(used, held, strict=True) if hd]
+        if not train_k:
             raise StageError("splat: no training views left (check frame_stride / "
                              "holdout_every)")
+        n_depth = sum(depth_file(depth_dir, int(index[k])) is not None for k in used)
+        budget_bytes = int(cfg.view_cache_mb * 2**20)
+        train_views = view_set(train_k, budget_bytes)
+        # The held-out views are read once each while scoring: what memory is left, or one
+        # at a time.
+        test_views = view_set(test_k, max(budget_bytes - train_views.held_bytes, 0))
+
+        def gt_depth(i: int) -> np.ndarray | None:
+            if gt is None or gt.depth_paths is None:
+                return None
+            return prepare_depth(gt.depth(int(index[test_k[i]])), cam_full, (w, h))
+
+        test_gt_depth = LazyList(len(test_k), gt_depth)
+        if not train_views.eager:
+            ctx.log.info("splat: %d training views of %.0f KB each exceed view_cache_mb %g: "
+                         "read from disk as training asks for them (%d held at a time)",
+                         len(train_views), train_views.view_bytes / 1024, cfg.view_cache_mb,
+                         max(budget_bytes // train_views.view_bytes, 1))
 
         tcfg = TrainConfig(**{k: getattr(cfg, k) for k in TrainConfig.model_fields})
         # The memory budget caps the initial model too, not only its growth.
@@ -403,15 +426,15 @@ class SplatStage(Stage):
             model = init_from_points(pts, cols, budget=budget, sh_degree=cfg.sh_degree,
                                      init_opacity=cfg.init_opacity, seed=cfg.seed)
         else:
-            model = init_random_in_views([v.camera for v in train_views],
-                                         [inv_se3(v.T_camera_world) for v in train_views],
+            model = init_random_in_views([cam] * len(train_views),
+                                         [inv_se3(T) for T in train_views.poses],
                                          budget, cfg.random_depth_m, sh_degree=cfg.sh_degree,
                                          init_opacity=cfg.init_opacity, seed=cfg.seed)
         n_init = len(model)
         data_key = _data_key(fused / "map.ply" if cfg.init == "fused" and fused else None,
                              [cfg.init, budget, cfg.init_opacity, list(cfg.random_depth_m),
                               depth_dir is not None],
-                             [v.name for v in train_views], poses.poses, (w, h))
+                             train_views.names, poses.poses, (w, h))
         trainer = Trainer(model, train_views, tcfg, ctx.stage_dir / "checkpoints",
                           data_key=data_key)
         resumed = trainer.resume()
@@ -423,6 +446,7 @@ class SplatStage(Stage):
         summary = trainer.train(iter_wrapper=lambda it, total, desc: ctx.progress(
             it, total=total, description=desc))
         model = trainer.model
+        train_views.close()
 
         write_ply(ctx.stage_dir / "splats.ply", model)
         atomic_write_json(ctx.stage_dir / "train_history.json", summary.history)

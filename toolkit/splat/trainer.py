@@ -21,7 +21,7 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -151,10 +151,24 @@ def gaussian_cap(cfg: TrainConfig) -> int:
     return max(cap, 1)
 
 
-def scene_scale_of(views: list[TrainView], points: Tensor | None = None) -> float:
+def view_poses(views: Sequence[TrainView]) -> np.ndarray:
+    """[N, 4, 4] T_camera_world of every view, without reading the pixels of views loaded
+    on demand (a ``ViewSet`` holds its poses)."""
+    poses = getattr(views, "poses", None)
+    if poses is not None:
+        return np.asarray(poses, dtype=np.float64)
+    return np.array([v.T_camera_world for v in views], dtype=np.float64).reshape(-1, 4, 4)
+
+
+def view_names(views: Sequence[TrainView]) -> list[str]:
+    names = getattr(views, "names", None)
+    return list(names) if names is not None else [v.name for v in views]
+
+
+def scene_scale_of(views: Sequence[TrainView], points: Tensor | None = None) -> float:
     """1.1 x the largest camera distance from the cameras' centroid (gsplat), or the cloud's
     median radius when the cameras barely move."""
-    centres = np.array([inv_se3(v.T_camera_world)[:3, 3] for v in views])
+    centres = np.array([inv_se3(T)[:3, 3] for T in view_poses(views)])
     spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) if len(views) else 0
     if spread > 0.1 or points is None:
         return max(1.1 * spread, 1e-3)
@@ -211,7 +225,7 @@ def config_digest(cfg: TrainConfig, whole: bool = False) -> str:
 class Trainer:
     """Owns the optimisers, strategy and schedule for one model and a set of views."""
 
-    def __init__(self, model: GaussianModel, views: list[TrainView], config: TrainConfig,
+    def __init__(self, model: GaussianModel, views: Sequence[TrainView], config: TrainConfig,
                  checkpoint_dir: Path | None = None, data_key: str = "") -> None:
         if not views:
             raise ValueError("no training views")
@@ -220,6 +234,7 @@ class Trainer:
                              f"holds degree {model.max_sh_degree}")
         self.model = model
         self.views = views
+        self.T_cw = view_poses(views)  # [N, 4, 4]
         self.cfg = config
         self.checkpoint_dir = checkpoint_dir
         # Identity of the views / initial model, checked on resume; without one from the
@@ -270,7 +285,7 @@ class Trainer:
         return min(step // self.cfg.sh_degree_interval, self.cfg.sh_degree)
 
     def pose_of(self, index: int) -> np.ndarray | Tensor:
-        T = self.views[index].T_camera_world
+        T = self.T_cw[index]
         if self.pose is None:
             return T
         return self.pose(torch.as_tensor(T, dtype=torch.float32), index)
@@ -346,8 +361,12 @@ class Trainer:
         stopped = False
         last: dict[str, float] = {"loss": float("nan"), "psnr_db": float("nan")}
         ema: dict[str, float] = {}
+        # Views read on demand: the next step's is read while this one trains.
+        prefetch = getattr(self.views, "prefetch", None)
         with _progress(iter_wrapper, steps) as (loop, update):
             for _ in loop:
+                if prefetch is not None and self.step + 1 < cfg.iterations:
+                    prefetch(self.view_index(self.step + 1))
                 last = self.train_step()
                 for k in ("loss", "psnr_db"):
                     ema[k] = last[k] if k not in ema else 0.9 * ema[k] + 0.1 * last[k]
@@ -469,14 +488,14 @@ class Trainer:
         return True
 
 
-def _default_data_key(model: GaussianModel, views: list[TrainView]) -> str:
-    """What the trainer sees of its inputs: the model's size and the views' names, image
-    sizes and poses."""
+def _default_data_key(model: GaussianModel, views: Sequence[TrainView]) -> str:
+    """What the trainer sees of its inputs: the model's size, the first view's image size
+    and the views' names and poses."""
     h = hashlib.sha256()
-    h.update(f"{len(model)}:{model.max_sh_degree}".encode())
-    for v in views:
-        h.update(f"{v.name}:{tuple(v.image.shape)}".encode())
-        h.update(np.ascontiguousarray(v.T_camera_world, dtype=np.float64).tobytes())
+    h.update(f"{len(model)}:{model.max_sh_degree}:{tuple(views[0].image.shape)}".encode())
+    for name, T in zip(view_names(views), view_poses(views), strict=True):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(T, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
 
 
@@ -535,9 +554,9 @@ def render_view(model: GaussianModel, camera: PinholeCamera, T_camera_world: np.
                       sh_degree=sh_degree)
 
 
-def evaluate_views(model: GaussianModel, views: list[TrainView], backend: str = "auto",
+def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: str = "auto",
                    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                   gt_depths: list[np.ndarray | None] | None = None,
+                   gt_depths: Sequence[np.ndarray | None] | None = None,
                    on_render: Callable[[int, TrainView, RenderOutput], None] | None = None) -> (
                        dict[str, Any]):
     """Mean PSNR / SSIM over ``views`` (and depth errors where ground truth is given).

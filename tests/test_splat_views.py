@@ -1,0 +1,110 @@
+"""Training views read on demand: the memory budget holds, every view comes back as read,
+and training on them gives the same model as on views held in memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+# The tests folder is on sys.path; one_thread: tiny images train faster on one thread.
+from test_splat_train import _start_model, _views, one_thread  # noqa: F401
+
+from toolkit.camera import PinholeCamera
+from toolkit.splat.strategy import StrategyConfig
+from toolkit.splat.trainer import TrainConfig, Trainer, TrainView
+from toolkit.splat.views import LazyList, ViewSet, view_bytes
+
+
+def _pose(i: int) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [0.1 * i, 0.0, 0.0]
+    return T
+
+
+def _loader(n: int, calls: list[int] | None = None) -> tuple[np.ndarray, list[str], object]:
+    cam = PinholeCamera.from_fov(8, 6, 70.0)
+
+    def load(i: int) -> TrainView:
+        if calls is not None:
+            calls.append(i)
+        img = np.full((6, 8, 3), i, np.uint8)
+        return TrainView(img, cam, _pose(i), np.full((6, 8), 1.0 + i, np.float32), f"v{i}")
+
+    return np.array([_pose(i) for i in range(n)]), [f"v{i}" for i in range(n)], load
+
+
+def test_a_set_that_fits_is_read_once_up_front() -> None:
+    calls: list[int] = []
+    poses, names, load = _loader(10, calls)
+    views = ViewSet(poses, names, load, cache_bytes=10**6)
+    assert views.eager and sorted(calls) == list(range(10))
+    assert [int(views[i].image[0, 0, 0]) for i in range(10)] == list(range(10))
+    assert views.reads == 10 and views[-1].name == "v9"
+
+
+def test_a_set_over_budget_holds_at_most_its_budget_and_reads_on_demand() -> None:
+    calls: list[int] = []
+    poses, names, load = _loader(20, calls)
+    one = view_bytes(load(0))  # type: ignore[operator]
+    calls.clear()
+    views = ViewSet(poses, names, load, cache_bytes=3 * one)
+    assert not views.eager and calls == [0]
+    order = list(np.random.default_rng(0).permutation(20)) * 2
+    for i in order:
+        v = views[int(i)]
+        assert v.name == f"v{i}" and float(v.depth[0, 0]) == 1.0 + i
+        assert views.held_bytes <= 3 * one
+    assert views.reads > 20  # a random order over more than the budget rereads
+    with pytest.raises(IndexError):
+        views[20]
+
+
+def test_prefetched_views_are_read_once_and_in_the_background() -> None:
+    calls: list[int] = []
+    poses, names, load = _loader(12, calls)
+    one = view_bytes(load(0))  # type: ignore[operator]
+    calls.clear()
+    views = ViewSet(poses, names, load, cache_bytes=2 * one)
+    try:
+        for i in range(1, 12):
+            views.prefetch(i)
+            assert views[i].name == f"v{i}"
+        assert calls == [0] + list(range(1, 12))  # none read twice
+    finally:
+        views.close()
+
+
+def test_a_loader_returning_another_pose_is_refused() -> None:
+    poses, names, load = _loader(3)
+    poses = poses.copy()
+    poses[0, 0, 3] = 5.0
+    with pytest.raises(ValueError, match="another pose"):
+        ViewSet(poses, names, load, cache_bytes=10**6)
+
+
+def test_lazy_list_computes_each_item_when_asked() -> None:
+    seen: list[int] = []
+    items = LazyList(3, lambda i: seen.append(i) or i * i)
+    assert len(items) == 3 and items[2] == 4 and items[-1] == 4 and seen == [2, 2]
+    with pytest.raises(IndexError):
+        items[3]
+
+
+def test_training_on_views_read_on_demand_gives_the_same_model() -> None:
+    held = _views(n=5, width=32, height=24, n_gauss=600)
+    poses = np.array([v.T_camera_world for v in held])
+    lazy = ViewSet(poses, [v.name for v in held], lambda i: held[i],
+                   cache_bytes=view_bytes(held[0]) + 1)
+    assert not lazy.eager
+    cfg = TrainConfig(iterations=20, sh_degree=1, sh_degree_interval=10, checkpoint_every=0,
+                      seed=3, densify=StrategyConfig(refine_start_iter=4, refine_every=5,
+                                                     grow_grad2d=2e-5))
+    a = Trainer(_start_model(600), held, cfg)
+    a.train()
+    b = Trainer(_start_model(600), lazy, cfg)
+    b.train()
+    lazy.close()
+    assert a.data_key == b.data_key
+    for k, p in a.model.params.items():
+        assert torch.equal(p, b.model.params[k]), k
