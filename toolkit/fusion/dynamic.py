@@ -42,7 +42,7 @@ class SeeThroughCounter:
         self.free = np.zeros(len(self.points), np.int32)
         self.hit = np.zeros(len(self.points), np.int32)
         self._p32 = self.points.astype(np.float32)
-        self._plane_cache: tuple[np.ndarray, float, np.ndarray] | None = None
+        self._plane_cache: tuple[np.ndarray, float, _Blocks] | None = None
         # Voxels grouped into 1 m blocks (sorted by block) so a view tests a few thousand
         # block spheres against its frustum and then only the voxels of visible blocks.
         bk = np.floor(self.points / block_m).astype(np.int64)
@@ -56,6 +56,8 @@ class SeeThroughCounter:
         self._centre = np.add.reduceat(ps, self._start, axis=0) / self._count[:, None] if \
             len(ks) else np.zeros((0, 3), np.float32)
         self._radius = np.float32(np.sqrt(3) * block_m)  # covers any block from its mean
+        self._block_of = np.empty(len(self.points), np.int64)  # [V] block of each voxel
+        self._block_of[self._order] = np.repeat(np.arange(len(self._start)), self._count)
 
     def _visible_voxels(self, R: np.ndarray, t: np.ndarray, tx: float, ty: float,
                         max_depth: float) -> np.ndarray:
@@ -125,7 +127,16 @@ class SeeThroughCounter:
     def add_scan(self, scan: LaserScan, T_laser_world: np.ndarray) -> None:
         """One lidar scan taken at ``T_laser_world``: tests voxels near its plane."""
         o = self.opts
-        near = self._near_plane(T_laser_world)
+        valid_r = scan.ranges[scan.valid_mask()]
+        if len(valid_r) == 0:
+            return
+        # A voxel farther than the longest valid beam (+ margin) is neither seen through
+        # nor hit: only the blocks near the plane within that reach are tested, so a scan
+        # costs what is around the robot, not the whole map (an hour of exploring).
+        origin = inv_se3(T_laser_world)[:3, 3].astype(np.float32)
+        near = self._near_plane(T_laser_world).within(
+            self._centre, origin, float(valid_r.max()) + o.lidar_margin_m + o.lidar_plane_tol_m
+            + self._radius)
         if len(near) == 0:
             return
         T = T_laser_world.astype(np.float32)
@@ -150,9 +161,9 @@ class SeeThroughCounter:
         self.free[near[r < ranges - o.lidar_margin_m]] += 1
         self.hit[near[np.abs(r - ranges) <= o.lidar_margin_m]] += 1
 
-    def _near_plane(self, T_laser_world: np.ndarray) -> np.ndarray:
-        """Voxels within the plane tolerance of a scan plane, cached while the plane stays
-        put (a robot on a flat floor scans the same world plane all the time)."""
+    def _near_plane(self, T_laser_world: np.ndarray) -> _Blocks:
+        """Voxels within the plane tolerance of a scan plane, by block, cached while the
+        plane stays put (a robot on a flat floor scans the same world plane all the time)."""
         n = T_laser_world[2, :3]
         d = T_laser_world[2, 3]
         pad = 0.02
@@ -160,7 +171,8 @@ class SeeThroughCounter:
         if c is not None and np.abs(c[0] - n).max() < 1e-3 and abs(c[1] - d) < pad / 2:
             return c[2]
         zl = self._p32 @ n.astype(np.float32) + np.float32(d)
-        near = np.flatnonzero(np.abs(zl) < self.opts.lidar_plane_tol_m + pad)
+        near = _Blocks(np.flatnonzero(np.abs(zl) < self.opts.lidar_plane_tol_m + pad),
+                       self._block_of)
         self._plane_cache = (n.copy(), float(d), near)
         return near
 
@@ -169,6 +181,36 @@ class SeeThroughCounter:
         tested = self.free + self.hit
         return (self.free >= self.opts.min_free) & (
             self.free >= self.opts.free_ratio * np.maximum(tested, 1))
+
+
+class _Blocks:
+    """Voxel indices grouped by their block, to pick the blocks near a point."""
+
+    def __init__(self, voxels: np.ndarray, block_of: np.ndarray) -> None:
+        b = block_of[voxels]
+        order = np.argsort(b, kind="stable")
+        self.voxels = voxels[order]  # [M]
+        b = b[order]
+        self.start = np.flatnonzero(np.r_[True, b[1:] != b[:-1]]) if len(b) else \
+            np.zeros(0, np.int64)
+        self.block = b[self.start]  # [K'] block ids present
+        self.count = np.diff(np.r_[self.start, len(b)])
+
+    def __len__(self) -> int:
+        return len(self.voxels)
+
+    def within(self, centres: np.ndarray, point: np.ndarray, radius: float) -> np.ndarray:
+        """Voxels of the blocks whose centre (``centres`` [K, 3] by block id) lies within
+        ``radius`` of ``point`` [3]."""
+        if len(self.block) == 0:
+            return self.voxels
+        d2 = ((centres[self.block] - point) ** 2).sum(1)
+        b = np.flatnonzero(d2 < np.float32(radius) ** 2)
+        if len(b) == len(self.block):
+            return self.voxels
+        n = self.count[b]
+        first = np.repeat(self.start[b] - np.r_[0, np.cumsum(n)[:-1]], n)
+        return self.voxels[first + np.arange(n.sum())]
 
 
 def grow_dynamic(points: np.ndarray, first: np.ndarray, last: np.ndarray,
