@@ -370,3 +370,26 @@ def test_a_subset_of_frames_still_gets_carving_views(box_room: Path) -> None:
         fu.integrate(i, np.where(d > 0, d, np.nan), seq.frames[i].image)
     assert fu.views.indices == [1, 6, 11, 16]
     assert fu.consensus is not None and fu.consensus.frames == 4
+
+
+def test_a_broken_ground_truth_mesh_stops_fuse_before_any_frame(box_room: Path,
+                                                                tmp_path: Path) -> None:
+    """A groundtruth/mesh.ply that is no mesh was found only when the finished map was
+    measured against it (an hour of fusing lost); now before the first frame, naming the
+    file and the fix."""
+    import shutil
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.stage import FuseStage
+
+    seq = tmp_path / "seq"
+    shutil.copytree(box_room, seq)
+    (seq / "groundtruth" / "mesh.ply").write_text("not a mesh\n")
+    res = run_stages(tmp_path, [
+        {"stage": "t_sequence", "path": str(seq)},
+        {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+        {"stage": "fuse", "mesh_eval_frames": 3},
+    ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
+    assert not res.ok
+    assert "groundtruth/mesh.ply" in res.error and "remove it" in res.error
+    assert not list((tmp_path / "run" / "fuse").glob("scaled_depth/*"))

@@ -26,6 +26,7 @@ from toolkit.depth.protocol import DepthPrediction
 from toolkit.depth.store import DepthStore
 from toolkit.deskew import deskew_sequence
 from toolkit.eval.depth import ErrorAccumulator, depth_errors, scale_error
+from toolkit.eval.map_accuracy import MeshDistance
 from toolkit.fusion.cloud import valid_pixels
 from toolkit.fusion.pipeline import (
     FramePairs,
@@ -188,10 +189,11 @@ def _depth_metrics(cfg: FuseConfig, st: FuseProgress, refined: bool, has_gt_dept
 
 def _map_metrics(cfg: FuseConfig, seq: Sequence, raw: MapArrays, masks: dict[str, np.ndarray],
                  final: MapArrays, fused_poses: Trajectory | None,
-                 frame_clouds: list[np.ndarray], has_masks: bool) -> dict[str, object]:
-    """Moving-obstacle shares and distances of the map and per-frame clouds to the true mesh."""
+                 frame_clouds: list[np.ndarray], has_masks: bool,
+                 md: MeshDistance | None) -> dict[str, object]:
+    """Moving-obstacle shares and distances of the map and per-frame clouds to the true mesh
+    (``md``: the sequence's ground-truth mesh, None without one)."""
     metrics: dict[str, object] = {"dynamic_removal": cfg.dynamic_removal}
-    gt = seq.groundtruth
     if has_masks and len(raw):
         # The raw map already lacks what the lidar masked in the images; the fraction
         # without any removal comes from a run with dynamic_removal: false.
@@ -200,11 +202,10 @@ def _map_metrics(cfg: FuseConfig, seq: Sequence, raw: MapArrays, masks: dict[str
         static = raw.label <= 0.5
         metrics["static_points_removed_fraction"] = float(
             np.mean(masks["dynamic"][static])) if static.any() else 0.0
-    if gt is not None and gt.mesh_path is not None:
+    if md is not None:
         from toolkit.eval.alignment import apply, map_to_world
-        from toolkit.eval.map_accuracy import MeshDistance, distance_stats
+        from toolkit.eval.map_accuracy import distance_stats
 
-        md = MeshDistance(gt.mesh_path)
         # The SLAM map frame is not the simulator's world: one rigid transform first.
         S = map_to_world(seq, fused_poses.stamps, fused_poses.poses) if (
             fused_poses is not None) else None
@@ -321,6 +322,16 @@ class FuseStage(Stage):
             raise StageError("fuse: no frame has both a depth prediction and a pose")
         has_gt_depth = gt is not None and gt.depth_paths is not None
         has_masks = gt is not None and gt.mask_paths is not None
+        md = None
+        if gt is not None and gt.mesh_path is not None:
+            # Read now: a broken mesh found after fusing an hour of frames loses the hour.
+            try:
+                md = MeshDistance(gt.mesh_path)
+            except (ValueError, RuntimeError, OSError) as exc:
+                raise StageError(
+                    f"fuse: ground-truth mesh {gt.mesh_path} cannot be used ({exc}): replace "
+                    "it with a triangle mesh in PLY, or remove it to fuse without the "
+                    "map-to-mesh figures") from exc
         # ---------------------------------------------------------------- resume
         t_start = time.perf_counter()
         ckpt = Checkpoint(ctx.stage_dir / "checkpoint.pkl", ctx.resume_key,
@@ -511,7 +522,7 @@ class FuseStage(Stage):
         metrics.update(_depth_metrics(cfg, st, fusion.refiner is not None, has_gt_depth,
                                       disparity, sm, oracle))
         metrics.update(_map_metrics(cfg, seq, raw, masks, final, fused_poses, st.frame_clouds,
-                                    has_masks))
+                                    has_masks, md))
         ctx.add_metrics(metrics)
         # ---------------------------------------------------------------- report
         self._report(ctx, cfg, seq, metrics, pose_note, st.fig_data, frames, sm, oracle, store,
