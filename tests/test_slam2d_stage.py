@@ -131,3 +131,23 @@ def test_report_shows_what_the_slam_did_about_hard_input_only_when_it_happened()
     assert "| 3 (1; 2) |" in text
     assert "| scans held to the odometry along a corridor | 4 |" in text
     assert "full window" not in text  # no retries: no row
+
+
+def test_a_broken_relations_file_stops_the_stage_before_the_slam(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """It was read after the SLAM had run (an hour-long log's work lost to a typo)."""
+    from toolkit.recipe.stage import StageError
+
+    seq = Sequence(Rig(PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0), np.eye(4), np.eye(4)),
+                   [], [make_scan(p, float(t)) for t, p in enumerate(_drive(4))], name="s")
+    monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
+
+    def no_slam(*args: object, **kw: object) -> None:
+        raise AssertionError("the SLAM ran")
+
+    monkeypatch.setattr("toolkit.slam2d.pipeline.run_slam", no_slam)
+    bad = tmp_path / "log.relations"
+    bad.write_text("0.0 1.0 0.5 0.0 0.0 0.0 0.0\n")  # 7 fields
+    stage = Slam2DStage(Slam2DStage.Config(stage="slam2d", relations=str(bad)))
+    with pytest.raises(StageError, match=r"'relations'.*log.relations:1: expected"):
+        stage.run(_Ctx(tmp_path))

@@ -67,6 +67,15 @@ class Slam2DStage(Stage):
             seq = sequence_with_rig(seq, ctx.artifact("rig"))
         if not seq.scans:
             raise StageError(f"sequence {seq.name} has no laser scans: slam2d needs a 2D lidar")
+        # Read before the SLAM: a broken file found afterwards loses the run.
+        rel = None
+        if cfg.relations:
+            try:
+                rel = read_relations(cfg.relations)
+            except (OSError, ValueError) as exc:
+                raise StageError(f"slam2d: setting 'relations': {exc} - give a Freiburg "
+                                 ".relations file (t1 t2 x y z roll pitch yaw per line) or "
+                                 "relations: null") from exc
         odom = seq.odometry if cfg.use_odometry else None
         ctx.log.info("slam2d on %d scans (%s)", len(seq.scans),
                      "with odometry" if odom is not None else "scan-only")
@@ -114,8 +123,7 @@ class Slam2DStage(Stage):
             except (ValueError, IndexError) as e:
                 ctx.log.warning("no ATE against ground truth: %s", e)
             ref_xy = gt.positions[:, :2]
-        if cfg.relations:
-            rel = read_relations(cfg.relations)
+        if rel is not None:
             metrics["relations"] = relations_metric(traj, rel)
         save_map_png(out / "map.png", occ, traj.positions[:, :2],
                      title=f"{seq.name}: {metrics['nodes']} nodes, {metrics['submaps']} "
