@@ -193,6 +193,24 @@ def test_image_size_disagreeing_with_rig(tmp_path):
         read_sequence(tmp_path / "a")
 
 
+@pytest.mark.parametrize("kind", ["depth", "mask"])
+def test_ground_truth_of_another_size_is_refused_on_reading(tmp_path: Path, kind: str) -> None:
+    """It failed deep in fuse (an index error on the labels) after the stages before it."""
+    import cv2
+
+    write_small(tmp_path / "a")
+    if kind == "depth":
+        np.save(tmp_path / "a" / "groundtruth" / "depth" / "000000.npy",
+                np.ones((H // 2, W // 2), np.float32))
+    else:
+        cv2.imwrite(str(tmp_path / "a" / "groundtruth" / "masks" / "000000.png"),
+                    np.zeros((H, W * 2), np.uint8))
+    size = "16x12" if kind == "depth" else "64x24"
+    with pytest.raises(SequenceFormatError, match=f"000000.*ground-truth {kind} is {size} but "
+                       "the images are 32x24"):
+        read_sequence(tmp_path / "a")
+
+
 def test_tum_file_round_trip_and_header(tmp_path):
     traj = Trajectory(np.array([1.0, 2.0]), np.stack([np.eye(4), se2_to_se3(1, 2, 0.3)]),
                       "world", "camera")

@@ -341,6 +341,22 @@ def read_sequence(root: Path | str) -> Sequence:
             raise SequenceFormatError(
                 f"{frames[0].path}: image is {first.shape[1]}x{first.shape[0]} but "
                 f"{root / 'rig.yaml'} field 'camera' says {w}x{h}")
+        # Ground truth of another size failed deep in a stage (an index error in fuse's
+        # labels, a shape mismatch in its depth figures) after the work before it.
+        for kind, paths in (("depth", gt_depth), ("mask", gt_mask)):
+            if not paths:
+                continue
+            from toolkit.io.depth import read_depth
+
+            try:
+                g = read_depth(paths[0]) if kind == "depth" else gt.mask(0)  # type: ignore
+            except (OSError, ValueError) as exc:
+                raise SequenceFormatError(f"ground-truth {kind}: {exc}") from exc
+            if g.shape[:2] != (h, w):
+                raise SequenceFormatError(
+                    f"{paths[0]}: ground-truth {kind} is {g.shape[1]}x{g.shape[0]} but the "
+                    f"images are {w}x{h} ({root / 'rig.yaml'} field 'camera'): write it at "
+                    "the image size, or drop the column from camera/frames.csv")
     return seq
 
 
