@@ -63,8 +63,16 @@ def test_truncated_pgm_and_bad_yaml_name_the_file(tmp_path):
     y = _map(tmp_path, [0, 254, 205])
     data = (tmp_path / "m.pgm").read_bytes()
     (tmp_path / "m.pgm").write_bytes(data[:-2])
-    with pytest.raises(ValueError, match="m.pgm: truncated PGM"):
+    with pytest.raises(FileNotFoundError, match="m.yaml: field 'image' names .*m.pgm, which "
+                       "is unreadable or truncated"):
         read_occupancy(y)
+    (tmp_path / "m.pgm").unlink()
+    with pytest.raises(FileNotFoundError, match="m.yaml: field 'image' names .*m.pgm, which "
+                       "is not there"):
+        read_occupancy(y)
+    (tmp_path / "m.pgm").write_bytes(b"P2\n# ascii\n3 1\n255\n0 254 128\n")
+    occ = read_occupancy(y).occupancy  # ASCII PGM, as some map tools write
+    assert occ[0, 0] == 1 and occ[0, 1] == 0 and np.isnan(occ[0, 2])
     y.write_text("image: m.pgm\nresolution: [0.05\n")
     with pytest.raises(ValueError, match="m.yaml: not valid YAML"):
         read_occupancy(y)

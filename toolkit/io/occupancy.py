@@ -81,31 +81,6 @@ def write_occupancy(yaml_path: Path | str, grid: OccupancyMap, occupied_thresh: 
     return pgm_path
 
 
-def _read_pgm(path: Path) -> np.ndarray:
-    data = path.read_bytes()
-    tokens: list[bytes] = []
-    pos = 0
-    while len(tokens) < 4:  # magic, width, height, maxval; '#' starts a comment
-        while pos < len(data) and data[pos : pos + 1].isspace():
-            pos += 1
-        if data[pos : pos + 1] == b"#":
-            pos = data.index(b"\n", pos) + 1
-            continue
-        end = pos
-        while end < len(data) and not data[end : end + 1].isspace():
-            end += 1
-        tokens.append(data[pos:end])
-        pos = end
-    magic, w, h, maxval = tokens[0], int(tokens[1]), int(tokens[2]), int(tokens[3])
-    if magic != b"P5" or maxval > 255:
-        raise ValueError(f"{path}: only 8-bit binary PGM (P5) is supported, got {magic!r}")
-    if len(data) < pos + 1 + w * h:
-        raise ValueError(f"{path}: truncated PGM: {len(data) - pos - 1} bytes of pixels for "
-                         f"{w}x{h}; write the map again")
-    pixels = np.frombuffer(data, np.uint8, count=w * h, offset=pos + 1)
-    return pixels.reshape(h, w)
-
-
 def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     """Read a map_server YAML + image into map order (row 0 = lowest y).
 
@@ -136,15 +111,17 @@ def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     if mode not in ("trinary", "scale", "raw"):
         raise ValueError(f"{yaml_path}: field 'mode' is {mode!r}; map_server knows trinary, "
                          "scale and raw")
-    img_path = (yaml_path.parent / meta["image"]).resolve()
-    if img_path.suffix.lower() == ".pgm":
-        img = _read_pgm(img_path)
-    else:
-        import cv2
+    img_path = (yaml_path.parent / str(meta["image"])).resolve()
+    import cv2
 
-        img = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise FileNotFoundError(f"{img_path}: map image missing or unreadable")
+    # OpenCV reads binary and ASCII PGM (and the PNGs some map savers write); a truncated
+    # file reads as None like a missing one.
+    img = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE) if img_path.is_file() else None
+    if img is None:
+        what = "is not there" if not img_path.exists() else "is unreadable or truncated"
+        raise FileNotFoundError(f"{yaml_path}: field 'image' names {img_path}, which {what}; "
+                                "keep the map image next to its YAML (or fix the name), or "
+                                "save the map again")
     x = img.astype(np.float32)
     p = x / 255.0 if int(meta.get("negate", 0)) else (255.0 - x) / 255.0
     occ_t = float(meta.get("occupied_thresh", 0.65))
