@@ -72,6 +72,7 @@ class Source(Stage):
 class DoubleConfig(StageConfig):
     counter: str
     factor: int = 2
+    fail: bool = False
 
 
 class Double(Stage):
@@ -85,6 +86,8 @@ class Double(Stage):
     def run(self, ctx: StageContext) -> None:
         cfg: Any = self.config
         _count(cfg.counter, ctx.stage_id)
+        if cfg.fail:
+            raise StageError("asked to fail")
         value = int(ctx.artifact("number").read_text()) * cfg.factor
         total = 0
         for i in ctx.progress(range(20), description="doubling"):
@@ -450,6 +453,7 @@ def test_set_reruns_stage_and_downstream_only(tmp_path: Path) -> None:
         "id": "t_double",
         "counter": str(tmp_path / "calls.txt"),
         "factor": 10,
+        "fail": False,
     }
     assert resolved["stages"][0]["label"] == "numbers"  # defaults filled in
 
@@ -625,6 +629,21 @@ def test_failure_keeps_the_results_of_independent_later_stages(tmp_path: Path) -
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert list(metrics) == ["t_source", "t_double", "side"]
     assert "| side | cached |" in (tmp_path / "run" / "report.md").read_text()
+
+
+def test_a_stage_not_run_whose_folder_holds_an_earlier_run_is_flagged(tmp_path: Path) -> None:
+    """A finished run rerun with a failing early stage: the later stage's folder still holds
+    the earlier run's files, and the report says they are not this run's."""
+    data = _recipe_data(tmp_path)
+    path = _write_recipe(tmp_path, data)
+    assert _run(path).ok
+    assert "Not run this time" not in (tmp_path / "run" / "report.md").read_text()
+    (tmp_path / "run" / "t_sink" / "old.txt").write_text("earlier run")
+    result = _run(path, "t_double.fail=true")
+    assert result.statuses["t_sink"] == "not run"
+    report_text = (tmp_path / "run" / "report.md").read_text()
+    assert "**Not run this time:** `t_sink`: its folder holds the files of an earlier run" in (
+        report_text)
 
 
 def test_markers_without_a_token_stay_cached(tmp_path: Path) -> None:

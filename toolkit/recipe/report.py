@@ -29,6 +29,9 @@ class StageSummary:
     seconds: float | None = None
     cpu_seconds: float | None = None
     markdown: str = ""
+    # Not run this time, but its folder holds an earlier run's files (of other settings or
+    # inputs): the report says so, lest they be taken for this run's.
+    stale_files: bool = False
 
 
 def stage_heading(stage_id: str, stage_type: str) -> str:
@@ -83,6 +86,12 @@ def build_report(
     parts.append(timing)
     if error:
         parts.append(f"**Failed:** {error} (details in run.log)")
+    stale = [f"`{s.id}`" for s in stages if s.status == "not run" and s.stale_files]
+    if stale:
+        parts.append(f"**Not run this time:** {', '.join(stale)}: "
+                     f"{'their folders hold' if len(stale) > 1 else 'its folder holds'} the "
+                     "files of an earlier run, made from other settings or inputs - not "
+                     "results of this one.")
     return "\n\n".join(parts) + "\n"
 
 

@@ -107,7 +107,8 @@ class _Record:
     def finished(self) -> bool:
         return self.status in ("ran", "cached")
 
-    def summary(self) -> report.StageSummary:
+    def summary(self, run_dir: Path | None = None) -> report.StageSummary:
+        folder = run_dir / self.spec.id if run_dir is not None else None
         return report.StageSummary(
             id=self.spec.id,
             type=self.spec.type,
@@ -115,6 +116,8 @@ class _Record:
             seconds=self.seconds,
             cpu_seconds=self.cpu_seconds,
             markdown="\n\n".join(self.report),
+            stale_files=self.status == "not run" and folder is not None and folder.is_dir()
+            and any(True for _ in folder.iterdir()),
         )
 
 
@@ -486,7 +489,7 @@ class _Run:
         report.write_metrics(self.run_dir, self.finished_metrics())
         text = report.build_report(
             self.recipe.name,
-            [r.summary() for r in self.records.values()],
+            [r.summary(self.run_dir) for r in self.records.values()],
             description=self.recipe.description,
             error=self.error,
         )
