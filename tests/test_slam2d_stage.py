@@ -64,7 +64,7 @@ def test_stage_writes_trajectories_and_map(tmp_path: Path, monkeypatch: pytest.M
     T_base_camera = np.eye(4)
     T_base_camera[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]
     frames = [CameraFrame.from_array(t, np.zeros((48, 64, 3), np.uint8), i)
-              for i, t in enumerate([-1.0, 0.5, 3.25, 7.5, 20.0])]
+              for i, t in enumerate([-1.0, -0.03, 0.5, 3.25, 7.5, 20.0])]
     seq = Sequence(Rig(cam, T_base_camera, T_base_laser), frames, scans,
                    groundtruth=GroundTruth(poses_base=gt), name="synthetic")
     monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
@@ -76,8 +76,10 @@ def test_stage_writes_trajectories_and_map(tmp_path: Path, monkeypatch: pytest.M
     base = read_tum(out / "trajectory_base.tum")
     assert len(base) == len(scans)
     camt = read_tum(out / "trajectory_camera.tum")
-    assert np.allclose(camt.stamps, [0.5, 3.25, 7.5])  # frames outside the scan span dropped
-    assert np.allclose(camt.poses[0][:3, :3], base.interpolate([0.5]).poses[0][:3, :3]
+    # Frames outside the scan span dropped, but for 50 ms (the end pose, as fuse poses them)
+    assert np.allclose(camt.stamps, [-0.03, 0.5, 3.25, 7.5])
+    assert np.allclose(camt.poses[0], base.poses[0] @ T_base_camera)
+    assert np.allclose(camt.poses[1][:3, :3], base.interpolate([0.5]).poses[0][:3, :3]
                        @ T_base_camera[:3, :3], atol=1e-6)
     assert ctx.metrics["camera_frames_outside_scan_span"] == 2
     assert ctx.metrics["gt_ate_rmse_m"] < 0.05

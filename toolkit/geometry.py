@@ -8,6 +8,7 @@ Rotation maths goes through ``scipy.spatial.transform`` rather than hand-written
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -232,6 +233,12 @@ class Trajectory:
             self.frame,
             self.child,
         )
+
+    # A frame or scan stamped this close outside a trajectory's ends takes the end pose
+    # (``covers(..., slack_s=END_SLACK_S)``): half a 10 Hz scan period, within which the
+    # clocks of two drivers commonly disagree. slam2d's camera poses, fuse and evaluate use
+    # the same rule, so they pose the same frames.
+    END_SLACK_S: ClassVar[float] = 0.05
 
     def gap_limit_s(self) -> float:
         """The longest gap between samples that ``covers`` bridges by default: 5 times the

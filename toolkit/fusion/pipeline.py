@@ -263,7 +263,7 @@ def pose_arrays(seq: Sequence, T_world_base: Trajectory) -> tuple[np.ndarray, np
             f"'# T_world_base_link')")
     t0, t1 = traj.stamps[0], traj.stamps[-1]
     fs = seq.frame_stamps
-    inside = traj.covers(fs, slack_s=0.05)
+    inside = traj.covers(fs, slack_s=Trajectory.END_SLACK_S)
     frame_poses = traj.interpolate(np.clip(fs, t0, t1)).poses if len(fs) else np.zeros((0, 4, 4))
     ss = seq.scan_stamps
     scan_poses = traj.interpolate(np.clip(ss, t0, t1)).poses if len(ss) else np.zeros((0, 4, 4))
@@ -275,7 +275,7 @@ def scans_covered(seq: Sequence, T_world_base: Trajectory) -> np.ndarray:
     span, not in a gap: ``Trajectory.covers``). ``pose_arrays`` gives the others the pose
     at the trajectory's nearest end; placed there, a scan taken elsewhere "sees through"
     walls and carves the static map."""
-    return T_world_base.covers(seq.scan_stamps, slack_s=0.05)
+    return T_world_base.covers(seq.scan_stamps, slack_s=Trajectory.END_SLACK_S)
 
 
 class Fusion:

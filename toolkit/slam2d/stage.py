@@ -91,11 +91,14 @@ class Slam2DStage(Stage):
                   header="slam2d: T_world_base at the scan stamps")
 
         # Camera poses: base poses interpolated at the camera stamps, times the mount; none
-        # outside the scans' span or across a gap in it (Trajectory.covers).
+        # outside the scans' span (but for END_SLACK_S: the end pose, as fuse takes them)
+        # or across a gap in it (Trajectory.covers).
         fs = seq.frame_stamps
-        span = (fs >= traj.stamps[0]) & (fs <= traj.stamps[-1])
-        inside = traj.covers(fs)
-        cam = traj.interpolate(fs[inside]).transform(T_right=seq.rig.T_base_camera)
+        slack = traj.END_SLACK_S
+        span = (fs >= traj.stamps[0] - slack) & (fs <= traj.stamps[-1] + slack)
+        inside = traj.covers(fs, slack_s=slack)
+        cam = traj.interpolate(fs[inside], extrapolate_s=slack).transform(
+            T_right=seq.rig.T_base_camera)
         cam.child = "camera"
         write_tum(out / "trajectory_camera.tum", cam,
                   header="slam2d: T_world_camera (optical) at the camera stamps")
