@@ -22,16 +22,23 @@ _FORMAT = 1
 
 
 class Checkpoint:
-    """Saves a stage's state to ``path`` at most every ``every_s`` seconds (0: never)."""
+    """Saves a stage's state to ``path`` at most every ``every_s`` seconds (0: never), and
+    no more often than keeps saving to ``max_share`` of the time: a state that grows with
+    the recording (an hour's voxel map) takes longer to write each time, and at a fixed
+    interval saving would come to cost more than the work it protects."""
 
     def __init__(self, path: Path, key: str, every_s: float,
-                 log: logging.Logger | None = None) -> None:
+                 log: logging.Logger | None = None, max_share: float = 0.05) -> None:
+        if not 0 < max_share <= 1:
+            raise ValueError(f"max_share {max_share}: give a fraction in (0, 1]")
         self.path = Path(path)
         self.key = key
         self.every_s = float(every_s)
+        self.max_share = float(max_share)
         self.log = log or logging.getLogger(__name__)
         self.saves = 0
         self.seconds = 0.0  # spent saving
+        self.last_save_s = 0.0  # how long the last save took
         self._last = time.monotonic()
 
     def load(self, valid: Callable[[Any], bool] | None = None) -> Any | None:
@@ -59,9 +66,15 @@ class Checkpoint:
         self._last = time.monotonic()
         return saved["state"]
 
+    @property
+    def interval_s(self) -> float:
+        """Seconds between saves: ``every_s``, or longer where the last save took more than
+        ``max_share`` of that."""
+        return max(self.every_s, self.last_save_s / self.max_share)
+
     def due(self) -> bool:
-        """Whether ``every_s`` has passed since the last save (or load, or creation)."""
-        return self.every_s > 0 and time.monotonic() - self._last >= self.every_s
+        """Whether ``interval_s`` has passed since the last save (or load, or creation)."""
+        return self.every_s > 0 and time.monotonic() - self._last >= self.interval_s
 
     def save(self, state: Any) -> None:
         """Write ``state`` atomically (a kill during the write leaves the previous one)."""
@@ -71,7 +84,8 @@ class Checkpoint:
                 pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, fh,
                             protocol=pickle.HIGHEST_PROTOCOL)
         self.saves += 1
-        self.seconds += time.perf_counter() - t0
+        self.last_save_s = time.perf_counter() - t0
+        self.seconds += self.last_save_s
         self._last = time.monotonic()
 
     def remove(self) -> None:
