@@ -75,6 +75,43 @@ def test_prefetched_views_are_read_once_and_in_the_background() -> None:
         views.close()
 
 
+def test_in_the_trainers_order_each_view_is_read_once() -> None:
+    """The trainer prefetches step s+1's view, then trains on step s's: the read for s+1
+    must wait for its step (dropping finished reads read every view twice)."""
+    calls: list[int] = []
+    poses, names, load = _loader(6, calls)
+    one = view_bytes(load(0))  # type: ignore[operator]
+    calls.clear()
+    views = ViewSet(poses, names, load, cache_bytes=one)
+    order = [int(i) for i in np.random.default_rng(1).permutation(6)] * 5  # [30]
+    try:
+        for s, i in enumerate(order):
+            if s + 1 < len(order):
+                views.prefetch(order[s + 1])
+            assert views[i].name == f"v{i}"
+    finally:
+        views.close()
+    repeats = sum(a == b for a, b in zip(order, order[1:], strict=False))
+    assert views.reads == 1 + len(order) - repeats - (order[0] == 0)
+
+
+def test_views_larger_than_the_first_switch_to_reading_on_demand() -> None:
+    """The first view decides whether all fit; a later view with a depth target the first
+    lacked is larger: past the budget, the rest are read on demand and the held bytes come
+    back under it."""
+    cam = PinholeCamera.from_fov(8, 6, 70.0)
+
+    def load(i: int) -> TrainView:
+        depth = None if i == 0 else np.ones((6, 8), np.float32)
+        return TrainView(np.zeros((6, 8, 3), np.uint8), cam, _pose(i), depth, f"v{i}")
+
+    n = 10
+    views = ViewSet(np.array([_pose(i) for i in range(n)]), [f"v{i}" for i in range(n)],
+                    load, cache_bytes=n * 6 * 8 * 3 + 1)
+    assert not views.eager and views.held_bytes <= n * 6 * 8 * 3 + 1
+    assert [views[i].name for i in range(n)] == [f"v{i}" for i in range(n)]
+
+
 def test_a_loader_returning_another_pose_is_refused() -> None:
     poses, names, load = _loader(3)
     poses = poses.copy()

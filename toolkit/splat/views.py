@@ -37,7 +37,8 @@ class ViewSet(Sequence[TrainView]):
 
     ``views[i]`` returns the view, from memory or read now; ``prefetch(i)`` starts reading
     it in the background. Every view is read up front when ``n * bytes of the first view``
-    fits ``cache_bytes`` (``eager``); otherwise at most that many bytes of views are held.
+    fits ``cache_bytes`` (``eager``) and keeps fitting as they are read (views differ: some
+    have a depth target, some not); otherwise at most that many bytes of views are held.
     """
 
     def __init__(self, poses: np.ndarray, names: list[str], load: Callable[[int], TrainView],
@@ -69,6 +70,13 @@ class ViewSet(Sequence[TrainView]):
                 rest = iter(progress(rest, len(poses) - 1, "splat: load views"))
             for i in rest:
                 self._keep(i, self._read(i))
+                if self._held > self._budget:
+                    # Later views are larger than the first (it had no depth target): read
+                    # the rest on demand, dropping what passed the budget.
+                    self.eager = False
+                    with self._lock:
+                        self._evict()
+                    break
 
     @property
     def held_bytes(self) -> int:
@@ -90,11 +98,14 @@ class ViewSet(Sequence[TrainView]):
                 return
             self._cache[i] = view
             self._held += view_bytes(view)
-            # The eager set holds everything; a lazy one drops the least recently used, but
-            # never the view just asked for.
-            while not self.eager and self._held > self._budget and len(self._cache) > 1:
-                _, old = self._cache.popitem(last=False)
-                self._held -= view_bytes(old)
+            self._evict()
+
+    def _evict(self) -> None:
+        """With the lock held: the eager set holds everything; a lazy one drops the least
+        recently used views down to the budget, but never the view just asked for."""
+        while not self.eager and self._held > self._budget and len(self._cache) > 1:
+            _, old = self._cache.popitem(last=False)
+            self._held -= view_bytes(old)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -130,10 +141,11 @@ class ViewSet(Sequence[TrainView]):
                 return
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="splat-views")
-            # A read the trainer never asked for (a stop at the time limit) is dropped.
-            for j in [j for j, f in self._pending.items() if f.done()]:
-                del self._pending[j]
             self._pending[i] = self._pool.submit(self._read, i)
+            # The trainer asks for each prefetched view one step later; older reads it never
+            # asked for (a stop at the time limit) are dropped.
+            while len(self._pending) > 2:
+                del self._pending[next(iter(self._pending))]
 
     def close(self) -> None:
         if self._pool is not None:
