@@ -644,6 +644,14 @@ def test_a_stage_not_run_whose_folder_holds_an_earlier_run_is_flagged(tmp_path: 
     report_text = (tmp_path / "run" / "report.md").read_text()
     assert "**Not run this time:** `t_sink`: its folder holds the files of an earlier run" in (
         report_text)
+    # Only the runner's own bookkeeping (hidden names, a run killed as the stage started):
+    # no results, nothing to flag.
+    for f in (tmp_path / "run" / "t_sink").iterdir():
+        f.unlink()
+    (tmp_path / "run" / "t_sink" / ".stage.started.json").write_text(
+        '{"key": "k", "folder_key": "f"}')
+    _run(path, "t_double.fail=true")
+    assert "Not run this time" not in (tmp_path / "run" / "report.md").read_text()
 
 
 def test_markers_without_a_token_stay_cached(tmp_path: Path) -> None:

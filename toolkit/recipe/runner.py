@@ -117,7 +117,8 @@ class _Record:
             cpu_seconds=self.cpu_seconds,
             markdown="\n\n".join(self.report),
             stale_files=self.status == "not run" and folder is not None and folder.is_dir()
-            and any(True for _ in folder.iterdir()),
+            # Hidden names are the runner's bookkeeping (a run killed as the stage started).
+            and any(not p.name.startswith(".") for p in folder.iterdir()),
         )
 
 
