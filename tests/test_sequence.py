@@ -108,6 +108,20 @@ def test_laser_scan_points_drop_invalid_and_follow_negative_increment():
     assert s.valid_mask().tolist() == [True, False, True, False, False, True]
 
 
+def test_zero_ranges_are_no_return_and_degrees_are_refused() -> None:
+    """Many drivers write "no return" as 0: with range_min 0 it was a point at the laser,
+    which projected into the image set the lidar scale (127 of 220 pairs, scale 0.63 for
+    2.5, flagged ok). Angles in degrees gave SLAM 16 m off without a word."""
+    s = LaserScan(0.0, np.array([0.0, 1.0, -1.0, 2.0], np.float32), -0.1, 0.05)
+    assert s.valid_mask().tolist() == [False, True, False, True]
+    assert len(s.points()) == 2
+    with pytest.raises(ValueError, match="radians"):
+        LaserScan(0.0, np.ones(181, np.float32), -90.0, 1.0)
+    with pytest.raises(ValueError, match="radians"):
+        LaserScan(0.0, np.ones(3, np.float32), -135.0, 0.25)
+    LaserScan(0.0, np.ones(361, np.float32), -np.pi, 2 * np.pi / 360)  # a full turn: fine
+
+
 def test_depth_png_round_trip(tmp_path):
     d = (np.arange(12, dtype=np.float32).reshape(3, 4) * 1.2345).astype(np.float32)
     d[0, 0] = np.nan

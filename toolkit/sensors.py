@@ -26,8 +26,8 @@ class LaserScan:
     Beam i points at ``angle_min + i * angle_increment`` (counter-clockwise about +z from
     +x; the increment may be negative) and was measured at ``stamp + i * time_increment``
     (ROS's convention, as ``laser_geometry`` reads it: the stamp is the first beam's time;
-    0 means the whole scan at the stamp). Non-finite ranges and ranges outside
-    [range_min, range_max] are invalid; they are never stored as zero.
+    0 means the whole scan at the stamp). Non-finite ranges, ranges <= 0 (many drivers'
+    "no return") and ranges outside [range_min, range_max] are invalid.
     """
 
     stamp: float
@@ -53,6 +53,14 @@ class LaserScan:
         if not (np.isfinite(self.angle_min) and np.isfinite(self.angle_increment)):
             raise ValueError(f"scan at {self.stamp}: angle_min ({self.angle_min}) and "
                              f"angle_increment ({self.angle_increment}) must be finite")
+        # Degrees taken for radians: a scanner's angles stay within a turn or so (some
+        # 360-degree drivers overlap their ends); two turns is no scanner.
+        span = abs(self.angle_increment) * max(len(self.ranges) - 1, 0)
+        if span > 4 * np.pi or abs(self.angle_min) > 4 * np.pi:
+            raise ValueError(
+                f"scan at {self.stamp}: angle_min {self.angle_min:g} and angle_increment "
+                f"{self.angle_increment:g} span {span:g} over {len(self.ranges)} beams, more "
+                "than two turns: angles are radians (np.radians of degrees)")
         if not np.isfinite(self.time_increment):
             raise ValueError(f"scan at {self.stamp}: time_increment ({self.time_increment}) "
                              "must be finite (0 when the driver does not say)")
@@ -78,10 +86,11 @@ class LaserScan:
         return max(len(self.ranges) - 1, 0) * self.time_increment
 
     def valid_mask(self) -> np.ndarray:
-        """[B] bool: finite ranges inside [range_min, range_max]."""
+        """[B] bool: finite, positive ranges inside [range_min, range_max] (a zero is "no
+        return" for many drivers, whatever range_min says: never a point at the laser)."""
         r = self.ranges
         with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+            return np.isfinite(r) & (r > 0) & (r >= self.range_min) & (r <= self.range_max)
 
     def points(self) -> np.ndarray:
         """[N, 2] float64 beam end points in the laser frame, invalid beams dropped."""

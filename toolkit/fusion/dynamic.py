@@ -345,8 +345,8 @@ class _PaddedScans:
             self.x[i, :m] = np.where(v, r * np.cos(a), 0.0)
             self.y[i, :m] = np.where(v, r * np.sin(a), 0.0)
             reach = np.where(np.isposinf(r), s.range_max, r)
-            self.reach[i, :m] = np.where(np.isfinite(reach) & (reach >= s.range_min), reach,
-                                         -np.inf)
+            self.reach[i, :m] = np.where(
+                np.isfinite(reach) & (reach > 0) & (reach >= s.range_min), reach, -np.inf)
 
     def seen_through(self, k: np.ndarray, j: np.ndarray, T_j_k: np.ndarray, margin_m: float,
                      margin_rel: float, plane_tol_m: float) -> np.ndarray:
