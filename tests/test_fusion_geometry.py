@@ -11,6 +11,7 @@ from toolkit.fusion.projection import (
     LidarProjector,
     edge_pairs,
     occluded_lidar,
+    project_points,
     project_scan,
     sample_depth,
     zbuffer_lidar,
@@ -413,3 +414,16 @@ def test_lidar_carving_counts_every_voxel_in_reach_and_only_those() -> None:
     assert free.sum() > 1000 and hit.sum() > 100
     np.testing.assert_array_equal(counter.free, free)
     np.testing.assert_array_equal(counter.hit, hit)
+
+
+def test_sampling_values_not_at_the_image_size_is_refused() -> None:
+    """A network output never resized back to the image (or transposed): the clipped
+    lookups sampled the wrong pixels and the scale came out 3.6x off, flagged ok."""
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    pc = np.array([[-0.5, 0.0, 1.0], [0.6, 0.2, 1.0], [0.0, 0.0, 2.0]])
+    uv, z, keep = project_points(cam, pc)
+    lp = LidarPixels(uv, z, pc[keep], np.arange(len(z)), np.zeros(len(z), int))
+    assert len(sample_depth(np.ones((48, 64)), lp)) == 3
+    for shape in ((24, 32), (64, 48)):
+        with pytest.raises(ValueError, match="at the camera image's size"):
+            sample_depth(np.ones(shape), lp)

@@ -182,9 +182,15 @@ def sample_depth(values: np.ndarray, lidar: LidarPixels) -> np.ndarray:
         return np.zeros(0, np.float64)
     px = lidar.pixel
     h, w = values.shape
-    col = np.clip(px[:, 0], 0, w - 1)
-    row = np.clip(px[:, 1], 0, h - 1)
-    return values[row, col].astype(np.float64)
+    # Projected pixels lie in the image; one outside the values means they are not at the
+    # image's size (a network output not resized back, [W, H]): clipped, they sampled the
+    # wrong pixels and gave a scale 3.6x off, flagged ok.
+    if px.min() < 0 or px[:, 0].max() > w - 1 or px[:, 1].max() > h - 1:
+        raise ValueError(
+            f"lidar pixels reach column {px[:, 0].max()}, row {px[:, 1].max()} but the "
+            f"values are {w}x{h} ([H, W] = {values.shape}): give them at the camera image's "
+            "size (resize a network's output to the image, as the depth backends do)")
+    return values[px[:, 1], px[:, 0]].astype(np.float64)
 
 
 def occluded_lidar(lidar: LidarPixels, fx: float, cx: float, angle_increment: float,
