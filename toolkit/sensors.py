@@ -159,6 +159,28 @@ class Rig:
                                  "right, y down, z forward)")
             setattr(self, name, T)
 
+    def mount_warnings(self) -> list[str]:
+        """What looks like a transform given the wrong way round (``T_laser_camera`` for
+        ``T_camera_laser``, a body frame for the optical one): the scan plane more than 30
+        deg from the base's horizontal (2D lidar SLAM needs it level; upside down is fine),
+        or the image's down (optical +y) more than 60 deg from the base's down. Empty for a
+        usual ground robot; a camera mounted rolled or looking straight down is flagged
+        too, and may ignore it."""
+        out = []
+        tilt = float(np.degrees(np.arccos(np.clip(abs(self.T_base_laser[2, 2]), 0.0, 1.0))))
+        if tilt > 30.0:
+            out.append(f"the scan plane is tilted {tilt:.0f} deg from the base's horizontal "
+                       "(T_base_laser's z axis): 2D lidar SLAM needs it level - is a transform "
+                       "inverted (T_laser_camera given for T_camera_laser)?")
+        down = -float(self.T_base_camera[2, 1])
+        if down < 0.5:
+            angle = float(np.degrees(np.arccos(np.clip(down, -1.0, 1.0))))
+            out.append(f"the image's down direction is {angle:.0f} deg from the base's down "
+                       "(T_base_camera's y axis): unless the camera is mounted rolled or "
+                       "looks straight down, a transform is inverted or in the body (x "
+                       "forward) instead of the optical (z forward, y down) convention")
+        return out
+
     @property
     def T_camera_laser(self) -> np.ndarray:
         """[4, 4] maps laser points into the camera optical frame."""

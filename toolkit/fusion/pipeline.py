@@ -9,6 +9,7 @@ outliers are dropped.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from toolkit.camera import PinholeCamera
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, valid_pixels
 from toolkit.fusion.consensus import ConsensusSurface
@@ -40,7 +42,9 @@ from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, s
 from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
 from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
-from toolkit.sensors import Sequence
+from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence
+
+log = logging.getLogger(__name__)
 
 
 class FusionConfig(BaseModel):
@@ -293,6 +297,8 @@ class Fusion:
         self.seq = seq
         self.cfg = config
         self.camera = seq.rig.camera
+        for warning in seq.rig.mount_warnings():
+            log.warning("fusion: %s", warning)
         self.frame_poses = frame_poses  # [F, 4, 4] T_world_base
         self.scan_poses = scan_poses  # [S, 4, 4]
         self.scan_covered = (np.ones(len(seq.scans), bool) if scan_covered is None
@@ -585,3 +591,31 @@ def scaled_at_pairs(pairs: FramePairs, disparity: bool, scale: float, shift: flo
             return np.where(disp > 0, 1.0 / disp, np.nan)
     z = scale * v + shift
     return np.where(z > 0, z, np.nan)
+
+
+def scale_from_scan(prediction: DepthPrediction, scan: LaserScan, camera: PinholeCamera,
+                    T_camera_laser: np.ndarray, config: FusionConfig | None = None) -> (
+                        FramePairs):
+    """The lidar scale of one image from your own arrays, as the ``fuse`` stage finds it.
+
+    ``prediction``: the network's output at the image's size (``DepthPrediction(values
+    [H, W], kind)``); ``scan``: a scan taken with the image (angles in radians, ranges in
+    metres); ``T_camera_laser`` [4, 4]: maps laser points into the camera's optical frame
+    (x right, y down, z forward). The same pairs and filters as the stage (nearest lidar
+    point per pixel, points the camera cannot see, pairs on the prediction's depth
+    edges) and ``config``'s estimator (default: ``clustered``). Returns the frame's
+    ``FramePairs``: ``.estimate`` (scale, shift, inliers, quality), ``.lidar`` (pixels and
+    depths) and ``.pred`` (the prediction there); the metric depth is
+    ``prediction.as_depth(est.scale, est.shift)``. No motion between scan and image is
+    compensated: give the scan nearest in time.
+    """
+    # The laser is the base: the rig's mount checks then test the camera against the
+    # scan plane, which flags an inverted extrinsic.
+    rig = Rig(camera, inv_se3(np.asarray(T_camera_laser, dtype=np.float64)), np.eye(4))
+    h, w = camera.height, camera.width
+    frame = CameraFrame.from_array(scan.stamp, np.zeros((h, w, 3), np.uint8))
+    seq = Sequence(rig, [frame], [scan], name="scale_from_scan")
+    poses = np.eye(4)[None]  # [1, 4, 4]
+    cfg = config or FusionConfig()
+    return Fusion(seq, cfg.model_copy(update={"motion_compensation": False}), poses,
+                  poses).frame_pairs(0, prediction)

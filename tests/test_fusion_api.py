@@ -1,0 +1,58 @@
+"""The library entry point for one image's lidar scale from the user's own arrays, and the
+rig's checks for an extrinsic given the wrong way round."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from toolkit.camera import PinholeCamera
+from toolkit.depth.protocol import DepthPrediction
+from toolkit.fusion.pipeline import FusionConfig, scale_from_scan
+from toolkit.fusion.synthetic import R_BASE_OPTICAL
+from toolkit.geometry import inv_se3, se3
+from toolkit.sensors import LaserScan, Rig
+
+CAM = PinholeCamera(160, 120, 120.0, 120.0, 79.5, 59.5)
+# Laser x forward, z up, 0.1 m below the optical centre (optical: x right, y down, z ahead).
+T_CAMERA_LASER = se3(np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0]], float), [0.0, 0.1, 0.0])
+
+
+def _wall_scan(distance: float = 3.0, n: int = 361) -> LaserScan:
+    a = np.linspace(-np.pi, np.pi, n)
+    ahead = np.abs(a) < 1.4
+    r = np.where(ahead, distance / np.cos(np.where(ahead, a, 0.0)), np.inf)
+    return LaserScan(0.0, r.astype(np.float32), -np.pi, 2 * np.pi / (n - 1), 0.05, 20.0)
+
+
+@pytest.mark.parametrize("method", ["ratio", "clustered", "robust"])
+def test_scale_from_scan_recovers_a_known_scale(method: str) -> None:
+    """A wall 3 m ahead, predicted at 1 / 2.5 of its depth: every estimator finds 2.5."""
+    pred = DepthPrediction(np.full((120, 160), 3.0 / 2.5, np.float32), "relative_depth")
+    fp = scale_from_scan(pred, _wall_scan(), CAM, T_CAMERA_LASER, FusionConfig(scale=method))
+    assert fp.estimate.quality == "ok" and len(fp.lidar) > 50
+    assert fp.estimate.scale == pytest.approx(2.5, rel=1e-4)
+    np.testing.assert_allclose(pred.as_depth(fp.estimate.scale, fp.estimate.shift), 3.0,
+                               rtol=1e-4)
+
+
+def test_an_inverted_extrinsic_is_named(caplog: pytest.LogCaptureFixture) -> None:
+    pred = DepthPrediction(np.full((120, 160), 1.2, np.float32), "relative_depth")
+    with caplog.at_level(logging.WARNING):
+        scale_from_scan(pred, _wall_scan(), CAM, inv_se3(T_CAMERA_LASER))
+    assert "a transform is inverted" in caplog.text
+
+
+def test_rig_mount_warnings() -> None:
+    level = Rig(CAM, se3(R_BASE_OPTICAL, [0.1, 0, 0.4]), se3(np.eye(3), [0.05, 0, 0.2]))
+    assert level.mount_warnings() == []
+    upside_down = Rig(CAM, level.T_base_camera, se3(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.2]))
+    assert upside_down.mount_warnings() == []  # a flipped scanner still scans level
+    c, s = np.cos(np.radians(50)), np.sin(np.radians(50))
+    tilted = Rig(CAM, level.T_base_camera, se3(np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+                                               [0, 0, 0.2]))
+    assert any("tilted 50 deg" in w for w in tilted.mount_warnings())
+    body = Rig(CAM, se3(np.eye(3), [0.1, 0, 0.4]), level.T_base_laser)  # camera_link as optical
+    assert any("image's down direction is 90 deg" in w for w in body.mount_warnings())
