@@ -108,6 +108,24 @@ def test_rejects_bad_intrinsics():
         PinholeCamera(640, 480, 500, 500, 320, 240, np.array([np.nan, 0, 0, 0, 0]))
 
 
+def test_from_K_refuses_a_transposed_or_misshapen_matrix(caplog):
+    """A transposed K read as cx = cy = 0, a 4x4 identity as fx = 1, without a word."""
+    import logging
+
+    K = np.array([[500.0, 0, 319.5], [0, 505.0, 239.5], [0, 0, 1]])
+    cam = PinholeCamera.from_K(K, 640, 480)
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500.0, 505.0, 319.5, 239.5)
+    with pytest.raises(ValueError, match="transposed"):
+        PinholeCamera.from_K(K.T, 640, 480)
+    with pytest.raises(ValueError, match=r"\[3, 3\]"):
+        PinholeCamera.from_K(np.eye(4), 640, 480)
+    skewed = K.copy()
+    skewed[0, 1] = 2.0
+    with caplog.at_level(logging.WARNING):
+        PinholeCamera.from_K(skewed, 640, 480)
+    assert "skew 2" in caplog.text
+
+
 def test_camera_mappings_name_their_lens_model():
     """An empty ``distortion:`` is none; another lens model's coefficients (a fisheye's
     k1..k4 read as k1 k2 p1 p2) are refused; rational_polynomial with k4-k6 zero is ours."""

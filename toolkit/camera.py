@@ -7,11 +7,14 @@ The camera frame is optical: x right, y down, z forward.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 # OpenCV's iterative undistortion stops after 5 iterations by default, which leaves
 # errors of 1e-3 px on strong lenses; these criteria converge to machine precision.
@@ -81,7 +84,18 @@ class PinholeCamera:
     def from_K(
         cls, K: np.ndarray, width: int, height: int, dist: np.ndarray | None = None
     ) -> PinholeCamera:
+        """From a [3, 3] intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels."""
         K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"K must be [3, 3], got {K.shape}")
+        # A transposed K (cx, cy in the bottom row) read as cx = cy = 0.
+        if not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 1e-9 * abs(K[1, 1]):
+            raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got "
+                             f"{K.tolist()}: transposed?")
+        if abs(K[0, 1]) > 1e-6 * abs(K[0, 0]):
+            log.warning("K has skew %g: this pinhole model has none, it is dropped (pixels "
+                        "up to %.2f px off at the image's edge)", K[0, 1],
+                        abs(K[0, 1]) * height / max(abs(K[1, 1]), 1e-9))
         return cls(width, height, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
                    np.zeros(5) if dist is None else dist)
 
