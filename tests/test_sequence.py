@@ -232,6 +232,12 @@ def test_tum_file_round_trip_and_header(tmp_path):
     back = read_tum(tmp_path / "t.tum")
     assert (back.frame, back.child) == ("world", "camera")
     assert np.allclose(back.poses, traj.poses, atol=1e-15)
+    # Any frame names come back, underscores and all (REP 105's map read as world, and
+    # its camera poses as base_link ones, defeated the camera-vs-base check).
+    for frame, child in (("map", "camera"), ("map", "base_footprint"), ("odom", "imu_link")):
+        write_tum(tmp_path / "t.tum", Trajectory(traj.stamps, traj.poses, frame, child))
+        back = read_tum(tmp_path / "t.tum")
+        assert (back.frame, back.child) == (frame, child)
 
 
 def test_writing_over_an_earlier_sequence_leaves_none_of_it(tmp_path: Path) -> None:

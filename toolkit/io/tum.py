@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -41,11 +42,7 @@ def read_tum(
             continue
         if s.startswith("#"):
             if s.startswith("# T_") and ":" in s:
-                name = s[4:].split(":", 1)[0]
-                for known in ("base_link", "camera", "laser", "odom", "world"):
-                    if name.startswith(known + "_"):
-                        hdr_frame, hdr_child = known, name[len(known) + 1:]
-                        break
+                hdr_frame, hdr_child = _header_frames(s, hdr_frame, hdr_child)
             continue
         try:
             t, T = tum_line_to_pose(s.replace(",", " "))
@@ -61,3 +58,18 @@ def read_tum(
                          "sort the file by stamp and remove repeated stamps")
     return Trajectory(st, np.array(poses).reshape(-1, 4, 4), frame or hdr_frame,
                       child or hdr_child)
+
+
+def _header_frames(line: str, frame: str, child: str) -> tuple[str, str]:
+    """(frame, child) from a ``# T_<frame>_<child>: <child> pose in <frame>`` header line
+    (``format_tum``'s; names may hold underscores: ``map``, ``base_footprint``,
+    ``camera_optical``), else from ``# T_<frame>_<child>`` with a known frame name first;
+    ``frame``, ``child`` when neither reads."""
+    name, _, rest = line[4:].partition(":")
+    said = re.fullmatch(r"\s*(.+?) pose in (.+?)\s*", rest)
+    if said and name == f"{said.group(2)}_{said.group(1)}":
+        return said.group(2), said.group(1)
+    for known in ("base_link", "camera", "laser", "odom", "world", "map"):
+        if name.startswith(known + "_"):
+            return known, name[len(known) + 1:]
+    return frame, child
