@@ -56,3 +56,25 @@ def test_rig_mount_warnings() -> None:
     assert any("tilted 50 deg" in w for w in tilted.mount_warnings())
     body = Rig(CAM, se3(np.eye(3), [0.1, 0, 0.4]), level.T_base_laser)  # camera_link as optical
     assert any("image's down direction is 90 deg" in w for w in body.mount_warnings())
+
+
+def test_library_calls_name_wrong_shapes_and_colour_ranges() -> None:
+    """A 3x3 pose, SE(2) poses, colours in 0..1: clear errors, not an IndexError or a
+    reshape message (or a black map)."""
+    from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points
+    from toolkit.fusion.voxel_map import VoxelMap
+    from toolkit.geometry import Trajectory
+
+    rays = RayCache(CAM, 2)
+    depth = np.full((120, 160), 2.0, np.float32)
+    rgb = np.zeros((120, 160, 3), np.uint8)
+    with pytest.raises(ValueError, match=r"T_world_camera must be \[4, 4\]"):
+        depth_to_points(depth, rgb, rays, np.eye(3), CloudOptions())
+    with pytest.raises(ValueError, match="SE\\(2\\) poses\\? se2_to_se3"):
+        Trajectory(np.arange(3.0), np.stack([np.eye(3)] * 3))
+    pts, col, _ = depth_to_points(depth, rgb, rays, np.eye(4), CloudOptions())
+    vm = VoxelMap(0.02)
+    with pytest.raises(ValueError, match="colours must be uint8"):
+        vm.integrate(pts, col.astype(np.float32) / 255, 0)
+    vm.integrate(pts, col, 0)
+    assert len(vm.arrays()) > 0

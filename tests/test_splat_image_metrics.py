@@ -75,3 +75,6 @@ def test_errors() -> None:
         ssim(a, b[:-1])
     with pytest.raises(ValueError, match="smaller than the SSIM window"):
         ssim(a[:8, :8], b[:8, :8])
+    with pytest.raises(ValueError, match="divide 0..255 float images by 255"):
+        psnr(a * 255, b * 255)  # scored -42 dB
+    assert np.isfinite(psnr(a * 255, b * 255, data_range=255.0))

@@ -212,7 +212,13 @@ class Trajectory:
 
     def __post_init__(self) -> None:
         self.stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
-        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        poses = np.asarray(self.poses, dtype=np.float64)
+        if poses.shape[-2:] != (4, 4):
+            raise ValueError(f"poses must be [N, 4, 4] homogeneous transforms, got "
+                             f"{list(poses.shape)}" + (": SE(2) poses? se2_to_se3 makes them"
+                                                       if poses.shape[-2:] == (3, 3) or
+                                                       poses.shape[-1:] == (3,) else ""))
+        self.poses = poses.reshape(-1, 4, 4)
         if len(self.stamps) != len(self.poses):
             raise ValueError(f"{len(self.stamps)} stamps but {len(self.poses)} poses")
 

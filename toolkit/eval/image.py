@@ -56,7 +56,16 @@ def mse(a: Array, b: Array, mask: Array | None = None) -> Any:
 
 
 def psnr(a: Array, b: Array, data_range: float = 1.0, mask: Array | None = None) -> Any:
-    """Peak signal-to-noise ratio in dB; inf for identical images."""
+    """Peak signal-to-noise ratio in dB; inf for identical images. uint8 images count as
+    0..1; float ones must lie in 0..data_range (a numpy float image in 0..255 with the
+    default 1.0 is refused: it scored -42 dB)."""
+    for img in (a, b):
+        if isinstance(img, np.ndarray) and img.dtype != np.uint8 and img.size:
+            top = float(np.nanmax(img))
+            if top > 1.5 * data_range:
+                raise ValueError(f"psnr: values reach {top:g} but data_range is "
+                                 f"{data_range:g}: divide 0..255 float images by 255 (or "
+                                 "pass uint8 images)")
     m = mse(a, b, mask)
     if isinstance(a, np.ndarray):
         return float("inf") if m == 0 else 10.0 * math.log10(data_range**2 / m)

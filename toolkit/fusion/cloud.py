@@ -97,6 +97,8 @@ def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,
     is ``valid_pixels(depth, opts)`` when the caller already has it.
     """
     s = rays.stride
+    if np.shape(T_world_camera) != (4, 4):
+        raise ValueError(f"T_world_camera must be [4, 4], got {list(np.shape(T_world_camera))}")
     if depth.shape != (rays.camera.height, rays.camera.width):
         raise ValueError(f"depth {depth.shape} does not match the camera "
                          f"{rays.camera.height}x{rays.camera.width}")

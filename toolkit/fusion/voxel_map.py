@@ -91,6 +91,10 @@ class VoxelMap:
         """Add one frame's points [N, 3], colours [N, 3] uint8, optional labels [N], the
         points' camera depths [N] (the voxel keeps the nearest frame's mean depth) and
         integer weights [N] (a point standing for several pixels counts as many)."""
+        if np.asarray(colors).dtype != np.uint8:
+            # Colours in 0..1 were averaged as they came and written as black.
+            raise ValueError(f"colours must be uint8 0..255, got {np.asarray(colors).dtype}: "
+                             "(np.clip(c * 255, 0, 255) + 0.5).astype(np.uint8) for 0..1")
         if len(points) == 0:
             self.frames_integrated += 1
             return
