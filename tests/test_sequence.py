@@ -272,3 +272,9 @@ def test_lookups_far_outside_the_recording_are_errors(tmp_path: Path) -> None:
     assert seq.scan_index_at(t0 + 0.21) == 2 and seq.frame_index_at(t0 + 1.2) == 3
     with pytest.raises(ValueError, match="outside the recording"):
         seq.scan_at(-1e9)  # seconds into the recording given as a stamp
+    # Nearest within a tolerance: the last scan is "nearest" to a time well past it.
+    assert seq.scan_at(t0 + 0.21, max_dt=0.05).stamp == pytest.approx(0.2)
+    with pytest.raises(LookupError, match="nothing within 0.05 s"):
+        seq.scan_at(seq.scan_stamps[-1] + 0.3, max_dt=0.05)
+    with pytest.raises(LookupError, match="nothing within"):
+        seq.frame_at(t0 + 1.2, max_dt=0.1)

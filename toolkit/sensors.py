@@ -267,7 +267,7 @@ class Sequence:
         return iter(self.frames)
 
     @staticmethod
-    def _nearest(stamps: np.ndarray, t: float) -> int:
+    def _nearest(stamps: np.ndarray, t: float, max_dt: float | None = None) -> int:
         if len(stamps) == 0:
             raise IndexError("no data to look up")
         span = float(stamps[-1] - stamps[0])
@@ -282,24 +282,33 @@ class Sequence:
             np.searchsorted(stamps, t)
         )
         if i == 0:
-            return 0
-        if i == len(stamps):
-            return len(stamps) - 1
-        return i if stamps[i] - t < t - stamps[i - 1] else i - 1
+            k = 0
+        elif i == len(stamps):
+            k = len(stamps) - 1
+        else:
+            k = i if stamps[i] - t < t - stamps[i - 1] else i - 1
+        if max_dt is not None and abs(float(stamps[k]) - t) > max_dt:
+            raise LookupError(f"nothing within {max_dt:g} s of t={t!r}: the nearest is "
+                              f"{float(stamps[k]) - t:+.3g} s away")
+        return k
 
-    def frame_index_at(self, t: float) -> int:
-        """Index of the camera frame nearest in time to ``t``."""
-        return self._nearest(self._frame_stamps, t)
+    def frame_index_at(self, t: float, max_dt: float | None = None) -> int:
+        """Index of the camera frame nearest in time to ``t`` (``LookupError`` when it is
+        more than ``max_dt`` seconds away)."""
+        return self._nearest(self._frame_stamps, t, max_dt)
 
-    def scan_index_at(self, t: float) -> int:
-        """Index of the scan nearest in time to ``t``."""
-        return self._nearest(self._scan_stamps, t)
+    def scan_index_at(self, t: float, max_dt: float | None = None) -> int:
+        """Index of the scan nearest in time to ``t`` (``LookupError`` when it is more than
+        ``max_dt`` seconds away)."""
+        return self._nearest(self._scan_stamps, t, max_dt)
 
-    def frame_at(self, t: float) -> CameraFrame:
-        return self.frames[self.frame_index_at(t)]
+    def frame_at(self, t: float, max_dt: float | None = None) -> CameraFrame:
+        return self.frames[self.frame_index_at(t, max_dt)]
 
-    def scan_at(self, t: float) -> LaserScan:
-        return self.scans[self.scan_index_at(t)]
+    def scan_at(self, t: float, max_dt: float | None = None) -> LaserScan:
+        """The scan nearest in time to ``t``; with ``max_dt``, none further than that (the
+        last scan, a minute away, is the "nearest" to a time near the recording's end)."""
+        return self.scans[self.scan_index_at(t, max_dt)]
 
     def scans_between(self, t0: float, t1: float) -> list[LaserScan]:
         """Scans with t0 <= stamp < t1."""
