@@ -97,7 +97,8 @@ def ape(est: Trajectory, ref: Trajectory, align: str = "se3", component: str = "
     elif align in ("se3", "sim3"):
         aligned, _ = align_trajectory(est, ref, with_scale=align == "sim3")
     else:
-        raise ValueError(f"align must be none, se3 or sim3, got {align!r}")
+        raise ValueError(f"align must be none, se3 or sim3, got {align!r} (a planar "
+                         "trajectory in SE(2): toolkit.slam2d.bench.ate_se2)")
     if component == "trans":
         e = np.linalg.norm(aligned.positions - ref.positions, axis=1)
     elif component == "rot":
