@@ -400,9 +400,13 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
 
 
 def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera: PinholeCamera,
-                    camera_source: str, max_dt: float, skip_unpaired: bool = False,
-                    stamp_unit: str = "auto") -> tuple[list[ViewCandidate], dict[str, str]]:
-    """Read images and scans from disk and pair the images that show the board."""
+                    camera_source: str = "the camera given", max_dt: float = 0.1,
+                    skip_unpaired: bool = False, stamp_unit: str = "auto") -> tuple[
+                        list[ViewCandidate], dict[str, str]]:
+    """Read images and scans from disk and pair the images that show the board (each image
+    with the nearest scan within ``max_dt`` seconds). ``camera_source`` names where the
+    camera came from in errors (an image of another size); the second value says why
+    images were left out (no board found, no scan near)."""
     images = images_from_folder(images_dir, stamp_unit)
     scans = read_scans(scans_src, stamp_unit)
     if not scans:
