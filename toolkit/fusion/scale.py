@@ -272,7 +272,13 @@ def _finish(scale: float, shift: float, inliers: int, n: int, method: str,
 
 def estimate_scale(method: Method, lidar: np.ndarray, pred: np.ndarray,
                    disparity: bool = False, **options: object) -> ScaleEstimate:
-    """Dispatch to ``estimate_<method>``; ``options`` are that estimator's keywords."""
+    """Dispatch to ``estimate_<method>``; ``options`` are that estimator's keywords.
+
+    ``lidar`` [N] metres and ``pred`` [N] the prediction at the same pixels; ``disparity``
+    says the prediction is relative disparity (Depth Anything's relative models): a wrong
+    value still fits, to a meaningless scale flagged ok, so check the output kind with
+    ``depth_order_agreement`` (the fuse stage refuses the run on it). ``ratio`` fits no
+    shift, which relative disparity has: use ``clustered`` or ``robust`` for those."""
     fn = {"ratio": estimate_ratio, "clustered": estimate_clustered,
           "robust": estimate_robust}.get(method)
     if fn is None:
