@@ -387,6 +387,9 @@ def test_depth_stage_resumes_after_an_interruption(tmp_path: Path,
     for i in a.indices:
         np.testing.assert_array_equal(a.read(i).values, b.read(i).values)
     assert "5 kept from an interrupted run" in (tmp_path / "cut/run/report.md").read_text()
+    # The sample figure shows the first frame either way (a resumed run drew frame 5).
+    fig = "run/depth/depth_sample.png"
+    assert (tmp_path / "full" / fig).read_bytes() == (tmp_path / "cut" / fig).read_bytes()
 
 
 def test_depth_stage_killed_after_its_last_frame_predicts_nothing_again(

@@ -195,7 +195,6 @@ class DepthStage(Stage):
         if writer.resumed:
             ctx.log.info("depth: resuming, %d of %d frames kept from an interrupted run",
                          len(indices) - len(todo), len(indices))
-        first_pred = None
         # Only inference is work: image decoding and the simulated backend's ground-truth
         # read stand for what a live camera driver delivers.
         timer = WorkTimer()
@@ -211,8 +210,6 @@ class DepthStage(Stage):
             with timer:
                 pred = backend.predict(rgb, **kwargs)
             writer.add(i, seq.frames[i].stamp, pred)
-            if first_pred is None:
-                first_pred = (i, rgb, pred)
         writer.close()
         ctx.provide("depth", out)
         lat = np.array([float(r["latency_s"]) for r in writer.rows])
@@ -222,9 +219,10 @@ class DepthStage(Stage):
                    "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None,
                    "device": _device(backend),
                    **timer.metrics(len(todo))}
-        if first_pred is None:  # every frame came from the interrupted run
-            i = indices[0]
-            first_pred = (i, seq.frames[i].image, DepthStore(out).read(i))
+        # The first frame as stored, whichever run predicted it: a resumed run draws the
+        # figure a whole one does (it drew the first frame predicted after the restart).
+        i = indices[0]
+        first_pred = (i, seq.frames[i].image, DepthStore(out).read(i))
         ctx.add_metrics(metrics)
         if random_weights:
             ctx.add_metrics({"random_weights": True})
@@ -241,10 +239,9 @@ class DepthStage(Stage):
         md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames"
               f"{resumed}, network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms){where}."]
-        if first_pred is not None:
-            fig = ctx.stage_dir / "depth_sample.png"
-            _sample_figure(fig, *first_pred)
-            md.append(f"![image and prediction]({ctx.stage_id}/{fig.name})")
+        fig = ctx.stage_dir / "depth_sample.png"
+        _sample_figure(fig, *first_pred)
+        md.append(f"![image and prediction]({ctx.stage_id}/{fig.name})")
         ctx.report("\n\n".join(md))
 
 
