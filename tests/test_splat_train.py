@@ -97,6 +97,9 @@ def test_checkpoint_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
     assert resumed.resume() and resumed.step == 15
     resumed.train()
     assert resumed.step == straight.step == 30
+    # The running averages came back too: the same history and final figures.
+    assert resumed.history == straight.history
+    assert straight.history[-1]["psnr_avg_db"] == resumed.history[-1]["psnr_avg_db"]
     for name, p in straight.model.params.items():
         assert torch.equal(resumed.model.params[name], p), name
     for name in straight.optimizers:
@@ -120,6 +123,13 @@ def test_resume_refuses_other_settings_or_data_and_takes_finished_runs(tmp_path:
     assert not other.resume() and other.step == 0
     other_data = Trainer(_start_model(300), views, _cfg(), tmp_path, data_key="x")
     assert not other_data.resume()
+    # another step count: its learning-rate schedule differs from the checkpoint's steps
+    steps = Trainer(_start_model(300), views, _cfg(iterations=40), tmp_path)
+    assert not steps.resume() and steps.step == 0
+    # a time limit or another checkpoint interval leaves the optimisation alone
+    limited = Trainer(_start_model(300), views, _cfg(max_seconds=100.0, checkpoint_every=5),
+                      tmp_path)
+    assert limited.resume() and limited.step == 2
     same = Trainer(_start_model(300), views, _cfg(), tmp_path)
     assert same.resume() and same.step == 2
     done = same.train()  # finishes: a rerun takes its model, without training again

@@ -305,10 +305,11 @@ class SplatStage(Stage):
     # fused: the initial cloud and depth targets (init: random trains without it);
     # tsdf_mesh: rendered at the held-out views for the comparison.
     optional_requires = ("trajectory", "fused", "tsdf_mesh")
-    # An interrupted training continues under a new step count or time limit (the
-    # trainer's checkpoint ignores them too: ``config_digest``).
-    resume_settings = frozenset({"iterations", "max_seconds", "log_every", "checkpoint_every",
-                                 "threads"})
+    # An interrupted training continues under a new time limit or thread count (the
+    # trainer's checkpoint ignores them too: ``config_digest``). Not under another step
+    # count: the learning rates decay over the whole run, so steps taken on one schedule
+    # and continued on another give a model neither run gives.
+    resume_settings = frozenset({"max_seconds", "log_every", "checkpoint_every", "threads"})
     # Reading views on demand or up front gives the same model.
     speed_settings = frozenset({"view_cache_mb"})
     provides = ("splats",)
@@ -441,8 +442,9 @@ class SplatStage(Stage):
         backend = resolve_backend(cfg.backend, model.means.device)
         ctx.log.info("splat: %d training views at %dx%d (%d with scaled depth), %d held out, "
                      "%d initial Gaussians, backend %s%s", len(train_views), w, h, n_depth,
-                     len(test_views), len(model), backend,
-                     f", resumed at step {trainer.step}" if resumed else "")
+                     len(test_views), n_init, backend,
+                     f", resumed at step {trainer.step} with {len(trainer.model)} Gaussians"
+                     if resumed else "")
         summary = trainer.train(iter_wrapper=lambda it, total, desc: ctx.progress(
             it, total=total, description=desc))
         model = trainer.model

@@ -213,11 +213,13 @@ def _adam(params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
 
 
 def config_digest(cfg: TrainConfig, whole: bool = False) -> str:
-    """What a checkpoint must agree with to be resumed (iterations may change); ``whole``:
-    every setting, what a finished run's model must agree with to be taken as the result."""
+    """What a checkpoint must agree with to be resumed (the time limit and the checkpoint
+    and log intervals may change: they do not touch the optimisation; the step count does,
+    through the learning-rate decay over the whole run); ``whole``: every setting, what a
+    finished run's model must agree with to be taken as the result."""
     d = cfg.model_dump(mode="json")
     if not whole:
-        for k in ("iterations", "checkpoint_every", "log_every", "max_seconds"):
+        for k in ("checkpoint_every", "log_every", "max_seconds"):
             d.pop(k, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -255,6 +257,9 @@ class Trainer:
             self.pose_opt = torch.optim.Adam(self.pose.parameters(), lr=config.lr_pose,
                                              weight_decay=config.pose_reg)
         self.history: list[dict[str, float]] = []
+        # Running averages of loss and PSNR (history, progress bar, final figures): in the
+        # checkpoint, so that a resumed run reports what an uninterrupted one does.
+        self.ema: dict[str, float] = {}
         self.resumed_from: int | None = None
         if len(model) > self.cap:
             log.warning("model has %d Gaussians, above the cap of %d: growth disabled until "
@@ -360,7 +365,7 @@ class Trainer:
         steps = range(start, cfg.iterations)
         stopped = False
         last: dict[str, float] = {"loss": float("nan"), "psnr_db": float("nan")}
-        ema: dict[str, float] = {}
+        ema = self.ema
         # Views read on demand: the next step's is read while this one trains.
         prefetch = getattr(self.views, "prefetch", None)
         with _progress(iter_wrapper, steps) as (loop, update):
@@ -418,6 +423,7 @@ class Trainer:
             "pose": None if self.pose is None else self.pose.state_dict(),
             "pose_opt": None if self.pose_opt is None else self.pose_opt.state_dict(),
             "history": self.history,
+            "ema": dict(self.ema),
         }
 
     def save_checkpoint(self, finished: bool = False,
@@ -451,6 +457,7 @@ class Trainer:
             assert self.pose_opt is not None
             self.pose_opt.load_state_dict(ckpt["pose_opt"])
         self.history = list(ckpt.get("history", []))
+        self.ema = dict(ckpt.get("ema") or {})
         self.step = int(ckpt["step"])
         self.resumed_from = self.step
 
@@ -477,7 +484,7 @@ class Trainer:
         except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: start afresh
             log.warning("ignoring checkpoint %s (%s: %s); training from the start",
                         self.checkpoint_path(), type(exc).__name__, exc)
-            self.step, self.resumed_from, self.history = 0, None, []
+            self.step, self.resumed_from, self.history, self.ema = 0, None, [], {}
             return False
         if ckpt.get("finished"):
             self.done = {k: v for k, v in outcome.items() if k != "settings"}
