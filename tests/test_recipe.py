@@ -604,6 +604,23 @@ def test_resume_after_exception(tmp_path: Path) -> None:
     assert (run_dir / "t_sink" / "checkpoint.txt").exists()
 
 
+def test_a_finished_stage_folder_holds_no_leftover_temporaries(tmp_path: Path) -> None:
+    """A write killed half way leaves its hidden temporary (a resumed fuse kept them in
+    its finished scaled_depth/); the stage's success removes them, and nothing else."""
+    marker = tmp_path / "failed_once"
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path, fail_marker=str(marker)))
+    assert not _run(path).ok
+    sub = tmp_path / "run" / "t_sink" / "part"
+    sub.mkdir()
+    leftovers = [sub / ".000079.20021.5289cb0f.tmp.png", tmp_path / "run" / "t_sink" /
+                 ".result.77.0123abcd.tmp.json"]
+    for f in leftovers:
+        f.write_bytes(b"half")
+    (sub / ".keep").write_text("mine")
+    assert _run(path).ok
+    assert not any(f.exists() for f in leftovers) and (sub / ".keep").exists()
+
+
 def test_resume_after_sigkill(tmp_path: Path) -> None:
     marker = tmp_path / "killed_once"
     path = _write_recipe(tmp_path, _recipe_data(tmp_path, kill_marker=str(marker)))

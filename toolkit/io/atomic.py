@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 from collections.abc import Iterator, Mapping
@@ -41,6 +42,22 @@ def remove_leftover_temps(path: str | os.PathLike[str]) -> None:
     target = Path(path)
     for tmp in target.parent.glob(f".{target.stem}.*.tmp{target.suffix}"):
         tmp.unlink(missing_ok=True)
+
+
+# _temp_name's pattern: ".<stem>.<pid>.<8 hex>.tmp<suffix>".
+_TEMP_NAME = re.compile(r"\..+\.\d+\.[0-9a-f]{8}\.tmp(\.[^.]*)?")
+
+
+def remove_temps_under(folder: str | os.PathLike[str]) -> int:
+    """Delete every temporary file of a killed atomic write anywhere under ``folder`` (call
+    it where no other process writes there: a stage's folder once the stage is done);
+    returns how many went."""
+    n = 0
+    for p in Path(folder).rglob(".*"):
+        if p.is_file() and _TEMP_NAME.fullmatch(p.name):
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
 
 
 @contextmanager

@@ -42,7 +42,12 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from toolkit.io.atomic import atomic_write_json, atomic_write_text, to_jsonable
+from toolkit.io.atomic import (
+    atomic_write_json,
+    atomic_write_text,
+    remove_temps_under,
+    to_jsonable,
+)
 from toolkit.recipe import registry, report
 from toolkit.recipe.schema import Recipe, RecipeError, StageSpec, config_data, dump_recipe_data
 from toolkit.recipe.stage import Stage, StageContext, StageError, StageResult
@@ -432,6 +437,9 @@ class _Run:
         try:
             stage.run(ctx)
             ctx.check_provided()
+            # A kill before this run left half-written temporaries in the folder (a resumed
+            # fuse's scaled depth): the finished folder holds outputs only.
+            remove_temps_under(stage_dir)
             record.seconds = time.perf_counter() - start
             record.cpu_seconds = _cpu_seconds() - cpu_start
             record.token = uuid.uuid4().hex
