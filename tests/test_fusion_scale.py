@@ -11,6 +11,7 @@ from toolkit.fusion.scale import (
     depth_order_agreement,
     estimate_clustered,
     estimate_scale,
+    pair_agreement,
     smooth_scales,
 )
 
@@ -214,6 +215,36 @@ def test_smoothing_needs_three_frames_to_call_one_an_outlier() -> None:
     assert sm.flag == [OK, OK] and list(sm.scale) == [1.5, 1.9]
     three = two + [ScaleEstimate(1.52, 0.0, 50, 60, OK, "x")]
     assert smooth_scales(three, window=9, outlier_tol=0.1).flag == [OK, OUTLIER_FRAME, OK]
+
+
+@pytest.mark.parametrize("mode", ["none", "median"])
+def test_a_frame_whose_own_pairs_back_its_scale_is_kept(mode: str) -> None:
+    """A relative network's output constant jumps at frame 3 (true scale 0.80 among 1.05):
+    its own 60 pairs agree with 0.80 and reject 1.05, so it keeps its scale (the
+    neighbours' made its depth 30 % wrong). Frame 6's fit 0.80 is a cluster of 40 % of its
+    pairs on a person; the rest agree with the neighbours: still an outlier."""
+    rng = np.random.default_rng(3)
+    true = [1.05, 1.04, 1.06, 0.80, 1.05, 1.03, 1.05, 1.04, 1.06]
+    pairs, ests = [], []
+    for k, s in enumerate(true):
+        d = rng.uniform(0.5, 5.0, 60)
+        lid = s * d * (1 + 0.01 * rng.standard_normal(60))
+        fit = s
+        if k == 6:
+            lid[:24] = 0.80 * d[:24]  # a person nearer than the wall the camera sees
+            fit = 0.80
+        pairs.append((lid, d))
+        ests.append(ScaleEstimate(fit, 0.0, 50, 60, OK, "clustered"))
+
+    def agreement(i: int, scale: float, shift: float) -> float:
+        return pair_agreement(pairs[i][0], pairs[i][1], False, scale, shift, 0.125)
+
+    sm = smooth_scales(ests, window=9, outlier_tol=0.25, mode=mode, agreement=agreement)
+    assert sm.flag[3] == OK and sm.scale[3] == 0.80
+    assert sm.flag[6] == OUTLIER_FRAME and abs(sm.scale[6] - 1.05) < 0.02
+    # Without the pairs, frame 3 is flagged too and given the neighbours' scale.
+    blind = smooth_scales(ests, window=9, outlier_tol=0.25, mode=mode)
+    assert blind.flag[3] == OUTLIER_FRAME and abs(blind.scale[3] - 1.05) < 0.02
 
 
 def test_a_wall_frame_keeps_its_scale_among_scale_and_shift_fits() -> None:

@@ -87,7 +87,8 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
     # Wall clock and CPU time: on a shared machine the wall clock measures the neighbours.
     t0, c0 = time.perf_counter(), time.process_time()
     pairs = {i: fusion.frame_pairs(int(i), preds[i]) for i in idx}
-    sm = fusion.smooth([pairs[i].estimate for i in idx])
+    sm = fusion.smooth([pairs[i].estimate for i in idx], [pairs[i] for i in idx],
+                       preds[idx[0]].is_disparity)
     t1, c1 = time.perf_counter(), time.process_time()
     points = 0
     for j, i in enumerate(idx):

@@ -38,7 +38,13 @@ from toolkit.fusion.projection import (
     zbuffer_lidar,
 )
 from toolkit.fusion.refine import DepthRefiner, Refinement, RefineOptions
-from toolkit.fusion.scale import ScaleEstimate, SmoothedScale, estimate_scale, smooth_scales
+from toolkit.fusion.scale import (
+    ScaleEstimate,
+    SmoothedScale,
+    estimate_scale,
+    pair_agreement,
+    smooth_scales,
+)
 from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
 from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
@@ -403,14 +409,29 @@ class Fusion:
         parts = [self._dyn_xy[k] for k in range(lo, hi) if len(self._dyn_xy[k])]
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
-    def smooth(self, estimates: list[ScaleEstimate]) -> SmoothedScale:
+    def smooth(self, estimates: list[ScaleEstimate], pairs: list[FramePairs] | None = None,
+               disparity: bool = False) -> SmoothedScale:
+        """Temporal smoothing and outlier frames (``smooth_scales``). With the frames'
+        ``pairs`` (the ``frame_pairs`` the estimates came from, in the same order; their
+        predictions ``disparity`` or not), a frame off its neighbours whose own pairs back
+        its fit and reject theirs keeps its scale."""
         c = self.cfg
         if c.scale == "none":
             n = len(estimates)
             return SmoothedScale(np.ones(n), np.zeros(n), np.ones(n), ["ok"] * n,
                                  np.ones(n, bool))
+        agreement = None
+        if pairs is not None:
+            if len(pairs) != len(estimates):
+                raise ValueError(f"{len(pairs)} frames' pairs for {len(estimates)} estimates")
+            # Half the outlier distance: scales that far apart cannot both take a pair.
+            tol = c.outlier_tol / 2
+
+            def agreement(i: int, scale: float, shift: float) -> float:
+                return pair_agreement(pairs[i].lidar.z, pairs[i].pred, disparity, scale,
+                                      shift, tol)
         return smooth_scales(estimates, c.smoothing_window, c.outlier_tol, c.smoothing,
-                             c.few_pairs)
+                             c.few_pairs, agreement)
 
     def refine(self, index: int, depth: np.ndarray, pairs: FramePairs) -> tuple[
             np.ndarray, Refinement]:

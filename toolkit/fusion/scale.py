@@ -28,7 +28,7 @@ smoothed value of their good neighbours (or are skipped).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from typing import Literal
 
@@ -318,7 +318,9 @@ class SmoothedScale:
 
 def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
                   outlier_tol: float = 0.1, mode: Literal["median", "none"] = "median",
-                  fill: Literal["smoothed", "skip"] = "smoothed") -> SmoothedScale:
+                  fill: Literal["smoothed", "skip"] = "smoothed",
+                  agreement: Callable[[int, float, float], float] | None = None) -> (
+                      SmoothedScale):
     """Reject outlier frames and smooth the scale (and shift) over ``window`` frames.
 
     A good frame is an outlier when its log scale is more than ``outlier_tol`` from the
@@ -329,6 +331,14 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     frames' own values, and so do estimates with a shift in either mode (a scale and shift
     pair is the image's own). Flagged frames take the smoothed value (with shifts: the pair
     of the frame nearest the median) when ``fill="smoothed"``, or are skipped.
+
+    ``agreement(i, scale, shift)``: the fraction of frame i's own lidar pairs that a (scale,
+    shift) explains (``pair_agreement``). With it, a frame off its neighbours is kept, with
+    its own values in either mode, when its pairs back its own fit (at least half of them)
+    and reject the neighbours' (twice as many agree with its own): a relative network's
+    output constant can jump between two images, and the neighbours' scale then made that
+    frame's depth 30 % wrong where its own was 2 % off. A wrong fit (a cluster on a person)
+    has no such backing.
     """
     n = len(estimates)
     raw = np.array([e.scale for e in estimates], dtype=np.float64)
@@ -363,6 +373,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     # flagged and handed a neighbour's pair: 0.35 % -> 35 % depth error on the wall) nor
     # lent to another frame.
     fitted_shift = shift != 0  # [F]
+    backed = np.zeros(n, bool)  # [F] off the neighbours, backed by its own pairs
     affine = bool(fitted_shift[good].any())
     comparable = good & fitted_shift if affine else good  # [F]
     for i in range(n):
@@ -375,6 +386,13 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
             continue
         med = window_median(logs, comparable, i)
         if np.isfinite(med) and abs(logs[i] - med) > outlier_tol:
+            if agreement is not None:
+                j = nearest_good(logs, comparable, i, med) if affine else -1
+                theirs = (raw[j], shift[j]) if j >= 0 else (float(np.exp(med)), 0.0)
+                own = agreement(i, float(raw[i]), float(shift[i]))
+                if own >= 0.5 and own >= 2.0 * agreement(i, *theirs):
+                    backed[i] = True
+                    continue
             flags[i] = OUTLIER_FRAME
     good2 = good & np.array([f == OK for f in flags])
     out_s = np.full(n, np.nan)
@@ -386,7 +404,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     # frame whose scale is nearest the window's median.
     lenders = good2 & fitted_shift if affine and (good2 & fitted_shift).any() else good2
     for i in range(n):
-        if good2[i] and (mode == "none" or affine):
+        if good2[i] and (mode == "none" or affine or backed[i]):
             out_s[i], out_t[i] = raw[i], shift[i]
             continue
         if not good2[i] and fill == "skip":
@@ -400,3 +418,16 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
         out_t[i] = 0.0
     used = np.isfinite(out_s)
     return SmoothedScale(out_s, out_t, raw, flags, used)
+
+
+def pair_agreement(lidar: np.ndarray, pred: np.ndarray, disparity: bool, scale: float,
+                   shift: float, tol: float) -> float:
+    """Fraction of the valid pairs (lidar [N] metres, prediction [N]) whose depth under
+    (``scale``, ``shift``) lies within ``tol`` of the lidar's in log (0 without pairs)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = scale * np.asarray(pred, np.float64) + shift
+        depth = 1.0 / v if disparity else v
+        ok = np.isfinite(depth) & (depth > 0) & np.isfinite(lidar) & (lidar > 0)
+        if not ok.any():
+            return 0.0
+        return float(np.mean(np.abs(np.log(depth[ok] / lidar[ok])) < tol))

@@ -391,7 +391,7 @@ class FuseStage(Stage):
                 "(what the network's documentation says it outputs) and rerun from it "
                 "(--from depth)")
         estimates = [pairs[i].estimate for i in frames]
-        sm = fusion.smooth(estimates)
+        sm = fusion.smooth(estimates, [pairs[i] for i in frames], disparity)
         if not sm.used.any():
             landed = float(np.median([len(pairs[i].lidar) for i in frames]))
             valid = float(np.median([e.pairs for e in estimates]))
