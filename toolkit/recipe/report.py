@@ -90,8 +90,8 @@ def build_report(
     if stale:
         parts.append(f"**Not run this time:** {', '.join(stale)}: "
                      f"{'their folders hold' if len(stale) > 1 else 'its folder holds'} the "
-                     "files of an earlier run, made from other settings or inputs - not "
-                     "results of this one.")
+                     "files of an earlier run, made before its settings, its inputs or an "
+                     "upstream stage's output changed - not results of this one.")
     return "\n\n".join(parts) + "\n"
 
 
