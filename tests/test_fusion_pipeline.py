@@ -71,6 +71,28 @@ def test_moving_box_is_removed_from_the_map(box_room: Path) -> None:
         assert np.median(md.distance(raw.points[keep])) < 0.01
 
 
+def test_moving_pixels_cover_the_walking_box_at_full_resolution(box_room: Path) -> None:
+    """The pixels of the space the lidar saw the box move through, for the scaled depth
+    written to later stages (the TSDF fused the people into ghost surfaces): all of the
+    box's pixels, and fewer others (the floor within dynamic_radius_m of its lidar hits,
+    which other frames see)."""
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    fu = Fusion(seq, FusionConfig(scale="none"), fp, sp)
+    hit = box = wrong = 0
+    for i in range(len(seq.frames)):
+        d = gt.depth(i)
+        m = fu.moving_pixels(i, np.where(d > 0, d, np.nan))
+        truth = gt.mask(i)
+        box += int(truth.sum())
+        if m is not None:
+            assert m.shape == d.shape
+            hit += int((m & truth).sum())
+            wrong += int((m & ~truth).sum())
+    assert box > 500 and hit > 0.95 * box and wrong < 0.7 * hit
+
+
 def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path) -> None:
     from toolkit.depth.stage import DepthStage
     from toolkit.fusion.stage import FuseStage

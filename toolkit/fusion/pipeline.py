@@ -318,6 +318,7 @@ class Fusion:
             config.scans_per_frame, config.max_scan_dt_s,
             scan_usable=self.scan_covered if config.motion_compensation else None)
         self.rays = RayCache(self.camera, config.stride)
+        self._full_rays: RayCache | None = None  # every pixel's ray (moving_pixels)
         self.cloud_opts = config.cloud_options(self.camera.fx)
         # One beam spacing for the occlusion test of the pairs (scanners of one sequence
         # share it; the finest one is the strictest test)
@@ -408,6 +409,27 @@ class Fusion:
                                       t + self.cfg.dynamic_scan_window_s])
         parts = [self._dyn_xy[k] for k in range(lo, hi) if len(self._dyn_xy[k])]
         return np.concatenate(parts) if parts else np.zeros((0, 2))
+
+    def moving_pixels(self, index: int, depth: np.ndarray) -> np.ndarray | None:
+        """[H, W] bool: pixels of frame ``index``'s scaled ``depth`` within the space of a
+        moving obstacle the lidar saw near its time (what ``integrate`` keeps out of the
+        map), at full resolution; None where there is none. The scaled depth written for
+        later stages leaves them out too: the TSDF fused the people walking through into
+        ghost surfaces, and splats took them as depth targets."""
+        centres = self.dynamic_hits(index)
+        if not len(centres):
+            return None
+        if self._full_rays is None:
+            self._full_rays = RayCache(self.camera, 1)
+        T = self.T_world_camera(index).astype(np.float32)
+        ok = np.isfinite(depth) & (depth > 0)
+        if self._full_rays.reachable is not None:
+            ok &= self._full_rays.reachable
+        pc = self._full_rays.rays[ok] * depth[ok][:, None].astype(np.float32)  # [N, 3]
+        out = np.zeros(depth.shape, bool)
+        out[ok] = cylinder_mask(pc @ T[:3, :3].T + T[:3, 3], centres,
+                                self.cfg.dynamic_radius_m, self.cfg.dynamic_height_m)
+        return out
 
     def smooth(self, estimates: list[ScaleEstimate], pairs: list[FramePairs] | None = None,
                disparity: bool = False) -> SmoothedScale:

@@ -281,7 +281,9 @@ class FuseStage(Stage):
     # rig: a calibrated extrinsic (calibrate) over the sequence's own
     optional_requires = ("trajectory", "rig")
     provides = ("fused",)
-    version = 2  # 2: floor below base_link; scans off the trajectory unused; smoothing
+    # 2: floor below base_link; scans off the trajectory unused; smoothing. 3: frames
+    # backed by their own pairs keep their scale; moving pixels out of the written depth
+    version = 3
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
@@ -457,7 +459,9 @@ class FuseStage(Stage):
                     from toolkit.io.depth import write_depth
 
                     name = f"{i:06d}.{cfg.write_depth}"
-                    writes.submit(write_depth, out_depth / name, scaled)  # NaN becomes 0
+                    moving = fusion.moving_pixels(i, scaled)
+                    out = scaled if moving is None else np.where(moving, np.nan, scaled)
+                    writes.submit(write_depth, out_depth / name, out)  # NaN becomes 0
                     st.depth_rows.append(f"{i},{seq.frames[i].stamp!r},{name},{s!r},{t!r}")
                 st.pose_rows.append((seq.frames[i].stamp, fusion.T_world_camera(i)))
                 if i == fig_frame:
@@ -653,6 +657,9 @@ class FuseStage(Stage):
                           final.colors, xy, "fused map", removed)  # type: ignore[attr-defined]
         md.append(f"![coloured map]({sid}/map_views.png)")
         md.append(f"Files: [map.ply]({sid}/map.ply), [scales.csv]({sid}/scales.csv)"
-                  + (f", scaled depth in `{sid}/scaled_depth/`." if cfg.write_depth != "none"
+                  + (f", scaled depth in `{sid}/scaled_depth/` ("
+                     + ("16-bit PNG, 5000 per metre" if cfg.write_depth == "png" else
+                        "float32 .npy, metres") + "; 0 where none, and on moving obstacles)."
+                     if cfg.write_depth != "none"
                      else " (no scaled depth: `write_depth: none`)."))
         ctx.report("\n\n".join(md))
