@@ -169,19 +169,21 @@ def map_views(path: Path, points: np.ndarray, colors: np.ndarray,
 
 
 def scale_plot(path: Path, frames: np.ndarray, raw: np.ndarray, final: np.ndarray,
-               oracle: np.ndarray | None, flags: list[str], kind: str) -> None:
+               oracle: np.ndarray | None, flags: list[str], kind: str,
+               used_label: str = "used (smoothed)") -> None:
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(9, 3.2))
+    fig, ax = plt.subplots(figsize=(10.5, 3.2))
     ax.plot(frames, raw, ".", ms=3, color="0.6", label="per-frame estimate")
     bad = np.array([f != "ok" for f in flags])
     if bad.any():
         ax.plot(frames[bad], raw[bad], "x", ms=4, color="tab:red", label="flagged frame")
-    ax.plot(frames, final, "-", color="tab:blue", lw=1.2, label="used (smoothed)")
+    ax.plot(frames, final, "-", color="tab:blue", lw=1.2, label=used_label)
     if oracle is not None and np.isfinite(oracle).any():
         ax.plot(frames, oracle, "-", color="tab:green", lw=0.8, label="oracle (from truth)")
     ax.set_xlabel("frame")
     ax.set_ylabel("scale")
     ax.set_title(f"per-frame scale ({kind.replace('_', ' ')})")
-    ax.legend(fontsize=8)
+    # Outside the axes: inside, it hid flagged frames.
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     fig.tight_layout()
     _save(fig, path)

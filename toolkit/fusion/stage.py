@@ -501,6 +501,9 @@ class FuseStage(Stage):
             "frames_flagged": int(sum(f != "ok" for f in sm.flag)),
             "frames_few_pairs": int(sum(f == "few_pairs" for f in sm.flag)),
             "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
+            # Which frames (up to 50), to look them up in scales.csv and the figure.
+            "frames_outlier_indices": [int(i) for i, f in zip(frames, sm.flag, strict=True)
+                                       if f == "outlier_frame"][:50],
             "pairs_per_frame_median": float(np.median([e.pairs for e in estimates])),
             "pairs_visible_per_frame_median": float(np.median(
                 [int(pairs[i].seen_by_both.sum()) for i in frames])),
@@ -570,7 +573,9 @@ class FuseStage(Stage):
         md.append(f"Scale estimator `{cfg.scale}` on `{store.kind}` predictions; "
                   f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
                   f"flagged (too few lidar pairs: {m['frames_few_pairs']}, scale an outlier "
-                  f"among its neighbours': {m['frames_outlier']}); median "
+                  f"among its neighbours': {m['frames_outlier']}"
+                  + (f", frames {', '.join(map(str, m['frames_outlier_indices']))}"
+                     if 0 < m["frames_outlier"] <= 10 else "") + "); median "
                   f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
                   f"({m['pairs_visible_per_frame_median']:.0f} seen by both sensors).")
         rows = [("vs lidar (paper's protocol), all pairs", "lidar_unscaled_", "lidar_scaled_"),
@@ -631,7 +636,12 @@ class FuseStage(Stage):
                          "consensus and outlier steps, which drop some of them too)")
         if "map_to_mesh_mean_m" in m:
             extra.append(f"map to ground-truth mesh: mean {100 * m['map_to_mesh_mean_m']:.1f} cm,"
-                         f" RMSE {100 * m['map_to_mesh_rmse_m']:.1f} cm; per-frame median "
+                         f" median {100 * m['map_to_mesh_median_m']:.1f} cm, RMSE "
+                         f"{100 * m['map_to_mesh_rmse_m']:.1f} cm; within 2 / 5 / 10 cm: "
+                         f"{100 * m['map_to_mesh_within_2cm']:.0f} / "
+                         f"{100 * m['map_to_mesh_within_5cm']:.0f} / "
+                         f"{100 * m['map_to_mesh_within_10cm']:.0f} % of the points; the "
+                         "median over frames of each frame's own cloud's median distance "
                          f"{100 * m.get('frame_to_mesh_median_m', float('nan')):.1f} cm")
         if "scale_error_median" in m:
             extra.append(f"per-frame scale error vs the oracle (from ground truth): median "
@@ -649,7 +659,9 @@ class FuseStage(Stage):
         frames_arr = np.array(frames)
         figures.scale_plot(ctx.stage_dir / "scales.png", frames_arr,
                            sm.raw_scale, sm.scale,  # type: ignore[attr-defined]
-                           oracle, sm.flag, store.kind)  # type: ignore[attr-defined]
+                           oracle, sm.flag, store.kind,  # type: ignore[attr-defined]
+                           "used (window median)" if cfg.smoothing == "median" else
+                           "used (own; flagged: neighbours')")
         md.append(f"![per-frame scale]({sid}/scales.png)")
         removed = raw.points[masks["dynamic"]]  # type: ignore[attr-defined]
         xy = traj.positions[:, :2]
