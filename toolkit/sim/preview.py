@@ -18,9 +18,10 @@ from toolkit.io.sequence import read_sequence
 
 
 def _depth_colour(depth: np.ndarray, max_m: float = 8.0) -> np.ndarray:
-    """[H, W, 3] RGB uint8 of a depth map (black where invalid)."""
+    """[H, W, 3] RGB uint8 of a depth map: turbo from blue (0 m) to red (``max_m``), as
+    every depth figure of the toolkit; black where invalid."""
     d = np.clip(np.nan_to_num(depth) / max_m, 0, 1)
-    col = cv2.applyColorMap((255 * (1 - d)).astype(np.uint8), cv2.COLORMAP_TURBO)
+    col = cv2.applyColorMap((255 * d).astype(np.uint8), cv2.COLORMAP_TURBO)
     col = cv2.cvtColor(col, cv2.COLOR_BGR2RGB)
     col[~(depth > 0)] = 0
     return col

@@ -271,14 +271,22 @@ def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return pts, cols if cols is not None else np.full_like(pts, 0.5)
 
 
-def _strip(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Rows of real | rendered | depth (turbo colour map, near = red) as one RGB image."""
+def strip_depth_max(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> float:
+    """Metres at the red end of the strip's depth colours: the largest row's 98th
+    percentile (one scale for every row, said in the caption)."""
+    his = [float(np.percentile(d[d > 0], 98)) for _, _, d in rows if (d > 0).any()]
+    return max(his) if his else 1.0
+
+
+def _strip(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], depth_max: float) -> (
+        np.ndarray):
+    """Rows of real | rendered | depth (turbo from blue at 0 m to red at ``depth_max``, as
+    every depth figure of the toolkit) as one RGB image."""
     out = []
     for real, rend, depth in rows:
         valid = depth > 0
-        lo, hi = (np.percentile(depth[valid], [2, 98]) if valid.any() else (0.0, 1.0))
-        norm = np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1)
-        cm = cv2.applyColorMap(((1 - norm) * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+        norm = np.clip(depth / max(depth_max, 1e-6), 0, 1)
+        cm = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
         cm = cv2.cvtColor(cm, cv2.COLOR_BGR2RGB)
         cm[~valid] = 0
         out.append(np.concatenate([real, rend, cm], 1))
@@ -556,7 +564,9 @@ class SplatStage(Stage):
         if mesh_r is not None:
             metrics["tsdf_render_seconds"] = t_mesh[0]
         if strip_rows:
-            _write_png(ctx.stage_dir / "renders.png", _strip(strip_rows))
+            metrics["renders_depth_max_m"] = strip_depth_max(strip_rows)
+            _write_png(ctx.stage_dir / "renders.png",
+                       _strip(strip_rows, metrics["renders_depth_max_m"]))  # type: ignore
         if compare_rows:
             _write_png(ctx.stage_dir / "splat_vs_tsdf.png", np.concatenate(compare_rows, 0))
         metrics["eval_seconds"] = time.perf_counter() - t0
@@ -645,7 +655,9 @@ class SplatStage(Stage):
         if strip:
             lines.append(f"\n![real, rendered, rendered depth]({sid}/renders.png)\n\n"
                          "Each row: real image | rendered from the splats | rendered depth "
-                         "(held-out views: along the path first, then off the path).")
+                         "(blue near to red at "
+                         f"{float(m.get('renders_depth_max_m', float('nan'))):.1f} m, black "
+                         "none; held-out views: along the path first, then off the path).")
         if compare_png:
             lines.append(f"\n![real, splats, TSDF mesh]({sid}/splat_vs_tsdf.png)\n\n"
                          "Each row: real image | splats | TSDF mesh, same views as above.")
