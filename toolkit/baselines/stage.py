@@ -280,8 +280,8 @@ class TSDFStage(Stage):
             views = self._views(ctx, seq, mesh, ucam, indices, poses, cfg)
             metrics["views"] = views["metrics"]
             md.append(f"Camera image (left) and the TSDF mesh rendered at the same pose "
-                      f"(right), {cfg.views} of the integrated frames (first, last and between:"
-                      f" in-sample); PSNR over covered pixels "
+                      f"(right), {cfg.views} of the integrated frames spread along the path "
+                      f"(in-sample); PSNR over covered pixels "
                       f"{views['metrics']['psnr_db']:.1f} dB, coverage "
                       f"{views['metrics']['coverage']:.0%}.")
             md.append(f"![TSDF views]({ctx.stage_id}/{views['png']})")
@@ -300,8 +300,10 @@ class TSDFStage(Stage):
         from toolkit.baselines.tsdf import MeshRenderer
 
         renderer = MeshRenderer(mesh)
-        sel = np.unique(np.linspace(0, len(indices) - 1, min(cfg.views, len(indices)))
-                        .round().astype(int))
+        # Mid-points of equal parts of the path: a closed loop ends where it began, so the
+        # first and last frames showed one viewpoint twice.
+        n = min(cfg.views, len(indices))
+        sel = np.unique(((np.arange(n) + 0.5) * len(indices) / n).astype(int))
         rows, ps, cov = [], [], []
         for k in sel:
             img = seq.frames[int(indices[k])].image
