@@ -342,8 +342,13 @@ class CalibrateStage(Stage):
         for k, v in sc.perturbed.items():
             note = "" if k[:2] in seen else " (not judged by this score)"
             table.append(f"| rotated {k} | {v:.3f} | {-sc.drop(k) * 100:+.0f} %{note} |")
-        lines = [f"Check on {len(frames)} frames of the sequence ({sc.kind} score, "
-                 f"{sc.n_points} projected points): {sc.score:.3f}.", "\n".join(table)]
+        meaning = ("the fraction of projected lidar points whose depth agrees with the "
+                   "depth map's within 3 %" if sc.kind == "depth" else
+                   "the image edge strength at the lidar's range jumps over the image's "
+                   "mean: 1 is chance")
+        lines = [f"Check on {len(frames)} frames of the sequence ({sc.kind} score: "
+                 f"{meaning}; {sc.n_points} projected points): {sc.score:.3f}.",
+                 "\n".join(table)]
         # A side-by-side picture: the extrinsic (the true one when known) and the same turned
         # 2 degrees about the camera's vertical axis, the rotation a 2D scan sees best.
         ref = T if T_true is None else T_true
