@@ -130,7 +130,8 @@ def test_report_shows_what_the_slam_did_about_hard_input_only_when_it_happened()
          "loop_closure_outliers": 1, "loop_closures_degenerate": 2, "odometry_used": True,
          "degenerate_matches": 4, "scan_only_window_retries": 0}
     text = _report("slam2d", m)
-    assert "| 3 (1; 2) |" in text
+    assert "| 3, of them outliers in the graph: 1; matches rejected as degenerate along a " \
+        "corridor: 2 |" in text
     assert "| scans held to the odometry along a corridor | 4 |" in text
     assert "full window" not in text  # no retries: no row
 

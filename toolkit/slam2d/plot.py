@@ -45,7 +45,7 @@ def save_map_png(
               interpolation="nearest")
     if reference_xy is not None and len(reference_xy):
         ax.plot(reference_xy[:, 0], reference_xy[:, 1], "-", color="tab:green", lw=0.6,
-                label="reference")
+                label="ground truth (aligned)")
     if trajectory_xy is not None and len(trajectory_xy):
         ax.plot(trajectory_xy[:, 0], trajectory_xy[:, 1], "-", color="tab:red", lw=0.7,
                 label="trajectory")

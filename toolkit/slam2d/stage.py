@@ -130,7 +130,7 @@ class Slam2DStage(Stage):
             metrics["relations"] = relations_metric(traj, rel)
         save_map_png(out / "map.png", occ, traj.positions[:, :2],
                      title=f"{seq.name}: {metrics['nodes']} nodes, {metrics['submaps']} "
-                           f"submaps, {metrics['loop_closures']} loop closures",
+                           f"submaps, {metrics['loop_closures']} loop-closure constraints",
                      reference_xy=None if ref_xy is None else _aligned_ref(traj, gt))
         atomic_write_json(out / "slam2d_config.json", cfg.slam_config().model_dump())
         ctx.add_metrics(metrics)
@@ -158,9 +158,10 @@ def _report(stage_id: str, m: dict) -> str:
             if n_odom is None else f"{n_odom} of the input scans with wheel odometry")
     rows = [("scans used", f"{m['scans_used']} ({odom})"),
             ("pose-graph nodes / submaps", f"{m['nodes']} / {m['submaps']}"),
-            ("loop closures (outliers in the graph; rejected: degenerate along a corridor)",
-             f"{m['loop_closures']} ({m.get('loop_closure_outliers', 0)}; "
-             f"{m.get('loop_closures_degenerate', 0)})")]
+            ("loop-closure constraints (scan-to-submap matches; one revisit gives many)",
+             f"{m['loop_closures']}, of them outliers in the graph: "
+             f"{m.get('loop_closure_outliers', 0)}; matches rejected as degenerate along a "
+             f"corridor: {m.get('loop_closures_degenerate', 0)}")]
     # What the SLAM did about hard input, shown only when it happened.
     for key, label in (("degenerate_matches", "scans held to the odometry along a corridor"),
                        ("scan_only_window_retries",
