@@ -201,7 +201,8 @@ class EvaluateStage(Stage):
             if len(tm.triangles) > 0:
                 m = score(sample_mesh(tm, cfg.mesh_spacing_m, cfg.seed), "tsdf", tm)
                 metrics["tsdf_mesh"] = m
-                table.append(("TSDF mesh", m))
+                table.append((f"TSDF mesh (points: samples every {cfg.mesh_spacing_m * 100:g} "
+                              "cm on its surface)", m))
         if table:
             lines += [f"Geometry against the ground-truth mesh (accuracy: up to "
                       f"{cfg.max_points} map points at random to the mesh; completeness: the "

@@ -600,6 +600,10 @@ class FuseStage(Stage):
             table.append(f"| {name} | {m[a + 'rmse_m']:.3f} | {m[b + 'rmse_m']:.3f} | "
                          f"{m[b + 'absrel']:.3f} | {m[b + 'delta1']:.3f} |")
         md.append("\n".join(table))
+        if store.kind != "metric_depth":
+            md.append("Unscaled: the prediction as it comes, its values read as metres (a "
+                      f"{store.kind.replace('_', ' ')} has no unit: the figure is what using "
+                      "it without the lidar's scale would cost).")
         if "refine_frames_applied" in m:
             md.append(f"Shape correction `{cfg.refine}` (a smooth log-depth field per frame, "
                       f"{cfg.refine_grid[0]}x{cfg.refine_grid[1]} nodes) on "
