@@ -136,6 +136,13 @@ def load_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+def image_down_angle_deg(T_base_camera: np.ndarray) -> float:
+    """Degrees between the image's down direction (optical +y) and the base's down (-z):
+    near 0 for a camera looking ahead; 90 for one in the body convention or rolled."""
+    down = -float(np.asarray(T_base_camera)[2, 1])
+    return float(np.degrees(np.arccos(np.clip(down, -1.0, 1.0))))
+
+
 @dataclass
 class Rig:
     """The sensor mounts on the robot base (REP 105 ``base_link``)."""
@@ -172,9 +179,8 @@ class Rig:
             out.append(f"the scan plane is tilted {tilt:.0f} deg from the base's horizontal "
                        "(T_base_laser's z axis): 2D lidar SLAM needs it level - is a transform "
                        "inverted (T_laser_camera given for T_camera_laser)?")
-        down = -float(self.T_base_camera[2, 1])
-        if down < 0.5:
-            angle = float(np.degrees(np.arccos(np.clip(down, -1.0, 1.0))))
+        angle = image_down_angle_deg(self.T_base_camera)
+        if angle > 60.0:
             out.append(f"the image's down direction is {angle:.0f} deg from the base's down "
                        "(T_base_camera's y axis): unless the camera is mounted rolled or "
                        "looks straight down, a transform is inverted or in the body (x "

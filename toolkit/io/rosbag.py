@@ -46,7 +46,7 @@ from toolkit.ingest.recording import (
 from toolkit.ingest.sync import stamps_keep
 from toolkit.io.sequence import warn_if_unreliable
 from toolkit.io.yaml_file import load_yaml
-from toolkit.sensors import LaserScan, Rig
+from toolkit.sensors import LaserScan, Rig, image_down_angle_deg
 
 _log = logging.getLogger("toolkit.io.rosbag")
 
@@ -1317,10 +1317,9 @@ def _warn_if_not_upright(T: np.ndarray, frame: str, opts: RosbagOptions,
     than 60 deg from the base's down: on a ground robot that is almost always a frame
     taken in the wrong convention (camera_link read as optical turns the view up or
     sideways; an optical frame read as body turns it by 90 deg)."""
-    down = -float(T[2, 1])
-    if down >= 0.5:
+    angle = image_down_angle_deg(T)
+    if angle <= 60.0:
         return
-    angle = float(np.degrees(np.arccos(np.clip(down, -1.0, 1.0))))
     other = "body" if opts.frames.camera_convention == "optical" else "optical"
     log.warning("camera frame %r read as %s: the image's down direction is %.0f deg from "
                 "the base's down and the camera looks along %s in the base frame. If the "

@@ -25,7 +25,8 @@ T = TypeVar("T")
 
 
 def view_bytes(view: TrainView) -> int:
-    """Memory one view's pixels take (image, depth, and a mask of its own)."""
+    """Memory one view's pixels take: image and depth target (the lens mask is one tensor
+    all views share)."""
     n = view.image.numel() * view.image.element_size()
     if view.depth is not None:
         n += view.depth.numel() * view.depth.element_size()
