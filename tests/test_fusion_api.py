@@ -38,6 +38,27 @@ def test_scale_from_scan_recovers_a_known_scale(method: str) -> None:
                                rtol=1e-4)
 
 
+def test_scans_with_beam_timing_and_upside_down_lasers_are_taken(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A ROS scan carries time_increment (refused as "de-skew first", which needs a
+    trajectory the caller has none of); a laser mounted upside down is no inverted
+    extrinsic."""
+    import dataclasses
+
+    pred = DepthPrediction(np.full((120, 160), 3.0 / 2.5, np.float32), "relative_depth")
+    timed = dataclasses.replace(_wall_scan(), time_increment=1e-4)
+    assert scale_from_scan(pred, timed, CAM, T_CAMERA_LASER).estimate.scale == pytest.approx(
+        2.5, rel=1e-4)
+    # Upside down: the laser's z points down, so a bearing a reads -a.
+    scan = _wall_scan()
+    flipped = LaserScan(0.0, scan.ranges.copy(), np.pi, -scan.angle_increment, 0.05, 20.0)
+    T_flip = T_CAMERA_LASER @ se3(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.0])
+    with caplog.at_level(logging.WARNING):
+        fp = scale_from_scan(pred, flipped, CAM, T_flip)
+    assert fp.estimate.scale == pytest.approx(2.5, rel=1e-4)
+    assert "inverted" not in caplog.text
+
+
 def test_an_inverted_extrinsic_is_named(caplog: pytest.LogCaptureFixture) -> None:
     pred = DepthPrediction(np.full((120, 160), 1.2, np.float32), "relative_depth")
     with caplog.at_level(logging.WARNING):

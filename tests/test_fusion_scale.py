@@ -237,7 +237,8 @@ def test_a_frame_whose_own_pairs_back_its_scale_is_kept(mode: str) -> None:
         ests.append(ScaleEstimate(fit, 0.0, 50, 60, OK, "clustered"))
 
     def agreement(i: int, scale: float, shift: float) -> float:
-        return pair_agreement(pairs[i][0], pairs[i][1], False, scale, shift, 0.125)
+        return pair_agreement(pairs[i][0], pairs[i][1], False, scale, shift, 0.125,
+                              min_spread=1.25)
 
     sm = smooth_scales(ests, window=9, outlier_tol=0.25, mode=mode, agreement=agreement)
     assert sm.flag[3] == OK and sm.scale[3] == 0.80
@@ -245,6 +246,45 @@ def test_a_frame_whose_own_pairs_back_its_scale_is_kept(mode: str) -> None:
     # Without the pairs, frame 3 is flagged too and given the neighbours' scale.
     blind = smooth_scales(ests, window=9, outlier_tol=0.25, mode=mode)
     assert blind.flag[3] == OUTLIER_FRAME and abs(blind.scale[3] - 1.05) < 0.02
+
+
+@pytest.mark.parametrize("share", [0.55, 0.7, 0.8])
+def test_a_person_taking_most_pairs_backs_no_scale(share: float) -> None:
+    """The lidar sees a person at 1.5 m where the image shows the wall 3 m behind: with
+    most pairs on the person the fit is the person's (50 % off), and its pairs "agree"
+    with it. They lie at one depth, which backs nothing: the frame is still an outlier
+    and takes the neighbours' scale."""
+    rng = np.random.default_rng(0)
+
+    def frame(p: float, n: int = 300) -> tuple[np.ndarray, np.ndarray]:
+        z = rng.uniform(1.0, 6.0, n)
+        pred = z / 2.0 * np.exp(rng.normal(0, 0.01, n))
+        k = int(p * n)
+        z[:k] = 1.5 * np.exp(rng.normal(0, 0.005, k))
+        pred[:k] = 1.5 * np.exp(rng.normal(0, 0.01, k))
+        return z, pred
+
+    frames = [frame(0.0) for _ in range(15)]
+    frames[7] = frame(share)
+    est = [estimate_scale("clustered", z, d, False, min_pairs=20) for z, d in frames]
+    assert abs(est[7].scale - 1.0) < 0.02  # the person's fit
+
+    def agreement(i: int, scale: float, shift: float) -> float:
+        return pair_agreement(frames[i][0], frames[i][1], False, scale, shift, 0.05,
+                              min_spread=1.25)
+
+    sm = smooth_scales(est, 9, 0.1, "median", "smoothed", agreement)
+    assert sm.flag[7] == OUTLIER_FRAME and abs(sm.scale[7] - 2.0) < 0.02
+
+
+def test_pair_agreement_counts_pairs_put_behind_the_camera_as_misses() -> None:
+    """Disparity with a negative shift puts some pairs behind the camera: they were left
+    out of the count, so a fit explaining 10 of 100 pairs scored 1.0."""
+    lidar = np.linspace(1.0, 5.0, 100)
+    disp = 1.0 / lidar
+    assert pair_agreement(lidar, disp, True, 1.0, 0.0, 0.05) == 1.0
+    disp[10:] = -0.5  # 90 pairs the fit puts behind the camera
+    assert pair_agreement(lidar, disp, True, 1.0, 0.0, 0.05) == pytest.approx(0.1)
 
 
 def test_a_wall_frame_keeps_its_scale_among_scale_and_shift_fits() -> None:

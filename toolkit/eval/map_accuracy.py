@@ -35,7 +35,8 @@ def distance_stats(d: np.ndarray, thresholds: tuple[float, ...] = (0.02, 0.05, 0
     d = np.asarray(d, np.float64)
     if len(d) == 0:
         return {"mean_m": float("nan"), "rmse_m": float("nan"), "median_m": float("nan"),
-                "p90_m": float("nan"), "points": 0}
+                "p90_m": float("nan"), "points": 0,
+                **{f"within_{int(round(t * 100))}cm": float("nan") for t in thresholds}}
     out = {"mean_m": float(d.mean()), "rmse_m": float(np.sqrt(np.mean(d * d))),
            "median_m": float(np.median(d)), "p90_m": float(np.percentile(d, 90)),
            "points": int(len(d))}

@@ -9,6 +9,7 @@ outliers are dropped.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -410,6 +411,13 @@ class Fusion:
         parts = [self._dyn_xy[k] for k in range(lo, hi) if len(self._dyn_xy[k])]
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
+    def pairs_on_moving(self, lidar: LidarPixels) -> np.ndarray:
+        """[N] bool: lidar pixels from beams flagged as hitting a moving obstacle."""
+        if not self.beam_dynamic or not len(lidar):
+            return np.zeros(len(lidar), bool)
+        return np.array([bool(self.beam_dynamic[k][b]) for k, b in
+                         zip(lidar.scan, lidar.beam, strict=True)], bool)
+
     def moving_pixels(self, index: int, depth: np.ndarray) -> np.ndarray | None:
         """[H, W] bool: pixels of frame ``index``'s scaled ``depth`` within the space of a
         moving obstacle the lidar saw near its time (what ``integrate`` keeps out of the
@@ -450,8 +458,13 @@ class Fusion:
             tol = c.outlier_tol / 2
 
             def agreement(i: int, scale: float, shift: float) -> float:
-                return pair_agreement(pairs[i].lidar.z, pairs[i].pred, disparity, scale,
-                                      shift, tol)
+                # Pairs on beams other scans see through (a person walking by) back
+                # nothing: a person taking two thirds of a frame's pairs kept a fit 50 %
+                # off. The rest must span depths (1.25x), as a room does and a person not.
+                lid = pairs[i].lidar
+                keep = ~self.pairs_on_moving(lid)
+                return pair_agreement(lid.z[keep], pairs[i].pred[keep], disparity, scale,
+                                      shift, tol, min_spread=1.25)
         return smooth_scales(estimates, c.smoothing_window, c.outlier_tol, c.smoothing,
                              c.few_pairs, agreement)
 
@@ -652,9 +665,14 @@ def scale_from_scan(prediction: DepthPrediction, scan: LaserScan, camera: Pinhol
     ``prediction.as_depth(est.scale, est.shift)``. No motion between scan and image is
     compensated: give the scan nearest in time.
     """
-    # The laser is the base: the rig's mount checks then test the camera against the
-    # scan plane, which flags an inverted extrinsic.
-    rig = Rig(camera, inv_se3(np.asarray(T_camera_laser, dtype=np.float64)), np.eye(4))
+    # The laser is the base (turned over when it is mounted upside down, its z axis along
+    # the image's down): the rig's mount checks then test the camera against the scan
+    # plane, which flags an inverted extrinsic.
+    T_cl = np.asarray(T_camera_laser, dtype=np.float64)
+    T_base_laser = np.diag([1.0, -1.0, -1.0, 1.0]) if T_cl[1, 2] > 0 else np.eye(4)
+    rig = Rig(camera, T_base_laser @ inv_se3(T_cl), T_base_laser)
+    # Scan and image are taken as one instant here: the beams' own times play no part.
+    scan = dataclasses.replace(scan, time_increment=0.0)
     h, w = camera.height, camera.width
     frame = CameraFrame.from_array(scan.stamp, np.zeros((h, w, 3), np.uint8))
     seq = Sequence(rig, [frame], [scan], name="scale_from_scan")

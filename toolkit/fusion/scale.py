@@ -421,13 +421,23 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
 
 
 def pair_agreement(lidar: np.ndarray, pred: np.ndarray, disparity: bool, scale: float,
-                   shift: float, tol: float) -> float:
-    """Fraction of the valid pairs (lidar [N] metres, prediction [N]) whose depth under
-    (``scale``, ``shift``) lies within ``tol`` of the lidar's in log (0 without pairs)."""
+                   shift: float, tol: float, min_spread: float = 1.0) -> float:
+    """Fraction of the pairs (lidar [N] metres, prediction [N]; those with a valid lidar
+    depth and a finite prediction) whose depth under (``scale``, ``shift``) lies within
+    ``tol`` of the lidar's in log; a pair the fit puts behind the camera disagrees. 0 when
+    the agreeing pairs span less than ``min_spread`` in depth (90th over 10th percentile):
+    one object at one depth (a person in front of the camera) backs any scale."""
+    lidar = np.asarray(lidar, np.float64)
+    pred = np.asarray(pred, np.float64)
+    valid = np.isfinite(lidar) & (lidar > 0) & np.isfinite(pred)
+    if not valid.any():
+        return 0.0
     with np.errstate(divide="ignore", invalid="ignore"):
-        v = scale * np.asarray(pred, np.float64) + shift
+        v = scale * pred[valid] + shift
         depth = 1.0 / v if disparity else v
-        ok = np.isfinite(depth) & (depth > 0) & np.isfinite(lidar) & (lidar > 0)
-        if not ok.any():
+        agree = (depth > 0) & (np.abs(np.log(depth / lidar[valid])) < tol)
+    if min_spread > 1.0 and agree.sum() >= 2:
+        lo, hi = np.percentile(lidar[valid][agree], [10, 90])
+        if hi < min_spread * lo:
             return 0.0
-        return float(np.mean(np.abs(np.log(depth[ok] / lidar[ok])) < tol))
+    return float(np.mean(agree))

@@ -664,7 +664,9 @@ class FuseStage(Stage):
         figures.scale_plot(ctx.stage_dir / "scales.png", frames_arr,
                            sm.raw_scale, sm.scale,  # type: ignore[attr-defined]
                            oracle, sm.flag, store.kind,  # type: ignore[attr-defined]
-                           "used (window median)" if cfg.smoothing == "median" else
+                           # Scale-and-shift fits keep their own pair in either mode.
+                           "used (window median)" if cfg.smoothing == "median" and not np.any(
+                               sm.shift[sm.used] != 0) else  # type: ignore[attr-defined]
                            "used (own; flagged: neighbours')")
         md.append(f"![per-frame scale]({sid}/scales.png)")
         removed = raw.points[masks["dynamic"]]  # type: ignore[attr-defined]
@@ -675,7 +677,9 @@ class FuseStage(Stage):
         md.append(f"Files: [map.ply]({sid}/map.ply), [scales.csv]({sid}/scales.csv)"
                   + (f", scaled depth in `{sid}/scaled_depth/` ("
                      + ("16-bit PNG, 5000 per metre" if cfg.write_depth == "png" else
-                        "float32 .npy, metres") + "; 0 where none, and on moving obstacles)."
+                        "float32 .npy, metres") + "; 0 where none"
+                     + (", and on moving obstacles the lidar saw" if cfg.dynamic_removal
+                        and cfg.lidar_dynamic else "") + ")."
                      if cfg.write_depth != "none"
                      else " (no scaled depth: `write_depth: none`)."))
         ctx.report("\n\n".join(md))
