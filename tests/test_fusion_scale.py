@@ -311,6 +311,52 @@ def test_a_wall_frame_keeps_its_scale_among_scale_and_shift_fits() -> None:
         assert sm.shift[6] != 0.0  # an affine frame's pair, not the wall's scale alone
 
 
+def test_a_scale_alone_fitted_to_a_person_among_affine_fits_is_an_outlier() -> None:
+    """Disparity, scale and shift per image. In frame 4 a walking person takes 60 % of the
+    lidar pairs (at 1.5 m, where the image shows the wall 3 m away): the fit is a scale
+    alone, to the person (the wall rule kept it: 70 % depth error). Its other pairs, the
+    ones off moving obstacles that the agreement counts, are explained by a neighbour's
+    pair: flagged, and given that pair. A real wall frame (every pair at one depth,
+    nothing a neighbour's pair explains) keeps its scale."""
+    rng = np.random.default_rng(5)
+    data, ests, static = [], [], []
+    for i in range(9):
+        s, t = 2.0 * (1 + 0.01 * rng.standard_normal()), -0.3 * (1 + 0.02 * rng.standard_normal())
+        z = rng.uniform(1.0, 5.0, 150)
+        d = (1.0 / z - t) / s
+        keep = np.ones(150, bool)
+        if i == 4:
+            keep[:90] = False  # on the person: beams other scans see through
+            z = z.copy()
+            d = d.copy()
+            d[:90] = (1.0 / 3.0 - t) / s  # the wall behind the person, in the image
+            z[:90] = 1.5
+            ests.append(ScaleEstimate(float((1 / 1.5) / d[0]), 0.0, 90, 150, OK, "clustered"))
+        else:
+            ests.append(ScaleEstimate(s, t, 140, 150, OK, "clustered"))
+        data.append((z, d))
+        static.append(keep)
+
+    def agreement(i: int, scale: float, shift: float) -> float:
+        z, d = data[i]
+        k = static[i]
+        return pair_agreement(z[k], d[k], True, scale, shift, 0.05, min_spread=1.25)
+
+    blind = smooth_scales(ests, 9, 0.1, "median")
+    assert blind.flag[4] == OK  # the wall rule: a scale alone is not compared
+    sm = smooth_scales(ests, 9, 0.1, "median", agreement=agreement)
+    assert sm.flag[4] == OUTLIER_FRAME and sm.shift[4] != 0.0
+    z, d = data[4]
+    depth = 1.0 / (sm.scale[4] * d[90:] + sm.shift[4])
+    assert np.median(np.abs(depth / z[90:] - 1)) < 0.03
+    # A wall frame: its pairs at 2.0 +- 0.05 m, 40 % off what the neighbours' pairs say.
+    z = rng.uniform(1.95, 2.05, 150)
+    data[4], static[4] = (z, (1.0 / z + 0.2) / 2.0 * 1.4), np.ones(150, bool)
+    ests[4] = ScaleEstimate(float(np.median((1 / z) / data[4][1])), 0.0, 150, 150, OK, "x")
+    sm = smooth_scales(ests, 9, 0.1, "median", agreement=agreement)
+    assert sm.flag[4] == OK and sm.shift[4] == 0.0
+
+
 def test_depth_order_agreement_tells_depth_from_disparity() -> None:
     rng = np.random.default_rng(0)
     frames = []

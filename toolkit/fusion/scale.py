@@ -338,7 +338,9 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     and reject the neighbours' (twice as many agree with its own): a relative network's
     output constant can jump between two images, and the neighbours' scale then made that
     frame's depth 30 % wrong where its own was 2 % off. A wrong fit (a cluster on a person)
-    has no such backing.
+    has no such backing. Among scale-and-shift fits, a frame fitted with a scale alone is
+    flagged when a neighbour's pair explains its pairs (at least half, twice as many as its
+    own fit): a person at one depth, not a wall filling the view.
     """
     n = len(estimates)
     raw = np.array([e.scale for e in estimates], dtype=np.float64)
@@ -378,6 +380,15 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     comparable = good & fitted_shift if affine else good  # [F]
     for i in range(n):
         if not comparable[i]:
+            if good[i] and affine and agreement is not None and comparable.any():
+                # A scale alone among scale-and-shift fits: a wall filling the view, or a
+                # cluster on a person at one depth (70 % depth error). A neighbour's pair
+                # that explains the frame's own pairs (those agreement counts: not on
+                # moving obstacles) far better than its fit tells the second.
+                j = nearest_good(logs, comparable, i, window_median(logs, comparable, i))
+                theirs = agreement(i, float(raw[j]), float(shift[j]))
+                if theirs >= 0.5 and theirs >= 2.0 * agreement(i, float(raw[i]), 0.0):
+                    flags[i] = OUTLIER_FRAME
             continue
         lo, hi = max(0, i - half), min(n, i + half + 1)
         # With two frames in the window, the median is their mean: both would be flagged
