@@ -33,7 +33,29 @@ def view_bytes(view: TrainView) -> int:
     return n
 
 
-class ViewSet(Sequence[TrainView]):
+class _Indexed(Sequence[T]):
+    """A sequence of ``len`` items, item i from ``_item(i)``: indexing, negative indices
+    and slices in one place."""
+
+    def _item(self, i: int) -> T:
+        raise NotImplementedError
+
+    @overload
+    def __getitem__(self, i: int) -> T: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[T]: ...
+
+    def __getitem__(self, i: int | slice) -> T | list[T]:
+        n = len(self)
+        if isinstance(i, slice):
+            return [self._item(j) for j in range(*i.indices(n))]
+        if not -n <= i < n:
+            raise IndexError(f"item {i} of {n}")
+        return self._item(i % n)
+
+
+class ViewSet(_Indexed[TrainView]):
     """``len(poses)`` views; ``load(i)`` reads view i (its pose must be ``poses[i]``).
 
     ``views[i]`` returns the view, from memory or read now; ``prefetch(i)`` starts reading
@@ -111,18 +133,7 @@ class ViewSet(Sequence[TrainView]):
     def __len__(self) -> int:
         return len(self.poses)
 
-    @overload
-    def __getitem__(self, i: int) -> TrainView: ...
-
-    @overload
-    def __getitem__(self, i: slice) -> list[TrainView]: ...
-
-    def __getitem__(self, i: int | slice) -> TrainView | list[TrainView]:
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(len(self)))]
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"view {i} of {len(self)}")
-        i %= len(self)
+    def _item(self, i: int) -> TrainView:
         with self._lock:
             view = self._cache.get(i)
             if view is not None:
@@ -155,7 +166,7 @@ class ViewSet(Sequence[TrainView]):
         self._pending.clear()
 
 
-class LazyList(Sequence[T]):
+class LazyList(_Indexed[T]):
     """``n`` items, item i computed by ``load(i)`` each time it is asked for (held-out
     ground truth, read once while scoring)."""
 
@@ -165,15 +176,5 @@ class LazyList(Sequence[T]):
     def __len__(self) -> int:
         return self._n
 
-    @overload
-    def __getitem__(self, i: int) -> T: ...
-
-    @overload
-    def __getitem__(self, i: slice) -> list[T]: ...
-
-    def __getitem__(self, i: int | slice) -> T | list[T]:
-        if isinstance(i, slice):
-            return [self[j] for j in range(*i.indices(self._n))]
-        if not -self._n <= i < self._n:
-            raise IndexError(f"item {i} of {self._n}")
-        return self._load(i % self._n)
+    def _item(self, i: int) -> T:
+        return self._load(i)
