@@ -6,12 +6,25 @@ the ``cuda`` extra (gsplat) installed; everywhere else these tests skip.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 
-from toolkit.splat.model import Gaussians, init_from_points
+from toolkit.camera import PinholeCamera
+from toolkit.geometry import inv_se3
+from toolkit.splat.model import GaussianModel, Gaussians, init_from_points
 from toolkit.splat.rasterize import render
-from toolkit.splat.synthetic import perturbed, room_camera, room_points
+from toolkit.splat.strategy import StrategyConfig
+from toolkit.splat.synthetic import (
+    ground_truth_model,
+    orbit_poses,
+    perturbed,
+    room_camera,
+    room_points,
+)
+from toolkit.splat.trainer import TrainConfig, Trainer, TrainView, evaluate_views
 
 pytestmark = pytest.mark.gpu
 
@@ -65,3 +78,42 @@ def test_gsplat_gradients_point_the_same_way() -> None:
     for a, b in zip(grads["cpu"], grads["cuda"], strict=True):
         cos = torch.nn.functional.cosine_similarity(a, b, dim=0)
         assert float(cos) > 0.99
+
+
+def test_training_on_cuda_fits_and_its_checkpoint_resumes_on_the_cpu(tmp_path: Path) -> None:
+    """The splat stage's device: cuda: the model on the GPU, views in CPU memory, pose
+    refinement and densification on; then the finished checkpoint read on a CPU trainer."""
+    _need_gsplat()
+    gt = ground_truth_model(1500, seed=1)
+    cam = PinholeCamera.from_fov(64, 48, 70.0)
+    views = []
+    with torch.no_grad():
+        for i, T_wc in enumerate(orbit_poses(4, seed=1)):
+            T_cw = inv_se3(T_wc)
+            out = render(gt, cam, T_cw)
+            img = (out.color.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+            depth = torch.where(out.alpha > 0.5, out.depth, torch.zeros(()))
+            views.append(TrainView(img, cam, T_cw, depth, f"v{i}"))
+
+    def start() -> GaussianModel:
+        pts, _ = room_points(1500, seed=1)
+        rng = np.random.default_rng(2)
+        grey = np.full_like(pts, 0.5) + rng.normal(0, 0.05, pts.shape)
+        return init_from_points(pts + rng.normal(0, 0.01, pts.shape), grey, sh_degree=1)
+
+    cfg = TrainConfig(iterations=100, sh_degree=1, lr_sh0=0.05, lr_opacities=0.1,
+                      depth_weight=0.1, pose_refine=True, checkpoint_every=50,
+                      densify=StrategyConfig(refine_start_iter=5, refine_every=10,
+                                             reset_every=1000, grow_grad2d=2e-5))
+    model = start().to("cuda")
+    before = evaluate_views(model, views)["psnr_db"]
+    trainer = Trainer(model, views, cfg, tmp_path)
+    trainer.train()
+    after = evaluate_views(trainer.model, views)["psnr_db"]
+    assert trainer.model.means.device.type == "cuda"
+    assert len(trainer.model) != 1500  # densification ran on the GPU
+    assert after > before + 6.0, (before, after)
+    on_cpu = Trainer(start(), views, cfg, tmp_path)
+    assert on_cpu.resume() and on_cpu.done is not None
+    assert on_cpu.model.means.device.type == "cpu"
+    assert abs(evaluate_views(on_cpu.model, views)["psnr_db"] - after) < 0.5

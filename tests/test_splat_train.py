@@ -113,6 +113,34 @@ def test_checkpoint_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
     assert len(straight.model) != 600
 
 
+def test_every_tensor_training_makes_names_its_device(tmp_path: Path) -> None:
+    """The stage trains on a CUDA GPU too (views stay in CPU memory): a tensor made without
+    a device would land on the CPU there and fail, or copy every step. With the default
+    device set to ``meta``, any such tensor would be a meta tensor and fail here, on the
+    CPU; the run must also be the one without it, to the bit."""
+    views = _views(n=3, width=32, height=24, n_gauss=600)
+    depths = [v.depth.numpy() for v in views]
+    gt = ground_truth_model(600, seed=1)  # the views' own scene: it covers their depths
+    runs = []
+    for default in (None, "meta"):
+        trainer = Trainer(_start_model(600), views, _cfg(depth_weight=0.1),
+                          tmp_path / str(default))
+        torch.set_default_device(default)
+        try:
+            trainer.train()
+            # A finished run's checkpoint read back (resume() logs, not raises, a failure).
+            assert trainer.resume() and trainer.done is not None
+            ev = evaluate_views(gt, views, BACKEND, gt_depths=depths)
+        finally:
+            torch.set_default_device(None)
+        runs.append((trainer, ev))
+    (a, ev_a), (b, ev_b) = runs
+    assert len(a.model) != 600  # densification ran
+    assert ev_a == ev_b and "depth_rmse_m" in ev_a
+    for name, p in a.model.params.items():
+        assert torch.equal(b.model.params[name], p), name
+
+
 def test_resume_refuses_other_settings_or_data_and_takes_finished_runs(tmp_path: Path) -> None:
     views = _views(n=2, width=24, height=18, n_gauss=300)
     t = Trainer(_start_model(300), views, _cfg(), tmp_path)

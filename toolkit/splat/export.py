@@ -38,7 +38,8 @@ def model_to_array(model: GaussianModel) -> np.ndarray:
     n = len(model)
     rest = s["shN"]  # [N, K, 3]
     f_rest = rest.transpose(1, 2).reshape(n, -1)  # [N, 3K] channel-major
-    cols = [s["means"], torch.zeros(n, 3), s["sh0"], f_rest, s["opacity_logits"][:, None],
+    normals = torch.zeros(n, 3, device="cpu")  # in the 3DGS layout, unused
+    cols = [s["means"], normals, s["sh0"], f_rest, s["opacity_logits"][:, None],
             s["log_scales"], s["quats"]]
     flat = torch.cat([c.to(torch.float32) for c in cols], 1).numpy()
     names = ply_attributes(rest.shape[1])

@@ -78,9 +78,11 @@ class DefaultStrategy:
         self.max_gaussians = max_gaussians
         self.verbose = verbose
 
-    def initialize_state(self, n: int, scene_scale: float) -> dict[str, Any]:
-        """Running statistics; part of a training checkpoint."""
-        return {"grad2d": torch.zeros(n), "count": torch.zeros(n), "scene_scale": scene_scale}
+    def initialize_state(self, n: int, scene_scale: float,
+                         device: torch.device | str = "cpu") -> dict[str, Any]:
+        """Running statistics, on the model's device; part of a training checkpoint."""
+        return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device),
+                "scene_scale": scene_scale}
 
     def step_pre_backward(self, meta: RenderMeta) -> None:
         if meta.means2d.requires_grad:
@@ -105,9 +107,8 @@ class DefaultStrategy:
                 and step % cfg.reset_every >= cfg.pause_refine_after_reset):
             report["cloned"], report["split"] = self._grow(model, optimizers, state, generator)
             report["pruned"] = self._prune(model, optimizers, state, step)
-            n = len(model)
-            state["grad2d"] = torch.zeros(n)
-            state["count"] = torch.zeros(n)
+            state.update(self.initialize_state(len(model), state["scene_scale"],
+                                               model.means.device))
         if step % cfg.reset_every == 0 and step > 0:
             self._reset_opacity(model, optimizers, 2.0 * cfg.prune_opa)
             report["reset"] = 1
@@ -118,14 +119,14 @@ class DefaultStrategy:
         g = meta.means2d.grad
         if g is None:
             return
-        g = g.detach().clone().cpu()
+        g = g.detach().clone()
         # Pixel gradients to normalised device coordinates, as gsplat does, so the
         # threshold does not depend on the image size.
         g[:, 0] *= meta.width / 2.0
         g[:, 1] *= meta.height / 2.0
-        ids = meta.gaussian_ids.cpu()
+        ids = meta.gaussian_ids
         state["grad2d"].index_add_(0, ids, g.norm(dim=-1))
-        state["count"].index_add_(0, ids, torch.ones(len(ids)))
+        state["count"].index_add_(0, ids, torch.ones(len(ids), device=ids.device))
 
     def _room(self, n: int) -> int:
         return max(0, self.max_gaussians - n) if self.max_gaussians is not None else 1 << 62
@@ -135,7 +136,7 @@ class DefaultStrategy:
         cfg = self.cfg
         avg = state["grad2d"] / state["count"].clamp_min(1)
         high = avg > cfg.grow_grad2d
-        small = torch.exp(model.log_scales.detach()).amax(-1).cpu() <= (
+        small = torch.exp(model.log_scales.detach()).amax(-1) <= (
             cfg.grow_scale3d * state["scene_scale"])
         dupli = high & small
         split = high & ~small
@@ -152,13 +153,14 @@ class DefaultStrategy:
         if n_dupli:
             self._duplicate(model, optimizers, dupli)
             # New rows have no statistics; pad the masks so split indices stay aligned.
-            split = torch.cat([split, torch.zeros(n_dupli, dtype=torch.bool)])
+            split = torch.cat([split, torch.zeros(n_dupli, dtype=torch.bool,
+                                                  device=split.device)])
         if n_split:
             self._split(model, optimizers, split, generator)
         return n_dupli, n_split
 
     def _duplicate(self, model: GaussianModel, optimizers: dict[str, Any], mask: Tensor) -> None:
-        sel = torch.nonzero(mask).squeeze(1).to(model.means.device)
+        sel = torch.nonzero(mask).squeeze(1)
         _replace(model, optimizers,
                  lambda _n, p: torch.cat([p, p[sel]]),
                  lambda _k, v: torch.cat([v, torch.zeros_like(v[sel])]))
@@ -166,13 +168,15 @@ class DefaultStrategy:
     def _split(self, model: GaussianModel, optimizers: dict[str, Any], mask: Tensor,
                generator: torch.Generator | None) -> None:
         dev = model.means.device
-        sel = torch.nonzero(mask).squeeze(1).to(dev)
-        rest = torch.nonzero(~mask).squeeze(1).to(dev)
+        sel = torch.nonzero(mask).squeeze(1)
+        rest = torch.nonzero(~mask).squeeze(1)
         scales = torch.exp(model.log_scales.detach()[sel])  # [S, 3]
         q = model.quats.detach()[sel]
         q = q / q.norm(dim=-1, keepdim=True)
         R = quat_to_rotmat(q)  # [S, 3, 3]
-        noise = torch.randn(2, len(sel), 3, generator=generator, dtype=scales.dtype)
+        # Drawn on the CPU from the trainer's generator: the same splits on any device.
+        noise = torch.randn(2, len(sel), 3, generator=generator, dtype=scales.dtype,
+                            device="cpu")
         samples = torch.einsum("nij,nj,bnj->bni", R, scales, noise.to(dev))  # [2, S, 3]
 
         def param_fn(name: str, p: Tensor) -> Tensor:
@@ -193,18 +197,18 @@ class DefaultStrategy:
     def _prune(self, model: GaussianModel, optimizers: dict[str, Any], state: dict[str, Any],
                step: int) -> int:
         cfg = self.cfg
-        prune = torch.sigmoid(model.opacity_logits.detach()).cpu() < cfg.prune_opa
+        prune = torch.sigmoid(model.opacity_logits.detach()) < cfg.prune_opa
         if step > cfg.reset_every:
-            big = torch.exp(model.log_scales.detach()).amax(-1).cpu() > (
+            big = torch.exp(model.log_scales.detach()).amax(-1) > (
                 cfg.prune_scale3d * state["scene_scale"])
             prune |= big
         n = int(prune.sum())
         if n == len(model):
             # Never prune everything: keep the most opaque one so training can continue.
-            prune[torch.argmax(model.opacity_logits.detach().cpu())] = False
+            prune[torch.argmax(model.opacity_logits.detach())] = False
             n -= 1
         if n:
-            keep = torch.nonzero(~prune).squeeze(1).to(model.means.device)
+            keep = torch.nonzero(~prune).squeeze(1)
             _replace(model, optimizers, lambda _n, p: p[keep], lambda _k, v: v[keep])
         return n
 

@@ -120,9 +120,13 @@ class TrainView:
             return color
         return torch.where(self.mask.to(color.device)[..., None], color, target)
 
+    def mask_on(self, device: torch.device | str) -> Tensor | None:
+        return None if self.mask is None else self.mask.to(device)
+
     def target(self, device: torch.device | str = "cpu") -> Tensor:
         """[H, W, 3] float 0..1."""
-        return self.image.to(device=device, dtype=torch.float32) / 255.0
+        # uint8 crosses to the device, a quarter of the float bytes
+        return self.image.to(device, non_blocking=True).to(torch.float32) / 255.0
 
 
 @dataclass
@@ -188,21 +192,23 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
 class PoseRefinement(nn.Module):
     """Per-view correction D (camera frame) applied as D @ T_camera_world; starts at identity."""
 
-    def __init__(self, n_views: int) -> None:
+    def __init__(self, n_views: int, device: torch.device | str = "cpu") -> None:
         super().__init__()
-        self.delta = nn.Parameter(torch.zeros(n_views, 9))  # translation 3 + 6D rotation
-        self.register_buffer("identity6", torch.tensor([1.0, 0, 0, 0, 1.0, 0]))
+        # translation 3 + 6D rotation
+        self.delta = nn.Parameter(torch.zeros(n_views, 9, device=device))
+        self.register_buffer("identity6", torch.tensor([1.0, 0, 0, 0, 1.0, 0], device=device))
 
     def forward(self, T_cw: Tensor, index: int) -> Tensor:
         d = self.delta[index].to(T_cw.dtype)
         R = rotation_6d_to_matrix(d[3:] + self.identity6.to(T_cw.dtype))
-        bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=T_cw.dtype)
+        bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=T_cw.dtype, device=T_cw.device)
         D = torch.cat([torch.cat([R, d[:3, None]], 1), bottom], 0)  # [4, 4]
         return D @ T_cw
 
     def corrected(self, T_cw: np.ndarray, index: int) -> np.ndarray:
         with torch.no_grad():
-            return self.forward(torch.as_tensor(T_cw, dtype=torch.float64), index).numpy()
+            T = torch.as_tensor(T_cw, dtype=torch.float64, device=self.delta.device)
+            return self.forward(T, index).cpu().numpy()
 
 
 def _adam(params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
@@ -235,6 +241,9 @@ class Trainer:
             raise ValueError(f"config asks for SH degree {config.sh_degree} but the model "
                              f"holds degree {model.max_sh_degree}")
         self.model = model
+        # Where the model lives (CPU or a CUDA GPU): views are read into CPU memory and
+        # each step's image, depth and mask move there.
+        self.device = model.means.device
         self.views = views
         self.T_cw = view_poses(views)  # [N, 4, 4]
         self.cfg = config
@@ -247,13 +256,14 @@ class Trainer:
         self.cap = gaussian_cap(config)
         self.scene_scale = config.scene_scale or scene_scale_of(views, model.means)
         self.strategy = DefaultStrategy(config.densify, max_gaussians=self.cap)
-        self.strategy_state = self.strategy.initialize_state(len(model), self.scene_scale)
+        self.strategy_state = self.strategy.initialize_state(len(model), self.scene_scale,
+                                                             self.device)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.optimizers = self._make_optimizers()
         self.pose: PoseRefinement | None = None
         self.pose_opt: torch.optim.Optimizer | None = None
         if config.pose_refine:
-            self.pose = PoseRefinement(len(views))
+            self.pose = PoseRefinement(len(views), self.device)
             self.pose_opt = torch.optim.Adam(self.pose.parameters(), lr=config.lr_pose,
                                              weight_decay=config.pose_reg)
         self.history: list[dict[str, float]] = []
@@ -284,7 +294,7 @@ class Trainer:
         n = len(self.views)
         epoch, pos = divmod(step, n)
         g = torch.Generator().manual_seed(self.cfg.seed * 1_000_003 + epoch)
-        return int(torch.randperm(n, generator=g)[pos])
+        return int(torch.randperm(n, generator=g, device="cpu")[pos])
 
     def active_sh_degree(self, step: int) -> int:
         return min(step // self.cfg.sh_degree_interval, self.cfg.sh_degree)
@@ -293,7 +303,7 @@ class Trainer:
         T = self.T_cw[index]
         if self.pose is None:
             return T
-        return self.pose(torch.as_tensor(T, dtype=torch.float32), index)
+        return self.pose(torch.as_tensor(T, dtype=torch.float32, device=self.device), index)
 
     # ---------------------------------------------------------------- one step
     def train_step(self) -> dict[str, float]:
@@ -314,16 +324,21 @@ class Trainer:
         loss = l1
         if cfg.lambda_dssim > 0:
             loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_fn(color, gt))
-        depth_l1 = torch.zeros(())
+        depth_l1 = torch.zeros((), device=self.device)
         if cfg.depth_weight > 0 and view.depth is not None:
             target = view.depth.to(out.depth.device)
             valid = target > 0
             if bool(valid.any()):
                 depth_l1 = (out.depth - target).abs()[valid].mean()
                 loss = loss + cfg.depth_weight * depth_l1
-        if not bool(torch.isfinite(loss)):
+        with torch.no_grad():
+            psnr = psnr_fn(out.color.detach().clamp(0, 1), gt, mask=view.mask_on(gt.device))
+        # The step's figures in one read: on a GPU each float() waits for the device.
+        loss_v, l1_v, depth_v, psnr_v = torch.stack(
+            [t.detach().to(torch.float64) for t in (loss, l1, depth_l1, psnr)]).tolist()
+        if not math.isfinite(loss_v):
             raise FloatingPointError(
-                f"training step {step}: the loss is {float(loss)} on view {view.name!r}: a "
+                f"training step {step}: the loss is {loss_v} on view {view.name!r}: a "
                 "Gaussian parameter or the view's image/depth is not finite (check the "
                 "initial cloud's colours, and lower the learning rates if it happened "
                 "after many steps)")
@@ -341,11 +356,8 @@ class Trainer:
             changes = self.strategy.step_post_backward(self.model, self.optimizers,
                                                        self.strategy_state, step, out.meta,
                                                        self.generator)
-        with torch.no_grad():
-            p = float(psnr_fn(out.color.detach().clamp(0, 1), gt, mask=view.mask))
         self.step += 1
-        return {"step": step, "loss": float(loss.detach()), "l1": float(l1.detach()),
-                "depth_l1_m": float(depth_l1.detach()), "psnr_db": p,
+        return {"step": step, "loss": loss_v, "l1": l1_v, "depth_l1_m": depth_v, "psnr_db": psnr_v,
                 "n_gaussians": len(self.model), **{k: float(v) for k, v in changes.items()}}
 
     # ---------------------------------------------------------------- the loop
@@ -445,12 +457,14 @@ class Trainer:
         if ckpt.get("data_key", "") != self.data_key:
             raise ValueError("checkpoint was written for different input data")
         model = GaussianModel.from_state(ckpt["params"])
-        self.model.replace_params({k: nn.Parameter(model.params[k].detach().clone())
+        self.model.replace_params({k: nn.Parameter(model.params[k].detach().to(self.device))
                                    for k in PARAM_NAMES})
         self.optimizers = self._make_optimizers()
         for k, o in self.optimizers.items():
             o.load_state_dict(ckpt["optimizers"][k])
-        self.strategy_state = ckpt["strategy_state"]
+        # Read onto the CPU: a checkpoint of a GPU run resumes on either.
+        self.strategy_state = {k: v.to(self.device) if isinstance(v, Tensor) else v
+                               for k, v in ckpt["strategy_state"].items()}
         self.generator.set_state(ckpt["generator"])
         if self.pose is not None and ckpt.get("pose") is not None:
             self.pose.load_state_dict(ckpt["pose"])
@@ -576,13 +590,14 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
         out = render_view(model, v.camera, v.T_camera_world, background, backend)
         if on_render is not None:
             on_render(i, v, out)
-        gt = v.target()
+        dev = out.color.device
+        gt = v.target(dev)
         pred = v.masked(out.color.clamp(0, 1), gt)
-        ps.append(float(psnr_fn(pred, gt, mask=v.mask)))
-        ss.append(float(ssim_fn(pred, gt, mask=v.mask)))
+        ps.append(float(psnr_fn(pred, gt, mask=v.mask_on(dev))))
+        ss.append(float(ssim_fn(pred, gt, mask=v.mask_on(dev))))
         gd = gt_depths[i] if gt_depths is not None else None
         if gd is not None:
-            gdt = torch.as_tensor(gd, dtype=torch.float32)
+            gdt = torch.as_tensor(gd, dtype=torch.float32, device=dev)
             m = (gdt > 0) & (out.alpha > 0.5)
             if bool(m.any()):
                 e = (out.depth - gdt)[m]
