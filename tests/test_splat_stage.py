@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from recipe_helpers import SplatInputs  # the tests folder is on sys.path
 
@@ -130,8 +131,6 @@ def test_depth_targets_sample_each_training_pixel_at_its_centre() -> None:
 def test_lens_corners_without_a_source_are_neither_fitted_nor_scored() -> None:
     """Undistorting a pincushion lens (k1 > 0) leaves black corners: a render that is right
     everywhere else must score as right, and those pixels must carry no loss."""
-    import torch
-
     from toolkit.camera import PinholeCamera
     from toolkit.eval.image import psnr
     from toolkit.splat.stage import image_validity, prepare_image
@@ -161,10 +160,30 @@ def test_settings_that_cannot_run_are_refused_with_the_recipe() -> None:
 
     with pytest.raises(ValidationError, match=r"random_depth_m \[5.0, 0.3\]"):
         SplatConfig(stage="splat", random_depth_m=(5.0, 0.3))
-    with pytest.raises(ValidationError, match="this stage trains on the CPU"):
+    with pytest.raises(ValidationError, match="set device: cuda"):
         SplatConfig(stage="splat", backend="gsplat")
+    with pytest.raises(ValidationError, match="backend cpp is a CPU rasteriser"):
+        SplatConfig(stage="splat", backend="cpp", device="cuda")
     with pytest.raises(ValidationError):
         SplatConfig(stage="splat", backend="gpu")
+    SplatConfig(stage="splat", backend="gsplat", device="auto")
+
+
+def test_device_cuda_without_a_usable_gpu_says_what_to_do(monkeypatch: pytest.MonkeyPatch) -> (
+        None):
+    from toolkit.recipe.stage import StageError
+    from toolkit.splat.rasterize import gsplat_backend
+    from toolkit.splat.stage import choose_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert choose_device("cpu").type == "cpu"
+    assert choose_device("auto").type == "cpu"  # no GPU: the CPU, silently
+    assert gsplat_backend.unavailable_reason() == "no CUDA device"
+    with pytest.raises(StageError, match=r"no CUDA device.*splat.device: cpu"):
+        choose_device("cuda")
+    with pytest.raises(StageError, match=r"backend gsplat: no CUDA device"):
+        choose_device("auto", "gsplat")
+    assert choose_device("auto", "cpp").type == "cpu"
 
 
 def test_groundtruth_alignment_on_a_straight_drive() -> None:
@@ -203,7 +222,6 @@ def test_simulator_held_out_views_are_scored_on_the_lens_pixels(tmp_path: Path) 
     from types import SimpleNamespace
 
     import cv2
-    import torch
 
     from toolkit.camera import PinholeCamera
     from toolkit.sensors import GroundTruth, HeldOutViews

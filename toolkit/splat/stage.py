@@ -95,6 +95,11 @@ class SplatConfig(TrainConfig, StageConfig):
     # time than with 1 once other processes kept both cores busy (docs/splatting.md). The
     # compositing kernels keep all cores either way (one parallel loop per pass).
     threads: int | Literal["auto"] = "auto"
+    # Where the model trains. cuda: on the GPU, rendered by gsplat (the `cuda` extra); auto:
+    # cuda where torch sees a GPU and gsplat imports, else the CPU. The CPU is the default
+    # because the CUDA path of this stage has not yet been run on a GPU in this project
+    # (docs/splatting.md); views stay in CPU memory and each step's moves to the GPU.
+    device: Literal["auto", "cpu", "cuda"] = "cpu"
     # A safety net for the quickstart's 4-minute budget on slow machines; benchmark recipes
     # set it to null.
     max_seconds: float | None = Field(220.0, gt=0)
@@ -106,13 +111,30 @@ class SplatConfig(TrainConfig, StageConfig):
         if not 0 < lo < hi:
             raise ValueError(f"random_depth_m {list(self.random_depth_m)}: give [near, far] "
                              "in metres, 0 < near < far")
-        if self.backend == "gsplat":
-            raise ValueError(
-                "backend gsplat: this stage trains on the CPU (the model stays in CPU "
-                "memory); the gsplat CUDA backend is used through the library "
-                "(toolkit.splat.render, toolkit.splat.bench --device cuda). Use backend "
-                "auto, cpp or torch")
+        if self.backend == "gsplat" and self.device == "cpu":
+            raise ValueError("backend gsplat renders CUDA tensors: set device: cuda (or auto), "
+                             "or backend auto for the CPU")
+        if self.backend in ("cpp", "torch") and self.device == "cuda":
+            raise ValueError(f"backend {self.backend} is a CPU rasteriser: with device: cuda "
+                             "use backend auto or gsplat")
         return self
+
+
+def choose_device(setting: str, backend: str = "auto") -> torch.device:
+    """The device the ``splat`` stage trains on for its ``device`` setting."""
+    if setting == "cpu" or (setting == "auto" and backend in ("cpp", "torch")):
+        return torch.device("cpu")
+    from toolkit.splat.rasterize import gsplat_backend
+
+    if gsplat_backend.available():
+        return torch.device("cuda")
+    if setting == "cuda" or backend == "gsplat":
+        raise StageError(f"splat: device {setting}, backend {backend}: "
+                         f"{gsplat_backend.unavailable_reason()} "
+                         "(install the cuda extra, pip install -e '.[cuda]', on a machine "
+                         "with an NVIDIA GPU), or set splat.device: cpu"
+                         + (" and splat.backend: auto" if backend == "gsplat" else ""))
+    return torch.device("cpu")
 
 
 def choose_threads(setting: int | str) -> int:
@@ -300,7 +322,7 @@ def _write_png(path: Path, rgb: np.ndarray) -> None:
 
 
 def _to_u8(t: torch.Tensor) -> np.ndarray:
-    return (t.detach().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    return (t.detach().cpu().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
 
 
 # ------------------------------------------------------------------------ stage
@@ -317,7 +339,9 @@ class SplatStage(Stage):
     # trainer's checkpoint ignores them too: ``config_digest``). Not under another step
     # count: the learning rates decay over the whole run, so steps taken on one schedule
     # and continued on another give a model neither run gives.
-    resume_settings = frozenset({"max_seconds", "log_every", "checkpoint_every", "threads"})
+    # A checkpoint resumes on another device (a GPU run finished on the CPU, or back).
+    resume_settings = frozenset({"max_seconds", "log_every", "checkpoint_every", "threads",
+                                 "device"})
     # Reading views on demand or up front gives the same model.
     speed_settings = frozenset({"view_cache_mb"})
     provides = ("splats",)
@@ -440,6 +464,8 @@ class SplatStage(Stage):
                                          budget, cfg.random_depth_m, sh_degree=cfg.sh_degree,
                                          init_opacity=cfg.init_opacity, seed=cfg.seed)
         n_init = len(model)
+        device = choose_device(cfg.device, cfg.backend)
+        model = model.to(device)
         data_key = _data_key(fused / "map.ply" if cfg.init == "fused" and fused else None,
                              [cfg.init, budget, cfg.init_opacity, list(cfg.random_depth_m),
                               depth_dir is not None],
@@ -466,6 +492,7 @@ class SplatStage(Stage):
         metrics: dict[str, object] = {
             "poses": pose_source,
             "backend": backend,
+            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
             "train_views": len(train_views),
             "image_width": w,
             "image_height": h,
@@ -510,17 +537,19 @@ class SplatStage(Stage):
                         .tolist() if n_strip > 0 and n_total > 0 else [])
 
             def save(i: int, v: TrainView, out: RenderOutput) -> None:
-                rend = _to_u8(out.color)
+                color = out.color.detach().cpu()  # pictures and the mesh are on the CPU
+                rend = _to_u8(color)
                 _write_png(ctx.stage_dir / "renders" / f"{prefix}_{i:03d}.png", rend)
                 mesh_img = None
                 if mesh_r is not None and comp is not None:
                     t = time.perf_counter()
                     mr = mesh_r.render(v.T_camera_world)
-                    comp.add(mr, out.color.clamp(0, 1), v.target(), v.mask)
+                    comp.add(mr, color.clamp(0, 1), v.target(), v.mask)
                     mesh_img = _to_u8(mr.color)
                     t_mesh[0] += time.perf_counter() - t
                 if i in picks:
-                    depth = np.where(out.alpha.numpy() > 0.5, out.depth.numpy(), 0.0)
+                    depth = np.where(out.alpha.detach().cpu().numpy() > 0.5,
+                                     out.depth.detach().cpu().numpy(), 0.0)
                     strip_rows.append((v.image.numpy(), rend, depth))
                     if mesh_img is not None:
                         compare_rows.append(np.concatenate([v.image.numpy(), rend, mesh_img],
