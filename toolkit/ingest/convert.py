@@ -129,17 +129,19 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         raise IngestError(f"{recording.source}: scan stamps are not strictly increasing; "
                           "the reader should have caught this")
     poses = recording.odometry if recording.odometry is not None else recording.groundtruth
-    plan = plan_frames(recording.frame_stamps, scan_stamps, recording.depth_stamps, sync,
-                       decimate, poses)
+    delay = sync.camera_delay_s
+    frame_stamps = recording.frame_stamps - delay  # the exposure times
+    depth_stamps = None if recording.depth_stamps is None else recording.depth_stamps - delay
+    plan = plan_frames(frame_stamps, scan_stamps, depth_stamps, sync, decimate, poses)
     pairs = plan.pairs()
-    stamps = recording.frame_stamps[plan.frames] if len(pairs) else np.zeros(0)
+    stamps = frame_stamps[plan.frames] if len(pairs) else np.zeros(0)
     if plan.candidates and sync.require_scan and not len(scan_stamps):
         raise IngestError(
             f"{recording.source}: the recording has {plan.candidates} camera frames but no "
             "lidar scans. Fix: 'sync.require_scan: false' to convert the frames alone, or "
             "name the scan source (e.g. rosbag.topics.scan)")
     if plan.candidates and plan.dropped.get("no_scan") == plan.candidates:
-        fs = recording.frame_stamps
+        fs = frame_stamps
         gap = float(np.median(np.abs(scan_stamps[match_nearest(fs, scan_stamps, np.inf)] - fs)))
         overlap = fs[0] <= scan_stamps[-1] and scan_stamps[0] <= fs[-1]
         period = float(np.median(np.diff(scan_stamps))) if len(scan_stamps) > 1 else np.inf
@@ -161,11 +163,10 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     if with_scan and plan.dropped.get("no_depth", 0) == with_scan:
         # Depth is for evaluation: a clock offset between colour and depth streams must
         # not turn into a sequence without frames.
-        ds = recording.depth_stamps
+        ds = depth_stamps
         nearest = "there are no depth images" if not len(ds) else (
             "the nearest is {:.3f} s away at the median".format(float(np.median(np.abs(
-                ds[match_nearest(recording.frame_stamps, ds, np.inf)]
-                - recording.frame_stamps)))))
+                ds[match_nearest(frame_stamps, ds, np.inf)] - frame_stamps)))))
         raise IngestError(
             f"{recording.source}: none of the {with_scan} camera frames has a depth image "
             f"within sync.depth_tolerance_s = {sync.depth_tolerance_s} s ({nearest}). Fix: a "
@@ -199,10 +200,11 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         frames = recording.load(todo)
         for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
             expected = float(stamps[done + k])
-            if fd.stamp != expected:
+            stamp = float(np.float64(fd.stamp) - delay)  # as the planned stamps were made
+            if stamp != expected:
                 raise IngestError(f"{recording.source}: loader returned frame at {fd.stamp!r} "
-                                  f"where {expected!r} was planned")
-            writer.add_frame(fd.stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path)
+                                  f"where {expected + delay!r} was planned")
+            writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path)
         if writer.num_frames != len(pairs):
             raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "
                               "planned frames could be read (the input ended early: "
@@ -223,6 +225,7 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "dropped_no_depth": plan.dropped.get("no_depth", 0),
             "decimated": plan.decimated,
             "sync_tolerance_s": sync.tolerance_s,
+            "camera_delay_s": delay,
             "decimate": decimate.model_dump(),
             "scans_resampled": resampled,
             "dropped_non_monotonic": dict(recording.dropped),

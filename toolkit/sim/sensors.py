@@ -52,6 +52,9 @@ class CameraSpec:
     mount_xyz: tuple[float, float, float] = (0.10, 0.0, 0.45)  # in base_link, metres
     pitch_deg: float = 5.0  # positive looks down
     noise_std: float = 0.0  # Gaussian image noise, grey levels (optional; PNGs get 2x bigger)
+    # The driver stamps each image this long after its exposure (USB transfer, a busy
+    # computer): frames.csv holds exposure + delay, the ground truth the true times.
+    stamp_delay_s: float = 0.0
 
     def camera(self) -> PinholeCamera:
         cx = (self.width - 1) / 2 if self.cx is None else self.cx

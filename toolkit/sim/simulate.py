@@ -183,8 +183,9 @@ def simulate(config: SimConfig, out_dir: Path | str,
                 si += 1
             img = cam_r.render(T_wb_cam[k] @ T_bc, primitives_at(world.walkers, cam_t[k]),
                                config.camera.noise_std, cam_rng)
-            pending.append(pool.submit(writer.add_frame, t0 + cam_t[k], img.rgb, img.depth,
-                                       img.dynamic))
+            pending.append(pool.submit(writer.add_frame,
+                                       t0 + cam_t[k] + config.camera.stamp_delay_s, img.rgb,
+                                       img.depth, img.dynamic))
             while len(pending) > 6:
                 pending.popleft().result()
         while pending:
@@ -198,7 +199,10 @@ def simulate(config: SimConfig, out_dir: Path | str,
     sweep_ends = las_t + (spec.beams - 1) * spec.time_increment if spec.sweep else las_t[:0]
     # Ground truth and odometry at every sensor time, a sweep's last beam included (each
     # beam has a pose to be checked or de-skewed with).
-    stamps = np.unique(np.concatenate([cam_t, las_t, sweep_ends]))
+    # With a camera stamp delay, the times the frames are stamped at too (the truth there
+    # is where the robot was then, not where it took the image).
+    stamped = np.clip(cam_t + config.camera.stamp_delay_s, 0.0, path.duration)
+    stamps = np.unique(np.concatenate([cam_t, las_t, sweep_ends, stamped]))
     poses2d = path.pose2d(stamps)
     writer.groundtruth_poses = Trajectory(t0 + stamps, path.T_world_base(stamps), "world",
                                           "base_link")

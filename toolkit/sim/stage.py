@@ -43,6 +43,9 @@ class CameraSettings(_Settings):
     mount_xyz: tuple[float, float, float] = (0.10, 0.0, 0.45)  # in base_link, metres
     pitch_deg: float = 5.0  # positive looks down
     noise_std: float = Field(0.0, ge=0)  # grey levels; 0 = noise-free images
+    # Image stamps this much later than the exposures, as many camera drivers give
+    # (python -m calibration time-offset measures it; ingest's sync.camera_delay_s undoes it).
+    stamp_delay_s: float = Field(0.0, ge=-1.0, le=1.0)
 
     def spec(self) -> CameraSpec:
         return CameraSpec(**self.model_dump())
