@@ -1,4 +1,4 @@
-"""Command line: ``python -m calibration intrinsics|extrinsic|check ...``.
+"""Command line: ``python -m calibration intrinsics|extrinsic|check|time-offset ...``.
 
 Errors a user can fix (a board that is not found, images without scans, a camera file
 for another resolution) print one message saying what to change and exit with code 2;
@@ -21,6 +21,7 @@ from calibration.extrinsic import ExtrinsicError, SolverOptions
 from calibration.files import CalibrationFileError
 from calibration.intrinsics import IntrinsicsError
 from calibration.scans import PairingError, ScanFormatError
+from calibration.time_offset import TimeOffsetError
 from toolkit.cli_types import positive_int
 
 # The extrinsic was estimated but the views do not pin it down (scripts must not go on).
@@ -28,8 +29,8 @@ EXIT_UNRELIABLE = 3
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
     BoardError, CheckError, ExtrinsicError, CalibrationFileError, IntrinsicsError, PairingError,
-    ScanFormatError, FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError,
-    PermissionError,
+    ScanFormatError, TimeOffsetError, FileNotFoundError, IsADirectoryError, NotADirectoryError,
+    FileExistsError, PermissionError,
 )
 
 
@@ -299,6 +300,77 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- time offset
+
+
+def cmd_time_offset(args: argparse.Namespace) -> int:
+    from rich.progress import track
+
+    from calibration.time_offset import (
+        camera_yaw_increments,
+        estimate_camera_delay,
+        write_figure,
+    )
+    from toolkit.io.atomic import atomic_write_json
+    from toolkit.io.sequence import read_sequence
+
+    out = Path(args.out)
+    _dir_output(args.out)
+    seq = read_sequence(args.sequence)
+    if args.trajectory:
+        from toolkit.io.tum import read_tum
+
+        traj = read_tum(args.trajectory)
+        source = args.trajectory
+    elif seq.odometry is not None:
+        traj, source = seq.odometry, f"{args.sequence} odometry"
+    else:
+        raise CalibrationFileError(
+            f"{args.sequence}: no odometry in the sequence; give --trajectory, the robot's "
+            "poses on the lidar's clock (e.g. runs/NAME/slam2d/trajectory_base.tum)")
+    if traj.child not in ("base_link", "base", "body", "base_footprint"):
+        print(f"note: {source} holds T_{traj.frame}_{traj.child}: its yaw is taken as the "
+              "robot's (any frame mounted level on the robot turns alike)")
+    frames = seq.frames[::args.stride] if args.stride > 1 else seq.frames
+    if len(frames) < 3:
+        raise CalibrationFileError(f"{args.sequence}: {len(frames)} frames; need at least 3")
+    stamps = np.array([f.stamp for f in frames])
+    covered = float(traj.covers(stamps).mean())
+    if covered < 0.5:  # before the image work, which takes a while on a long recording
+        raise CalibrationFileError(
+            f"{source} covers {covered:.0%} of the frames (frames {stamps[0]:.3f}.."
+            f"{stamps[-1]:.3f} s, trajectory {traj.stamps[0]:.3f}..{traj.stamps[-1]:.3f} s): "
+            "the trajectory must cover the frames (another clock?)")
+    images = (f.image for f in track(frames, description="camera rotations",
+                                     transient=True, disable=not sys.stderr.isatty()))
+    dyaw, inliers = camera_yaw_increments(images, seq.rig.camera, seq.rig.T_base_camera)
+    res = estimate_camera_delay(stamps, dyaw, traj, search_s=args.search,
+                                window_s=args.window)
+    out.mkdir(parents=True, exist_ok=True)
+    write_figure(str(out / "time_offset.png"), res, stamps, dyaw, traj)
+    found = int(np.isfinite(dyaw).sum())
+    atomic_write_json(out / "time_offset.json", {
+        **res.to_dict(), "sequence": str(args.sequence), "trajectory": source,
+        "frames": len(frames), "frame_pairs_with_rotation": found,
+        "median_inliers": float(np.median(inliers)) if len(inliers) else 0.0,
+        "meaning": "image stamp minus exposure time; ingest sync.camera_delay_s takes it"})
+    ms = res.delay_s * 1000
+    print(f"camera delay: {ms:+.1f} ms (+- {res.std_s * 1000:.1f} ms; {res.windows} windows "
+          f"of {res.frames_per_window} frames, rotations found in {found} of {len(dyaw)} "
+          f"frame pairs); yaw mismatch {res.residual_at_zero_deg:.3f} -> "
+          f"{res.residual_deg:.3f} deg per window")
+    print(f"wrote {out / 'time_offset.json'} and {out / 'time_offset.png'}")
+    if not res.reliable:
+        print("UNRELIABLE: " + "; ".join(res.reasons))
+        return EXIT_UNRELIABLE
+    if abs(res.delay_s) < max(2 * res.std_s, 0.002):
+        print("the camera's stamps agree with the trajectory's clock: nothing to correct")
+    else:
+        print(f"images are stamped {abs(ms):.1f} ms {'after' if ms > 0 else 'before'} they "
+              f"are taken; convert with ingest's sync: {{camera_delay_s: {res.delay_s:.4f}}}")
+    return 0
+
+
 # ---------------------------------------------------------------------------- parser
 
 
@@ -393,6 +465,25 @@ def build_parser() -> argparse.ArgumentParser:
                     help="rotation of the sensitivity test (default 2 deg)")
     pc.add_argument("--out", default="calibration_check", help="output folder")
     pc.set_defaults(func=cmd_check)
+
+    pt = sub.add_parser(
+        "time-offset", help="camera delay: how much later images are stamped than taken",
+        description="The robot's turning seen by the camera (rotations between consecutive "
+                    "images) against a trajectory on the lidar's clock (lidar SLAM or "
+                    "odometry): the shift that lines them up is the camera's stamp delay. "
+                    "The recording must turn.")
+    pt.add_argument("--sequence", required=True, help="sequence folder")
+    pt.add_argument("--trajectory", help="TUM file of T_world_base on the lidar's clock, e.g. "
+                                         "runs/NAME/slam2d/trajectory_base.tum (default: the "
+                                         "sequence's odometry)")
+    pt.add_argument("--search", type=float, default=0.3, metavar="S",
+                    help="largest delay tried either way (default 0.3 s)")
+    pt.add_argument("--window", type=float, default=0.5, metavar="S",
+                    help="span of consecutive frames compared at once (default 0.5 s)")
+    pt.add_argument("--stride", type=positive_int, default=1,
+                    help="use every n-th frame (long recordings; default 1)")
+    pt.add_argument("--out", default="time_offset", help="output folder")
+    pt.set_defaults(func=cmd_time_offset)
     return p
 
 

@@ -1,0 +1,127 @@
+"""Camera - lidar time offset: a known camera delay is measured from the turning and undone
+by ingest."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.cli import main as calibration_main
+from calibration.time_offset import (
+    TimeOffsetError,
+    estimate_camera_delay,
+    up_in_camera,
+    yaw_of_rotation,
+)
+from toolkit.geometry import Trajectory, inv_se3, se2_to_se3
+from toolkit.ingest.convert import convert
+from toolkit.ingest.stage import read_sequence_recording
+from toolkit.ingest.sync import SyncOptions
+from toolkit.io.sequence import read_sequence
+from toolkit.sim.sensors import CameraSpec
+from toolkit.sim.simulate import SimConfig, simulate
+
+
+def _turning(t: np.ndarray) -> np.ndarray:
+    """Yaw (rad) of a robot that turns left and right at up to ~0.8 rad/s."""
+    return 0.5 * np.sin(1.3 * t) + 0.3 * np.sin(0.45 * t + 1.0)
+
+
+def _trajectory(t: np.ndarray) -> Trajectory:
+    return Trajectory(t, np.stack([se2_to_se3(0.1 * s, 0.0, y) for s, y in
+                                   zip(t, _turning(t), strict=True)]), "world", "base_link")
+
+
+def test_a_known_delay_is_found_with_noise_and_outliers() -> None:
+    rng = np.random.default_rng(0)
+    scan_t = np.arange(0.0, 60.0, 0.1) + 0.043  # the lidar's clock
+    traj = _trajectory(scan_t)
+    taken = np.arange(0.5, 59.0, 0.1) + rng.uniform(-0.002, 0.002, 585)
+    delay = 0.065
+    dyaw = np.diff(_turning(taken)) + rng.normal(0, np.radians(0.1), len(taken) - 1)
+    bad = rng.random(len(dyaw)) < 0.1  # tracking failures: wild rotations
+    dyaw[bad] += rng.normal(0, np.radians(5), int(bad.sum()))
+    dyaw[rng.random(len(dyaw)) < 0.05] = np.nan  # no rotation found
+    res = estimate_camera_delay(taken + delay, dyaw, traj)
+    assert res.reliable, res.reasons
+    assert res.delay_s == pytest.approx(delay, abs=0.002)
+    assert res.std_s < 0.005
+    assert res.residual_deg < res.residual_at_zero_deg
+    # Early stamps are a negative delay.
+    assert estimate_camera_delay(taken - 0.03, dyaw, traj).delay_s == pytest.approx(-0.03,
+                                                                                    abs=0.002)
+
+
+def test_a_straight_drive_cannot_tell_and_says_so() -> None:
+    t = np.arange(0.0, 30.0, 0.1)
+    traj = Trajectory(t, np.stack([se2_to_se3(0.3 * s, 0.0, 0.2) for s in t]))
+    rng = np.random.default_rng(1)
+    res = estimate_camera_delay(t[5:-5] + 0.05, rng.normal(0, 1e-3, len(t) - 11), traj)
+    assert not res.reliable
+    assert any("hardly turned" in r for r in res.reasons)
+    with pytest.raises(TimeOffsetError, match="trajectory must cover"):
+        estimate_camera_delay(t[5:-5] + 100.0, np.zeros(len(t) - 11), traj)
+
+
+def test_camera_rotation_reads_as_the_robots_yaw() -> None:
+    """A left turn of the base is a positive yaw, whatever the camera's pitch."""
+    spec = CameraSpec(pitch_deg=12.0)
+    T_bc = spec.T_base_camera()
+    T_wc0 = se2_to_se3(1.0, 2.0, 0.3) @ T_bc
+    T_wc1 = se2_to_se3(1.1, 2.0, 0.3 + np.radians(4.0)) @ T_bc
+    R = (inv_se3(T_wc1) @ T_wc0)[:3, :3]  # x1 = R x0
+    assert np.degrees(yaw_of_rotation(R, up_in_camera(T_bc))) == pytest.approx(4.0, abs=1e-9)
+
+
+@pytest.fixture(scope="module")
+def delayed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 24 s drive (several turns) whose camera stamps its images 60 ms late."""
+    root = tmp_path_factory.mktemp("delayed")
+    cam = CameraSpec(stamp_delay_s=0.06)  # 640x480: at 320x240 tracking read 2.7 ms late
+    simulate(SimConfig(seed=0, n_people=0, duration_s=24.0, n_heldout=0, camera=cam),
+             root / "seq")
+    return root / "seq"
+
+
+def test_the_simulated_delay_is_measured_and_undone_by_ingest(delayed: Path,
+                                                               tmp_path: Path) -> None:
+    seq = read_sequence(delayed)
+    # The simulator stamps late; its ground truth stays on the true clock.
+    assert seq.groundtruth is not None and seq.groundtruth.poses_base.covers(
+        seq.frame_stamps).all()
+    out = tmp_path / "to"
+    assert calibration_main(["time-offset", "--sequence", str(delayed), "--out",
+                             str(out)]) == 0  # against the sequence's wheel odometry
+    found = json.loads((out / "time_offset.json").read_text())
+    assert found["reliable"]
+    assert found["delay_s"] == pytest.approx(0.06, abs=0.003)
+    assert (out / "time_offset.png").stat().st_size > 10_000
+
+    fixed = convert(read_sequence_recording(delayed), tmp_path / "fixed",
+                    SyncOptions(camera_delay_s=found["delay_s"]))
+    assert fixed.frames == len(seq.frames)
+    again = read_sequence(tmp_path / "fixed")
+    assert again.frame_stamps == pytest.approx(seq.frame_stamps - found["delay_s"], abs=1e-6)
+    out2 = tmp_path / "to2"
+    assert calibration_main(["time-offset", "--sequence", str(tmp_path / "fixed"), "--out",
+                             str(out2)]) == 0
+    assert json.loads((out2 / "time_offset.json").read_text())["delay_s"] == pytest.approx(
+        0.0, abs=0.005)
+
+
+def test_time_offset_cli_names_what_is_missing(delayed: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    assert calibration_main(["time-offset", "--sequence", str(tmp_path / "none")]) == 2
+    assert "sequence folder not found" in capsys.readouterr().err
+    far = tmp_path / "far.tum"
+    seq = read_sequence(delayed)
+    from toolkit.io.tum import write_tum
+
+    gt = seq.groundtruth.poses_base
+    write_tum(far, Trajectory(gt.stamps + 1000.0, gt.poses))
+    assert calibration_main(["time-offset", "--sequence", str(delayed), "--trajectory",
+                             str(far), "--out", str(tmp_path / "o")]) == 2
+    assert "another clock?" in capsys.readouterr().err
