@@ -40,9 +40,9 @@ def camera_pose(i: int, pitch_deg: float = 0.0) -> np.ndarray:
 
 
 def make_tum(root: Path, n: int = 6, pitch_deg: float = 0.0, gt: bool = True,
-             rgb_extra: bool = True) -> list[np.ndarray]:
-    """A TUM RGB-D folder: n rgb/depth pairs 5 ms apart, and one rgb without a depth
-    partner within 0.02 s."""
+             rgb_extra: bool = True, rgb_delay: float = 0.0) -> list[np.ndarray]:
+    """A TUM RGB-D folder: n rgb/depth pairs 5 ms apart (the rgb stamped ``rgb_delay``
+    late besides), and one rgb without a depth partner within 0.02 s."""
     rng = np.random.default_rng(1)
     (root / "rgb").mkdir(parents=True)
     (root / "depth").mkdir()
@@ -50,8 +50,9 @@ def make_tum(root: Path, n: int = 6, pitch_deg: float = 0.0, gt: bool = True,
     for i in range(n):
         t = T0 + 0.2 * i
         img = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-        cv2.imwrite(str(root / f"rgb/{t:.6f}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
+        tc = t + rgb_delay
+        cv2.imwrite(str(root / f"rgb/{tc:.6f}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        rgb_lines.append(f"{tc:.6f} rgb/{tc:.6f}.png")
         images.append(img)
         td = t + 0.005
         depth = np.full((H, W), int(WALL_M * 5000), np.uint16)
@@ -59,7 +60,7 @@ def make_tum(root: Path, n: int = 6, pitch_deg: float = 0.0, gt: bool = True,
         cv2.imwrite(str(root / f"depth/{td:.6f}.png"), depth)
         depth_lines.append(f"{td:.6f} depth/{td:.6f}.png")
     if rgb_extra:  # 0.04 s after the last depth image: a scan within 0.05 s, no depth
-        t = T0 + 0.2 * (n - 1) + 0.045
+        t = T0 + 0.2 * (n - 1) + 0.045 + rgb_delay
         cv2.imwrite(str(root / f"rgb/{t:.6f}.png"), np.zeros((H, W, 3), np.uint8))
         rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png")
     (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
@@ -190,3 +191,20 @@ def test_no_groundtruth_uses_a_level_mount(tmp_path):
     with pytest.raises(IngestError, match="no groundtruth.txt"):
         read_tum_rgbd(tmp_path / "tum", TumRgbdOptions(
             camera=CAM, lidar=VirtualLidarOptions(level="groundtruth")))
+
+
+def test_a_late_colour_stamp_is_moved_back_and_the_depth_clock_kept(tmp_path):
+    """TUM's scans are made from the depth images, so the delay is the colour camera's
+    against them: only the colour stamps move (moving both kept them 60 ms apart)."""
+    from toolkit.ingest.sync import SyncOptions
+
+    make_tum(tmp_path / "tum", rgb_delay=0.06, rgb_extra=False)
+    rec = read_tum_rgbd(tmp_path / "tum", TumRgbdOptions(camera=CAM))
+    with pytest.raises(IngestError, match="has a scan within"):  # 55 ms from the scans
+        convert(rec, tmp_path / "late")
+    res = convert(rec, tmp_path / "fixed", SyncOptions(camera_delay_s=0.06))
+    seq = read_sequence(res.root)
+    assert len(seq.frames) == 6
+    expected = T0 + 0.2 * np.arange(6)
+    assert seq.frame_stamps == pytest.approx(expected, abs=1e-6)
+    assert [s.stamp for s in seq.scans] == pytest.approx(expected + 0.005, abs=1e-6)

@@ -131,7 +131,11 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     poses = recording.odometry if recording.odometry is not None else recording.groundtruth
     delay = sync.camera_delay_s
     frame_stamps = recording.frame_stamps - delay  # the exposure times
-    depth_stamps = None if recording.depth_stamps is None else recording.depth_stamps - delay
+    # A depth camera's own stream is late like the colour one (one driver), except where
+    # the scans are made from it: then it is the clock the delay was measured against.
+    depth_stamps = recording.depth_stamps
+    if depth_stamps is not None and not recording.depth_is_scan_clock:
+        depth_stamps = depth_stamps - delay
     plan = plan_frames(frame_stamps, scan_stamps, depth_stamps, sync, decimate, poses)
     pairs = plan.pairs()
     stamps = frame_stamps[plan.frames] if len(pairs) else np.zeros(0)

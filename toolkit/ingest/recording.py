@@ -59,6 +59,10 @@ class Recording:
     meta: dict[str, Any] = field(default_factory=dict)  # goes into meta.yaml
     dropped: dict[str, int] = field(default_factory=dict)  # messages dropped while indexing
     scan_dynamic: np.ndarray | None = None  # [S, B] bool (sequence folders only)
+    # The scans are made from the depth images (TUM RGB-D's virtual lidar): the depth
+    # stream is then the lidar's clock and keeps its stamps when the camera's delay
+    # (sync.camera_delay_s) is taken out of the colour stamps.
+    depth_is_scan_clock: bool = False
     finish: Callable[[Any], None] | None = None  # extra writes on the SequenceWriter
 
 

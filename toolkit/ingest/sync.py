@@ -37,7 +37,8 @@ class SyncOptions(BaseModel):
     # anyway); they are then only counted.
     require_scan: bool = True
     # The camera's stamps are this much later than its exposures (a driver stamping on
-    # arrival): frame (and depth) stamps are moved back by it before anything is paired.
+    # arrival): frame stamps (and a depth camera's, except TUM RGB-D's, whose depth images
+    # make the scans) are moved back by it before anything is paired.
     # `python -m calibration time-offset` measures it.
     camera_delay_s: float = Field(0.0, ge=-1.0, le=1.0)
 

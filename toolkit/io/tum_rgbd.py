@@ -330,4 +330,5 @@ def read_tum_rgbd(root: Path | str, options: TumRgbdOptions | None = None,
     dropped = {"rgb.txt": rgb_drop, "depth.txt": dep_drop, "groundtruth.txt": gt_drop}
     return Recording(name=name or root.name, source=f"tum_rgbd {root}", rig=rig, scans=scans,
                      frame_stamps=rgb_t, load=load, depth_stamps=dep_t, groundtruth=gt_base,
-                     meta=meta, dropped={k: v for k, v in dropped.items() if v})
+                     meta=meta, depth_is_scan_clock=True,
+                     dropped={k: v for k, v in dropped.items() if v})

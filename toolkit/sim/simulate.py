@@ -200,8 +200,9 @@ def simulate(config: SimConfig, out_dir: Path | str,
     # Ground truth and odometry at every sensor time, a sweep's last beam included (each
     # beam has a pose to be checked or de-skewed with).
     # With a camera stamp delay, the times the frames are stamped at too (the truth there
-    # is where the robot was then, not where it took the image).
-    stamped = np.clip(cam_t + config.camera.stamp_delay_s, 0.0, path.duration)
+    # is where the robot was then, not where it took the image; before and after the drive
+    # it stands at its ends).
+    stamped = cam_t + config.camera.stamp_delay_s
     stamps = np.unique(np.concatenate([cam_t, las_t, sweep_ends, stamped]))
     poses2d = path.pose2d(stamps)
     writer.groundtruth_poses = Trajectory(t0 + stamps, path.T_world_base(stamps), "world",
