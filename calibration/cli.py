@@ -316,11 +316,22 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     _dir_output(args.out)
+    if not args.search > 0.004:  # two steps of the 2 ms grid either way
+        raise CalibrationFileError(f"--search {args.search}: give the largest delay to try "
+                                   "in seconds, more than 0.004 (default 0.3)")
+    if not args.window > 0:
+        raise CalibrationFileError(f"--window {args.window}: give a span in seconds, e.g. 0.5")
     seq = read_sequence(args.sequence)
     if args.trajectory:
         from toolkit.io.tum import read_tum
 
-        traj = read_tum(args.trajectory)
+        try:
+            traj = read_tum(args.trajectory)
+        except ValueError as e:  # a malformed line: named by the reader
+            raise CalibrationFileError(str(e)) from e
+        if len(traj) < 2:
+            raise CalibrationFileError(f"{args.trajectory}: {len(traj)} poses; the robot's "
+                                       "poses over the recording are needed")
         source = args.trajectory
     elif seq.odometry is not None:
         traj, source = seq.odometry, f"{args.sequence} odometry"
@@ -481,7 +492,8 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--window", type=float, default=0.5, metavar="S",
                     help="span of consecutive frames compared at once (default 0.5 s)")
     pt.add_argument("--stride", type=positive_int, default=1,
-                    help="use every n-th frame (long recordings; default 1)")
+                    help="use every n-th frame (default 1). Rotations are found between "
+                         "frames close in time: at 10 Hz keep it at 1 or 2")
     pt.add_argument("--out", default="time_offset", help="output folder")
     pt.set_defaults(func=cmd_time_offset)
     return p

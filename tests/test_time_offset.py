@@ -55,15 +55,36 @@ def test_a_known_delay_is_found_with_noise_and_outliers() -> None:
                                                                                     abs=0.002)
 
 
-def test_a_straight_drive_cannot_tell_and_says_so() -> None:
-    t = np.arange(0.0, 30.0, 0.1)
-    traj = Trajectory(t, np.stack([se2_to_se3(0.3 * s, 0.0, 0.2) for s in t]))
+def test_a_straight_drive_or_a_steady_circle_cannot_tell_and_says_so() -> None:
+    t = np.arange(0.0, 30.0, 1 / 30)  # tracking noise at 30 Hz read as turning before
     rng = np.random.default_rng(1)
-    res = estimate_camera_delay(t[5:-5] + 0.05, rng.normal(0, 1e-3, len(t) - 11), traj)
-    assert not res.reliable
-    assert any("hardly turned" in r for r in res.reasons)
+    noise = rng.normal(0, np.radians(0.1), len(t) - 31)
+    for yaw_rate in (0.0, 0.4):
+        traj = Trajectory(t, np.stack([se2_to_se3(0.3 * s, 0.0, 0.2 + yaw_rate * s)
+                                       for s in t]))
+        frames = t[15:-15]
+        res = estimate_camera_delay(frames + 0.05, yaw_rate * np.diff(frames) + noise, traj)
+        assert not res.reliable
+        assert any("turning hardly changed" in r for r in res.reasons), res.reasons
     with pytest.raises(TimeOffsetError, match="trajectory must cover"):
         estimate_camera_delay(t[5:-5] + 100.0, np.zeros(len(t) - 11), traj)
+
+
+def test_the_reported_spread_is_the_estimates_spread() -> None:
+    """Overlapping windows share frame pairs: resampled one by one they gave spreads 1.5-3x
+    too small; runs of windows give the spread of the estimates over noise draws."""
+    scan_t = np.arange(0.0, 40.0, 0.1)
+    traj = _trajectory(scan_t)
+    taken = np.arange(1.0, 39.0, 1 / 30)  # 30 Hz: 15 frames a window
+    est, spread = [], []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        dyaw = np.diff(_turning(taken)) + rng.normal(0, np.radians(0.3), len(taken) - 1)
+        res = estimate_camera_delay(taken + 0.05, dyaw, traj, bootstrap=40)
+        est.append(res.delay_s)
+        spread.append(res.std_s)
+    ratio = float(np.mean(spread)) / float(np.std(est))
+    assert 0.6 < ratio < 1.7, ratio
 
 
 def test_camera_rotation_reads_as_the_robots_yaw() -> None:
@@ -125,3 +146,22 @@ def test_time_offset_cli_names_what_is_missing(delayed: Path, tmp_path: Path,
     assert calibration_main(["time-offset", "--sequence", str(delayed), "--trajectory",
                              str(far), "--out", str(tmp_path / "o")]) == 2
     assert "another clock?" in capsys.readouterr().err
+
+
+def test_the_calibrate_check_reports_the_delay(delayed: Path, tmp_path: Path) -> None:
+    """The quickstart's `calibrate` check measures the delay and says how to undo it."""
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from calibration.stage import CalibrateStage
+
+    res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(delayed)},
+                                {"stage": "calibrate", "mode": "check", "check_frames": 4}],
+                     {"t_sequence": SequenceFolder, "calibrate": CalibrateStage})
+    assert res.ok, res.error
+    m = res.metrics["calibrate"]
+    assert m["camera_delay_reliable"]
+    assert m["camera_delay_s"] == pytest.approx(0.06, abs=0.003)
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "sync: {camera_delay_s: 0.06" in report
+    assert (tmp_path / "run" / "calibrate" / "check" / "time_offset.png").exists()
+    assert "(calibrate/check/time_offset.png)" in report
