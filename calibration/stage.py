@@ -25,6 +25,8 @@ in ``extrinsic``, any file ``python -m calibration check --extrinsic`` reads) on
 sequence, draws the overlays, scores it and the same extrinsic turned by 2 degrees about
 each camera axis, and passes the rig on unchanged. On a simulated sequence the rig is the
 exact one, so this shows what the score makes of a right and of a 2-degree-wrong extrinsic.
+The check also measures the camera's stamp delay against the wheel odometry
+(``calibration.time_offset``; ``time_offset: false`` skips it).
 """
 
 from __future__ import annotations
@@ -74,6 +76,9 @@ class CalibrateConfig(StageConfig):
     # check on the upstream sequence
     check: bool = True
     check_frames: int = Field(6, ge=1)
+    # With the check: the camera's stamp delay against the sequence's wheel odometry
+    # (python -m calibration time-offset; every frame is read, ~11 s for 644 at 640x480).
+    time_offset: bool = True
     # mode check: the extrinsic to check (T_camera_laser, a rig, a tf mapping); None: the
     # upstream sequence's rig
     extrinsic: str | None = None
@@ -93,7 +98,8 @@ class CalibrateStage(Stage):
     # 3: at least 4 views, the max-offset limit, outlier rule for 5 views, 'reliable'
     # 4: an unreliable extrinsic stops the stage (allow_unreliable); segments compared with
     #    the laser plane's cut of the board
-    version = 4
+    # 5: the check measures the camera's time offset
+    version = 5
 
     config: CalibrateConfig
 
@@ -390,4 +396,52 @@ class CalibrateStage(Stage):
                   f"degrees]({rel}/check/{n})" for n in pairs]
         if not math.isfinite(sc.score):
             lines.append("(no scan points landed in the checked images)")
+        if self.config.time_offset:
+            lines += self._time_offset(ctx, seq, out, metrics)
         return lines
+
+    @staticmethod
+    def _time_offset(ctx: StageContext, seq: Any, out: Path, metrics: dict[str, Any]) -> (
+            list[str]):
+        """The camera's stamp delay against the wheel odometry (``calibration.time_offset``);
+        a recording it cannot judge says so and the stage goes on."""
+        from calibration.time_offset import (
+            TimeOffsetError,
+            camera_yaw_increments,
+            estimate_camera_delay,
+            write_figure,
+        )
+
+        head = "**Camera time offset** (images stamped after they are taken): "
+        traj = seq.odometry
+        if traj is None:
+            return [head + "not measured: the sequence has no wheel odometry (`python -m "
+                    "calibration time-offset --trajectory` takes the slam2d trajectory)."]
+        frames = seq.frames
+        stamps = np.array([f.stamp for f in frames])
+        try:
+            dyaw, _ = camera_yaw_increments(
+                (f.image for f in ctx.progress(frames, total=len(frames),
+                                               description="camera rotations")),
+                seq.rig.camera, seq.rig.T_base_camera)
+            res = estimate_camera_delay(stamps, dyaw, traj)
+        except TimeOffsetError as e:
+            return [head + f"not measured: {e}."]
+        write_figure(str(out / "time_offset.png"), res, stamps, dyaw, traj)
+        metrics["camera_delay_s"] = res.delay_s
+        metrics["camera_delay_std_s"] = res.std_s
+        metrics["camera_delay_reliable"] = res.reliable
+        ms, sd = res.delay_s * 1000, res.std_s * 1000
+        text = (f"{ms:+.1f} ms (+- {sd:.1f} ms) against the wheel odometry's turning "
+                f"({res.windows} windows of {res.frames_per_window} frames; yaw mismatch "
+                f"{res.residual_at_zero_deg:.3f} -> {res.residual_deg:.3f} deg per window). ")
+        if not res.reliable:
+            text += "Not reliable: " + "; ".join(res.reasons) + "."
+        elif abs(res.delay_s) < max(2 * res.std_s, 0.005):
+            text += "Nothing to correct."
+        else:
+            text += (f"**Convert the recording again with ingest's `sync: {{camera_delay_s: "
+                     f"{res.delay_s:.4f}}}`**: every stage places the lidar at the image's "
+                     "stamp.")
+        return [head + text, f"![yaw rates of the camera and the odometry, and the mismatch "
+                             f"against the delay tried]({ctx.stage_id}/check/time_offset.png)"]

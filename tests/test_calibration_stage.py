@@ -77,6 +77,10 @@ def test_check_only_after_simulate_separates_a_2_degree_error(tmp_path: Path) ->
     for k in range(2):
         assert (tmp_path / "run" / "calibrate" / "check" / f"overlay_vs_rotated_{k}.png").exists()
         assert f"(calibrate/check/overlay_vs_rotated_{k}.png)" in report
+    # 4 s of driving hold no turn to read a camera delay from: the report says so.
+    assert "**Camera time offset**" in report
+    assert "Not reliable: the robot's turning hardly changed" in report
+    assert not m["camera_delay_reliable"]
 
 
 def test_missing_calibration_files_stop_validate(tmp_path: Path) -> None:
