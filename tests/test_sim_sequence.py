@@ -251,3 +251,23 @@ def test_swept_scans_have_ground_truth_for_every_beam_and_people_where_they_were
     errors = np.array(errors)  # [K] metres, beams on people
     assert len(errors) > 50
     assert np.median(errors) < 0.005 and np.mean(errors > 0.05) < 0.02
+
+
+def test_auto_exposure_brings_frames_to_the_target_grey(tmp_path: Path) -> None:
+    cam = CameraSpec(width=80, height=60, fx=65.0, fy=65.0, auto_exposure=True,
+                     exposure_target=150.0, exposure_speed=0.5)
+    simulate(SimConfig(seed=0, n_people=0, duration_s=6.0, n_heldout=0, camera=cam),
+             tmp_path / "ae")
+    seq = read_sequence(tmp_path / "ae")
+    table = np.loadtxt(tmp_path / "ae" / "groundtruth" / "exposure_gain.csv", delimiter=",",
+                       skiprows=1)
+    assert table[:, 1] == pytest.approx(seq.frame_stamps, abs=1e-6)
+    gain = table[:, 2]
+    assert gain[0] == 1.0 and gain[-1] > 1.1  # the house is darker than 150
+    means = [f.image.mean() for f in seq.frames]
+    assert abs(means[-1] - 150.0) < 0.5 * abs(means[0] - 150.0)
+    assert CameraSpec().next_gain(1.7, 20.0) == 1.0  # without auto exposure: gain 1
+    from toolkit.sim.stage import CameraSettings
+
+    with pytest.raises(ValueError, match="exposure_gain_range"):
+        CameraSettings(exposure_gain_range=(1.2, 2.0))

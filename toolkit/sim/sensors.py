@@ -55,6 +55,23 @@ class CameraSpec:
     # The driver stamps each image this long after its exposure (USB transfer, a busy
     # computer): frames.csv holds exposure + delay, the ground truth the true times.
     stamp_delay_s: float = 0.0
+    # Auto exposure, as most robot cameras run: each frame's gain moves the last frame's
+    # mean grey level towards ``exposure_target`` by the fraction ``exposure_speed`` (in
+    # log gain), within ``exposure_gain_range``; the same surface then looks brighter in a
+    # dark room than in a bright one. Off: every frame at gain 1.
+    auto_exposure: bool = False
+    exposure_target: float = 110.0
+    exposure_speed: float = 0.3
+    exposure_gain_range: tuple[float, float] = (0.4, 2.5)
+
+    def next_gain(self, gain: float, mean_grey: float) -> float:
+        """The auto exposure's gain for the next frame after one at ``gain`` whose mean
+        grey level was ``mean_grey``."""
+        if not self.auto_exposure:
+            return 1.0
+        lo, hi = self.exposure_gain_range
+        step = (self.exposure_target / max(mean_grey, 1.0)) ** self.exposure_speed
+        return float(np.clip(gain * step, lo, hi))
 
     def camera(self) -> PinholeCamera:
         cx = (self.width - 1) / 2 if self.cx is None else self.cx
@@ -173,7 +190,7 @@ class CameraRenderer:
 
     def render(self, T_world_camera: np.ndarray, people: list[Primitive] | None = None,
                noise_std: float = 0.0, rng: np.random.Generator | None = None,
-               want_material: bool = False) -> CameraImage:
+               want_material: bool = False, gain: float = 1.0) -> CameraImage:
         """One image from ``T_world_camera`` [4, 4] with people shapes (optional).
 
         Hot loop, written for speed: every per-pixel step writes into a work array made in
@@ -279,6 +296,8 @@ class CameraRenderer:
         if people:
             self._draw_people(people, o, R, dirs, depth, rgbf, dynamic)
         rgb = rgbf.reshape(H, W, 3)
+        if gain != 1.0:  # exposure: before the sensor's noise and its clipping
+            np.multiply(rgb, np.float32(gain), out=rgb)
         if noise_std > 0:
             rng = rng if rng is not None else np.random.default_rng()
             noise = self._tint.reshape(H, W, 3)  # free again: the tint is applied

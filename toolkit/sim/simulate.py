@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from toolkit.geometry import Trajectory, se2_to_se3
-from toolkit.io.atomic import atomic_write_json
+from toolkit.io.atomic import atomic_write_json, atomic_write_text
 from toolkit.io.sequence import SequenceWriter
 from toolkit.sensors import LaserScan, Rig
 from toolkit.sim.house import House, generate_house
@@ -158,6 +158,7 @@ def simulate(config: SimConfig, out_dir: Path | str,
     # the GIL) overlaps the next frame's rendering.
     pending: deque[Future[int]] = deque()
     si = 0
+    gains = np.ones(len(cam_t))  # the auto exposure's, frame by frame
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim-writer") as pool:
         for k in progress(range(len(cam_t)), total=len(cam_t), description="simulate"):
             # The scans up to this image first: a frame is "its image and its scans".
@@ -182,7 +183,9 @@ def simulate(config: SimConfig, out_dir: Path | str,
                                           time_increment=spec.time_increment), ret.dynamic)
                 si += 1
             img = cam_r.render(T_wb_cam[k] @ T_bc, primitives_at(world.walkers, cam_t[k]),
-                               config.camera.noise_std, cam_rng)
+                               config.camera.noise_std, cam_rng, gain=gains[k])
+            if k + 1 < len(cam_t):
+                gains[k + 1] = config.camera.next_gain(gains[k], float(img.rgb.mean()))
             pending.append(pool.submit(writer.add_frame,
                                        t0 + cam_t[k] + config.camera.stamp_delay_s, img.rgb,
                                        img.depth, img.dynamic))
@@ -228,6 +231,11 @@ def simulate(config: SimConfig, out_dir: Path | str,
                                                              for i in range(2)]]).tolist()
                                 for w in world.walkers]
     atomic_write_json(writer.root / "groundtruth" / "house.json", summary)
+    if config.camera.auto_exposure:
+        atomic_write_text(writer.root / "groundtruth" / "exposure_gain.csv",
+                          "index,stamp,gain\n" + "".join(
+                              f"{k},{float(t0 + cam_t[k] + config.camera.stamp_delay_s)!r},"
+                              f"{float(gains[k])!r}\n" for k in range(len(cam_t))))
     writer.close()
     timings["extras_s"] = time.perf_counter() - t_extra
     seconds = time.perf_counter() - t_start

@@ -46,6 +46,20 @@ class CameraSettings(_Settings):
     # Image stamps this much later than the exposures, as many camera drivers give
     # (python -m calibration time-offset measures it; ingest's sync.camera_delay_s undoes it).
     stamp_delay_s: float = Field(0.0, ge=-1.0, le=1.0)
+    # Auto exposure: each frame's gain moves the mean grey level towards the target
+    # (docs/simulator.md); ground truth gains in groundtruth/exposure_gain.csv.
+    auto_exposure: bool = False
+    exposure_target: float = Field(110.0, gt=0, lt=255)
+    exposure_speed: float = Field(0.3, gt=0, le=1)
+    exposure_gain_range: tuple[float, float] = (0.4, 2.5)
+
+    @model_validator(mode="after")
+    def _gain_range(self) -> CameraSettings:
+        lo, hi = self.exposure_gain_range
+        if not 0 < lo <= 1 <= hi:
+            raise ValueError(f"exposure_gain_range {list(self.exposure_gain_range)}: give "
+                             "[low, high] with 0 < low <= 1 <= high")
+        return self
 
     def spec(self) -> CameraSpec:
         return CameraSpec(**self.model_dump())
