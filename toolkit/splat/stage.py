@@ -569,6 +569,7 @@ class SplatStage(Stage):
             metrics["heldout_every_n"] = cfg.holdout_every
             metrics["heldout_frames"] = ev["views"]
             metrics["heldout_psnr_db"] = ev["psnr_db"]
+            metrics["heldout_psnr_exposure_matched_db"] = ev["psnr_exposure_matched_db"]
             metrics["heldout_ssim"] = ev["ssim"]
             for key in ("depth_mae_m", "depth_rmse_m"):
                 if key in ev:
@@ -580,6 +581,7 @@ class SplatStage(Stage):
                                       cfg.strip_views, compared("sim_heldout")))
             metrics["sim_heldout_views"] = ev["views"]
             metrics["sim_heldout_psnr_db"] = ev["psnr_db"]
+            metrics["sim_heldout_psnr_exposure_matched_db"] = ev["psnr_exposure_matched_db"]
             metrics["sim_heldout_ssim"] = ev["ssim"]
             for key in ("depth_mae_m", "depth_rmse_m"):
                 if key in ev:
@@ -659,14 +661,16 @@ class SplatStage(Stage):
             return format(v, fmt) if isinstance(v, float) and np.isfinite(v) else "-"
 
         if rows:
-            head = "| held-out set | PSNR (dB) | SSIM | depth MAE (m) |"
+            head = ("| held-out set | PSNR (dB) | PSNR, exposure matched (dB) | SSIM | "
+                    "depth MAE (m) |")
             if tsdf:
                 head += (" TSDF mesh PSNR (dB) | TSDF SSIM | gain (dB) | TSDF coverage | "
                          "covered px: TSDF / splats PSNR (dB) |")
             lines.append("\n" + head + "\n" + "|---" * (head.count("|") - 1) + "|")
             for name, p in rows:
-                row = (f"| {name} | {f(f'{p}_psnr_db', '.2f')} | {f(f'{p}_ssim', '.3f')} | "
-                       f"{f(f'{p}_depth_mae_m', '.3f')} |")
+                row = (f"| {name} | {f(f'{p}_psnr_db', '.2f')} | "
+                       f"{f(f'{p}_psnr_exposure_matched_db', '.2f')} | "
+                       f"{f(f'{p}_ssim', '.3f')} | {f(f'{p}_depth_mae_m', '.3f')} |")
                 if tsdf:
                     row += (f" {f(f'tsdf_{p}_psnr_db', '.2f')} | {f(f'tsdf_{p}_ssim', '.3f')} | "
                             f"{f(f'{p}_psnr_gain_over_tsdf_db', '+.2f')} | "
@@ -674,6 +678,11 @@ class SplatStage(Stage):
                             f"{f(f'tsdf_{p}_psnr_covered_db', '.2f')} / "
                             f"{f(f'{p}_psnr_on_tsdf_covered_db', '.2f')} |")
                 lines.append(row)
+            lines.append("\nExposure matched: each held-out render scaled per colour channel "
+                         "by the gain that fits it to its image best (a camera's exposure is "
+                         "not known for a view the splats never saw)"
+                         + (f"; training fitted that gain to every image too (`exposure: "
+                            f"{cfg.exposure}`)." if cfg.exposure != "none" else "."))
             if tsdf:
                 lines.append(
                     "\nTSDF mesh: the upstream `tsdf` stage's mesh (vertex colours) ray-cast at "

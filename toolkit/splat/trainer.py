@@ -77,6 +77,14 @@ class TrainConfig(BaseModel):
     log_every: int = Field(100, ge=1)
     max_seconds: float | None = Field(None, gt=0, description="stop early after this long")
     seed: int = 0
+    # Per-image exposure. "gain": before the loss, each render is scaled per channel by the
+    # gain that best fits it to its image (least squares, pulled towards 1 by
+    # ``exposure_reg``; no gradient through it), so images of one surface taken at other
+    # exposures (a camera's auto exposure) do not pull its colour apart, while the map's
+    # overall brightness stays the initial cloud's. Each view is seen a few times in a
+    # short CPU training: a gain fitted at every step, not one learnt per view.
+    exposure: Literal["none", "gain"] = "none"
+    exposure_reg: float = Field(0.01, ge=0)
 
 
 @dataclass
@@ -127,6 +135,22 @@ class TrainView:
         """[H, W, 3] float 0..1."""
         # uint8 crosses to the device, a quarter of the float bytes
         return self.image.to(device, non_blocking=True).to(torch.float32) / 255.0
+
+
+def exposure_gain(render: Tensor, target: Tensor, mask: Tensor | None = None,
+                  reg: float = 0.0) -> Tensor:
+    """[3] per-channel gain g minimising sum |g render - target|^2 over ``mask``'s pixels
+    plus reg * N * (g - 1)^2, from [H, W, 3] images; no gradient flows through it."""
+    r = render.detach()
+    t = target.to(r.dtype)
+    if mask is not None:
+        m = mask[..., None].to(r.dtype)
+        r, t, n = r * m, t * m, m.sum()
+    else:
+        n = torch.tensor(float(r.shape[0] * r.shape[1]), dtype=r.dtype, device=r.device)
+    num = (r * t).sum((0, 1)) + reg * n
+    den = (r * r).sum((0, 1)) + reg * n
+    return (num / den.clamp_min(1e-12)).clamp(0.25, 4.0)
 
 
 @dataclass
@@ -319,7 +343,11 @@ class Trainer:
                      sh_degree=self.active_sh_degree(step), backend=cfg.backend)
         self.strategy.step_pre_backward(out.meta)
         gt = view.target(out.color.device)
-        color = view.masked(out.color, gt)
+        rendered = out.color
+        if cfg.exposure == "gain":
+            rendered = rendered * exposure_gain(rendered, gt, view.mask_on(gt.device),
+                                                cfg.exposure_reg)
+        color = view.masked(rendered, gt)
         l1 = (color - gt).abs().mean()
         loss = l1
         if cfg.lambda_dssim > 0:
@@ -332,7 +360,7 @@ class Trainer:
                 depth_l1 = (out.depth - target).abs()[valid].mean()
                 loss = loss + cfg.depth_weight * depth_l1
         with torch.no_grad():
-            psnr = psnr_fn(out.color.detach().clamp(0, 1), gt, mask=view.mask_on(gt.device))
+            psnr = psnr_fn(rendered.detach().clamp(0, 1), gt, mask=view.mask_on(gt.device))
         # The step's figures in one read: on a GPU each float() waits for the device.
         loss_v, l1_v, depth_v, psnr_v = torch.stack(
             [t.detach().to(torch.float64) for t in (loss, l1, depth_l1, psnr)]).tolist()
@@ -585,7 +613,7 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
     ``on_render(i, view, output)`` sees every render (to save pictures without rendering
     twice).
     """
-    ps, ss, d_abs, d_sq, d_n = [], [], 0.0, 0.0, 0
+    ps, pm, ss, d_abs, d_sq, d_n = [], [], [], 0.0, 0.0, 0
     for i, v in enumerate(views):
         out = render_view(model, v.camera, v.T_camera_world, background, backend)
         if on_render is not None:
@@ -594,6 +622,10 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
         gt = v.target(dev)
         pred = v.masked(out.color.clamp(0, 1), gt)
         ps.append(float(psnr_fn(pred, gt, mask=v.mask_on(dev))))
+        # The held-out image's exposure is not known to the model: scored again with the
+        # per-channel gain that fits the render to it best.
+        g = exposure_gain(pred, gt, v.mask_on(dev))
+        pm.append(float(psnr_fn(v.masked((pred * g).clamp(0, 1), gt), gt, mask=v.mask_on(dev))))
         ss.append(float(ssim_fn(pred, gt, mask=v.mask_on(dev))))
         gd = gt_depths[i] if gt_depths is not None else None
         if gd is not None:
@@ -609,6 +641,7 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
         "psnr_db": float(np.mean(ps)) if ps else math.nan,
         "ssim": float(np.mean(ss)) if ss else math.nan,
         "psnr_db_per_view": ps,
+        "psnr_exposure_matched_db": float(np.mean(pm)) if pm else math.nan,
     }
     if d_n:
         res["depth_mae_m"] = d_abs / d_n
