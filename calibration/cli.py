@@ -307,7 +307,10 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
     from rich.progress import track
 
     from calibration.time_offset import (
+        advice,
+        applied_delay,
         camera_yaw_increments,
+        check_inputs,
         estimate_camera_delay,
         write_figure,
     )
@@ -329,9 +332,6 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
             traj = read_tum(args.trajectory)
         except ValueError as e:  # a malformed line: named by the reader
             raise CalibrationFileError(str(e)) from e
-        if len(traj) < 2:
-            raise CalibrationFileError(f"{args.trajectory}: {len(traj)} poses; the robot's "
-                                       "poses over the recording are needed")
         source = args.trajectory
     elif seq.odometry is not None:
         traj, source = seq.odometry, f"{args.sequence} odometry"
@@ -343,15 +343,9 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         print(f"note: {source} holds T_{traj.frame}_{traj.child}: its yaw is taken as the "
               "robot's (any frame mounted level on the robot turns alike)")
     frames = seq.frames[::args.stride] if args.stride > 1 else seq.frames
-    if len(frames) < 3:
-        raise CalibrationFileError(f"{args.sequence}: {len(frames)} frames; need at least 3")
     stamps = np.array([f.stamp for f in frames])
-    covered = float(traj.covers(stamps).mean())
-    if covered < 0.5:  # before the image work, which takes a while on a long recording
-        raise CalibrationFileError(
-            f"{source} covers {covered:.0%} of the frames (frames {stamps[0]:.3f}.."
-            f"{stamps[-1]:.3f} s, trajectory {traj.stamps[0]:.3f}..{traj.stamps[-1]:.3f} s): "
-            "the trajectory must cover the frames (another clock?)")
+    check_inputs(stamps, traj, source, args.window)  # before the images: they take a while
+    applied = applied_delay(seq)
     images = (f.image for f in track(frames, description="camera rotations",
                                      transient=True, disable=not sys.stderr.isatty()))
     dyaw, inliers = camera_yaw_increments(images, seq.rig.camera, seq.rig.T_base_camera)
@@ -364,7 +358,10 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         **res.to_dict(), "sequence": str(args.sequence), "trajectory": source,
         "frames": len(frames), "frame_pairs_with_rotation": found,
         "median_inliers": float(np.median(inliers)) if len(inliers) else 0.0,
-        "meaning": "image stamp minus exposure time; ingest sync.camera_delay_s takes it"})
+        "applied_at_conversion_s": applied,
+        "meaning": "image stamp minus exposure time, left after the conversion's "
+                   "sync.camera_delay_s (applied_at_conversion_s); the setting to use is "
+                   "their sum"})
     ms = res.delay_s * 1000
     print(f"camera delay: {ms:+.1f} ms (+- {res.std_s * 1000:.1f} ms; {res.windows} windows "
           f"of {res.frames_per_window} frames, rotations found in {found} of {len(dyaw)} "
@@ -374,11 +371,7 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
     if not res.reliable:
         print("UNRELIABLE: " + "; ".join(res.reasons))
         return EXIT_UNRELIABLE
-    if abs(res.delay_s) < max(2 * res.std_s, 0.002):
-        print("the camera's stamps agree with the trajectory's clock: nothing to correct")
-    else:
-        print(f"images are stamped {abs(ms):.1f} ms {'after' if ms > 0 else 'before'} they "
-              f"are taken; convert with ingest's sync: {{camera_delay_s: {res.delay_s:.4f}}}")
+    print(advice(res, applied))
     return 0
 
 

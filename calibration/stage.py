@@ -288,11 +288,17 @@ class CalibrateStage(Stage):
         if simulated and not cfg.extrinsic:
             what += " (the simulator's exact rig)"
         metrics: dict[str, Any] = {}
-        try:
-            lines = [f"Check of {what}, no calibration."]
-            lines += self._check(ctx, seq_dir, T, T_true, metrics)
-        except USER_ERRORS as e:
-            raise StageError(f"calibrate: {e}") from e
+        if isinstance(meta, dict) and meta.get("has_camera") is False:
+            # A lidar-only recording (a CARMEN log, a bag without images) goes on to the
+            # SLAM: there is no image to check the extrinsic or the camera's clock on.
+            lines = [f"No camera in this recording (lidar only): {what} is not checked and "
+                     "the rig passes on unchanged."]
+        else:
+            try:
+                lines = [f"Check of {what}, no calibration."]
+                lines += self._check(ctx, seq_dir, T, T_true, metrics)
+            except USER_ERRORS as e:
+                raise StageError(f"calibrate: {e}") from e
         if T_true is not None:
             rot, tra = transform_error(T, T_true)
             metrics["rotation_error_deg"], metrics["translation_error_m"] = rot, tra
@@ -407,8 +413,12 @@ class CalibrateStage(Stage):
         a recording it cannot judge says so and the stage goes on."""
         from calibration.time_offset import (
             TimeOffsetError,
+            advice,
+            applied_delay,
             camera_yaw_increments,
+            check_inputs,
             estimate_camera_delay,
+            needs_correction,
             write_figure,
         )
 
@@ -420,6 +430,7 @@ class CalibrateStage(Stage):
         frames = seq.frames
         stamps = np.array([f.stamp for f in frames])
         try:
+            check_inputs(stamps, traj, "the wheel odometry")  # before reading every image
             dyaw, _ = camera_yaw_increments(
                 (f.image for f in ctx.progress(frames, total=len(frames),
                                                description="camera rotations")),
@@ -428,20 +439,19 @@ class CalibrateStage(Stage):
         except TimeOffsetError as e:
             return [head + f"not measured: {e}."]
         write_figure(str(out / "time_offset.png"), res, stamps, dyaw, traj)
+        applied = applied_delay(seq)
         metrics["camera_delay_s"] = res.delay_s
         metrics["camera_delay_std_s"] = res.std_s
         metrics["camera_delay_reliable"] = res.reliable
+        metrics["camera_delay_applied_at_conversion_s"] = applied
         ms, sd = res.delay_s * 1000, res.std_s * 1000
         text = (f"{ms:+.1f} ms (+- {sd:.1f} ms) against the wheel odometry's turning "
                 f"({res.windows} windows of {res.frames_per_window} frames; yaw mismatch "
                 f"{res.residual_at_zero_deg:.3f} -> {res.residual_deg:.3f} deg per window). ")
-        if not res.reliable:
-            text += "Not reliable: " + "; ".join(res.reasons) + "."
-        elif abs(res.delay_s) < max(2 * res.std_s, 0.005):
-            text += "Nothing to correct."
+        if needs_correction(res):
+            text += (f"**{advice(res, applied)}** Every stage places the lidar at the "
+                     "image's stamp.")
         else:
-            text += (f"**Convert the recording again with ingest's `sync: {{camera_delay_s: "
-                     f"{res.delay_s:.4f}}}`**: every stage places the lidar at the image's "
-                     "stamp.")
+            text += advice(res, applied)
         return [head + text, f"![yaw rates of the camera and the odometry, and the mismatch "
                              f"against the delay tried]({ctx.stage_id}/check/time_offset.png)"]

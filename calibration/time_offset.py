@@ -41,6 +41,62 @@ class TimeOffsetError(ValueError):
     """Input that cannot give a time offset (too few frames, no trajectory over them)."""
 
 
+# A delay within twice its spread of zero, or under this, is nothing to correct.
+NEGLIGIBLE_S = 0.002
+
+
+def check_inputs(frame_stamps: np.ndarray, trajectory: Trajectory, source: str,
+                 window_s: float = 0.5) -> None:
+    """What makes ``estimate_camera_delay`` fail, checked before the images are read (which
+    takes a while on a long recording): raises TimeOffsetError naming the fix."""
+    t = np.asarray(frame_stamps, np.float64)
+    if len(t) < 3:
+        raise TimeOffsetError(f"{len(t)} camera frames; at least 3 are needed")
+    if len(trajectory) < 2:
+        raise TimeOffsetError(f"{source}: {len(trajectory)} poses; the robot's poses over the "
+                              "recording are needed")
+    covered = float(trajectory.covers(t).mean())
+    if covered < 0.5:
+        raise TimeOffsetError(
+            f"{source} covers {covered:.0%} of the frames (frames {t[0]:.3f}..{t[-1]:.3f} s, "
+            f"trajectory {trajectory.stamps[0]:.3f}..{trajectory.stamps[-1]:.3f} s): the "
+            "trajectory must cover the frames (another clock?)")
+    spacing = float(np.median(np.diff(t)))
+    if spacing > window_s:
+        raise TimeOffsetError(
+            f"the frames are {spacing:.2f} s apart (median), more than the {window_s} s "
+            "window: rotations are read between frames close in time (use more frames, "
+            "e.g. less decimation)")
+
+
+def applied_delay(seq: object) -> float:
+    """The camera delay a sequence's conversion already took out (ingest's
+    ``sync.camera_delay_s``, in its meta.yaml); 0 for others."""
+    meta = getattr(seq, "meta", None) or {}
+    ingest = meta.get("ingest") if isinstance(meta, dict) else None
+    value = ingest.get("camera_delay_s", 0.0) if isinstance(ingest, dict) else 0.0
+    return float(value or 0.0)
+
+
+def needs_correction(result: TimeOffsetResult) -> bool:
+    """A reliable delay clearly off zero."""
+    return result.reliable and abs(result.delay_s) >= max(2 * result.std_s, NEGLIGIBLE_S)
+
+
+def advice(result: TimeOffsetResult, applied_s: float = 0.0) -> str:
+    """What to do about ``result``, measured on a recording converted with ingest's
+    ``sync.camera_delay_s`` = ``applied_s`` already taken out."""
+    if not result.reliable:
+        return "Not reliable: " + "; ".join(result.reasons) + "."
+    total = applied_s + result.delay_s
+    done = f" ({applied_s * 1000:+.1f} ms already taken out at conversion)" if applied_s else ""
+    if not needs_correction(result):
+        return f"Nothing to correct{done}."
+    return (f"Images are stamped {abs(total) * 1000:.1f} ms {'after' if total > 0 else 'before'}"
+            f" they are taken{done}: convert the recording with ingest's "
+            f"`sync: {{camera_delay_s: {total:.4f}}}`.")
+
+
 @dataclass
 class FrameRotation:
     """The camera's rotation between two consecutive images."""

@@ -345,3 +345,19 @@ def test_a_broken_image_in_a_sequence_is_named_at_ingest(tmp_path):
     assert not res.ok and "is 32x24, the camera 160x120" in res.error
     bad.write_bytes(good)
     assert run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src)))).ok
+
+
+def test_a_lidar_only_recording_passes_the_calibrate_check(tmp_path):
+    """from_rosbag.yaml checks the extrinsic after ingest: a recording without images has
+    nothing to check and must go on to the SLAM."""
+    log = tmp_path / "intel.log"
+    write_flaser_log(log)
+    data = {"name": "t", "output": str(tmp_path / "out"), "stages": [
+        {"stage": "ingest", "source": "carmen", "path": str(log)},
+        {"stage": "calibrate", "mode": "check"}]}
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    res = run_recipe(load_recipe(path))
+    assert res.ok, res.error
+    report = (res.run_dir / "report.md").read_text()
+    assert "No camera in this recording (lidar only)" in report

@@ -165,3 +165,35 @@ def test_the_calibrate_check_reports_the_delay(delayed: Path, tmp_path: Path) ->
     assert "sync: {camera_delay_s: 0.06" in report
     assert (tmp_path / "run" / "calibrate" / "check" / "time_offset.png").exists()
     assert "(calibrate/check/time_offset.png)" in report
+
+
+def test_a_partly_corrected_recording_is_told_the_whole_setting(delayed: Path,
+                                                                tmp_path: Path) -> None:
+    """Measured after a conversion that took out 30 ms, the advice is the sum, not the rest
+    (the check runs on the converted sequence; the recipe's setting is the whole delay)."""
+    convert(read_sequence_recording(delayed), tmp_path / "part",
+            SyncOptions(camera_delay_s=0.03))
+    out = tmp_path / "to"
+    assert calibration_main(["time-offset", "--sequence", str(tmp_path / "part"), "--out",
+                             str(out)]) == 0
+    found = json.loads((out / "time_offset.json").read_text())
+    assert found["applied_at_conversion_s"] == 0.03
+    assert found["delay_s"] == pytest.approx(0.03, abs=0.003)
+    from calibration.time_offset import TimeOffsetResult, advice
+
+    res = TimeOffsetResult(0.0301, 0.001, 100, 5, 0.3, 0.1, 0.2, True)
+    assert "camera_delay_s: 0.0601}" in advice(res, 0.03)
+    assert "Nothing to correct (+30.0 ms already taken out" in advice(
+        TimeOffsetResult(0.0004, 0.001, 100, 5, 0.3, 0.1, 0.1, True), 0.03)
+
+
+def test_frames_too_far_apart_are_named_before_the_images_are_read() -> None:
+    from calibration.time_offset import check_inputs
+
+    t = np.arange(0.0, 60.0, 0.1)
+    traj = _trajectory(t)
+    with pytest.raises(TimeOffsetError, match="1.00 s apart"):
+        check_inputs(np.arange(1.0, 50.0, 1.0), traj, "odometry")
+    with pytest.raises(TimeOffsetError, match="another clock"):
+        check_inputs(np.arange(1.0, 50.0, 0.1) + 500.0, traj, "odometry")
+    check_inputs(np.arange(1.0, 50.0, 0.2), traj, "odometry")  # 5 Hz: fine
