@@ -140,7 +140,10 @@ class TrainView:
 def exposure_gain(render: Tensor, target: Tensor, mask: Tensor | None = None,
                   reg: float = 0.0) -> Tensor:
     """[3] per-channel gain g minimising sum |g render - target|^2 over ``mask``'s pixels
-    plus reg * N * (g - 1)^2, from [H, W, 3] images; no gradient flows through it."""
+    plus reg * N * (g - 1)^2 (N: the pixels fitted), from [H, W, 3] images; no gradient
+    flows through it. The pull is per pixel: a render that covers little of its image (dark
+    elsewhere) keeps a gain nearer 1, and the splats' overall brightness cannot drift into
+    the gains (docs/splatting.md, measured)."""
     r = render.detach()
     t = target.to(r.dtype)
     if mask is not None:
@@ -490,7 +493,8 @@ class Trainer:
         self.optimizers = self._make_optimizers()
         for k, o in self.optimizers.items():
             o.load_state_dict(ckpt["optimizers"][k])
-        # Read onto the CPU: a checkpoint of a GPU run resumes on either.
+        # Loaded on the CPU (map_location) and moved to this trainer's device: a GPU run's
+        # checkpoint resumes on the CPU and back.
         self.strategy_state = {k: v.to(self.device) if isinstance(v, Tensor) else v
                                for k, v in ckpt["strategy_state"].items()}
         self.generator.set_state(ckpt["generator"])
