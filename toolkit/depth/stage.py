@@ -128,6 +128,7 @@ class DepthStage(Stage):
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
     # for its timings).
     speed_settings = frozenset({"threads", "device", "prefetch"})
+    outputs_repeat = False  # index.csv holds each frame's latency
 
     def external_inputs(self) -> list[Path]:
         cfg: DepthConfig = self.config  # type: ignore[assignment]

@@ -5,11 +5,15 @@ key and its provided paths exist. The marker is written atomically after ``run``
 and deleted before a rerun starts, so a stage killed at any point (exception, Ctrl-C,
 SIGKILL) is simply incomplete and the next run resumes there.
 
-A stage's cache key holds its type, version, settings and external files, and the *token*
-of every stage it reads from: a token is drawn each time a stage finishes running, so a
-stage rerun (``--force``, ``--only``, a lost output) makes everything downstream of it
-stale, as ``make`` does, even where its settings did not change (a rerun need not write
-the same bytes: new code, threads, timings that a later table reports).
+A stage's cache key holds its type, version, settings and external files, and a *token*
+for every input it reads from an earlier stage. An output's token is the digest of its
+content, taken when the stage finishes: a rerun (``--force``, ``--only``, an upgrade that
+bumps a stage's version) that writes the same bytes leaves the stages reading that output
+cached, and one that writes other bytes makes them stale, as ``make`` does on changed
+files (the "early cutoff" of build systems). Results read from an earlier stage
+(``reads``: its metrics, which hold timings) take a token drawn each time it runs: those
+readers always follow a rerun. Markers written before output digests existed lend their
+run token to every output, which is what later keys were made of then.
 """
 
 from __future__ import annotations
@@ -102,6 +106,7 @@ class _Record:
     # under it.
     folder_key: str | None = None
     token: str | None = None  # drawn when the stage last finished running (module doc)
+    output_tokens: dict[str, str] = field(default_factory=dict)  # digest of each output
     seconds: float | None = None
     cpu_seconds: float | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
@@ -338,7 +343,8 @@ class _Run:
                 if not self.records[s].finished]
 
     def upstream_tokens(self, spec: StageSpec) -> dict[str, str | None]:
-        upstream = {n: self.records[s].token for n, s in spec.sources.items()}
+        upstream = {n: self.records[s].output_tokens.get(n, self.records[s].token)
+                    for n, s in spec.sources.items()}
         upstream.update({f"results:{s}": self.records[s].token for s in spec.reads})
         return upstream
 
@@ -368,6 +374,8 @@ class _Run:
         # Markers written before tokens existed stand for themselves by their key, which is
         # what downstream keys were made of then: those runs stay cached.
         record.token = str(stored.get("token") or stored["key"])
+        record.output_tokens = {str(k): str(v) for k, v in
+                                (stored.get("output_tokens") or {}).items()}
         record.seconds = stored.get("seconds")
         record.cpu_seconds = stored.get("cpu_seconds")
         record.metrics = dict(stored.get("metrics") or {})
@@ -443,9 +451,12 @@ class _Run:
             record.seconds = time.perf_counter() - start
             record.cpu_seconds = _cpu_seconds() - cpu_start
             record.token = uuid.uuid4().hex
+            record.output_tokens = ({n: _content_digest(p) for n, p in record.provides.items()}
+                                    if spec.cls.outputs_repeat else {})
             marker = {
                 "key": record.key,
                 "token": record.token,
+                "output_tokens": record.output_tokens,
                 "stage": spec.type,
                 "speed_settings": _speed_values(spec),
                 "provides": {n: _relative(p, stage_dir) for n, p in record.provides.items()},
@@ -779,6 +790,22 @@ def _manifest(path: Path) -> list[list[Any]]:
                 files.append([rel, p.stat().st_size])
         return files
     return [[".", path.stat().st_size]] if path.exists() else []
+
+
+def _content_digest(path: Path) -> str:
+    """SHA-256 of an output's content: a file's bytes, or a folder's files (names, sizes
+    and bytes, in name order; hidden files are not outputs, as in ``_manifest``)."""
+    h = hashlib.sha256()
+    files = [path] if path.is_file() else [
+        p for p in sorted(path.rglob("*")) if p.is_file() and not any(
+            part.startswith(".") for part in p.relative_to(path).parts)]
+    for f in files:
+        rel = "." if f == path else f.relative_to(path).as_posix()
+        h.update(f"{rel}\0{f.stat().st_size}\0".encode())
+        with f.open("rb") as fh:
+            while chunk := fh.read(1 << 20):
+                h.update(chunk)
+    return h.hexdigest()
 
 
 def _manifest_changes(path: Path, files: list[list[Any]]) -> str | None:

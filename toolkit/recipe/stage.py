@@ -134,6 +134,11 @@ class Stage(ABC):
     # cached when they change (rerunning an hour of depth, and every stage after it, for
     # a thread count was the cost); ``--force`` / ``--only`` rerun it for its timings.
     speed_settings: ClassVar[frozenset[str]] = frozenset()
+    # A rerun under the same settings and inputs writes the same bytes: a later stage
+    # reading an output whose digest did not change stays cached. False for a stage whose
+    # outputs hold timings (depth's per-frame latencies): they take a token of the run
+    # instead, and no time goes into digesting them.
+    outputs_repeat: ClassVar[bool] = True
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config
