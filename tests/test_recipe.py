@@ -1056,3 +1056,45 @@ def test_recipe_text_surprises_are_caught(tmp_path: Path) -> None:
     assert recipe.output == Path.home() / "lidarcam_test_run"  # ~ is the home folder
     recipe = load_recipe(shared, ["output=~/other_run"])  # in --set values too
     assert recipe.output == Path.home() / "other_run"
+
+
+def test_a_stage_with_speed_settings_keeps_its_result_when_another_fails(
+        tmp_path: Path) -> None:
+    """After a failure the stages not reached keep a still-valid result (settle_pending):
+    one with speed settings was keyed with them and reported 'not run', out of metrics."""
+    counter = str(tmp_path / "calls.txt")
+    registry.register("t_speedy", SpeedyStage)
+    try:
+        path = _write_recipe(tmp_path, {"name": "s", "output": str(tmp_path / "run"), "stages": [
+            {"stage": "t_source", "counter": counter},
+            {"stage": "t_double", "counter": counter},
+            {"stage": "t_speedy", "counter": counter, "value": 4}]})
+        assert _run(path).ok
+        res = _run(path, "t_double.fail=true")
+        assert res.statuses == {"t_source": "cached", "t_double": "failed",
+                                "t_speedy": "cached"}
+        assert res.metrics["t_speedy"] == {"value": 4}
+    finally:
+        registry.unregister("t_speedy")
+
+
+def test_output_digests_cover_what_a_reader_can_read(tmp_path: Path) -> None:
+    from toolkit.recipe.runner import _content_digest
+
+    out = tmp_path / "out"
+    (out / "sub").mkdir(parents=True)
+    (out / "sub" / "a.txt").write_text("1")
+    d0 = _content_digest(out)
+    (out / ".stage.json").write_text("{}")  # the runner's marker: not an output
+    assert _content_digest(out) == d0
+    (out / ".scale").write_text("2")  # a hidden file a reader may read is one
+    d1 = _content_digest(out)
+    assert d1 != d0
+    (out / "sub" / "a.txt").write_text("3")  # same size, other bytes
+    assert _content_digest(out) not in (d0, d1)
+    (out / "sub" / "a.txt").rename(out / "sub" / "b.txt")  # another name
+    assert _content_digest(out) not in (d0, d1)
+    f = out / "sub" / "b.txt"
+    assert _content_digest(f) != _content_digest(out)
+    (out / "link").symlink_to(tmp_path)  # what it points to can change unseen
+    assert _content_digest(out) == ""

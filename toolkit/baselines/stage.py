@@ -392,6 +392,7 @@ class ColmapStage(Stage):
     optional_requires = ("trajectory", "fused")
     provides = ("colmap",)
     version = 2  # 2: written alignments on covered poses; no poses across trajectory gaps
+    outputs_repeat = False  # sfm/summary.json holds the steps' seconds
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.colmap import evaluate_sfm_trajectory, run_sfm, save_sfm

@@ -71,6 +71,7 @@ STAGE_FILE = ".stage.json"
 # Written when a stage starts, removed when it finishes: the key of the settings an
 # interrupted run's files belong to (resumed only under that key).
 STARTED_FILE = ".stage.started.json"
+_MARKERS = frozenset({STAGE_FILE, STARTED_FILE})  # the runner's, not a stage's output
 RESOLVED_FILE = "recipe.resolved.yaml"
 LOG_FILE = "run.log"
 LOCK_FILE = ".lock"
@@ -360,7 +361,8 @@ class _Run:
             if self.waiting_on(spec):
                 continue
             try:
-                key = _cache_key(spec, spec.cls(spec.config), self.upstream_tokens(spec))
+                stage = spec.cls(spec.config)
+                key = _cache_key(spec, stage, self.upstream_tokens(spec), stage.speed_settings)
             except Exception:  # noqa: BLE001 - it is reported as not run, nothing more
                 continue
             stored, _ = _read_marker(self.run_dir / spec.id, key, spec.cls.provides)
@@ -451,12 +453,11 @@ class _Run:
             record.seconds = time.perf_counter() - start
             record.cpu_seconds = _cpu_seconds() - cpu_start
             record.token = uuid.uuid4().hex
-            record.output_tokens = ({n: _content_digest(p) for n, p in record.provides.items()}
-                                    if spec.cls.outputs_repeat else {})
+            record.output_tokens = {}
             marker = {
                 "key": record.key,
                 "token": record.token,
-                "output_tokens": record.output_tokens,
+                "output_tokens": {},
                 "stage": spec.type,
                 "speed_settings": _speed_values(spec),
                 "provides": {n: _relative(p, stage_dir) for n, p in record.provides.items()},
@@ -469,6 +470,18 @@ class _Run:
             }
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
             (stage_dir / STARTED_FILE).unlink(missing_ok=True)
+            # The outputs are digested once the stage stands finished: interrupted here, it
+            # stays finished, its readers keyed by the run token (an hour's outputs take a
+            # minute or more to read).
+            if spec.cls.outputs_repeat:
+                t = time.perf_counter()
+                tokens = {n: _content_digest(p) for n, p in record.provides.items()}
+                if all(tokens.values()):
+                    atomic_write_json(stage_dir / STAGE_FILE, {**marker, "output_tokens": tokens},
+                                      fsync=True)
+                    record.output_tokens = tokens
+                self.log.info("stage %s: outputs digested in %.1f s", spec.id,
+                              time.perf_counter() - t, extra=_FILE_ONLY)
         except Exception as exc:
             self.fail(record, exc, start)
             return False
@@ -793,14 +806,20 @@ def _manifest(path: Path) -> list[list[Any]]:
 
 
 def _content_digest(path: Path) -> str:
-    """SHA-256 of an output's content: a file's bytes, or a folder's files (names, sizes
-    and bytes, in name order; hidden files are not outputs, as in ``_manifest``)."""
+    """SHA-256 of an output's content: a file's name and bytes, or a folder's files (names,
+    sizes and bytes, in name order; the runner's markers left out). Empty where a folder
+    holds a symbolic link: what it points to may change without the link changing, so such
+    an output keeps its run token."""
     h = hashlib.sha256()
-    files = [path] if path.is_file() else [
-        p for p in sorted(path.rglob("*")) if p.is_file() and not any(
-            part.startswith(".") for part in p.relative_to(path).parts)]
+    if path.is_file():
+        files = [path]
+    else:
+        entries = sorted(path.rglob("*"))
+        if any(p.is_symlink() for p in entries):
+            return ""
+        files = [p for p in entries if p.is_file() and p.name not in _MARKERS]
     for f in files:
-        rel = "." if f == path else f.relative_to(path).as_posix()
+        rel = f.name if f == path else f.relative_to(path).as_posix()
         h.update(f"{rel}\0{f.stat().st_size}\0".encode())
         with f.open("rb") as fh:
             while chunk := fh.read(1 << 20):

@@ -8,9 +8,10 @@ artifacts it ``requires`` from earlier stages and the ones it ``provides``, and 
 Artifacts are named paths inside a stage's folder ("sequence", "trajectory",
 "depth", "map", ...). The runner resolves ``ctx.artifact(name)`` to the path the
 nearest earlier stage provided, and caches a stage by hashing its settings together
-with the cache keys of the stages it drew artifacts from (and the fingerprints of the
+with a digest of the content of the artifacts it draws (and the fingerprints of the
 external files it names in ``external_inputs``), so changing one stage reruns exactly
-what depends on it.
+what reads an output that changed. A stage therefore reads of an earlier stage only the
+paths ``ctx.artifact`` gives and what lies under them, never files beside them.
 """
 
 from __future__ import annotations
@@ -73,7 +74,8 @@ class StageContext(ABC):
 
     @abstractmethod
     def artifact(self, name: str) -> Path:
-        """Path of artifact ``name`` provided by the nearest earlier stage.
+        """Path of artifact ``name`` provided by the nearest earlier stage: read what lies
+        under it only (its content is what this stage's cache key holds).
 
         Raises a ``StageError`` naming the artifact and which stage types provide it.
         """
@@ -136,8 +138,10 @@ class Stage(ABC):
     speed_settings: ClassVar[frozenset[str]] = frozenset()
     # A rerun under the same settings and inputs writes the same bytes: a later stage
     # reading an output whose digest did not change stays cached. False for a stage whose
-    # outputs hold timings (depth's per-frame latencies): they take a token of the run
-    # instead, and no time goes into digesting them.
+    # outputs hold timings (depth's per-frame latencies, colmap's step times): they take a
+    # token of the run instead, and no time goes into digesting them. The contract that
+    # makes this safe: a stage reads of an earlier stage only the paths it is given
+    # (``ctx.artifact``) and what lies under them, never files beside them.
     outputs_repeat: ClassVar[bool] = True
 
     def __init__(self, config: StageConfig) -> None:
