@@ -312,6 +312,7 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         camera_yaw_increments,
         check_inputs,
         estimate_camera_delay,
+        frames_to_use,
         write_figure,
     )
     from toolkit.io.atomic import atomic_write_json
@@ -342,13 +343,17 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
     if traj.child not in ("base_link", "base", "body", "base_footprint"):
         print(f"note: {source} holds T_{traj.frame}_{traj.child}: its yaw is taken as the "
               "robot's (any frame mounted level on the robot turns alike)")
-    frames = seq.frames[::args.stride] if args.stride > 1 else seq.frames
+    strided = seq.frames[::args.stride] if args.stride > 1 else seq.frames
+    use = frames_to_use(len(strided), args.max_frames)
+    frames = [strided[k] for k in use]
+    linked = np.diff(use) == 1
     stamps = np.array([f.stamp for f in frames])
     check_inputs(stamps, traj, source, args.window)  # before the images: they take a while
     applied = applied_delay(seq)
     images = (f.image for f in track(frames, description="camera rotations",
                                      transient=True, disable=not sys.stderr.isatty()))
-    dyaw, inliers = camera_yaw_increments(images, seq.rig.camera, seq.rig.T_base_camera)
+    dyaw, inliers = camera_yaw_increments(images, seq.rig.camera, seq.rig.T_base_camera,
+                                          linked=linked)
     res = estimate_camera_delay(stamps, dyaw, traj, search_s=args.search,
                                 window_s=args.window)
     out.mkdir(parents=True, exist_ok=True)
@@ -487,6 +492,9 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--stride", type=positive_int, default=1,
                     help="use every n-th frame (default 1). Rotations are found between "
                          "frames close in time: at 10 Hz keep it at 1 or 2")
+    pt.add_argument("--max-frames", type=positive_int, default=3000,
+                    help="read at most this many frames, in runs of 100 spread along a "
+                         "longer recording (default 3000)")
     pt.add_argument("--out", default="time_offset", help="output folder")
     pt.set_defaults(func=cmd_time_offset)
     return p

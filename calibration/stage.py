@@ -77,7 +77,8 @@ class CalibrateConfig(StageConfig):
     check: bool = True
     check_frames: int = Field(6, ge=1)
     # With the check: the camera's stamp delay against the sequence's wheel odometry
-    # (python -m calibration time-offset; every frame is read, ~11 s for 644 at 640x480).
+    # (python -m calibration time-offset; up to 3000 frames are read, ~11 s for 644 at
+    # 640x480).
     time_offset: bool = True
     # mode check: the extrinsic to check (T_camera_laser, a rig, a tf mapping); None: the
     # upstream sequence's rig
@@ -418,6 +419,7 @@ class CalibrateStage(Stage):
             camera_yaw_increments,
             check_inputs,
             estimate_camera_delay,
+            frames_to_use,
             needs_correction,
             write_figure,
         )
@@ -427,14 +429,15 @@ class CalibrateStage(Stage):
         if traj is None:
             return [head + "not measured: the sequence has no wheel odometry (`python -m "
                     "calibration time-offset --trajectory` takes the slam2d trajectory)."]
-        frames = seq.frames
+        use = frames_to_use(len(seq.frames))  # runs of frames on a long recording
+        frames = [seq.frames[k] for k in use]
         stamps = np.array([f.stamp for f in frames])
         try:
             check_inputs(stamps, traj, "the wheel odometry")  # before reading every image
             dyaw, _ = camera_yaw_increments(
                 (f.image for f in ctx.progress(frames, total=len(frames),
                                                description="camera rotations")),
-                seq.rig.camera, seq.rig.T_base_camera)
+                seq.rig.camera, seq.rig.T_base_camera, linked=np.diff(use) == 1)
             res = estimate_camera_delay(stamps, dyaw, traj)
         except TimeOffsetError as e:
             return [head + f"not measured: {e}."]

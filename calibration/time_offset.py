@@ -155,14 +155,26 @@ def yaw_of_rotation(R: np.ndarray, up_cam: np.ndarray) -> float:
     return -float(rvec.ravel() @ up_cam)
 
 
+def frames_to_use(n: int, max_frames: int = 3000, block: int = 100) -> np.ndarray:
+    """Indices of the frames to read of ``n``: all of them, or on a longer recording
+    ``max_frames`` in runs of ``block`` consecutive frames spread along it (rotations are
+    read between neighbours; an hour at 10 Hz is 36,000 frames, ten minutes of reading)."""
+    if n <= max_frames:
+        return np.arange(n)
+    runs = max(max_frames // block, 1)
+    starts = np.linspace(0, n - block, runs).round().astype(int)
+    return np.unique((starts[:, None] + np.arange(block)).ravel())
+
+
 def camera_yaw_increments(images: Iterable[np.ndarray], camera: PinholeCamera,
                           T_base_camera: np.ndarray,
-                          progress: Callable[[int], None] | None = None) -> (
-                              tuple[np.ndarray, np.ndarray]):
+                          progress: Callable[[int], None] | None = None,
+                          linked: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The robot's yaw change between consecutive images, seen by the camera.
 
-    ``images``: RGB uint8 frames in time order. Returns ``dyaw`` [K-1] (radians, NaN where
-    no rotation was found) and ``inliers`` [K-1].
+    ``images``: RGB uint8 frames in time order; ``linked`` [K-1] bool: which neighbours to
+    measure (False: NaN without the work, e.g. between runs of ``frames_to_use``). Returns
+    ``dyaw`` [K-1] (radians, NaN where no rotation was found) and ``inliers`` [K-1].
     """
     up = up_in_camera(T_base_camera)
     dyaw: list[float] = []
@@ -173,7 +185,10 @@ def camera_yaw_increments(images: Iterable[np.ndarray], camera: PinholeCamera,
             raise TimeOffsetError(f"image {k} is {img.shape[1]}x{img.shape[0]}, the camera "
                                   f"{camera.width}x{camera.height}")
         gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-        if prev is not None:
+        if prev is not None and linked is not None and not linked[k - 1]:
+            dyaw.append(math.nan)
+            inl.append(0)
+        elif prev is not None:
             r = frame_rotation(prev, gray, camera)
             dyaw.append(math.nan if r.R is None else yaw_of_rotation(r.R, up))
             inl.append(r.inliers)

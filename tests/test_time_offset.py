@@ -197,3 +197,26 @@ def test_frames_too_far_apart_are_named_before_the_images_are_read() -> None:
     with pytest.raises(TimeOffsetError, match="another clock"):
         check_inputs(np.arange(1.0, 50.0, 0.1) + 500.0, traj, "odometry")
     check_inputs(np.arange(1.0, 50.0, 0.2), traj, "odometry")  # 5 Hz: fine
+
+
+def test_a_long_recording_is_read_in_runs_of_frames(delayed: Path, tmp_path: Path) -> None:
+    """An hour at 10 Hz is 36,000 frames to read: at most max_frames, in runs of 100
+    consecutive ones; no rotation is measured across the gaps between runs."""
+    from calibration.time_offset import camera_yaw_increments, frames_to_use
+
+    assert np.array_equal(frames_to_use(250, 300), np.arange(250))
+    use = frames_to_use(36_000)
+    assert len(use) == 3000 and use[0] == 0 and use[-1] == 35_999
+    assert int((np.diff(use) > 1).sum()) == 29  # 30 runs
+    seq = read_sequence(delayed)
+    pick = np.r_[0:3, 10:12]  # two runs
+    images = [seq.frames[k].image for k in pick]
+    dyaw, inliers = camera_yaw_increments(images, seq.rig.camera, seq.rig.T_base_camera,
+                                          linked=np.diff(pick) == 1)
+    assert np.isnan(dyaw[2]) and inliers[2] == 0  # the gap: not measured
+    assert np.isfinite(dyaw[[0, 1, 3]]).all()
+    out = tmp_path / "to"
+    assert calibration_main(["time-offset", "--sequence", str(delayed), "--max-frames", "200",
+                             "--out", str(out)]) in (0, 3)
+    found = json.loads((out / "time_offset.json").read_text())
+    assert found["frames"] == 200
