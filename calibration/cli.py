@@ -359,9 +359,11 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_figure(str(out / "time_offset.png"), res, stamps, dyaw, traj)
     found = int(np.isfinite(dyaw).sum())
+    measured = int(linked.sum())  # neighbours in one run of frames
     atomic_write_json(out / "time_offset.json", {
         **res.to_dict(), "sequence": str(args.sequence), "trajectory": source,
-        "frames": len(frames), "frame_pairs_with_rotation": found,
+        "frames": len(frames), "frame_pairs_measured": measured,
+        "frame_pairs_with_rotation": found,
         "median_inliers": float(np.median(inliers)) if len(inliers) else 0.0,
         "applied_at_conversion_s": applied,
         "meaning": "image stamp minus exposure time, left after the conversion's "
@@ -369,7 +371,7 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
                    "their sum"})
     ms = res.delay_s * 1000
     print(f"camera delay: {ms:+.1f} ms (+- {res.std_s * 1000:.1f} ms; {res.windows} windows "
-          f"of {res.frames_per_window} frames, rotations found in {found} of {len(dyaw)} "
+          f"of {res.frames_per_window} frames, rotations found in {found} of {measured} "
           f"frame pairs); yaw mismatch {res.residual_at_zero_deg:.3f} -> "
           f"{res.residual_deg:.3f} deg per window")
     print(f"wrote {out / 'time_offset.json'} and {out / 'time_offset.png'}")
