@@ -306,15 +306,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 def cmd_time_offset(args: argparse.Namespace) -> int:
     from rich.progress import track
 
-    from calibration.time_offset import (
-        advice,
-        applied_delay,
-        camera_yaw_increments,
-        check_inputs,
-        estimate_camera_delay,
-        frames_to_use,
-        write_figure,
-    )
+    from calibration.time_offset import advice, applied_delay, measure, write_figure
     from toolkit.io.atomic import atomic_write_json
     from toolkit.io.sequence import read_sequence
 
@@ -344,27 +336,19 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         print(f"note: {source} holds T_{traj.frame}_{traj.child}: its yaw is taken as the "
               "robot's (any frame mounted level on the robot turns alike)")
     strided = seq.frames[::args.stride] if args.stride > 1 else seq.frames
-    use = frames_to_use(len(strided), args.max_frames)
-    frames = [strided[k] for k in use]
-    linked = np.diff(use) == 1
-    stamps = np.array([f.stamp for f in frames])
-    check_inputs(stamps, traj, source, args.window)  # before the images: they take a while
-    applied = applied_delay(seq)
-    images = (f.image for f in track(frames, description="camera rotations",
-                                     transient=True, disable=not sys.stderr.isatty()))
-    dyaw, inliers = camera_yaw_increments(images, seq.rig.camera, seq.rig.T_base_camera,
-                                          linked=linked)
-    res = estimate_camera_delay(stamps, dyaw, traj, search_s=args.search,
-                                window_s=args.window)
+    m = measure(strided, seq.rig.camera, seq.rig.T_base_camera, traj, source,
+                lambda it, total: track(it, total=total, description="camera rotations",
+                                        transient=True, disable=not sys.stderr.isatty()),
+                args.max_frames, args.search, args.window)
+    res, applied = m.result, applied_delay(seq)
     out.mkdir(parents=True, exist_ok=True)
-    write_figure(str(out / "time_offset.png"), res, stamps, dyaw, traj)
-    found = int(np.isfinite(dyaw).sum())
-    measured = int(linked.sum())  # neighbours in one run of frames
+    write_figure(str(out / "time_offset.png"), res, m.stamps, m.dyaw, traj)
+    found, measured = int(np.isfinite(m.dyaw).sum()), m.pairs_measured
     atomic_write_json(out / "time_offset.json", {
         **res.to_dict(), "sequence": str(args.sequence), "trajectory": source,
-        "frames": len(frames), "frame_pairs_measured": measured,
+        "frames": len(m.stamps), "frame_pairs_measured": measured,
         "frame_pairs_with_rotation": found,
-        "median_inliers": float(np.median(inliers)) if len(inliers) else 0.0,
+        "median_inliers": float(np.median(m.inliers)) if len(m.inliers) else 0.0,
         "applied_at_conversion_s": applied,
         "meaning": "image stamp minus exposure time, left after the conversion's "
                    "sync.camera_delay_s (applied_at_conversion_s); the setting to use is "

@@ -416,10 +416,7 @@ class CalibrateStage(Stage):
             TimeOffsetError,
             advice,
             applied_delay,
-            camera_yaw_increments,
-            check_inputs,
-            estimate_camera_delay,
-            frames_to_use,
+            measure,
             needs_correction,
             write_figure,
         )
@@ -429,19 +426,14 @@ class CalibrateStage(Stage):
         if traj is None:
             return [head + "not measured: the sequence has no wheel odometry (`python -m "
                     "calibration time-offset --trajectory` takes the slam2d trajectory)."]
-        use = frames_to_use(len(seq.frames))  # runs of frames on a long recording
-        frames = [seq.frames[k] for k in use]
-        stamps = np.array([f.stamp for f in frames])
         try:
-            check_inputs(stamps, traj, "the wheel odometry")  # before reading every image
-            dyaw, _ = camera_yaw_increments(
-                (f.image for f in ctx.progress(frames, total=len(frames),
-                                               description="camera rotations")),
-                seq.rig.camera, seq.rig.T_base_camera, linked=np.diff(use) == 1)
-            res = estimate_camera_delay(stamps, dyaw, traj)
+            m = measure(seq.frames, seq.rig.camera, seq.rig.T_base_camera, traj,
+                        "the wheel odometry", lambda it, total: ctx.progress(
+                            it, total=total, description="camera rotations"))
         except TimeOffsetError as e:
             return [head + f"not measured: {e}."]
-        write_figure(str(out / "time_offset.png"), res, stamps, dyaw, traj)
+        res = m.result
+        write_figure(str(out / "time_offset.png"), res, m.stamps, m.dyaw, traj)
         applied = applied_delay(seq)
         metrics["camera_delay_s"] = res.delay_s
         metrics["camera_delay_std_s"] = res.std_s

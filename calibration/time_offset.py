@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -406,3 +407,36 @@ def write_figure(path: str, result: TimeOffsetResult, frame_stamps: np.ndarray,
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+
+
+@dataclass
+class Measurement:
+    """What ``measure`` read and found."""
+
+    result: TimeOffsetResult
+    stamps: np.ndarray  # [K] stamps of the frames read
+    dyaw: np.ndarray  # [K-1] their yaw changes (NaN: none found, or across a gap)
+    inliers: np.ndarray  # [K-1]
+    pairs_measured: int  # neighbours within one run of frames
+
+
+def measure(frames: Sequence[Any], camera: PinholeCamera, T_base_camera: np.ndarray,
+            trajectory: Trajectory, source: str,
+            progress: Callable[[Iterable[Any], int], Iterable[Any]] | None = None,
+            max_frames: int = 3000, search_s: float = 0.3,
+            window_s: float = 0.5) -> Measurement:
+    """The camera delay of a recording's ``frames`` (``CameraFrame``s, time order) against
+    ``trajectory`` (named ``source`` in errors): up to ``max_frames`` of them read
+    (``frames_to_use``), the inputs checked before any image is; ``progress(iterable,
+    total)`` wraps the image reading."""
+    use = frames_to_use(len(frames), max_frames)
+    chosen = [frames[k] for k in use]
+    linked = np.diff(use) == 1
+    stamps = np.array([f.stamp for f in chosen])
+    check_inputs(stamps, trajectory, source, window_s)  # before the images: they take a while
+    it: Iterable[Any] = chosen if progress is None else progress(chosen, len(chosen))
+    dyaw, inliers = camera_yaw_increments((f.image for f in it), camera, T_base_camera,
+                                          linked=linked)
+    res = estimate_camera_delay(stamps, dyaw, trajectory, search_s=search_s,
+                                window_s=window_s)
+    return Measurement(res, stamps, dyaw, inliers, int(linked.sum()))
