@@ -272,7 +272,7 @@ def test_fusion_bench_times_a_recipe_stage_as_it_runs(box_room: Path, tmp_path: 
         main(["--sequence", str(box_room), "--stage", "fuse_net", "--out", str(out)])
 
 
-@pytest.mark.parametrize("kill_in", ["frame_pairs", "integrate"])
+@pytest.mark.parametrize("kill_in", ["frame_pairs", "exposure_observations", "integrate"])
 def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch,
                                                 kill_in: str) -> None:
@@ -284,7 +284,8 @@ def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
     stages = [{"stage": "t_sequence", "path": str(box_room)},
               {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
               {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 5,
-               "refine": "floor_lidar", "consensus": True, "checkpoint_every_s": 1e-9}]
+               "refine": "floor_lidar", "consensus": True, "checkpoint_every_s": 1e-9,
+               "exposure": "gain"}]
     register = {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage}
     for d in ("full", "cut"):
         (tmp_path / d).mkdir()
@@ -319,14 +320,19 @@ def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
     if kill_in == "frame_pairs":
         k = m["frames_resumed_scales"]
         assert m["frames_resumed_map"] == 0
+    elif kill_in == "exposure_observations":
+        # The exposure pass (seconds) is not saved part-way: all of it again.
+        assert m["frames_resumed_scales"] > 0 and m["frames_resumed_map"] == 0
+        k = 0
     else:
         k = m["frames_resumed_map"]
         assert m["frames_resumed_scales"] == 20
-    assert 0 < k <= 12 and calls[1:] == list(range(k, 20))
+    assert (0 < k <= 12 or kill_in == "exposure_observations") and calls[1:] == list(
+        range(k, 20))
     assert not (tmp_path / "cut/run/fuse/checkpoint.pkl").exists() and not views.exists()
     a, b = tmp_path / "full/run/fuse", tmp_path / "cut/run/fuse"
     for name in ("map.ply", "scales.csv", "camera_poses.tum", "scaled_depth/index.csv",
-                 "scaled_depth/000015.png"):
+                 "scaled_depth/000015.png", "exposure_gains.csv"):
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
     timing = ("fps", "seconds", "work_", "resumed", "checkpoints")
     ref = {k: v for k, v in full.metrics["fuse"].items() if not any(t in k for t in timing)}

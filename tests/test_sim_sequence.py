@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from toolkit.geometry import inv_se3, se2_between
-from toolkit.io.sequence import read_sequence
+from toolkit.io.sequence import SequenceFormatError, read_sequence
 from toolkit.recipe.stage import StageContext
 from toolkit.sim.house import generate_house
 from toolkit.sim.robot import MotionLimits, OdometryNoise, plan_path, simulate_odometry
@@ -264,6 +264,7 @@ def test_auto_exposure_brings_frames_to_the_target_grey(tmp_path: Path) -> None:
     assert table[:, 1] == pytest.approx(seq.frame_stamps, abs=1e-6)
     gain = table[:, 2]
     assert gain[0] == 1.0 and gain[-1] > 1.1  # the house is darker than 150
+    assert seq.groundtruth.exposure_gain == pytest.approx(gain)
     means = [f.image.mean() for f in seq.frames]
     assert abs(means[-1] - 150.0) < 0.5 * abs(means[0] - 150.0)
     assert CameraSpec().next_gain(1.7, 20.0) == 1.0  # without auto exposure: gain 1
@@ -271,3 +272,12 @@ def test_auto_exposure_brings_frames_to_the_target_grey(tmp_path: Path) -> None:
 
     with pytest.raises(ValueError, match="exposure_gain_range"):
         CameraSettings(exposure_gain_range=(1.2, 2.0))
+    # A gains file that does not match the frames is refused by name.
+    path = tmp_path / "ae" / "groundtruth" / "exposure_gain.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[:-1]) + "\n")
+    with pytest.raises(SequenceFormatError, match="exposure_gain.csv: .* gains for"):
+        read_sequence(tmp_path / "ae")
+    path.write_text("\n".join(lines[:2] + ["5,1.0,1.0"] + lines[3:]) + "\n")
+    with pytest.raises(SequenceFormatError, match="frames 0, 1, 2"):
+        read_sequence(tmp_path / "ae")

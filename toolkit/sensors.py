@@ -216,6 +216,7 @@ class GroundTruth:
     scan_dynamic: np.ndarray | None = None  # [S, B] bool: beam hit a moving obstacle
     mesh_path: Path | None = None
     heldout: HeldOutViews | None = None
+    exposure_gain: np.ndarray | None = None  # [F] each frame's auto-exposure gain
 
     def depth(self, index: int) -> np.ndarray:
         """[H, W] float32 metres of frame ``index`` (0 where invalid)."""

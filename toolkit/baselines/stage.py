@@ -118,11 +118,26 @@ class TSDFConfig(StageConfig):
     # where it removes single-frame junk (on the simulated house F @ 5 cm 0.47 -> 0.55).
     min_observations: int | None = Field(None, ge=1)
     every: int = Field(1, ge=1)  # integrate every n-th frame
+    # fused: colours at the exposure gains an upstream fuse stage solved (its
+    # `exposure: gain`; without them the images as they are); none: the images as they are.
+    exposure: Literal["fused", "none"] = "fused"
     views: int = Field(3, ge=0)  # rendered comparison views in the report
     eval_spacing_m: float = Field(0.01, gt=0)  # sample spacing for the mesh comparison
     geometry: bool = True  # compare with the ground-truth mesh here (off: leave it to evaluate)
     # Save the volume this often (seconds; 0: never) so that a killed run resumes there.
     checkpoint_every_s: float = Field(300.0, ge=0)
+
+
+def _exposure_gains(ctx: StageContext) -> dict[int, np.ndarray]:
+    """Frame index -> exposure gain [3] the upstream fuse stage solved (none: empty)."""
+    from toolkit.fusion.exposure import EXPOSURE_FILE, read_exposure_gains
+
+    if not ctx.has_artifact("fused") or not (ctx.artifact("fused") / EXPOSURE_FILE).exists():
+        return {}
+    try:
+        return read_exposure_gains(ctx.artifact("fused") / EXPOSURE_FILE)
+    except ValueError as exc:
+        raise StageError(f"{ctx.stage_id}: {exc}") from exc
 
 
 def _scaled_depth_files(fused: Path) -> dict[int, Path]:
@@ -155,6 +170,7 @@ class TSDFStage(Stage):
 
         from toolkit.baselines.common import groundtruth_camera_trajectory, poses_at_frames
         from toolkit.baselines.tsdf import TSDFSettings, TSDFVolume, write_mesh
+        from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image
         from toolkit.io.depth import read_depth
 
         cfg: TSDFConfig = self.config  # type: ignore[assignment]
@@ -197,6 +213,10 @@ class TSDFStage(Stage):
             use_masks = False
         if use_masks:
             depth_note += ", pixels on moving people removed with ground-truth masks"
+        gains = _exposure_gains(ctx) if cfg.exposure == "fused" else {}
+        if gains:
+            depth_note += (", colours at the exposure gains the `fuse` stage solved "
+                           f"(`{EXPOSURE_FILE}`)")
         cam = seq.rig.camera
         ucam = cam.undistorted()
         settings = TSDFSettings(cfg.voxel_size_m, cfg.trunc_voxels, cfg.depth_max_m,
@@ -216,6 +236,8 @@ class TSDFStage(Stage):
                               description="tsdf"):
             i, T = indices[k], poses[k]
             rgb = seq.frames[i].image
+            if int(i) in gains:
+                rgb = corrected_image(rgb, gains[int(i)])
             depth = depth_of(int(i))
             if use_masks:
                 depth = np.where(gt.mask(int(i)), 0.0, depth).astype(np.float32)

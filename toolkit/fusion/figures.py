@@ -187,3 +187,22 @@ def scale_plot(path: Path, frames: np.ndarray, raw: np.ndarray, final: np.ndarra
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     fig.tight_layout()
     _save(fig, path)
+
+
+def exposure_plot(path: Path, frames: np.ndarray, gains: np.ndarray,
+                  truth: np.ndarray | None = None) -> None:
+    """Solved exposure gains [U, 3] per frame, with the true gain [U] when known (scaled
+    to the same geometric mean: the common factor is not observable)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(10.5, 3.2))
+    for ch, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
+        ax.plot(frames, gains[:, ch], "-", color=colour, lw=1.0, label=f"solved, {'rgb'[ch]}")
+    if truth is not None:
+        t = truth * np.exp(np.mean(np.log(gains)) - np.mean(np.log(truth)))
+        ax.plot(frames, t, "--", color="k", lw=1.0, label="true (simulator)")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("gain")
+    ax.set_title("exposure gain per frame (divided out of the map's colours)")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    fig.tight_layout()
+    _save(fig, path)

@@ -30,6 +30,7 @@ from toolkit.fusion.dynamic import (
     dynamic_beams,
     grow_dynamic,
 )
+from toolkit.fusion.exposure import ExposureOptions, cell_observations
 from toolkit.fusion.projection import (
     LidarPixels,
     LidarProjector,
@@ -149,6 +150,13 @@ class FusionConfig(BaseModel):
     grow_slack_frames: int = 2
     grow_iterations: int = 6
     grow_max_frames: int = 4
+    # Auto-exposure cameras (toolkit.fusion.exposure): "gain" solves every frame's gain
+    # per colour channel over the frames' overlaps before the map pass and divides it out
+    # of the colours the map takes (the tsdf stage reads the same gains); the geometry is
+    # unchanged.
+    exposure: Literal["none", "gain"] = "none"
+    exposure_cell_m: float = Field(0.10, gt=0)  # surface cells the frames are compared on
+    exposure_stride: int = Field(4, ge=1)  # pixels sampled for that, in both directions
 
     @model_validator(mode="after")
     def _depth_range(self) -> FusionConfig:
@@ -168,6 +176,9 @@ class FusionConfig(BaseModel):
                              gate_final=self.refine_gate_final, smooth=self.refine_smooth,
                              max_depth_m=self.max_depth_m,
                              column_top_m=self.refine_column_top_m)
+
+    def exposure_options(self) -> ExposureOptions:
+        return ExposureOptions(cell_m=self.exposure_cell_m, stride=self.exposure_stride)
 
     def carve_options(self) -> CarveOptions:
         return CarveOptions(self.depth_margin_m, self.depth_margin_rel, self.lidar_margin_m,
@@ -320,6 +331,7 @@ class Fusion:
             scan_usable=self.scan_covered if config.motion_compensation else None)
         self.rays = RayCache(self.camera, config.stride)
         self._full_rays: RayCache | None = None  # every pixel's ray (moving_pixels)
+        self._exposure_rays: RayCache | None = None  # exposure_observations' stride
         self.cloud_opts = config.cloud_options(self.camera.fx)
         # One beam spacing for the occlusion test of the pairs (scanners of one sequence
         # share it; the finest one is the strictest test)
@@ -479,6 +491,27 @@ class Fusion:
                                    pairs.lidar.pixel[v], pairs.lidar.z[v],
                                    pairs.lidar.points_cam[v] if self.cfg.refine_columns
                                    else None)
+
+    # ------------------------------------------------------------------ exposure
+    def exposure_observations(self, index: int, depth: np.ndarray, rgb: np.ndarray) -> tuple[
+            np.ndarray, np.ndarray]:
+        """Frame ``index``'s surface cells for the exposure solve (``toolkit.fusion.
+        exposure``): cell keys [M] and log mean colours [M, 3], from its scaled depth
+        [H, W] every ``exposure_stride`` pixels, without the moving obstacles the lidar
+        saw."""
+        opts = self.cfg.exposure_options()
+        if self._exposure_rays is None:
+            self._exposure_rays = RayCache(self.camera, opts.stride)
+        pts, col, _ = depth_to_points(depth, rgb, self._exposure_rays, self.T_world_camera(index),
+                                      dataclasses.replace(self.cloud_opts, stride=opts.stride,
+                                                          near_stride=0))
+        centres = self.dynamic_hits(index)
+        if len(centres):
+            moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
+                                   self.cfg.dynamic_height_m)
+            pts, col = pts[~moving], col[~moving]
+        keys, log_rgb, _ = cell_observations(pts, col, opts)
+        return keys, log_rgb
 
     # ------------------------------------------------------------------ map
     def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,

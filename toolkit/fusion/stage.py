@@ -28,6 +28,16 @@ from toolkit.deskew import deskew_sequence
 from toolkit.eval.depth import ErrorAccumulator, depth_errors, scale_error
 from toolkit.eval.map_accuracy import MeshDistance
 from toolkit.fusion.cloud import valid_pixels
+from toolkit.fusion.exposure import (
+    EXPOSURE_FILE,
+    ExposureObservations,
+    corrected_image,
+    gain_edges,
+    gain_error,
+    read_exposure_gains,
+    solve_gains,
+    write_exposure_gains,
+)
 from toolkit.fusion.pipeline import (
     FramePairs,
     Fusion,
@@ -108,6 +118,8 @@ class FuseProgress:
     t_core: float = 0.0  # wall seconds of the fusion's own work
     c_core: float = 0.0  # CPU seconds of the same: the machine may be shared
     fusion: dict[str, object] | None = None  # Fusion.state() when saved
+    gains: np.ndarray | None = None  # [U, 3] exposure gains of the used frames (exposure: gain)
+    exposure: dict[str, float] = field(default_factory=dict)  # the gain solve's figures
 
     def add_errors(self, fp: FramePairs, disparity: bool, scale_shift: tuple[float, float],
                    pred: DepthPrediction, scaled: np.ndarray, refined: np.ndarray | None,
@@ -410,6 +422,12 @@ class FuseStage(Stage):
                 f"in the image, {valid:g} pairs with a valid prediction (min_pairs "
                 f"{cfg.min_pairs}). Check T_base_laser / T_base_camera (does the lidar land in "
                 "the image?), the scan stamps, or use scale: none for a metric network")
+        used = [(j, i) for j, i in enumerate(frames) if sm.used[j]]
+        # ---------------------------------------------------------------- exposure
+        if cfg.exposure == "gain" and st.gains is None:
+            st.gains, st.exposure = self._solve_exposure(ctx, fusion, store, seq, used, sm,
+                                                         ahead)
+            save_checkpoint()  # the map pass must use these gains if it resumes
         # ---------------------------------------------------------------- pass 2: map
         out_depth = ctx.stage_dir / "scaled_depth"
         if cfg.write_depth != "none":
@@ -417,7 +435,7 @@ class FuseStage(Stage):
         fig_frame = cfg.figure_frame if cfg.figure_frame in frames else frames[len(frames) // 2]
         eval_frames = set(np.linspace(0, len(frames) - 1, min(cfg.mesh_eval_frames,
                                                               len(frames))).astype(int).tolist())
-        used = [(j, i) for j, i in enumerate(frames) if sm.used[j]]
+        gain_of = {} if st.gains is None else {i: st.gains[k] for k, (_, i) in enumerate(used)}
 
         def load_pass2(ji: tuple[int, int]) -> tuple[
                 DepthPrediction, np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -440,7 +458,8 @@ class FuseStage(Stage):
                 scaled, refinement = fusion.refine(i, alpha_scaled, fp)
                 # The map's pixel mask, also the lidar pairs' "on pixels the map uses".
                 valid = valid_pixels(scaled, fusion.cloud_opts)
-                fusion.integrate(i, scaled, rgb, labels=mask, valid=valid)
+                fusion.integrate(i, scaled, rgb if i not in gain_of else corrected_image(
+                    rgb, gain_of[i]), labels=mask, valid=valid)
                 st.t_core += time.perf_counter() - t0
                 st.c_core += time.process_time() - c0
                 st.refinements.append(refinement)
@@ -493,6 +512,9 @@ class FuseStage(Stage):
             write_tum(ctx.stage_dir / "camera_poses.tum", fused_poses,
                       "camera poses of the fused frames")
         self._write_scales(ctx.stage_dir / "scales.csv", seq, frames, estimates, sm, oracle)
+        if st.gains is not None:
+            write_exposure_gains(ctx.stage_dir / EXPOSURE_FILE,
+                                 [(i, seq.frames[i].stamp) for _, i in used], st.gains)
         ctx.provide("fused", ctx.stage_dir)
         # ---------------------------------------------------------------- metrics
         used = int(sm.used.sum())
@@ -528,6 +550,7 @@ class FuseStage(Stage):
         }
         metrics.update(_depth_metrics(cfg, st, fusion.refiner is not None, has_gt_depth,
                                       disparity, sm, oracle))
+        metrics.update(st.exposure)
         metrics.update(_map_metrics(cfg, seq, raw, masks, final, fused_poses, st.frame_clouds,
                                     has_masks, md))
         ctx.add_metrics(metrics)
@@ -536,6 +559,45 @@ class FuseStage(Stage):
                      raw, masks, final, traj)
         ckpt.remove()  # every output is written: a rerun has nothing to resume
         shutil.rmtree(views_dir, ignore_errors=True)
+
+    @staticmethod
+    def _solve_exposure(ctx: StageContext, fusion: Fusion, store: DepthStore, seq: Sequence,
+                        used: list[tuple[int, int]], sm: SmoothedScale, ahead: int) -> tuple[
+                            np.ndarray, dict[str, float]]:
+        """Every used frame's exposure gain [U, 3] (``toolkit.fusion.exposure``) and the
+        solve's figures, from a sparse pass over the frames' scaled depth."""
+        t0, obs = time.perf_counter(), ExposureObservations()
+
+        def load(ji: tuple[int, int]) -> tuple[DepthPrediction, np.ndarray]:
+            return store.read(ji[1]), seq.frames[ji[1]].image
+
+        for k, ((j, i), (pred, rgb)) in enumerate(ctx.progress(
+                prefetched(load, used, ahead), total=len(used), description="fuse: exposure")):
+            keys, log_rgb = fusion.exposure_observations(
+                i, pred.as_depth(float(sm.scale[j]), float(sm.shift[j])), rgb)
+            obs.add(k, keys, log_rgb)
+        opts = fusion.cfg.exposure_options()
+        edges = gain_edges(*obs.arrays(), opts)
+        sol = solve_gains(edges, len(used), opts)
+        figures = {"exposure_observations": float(len(obs)), "exposure_edges": float(sol.edges),
+                   "exposure_frames_linked": float(sol.frames_linked),
+                   "exposure_outlier_edges": float(sol.outlier_edges),
+                   "exposure_residual_log_rms": sol.residual_log_rms,
+                   "exposure_gain_min": float(sol.gains.min()),
+                   "exposure_gain_max": float(sol.gains.max()),
+                   "exposure_seconds": time.perf_counter() - t0}
+        gt = seq.groundtruth
+        if gt is not None and gt.exposure_gain is not None:
+            truth = gt.exposure_gain[[i for _, i in used]]
+            figures.update({f"exposure_{k}": v for k, v in gain_error(sol.gains, truth).items()})
+        if sol.frames_linked < len(used):
+            ctx.log.warning("fuse: exposure: %d of %d frames share no surface with another; "
+                            "their gains follow their neighbours'", len(used) - sol.frames_linked,
+                            len(used))
+        ctx.log.info("fuse: exposure gains %.3f-%.3f from %d frame pairs (residual %.1f %%)",
+                     figures["exposure_gain_min"], figures["exposure_gain_max"], sol.edges,
+                     100 * sol.residual_log_rms)
+        return sol.gains, figures
 
     @staticmethod
     def _write_scales(path: Path, seq: Sequence, frames: list[int], estimates: list,
@@ -669,6 +731,27 @@ class FuseStage(Stage):
                                sm.shift[sm.used] != 0) else  # type: ignore[attr-defined]
                            "used (own; flagged: neighbours')")
         md.append(f"![per-frame scale]({sid}/scales.png)")
+        if "exposure_edges" in m:
+            gains = read_exposure_gains(ctx.stage_dir / EXPOSURE_FILE)
+            fr = np.array(sorted(gains))
+            gt = seq.groundtruth
+            truth = gt.exposure_gain[fr] if gt is not None and gt.exposure_gain is not None \
+                else None
+            figures.exposure_plot(ctx.stage_dir / "exposure.png", fr,
+                                  np.stack([gains[i] for i in fr]), truth)
+            err = (f"; against the simulator's true gains (spread "
+                   f"{m['exposure_gain_true_spread_pct']:.1f} %) "
+                   f"{m['exposure_gain_error_rms_pct']:.2f} % RMS, "
+                   f"{m['exposure_gain_error_max_pct']:.2f} % at most"
+                   if "exposure_gain_error_rms_pct" in m else "")
+            md.append(f"Exposure (`exposure: gain`): each frame's gain, solved over "
+                      f"{m['exposure_edges']:.0f} pairs of frames that see the same surface "
+                      f"({m['exposure_frames_linked']:.0f}/{m['frames_fused']} frames in one), "
+                      f"{m['exposure_gain_min']:.3f}-{m['exposure_gain_max']:.3f}, divided out "
+                      f"of the map's colours; residual {100 * m['exposure_residual_log_rms']:.1f}"
+                      f" %{err} ({m['exposure_seconds']:.1f} s). Gains in "
+                      f"[{EXPOSURE_FILE}]({sid}/{EXPOSURE_FILE}).\n\n"
+                      f"![exposure gains]({sid}/exposure.png)")
         removed = raw.points[masks["dynamic"]]  # type: ignore[attr-defined]
         xy = traj.positions[:, :2]
         figures.map_views(ctx.stage_dir / "map_views.png", final.points,  # type: ignore

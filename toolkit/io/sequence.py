@@ -330,6 +330,10 @@ def read_sequence(root: Path | str) -> Sequence:
     odom = read_tum(root / "odometry.tum", "odom", "base_link") if (
         root / "odometry.tum").exists() else None
     gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans))
+    if gt is not None and gt.exposure_gain is not None and len(gt.exposure_gain) != len(frames):
+        raise SequenceFormatError(
+            f"{root / 'groundtruth' / 'exposure_gain.csv'}: {len(gt.exposure_gain)} gains for "
+            f"{len(frames)} frames; one row per frame of camera/frames.csv")
     seq = Sequence(rig=rig, frames=frames, scans=scans, odometry=odom, groundtruth=gt,
                    name=str(meta.get("name", root.name)), root=root, meta=meta)
     w, h = rig.camera.size
@@ -360,6 +364,22 @@ def read_sequence(root: Path | str) -> Sequence:
     return seq
 
 
+def _read_exposure_gains(path: Path) -> np.ndarray:
+    """[F] gains from ``index,stamp,gain`` rows, one per frame in frame order."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    try:
+        idx = np.array([int(r["index"]) for r in rows])
+        gains = np.array([float(r["gain"]) for r in rows])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SequenceFormatError(f"{path}: needs columns index,stamp,gain with an integer "
+                                  f"index and a number gain per row ({exc})") from exc
+    if not np.array_equal(idx, np.arange(len(idx))) or not (gains > 0).all():
+        raise SequenceFormatError(f"{path}: rows must be the frames 0, 1, 2, ... in order "
+                                  "with positive gains; rewrite it or remove it")
+    return gains
+
+
 def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | None,
                       n_scans: int) -> GroundTruth | None:
     gdir = root / "groundtruth"
@@ -379,6 +399,8 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
         gt.scan_dynamic = dyn
     if (gdir / "mesh.ply").exists():
         gt.mesh_path = gdir / "mesh.ply"
+    if (gdir / "exposure_gain.csv").exists():
+        gt.exposure_gain = _read_exposure_gains(gdir / "exposure_gain.csv")
     hdir = gdir / "heldout"
     if (hdir / "frames.csv").exists():
         rows = _read_frames_csv(hdir / "frames.csv")

@@ -1,0 +1,256 @@
+"""Per-frame exposure gains from the frames' overlaps, for auto-exposure cameras.
+
+Most robot cameras run auto exposure: a wall looks brighter in a frame taken facing a
+dark corridor than in one facing a window. Averaged into voxels, the map's colours then
+carry each room's exposure. A frame's gain cannot be read from the frame alone, nor
+from the map as it grows (measured on the simulated house: such sequential estimates
+drift, and against the finished map they are compressed, since the frames that see a
+voxel share one room's exposure). So the gains are solved jointly over the whole drive:
+
+- every frame's points are grouped into coarse surface cells (``cell_m``) and each
+  cell's mean colour is one observation ``log c = log albedo + log g_frame``;
+- two frames that see the same cell measure ``log g_a - log g_b``; the median over all
+  their common cells is one robust edge (moving people, parallax and texture differences
+  inside a cell are outliers to it);
+- a sparse weighted least squares over the edges (Huber-reweighted), with a weak pull
+  between consecutive frames so that every frame is tied to the others, gives each
+  frame's log gain up to one common offset per channel, fixed by a geometric mean of 1.
+
+Gains are per colour channel, so auto white balance is undone too. Pixel values are
+taken as proportional to the exposure: true for a linear sensor and, for a power-law
+gamma, with the gain raised to 1/gamma, which is still one factor per frame.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from toolkit.fusion.voxel_map import voxel_keys
+from toolkit.io.atomic import atomic_write_text
+
+
+@dataclass(frozen=True)
+class ExposureOptions:
+    """How the observations are taken and the gains solved."""
+
+    cell_m: float = 0.10  # surface cells the frames are compared on
+    stride: int = 4  # every n-th pixel in both directions
+    min_points: int = 4  # pixels a cell needs in a frame to be an observation
+    dark: int = 8  # channel values at or below it are not used (noise dominates)...
+    bright: int = 247  # ...nor at or above it (clipped)
+    # Each observation is compared with the same cell's observations this many
+    # observations later (in frame order): near frames and, through the longer offsets,
+    # the frames of a later visit.
+    offsets: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
+    min_common: int = 8  # cells two frames must share to make an edge
+    max_weight: float = 200.0  # an edge's weight is its cell count up to this
+    huber_log: float = 0.03  # Huber threshold on an edge's residual, in log gain
+    smooth_weight: float = 2.0  # pull between consecutive frames' log gains
+    iterations: int = 6
+
+    def __post_init__(self) -> None:
+        if self.cell_m <= 0 or self.stride < 1 or self.min_points < 1:
+            raise ValueError("exposure: cell_m must be > 0, stride and min_points >= 1")
+        if not 0 <= self.dark < self.bright <= 255:
+            raise ValueError(f"exposure: need 0 <= dark < bright <= 255, got {self.dark}, "
+                             f"{self.bright}")
+        if not self.offsets or min(self.offsets) < 1:
+            raise ValueError("exposure: offsets must be positive integers")
+
+
+def cell_observations(points: np.ndarray, colors: np.ndarray, opts: ExposureOptions) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray]:
+    """One frame's observations from its points [N, 3] and colours [N, 3] uint8: cell keys
+    [M] int64, log mean colours [M, 3] float32 and pixel counts [M], for the cells with at
+    least ``min_points`` usable pixels (no channel dark or clipped)."""
+    c = np.asarray(colors)
+    ok = (c > opts.dark).all(1) & (c < opts.bright).all(1)
+    if not ok.any():
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, np.int32)
+    uk, inv, cnt = np.unique(voxel_keys(np.asarray(points)[ok], opts.cell_m),
+                             return_inverse=True, return_counts=True)
+    cf = c[ok].astype(np.float64)
+    mean = np.stack([np.bincount(inv, cf[:, k], len(uk)) for k in range(3)], 1) / cnt[:, None]
+    keep = cnt >= opts.min_points
+    return uk[keep], np.log(mean[keep]).astype(np.float32), cnt[keep].astype(np.int32)
+
+
+@dataclass
+class ExposureObservations:
+    """The observations of every frame, in the order they were added (picklable, so a
+    checkpoint can hold them)."""
+
+    frame: list[np.ndarray] = field(default_factory=list)
+    key: list[np.ndarray] = field(default_factory=list)
+    log_rgb: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, frame: int, keys: np.ndarray, log_rgb: np.ndarray) -> None:
+        """Observations of frame ``frame`` (its position, 0..F-1, among the solved ones)."""
+        self.frame.append(np.full(len(keys), frame, np.int32))
+        self.key.append(np.asarray(keys, np.int64))
+        self.log_rgb.append(np.asarray(log_rgb, np.float32))
+
+    def __len__(self) -> int:
+        return sum(len(k) for k in self.key)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """frames [K] int32, cell keys [K] int64, log colours [K, 3] float32."""
+        if not self.key:
+            return np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+        return (np.concatenate(self.frame), np.concatenate(self.key),
+                np.concatenate(self.log_rgb))
+
+
+@dataclass
+class GainEdges:
+    """Frame pairs that share cells: ``log g_a - log g_b ~ diff``."""
+
+    a: np.ndarray  # [E] int
+    b: np.ndarray  # [E] int, > a
+    diff: np.ndarray  # [E, 3] median log colour difference over the common cells
+    common: np.ndarray  # [E] cells compared
+
+
+def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
+               opts: ExposureOptions) -> GainEdges:
+    """The frame pairs' median colour differences over their common cells."""
+    order = np.lexsort((frames, keys))
+    k, f, c = keys[order], frames[order], log_rgb[order]
+    parts_a, parts_b, parts_d = [], [], []
+    for off in opts.offsets:
+        if off >= len(k):
+            break
+        same = k[off:] == k[:-off]
+        parts_a.append(f[:-off][same])
+        parts_b.append(f[off:][same])
+        parts_d.append(c[:-off][same] - c[off:][same])
+    if not parts_a or not sum(len(p) for p in parts_a):
+        return GainEdges(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                         np.zeros((0, 3)), np.zeros(0, np.int64))
+    a = np.concatenate(parts_a).astype(np.int64)
+    b = np.concatenate(parts_b).astype(np.int64)
+    d = np.concatenate(parts_d)  # [P, 3]
+    n_frames = int(max(a.max(), b.max())) + 1
+    pid = a * n_frames + b  # a < b: observations are in frame order within a cell
+    upid, inv, cnt = np.unique(pid, return_inverse=True, return_counts=True)
+    start = np.r_[0, np.cumsum(cnt)[:-1]]
+    # The median of each pair's differences: sort by (pair, value) and take the middle.
+    lo, hi = start + (cnt - 1) // 2, start + cnt // 2
+    med = np.empty((len(upid), 3))
+    for ch in range(3):
+        srt = d[np.lexsort((d[:, ch], inv)), ch]
+        med[:, ch] = 0.5 * (srt[lo] + srt[hi])
+    keep = cnt >= opts.min_common
+    return GainEdges(upid[keep] // n_frames, upid[keep] % n_frames, med[keep], cnt[keep])
+
+
+@dataclass
+class GainSolution:
+    """Each frame's gain (observed = gain x exposure-free colour), per channel."""
+
+    gains: np.ndarray  # [F, 3], geometric mean 1 per channel
+    edges: int  # frame pairs used
+    frames_linked: int  # frames in at least one edge (the rest follow their neighbours)
+    residual_log_rms: float  # weighted RMS of the edges' residuals (log gain)
+    outlier_edges: int  # edges down-weighted by the Huber loss at the end
+
+
+def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainSolution:
+    """Log gains by sparse weighted least squares over the edges (Huber-reweighted) and a
+    weak pull between consecutive frames; ``n_frames`` gains."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import splu
+
+    if n_frames < 1:
+        raise ValueError("solve_gains: no frames")
+    a, b = edges.a, edges.b
+    base_w = np.minimum(edges.common, opts.max_weight).astype(np.float64)
+    w = base_w.copy()
+    # Consecutive frames: difference 0 with a weak weight (the exposure moves smoothly;
+    # this ties a frame without overlaps to its neighbours and fixes nothing else).
+    sa = np.arange(n_frames - 1)
+    ia = np.concatenate([a, sa])
+    ib = np.concatenate([b, sa + 1])
+    x = np.zeros((n_frames, 3))
+    resid = np.zeros(len(a))
+    for _ in range(max(1, opts.iterations)):
+        ww = np.concatenate([w, np.full(len(sa), opts.smooth_weight)])
+        dd = np.concatenate([edges.diff, np.zeros((len(sa), 3))])
+        rows = np.concatenate([ia, ib, ia, ib])
+        cols = np.concatenate([ia, ib, ib, ia])
+        vals = np.concatenate([ww, ww, -ww, -ww])
+        # A tiny ridge fixes the common offset (removed below); the graph's own weights
+        # are orders larger.
+        ridge = 1e-9 * max(float(ww.sum()), 1.0)
+        N = coo_matrix((np.r_[vals, np.full(n_frames, ridge)],
+                        (np.r_[rows, np.arange(n_frames)], np.r_[cols, np.arange(n_frames)])),
+                       shape=(n_frames, n_frames)).tocsc()
+        rhs = np.zeros((n_frames, 3))
+        for ch in range(3):
+            rhs[:, ch] = (np.bincount(ia, ww * dd[:, ch], n_frames)
+                          - np.bincount(ib, ww * dd[:, ch], n_frames))
+        x = splu(N, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                 options={"SymmetricMode": True}).solve(rhs)
+        resid = np.abs((x[a] - x[b] - edges.diff).mean(1))  # [E] on the grey level
+        w = base_w * np.minimum(1.0, opts.huber_log / np.maximum(resid, 1e-12))
+    x -= x.mean(0)
+    linked = np.zeros(n_frames, bool)
+    linked[a] = True
+    linked[b] = True
+    rms = float(np.sqrt(np.sum(base_w * resid**2) / base_w.sum())) if len(a) else 0.0
+    return GainSolution(np.exp(x), int(len(a)), int(linked.sum()), rms,
+                        int((resid > opts.huber_log).sum()))
+
+
+def gain_error(solved: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """Solved gains [F, 3] (or [F]) against true gains [F] (one per frame, all channels),
+    up to the common factor neither can know: RMS and max of the log ratio after removing
+    its mean, as percent, and the spread of the true gains for scale."""
+    s = np.log(np.asarray(solved, np.float64))
+    if s.ndim == 2:
+        s = s.mean(1)
+    t = np.log(np.asarray(truth, np.float64))
+    e = (s - t) - np.mean(s - t)
+    return {"gain_error_rms_pct": float(100 * np.sqrt(np.mean(e**2))),
+            "gain_error_max_pct": float(100 * np.max(np.abs(e))),
+            "gain_true_spread_pct": float(100 * np.std(t))}
+
+
+def corrected_image(rgb: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """The image [H, W, 3] uint8 at gain 1: each channel divided by the frame's gain [3]."""
+    g = np.asarray(gain, np.float32).reshape(3)
+    out = rgb.astype(np.float32) * (1.0 / g)
+    out += 0.5
+    np.clip(out, 0, 255, out=out)
+    return out.astype(np.uint8)
+
+
+EXPOSURE_FILE = "exposure_gains.csv"
+
+
+def write_exposure_gains(path: Path, frames: list[tuple[int, float]], gains: np.ndarray) -> None:
+    """``index,stamp,gain_r,gain_g,gain_b`` for the frames (index, stamp) and gains [U, 3]."""
+    atomic_write_text(path, "index,stamp,gain_r,gain_g,gain_b\n" + "".join(
+        f"{i},{float(t)!r},{g[0]:.6f},{g[1]:.6f},{g[2]:.6f}\n"
+        for (i, t), g in zip(frames, gains, strict=True)))
+
+
+def read_exposure_gains(path: Path) -> dict[int, np.ndarray]:
+    """Frame index -> gain [3] from a file ``write_exposure_gains`` wrote."""
+    out: dict[int, np.ndarray] = {}
+    with open(path, newline="") as fh:
+        for n, row in enumerate(csv.DictReader(fh), start=2):
+            try:
+                g = np.array([float(row[f"gain_{c}"]) for c in "rgb"])
+                out[int(row["index"])] = g
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ValueError(f"{path} line {n}: needs index,stamp,gain_r,gain_g,gain_b "
+                                 f"({exc}); rerun the fuse stage to rewrite it") from exc
+            if not (g > 0).all():
+                raise ValueError(f"{path} line {n}: gains must be positive; rerun the fuse "
+                                 "stage to rewrite it")
+    return out
