@@ -510,7 +510,7 @@ class Fusion:
             moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
                                    self.cfg.dynamic_height_m)
             pts, col = pts[~moving], col[~moving]
-        keys, log_rgb, _ = cell_observations(pts, col, opts)
+        keys, log_rgb, _ = cell_observations(pts, col, self.T_world_camera(index)[:3, 3], opts)
         return keys, log_rgb
 
     # ------------------------------------------------------------------ map
