@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from toolkit.recipe import registry
@@ -17,6 +18,7 @@ from toolkit.recipe.stage import Stage, StageConfig
 class SplatInputsConfig(StageConfig):
     frames: int = 12
     depth_folder: str = "scaled_depth"
+    exposure_gain: float | None = None  # write this gain for every frame as fuse's would
 
 
 class SplatInputs(Stage):
@@ -34,6 +36,12 @@ class SplatInputs(Stage):
                                             height=36, n_gaussians=2500,
                                             depth_folder=cfg.depth_folder)
         ctx.provide("sequence", seq)
+        if cfg.exposure_gain is not None:
+            from toolkit.fusion.exposure import EXPOSURE_FILE, write_exposure_gains
+
+            write_exposure_gains(fused / EXPOSURE_FILE,
+                                 [(i, float(i)) for i in range(cfg.frames)],
+                                 np.full((cfg.frames, 3), cfg.exposure_gain))
         if "fused" in self.provides:
             ctx.provide("fused", fused)
 

@@ -19,6 +19,7 @@ from toolkit.fusion.exposure import (
     gain_error,
     read_exposure_gains,
     solve_gains,
+    spread_gains,
     write_exposure_gains,
 )
 
@@ -75,6 +76,33 @@ def test_a_frame_seeing_nothing_shared_follows_its_neighbours() -> None:
     assert sol.frames_linked == len(true) - 1
     g = np.log(sol.gains.mean(1))
     assert g[30] == pytest.approx(0.5 * (g[29] + g[31]), abs=0.005)
+
+
+def test_a_long_drive_keeps_fewer_cells_then_fewer_frames() -> None:
+    opts = ExposureOptions(max_observations=100_000, min_cells=200)
+    assert opts.plan(40) == (1, None)  # 2500 cells a frame: all of them
+    assert opts.plan(250) == (1, 400)
+    assert opts.plan(2000) == (4, 200)  # 500 frames solved, 200 cells each
+    with pytest.raises(ValueError, match="min_cells"):
+        ExposureOptions(min_cells=10)
+    # Frames between the solved ones get log-linear gains; the first and last are solved.
+    at = np.array([0, 4, 8, 9])
+    solved = np.exp(np.array([[0.0] * 3, [0.4] * 3, [0.0] * 3, [0.1] * 3]))
+    g = spread_gains(solved, at, 10)
+    assert np.log(g[:, 0]) == pytest.approx([0, .1, .2, .3, .4, .3, .2, .1, 0, .1])
+
+
+def test_a_cell_budget_keeps_the_same_cells_in_overlapping_frames() -> None:
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(0, 3, (40_000, 3))
+    col = np.full((len(pts), 3), 100, np.uint8)
+    opts = ExposureOptions(min_points=1)
+    a, _, _ = cell_observations(pts[:30_000], col[:30_000], np.array([1.5, -5, 1]), opts, 300)
+    b, _, _ = cell_observations(pts[10_000:], col[10_000:], np.array([1.5, -5, 1]), opts, 300)
+    assert len(a) == len(b) == 300
+    # Of the ~18 000 cells each frame has, the 300 lowest hashes mostly agree (300 picked
+    # at random would share about 5).
+    assert len(np.intersect1d(a, b)) > 200
 
 
 def test_edges_hold_the_median_difference_of_the_common_cells() -> None:
@@ -151,7 +179,8 @@ def test_fuse_solves_a_simulated_auto_exposure_and_tsdf_uses_it(tmp_path: Path) 
     res = run_stages(tmp_path, [
         {"stage": "t_sequence", "path": str(root)},
         {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
-        {"stage": "fuse", "id": "fuse_plain", "mesh_eval_frames": 0, "stride": 1},
+        {"stage": "fuse", "id": "fuse_plain", "mesh_eval_frames": 0, "stride": 1,
+         "exposure": "none"},
         fuse,  # last: the tsdf stage takes the latest fused artifact
         {"stage": "tsdf", "views": 0, "geometry": False},
     ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage,
@@ -178,7 +207,7 @@ def test_fuse_solves_a_simulated_auto_exposure_and_tsdf_uses_it(tmp_path: Path) 
     ref = run_stages(tmp_path / "ref", [
         {"stage": "t_sequence", "path": str(ref_root)},
         {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
-        {"stage": "fuse", "mesh_eval_frames": 0, "stride": 1},
+        {"stage": "fuse", "mesh_eval_frames": 0, "stride": 1, "exposure": "none"},
     ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
     assert ref.ok, ref.error
     from toolkit.fusion.voxel_map import read_map_ply, voxel_keys

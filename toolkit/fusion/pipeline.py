@@ -153,8 +153,10 @@ class FusionConfig(BaseModel):
     # Auto-exposure cameras (toolkit.fusion.exposure): "gain" solves every frame's gain
     # per colour channel over the frames' overlaps before the map pass and divides it out
     # of the colours the map takes (the tsdf stage reads the same gains); the geometry is
-    # unchanged.
-    exposure: Literal["none", "gain"] = "none"
+    # unchanged. On by default: most robot cameras run auto exposure, and at a fixed
+    # exposure the gains come out within 0.4 % of 1 (the quickstart), for 5 s per 650
+    # frames.
+    exposure: Literal["none", "gain"] = "gain"
     exposure_cell_m: float = Field(0.10, gt=0)  # surface cells the frames are compared on
     exposure_stride: int = Field(4, ge=1)  # pixels sampled for that, in both directions
 
@@ -493,12 +495,12 @@ class Fusion:
                                    else None)
 
     # ------------------------------------------------------------------ exposure
-    def exposure_observations(self, index: int, depth: np.ndarray, rgb: np.ndarray) -> tuple[
-            np.ndarray, np.ndarray]:
+    def exposure_observations(self, index: int, depth: np.ndarray, rgb: np.ndarray,
+                              max_cells: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``index``'s surface cells for the exposure solve (``toolkit.fusion.
         exposure``): cell keys [M] and log mean colours [M, 3], from its scaled depth
         [H, W] every ``exposure_stride`` pixels, without the moving obstacles the lidar
-        saw."""
+        saw; at most ``max_cells`` (``ExposureOptions.cells_per_frame``)."""
         opts = self.cfg.exposure_options()
         if self._exposure_rays is None:
             self._exposure_rays = RayCache(self.camera, opts.stride)
@@ -510,7 +512,8 @@ class Fusion:
             moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
                                    self.cfg.dynamic_height_m)
             pts, col = pts[~moving], col[~moving]
-        keys, log_rgb, _ = cell_observations(pts, col, self.T_world_camera(index)[:3, 3], opts)
+        keys, log_rgb, _ = cell_observations(pts, col, self.T_world_camera(index)[:3, 3], opts,
+                                             max_cells)
         return keys, log_rgb
 
     # ------------------------------------------------------------------ map

@@ -36,6 +36,7 @@ from toolkit.fusion.exposure import (
     gain_error,
     read_exposure_gains,
     solve_gains,
+    spread_gains,
     write_exposure_gains,
 )
 from toolkit.fusion.pipeline import (
@@ -294,8 +295,9 @@ class FuseStage(Stage):
     optional_requires = ("trajectory", "rig")
     provides = ("fused",)
     # 2: floor below base_link; scans off the trajectory unused; smoothing. 3: frames
-    # backed by their own pairs keep their scale; moving pixels out of the written depth
-    version = 3
+    # backed by their own pairs keep their scale; moving pixels out of the written depth.
+    # 4: the camera's exposure divided out of the map's colours (exposure: gain)
+    version = 4
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
@@ -571,33 +573,41 @@ class FuseStage(Stage):
         def load(ji: tuple[int, int]) -> tuple[DepthPrediction, np.ndarray]:
             return store.read(ji[1]), seq.frames[ji[1]].image
 
-        for k, ((j, i), (pred, rgb)) in enumerate(ctx.progress(
-                prefetched(load, used, ahead), total=len(used), description="fuse: exposure")):
-            keys, log_rgb = fusion.exposure_observations(
-                i, pred.as_depth(float(sm.scale[j]), float(sm.shift[j])), rgb)
-            obs.add(k, keys, log_rgb)
         opts = fusion.cfg.exposure_options()
+        step, max_cells = opts.plan(len(used))
+        # A long drive is solved on every step-th frame (and the last); the others get
+        # their neighbours' gains, interpolated.
+        at = np.unique(np.r_[np.arange(0, len(used), step), len(used) - 1])
+        solved = [used[k] for k in at]
+        for k, ((j, i), (pred, rgb)) in enumerate(ctx.progress(
+                prefetched(load, solved, ahead), total=len(solved),
+                description="fuse: exposure")):
+            keys, log_rgb = fusion.exposure_observations(
+                i, pred.as_depth(float(sm.scale[j]), float(sm.shift[j])), rgb, max_cells)
+            obs.add(k, keys, log_rgb)
         edges = gain_edges(*obs.arrays(), opts)
-        sol = solve_gains(edges, len(used), opts)
+        sol = solve_gains(edges, len(solved), opts)
+        gains = spread_gains(sol.gains, at, len(used))
         figures = {"exposure_observations": float(len(obs)), "exposure_edges": float(sol.edges),
+                   "exposure_frame_step": float(step), "exposure_frames_solved": float(len(at)),
                    "exposure_frames_linked": float(sol.frames_linked),
                    "exposure_outlier_edges": float(sol.outlier_edges),
                    "exposure_residual_log_rms": sol.residual_log_rms,
-                   "exposure_gain_min": float(sol.gains.min()),
-                   "exposure_gain_max": float(sol.gains.max()),
+                   "exposure_gain_min": float(gains.min()),
+                   "exposure_gain_max": float(gains.max()),
                    "exposure_seconds": time.perf_counter() - t0}
         gt = seq.groundtruth
         if gt is not None and gt.exposure_gain is not None:
             truth = gt.exposure_gain[[i for _, i in used]]
-            figures.update({f"exposure_{k}": v for k, v in gain_error(sol.gains, truth).items()})
-        if sol.frames_linked < len(used):
+            figures.update({f"exposure_{k}": v for k, v in gain_error(gains, truth).items()})
+        if sol.frames_linked < len(solved):
             ctx.log.warning("fuse: exposure: %d of %d frames share no surface with another; "
-                            "their gains follow their neighbours'", len(used) - sol.frames_linked,
-                            len(used))
+                            "their gains follow their neighbours'",
+                            len(solved) - sol.frames_linked, len(solved))
         ctx.log.info("fuse: exposure gains %.3f-%.3f from %d frame pairs (residual %.1f %%)",
                      figures["exposure_gain_min"], figures["exposure_gain_max"], sol.edges,
                      100 * sol.residual_log_rms)
-        return sol.gains, figures
+        return gains, figures
 
     @staticmethod
     def _write_scales(path: Path, seq: Sequence, frames: list[int], estimates: list,
@@ -746,7 +756,10 @@ class FuseStage(Stage):
                    if "exposure_gain_error_rms_pct" in m else "")
             md.append(f"Exposure (`exposure: gain`): each frame's gain, solved over "
                       f"{m['exposure_edges']:.0f} pairs of frames that see the same surface "
-                      f"({m['exposure_frames_linked']:.0f}/{m['frames_fused']} frames in one), "
+                      f"({m['exposure_frames_linked']:.0f}/{m['exposure_frames_solved']:.0f} "
+                      "frames in one" + (f"; every {m['exposure_frame_step']:.0f}th frame "
+                                         "solved, the others interpolated"
+                                         if m["exposure_frame_step"] > 1 else "") + "), "
                       f"{m['exposure_gain_min']:.3f}-{m['exposure_gain_max']:.3f}, divided out "
                       f"of the map's colours; residual {100 * m['exposure_residual_log_rms']:.1f}"
                       f" %{err} ({m['exposure_seconds']:.1f} s). Gains in "

@@ -46,6 +46,7 @@ import torch
 from pydantic import Field, model_validator
 
 from toolkit.camera import PinholeCamera
+from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image, read_exposure_gains
 from toolkit.geometry import Trajectory, inv_se3, rigid_alignment
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
@@ -345,7 +346,9 @@ class SplatStage(Stage):
     # Reading views on demand or up front gives the same model.
     speed_settings = frozenset({"view_cache_mb"})
     provides = ("splats",)
-    version = 2  # 2: off-path views masked like the path's; SSIM over valid windows
+    # 2: off-path views masked like the path's; SSIM over valid windows. 3: images at the
+    # fuse stage's exposure gains (exposure: auto)
+    version = 3
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]
@@ -404,9 +407,14 @@ class SplatStage(Stage):
                          "(lens corners); neither fitted nor scored",
                          100.0 * (1 - float(valid.float().mean())))
 
+        gains = self._exposure_gains(cfg, fused)
+
         def load_view(k: int) -> TrainView:
             fi = int(index[k])
-            img = prepare_image(seq.frames[fi].image, cam_full, (w, h))
+            img = seq.frames[fi].image
+            if fi in gains:
+                img = corrected_image(img, gains[fi])
+            img = prepare_image(img, cam_full, (w, h))
             dpath = depth_file(depth_dir, fi)
             depth = None
             if dpath is not None:
@@ -494,6 +502,9 @@ class SplatStage(Stage):
             "backend": backend,
             "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
             "train_views": len(train_views),
+            # Images divided by the fuse stage's exposure gains (exposure: fused, or auto
+            # with the gains there).
+            "exposure_gains_from_fuse": bool(gains),
             "image_width": w,
             "image_height": h,
             "threads": torch.get_num_threads(),
@@ -607,6 +618,26 @@ class SplatStage(Stage):
         ctx.provide("splats", ctx.stage_dir / "splats.ply")
 
     @staticmethod
+    def _exposure_gains(cfg: SplatConfig, fused: Path | None) -> dict[int, np.ndarray]:
+        """Frame index -> gain [3] for ``exposure: fused``, or ``auto`` when the fuse stage
+        wrote its gains (else empty)."""
+        if cfg.exposure not in ("fused", "auto"):
+            return {}
+        path = None if fused is None else fused / EXPOSURE_FILE
+        if path is None or not path.exists():
+            if cfg.exposure == "auto":
+                return {}
+            raise StageError("splat: exposure: fused needs the exposure gains of a fuse stage "
+                             f"upstream ({EXPOSURE_FILE}), and "
+                             + ("there is no fuse stage" if fused is None else
+                                f"{fused} has none") + ": set `exposure: gain` on the fuse "
+                             "stage, or `exposure: gain` / `none` here")
+        try:
+            return read_exposure_gains(path)
+        except ValueError as exc:
+            raise StageError(f"splat: {exc}") from exc
+
+    @staticmethod
     def _sim_heldout(seq: Sequence, cam_full: PinholeCamera, cam: PinholeCamera,
                      size: tuple[int, int], T_traj_gt: np.ndarray,
                      valid: torch.Tensor | None) -> (
@@ -681,8 +712,11 @@ class SplatStage(Stage):
             lines.append("\nExposure matched: each held-out render scaled per colour channel "
                          "by the gain that fits it to its image best (a camera's exposure is "
                          "not known for a view the splats never saw)"
-                         + (f"; training fitted that gain to every image too (`exposure: "
-                            f"{cfg.exposure}`)." if cfg.exposure != "none" else "."))
+                         + ("; training fitted that gain to every image too (`exposure: "
+                            "gain`)." if cfg.exposure == "gain" else
+                            "; training and the path's held-out images were divided by the "
+                            f"exposure gains the fuse stage solved (`exposure: {cfg.exposure}`)."
+                            if m.get("exposure_gains_from_fuse") else "."))
             if tsdf:
                 lines.append(
                     "\nTSDF mesh: the upstream `tsdf` stage's mesh (vertex colours) ray-cast at "

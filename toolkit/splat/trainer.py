@@ -82,8 +82,11 @@ class TrainConfig(BaseModel):
     # ``exposure_reg``; no gradient through it), so images of one surface taken at other
     # exposures (a camera's auto exposure) do not pull its colour apart, while the map's
     # overall brightness stays the initial cloud's. Each view is seen a few times in a
-    # short CPU training: a gain fitted at every step, not one learnt per view.
-    exposure: Literal["none", "gain"] = "none"
+    # short CPU training: a gain fitted at every step, not one learnt per view. "fused"
+    # (the splat stage): the images are divided by the gains the fuse stage solved over
+    # the whole drive (its `exposure: gain`) before training; the renders stay as they
+    # are. "auto": fused when the fuse stage wrote gains, else none.
+    exposure: Literal["none", "gain", "fused", "auto"] = "auto"
     exposure_reg: float = Field(0.01, ge=0)
 
 
