@@ -19,6 +19,7 @@ class SplatInputsConfig(StageConfig):
     frames: int = 12
     depth_folder: str = "scaled_depth"
     exposure_gain: float | None = None  # write this gain for every frame as fuse's would
+    exposure_gain_frames: int | None = None  # ... for the first this many frames only
 
 
 class SplatInputs(Stage):
@@ -39,9 +40,9 @@ class SplatInputs(Stage):
         if cfg.exposure_gain is not None:
             from toolkit.fusion.exposure import EXPOSURE_FILE, write_exposure_gains
 
-            write_exposure_gains(fused / EXPOSURE_FILE,
-                                 [(i, float(i)) for i in range(cfg.frames)],
-                                 np.full((cfg.frames, 3), cfg.exposure_gain))
+            n = cfg.frames if cfg.exposure_gain_frames is None else cfg.exposure_gain_frames
+            write_exposure_gains(fused / EXPOSURE_FILE, [(i, float(i)) for i in range(n)],
+                                 np.full((n, 3), cfg.exposure_gain))
         if "fused" in self.provides:
             ctx.provide("fused", fused)
 

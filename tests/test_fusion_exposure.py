@@ -12,6 +12,7 @@ from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on 
 from toolkit.fusion.exposure import (
     ExposureObservations,
     ExposureOptions,
+    GainEdges,
     cell_keys,
     cell_observations,
     corrected_image,
@@ -66,6 +67,27 @@ def test_known_gains_are_recovered_with_outliers() -> None:
     assert np.ptp(np.log(sol.gains), axis=1).max() < 0.02
 
 
+def test_a_slow_drift_over_a_long_drive_is_kept() -> None:
+    # 5000 frames, each sharing surfaces with the next 8 only, the exposure drifting
+    # slowly by +-30 % (a ridge on every frame had flattened it to two thirds).
+    n = 5000
+    true = np.linspace(-0.3, 0.3, n)
+    a = np.concatenate([np.arange(n - k) for k in (1, 2, 4, 8)])
+    b = np.concatenate([np.arange(k, n) for k in (1, 2, 4, 8)])
+    edges = GainEdges(a, b, np.repeat((true[a] - true[b])[:, None], 3, 1),
+                      np.full(len(a), 200))
+    sol = solve_gains(edges, n, ExposureOptions())
+    assert gain_error(sol.gains, np.exp(true))["gain_error_rms_pct"] < 0.01
+    assert sol.groups == 1
+
+
+def test_groups_that_share_no_surface_are_counted() -> None:
+    # Frames 0-4 and 5-9 each overlap among themselves, never across.
+    a, b = np.array([0, 1, 2, 3, 5, 6, 7, 8]), np.array([1, 2, 3, 4, 6, 7, 8, 9])
+    sol = solve_gains(GainEdges(a, b, np.zeros((8, 3)), np.full(8, 50)), 10, ExposureOptions())
+    assert sol.frames_linked == 10 and sol.groups == 2
+
+
 def test_a_frame_seeing_nothing_shared_follows_its_neighbours() -> None:
     true = np.exp(np.linspace(-0.1, 0.1, 60))
     obs = _corridor_drive(true, 0.0)
@@ -80,7 +102,7 @@ def test_a_frame_seeing_nothing_shared_follows_its_neighbours() -> None:
 
 def test_a_long_drive_keeps_fewer_cells_then_fewer_frames() -> None:
     opts = ExposureOptions(max_observations=100_000, min_cells=200)
-    assert opts.plan(40) == (1, None)  # 2500 cells a frame: all of them
+    assert opts.plan(40) == (1, 2500)
     assert opts.plan(250) == (1, 400)
     assert opts.plan(2000) == (4, 200)  # 500 frames solved, 200 cells each
     with pytest.raises(ValueError, match="min_cells"):
@@ -158,6 +180,9 @@ def test_gains_file_round_trip_and_bad_rows(tmp_path: Path) -> None:
     p.write_text("index,stamp,gain_r,gain_g,gain_b\n3,10.0,1.0,-1.0,1.0\n")
     with pytest.raises(ValueError, match="line 2: gains must be positive"):
         read_exposure_gains(p)
+    p.write_text("index,stamp,gain_r,gain_g,gain_b\n3,10.0,inf,1.0,1.0\n")
+    with pytest.raises(ValueError, match="positive and finite"):
+        read_exposure_gains(p)
     p.write_text("index,stamp,gain\n3,10.0,1.0\n")
     with pytest.raises(ValueError, match="gain_r"):
         read_exposure_gains(p)
@@ -175,7 +200,7 @@ def test_fuse_solves_a_simulated_auto_exposure_and_tsdf_uses_it(tmp_path: Path) 
     root = sim.simulate(sim.SimConfig(seed=0, n_people=0, duration_s=8.0, n_heldout=0,
                                       camera=cam), tmp_path / "sim").root
     fuse = {"stage": "fuse", "exposure": "gain", "mesh_eval_frames": 0, "stride": 1,
-            "exposure_stride": 1}
+            "exposure_stride": 1, "checkpoint_every_s": 0}
     res = run_stages(tmp_path, [
         {"stage": "t_sequence", "path": str(root)},
         {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
@@ -193,8 +218,10 @@ def test_fuse_solves_a_simulated_auto_exposure_and_tsdf_uses_it(tmp_path: Path) 
     assert m["exposure_frames_linked"] == m["frames_fused"]
     assert "exposure_edges" not in res.metrics["fuse_plain"]
     run = tmp_path / "run"
+    assert m["checkpoints_saved"] == 0 and m["exposure_groups"] == 1
+    # Every frame of the sequence has a gain, the frames fuse did not use interpolated.
     gains = read_exposure_gains(run / "fuse" / "exposure_gains.csv")
-    assert len(gains) == m["frames_fused"]
+    assert sorted(gains) == list(range(m["frames"]))
     report = (run / "report.md").read_text()
     assert "(fuse/exposure.png)" in report and (run / "fuse" / "exposure.png").exists()
     assert "exposure gains the `fuse` stage solved" in report  # the tsdf stage's note
@@ -228,3 +255,19 @@ def test_fuse_solves_a_simulated_auto_exposure_and_tsdf_uses_it(tmp_path: Path) 
         # texture, so a few voxels at texture edges mix other colours in one map.
         spread[name] = float(np.median(np.abs(r - np.median(r))))
     assert spread["fuse"] < 0.4 * spread["fuse_plain"], spread  # measured 0.45 vs 1.79 %
+
+
+def test_tsdf_refuses_gains_that_miss_frames(tmp_path: Path) -> None:
+    from recipe_helpers import SplatInputs
+
+    from toolkit.baselines.stage import TSDFStage
+
+    stages = [{"stage": "t_splat_inputs", "exposure_gain": 2.0, "exposure_gain_frames": 6},
+              {"stage": "tsdf", "views": 0, "geometry": False}]
+    register = {"t_splat_inputs": SplatInputs, "tsdf": TSDFStage}
+    res = run_stages(tmp_path, stages, register)
+    assert not res.ok and "has no gain for 6 of the 12 frames" in str(res.error)
+    assert "exposure: none" in str(res.error)
+    (tmp_path / "none").mkdir()
+    stages[1]["exposure"] = "none"
+    assert run_stages(tmp_path / "none", stages, register).ok

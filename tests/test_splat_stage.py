@@ -128,6 +128,12 @@ def test_exposure_fused_divides_the_images_by_the_fuse_stages_gains(
     res = run_recipe(load_recipe(_recipe(tmp_path / "nogains", with_traj=True, iterations=2,
                                          exposure="fused")))
     assert not res.ok and "set `exposure: gain` on the fuse stage" in str(res.error)
+    # Gains for some frames only: refused, not half the views divided.
+    (tmp_path / "subset").mkdir()
+    recipe = _recipe(tmp_path / "subset", with_traj=True, iterations=2,
+                     inputs={"exposure_gain": 2.0, "exposure_gain_frames": 6})
+    res = run_recipe(load_recipe(recipe))
+    assert not res.ok and "has no gain for 6 of the 12 frames" in str(res.error)
 
 
 def test_holdout_counts_the_frames_used_and_the_budget_caps_the_start(tmp_path: Path) -> None:

@@ -214,6 +214,12 @@ class TSDFStage(Stage):
         if use_masks:
             depth_note += ", pixels on moving people removed with ground-truth masks"
         gains = _exposure_gains(ctx) if cfg.exposure == "fused" else {}
+        missing = [int(i) for i in indices if int(i) not in gains] if gains else []
+        if missing:
+            raise StageError(f"{ctx.stage_id}: {ctx.artifact('fused') / EXPOSURE_FILE} has no "
+                             f"gain for {len(missing)} of the {len(indices)} frames (first: "
+                             f"{missing[0]}): rerun the fuse stage (it writes every frame's), "
+                             "or set exposure: none here")
         if gains:
             depth_note += (", colours at the exposure gains the `fuse` stage solved "
                            f"(`{EXPOSURE_FILE}`)")

@@ -63,13 +63,11 @@ class ExposureOptions:
     # RMS off with all (~900), 0.08 / 0.21 / 0.30 / 1.8 % with 400 / 200 / 100 / 60.
     min_cells: int = 200
 
-    def plan(self, n_frames: int) -> tuple[int, int | None]:
-        """(every how many frames to solve, the most cells a solved frame keeps or None
-        for all) for a drive of ``n_frames``."""
+    def plan(self, n_frames: int) -> tuple[int, int]:
+        """(every how many frames to solve, the most cells a solved frame keeps) for a
+        drive of ``n_frames``."""
         n = max(n_frames, 1)
         cells = self.max_observations // n
-        if cells >= 2000:
-            return 1, None
         if cells >= self.min_cells:
             return 1, cells
         return -(-n * self.min_cells // self.max_observations), self.min_cells
@@ -211,6 +209,7 @@ class GainSolution:
     gains: np.ndarray  # [F, 3], geometric mean 1 per channel
     edges: int  # frame pairs used
     frames_linked: int  # frames in at least one edge (the rest follow their neighbours)
+    groups: int  # groups of linked frames with no edge between them (1: all in one)
     residual_log_rms: float  # weighted RMS of the edges' residuals (log gain)
     outlier_edges: int  # edges down-weighted by the Huber loss at the end
 
@@ -219,6 +218,7 @@ def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainS
     """Log gains by sparse weighted least squares over the edges (Huber-reweighted) and a
     weak pull between consecutive frames; ``n_frames`` gains."""
     from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
     from scipy.sparse.linalg import splu
 
     if n_frames < 1:
@@ -239,12 +239,12 @@ def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainS
         rows = np.concatenate([ia, ib, ia, ib])
         cols = np.concatenate([ia, ib, ib, ia])
         vals = np.concatenate([ww, ww, -ww, -ww])
-        # A tiny ridge fixes the common offset (removed below); the graph's own weights
-        # are orders larger.
-        ridge = 1e-9 * max(float(ww.sum()), 1.0)
-        N = coo_matrix((np.r_[vals, np.full(n_frames, ridge)],
-                        (np.r_[rows, np.arange(n_frames)], np.r_[cols, np.arange(n_frames)])),
-                       shape=(n_frames, n_frames)).tocsc()
+        # The first frame held at 0 fixes the common offset (removed below) and nothing
+        # else; a ridge on every frame instead grew with the drive and, on thousands of
+        # frames, flattened a slow drift of the exposure (a +-0.3 ramp over 10 000 frames
+        # came out at a fifth of its slope).
+        N = coo_matrix((np.r_[vals, max(float(ww.max()), 1.0)],
+                        (np.r_[rows, 0], np.r_[cols, 0])), shape=(n_frames, n_frames)).tocsc()
         rhs = np.zeros((n_frames, 3))
         for ch in range(3):
             rhs[:, ch] = (np.bincount(ia, ww * dd[:, ch], n_frames)
@@ -257,8 +257,13 @@ def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainS
     linked = np.zeros(n_frames, bool)
     linked[a] = True
     linked[b] = True
+    # Groups of frames that share surfaces among themselves but with no other group: their
+    # gains relative to each other come from the pull alone (taken as equal where they meet).
+    groups, _ = connected_components(coo_matrix(
+        (np.ones(len(a)), (a, b)), shape=(n_frames, n_frames)), directed=False)
     rms = float(np.sqrt(np.sum(base_w * resid**2) / base_w.sum())) if len(a) else 0.0
-    return GainSolution(np.exp(x), int(len(a)), int(linked.sum()), rms,
+    return GainSolution(np.exp(x), int(len(a)), int(linked.sum()),
+                        int(groups) - int((~linked).sum()), rms,
                         int((resid > opts.huber_log).sum()))
 
 
@@ -296,11 +301,14 @@ def corrected_image(rgb: np.ndarray, gain: np.ndarray) -> np.ndarray:
 EXPOSURE_FILE = "exposure_gains.csv"
 
 
-def write_exposure_gains(path: Path, frames: list[tuple[int, float]], gains: np.ndarray) -> None:
-    """``index,stamp,gain_r,gain_g,gain_b`` for the frames (index, stamp) and gains [U, 3]."""
-    atomic_write_text(path, "index,stamp,gain_r,gain_g,gain_b\n" + "".join(
-        f"{i},{float(t)!r},{g[0]:.6f},{g[1]:.6f},{g[2]:.6f}\n"
-        for (i, t), g in zip(frames, gains, strict=True)))
+def write_exposure_gains(path: Path, frames: list[tuple[int, float]], gains: np.ndarray,
+                         solved: np.ndarray | None = None) -> None:
+    """``index,stamp,gain_r,gain_g,gain_b,solved`` for the frames (index, stamp), gains
+    [U, 3] and whether each was solved [U] bool (else interpolated; None: all solved)."""
+    sv = np.ones(len(frames), bool) if solved is None else np.asarray(solved, bool)
+    atomic_write_text(path, "index,stamp,gain_r,gain_g,gain_b,solved\n" + "".join(
+        f"{i},{float(t)!r},{g[0]:.6f},{g[1]:.6f},{g[2]:.6f},{int(v)}\n"
+        for (i, t), g, v in zip(frames, gains, sv, strict=True)))
 
 
 def read_exposure_gains(path: Path) -> dict[int, np.ndarray]:
@@ -314,7 +322,7 @@ def read_exposure_gains(path: Path) -> dict[int, np.ndarray]:
             except (KeyError, TypeError, ValueError) as exc:
                 raise ValueError(f"{path} line {n}: needs index,stamp,gain_r,gain_g,gain_b "
                                  f"({exc}); rerun the fuse stage to rewrite it") from exc
-            if not (g > 0).all():
-                raise ValueError(f"{path} line {n}: gains must be positive; rerun the fuse "
-                                 "stage to rewrite it")
+            if not (np.isfinite(g).all() and (g > 0).all()):
+                raise ValueError(f"{path} line {n}: gains must be positive and finite; rerun "
+                                 "the fuse stage to rewrite it")
     return out

@@ -500,7 +500,7 @@ class Fusion:
         """Frame ``index``'s surface cells for the exposure solve (``toolkit.fusion.
         exposure``): cell keys [M] and log mean colours [M, 3], from its scaled depth
         [H, W] every ``exposure_stride`` pixels, without the moving obstacles the lidar
-        saw; at most ``max_cells`` (``ExposureOptions.cells_per_frame``)."""
+        saw; at most ``max_cells`` (``ExposureOptions.plan``)."""
         opts = self.cfg.exposure_options()
         if self._exposure_rays is None:
             self._exposure_rays = RayCache(self.camera, opts.stride)

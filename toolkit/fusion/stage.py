@@ -120,6 +120,7 @@ class FuseProgress:
     c_core: float = 0.0  # CPU seconds of the same: the machine may be shared
     fusion: dict[str, object] | None = None  # Fusion.state() when saved
     gains: np.ndarray | None = None  # [U, 3] exposure gains of the used frames (exposure: gain)
+    gains_solved: np.ndarray | None = None  # [U] bool: solved (else interpolated)
     exposure: dict[str, float] = field(default_factory=dict)  # the gain solve's figures
 
     def add_errors(self, fp: FramePairs, disparity: bool, scale_shift: tuple[float, float],
@@ -427,9 +428,10 @@ class FuseStage(Stage):
         used = [(j, i) for j, i in enumerate(frames) if sm.used[j]]
         # ---------------------------------------------------------------- exposure
         if cfg.exposure == "gain" and st.gains is None:
-            st.gains, st.exposure = self._solve_exposure(ctx, fusion, store, seq, used, sm,
-                                                         ahead)
-            save_checkpoint()  # the map pass must use these gains if it resumes
+            st.gains, st.gains_solved, st.exposure = self._solve_exposure(
+                ctx, fusion, store, seq, used, sm, ahead)
+            if cfg.checkpoint_every_s > 0:
+                save_checkpoint()  # the map pass must use these gains if it resumes
         # ---------------------------------------------------------------- pass 2: map
         out_depth = ctx.stage_dir / "scaled_depth"
         if cfg.write_depth != "none":
@@ -515,8 +517,14 @@ class FuseStage(Stage):
                       "camera poses of the fused frames")
         self._write_scales(ctx.stage_dir / "scales.csv", seq, frames, estimates, sm, oracle)
         if st.gains is not None:
+            # Every frame of the sequence gets a gain (those not fused interpolated between
+            # their fused neighbours): the tsdf and splat stages may use frames fuse did not.
+            fused_at = np.array([i for _, i in used])
+            solved = np.zeros(len(seq.frames), bool)
+            solved[fused_at[st.gains_solved]] = True
             write_exposure_gains(ctx.stage_dir / EXPOSURE_FILE,
-                                 [(i, seq.frames[i].stamp) for _, i in used], st.gains)
+                                 [(i, f.stamp) for i, f in enumerate(seq.frames)],
+                                 spread_gains(st.gains, fused_at, len(seq.frames)), solved)
         ctx.provide("fused", ctx.stage_dir)
         # ---------------------------------------------------------------- metrics
         used = int(sm.used.sum())
@@ -565,9 +573,10 @@ class FuseStage(Stage):
     @staticmethod
     def _solve_exposure(ctx: StageContext, fusion: Fusion, store: DepthStore, seq: Sequence,
                         used: list[tuple[int, int]], sm: SmoothedScale, ahead: int) -> tuple[
-                            np.ndarray, dict[str, float]]:
-        """Every used frame's exposure gain [U, 3] (``toolkit.fusion.exposure``) and the
-        solve's figures, from a sparse pass over the frames' scaled depth."""
+                            np.ndarray, np.ndarray, dict[str, float]]:
+        """Every used frame's exposure gain [U, 3] (``toolkit.fusion.exposure``), which of
+        them were solved [U] bool (the others interpolated) and the solve's figures, from a
+        sparse pass over the frames' scaled depth."""
         t0, obs = time.perf_counter(), ExposureObservations()
 
         def load(ji: tuple[int, int]) -> tuple[DepthPrediction, np.ndarray]:
@@ -591,6 +600,7 @@ class FuseStage(Stage):
         figures = {"exposure_observations": float(len(obs)), "exposure_edges": float(sol.edges),
                    "exposure_frame_step": float(step), "exposure_frames_solved": float(len(at)),
                    "exposure_frames_linked": float(sol.frames_linked),
+                   "exposure_groups": float(sol.groups),
                    "exposure_outlier_edges": float(sol.outlier_edges),
                    "exposure_residual_log_rms": sol.residual_log_rms,
                    "exposure_gain_min": float(gains.min()),
@@ -604,10 +614,16 @@ class FuseStage(Stage):
             ctx.log.warning("fuse: exposure: %d of %d frames share no surface with another; "
                             "their gains follow their neighbours'",
                             len(solved) - sol.frames_linked, len(solved))
+        if sol.groups > 1:
+            ctx.log.warning("fuse: exposure: the frames fall into %d groups that share no "
+                            "surface with each other; each group's gains are taken as equal "
+                            "to the next one's where they meet in time", sol.groups)
         ctx.log.info("fuse: exposure gains %.3f-%.3f from %d frame pairs (residual %.1f %%)",
                      figures["exposure_gain_min"], figures["exposure_gain_max"], sol.edges,
                      100 * sol.residual_log_rms)
-        return gains, figures
+        solved_mask = np.zeros(len(used), bool)
+        solved_mask[at] = True
+        return gains, solved_mask, figures
 
     @staticmethod
     def _write_scales(path: Path, seq: Sequence, frames: list[int], estimates: list,
@@ -757,9 +773,12 @@ class FuseStage(Stage):
             md.append(f"Exposure (`exposure: gain`): each frame's gain, solved over "
                       f"{m['exposure_edges']:.0f} pairs of frames that see the same surface "
                       f"({m['exposure_frames_linked']:.0f}/{m['exposure_frames_solved']:.0f} "
-                      "frames in one" + (f"; every {m['exposure_frame_step']:.0f}th frame "
-                                         "solved, the others interpolated"
-                                         if m["exposure_frame_step"] > 1 else "") + "), "
+                      "frames in at least one pair, "
+                      + ("all in one connected group" if m["exposure_groups"] == 1 else
+                         f"**{m['exposure_groups']:.0f} groups sharing no surface**, taken as "
+                         "equal where they meet in time")
+                      + (f"; every {m['exposure_frame_step']:.0f}th frame solved, the others "
+                         "interpolated" if m["exposure_frame_step"] > 1 else "") + "), "
                       f"{m['exposure_gain_min']:.3f}-{m['exposure_gain_max']:.3f}, divided out "
                       f"of the map's colours; residual {100 * m['exposure_residual_log_rms']:.1f}"
                       f" %{err} ({m['exposure_seconds']:.1f} s). Gains in "

@@ -407,7 +407,7 @@ class SplatStage(Stage):
                          "(lens corners); neither fitted nor scored",
                          100.0 * (1 - float(valid.float().mean())))
 
-        gains = self._exposure_gains(cfg, fused)
+        gains = self._exposure_gains(cfg, fused, index[used])
 
         def load_view(k: int) -> TrainView:
             fi = int(index[k])
@@ -618,24 +618,29 @@ class SplatStage(Stage):
         ctx.provide("splats", ctx.stage_dir / "splats.ply")
 
     @staticmethod
-    def _exposure_gains(cfg: SplatConfig, fused: Path | None) -> dict[int, np.ndarray]:
-        """Frame index -> gain [3] for ``exposure: fused``, or ``auto`` when the fuse stage
-        wrote its gains (else empty)."""
+    def _exposure_gains(cfg: SplatConfig, fused: Path | None,
+                        frames: np.ndarray) -> dict[int, np.ndarray]:
+        """Frame index -> gain [3] of ``frames`` for ``exposure: fused``, or ``auto`` when
+        the fuse stage wrote its gains (else empty)."""
         if cfg.exposure not in ("fused", "auto"):
             return {}
         path = None if fused is None else fused / EXPOSURE_FILE
-        if path is None or not path.exists():
-            if cfg.exposure == "auto":
-                return {}
+        try:
+            gains = {} if path is None or not path.exists() else read_exposure_gains(path)
+        except ValueError as exc:
+            raise StageError(f"splat: {exc}") from exc
+        if not gains and cfg.exposure == "fused":
             raise StageError("splat: exposure: fused needs the exposure gains of a fuse stage "
                              f"upstream ({EXPOSURE_FILE}), and "
                              + ("there is no fuse stage" if fused is None else
                                 f"{fused} has none") + ": set `exposure: gain` on the fuse "
                              "stage, or `exposure: gain` / `none` here")
-        try:
-            return read_exposure_gains(path)
-        except ValueError as exc:
-            raise StageError(f"splat: {exc}") from exc
+        missing = [int(i) for i in frames if int(i) not in gains] if gains else []
+        if missing:
+            raise StageError(f"splat: {path} has no gain for {len(missing)} of the "
+                             f"{len(frames)} frames (first: {missing[0]}): rerun the fuse stage "
+                             "(it writes every frame's), or set exposure: none here")
+        return gains
 
     @staticmethod
     def _sim_heldout(seq: Sequence, cam_full: PinholeCamera, cam: PinholeCamera,
