@@ -169,6 +169,8 @@ def test_corrected_image_divides_each_channel() -> None:
     out = corrected_image(rgb, np.array([2.0, 0.5, 1.0]))
     assert out.dtype == np.uint8
     assert out.tolist() == [[[50, 255, 50], [128, 0, 10]]]
+    with pytest.raises(ValueError, match="uint8"):
+        corrected_image(rgb.astype(np.float32), np.ones(3))
 
 
 def test_gains_file_round_trip_and_bad_rows(tmp_path: Path) -> None:
