@@ -209,3 +209,50 @@ def test_frames_in_a_gap_of_the_trajectory_get_no_pose(tmp_path: Path) -> None:
     idx, poses = poses_at_frames(holed, seq)
     assert 0 < len(idx) < len(seq.frames) and len(poses) == len(idx)
     assert holed.covers(seq.frame_stamps[idx], slack_s=0.05).all()
+
+
+def test_points_collapsed_onto_their_camera_are_not_taken_as_depth(
+        scene: dict, sfm: SfMResult, tmp_path: Path) -> None:
+    """COLMAP's mapper sometimes leaves points ~1e-8 units from the camera that sees them,
+    on the right ray (sub-pixel reprojection error): they must not set that frame's scale."""
+    pytest.importorskip("sklearn")
+    from toolkit.baselines.camera_only import (
+        CameraOnlySettings,
+        camera_only_reconstruction,
+        collapsed_depth,
+        sparse_depth,
+    )
+    from toolkit.baselines.colmap import cam_from_world_matrix
+    from toolkit.depth.protocol import DepthPrediction
+
+    frame_of = {n: i for i, n in enumerate(scene["names"])}
+    save_sfm(sfm, tmp_path / "m", frame_of, {n: float(i) for n, i in frame_of.items()},
+             scene["names"])
+    bad, _, _ = load_sfm(tmp_path / "m")  # a copy to damage
+    rec = bad.reconstruction
+    name = bad.names[len(bad.names) // 2]
+    im = rec.find_image_with_name(name)
+    T = cam_from_world_matrix(im)
+    centre = -T[:3, :3].T @ T[:3, 3]
+    ids = [o.point3D_id for o in im.get_observation_points2D()]
+    for pid in ids[: int(0.8 * len(ids))]:
+        pt = rec.points3D[pid]
+        pt.xyz = centre + 1e-8 * (np.array(pt.xyz) - centre)
+    assert np.median(sparse_depth(bad, name, scene["cam"]).z) < 1e-6  # the damage took
+    floor = collapsed_depth(bad)
+    assert 0 < floor < 1e-3
+    kept = sparse_depth(bad, name, scene["cam"], floor)
+    assert len(kept.z) > 0 and kept.z.min() > 0.01
+
+    def prediction(i: int) -> DepthPrediction:
+        d = scene["depths"][i]
+        return DepthPrediction(np.where(d > 0, 2.0 * d, np.nan).astype(np.float32),
+                               "relative_depth")
+
+    runs = [camera_only_reconstruction(m, frame_of, scene["cam"], prediction,
+                                       lambda i: scene["images"][i], set(range(N_IMAGES)),
+                                       CameraOnlySettings(smoothing_window=1))
+            for m in (sfm, bad)]
+    # The damaged frame keeps the scale its sound points give (collapsed: ~1e-8 of it).
+    k = runs[1].frame_indices.index(frame_of[name])
+    assert runs[1].used[k] and runs[1].scale[k] == pytest.approx(runs[0].scale[k], rel=0.02)

@@ -706,6 +706,13 @@ class CameraOnlyStage(Stage):
         write_tum(ctx.stage_dir / "trajectory_camera.tum", est,
                   f"camera-only (COLMAP) poses in {res.units} units, NOT metric world")
         n = len(res.points)
+        if n == 0:
+            raise StageError(
+                f"{ctx.stage_id}: the camera-only map is empty ({res.info['frames_fitted']} of "
+                f"{sfm.registered} registered frames had enough SfM points for a depth fit; "
+                f"median SfM depth {res.info['median_sparse_depth']:.3g} model units): "
+                "COLMAP's model is degenerate. Its mapper is not deterministic: rerun the "
+                "colmap stage (--from colmap), or give it more images (every, max_images)")
         write_map_ply(ctx.stage_dir / "map.ply", MapArrays(
             res.points, res.colors, np.ones(n, np.int64), np.ones(n, np.int32),
             np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.float32)))
