@@ -9,8 +9,9 @@ with every run's frames/s beside them.
 Predictions come from the ``simulated`` backend (computed before the clock starts) on a
 simulator sequence, or on the synthetic box room rendered at 640x480 when no sequence is
 given. The timed part is what the ``fuse`` stage does per frame - lidar projection,
-scale estimation, scaling, shape correction (``--refine``), flying-pixel filtering,
-back-projection, voxel integration (and the consensus TSDF, ``--consensus``) -
+scale estimation, the exposure gains (``exposure: gain``), scaling, shape correction
+(``--refine``), flying-pixel filtering, back-projection, voxel integration (and the
+consensus TSDF, ``--consensus``) -
 plus, separately, the end-of-run work (carving moving obstacles, outlier removal).
 
 ``--recipe`` with ``--stage`` takes every fusion setting from that ``fuse`` stage of the
@@ -30,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.cli_types import positive_int
+from toolkit.fusion.exposure import corrected_image, frames_to_solve, solve_exposure
 from toolkit.fusion.pipeline import FusionConfig
 
 
@@ -89,23 +91,35 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
     pairs = {i: fusion.frame_pairs(int(i), preds[i]) for i in idx}
     sm = fusion.smooth([pairs[i].estimate for i in idx], [pairs[i] for i in idx],
                        preds[idx[0]].is_disparity)
+    te, ce = time.perf_counter(), time.process_time()
+    used = [(j, int(i)) for j, i in enumerate(idx) if sm.used[j]]
+    gains: dict[int, np.ndarray] = {}
+    if cfg.exposure == "gain" and used:
+        opts = cfg.exposure_options()
+        at, cells = frames_to_solve(len(used), opts)
+        g, _, _ = solve_exposure(
+            (fusion.exposure_observations(used[k][1], preds[used[k][1]].as_depth(
+                sm.scale[used[k][0]], sm.shift[used[k][0]]), imgs[used[k][1]], cells)
+             for k in at), at, len(used), opts)
+        gains = {i: g[k] for k, (_, i) in enumerate(used)}
     t1, c1 = time.perf_counter(), time.process_time()
     points = 0
-    for j, i in enumerate(idx):
-        if sm.used[j]:
-            depth, _ = fusion.refine(int(i), preds[i].as_depth(sm.scale[j], sm.shift[j]),
-                                     pairs[i])
-            points += fusion.integrate(int(i), depth, imgs[i])
+    for j, i in used:
+        depth, _ = fusion.refine(i, preds[i].as_depth(sm.scale[j], sm.shift[j]), pairs[i])
+        points += fusion.integrate(i, depth, imgs[i] if i not in gains else corrected_image(
+            imgs[i], gains[i]))
     t2, c2 = time.perf_counter(), time.process_time()
     raw, masks = fusion.finish()
     t3, c3 = time.perf_counter(), time.process_time()
     return {
         "points_per_frame": points / n, "map_voxels": len(raw),
-        "scale_ms_per_frame": 1000 * (t1 - t0) / n,
+        "scale_ms_per_frame": 1000 * (te - t0) / n,
+        "exposure_ms_per_frame": 1000 * (t1 - te) / n,
         "integrate_ms_per_frame": 1000 * (t2 - t1) / n,
         "finish_s": t3 - t2, "finish_ms_per_frame": 1000 * (t3 - t2) / n,
         "fps_per_frame_work": n / (t2 - t0), "fps_including_finish": n / (t3 - t0),
-        "cpu_scale_ms_per_frame": 1000 * (c1 - c0) / n,
+        "cpu_scale_ms_per_frame": 1000 * (ce - c0) / n,
+        "cpu_exposure_ms_per_frame": 1000 * (c1 - ce) / n,
         "cpu_integrate_ms_per_frame": 1000 * (c2 - c1) / n,
         "cpu_finish_s": c3 - c2,
         "cpu_fps_per_frame_work": n / (c2 - c0), "cpu_fps_including_finish": n / (c3 - c0),
@@ -124,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="shape correction (default: the --stage's, else none)")
     ap.add_argument("--consensus", action="store_true", default=None,
                     help="multi-view consensus filter (default: the --stage's, else off)")
+    ap.add_argument("--exposure", choices=["none", "gain"], default=None,
+                    help="exposure gains solved and divided out (default: the --stage's, "
+                    "else gain)")
     ap.add_argument("--recipe", type=Path, default=None,
                     help="take the fusion settings from a fuse stage of this recipe")
     ap.add_argument("--stage", default=None, help="id of that fuse stage (with --recipe)")
@@ -163,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
 def _config_from(a: argparse.Namespace, ap: argparse.ArgumentParser) -> FusionConfig:
     """The fusion settings: the recipe stage's (or the defaults), then the flags given."""
     flags = {k: v for k, v in (("scale", a.scale), ("stride", a.stride),
-                               ("refine", a.refine), ("consensus", a.consensus))
+                               ("refine", a.refine), ("consensus", a.consensus),
+                               ("exposure", a.exposure))
              if v is not None}
     base: dict = {}
     if a.recipe is not None:

@@ -25,7 +25,9 @@ gamma, with the gain raised to 1/gamma, which is still one factor per frame.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass, field
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -197,7 +199,10 @@ def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
     lo, hi = start + (cnt - 1) // 2, start + cnt // 2
     med = np.empty((len(upid), 3))
     for ch in range(3):
-        srt = d[np.lexsort((d[:, ch], inv)), ch]
+        # One float key, pair then value (differences beyond +-2, a factor of 7, clipped:
+        # a median out there is no exposure anyway): a third of a two-key lexsort's time.
+        key = inv * 8.0 + (np.clip(d[:, ch], -1.999, 1.999) + 2.0)
+        srt = d[np.argsort(key), ch]
         med[:, ch] = 0.5 * (srt[lo] + srt[hi])
     keep = cnt >= opts.min_common
     return GainEdges(upid[keep] // n_frames, upid[keep] % n_frames, med[keep], cnt[keep])
@@ -213,6 +218,8 @@ class GainSolution:
     groups: int  # groups of linked frames with no edge between them (1: all in one)
     residual_log_rms: float  # weighted RMS of the edges' residuals (log gain)
     outlier_edges: int  # edges down-weighted by the Huber loss at the end
+    seconds: float = 0.0  # comparing and solving (solve_exposure), wall clock...
+    cpu_seconds: float = 0.0  # ... and CPU time
 
 
 def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainSolution:
@@ -266,6 +273,32 @@ def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainS
     return GainSolution(np.exp(x), int(len(a)), int(linked.sum()),
                         int(groups) - int((~linked).sum()), rms,
                         int((resid > opts.huber_log).sum()))
+
+
+def frames_to_solve(n_frames: int, opts: ExposureOptions) -> tuple[np.ndarray, int]:
+    """Positions [K] of the frames to observe among ``n_frames`` (every ``plan`` step-th
+    and the last) and the most cells each keeps."""
+    step, max_cells = opts.plan(n_frames)
+    return np.unique(np.r_[np.arange(0, n_frames, step), n_frames - 1]), max_cells
+
+
+def solve_exposure(observations: Iterable[tuple[np.ndarray, np.ndarray]], at: np.ndarray,
+                   n_frames: int, opts: ExposureOptions) -> tuple[np.ndarray, GainSolution,
+                                                                  int]:
+    """Gains [n_frames, 3] from the observations (cell keys, log colours) of the frames
+    at positions ``at`` (``frames_to_solve``), in that order; the frames between them
+    interpolated. Also the solution and the number of observations."""
+    obs = ExposureObservations()
+    for k, (keys, log_rgb) in enumerate(observations):
+        obs.add(k, keys, log_rgb)
+    if len(obs.key) != len(at):
+        raise ValueError(f"solve_exposure: {len(obs.key)} frames observed for {len(at)} "
+                         "positions")
+    t0, c0 = time.perf_counter(), time.process_time()
+    sol = solve_gains(gain_edges(*obs.arrays(), opts), len(at), opts)
+    gains = spread_gains(sol.gains, at, n_frames)
+    sol = replace(sol, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
+    return gains, sol, len(obs)
 
 
 def spread_gains(solved: np.ndarray, at: np.ndarray, n_frames: int) -> np.ndarray:
