@@ -330,7 +330,8 @@ def corrected_image(rgb: np.ndarray, gain: np.ndarray) -> np.ndarray:
         raise ValueError(f"corrected_image: need an [H, W, 3] uint8 image, got {rgb.dtype} "
                          f"{list(rgb.shape)}")
     # OpenCV's per-channel scalar product, rounded and saturated: 0.8 ms at 640x480
-    # against 5.6 ms in float32 numpy, the same bytes.
+    # against 5.6 ms in float32 numpy (the same bytes but at exact halves, which OpenCV
+    # rounds to even: none in 85 M channel values of the house at its solved gains).
     return cv2.multiply(np.ascontiguousarray(rgb), (1.0 / g[0], 1.0 / g[1], 1.0 / g[2], 0.0))
 
 
