@@ -388,7 +388,8 @@ class _ColmapKeys(StageConfig):
     intrinsics: Literal["known", "refine", "unknown"] = "known"
     every: int = Field(1, ge=1)  # use every n-th frame
     max_images: int | None = Field(300, ge=3)  # then thin evenly to at most this many
-    threads: int = Field(2, ge=1)
+    # More than one thread gives another model from run to run (ColmapSettings).
+    threads: int = Field(1, ge=1)
     seed: int = 0
 
     def colmap_settings(self) -> Any:
@@ -419,7 +420,9 @@ class ColmapStage(Stage):
     requires = ("sequence",)
     optional_requires = ("trajectory", "fused")
     provides = ("colmap",)
-    version = 2  # 2: written alignments on covered poses; no poses across trajectory gaps
+    # 2: written alignments on covered poses; no poses across trajectory gaps. 3: one
+    # thread by default (repeatable)
+    version = 3
     outputs_repeat = False  # sfm/summary.json holds the steps' seconds
 
     def run(self, ctx: StageContext) -> None:
@@ -655,7 +658,9 @@ class CameraOnlyStage(Stage):
     requires = ("sequence", "depth")
     optional_requires = ("colmap", "trajectory")
     provides = ("camera_only",)
-    version = 2  # 2: recall against every map point; alignment on covered poses
+    # 2: recall against every map point; alignment on covered poses. 3: one thread by
+    # default (repeatable); SfM points collapsed onto their camera left out
+    version = 3
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
@@ -711,8 +716,8 @@ class CameraOnlyStage(Stage):
                 f"{ctx.stage_id}: the camera-only map is empty ({res.info['frames_fitted']} of "
                 f"{sfm.registered} registered frames had enough SfM points for a depth fit; "
                 f"median SfM depth {res.info['median_sparse_depth']:.3g} model units): "
-                "COLMAP's model is degenerate. Its mapper is not deterministic: rerun the "
-                "colmap stage (--from colmap), or give it more images (every, max_images)")
+                "COLMAP's model is degenerate. Give it more images (every, max_images) or "
+                "more matches (overlap, matching: exhaustive) and rerun from the colmap stage")
         write_map_ply(ctx.stage_dir / "map.ply", MapArrays(
             res.points, res.colors, np.ones(n, np.int64), np.ones(n, np.int32),
             np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.float32)))
