@@ -139,6 +139,34 @@ def test_edges_hold_the_median_difference_of_the_common_cells() -> None:
     assert e.diff[0] == pytest.approx([0.1] * 3, abs=1e-6)
 
 
+def test_edge_medians_match_a_two_key_sort_for_any_difference() -> None:
+    # Exposure jumps of up to 30x (log differences beyond 3), many pairs and ties.
+    rng = np.random.default_rng(3)
+    n = 40_000
+    frames = rng.integers(0, 300, n).astype(np.int32)
+    keys = rng.integers(0, 2000, n).astype(np.int64)
+    log_rgb = np.round(rng.uniform(2.1, 5.5, (n, 3)), 2).astype(np.float32)
+    opts = ExposureOptions(min_common=1)
+    e = gain_edges(frames, keys, log_rgb, opts)
+    # The reference: every pair's differences gathered and their median taken directly.
+    order = np.lexsort((frames, keys))
+    k, f, c = keys[order], frames[order], log_rgb[order].astype(np.float64)
+    diffs: dict[tuple[int, int], list[np.ndarray]] = {}
+    for off in opts.offsets:
+        same = np.flatnonzero(k[off:] == k[:-off])
+        for t in same:
+            diffs.setdefault((int(f[t]), int(f[t + off])), []).append(c[t] - c[t + off])
+    assert len(e.a) == len(diffs) and np.abs(e.diff).max() > 3
+    for a, b, d in zip(e.a[:500], e.b[:500], e.diff[:500], strict=True):
+        assert d == pytest.approx(np.median(np.array(diffs[(int(a), int(b))]), axis=0),
+                                  abs=1e-6)
+    # A non-finite observation is left out, not sorted to the end where it shifted others.
+    bad = log_rgb.copy()
+    bad[0] = np.nan
+    e2 = gain_edges(frames, keys, bad, opts)
+    assert np.isfinite(e2.diff).all()
+
+
 def test_cells_skip_dark_and_clipped_pixels() -> None:
     pts = np.array([[0.01, 0.01, 0.01]] * 6 + [[0.51, 0.01, 0.01]] * 3, np.float32)
     col = np.array([[100, 50, 25]] * 4 + [[255, 50, 25], [3, 50, 25]] + [[80, 80, 80]] * 3,

@@ -80,7 +80,8 @@ class CameraOnlyResult:
 
 def collapsed_depth(sfm: SfMResult) -> float:
     """Depth (model units) below which an SfM point cannot be a real observation: 1e-4 of
-    the registered cameras' RMS spread about their centre.
+    the registered cameras' median distance from their median centre (robust: one camera
+    registered far off does not raise it; a camera turning on the spot gives 0, no test).
 
     COLMAP's incremental mapper sometimes (not on every run of the same images) leaves
     points collapsed onto the camera that observes them, at ~1e-8 units along the right
@@ -89,8 +90,8 @@ def collapsed_depth(sfm: SfMResult) -> float:
     """
     if len(sfm.poses) < 2:
         return 0.0
-    c = sfm.poses[:, :3, 3]
-    return 1e-4 * float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
+    c = sfm.poses[:, :3, 3]  # [R, 3] camera centres (poses are T_model_camera)
+    return 1e-4 * float(np.median(np.linalg.norm(c - np.median(c, axis=0), axis=1)))
 
 
 def sparse_depth(sfm: SfMResult, name: str, camera: PinholeCamera,

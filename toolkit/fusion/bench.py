@@ -71,6 +71,7 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     return {
         "sequence": str(seq_path), "image": f"{w}x{h}", "frames": int(n),
         "scale": config.scale, "refine": config.refine, "consensus": config.consensus,
+        "exposure": config.exposure,
         "stride": config.stride, "repeat": len(runs),
         "fusion_config": config.model_dump(mode="json"),
         **best,
