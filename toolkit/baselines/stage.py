@@ -128,18 +128,6 @@ class TSDFConfig(StageConfig):
     checkpoint_every_s: float = Field(300.0, ge=0)
 
 
-def _exposure_gains(ctx: StageContext) -> dict[int, np.ndarray]:
-    """Frame index -> exposure gain [3] the upstream fuse stage solved (none: empty)."""
-    from toolkit.fusion.exposure import EXPOSURE_FILE, read_exposure_gains
-
-    if not ctx.has_artifact("fused") or not (ctx.artifact("fused") / EXPOSURE_FILE).exists():
-        return {}
-    try:
-        return read_exposure_gains(ctx.artifact("fused") / EXPOSURE_FILE)
-    except ValueError as exc:
-        raise StageError(f"{ctx.stage_id}: {exc}") from exc
-
-
 def _scaled_depth_files(fused: Path) -> dict[int, Path]:
     """Frame index -> scaled depth file of the fuse stage (index.csv, else file names)."""
     import csv
@@ -170,7 +158,7 @@ class TSDFStage(Stage):
 
         from toolkit.baselines.common import groundtruth_camera_trajectory, poses_at_frames
         from toolkit.baselines.tsdf import TSDFSettings, TSDFVolume, write_mesh
-        from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image
+        from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image, gains_for_frames
         from toolkit.io.depth import read_depth
 
         cfg: TSDFConfig = self.config  # type: ignore[assignment]
@@ -213,13 +201,12 @@ class TSDFStage(Stage):
             use_masks = False
         if use_masks:
             depth_note += ", pixels on moving people removed with ground-truth masks"
-        gains = _exposure_gains(ctx) if cfg.exposure == "fused" else {}
-        missing = [int(i) for i in indices if int(i) not in gains] if gains else []
-        if missing:
-            raise StageError(f"{ctx.stage_id}: {ctx.artifact('fused') / EXPOSURE_FILE} has no "
-                             f"gain for {len(missing)} of the {len(indices)} frames (first: "
-                             f"{missing[0]}): rerun the fuse stage (it writes every frame's), "
-                             "or set exposure: none here")
+        gains: dict[int, np.ndarray] = {}
+        if cfg.exposure == "fused" and ctx.has_artifact("fused"):
+            try:
+                gains = gains_for_frames(ctx.artifact("fused"), indices)
+            except ValueError as exc:
+                raise StageError(f"{ctx.stage_id}: {exc}") from exc
         if gains:
             depth_note += (", colours at the exposure gains the `fuse` stage solved "
                            f"(`{EXPOSURE_FILE}`)")

@@ -168,6 +168,11 @@ class GainEdges:
     diff: np.ndarray  # [E, 3] median log colour difference over the common cells
     common: np.ndarray  # [E] cells compared
 
+    @staticmethod
+    def empty() -> GainEdges:
+        return GainEdges(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)),
+                         np.zeros(0, np.int64))
+
 
 def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
                opts: ExposureOptions) -> GainEdges:
@@ -183,8 +188,7 @@ def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
         parts_b.append(f[off:][same])
         parts_d.append(c[:-off][same] - c[off:][same])
     if not parts_a or not sum(len(p) for p in parts_a):
-        return GainEdges(np.zeros(0, np.int64), np.zeros(0, np.int64),
-                         np.zeros((0, 3)), np.zeros(0, np.int64))
+        return GainEdges.empty()
     a = np.concatenate(parts_a)
     b = np.concatenate(parts_b)
     d = np.concatenate(parts_d).astype(np.float64)  # [P, 3]
@@ -193,8 +197,7 @@ def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
     if not finite.all():
         a, b, d = a[finite], b[finite], d[finite]
     if not len(a):
-        return GainEdges(np.zeros(0, np.int64), np.zeros(0, np.int64),
-                         np.zeros((0, 3)), np.zeros(0, np.int64))
+        return GainEdges.empty()
     n_frames = int(max(a.max(), b.max())) + 1
     # a < b: observations are in frame order within a cell
     pid = a.astype(np.int64) * n_frames + b
@@ -371,3 +374,22 @@ def read_exposure_gains(path: Path) -> dict[int, np.ndarray]:
                 raise ValueError(f"{path} line {n}: gains must be positive and finite; rerun "
                                  "the fuse stage to rewrite it")
     return out
+
+
+def gains_for_frames(fused: Path | None, frames: Iterable[int]) -> dict[int, np.ndarray]:
+    """Frame index -> gain [3] for ``frames`` from the fuse stage folder ``fused`` (its
+    ``EXPOSURE_FILE``; empty when there is none). ValueError when the file is broken or
+    misses one of ``frames``: mixing corrected and raw images is worse than either."""
+    path = None if fused is None else Path(fused) / EXPOSURE_FILE
+    if path is None or not path.exists():
+        return {}
+    gains = read_exposure_gains(path)
+    if not gains:
+        return {}
+    wanted = [int(i) for i in frames]
+    missing = [i for i in wanted if i not in gains]
+    if missing:
+        raise ValueError(f"{path} has no gain for {len(missing)} of the {len(wanted)} frames "
+                         f"(first: {missing[0]}): rerun the fuse stage (it writes every "
+                         "frame's), or set exposure: none here")
+    return gains

@@ -425,6 +425,16 @@ class Fusion:
         parts = [self._dyn_xy[k] for k in range(lo, hi) if len(self._dyn_xy[k])]
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
+    def _near_moving(self, index: int, pts: np.ndarray) -> np.ndarray | None:
+        """[N] bool: world points [N, 3] of frame ``index`` in the cylinders of the moving
+        obstacles the lidar saw near its time; None when there are none."""
+        centres = self.dynamic_hits(index)
+        if not len(centres):
+            return None
+        moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
+                               self.cfg.dynamic_height_m)
+        return moving if moving.any() else None
+
     def pairs_on_moving(self, lidar: LidarPixels) -> np.ndarray:
         """[N] bool: lidar pixels from beams flagged as hitting a moving obstacle."""
         if not self.beam_dynamic or not len(lidar):
@@ -507,10 +517,8 @@ class Fusion:
         pts, col, _ = depth_to_points(depth, rgb, self._exposure_rays, self.T_world_camera(index),
                                       dataclasses.replace(self.cloud_opts, stride=opts.stride,
                                                           near_stride=0))
-        centres = self.dynamic_hits(index)
-        if len(centres):
-            moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
-                                   self.cfg.dynamic_height_m)
+        moving = self._near_moving(index, pts)
+        if moving is not None:
             pts, col = pts[~moving], col[~moving]
         keys, log_rgb, _ = cell_observations(pts, col, self.T_world_camera(index)[:3, 3], opts,
                                              max_cells)
@@ -529,13 +537,10 @@ class Fusion:
         ok = valid_pixels(depth, self.cloud_opts) if valid is None else valid
         pts, col, idx = depth_to_points(depth, rgb, self.rays, self.T_world_camera(index),
                                         self.cloud_opts, drop, ok)
-        centres = self.dynamic_hits(index)
-        if len(centres):
-            moving = cylinder_mask(pts, centres, self.cfg.dynamic_radius_m,
-                                   self.cfg.dynamic_height_m)
-            if moving.any():
-                self.points_masked_dynamic += int(moving.sum())
-                pts, col, idx = pts[~moving], col[~moving], idx[~moving]
+        moving = self._near_moving(index, pts)
+        if moving is not None:
+            self.points_masked_dynamic += int(moving.sum())
+            pts, col, idx = pts[~moving], col[~moving], idx[~moving]
         lab = None
         if labels is not None:
             lab = labels[:: self.rays.stride, :: self.rays.stride].reshape(-1)[idx].astype(

@@ -46,7 +46,7 @@ import torch
 from pydantic import Field, model_validator
 
 from toolkit.camera import PinholeCamera
-from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image, read_exposure_gains
+from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image, gains_for_frames
 from toolkit.geometry import Trajectory, inv_se3, rigid_alignment
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
@@ -624,9 +624,8 @@ class SplatStage(Stage):
         the fuse stage wrote its gains (else empty)."""
         if cfg.exposure not in ("fused", "auto"):
             return {}
-        path = None if fused is None else fused / EXPOSURE_FILE
         try:
-            gains = {} if path is None or not path.exists() else read_exposure_gains(path)
+            gains = gains_for_frames(fused, frames)
         except ValueError as exc:
             raise StageError(f"splat: {exc}") from exc
         if not gains and cfg.exposure == "fused":
@@ -635,11 +634,6 @@ class SplatStage(Stage):
                              + ("there is no fuse stage" if fused is None else
                                 f"{fused} has none") + ": set `exposure: gain` on the fuse "
                              "stage, or `exposure: gain` / `none` here")
-        missing = [int(i) for i in frames if int(i) not in gains] if gains else []
-        if missing:
-            raise StageError(f"splat: {path} has no gain for {len(missing)} of the "
-                             f"{len(frames)} frames (first: {missing[0]}): rerun the fuse stage "
-                             "(it writes every frame's), or set exposure: none here")
         return gains
 
     @staticmethod
