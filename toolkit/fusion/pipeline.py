@@ -102,6 +102,10 @@ class FusionConfig(BaseModel):
     # by the prediction like the floor: a table top above a leg the lidar hit falls out.
     refine_columns: bool = True
     refine_column_top_m: float = Field(2.2, gt=0)  # columns reach this far above the floor
+    # Then rescale the image region around a run of at least this many consecutive lidar
+    # pairs that agree with each other but not with the field (a room seen through a
+    # doorway, which networks squash; toolkit.fusion.refine.correct_regions). 0: off.
+    refine_region_beams: int = Field(6, ge=0)
     # clouds and map
     stride: int = Field(2, ge=1)
     # Every near_stride-th pixel only where that spacing stays below half a voxel (depth <
@@ -177,7 +181,9 @@ class FusionConfig(BaseModel):
         return RefineOptions(grid=self.refine_grid, gate=self.refine_gate,
                              gate_final=self.refine_gate_final, smooth=self.refine_smooth,
                              max_depth_m=self.max_depth_m,
-                             column_top_m=self.refine_column_top_m)
+                             column_top_m=(self.refine_column_top_m if self.refine_columns
+                                           else 0.0),
+                             region_min_beams=self.refine_region_beams)
 
     def exposure_options(self) -> ExposureOptions:
         return ExposureOptions(cell_m=self.exposure_cell_m, stride=self.exposure_stride)
@@ -499,10 +505,10 @@ class Fusion:
         if self.refiner is None:
             return depth, Refinement(False)
         v = pairs.visible
+        lid = pairs.lidar
         return self.refiner.refine(depth, self.T_world_camera(index), self.frame_poses[index],
-                                   pairs.lidar.pixel[v], pairs.lidar.z[v],
-                                   pairs.lidar.points_cam[v] if self.cfg.refine_columns
-                                   else None)
+                                   lid.pixel[v], lid.z[v], lid.points_cam[v],
+                                   np.stack([lid.scan[v], lid.beam[v]], 1))
 
     # ------------------------------------------------------------------ exposure
     def exposure_observations(self, index: int, depth: np.ndarray, rgb: np.ndarray,

@@ -16,12 +16,24 @@ The field is fitted in log depth on a coarse grid of nodes (bilinear between the
 smoothness penalty between neighbouring nodes and a Huber loss, twice: the second time
 only anchors within ``gate_final`` of the first field count. Above the lidar row nothing is
 measured and the smoothness carries the field up from the lidar.
+
+A smooth field cannot follow one surface the network put at the wrong depth on its own: a
+room seen through a doorway, which monocular networks squash towards the near walls around
+it (the shipped network put a wall 5.7 m away at 3.7 m). The gates drop those lidar pairs
+as outliers. ``correct_regions`` then looks for runs of consecutive lidar pairs on one
+continuous surface that agree with each other but not with the field, and rescales the
+image region around each run: the pixels connected to it without crossing a depth edge and
+within ``region_band`` of its depth (log), the correction tapering to nothing at the band.
+A lidar farther than the prediction is believed only through an opening (the region's left
+and right neighbours nearer than it): a 2D lidar passes under sofas and beds the camera
+above it sees, and those pairs, too, agree with each other.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -45,6 +57,17 @@ class RefineOptions:
     column_top_m: float = 2.2
     column_step_m: float = 0.1
     max_columns: int = 120
+    # Region correction (module docstring; 0 beams: off): a run of at least this many
+    # consecutive lidar pairs, steps under max(region_step_m, 5 % of the range), whose log
+    # ratios to the field's depth have a median beyond gate_final and a median absolute
+    # deviation under region_mad
+    region_min_beams: int = 6
+    region_step_m: float = 0.1
+    region_mad: float = 0.03
+    region_band: float = 0.15  # log depth around the run's that the region spans
+    region_edge: float = 0.1  # log-depth range over 3 x 3 pixels that bounds a region
+    # through an opening: the region's side neighbours this much nearer (log)
+    region_opening: float = 0.1
 
 
 @dataclass
@@ -57,6 +80,7 @@ class Refinement:
     anchors_columns: int = 0
     field_rms: float = 0.0  # RMS of the log correction over the image
     field_max: float = 0.0  # largest |log correction|
+    regions: int = 0  # regions rescaled after the field (``correct_regions``)
 
 
 def interpolation_weights(n: int, nodes: int) -> np.ndarray:
@@ -166,6 +190,98 @@ def floor_depth(rays_world: np.ndarray, centre: np.ndarray, normal: np.ndarray,
     return np.where(t > 0, t, np.inf)
 
 
+def lidar_runs(points_cam: np.ndarray, scan_beam: np.ndarray, min_step_m: float,
+               step_rel: float = 0.05) -> list[np.ndarray]:
+    """Index arrays into the lidar points [N, 3] of runs on one continuous surface: the
+    same scan, beams at most 2 apart (one dropped or hidden between), and each step under
+    max(``min_step_m``, ``step_rel`` x the range). ``scan_beam`` [N, 2] int: scan and
+    beam index of each point."""
+    if len(points_cam) == 0:
+        return []
+    order = np.lexsort((scan_beam[:, 1], scan_beam[:, 0]))  # [N]
+    p = points_cam[order]
+    sb = scan_beam[order]
+    brk = np.ones(len(order), bool)
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)  # [N-1]
+    reach = np.maximum(min_step_m, step_rel * np.linalg.norm(p[1:], axis=1))
+    brk[1:] = (np.diff(sb[:, 0]) != 0) | (np.diff(sb[:, 1]) > 2) | (step > reach)
+    return np.split(order, np.flatnonzero(brk)[1:])
+
+
+def depth_edges(log_depth: np.ndarray, threshold: float) -> np.ndarray:
+    """[H, W] bool: pixels whose 3 x 3 neighbourhood spans more than ``threshold`` in
+    log depth, and pixels without depth (``log_depth`` NaN)."""
+    valid = np.isfinite(log_depth)
+    L = np.where(valid, log_depth, 0.0).astype(np.float32)
+    k = np.ones((3, 3), np.uint8)
+    return ((cv2.dilate(L, k) - cv2.erode(L, k)) > threshold) | ~valid
+
+
+def region_around(log_depth: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                  level: float, band: float) -> np.ndarray:
+    """[H, W] bool: pixels within ``band`` of ``level`` (log depth) connected (4
+    neighbours) to a seed pixel [K, 2] (col, row) without crossing an ``edges`` pixel."""
+    with np.errstate(invalid="ignore"):
+        inside = (np.abs(log_depth - level) <= band) & ~edges
+    _, labels = cv2.connectedComponents(inside.astype(np.uint8), connectivity=4)
+    hit = np.unique(labels[seeds[:, 1], seeds[:, 0]])
+    return np.isin(labels, hit[hit > 0])
+
+
+def through_opening(log_depth: np.ndarray, region: np.ndarray, level: float, margin: float,
+                    reach_px: int) -> bool:
+    """Whether the pixels beside ``region`` (left and right, up to ``reach_px``) lie
+    nearer than ``level`` - ``margin`` (log depth): the region is seen through an opening
+    in a nearer surface (a doorway), not a surface in front of a farther one."""
+    k = np.ones((1, 2 * reach_px + 1), np.uint8)
+    side = (cv2.dilate(region.astype(np.uint8), k) > 0) & ~region & np.isfinite(log_depth)
+    if side.sum() < 2 * reach_px:
+        return False
+    return bool(np.median(log_depth[side]) < level - margin)
+
+
+def correct_regions(depth: np.ndarray, px: np.ndarray, z: np.ndarray, points_cam: np.ndarray,
+                    scan_beam: np.ndarray, opts: RefineOptions) -> tuple[np.ndarray, int]:
+    """``depth`` [H, W] with the regions around lidar runs it disagrees with rescaled (the
+    module docstring), and how many: lidar pixels ``px`` [N, 2] (col, row), z-depths
+    ``z`` [N], camera-frame points [N, 3] and scan / beam indices [N, 2]."""
+    o = opts
+    h, w = depth.shape
+    runs = [r for r in lidar_runs(points_cam, scan_beam, o.region_step_m)
+            if len(r) >= o.region_min_beams]
+    if not runs:
+        return depth, 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        L = np.where(np.isfinite(depth) & (depth > 0), np.log(depth), np.nan)  # [H, W]
+    edges = depth_edges(L, o.region_edge)
+    cols, rows = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.log(z) - L[rows, cols]  # [N] log(lidar / depth)
+    out = depth.copy()
+    done = np.zeros((h, w), bool)
+    reach = max(3, w // 64)
+    n = 0
+    for run in runs:
+        run = run[np.isfinite(rho[run])]
+        if len(run) < o.region_min_beams or done[rows[run], cols[run]].mean() > 0.5:
+            continue
+        med = float(np.median(rho[run]))
+        if abs(med) <= o.gate_final or np.median(np.abs(rho[run] - med)) > o.region_mad:
+            continue
+        level = float(np.median(L[rows[run], cols[run]]))
+        region = region_around(L, edges, np.stack([cols[run], rows[run]], 1), level,
+                               o.region_band) & ~done
+        if not region.any():
+            continue
+        if med > 0 and not through_opening(L, region, level, o.region_opening, reach):
+            continue
+        taper = np.clip(1.0 - np.abs(L[region] - level) / o.region_band, 0.0, 1.0)
+        out[region] = out[region] * np.exp(med * taper).astype(out.dtype)
+        done |= region
+        n += 1
+    return out, n
+
+
 class DepthRefiner:
     """Fits and applies the correction field of one camera's frames."""
 
@@ -229,21 +345,23 @@ class DepthRefiner:
     def refine(self, depth: np.ndarray, T_world_camera: np.ndarray,
                T_world_base: np.ndarray, lidar_px: np.ndarray | None = None,
                lidar_z: np.ndarray | None = None,
-               lidar_points_cam: np.ndarray | None = None) -> tuple[np.ndarray, Refinement]:
+               lidar_points_cam: np.ndarray | None = None,
+               lidar_scan_beam: np.ndarray | None = None) -> tuple[np.ndarray, Refinement]:
         """Corrected depth [H, W] float32 and what was done, from the scaled ``depth``
         [H, W], the poses and the lidar pairs: pixels ``lidar_px`` [N, 2] (col, row) with
-        their lidar z-depths ``lidar_z`` [N] and camera-frame points ``lidar_points_cam``
-        [N, 3] (for the vertical columns)."""
+        their lidar z-depths ``lidar_z`` [N], camera-frame points ``lidar_points_cam``
+        [N, 3] (for the vertical columns) and scan / beam indices ``lidar_scan_beam``
+        [N, 2] int (with the points, for the region correction)."""
         # The matrices here are tiny: BLAS's second thread only spins (on 2 cores it
         # doubled the CPU time of the correction and took it from the rest of the fusion).
         with self._threads.limit(limits=1, user_api="blas"):
             return self._refine(depth, T_world_camera, T_world_base, lidar_px, lidar_z,
-                                lidar_points_cam)
+                                lidar_points_cam, lidar_scan_beam)
 
     def _refine(self, depth: np.ndarray, T_world_camera: np.ndarray,
                 T_world_base: np.ndarray, lidar_px: np.ndarray | None,
-                lidar_z: np.ndarray | None,
-                lidar_points_cam: np.ndarray | None) -> tuple[np.ndarray, Refinement]:
+                lidar_z: np.ndarray | None, lidar_points_cam: np.ndarray | None,
+                lidar_scan_beam: np.ndarray | None) -> tuple[np.ndarray, Refinement]:
         o = self.opts
         h, w = depth.shape
         tf = self.floor_reference(T_world_camera, T_world_base)
@@ -279,6 +397,11 @@ class DepthRefiner:
         f = self.grid.field(nodes)
         out = (depth * np.exp(f)).astype(np.float32)
         info = self._counts(True, ok, n_floor_all, n_lidar_end)
+        if (o.region_min_beams > 0 and lidar_scan_beam is not None
+                and lidar_points_cam is not None and lidar_px is not None
+                and lidar_z is not None):
+            out, info.regions = correct_regions(out, lidar_px, lidar_z, lidar_points_cam,
+                                                lidar_scan_beam, o)
         info.field_rms = float(np.sqrt(np.mean(f.astype(np.float64) ** 2)))
         info.field_max = float(np.abs(f).max())
         return out, info

@@ -181,6 +181,8 @@ def _depth_metrics(cfg: FuseConfig, st: FuseProgress, refined: bool, has_gt_dept
             "refine_field_rms_median": float(np.median(
                 [r.field_rms for r in done])) if done else 0.0,
             "refine_field_max": float(max(r.field_max for r in done)) if done else 0.0,
+            "refine_regions": int(sum(r.regions for r in done)),
+            "refine_frames_with_regions": sum(1 for r in done if r.regions),
         })
     if has_gt_depth:
         g_un, g_sc = st.acc_un.result(), st.acc_sc.result()
@@ -298,7 +300,8 @@ class FuseStage(Stage):
     # 2: floor below base_link; scans off the trajectory unused; smoothing. 3: frames
     # backed by their own pairs keep their scale; moving pixels out of the written depth.
     # 4: the camera's exposure divided out of the map's colours (exposure: gain)
-    version = 4
+    # 5: regions around lidar runs the smooth shape field cannot follow rescaled (refine)
+    version = 5
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
@@ -710,6 +713,10 @@ class FuseStage(Stage):
                       f"{m['refine_anchors_lidar_median']:.0f} lidar; median field RMS "
                       f"{100 * m['refine_field_rms_median']:.1f} %, largest "
                       f"{100 * m['refine_field_max']:.1f} %. "
+                      + (f"Regions the field could not follow (a room seen through a doorway) "
+                         f"rescaled to the lidar: {m['refine_regions']} on "
+                         f"{m['refine_frames_with_regions']} frames. "
+                         if m.get("refine_regions") else "")
                       + ("The map and the scaled depth written for later stages are the "
                          "corrected ones" if cfg.write_depth != "none" else
                          "The map is built from the corrected depth")
