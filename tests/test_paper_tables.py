@@ -82,7 +82,7 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     fuse = {"work_seconds": 3.0, "work_cpu_seconds": 3.0, "work_frames": 100,
             "lidar_unscaled_rmse_m": 1.5, "lidar_scaled_rmse_m": 0.12,
             "lidar_rmse_ratio_scaled_unscaled": 0.08, "gt_scaled_absrel": 0.03,
-            "dynamic_fraction": 0.004}
+            "gt_rmse_ratio_scaled_unscaled": 0.12, "dynamic_fraction": 0.004}
     geo = {"accuracy_mean_m": 0.02, "completeness_mean_m": 0.03, "chamfer_m": 0.025,
            "fscore_2cm": 0.5, "fscore_5cm": 0.92, "fscore_10cm": 0.97}
 
@@ -125,6 +125,7 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     assert by_label["A: fused cloud: F-score at 5 cm >= 0.9"] is True
     assert any(k.startswith("A: scaled / unscaled RMSE vs lidar") and v for k, v in
                by_label.items())
+    assert by_label["A: scaled / unscaled RMSE vs ground truth, whole images <= 0.1"] is False
     # Moving obstacles: 0.4 % of the map with the removal, 6 % in the run without it.
     assert by_label["A: map points on moving obstacles <= 1 % (without the removal: 6.00 %)"]
     assert t["table_iv"]["A"]["dynamic_fraction_without_removal"] == pytest.approx(0.06)
