@@ -105,7 +105,7 @@ class FusionConfig(BaseModel):
     # Then rescale the image region around a run of at least this many consecutive lidar
     # pairs that agree with each other but not with the field (a room seen through a
     # doorway, which networks squash; toolkit.fusion.refine.correct_regions). 0: off.
-    refine_region_beams: int = Field(6, ge=0)
+    refine_region_beams: int = Field(5, ge=0)
     # clouds and map
     stride: int = Field(2, ge=1)
     # Every near_stride-th pixel only where that spacing stays below half a voxel (depth <

@@ -61,7 +61,7 @@ class RefineOptions:
     # consecutive lidar pairs, steps under max(region_step_m, 5 % of the range), whose log
     # ratios to the field's depth have a median beyond gate_final and a median absolute
     # deviation under region_mad
-    region_min_beams: int = 6
+    region_min_beams: int = 5
     region_step_m: float = 0.1
     region_mad: float = 0.03
     region_band: float = 0.15  # log depth around the run's that the region spans
