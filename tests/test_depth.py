@@ -461,6 +461,48 @@ def test_small_network_exports_with_its_preprocessing(tmp_path: Path, rgb: np.nd
     np.testing.assert_allclose(out, ref, rtol=1e-4)  # the ONNX file outputs exp(log depth)
 
 
+def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
+    """An export's weights (BatchNorm folded into the convolutions) load into the network
+    built without BatchNorm and give the same depth; other widths are refused by name."""
+    from toolkit.depth.train_small import (
+        TrainConfig,
+        _training_text,
+        export,
+        load_onnx_weights,
+        make_model,
+    )
+
+    torch.manual_seed(0)
+    model = make_model((4, 8, 8, 8, 8))
+    model.train()
+    with torch.no_grad():  # running statistics away from their start: folding matters
+        for _ in range(3):
+            model(torch.randn(2, 3, 24, 32) * 2 + 0.5)
+    model.eval()
+    cfg = TrainConfig(out=tmp_path / "m.onnx", height=24, width=32)
+    export(model, cfg)
+    folded = make_model((4, 8, 8, 8, 8), norm=False)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    load_onnx_weights(folded, cfg.out)
+    x = torch.randn(1, 3, 48, 64)
+    with torch.no_grad():
+        np.testing.assert_allclose(folded(x).numpy(), model(x).numpy(), atol=1e-4)
+    with pytest.raises(ValueError, match="--widths"):
+        load_onnx_weights(make_model((4, 8, 8, 8, 16), norm=False), cfg.out)
+    # The card names both runs, each with its command.
+    base = {"config": {"minutes": 45.0, "train_seeds": [101, 102], "threads": 2,
+                       "widths": [4, 8, 8, 8, 8], "height": 120, "width": 160, "lr": 0.002},
+            "iterations": 900, "train_seconds": 60.0, "train_cpu_seconds": 90.0,
+            "data_seconds": 3.0, "validation": {"absrel": 0.05}}
+    tuned = TrainConfig(out=tmp_path / "t.onnx", height=240, width=320, lr=3e-4,
+                        init=cfg.out, train_seeds=(101, 102), widths=(4, 8, 8, 8, 8))
+    text = _training_text(tuned, {"iterations": 50, "train_seconds": 30.0,
+                                  "train_cpu_seconds": 50.0, "data_seconds": 2.0,
+                                  "base": base}, "")
+    assert f"--out {cfg.out}`" in text and f"--init {cfg.out}" in text
+    assert "--height 240 --width 320 --lr 0.0003" in text and "900 iterations" in text
+
+
 def test_shipped_small_model_fits_the_budget() -> None:
     from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
 
