@@ -2,11 +2,15 @@
 
     python -m toolkit.depth.train_small                # 45 min: runs/train_small/small-depth.onnx
 
-(the shipped ``datasets/models/small-depth.onnx`` was made so, with ``--out`` pointing there:
-the default leaves the shipped file and its card alone)
+    python -m toolkit.depth.train_small --init runs/train_small/small-depth.onnx \
+        --height 240 --width 320 --lr 0.0003 --minutes 25 --out OUT.onnx   # fine-tune
+
+(the shipped ``datasets/models/small-depth.onnx`` was made so, the first run at 160x120,
+the second fine-tuning it at 320x240 with ``--out`` pointing there: the default leaves the
+shipped file and its card alone)
 
 A compact U-Net (1.09 M parameters, see ``make_model``) predicts log depth from one
-RGB image at 160x120. The loss is scale-invariant (Eigen et al. 2014 with lambda = 1,
+RGB image (160x120 by default). The loss is scale-invariant (Eigen et al. 2014 with lambda = 1,
 plus a multi-scale gradient matching term on log depth as in MiDaS), so the network
 learns shape and relative depth, not metric scale: its output is ``relative_depth``
 (exp of the prediction), to be scaled by the lidar like Depth Anything's relative output.
@@ -18,9 +22,9 @@ house (seed 0, the quickstart's), rendered from poses along each house's robot r
 random yaw, height and pitch changes so that views are not all straight down the corridor.
 Renders are cached (``--cache``), so a second training run starts at once.
 
-The shipped file was made by this module's defaults (45 minutes, 40 houses) with ``--out``
-``datasets/models/small-depth.onnx`` on an otherwise idle 2-core machine; the model card
-next to it has the figures.
+The shipped file was made by this module's defaults (45 minutes, 40 houses), then
+fine-tuned 25 minutes at 320x240, on an otherwise idle 2-core machine; the model card next
+to it has both commands and the figures.
 
     python -m toolkit.depth.train_small --eval-only MODEL.onnx \
         --sequence runs/quickstart/simulate/sequence
@@ -584,6 +588,13 @@ def _run_figures(c: dict, stats: dict) -> str:
 
 
 def _training_text(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
+    import textwrap
+
+    return textwrap.fill(_training_line(cfg, stats, seq_arg), 90, break_long_words=False,
+                         break_on_hyphens=False)
+
+
+def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
     c = {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()}
     mine = _command(c, str(cfg.out), seq_arg)
     load = (f"the training's own {cfg.threads} thread(s) make a load of about "
