@@ -120,6 +120,21 @@ def test_furniture_the_lidar_passes_under_keeps_its_depth() -> None:
     assert np.max(np.abs(np.log(out[s] / truth[s]))) < 0.02
 
 
+def test_furniture_at_the_image_border_is_no_opening() -> None:
+    """The sofa reaches past the image's left border and a nearer box stands right of it:
+    one side nearer is not an opening (both sides must be), so the sofa keeps its depth."""
+    sofa: Rect = (0, 2.0, (0.3, 10.0), (0.3, 0.9))  # y >= 0.3: left, past the border
+    box: Rect = (0, 1.2, (-0.6, 0.3), (0.0, 1.5))
+    rects = [FLOOR, (0, 4.0, (-10.0, 10.0), (0.0, 3.0)), sofa, box]
+    truth, which = render(rects)
+    s = which == 2
+    assert s[:, 0].any()  # the sofa is cut by the image's left border
+    px, z, pc, sb = lidar(rects)
+    out, info = refiner().refine(truth, camera_pose(), np.eye(4), px, z, pc, sb)
+    assert info.applied and info.regions == 0
+    assert np.max(np.abs(np.log(out[s] / truth[s]))) < 0.02
+
+
 def test_lidar_runs_break_at_range_jumps_gaps_and_scans() -> None:
     ang = np.radians(np.arange(20) * 0.5)
     r = np.where(np.arange(20) < 10, 2.0, 4.0)  # a jump after beam 9

@@ -25,8 +25,9 @@ continuous surface that agree with each other but not with the field, and rescal
 image region around each run: the pixels connected to it without crossing a depth edge and
 within ``region_band`` of its depth (log), the correction tapering to nothing at the band.
 A lidar farther than the prediction is believed only through an opening (the region's left
-and right neighbours nearer than it): a 2D lidar passes under sofas and beds the camera
-above it sees, and those pairs, too, agree with each other.
+and right neighbours, each side on its own, nearer than it; a region at the image's border
+is none): a 2D lidar passes under sofas and beds the camera above it sees, and those
+pairs, too, agree with each other.
 """
 
 from __future__ import annotations
@@ -230,14 +231,22 @@ def region_around(log_depth: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
 
 def through_opening(log_depth: np.ndarray, region: np.ndarray, level: float, margin: float,
                     reach_px: int) -> bool:
-    """Whether the pixels beside ``region`` (left and right, up to ``reach_px``) lie
-    nearer than ``level`` - ``margin`` (log depth): the region is seen through an opening
-    in a nearer surface (a doorway), not a surface in front of a farther one."""
-    k = np.ones((1, 2 * reach_px + 1), np.uint8)
-    side = (cv2.dilate(region.astype(np.uint8), k) > 0) & ~region & np.isfinite(log_depth)
-    if side.sum() < 2 * reach_px:
-        return False
-    return bool(np.median(log_depth[side]) < level - margin)
+    """Whether the pixels left of ``region`` and those right of it (up to ``reach_px``),
+    each side on its own, lie nearer than ``level`` - ``margin`` (log depth): the region
+    is seen through an opening in a nearer surface (a doorway), not a surface in front of
+    a farther one. A region without one of its sides (at the image's border) is none."""
+    valid = np.isfinite(log_depth)
+    for to_left in (True, False):
+        side = np.zeros_like(region)
+        for k in range(1, reach_px + 1):
+            if to_left:  # pixel x lies k left of region pixel x + k
+                side[:, :-k] |= region[:, k:]
+            else:
+                side[:, k:] |= region[:, :-k]
+        side &= ~region & valid
+        if side.sum() < reach_px or not np.median(log_depth[side]) < level - margin:
+            return False
+    return True
 
 
 def correct_regions(depth: np.ndarray, px: np.ndarray, z: np.ndarray, points_cam: np.ndarray,
