@@ -502,6 +502,20 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
     flat = " ".join(text.split())  # the card wraps its lines
     assert f"--out {cfg.out}`" in flat and f"--init {cfg.out}" in flat
     assert "--height 240 --width 320 --lr 0.0003" in flat and "900 iterations" in flat
+    assert "First from scratch" in flat and "at the larger input" in flat
+    # A base that was itself a fine-tune at this size, its .train.json from an older
+    # release without the CPU time: said so, and no KeyError after the model is written.
+    base["config"].update(height=240, width=320, init="first.onnx")
+    del base["train_cpu_seconds"]
+    again = " ".join(_training_text(tuned, {"iterations": 50, "train_seconds": 30.0,
+                                            "train_cpu_seconds": 50.0, "data_seconds": 2.0,
+                                            "base": base}, "").split())
+    assert "First a fine-tune of `first.onnx`" in again and "? min CPU" in again
+    assert "larger input" not in again
+    bad = tmp_path / "m.train.json"
+    bad.write_text("{}")
+    with pytest.raises(ValueError, match="not an ONNX model"):
+        load_onnx_weights(make_model((4, 8, 8, 8, 8), norm=False), bad)
 
 
 def test_shipped_small_model_fits_the_budget() -> None:

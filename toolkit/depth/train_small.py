@@ -241,9 +241,16 @@ def load_onnx_weights(model: object, path: Path) -> None:
     import torch
     from onnx import numpy_helper
 
-    m = onnx.load(str(path))
-    init = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
+    try:
+        m = onnx.load(str(path))
+    except Exception as e:  # protobuf's DecodeError / ParseError, or an OSError
+        raise ValueError(f"{path}: not an ONNX model ({type(e).__name__}: {e}); --init takes "
+                         "a .onnx file exported by this script") from e
     nodes = [n for n in m.graph.node if n.op_type == "Conv"]
+    if not nodes:  # protobuf reads many a small non-ONNX file as an empty model
+        raise ValueError(f"{path}: not an ONNX model with convolutions; --init takes a .onnx "
+                         "file exported by this script")
+    init = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
     convs: list[torch.nn.Conv2d] = []
     hooks = [c.register_forward_hook(lambda mod, _i, _o: convs.append(mod))
              for c in model.modules() if isinstance(c, torch.nn.Conv2d)]  # type: ignore
@@ -257,9 +264,10 @@ def load_onnx_weights(model: object, path: Path) -> None:
     shapes = [tuple(init[n.input[1]].shape) for n in nodes]
     if len(nodes) != len(convs) or any(
             s != tuple(c.weight.shape) for s, c in zip(shapes, convs, strict=False)):
-        raise ValueError(f"{path}: its {len(nodes)} convolutions do not match this network's "
-                         f"{len(convs)} (first kernels {shapes[:3]}): give the --widths it "
-                         "was trained with (its card names them)")
+        raise ValueError(f"{path}: its {len(nodes)} convolutions (kernels {shapes[:3]} ...) "
+                         f"do not match this network's {len(convs)} (kernels "
+                         f"{[tuple(c.weight.shape) for c in convs[:3]]} ...): give the "
+                         "--widths it was trained with (its card names them)")
     with torch.no_grad():
         for node, conv in zip(nodes, convs, strict=True):
             conv.weight.copy_(torch.from_numpy(init[node.input[1]].copy()))
@@ -432,6 +440,9 @@ def train(cfg: TrainConfig) -> dict:
         state = torch.load(ckpt, weights_only=False)
         # Before the renders: a checkpoint that cannot be resumed should not cost them.
         _check_resumable(ckpt, state["config"], cfg)
+    model = make_model(cfg.widths, norm=cfg.init is None)
+    if cfg.init is not None and state is None:
+        load_onnx_weights(model, Path(cfg.init))  # before the renders, like the checkpoint
     parts = [load_or_render(s, cfg.images_per_house, cfg) for s in cfg.train_seeds]
     X = np.concatenate([p[0] for p in parts])
     D = np.concatenate([p[1] for p in parts])
@@ -440,9 +451,7 @@ def train(cfg: TrainConfig) -> dict:
     t_data = time.perf_counter() - t0
     print(f"{len(X)} training and {len(Xv)} validation images ready in {t_data:.0f} s "
           f"(CPU {time.process_time() - c0:.0f} s)", flush=True)
-    model = make_model(cfg.widths, norm=cfg.init is None)
     if cfg.init is not None and state is None:
-        load_onnx_weights(model, Path(cfg.init))
         print(f"fine-tuning {cfg.init} at {cfg.width}x{cfg.height}: "
               f"{evaluate(model, Xv, Dv)} before", flush=True)
     n_params = sum(p.numel() for p in model.parameters())  # type: ignore[attr-defined]
@@ -581,10 +590,17 @@ def _command(c: dict, out: str, seq_arg: str = "") -> str:
 
 
 def _run_figures(c: dict, stats: dict) -> str:
-    return (f"{stats['iterations']} iterations at {c['width']}x{c['height']}, lr {c['lr']:g}, "
-            f"in {stats['train_seconds'] / 60:.1f} min wall "
-            f"({stats['train_cpu_seconds'] / 60:.1f} min CPU; load average "
-            f"{stats.get('loadavg', '?')}), rendering {stats['data_seconds']:.0f} s")
+    """What a run did; a .train.json of an older release may lack some of the figures."""
+    def minutes(key: str) -> str:
+        v = stats.get(key)
+        return "?" if v is None else f"{v / 60:.1f}"
+
+    data = stats.get("data_seconds")
+    return (f"{stats.get('iterations', '?')} iterations at {c['width']}x{c['height']}, "
+            f"lr {c['lr']:g}, in {minutes('train_seconds')} min wall "
+            f"({minutes('train_cpu_seconds')} min CPU; load average "
+            f"{stats.get('loadavg', '?')}), rendering "
+            + ("?" if data is None else f"{data:.0f}") + " s")
 
 
 def _training_text(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
@@ -609,12 +625,17 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
                 f"{_run_figures(c, stats)} ({load}).")
     bc = base["config"]
     bv = base.get("validation", {})
-    return (f"**Training**, two runs on a 2-core CPU ({load}). First from scratch: "
+    first = ("First from scratch" if not bc.get("init") else
+             f"First a fine-tune of `{bc['init']}` (its own card says how that was made)")
+    grew = (cfg.height * cfg.width > bc["height"] * bc["width"])
+    folded = ("" if bc.get("init") else " The file holds each BatchNorm folded into its "
+              "convolution, so the second run trains the folded network (no BatchNorm) with "
+              "a lower learning rate.")
+    return (f"**Training**, two runs on a 2-core CPU ({load}). {first}: "
             f"`{_command(bc, str(cfg.init))}`: {_run_figures(bc, base)}; validation "
-            f"AbsRel {bv.get('absrel', float('nan')):.3f}. Then fine-tuned from that file "
-            f"at the larger input: `{mine}`: {_run_figures(c, stats)}. The file holds each "
-            "BatchNorm folded into its convolution, so the second run trains the folded "
-            "network (no BatchNorm) with a lower learning rate.")
+            f"AbsRel {bv.get('absrel', float('nan')):.3f}. Then fine-tuned from that file"
+            + (" at the larger input" if grew else "")
+            + f": `{mine}`: {_run_figures(c, stats)}.{folded}")
 
 
 def write_card(path: Path, cfg: TrainConfig, stats: dict) -> None:
@@ -635,7 +656,8 @@ delta<1.25 {seq['delta1']:.3f}; network {seq['network_ms_median']:.1f} ms per fr
     size_note = ""
     if base:
         bc = base["config"]
-        size_note = f" ({bc['width']}x{bc['height']} in the first run)"
+        if (bc["width"], bc["height"]) != (cfg.width, cfg.height):
+            size_note = f" ({bc['width']}x{bc['height']} in the first run)"
     text = f"""# small-depth.onnx: the project's small monocular depth network
 
 **What it is.** A compact U-Net ({stats['params'] / 1e6:.2f} M parameters, {size_mb:.1f} MB)
