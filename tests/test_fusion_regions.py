@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from toolkit.camera import PinholeCamera
-from toolkit.fusion.refine import DepthRefiner, RefineOptions, lidar_runs
+from toolkit.fusion.refine import DepthRefiner, RefineOptions, lidar_runs, seam_free_beams
 
 CAM = PinholeCamera.from_fov(160, 120, 90.0)
 CAM_HEIGHT_M = 0.45
@@ -147,3 +147,18 @@ def test_lidar_runs_break_at_range_jumps_gaps_and_scans() -> None:
     runs = lidar_runs(pts[order], sb[order], 0.1)
     got = sorted(sorted(sb[order][run][:, 1].tolist()) for run in runs)
     assert got == [list(range(10)), [10, 11, 12, 13, 14], [18, 19, 20], [21, 22]]
+
+
+def test_a_wall_across_a_full_scans_seam_is_one_run() -> None:
+    """A driver whose 360-beam scan starts straight ahead (0..2 pi) puts beams 359 and 0
+    side by side in the image: renumbered from the widest gap they stay one run."""
+    beams = np.array([356, 357, 358, 359, 0, 1, 2, 3])
+    ang = np.radians(np.where(beams > 180, beams - 360, beams).astype(float))
+    pts = np.stack([3.0 * np.sin(ang), np.zeros(8), np.full(8, 3.0)], 1)  # a wall 3 m ahead
+    sb = np.stack([np.zeros(8, int), beams], 1)
+    assert len(lidar_runs(pts, sb, 0.1)) == 2  # split at the seam as numbered
+    sb[:, 1] = seam_free_beams(beams, 360)
+    runs = lidar_runs(pts, sb, 0.1)
+    assert len(runs) == 1 and len(runs[0]) == 8
+    # Beams that do not cross the seam keep their order and spacing.
+    np.testing.assert_array_equal(np.diff(seam_free_beams(np.arange(10, 20), 360)), 1)

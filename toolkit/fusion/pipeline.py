@@ -39,7 +39,7 @@ from toolkit.fusion.projection import (
     sample_depth,
     zbuffer_lidar,
 )
-from toolkit.fusion.refine import DepthRefiner, Refinement, RefineOptions
+from toolkit.fusion.refine import DepthRefiner, Refinement, RefineOptions, seam_free_beams
 from toolkit.fusion.scale import (
     ScaleEstimate,
     SmoothedScale,
@@ -506,9 +506,16 @@ class Fusion:
             return depth, Refinement(False)
         v = pairs.visible
         lid = pairs.lidar
+        beam = lid.beam[v].copy()
+        for k in np.unique(lid.scan[v]):
+            scan = self.seq.scans[k]
+            n = len(scan.ranges)
+            if abs(scan.angle_increment) * n >= 2 * np.pi - 1e-6:  # full circle: a seam
+                at = lid.scan[v] == k
+                beam[at] = seam_free_beams(beam[at], n)
         return self.refiner.refine(depth, self.T_world_camera(index), self.frame_poses[index],
                                    lid.pixel[v], lid.z[v], lid.points_cam[v],
-                                   np.stack([lid.scan[v], lid.beam[v]], 1))
+                                   np.stack([lid.scan[v], beam], 1))
 
     # ------------------------------------------------------------------ exposure
     def exposure_observations(self, index: int, depth: np.ndarray, rgb: np.ndarray,

@@ -209,6 +209,19 @@ def lidar_runs(points_cam: np.ndarray, scan_beam: np.ndarray, min_step_m: float,
     return np.split(order, np.flatnonzero(brk)[1:])
 
 
+def seam_free_beams(beam: np.ndarray, n_beams: int) -> np.ndarray:
+    """[N] beam indices of one full-circle scan renumbered so that no run crosses the
+    scan's seam (beam n_beams - 1 next to beam 0: straight ahead for drivers whose scan
+    starts forward, 0..2 pi): counted from just after the widest gap between the given
+    beams, which for the pixels of one camera lies outside its view."""
+    if len(beam) < 2:
+        return beam.copy()
+    u = np.unique(beam)  # sorted
+    gaps = np.diff(np.append(u, u[0] + n_beams))  # [U] from each beam to the next, circular
+    start = u[(np.argmax(gaps) + 1) % len(u)]
+    return (beam - start) % n_beams
+
+
 def depth_edges(log_depth: np.ndarray, threshold: float) -> np.ndarray:
     """[H, W] bool: pixels whose 3 x 3 neighbourhood spans more than ``threshold`` in
     log depth, and pixels without depth (``log_depth`` NaN)."""
