@@ -4,24 +4,19 @@ squashed is put back at the lidar's depth; furniture the lidar passes under is l
 from __future__ import annotations
 
 import numpy as np
+from test_fusion_refine import CAM, camera_pose  # the tests folder is on sys.path
 
-from toolkit.camera import PinholeCamera
 from toolkit.fusion.refine import DepthRefiner, RefineOptions, lidar_runs, seam_free_beams
 
-CAM = PinholeCamera.from_fov(160, 120, 90.0)
-CAM_HEIGHT_M = 0.45
 LIDAR_HEIGHT_M = 0.25
 # An axis-aligned rectangle: (axis, position along it, (lo, hi) of the next axis,
 # (lo, hi) of the one after), axes 0 = x (forward), 1 = y (left), 2 = z (up).
 Rect = tuple[int, float, tuple[float, float], tuple[float, float]]
 
 
-def camera_pose() -> np.ndarray:
+def level_camera() -> np.ndarray:
     """T_world_camera: optical frame looking along world x, level, 0.45 m up."""
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    T[:3, 3] = [0.0, 0.0, CAM_HEIGHT_M]
-    return T
+    return camera_pose(pitch_deg=0.0)
 
 
 def cast(origin: np.ndarray, dirs: np.ndarray, rects: list[Rect]) -> tuple[np.ndarray,
@@ -44,7 +39,7 @@ def cast(origin: np.ndarray, dirs: np.ndarray, rects: list[Rect]) -> tuple[np.nd
 
 def render(rects: list[Rect]) -> tuple[np.ndarray, np.ndarray]:
     """[H, W] z-depth and [H, W] rectangle index seen by the camera."""
-    T = camera_pose()
+    T = level_camera()
     rays = CAM.pixel_rays().reshape(-1, 3)  # z_camera = 1: t is the z-depth
     t, which = cast(T[:3, 3], rays @ T[:3, :3].T, rects)
     return (t.reshape(CAM.height, CAM.width).astype(np.float32),
@@ -60,7 +55,7 @@ def lidar(rects: list[Rect]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     t, _ = cast(origin, dirs, rects)
     ok = np.isfinite(t)
     pts_w = origin + t[ok, None] * dirs[ok]
-    T_cw = np.linalg.inv(camera_pose())
+    T_cw = np.linalg.inv(level_camera())
     pc = pts_w @ T_cw[:3, :3].T + T_cw[:3, 3]
     uv, z = CAM.project(pc)
     keep = (z > 0) & CAM.in_image(uv)
@@ -87,7 +82,7 @@ def test_a_room_seen_through_a_doorway_is_put_back_at_the_lidars_depth() -> None
     beyond = (which == 1) | ((which == 0) & (truth > 1.6))  # the far room, seen through
     pred = np.where(beyond, truth * 0.65, truth).astype(np.float32)  # squashed by a third
     px, z, pc, sb = lidar(rects)
-    out, info = refiner().refine(pred, camera_pose(), np.eye(4), px, z, pc, sb)
+    out, info = refiner().refine(pred, level_camera(), np.eye(4), px, z, pc, sb)
     assert info.applied and info.regions == 1
     far_wall = which == 1
     err_before = np.median(np.abs(np.log(pred[far_wall] / truth[far_wall])))
@@ -98,7 +93,7 @@ def test_a_room_seen_through_a_doorway_is_put_back_at_the_lidars_depth() -> None
     # Without the region pass the gates drop the far wall's pairs: it stays squashed.
     plain = DepthRefiner(CAM, RefineOptions(grid=(6, 5), step_px=4, region_min_beams=0),
                          floor_height_m=0.0)
-    kept, plain_info = plain.refine(pred, camera_pose(), np.eye(4), px, z, pc, sb)
+    kept, plain_info = plain.refine(pred, level_camera(), np.eye(4), px, z, pc, sb)
     assert plain_info.regions == 0
     assert np.median(np.abs(np.log(kept[far_wall] / truth[far_wall]))) > 0.3
 
@@ -114,7 +109,7 @@ def test_furniture_the_lidar_passes_under_keeps_its_depth() -> None:
     px, z, pc, sb = lidar(rects)
     on_sofa = which[px[:, 1], px[:, 0]] == 2
     assert on_sofa.mean() > 0.6  # the pairs the region pass must not believe
-    out, info = refiner().refine(truth, camera_pose(), np.eye(4), px, z, pc, sb)
+    out, info = refiner().refine(truth, level_camera(), np.eye(4), px, z, pc, sb)
     assert info.applied and info.regions == 0
     s = which == 2
     assert np.max(np.abs(np.log(out[s] / truth[s]))) < 0.02
@@ -130,7 +125,7 @@ def test_furniture_at_the_image_border_is_no_opening() -> None:
     s = which == 2
     assert s[:, 0].any()  # the sofa is cut by the image's left border
     px, z, pc, sb = lidar(rects)
-    out, info = refiner().refine(truth, camera_pose(), np.eye(4), px, z, pc, sb)
+    out, info = refiner().refine(truth, level_camera(), np.eye(4), px, z, pc, sb)
     assert info.applied and info.regions == 0
     assert np.max(np.abs(np.log(out[s] / truth[s]))) < 0.02
 

@@ -345,6 +345,10 @@ class Fusion:
         # share it; the finest one is the strictest test)
         steps = [abs(s.angle_increment) for s in seq.scans[:1]]
         self._beam_step = float(min(steps)) if steps else np.radians(1.0)
+        # [S] beams of each full-circle scan (its last beam next to its first), 0 for others
+        self._seam_beams = np.array(
+            [len(sc.ranges) if abs(sc.angle_increment) * len(sc.ranges) >= 2 * np.pi - 1e-6
+             else 0 for sc in seq.scans], np.int64)
         self.refiner = None if config.refine == "none" else DepthRefiner(
             self.camera, config.refine_options(),
             config.floor_height_m if config.refine == "floor_lidar" else None)
@@ -508,11 +512,9 @@ class Fusion:
         lid = pairs.lidar
         beam = lid.beam[v].copy()
         for k in np.unique(lid.scan[v]):
-            scan = self.seq.scans[k]
-            n = len(scan.ranges)
-            if abs(scan.angle_increment) * n >= 2 * np.pi - 1e-6:  # full circle: a seam
+            if self._seam_beams[k]:
                 at = lid.scan[v] == k
-                beam[at] = seam_free_beams(beam[at], n)
+                beam[at] = seam_free_beams(beam[at], int(self._seam_beams[k]))
         return self.refiner.refine(depth, self.T_world_camera(index), self.frame_poses[index],
                                    lid.pixel[v], lid.z[v], lid.points_cam[v],
                                    np.stack([lid.scan[v], beam], 1))

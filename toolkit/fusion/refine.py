@@ -39,6 +39,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from toolkit.camera import PinholeCamera
+from toolkit.fusion.cloud import edge_mask
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,7 @@ class RefineOptions:
     region_step_m: float = 0.1
     region_mad: float = 0.03
     region_band: float = 0.15  # log depth around the run's that the region spans
-    region_edge: float = 0.1  # log-depth range over 3 x 3 pixels that bounds a region
+    region_edge: float = 0.1  # log depth jump over 3 x 3 pixels that bounds a region
     # through an opening: the region's side neighbours this much nearer (log)
     region_opening: float = 0.1
 
@@ -222,15 +223,6 @@ def seam_free_beams(beam: np.ndarray, n_beams: int) -> np.ndarray:
     return (beam - start) % n_beams
 
 
-def depth_edges(log_depth: np.ndarray, threshold: float) -> np.ndarray:
-    """[H, W] bool: pixels whose 3 x 3 neighbourhood spans more than ``threshold`` in
-    log depth, and pixels without depth (``log_depth`` NaN)."""
-    valid = np.isfinite(log_depth)
-    L = np.where(valid, log_depth, 0.0).astype(np.float32)
-    k = np.ones((3, 3), np.uint8)
-    return ((cv2.dilate(L, k) - cv2.erode(L, k)) > threshold) | ~valid
-
-
 def region_around(log_depth: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
                   level: float, band: float) -> np.ndarray:
     """[H, W] bool: pixels within ``band`` of ``level`` (log depth) connected (4
@@ -275,7 +267,8 @@ def correct_regions(depth: np.ndarray, px: np.ndarray, z: np.ndarray, points_cam
         return depth, 0
     with np.errstate(divide="ignore", invalid="ignore"):
         L = np.where(np.isfinite(depth) & (depth > 0), np.log(depth), np.nan)  # [H, W]
-    edges = depth_edges(L, o.region_edge)
+    # The map's flying-pixel test over 3 x 3 pixels, its relative jump the log range's
+    edges = edge_mask(depth, float(np.expm1(o.region_edge)), window=3) | ~np.isfinite(L)
     cols, rows = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.log(z) - L[rows, cols]  # [N] log(lidar / depth)
