@@ -19,7 +19,7 @@ measured and the smoothness carries the field up from the lidar.
 
 A smooth field cannot follow one surface the network put at the wrong depth on its own: a
 room seen through a doorway, which monocular networks squash towards the near walls around
-it (the shipped network put a wall 5.7 m away at 3.7 m). The gates drop those lidar pairs
+it (session 12's network put a wall 5.7 m away at 3.7 m). The gates drop those lidar pairs
 as outliers. ``correct_regions`` then looks for runs of consecutive lidar pairs on one
 continuous surface that agree with each other but not with the field, and rescales the
 image region around each run: the pixels connected to it without crossing a depth edge and
