@@ -1,11 +1,19 @@
 """Projection against known geometry, flying-pixel removal, voxel map bookkeeping."""
 
+import cv2
 import numpy as np
 import pytest
 
 from toolkit.camera import PinholeCamera
 from toolkit.eval.depth import depth_errors
-from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, edge_mask
+from toolkit.fusion.cloud import (
+    CloudOptions,
+    RayCache,
+    depth_to_points,
+    edge_mask,
+    ramp_mask,
+    valid_pixels,
+)
 from toolkit.fusion.projection import (
     LidarPixels,
     LidarProjector,
@@ -180,6 +188,42 @@ def test_edge_mask_drops_flying_pixels_only() -> None:
     m = edge_mask(d, 0.06, 5)
     assert m[:, 37:43].all()
     assert not m[:, :33].any() and not m[:, 47:].any()
+
+
+def test_ramp_mask_passes_planes_at_any_slant() -> None:
+    # A floor 0.45 m below a camera pitched 10 deg down, and a wall slanted 37 deg across
+    # the view: only the line where they meet bends (border pixels included: planes are
+    # continued past the image's edge).
+    cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    rays = cam.pixel_rays()  # [H, W, 3], z = 1
+    c, s = np.cos(np.radians(10)), np.sin(np.radians(10))
+    d = rays @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T
+    with np.errstate(divide="ignore"):
+        t_floor = np.where(d[..., 1] > 1e-6, 0.45 / d[..., 1], np.inf)
+        n = np.array([0.6, 0.0, -0.8])
+        t_wall = np.where(d @ n < -1e-6, -5.0 / (d @ n), np.inf)
+    depth = (np.minimum(t_floor, t_wall) * rays[..., 2]).astype(np.float32)  # [H, W]
+    floor = (t_floor < t_wall).astype(np.uint8)
+    corner = cv2.dilate(cv2.morphologyEx(floor, cv2.MORPH_GRADIENT, np.ones((3, 3))),
+                        np.ones((9, 9), np.uint8)).astype(bool)
+    m = ramp_mask(depth, 0.003)
+    assert not (m & ~corner).any()
+    assert m[corner].mean() > 0.3  # the corner itself does bend
+
+
+def test_ramp_mask_finds_gentle_ramps_the_range_test_misses() -> None:
+    # A chair 3.6 m away in front of a wall at 4 m, the edge blurred over 6 pixels as a
+    # smooth network draws it: each 5-pixel window spans under 6 % of the depth.
+    d = np.full((60, 80), 4.0, np.float32)
+    d[:, 40:] = 3.6
+    d[:, 37:43] = np.linspace(4.0, 3.6, 8)[1:-1]
+    edge = edge_mask(d, 0.06, 5)
+    ramp = ramp_mask(d, 0.003)
+    assert edge[:, 37:43].mean() < 0.5
+    assert (edge | ramp)[:, 37:43].mean() > 0.8
+    assert not ramp[:, :32].any() and not ramp[:, 48:].any()
+    ok = valid_pixels(d, CloudOptions(ramp_threshold=0.003))
+    np.testing.assert_array_equal(ok, ~(edge | ramp))
 
 
 def test_depth_to_points_transform_colour_and_range() -> None:

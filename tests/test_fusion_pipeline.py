@@ -265,6 +265,8 @@ def test_fusion_bench_times_a_recipe_stage_as_it_runs(box_room: Path, tmp_path: 
     assert (cfg["refine_grid"], cfg["refine_gate"], cfg["refine_gate_final"]) == ([12, 9], 0.2, 0.1)
     assert (cfg["refine"], cfg["consensus"], cfg["smoothing"]) == ("floor_lidar", True, "none")
     assert res["stride"] == 4 and res["stage"] == "fuse_net" and res["frames"] == 4
+    # The network row drops ramps: timed on smooth predictions, as a network's are.
+    assert cfg["ramp_threshold"] > 0 and res["preset"] == "scale_only"
     with pytest.raises(SystemExit):
         main(["--sequence", str(box_room), "--recipe", str(recipe), "--stage", "depth_net",
               "--out", str(out)])

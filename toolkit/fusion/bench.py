@@ -8,7 +8,9 @@ with every run's frames/s beside them.
 
 Predictions come from the ``simulated`` backend (computed before the clock starts) on a
 simulator sequence, or on the synthetic box room rendered at 640x480 when no sequence is
-given. The timed part is what the ``fuse`` stage does per frame - lidar projection,
+given: preset ``paper``, or ``scale_only`` for a stage with ``ramp_threshold`` (smooth
+predictions, as a network's: the ramp test drops most of ``paper``'s noisy pixels);
+``--preset`` chooses. The timed part is what the ``fuse`` stage does per frame - lidar projection,
 scale estimation, the exposure gains (``exposure: gain``), scaling, shape correction
 (``--refine``), flying-pixel filtering, back-projection, voxel integration (and the
 consensus TSDF, ``--consensus``) -
@@ -31,20 +33,22 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.cli_types import positive_int
+from toolkit.depth.simulated import PRESETS
 from toolkit.fusion.exposure import corrected_image, frames_to_solve, solve_exposure
 from toolkit.fusion.pipeline import FusionConfig
 
 
 def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: int = 2,
               refine: str = "none", consensus: bool = False, repeat: int = 1,
-              config: FusionConfig | None = None) -> dict:
+              config: FusionConfig | None = None, preset: str = "paper") -> dict:
     """Figures of the best of ``repeat`` timed runs (each with a fresh fusion) and every
     run's frames/s: on a shared machine neighbours only ever slow a run down, so the
     fastest is the least disturbed estimate (what ``timeit`` reports too).
 
     ``config``: every fusion setting (``method``, ``stride``, ``refine`` and ``consensus``
-    are then ignored); None builds one from those four and the defaults."""
-    from toolkit.depth.simulated import SimulatedDepthBackend
+    are then ignored); None builds one from those four and the defaults. ``preset``: the
+    ``simulated`` backend's."""
+    from toolkit.depth.simulated import SimulatedDepthBackend, SimulatedDepthParams
     from toolkit.deskew import deskew_sequence
     from toolkit.fusion.pipeline import pose_arrays, scans_covered
     from toolkit.io.sequence import read_sequence
@@ -53,7 +57,7 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     gt = seq.groundtruth
     n = min(frames, len(seq.frames))
     idx = np.arange(n)  # consecutive frames, as the stage sees them
-    backend = SimulatedDepthBackend()
+    backend = SimulatedDepthBackend(SimulatedDepthParams(**PRESETS[preset]))
     preds, imgs = {}, {}
     for i in idx:
         imgs[i] = seq.frames[i].image
@@ -71,7 +75,7 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     return {
         "sequence": str(seq_path), "image": f"{w}x{h}", "frames": int(n),
         "scale": config.scale, "refine": config.refine, "consensus": config.consensus,
-        "exposure": config.exposure,
+        "exposure": config.exposure, "preset": preset,
         "stride": config.stride, "repeat": len(runs),
         "fusion_config": config.model_dump(mode="json"),
         **best,
@@ -142,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--exposure", choices=["none", "gain"], default=None,
                     help="exposure gains solved and divided out (default: the --stage's, "
                     "else gain)")
+    ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                    help="the simulated predictions' preset (default paper; scale_only for a "
+                         "stage with ramp_threshold)")
     ap.add_argument("--recipe", type=Path, default=None,
                     help="take the fusion settings from a fuse stage of this recipe")
     ap.add_argument("--stage", default=None, help="id of that fuse stage (with --recipe)")
@@ -165,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
 
             seq = write_box_room(Path(tmp) / "box", n_frames=min(a.frames, 60), width=640,
                                  height=480)
-        res = run_bench(seq, a.frames, repeat=a.repeat, config=config)
+        preset = a.preset or ("scale_only" if config.ramp_threshold > 0 else "paper")
+        res = run_bench(seq, a.frames, repeat=a.repeat, config=config, preset=preset)
     if a.recipe is not None:
         res.update({"recipe": str(a.recipe), "stage": a.stage})
     res.update({"cores": os.cpu_count(), "loadavg_before": load0,

@@ -29,6 +29,11 @@ class CloudOptions:
     # sees, with fewer redundant points (0: off).
     near_stride: int = 0
     near_depth_m: float = 0.0
+    # Drop pixels where inverse depth bends: |Laplacian(1 / z)| x z above this, after a
+    # 1-pixel Gaussian (0: off). Any plane is affine in inverse depth, so flat surfaces
+    # pass whatever their slant; the gentle ramps a smooth network draws across depth
+    # edges bend at both ends and are too gradual for the range test above.
+    ramp_threshold: float = 0.0
 
 
 class RayCache:
@@ -82,7 +87,22 @@ def valid_pixels(depth: np.ndarray, opts: CloudOptions) -> np.ndarray:
         ok = np.isfinite(depth) & (depth >= opts.min_depth_m) & (depth <= opts.max_depth_m)
     if opts.edge_threshold > 0:
         ok &= ~edge_mask(depth, opts.edge_threshold, opts.edge_window)
+    if opts.ramp_threshold > 0:
+        ok &= ~ramp_mask(depth, opts.ramp_threshold)
     return ok
+
+
+def ramp_mask(depth: np.ndarray, threshold: float) -> np.ndarray:
+    """[H, W] bool: pixels where the inverse depth is not locally planar, its Laplacian
+    (after a 1-pixel Gaussian) above ``threshold`` x the inverse depth itself. Pixels
+    next to invalid ones (non-finite or <= 0) count as bent."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(np.isfinite(depth) & (depth > 0), 1.0 / depth, 0.0).astype(np.float32)
+    # Continued linearly past the border (odd reflection): a mirrored plane would bend there.
+    r = 4  # the Gaussian's 3 pixels and the Laplacian's 1
+    padded = np.pad(inv, r, mode="reflect", reflect_type="odd")
+    lap = cv2.Laplacian(cv2.GaussianBlur(padded, (7, 7), 1.0), cv2.CV_32F, ksize=3)
+    return np.abs(lap[r:-r, r:-r]) > threshold * inv
 
 
 def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,

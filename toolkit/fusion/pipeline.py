@@ -115,6 +115,10 @@ class FusionConfig(BaseModel):
     min_depth_m: float = Field(0.2, ge=0)
     max_depth_m: float = Field(6.0, gt=0)
     edge_threshold: float = 0.06
+    # Pixels where the scaled depth's inverse bends by more than this (relative Laplacian,
+    # cloud.ramp_mask) stay out of the map: a smooth network's ramps across depth edges
+    # (0: off).
+    ramp_threshold: float = Field(0.0, ge=0)
     voxel_size_m: float = Field(0.02, gt=0)
     min_voxel_frames: int = Field(1, ge=1)
     # Multi-view consensus: the same depth also goes into a coarse TSDF (Open3D), whose
@@ -175,7 +179,7 @@ class FusionConfig(BaseModel):
         """Cloud settings; ``fx`` (pixels) sets the depth below which ``near_stride`` holds."""
         near = self.voxel_size_m * fx / (2 * self.near_stride) if self.near_stride else 0.0
         return CloudOptions(self.min_depth_m, self.max_depth_m, self.edge_threshold, 5,
-                            self.stride, self.near_stride, near)
+                            self.stride, self.near_stride, near, self.ramp_threshold)
 
     def refine_options(self) -> RefineOptions:
         return RefineOptions(grid=self.refine_grid, gate=self.refine_gate,
