@@ -512,6 +512,23 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
                                             "base": base}, "").split())
     assert "First a fine-tune of `first.onnx`" in again and "? min CPU" in again
     assert "larger input" not in again
+    # Three runs: each named with its command, in order, whatever the chain's length.
+    base["config"].update(height=120, width=160, init=None)
+    second = {"config": {**base["config"], "height": 240, "width": 320, "lr": 3e-4,
+                         "init": "s12.onnx"}, "iterations": 2267, "train_seconds": 1500.0,
+              "validation": {"absrel": 0.04}, "base": base}
+    third = TrainConfig(out=tmp_path / "t3.onnx", height=240, width=320, lr=2e-4,
+                        init=tmp_path / "s17.onnx", train_seeds=(101, 102),
+                        widths=(4, 8, 8, 8, 8))
+    chain = " ".join(_training_text(third, {"iterations": 3763, "train_seconds": 3000.0,
+                                            "base": second}, "").split())
+    assert chain.startswith("**Training**, three runs")
+    order = [chain.index(t) for t in ("First from scratch", "--out s12.onnx`",
+                                      "Then fine-tuned from that file at the larger input",
+                                      f"--out {tmp_path / 's17.onnx'}`", "2267 iterations",
+                                      "Then fine-tuned from that file:",
+                                      f"--out {third.out}`", "3763 iterations")]
+    assert order == sorted(order)
     bad = tmp_path / "m.train.json"
     bad.write_text("{}")
     with pytest.raises(ValueError, match="not an ONNX model"):

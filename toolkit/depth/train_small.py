@@ -616,26 +616,43 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
     load = (f"the training's own {cfg.threads} thread(s) make a load of about "
             f"{cfg.threads * 0.75:g}-{cfg.threads:g}; on a busier machine the same minutes "
             "run fewer iterations")
-    base = stats.get("base")
     if cfg.init is None:
         return (f"**Training.** `{mine}` on a 2-core CPU: {_run_figures(c, stats)} ({load}).")
-    if not base:
+    # The runs this one continues, oldest first: each .train.json holds its base's.
+    chain: list[dict] = []
+    b = stats.get("base")
+    while b:
+        chain.insert(0, b)
+        b = b.get("base")
+    if not chain:
         return (f"**Training.** Fine-tuned from `{cfg.init}` (no .train.json beside it to "
                 f"say how that was trained): `{mine}` on a 2-core CPU: "
                 f"{_run_figures(c, stats)} ({load}).")
-    bc = base["config"]
-    bv = base.get("validation", {})
-    first = ("First from scratch" if not bc.get("init") else
-             f"First a fine-tune of `{bc['init']}` (its own card says how that was made)")
-    grew = (cfg.height * cfg.width > bc["height"] * bc["width"])
-    folded = ("" if bc.get("init") else " The file holds each BatchNorm folded into its "
-              "convolution, so the second run trains the folded network (no BatchNorm) with "
-              "a lower learning rate.")
-    return (f"**Training**, two runs on a 2-core CPU ({load}). {first}: "
-            f"`{_command(bc, str(cfg.init))}`: {_run_figures(bc, base)}; validation "
-            f"AbsRel {bv.get('absrel', float('nan')):.3f}. Then fine-tuned from that file"
-            + (" at the larger input" if grew else "")
-            + f": `{mine}`: {_run_figures(c, stats)}.{folded}")
+    runs = [(r["config"], r) for r in chain] + [(c, stats)]
+    numbers = {2: "two", 3: "three", 4: "four"}
+    parts = [f"**Training**, {numbers.get(len(runs), str(len(runs)))} runs on a 2-core CPU "
+             f"({load})."]
+    for k, (rc, rs) in enumerate(runs):
+        # The path each run wrote: the next run's --init, or this run's own --out.
+        out = str(cfg.out) if k == len(runs) - 1 else str(runs[k + 1][0]["init"])
+        cmd = mine if k == len(runs) - 1 else _command(rc, out)
+        figures = _run_figures(rc, rs)
+        if k < len(runs) - 1:
+            absrel = rs.get("validation", {}).get("absrel", float("nan"))
+            figures += f"; validation AbsRel {absrel:.3f}"
+        if k == 0:
+            head = ("First from scratch" if not rc.get("init") else
+                    f"First a fine-tune of `{rc['init']}` (its own card says how that was made)")
+        else:
+            prev = runs[k - 1][0]
+            grew = rc["height"] * rc["width"] > prev["height"] * prev["width"]
+            head = "Then fine-tuned from that file" + (" at the larger input" if grew else "")
+        parts.append(f"{head}: `{cmd}`: {figures}.")
+        if k == 1 and not runs[0][0].get("init"):
+            parts.append("The file holds each BatchNorm folded into its convolution, so the "
+                         "fine-tunes train the folded network (no BatchNorm) with a lower "
+                         "learning rate.")
+    return " ".join(parts)
 
 
 def write_card(path: Path, cfg: TrainConfig, stats: dict) -> None:
