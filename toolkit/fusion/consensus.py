@@ -72,6 +72,10 @@ class ConsensusSurface(GridCheckpoint):
                 d = np.where(valid[::s, ::s], d, np.float32(0.0))
         with np.errstate(invalid="ignore"):
             ok = (d > 0) & (d <= self.depth_max_m)
+        if not ok.any():
+            # Nothing to add (every pixel masked, e.g. noisy depth under the ramp test):
+            # Open3D would refuse a frame that touches no block.
+            return
         d16 = np.where(ok, np.round(d * self.depth_scale), 0).astype(np.uint16)
         img = o3d.t.geometry.Image(o3c.Tensor(d16))
         ext = o3c.Tensor(inv_se3(T_world_camera), o3c.float64)  # world -> camera
@@ -93,8 +97,16 @@ class ConsensusSurface(GridCheckpoint):
                 self._surface = np.zeros((0, 3))
             else:
                 # Weight above 0.5: every voxel a frame reached counts (one frame = 1).
-                pcd = self.grid.extract_point_cloud(weight_threshold=0.5)
-                self._surface = pcd.point.positions.numpy().astype(np.float64)
+                try:
+                    pcd = self.grid.extract_point_cloud(weight_threshold=0.5)
+                    self._surface = pcd.point.positions.numpy().astype(np.float64)
+                except RuntimeError as e:
+                    # Open3D 0.20 raises when it finds no surface point ("Tensor has shape
+                    # {0}"): frames with only a few pixels, or a plane exactly on the
+                    # voxel grid. No surface, not a failed run.
+                    if "shape {0}" not in str(e):
+                        raise
+                    self._surface = np.zeros((0, 3))
         return self._surface
 
     def off_surface(self, points: np.ndarray, max_distance_m: float) -> np.ndarray:

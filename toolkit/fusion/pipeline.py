@@ -115,7 +115,7 @@ class FusionConfig(BaseModel):
     min_depth_m: float = Field(0.2, ge=0)
     max_depth_m: float = Field(6.0, gt=0)
     edge_threshold: float = 0.06
-    # Pixels where the scaled depth's inverse bends by more than this (relative Laplacian,
+    # Pixels where the scaled depth's inverse bends by more than this (relative 3x3 Laplacian,
     # cloud.ramp_mask) stay out of the map: a smooth network's ramps across depth edges
     # (0: off).
     ramp_threshold: float = Field(0.0, ge=0)
@@ -646,7 +646,9 @@ class Fusion:
             masks["free_views"] = counter.free[inv]
             masks["hit_views"] = counter.hit[inv]
         keep = ~masks["dynamic"]
-        if self.consensus is not None and self.consensus.frames and keep.any():
+        # A consensus without a surface (frames of a few pixels each) judges nothing.
+        if (self.consensus is not None and self.consensus.frames and keep.any()
+                and len(self.consensus.surface())):
             idx = np.flatnonzero(keep)
             off = self.consensus.off_surface(raw.points[idx], c.consensus_m)
             masks["consensus"][idx[off]] = True
