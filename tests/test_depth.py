@@ -470,6 +470,7 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
         export,
         load_onnx_weights,
         make_model,
+        write_card,
     )
 
     torch.manual_seed(0)
@@ -529,6 +530,14 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
                                       "Then fine-tuned from that file:",
                                       f"--out {third.out}`", "3763 iterations")]
     assert order == sorted(order)
+    assert chain.index("BatchNorm") < chain.index("Then fine-tuned")  # said of run 1's file
+    # The card's data line names the first run's input size, not the previous run's.
+    third.out.write_bytes(b"onnx")
+    write_card(tmp_path / "card.md", third,
+               {"iterations": 3763, "train_seconds": 3000.0, "base": second, "params": 1000,
+                "images": 300, "validation": {"absrel": 0.04, "rmse_m": 0.2, "delta1": 0.98}})
+    card = " ".join((tmp_path / "card.md").read_text().split())
+    assert "(160x120 in the first run)" in card
     bad = tmp_path / "m.train.json"
     bad.write_text("{}")
     with pytest.raises(ValueError, match="not an ONNX model"):

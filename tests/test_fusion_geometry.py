@@ -213,7 +213,7 @@ def test_ramp_mask_passes_planes_at_any_slant() -> None:
 
 def test_ramp_mask_finds_gentle_ramps_the_range_test_misses() -> None:
     # A chair 3.6 m away in front of a wall at 4 m, the edge blurred over 6 pixels as a
-    # smooth network draws it: each 5-pixel window spans under 6 % of the depth.
+    # smooth network draws it: a 5x5 window spans at most 6.2 % of the depth.
     d = np.full((60, 80), 4.0, np.float32)
     d[:, 40:] = 3.6
     d[:, 37:43] = np.linspace(4.0, 3.6, 8)[1:-1]

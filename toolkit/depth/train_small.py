@@ -629,7 +629,8 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
                 f"say how that was trained): `{mine}` on a 2-core CPU: "
                 f"{_run_figures(c, stats)} ({load}).")
     runs = [(r["config"], r) for r in chain] + [(c, stats)]
-    numbers = {2: "two", 3: "three", 4: "four"}
+    numbers = dict(enumerate(("two", "three", "four", "five", "six", "seven", "eight",
+                              "nine"), start=2))
     parts = [f"**Training**, {numbers.get(len(runs), str(len(runs)))} runs on a 2-core CPU "
              f"({load})."]
     for k, (rc, rs) in enumerate(runs):
@@ -648,10 +649,10 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
             grew = rc["height"] * rc["width"] > prev["height"] * prev["width"]
             head = "Then fine-tuned from that file" + (" at the larger input" if grew else "")
         parts.append(f"{head}: `{cmd}`: {figures}.")
-        if k == 1 and not runs[0][0].get("init"):
-            parts.append("The file holds each BatchNorm folded into its convolution, so the "
-                         "fine-tunes train the folded network (no BatchNorm) with a lower "
-                         "learning rate.")
+        if k == 0 and not rc.get("init"):
+            parts.append("The file it wrote holds each BatchNorm folded into its "
+                         "convolution, so the fine-tunes train the folded network (no "
+                         "BatchNorm) with a lower learning rate.")
     return " ".join(parts)
 
 
@@ -669,10 +670,12 @@ delta<1.25 {seq['delta1']:.3f}; network {seq['network_ms_median']:.1f} ms per fr
     seq_arg = f" --sequence {seq['sequence']}" if seq else ""
     crop_text = (f"random {cfg.crop_width}x{cfg.crop_height} crops (same pixel scale), "
                  if cfg.crop_height else "whole frames, ")
-    base = stats.get("base")
+    first = stats.get("base")
+    while first and first.get("base"):
+        first = first["base"]  # the oldest run of a fine-tune chain
     size_note = ""
-    if base:
-        bc = base["config"]
+    if first:
+        bc = first["config"]
         if (bc["width"], bc["height"]) != (cfg.width, cfg.height):
             size_note = f" ({bc['width']}x{bc['height']} in the first run)"
     text = f"""# small-depth.onnx: the project's small monocular depth network

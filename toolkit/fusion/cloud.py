@@ -29,10 +29,11 @@ class CloudOptions:
     # sees, with fewer redundant points (0: off).
     near_stride: int = 0
     near_depth_m: float = 0.0
-    # Drop pixels where inverse depth bends: |Laplacian(1 / z)| x z above this, after a
-    # 1-pixel Gaussian (0: off). Any plane is affine in inverse depth, so flat surfaces
-    # pass whatever their slant; the gentle ramps a smooth network draws across depth
-    # edges bend at both ends and are too gradual for the range test above.
+    # Drop pixels where inverse depth bends: |L(1 / z)| x z above this, L OpenCV's 3x3
+    # Laplacian aperture (4x the 5-point one) after a 1-pixel Gaussian (0: off). Any
+    # plane is affine in inverse depth, so flat surfaces pass whatever their slant; the
+    # gentle ramps a smooth network draws across depth edges bend at both ends and are
+    # too gradual for the range test above.
     ramp_threshold: float = 0.0
 
 
@@ -93,9 +94,10 @@ def valid_pixels(depth: np.ndarray, opts: CloudOptions) -> np.ndarray:
 
 
 def ramp_mask(depth: np.ndarray, threshold: float) -> np.ndarray:
-    """[H, W] bool: pixels where the inverse depth is not locally planar, its Laplacian
-    (after a 1-pixel Gaussian) above ``threshold`` x the inverse depth itself. Pixels
-    next to invalid ones (non-finite or <= 0) count as bent."""
+    """[H, W] bool: pixels where the inverse depth is not locally planar: its Laplacian
+    (OpenCV's 3x3 aperture [[2, 0, 2], [0, -8, 0], [2, 0, 2]], 4x the 5-point one; after a
+    1-pixel Gaussian) above ``threshold`` x the inverse depth itself. Pixels within 4 of
+    invalid ones (non-finite or <= 0) count as bent."""
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(np.isfinite(depth) & (depth > 0), 1.0 / depth, 0.0).astype(np.float32)
     # Continued linearly past the border (odd reflection): a mirrored plane would bend there.
