@@ -10,11 +10,11 @@ Predictions come from the ``simulated`` backend (computed before the clock start
 simulator sequence, or on the synthetic box room rendered at 640x480 when no sequence is
 given: preset ``paper``, or ``scale_only`` for a stage with ``ramp_threshold`` (smooth
 predictions, as a network's: the ramp test drops most of ``paper``'s noisy pixels);
-``--preset`` chooses. The timed part is what the ``fuse`` stage does per frame - lidar projection,
-scale estimation, the exposure gains (``exposure: gain``), scaling, shape correction
-(``--refine``), flying-pixel filtering, back-projection, voxel integration (and the
-consensus TSDF, ``--consensus``) -
-plus, separately, the end-of-run work (carving moving obstacles, outlier removal).
+``--preset`` chooses. The timed part is what the ``fuse`` stage does per frame - lidar
+projection, scale estimation, the exposure gains (``exposure: gain``), scaling, shape
+correction (``--refine``), flying-pixel filtering, back-projection, voxel integration (and
+the consensus TSDF, ``--consensus``) - plus, separately, the end-of-run work (carving
+moving obstacles, outlier removal).
 
 ``--recipe`` with ``--stage`` takes every fusion setting from that ``fuse`` stage of the
 recipe (its refine grid and gates, smoothing, consensus, ...), so a recipe's row is timed
