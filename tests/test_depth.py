@@ -530,6 +530,12 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
                                       "Then fine-tuned from that file:",
                                       f"--out {third.out}`", "3763 iterations")]
     assert order == sorted(order)
+    # A run whose file was copied before the next one started from it says where to.
+    second["config"]["out"] = "scratch/s17.onnx"
+    moved = " ".join(_training_text(third, {"iterations": 3763, "train_seconds": 3000.0,
+                                            "base": second}, "").split())
+    assert "--out scratch/s17.onnx`" in moved
+    assert f"the file copied to `{tmp_path / 's17.onnx'}`" in moved
     assert chain.index("BatchNorm") < chain.index("Then fine-tuned")  # said of run 1's file
     # The card's data line names the first run's input size, not the previous run's.
     third.out.write_bytes(b"onnx")

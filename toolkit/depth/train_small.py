@@ -634,13 +634,18 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
     parts = [f"**Training**, {numbers.get(len(runs), str(len(runs)))} runs on a 2-core CPU "
              f"({load})."]
     for k, (rc, rs) in enumerate(runs):
-        # The path each run wrote: the next run's --init, or this run's own --out.
-        out = str(cfg.out) if k == len(runs) - 1 else str(runs[k + 1][0]["init"])
-        cmd = mine if k == len(runs) - 1 else _command(rc, out)
+        last = k == len(runs) - 1
+        # The path each run wrote (as its .train.json records it; else the next run's
+        # --init), and where the next run found it when the file was moved in between.
+        nxt = None if last else str(runs[k + 1][0]["init"])
+        out = str(cfg.out) if last else str(rc.get("out") or nxt)
+        cmd = mine if last else _command(rc, out)
         figures = _run_figures(rc, rs)
-        if k < len(runs) - 1:
+        if not last:
             absrel = rs.get("validation", {}).get("absrel", float("nan"))
             figures += f"; validation AbsRel {absrel:.3f}"
+            if nxt != out:
+                figures += f"; the file copied to `{nxt}`"
         if k == 0:
             head = ("First from scratch" if not rc.get("init") else
                     f"First a fine-tune of `{rc['init']}` (its own card says how that was made)")
