@@ -162,8 +162,8 @@ class FusionConfig(BaseModel):
     # per colour channel over the frames' overlaps before the map pass and divides it out
     # of the colours the map takes (the tsdf and splat stages read the same gains); the
     # geometry is unchanged. On by default: most robot cameras run auto exposure, and at a
-    # fixed exposure the gains come out within 0.4 % of 1 (the quickstart), for about
-    # 3.5 ms of fusion work a frame.
+    # fixed exposure the gains come out within 0.3-0.6 % of 1 (the quickstart and the
+    # benchmark's rows), for about 3.5 ms of fusion work a frame.
     exposure: Literal["none", "gain"] = "gain"
     exposure_cell_m: float = Field(0.10, gt=0)  # surface cells the frames are compared on
     exposure_stride: int = Field(4, ge=1)  # pixels sampled for that, in both directions
