@@ -603,6 +603,17 @@ def _run_figures(c: dict, stats: dict) -> str:
             + ("?" if data is None else f"{data:.0f}") + " s")
 
 
+def _base_chain(stats: dict) -> list[dict]:
+    """The runs a training run continues, oldest first: each .train.json holds its
+    base's."""
+    chain: list[dict] = []
+    b = stats.get("base")
+    while b:
+        chain.insert(0, b)
+        b = b.get("base")
+    return chain
+
+
 def _training_text(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
     import textwrap
 
@@ -618,12 +629,7 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
             "run fewer iterations")
     if cfg.init is None:
         return (f"**Training.** `{mine}` on a 2-core CPU: {_run_figures(c, stats)} ({load}).")
-    # The runs this one continues, oldest first: each .train.json holds its base's.
-    chain: list[dict] = []
-    b = stats.get("base")
-    while b:
-        chain.insert(0, b)
-        b = b.get("base")
+    chain = _base_chain(stats)
     if not chain:
         return (f"**Training.** Fine-tuned from `{cfg.init}` (no .train.json beside it to "
                 f"say how that was trained): `{mine}` on a 2-core CPU: "
@@ -675,12 +681,10 @@ delta<1.25 {seq['delta1']:.3f}; network {seq['network_ms_median']:.1f} ms per fr
     seq_arg = f" --sequence {seq['sequence']}" if seq else ""
     crop_text = (f"random {cfg.crop_width}x{cfg.crop_height} crops (same pixel scale), "
                  if cfg.crop_height else "whole frames, ")
-    first = stats.get("base")
-    while first and first.get("base"):
-        first = first["base"]  # the oldest run of a fine-tune chain
+    chain = _base_chain(stats)
     size_note = ""
-    if first:
-        bc = first["config"]
+    if chain:
+        bc = chain[0]["config"]  # the oldest run of a fine-tune chain
         if (bc["width"], bc["height"]) != (cfg.width, cfg.height):
             size_note = f" ({bc['width']}x{bc['height']} in the first run)"
     text = f"""# small-depth.onnx: the project's small monocular depth network

@@ -241,14 +241,12 @@ def through_opening(log_depth: np.ndarray, region: np.ndarray, level: float, mar
     is seen through an opening in a nearer surface (a doorway), not a surface in front of
     a farther one. A region without one of its sides (at the image's border) is none."""
     valid = np.isfinite(log_depth)
-    for to_left in (True, False):
-        side = np.zeros_like(region)
-        for k in range(1, reach_px + 1):
-            if to_left:  # pixel x lies k left of region pixel x + k
-                side[:, :-k] |= region[:, k:]
-            else:
-                side[:, k:] |= region[:, :-k]
-        side &= ~region & valid
+    r8 = region.astype(np.uint8)
+    kernel = np.ones((1, reach_px + 1), np.uint8)
+    # A one-sided dilation: anchored at the kernel's left end it reaches region pixels up
+    # to reach_px to the right (the left side), at its right end those to the left.
+    for anchor in (0, reach_px):
+        side = (cv2.dilate(r8, kernel, anchor=(anchor, 0)) > 0) & ~region & valid
         if side.sum() < reach_px or not np.median(log_depth[side]) < level - margin:
             return False
     return True
