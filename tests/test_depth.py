@@ -6,6 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from onnx_graphs import save_graph  # the tests folder is on sys.path
 
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.depth.simulated import (
@@ -667,7 +668,6 @@ def test_training_widths_from_the_command_line() -> None:
 def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
                  props: dict[str, str] | None = None) -> Path:
     """A model built node by node: mean over the channels, then softplus (depth > 0)."""
-    import onnx
     from onnx import TensorProto, helper
 
     nodes, x = [], "image"
@@ -679,14 +679,8 @@ def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
         x = "xt"
     nodes += [helper.make_node("ReduceMean", [x], ["m"], axes=[1], keepdims=1),
               helper.make_node("Softplus", ["m"], ["depth"])]
-    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("image", elem, shape)],
-                              [helper.make_tensor_value_info("depth", TensorProto.FLOAT, None)])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
-    model.ir_version = 8
-    if props:
-        helper.set_model_props(model, props)
-    onnx.save(model, str(path))
-    return path
+    return save_graph(path, nodes, [helper.make_tensor_value_info("image", elem, shape)],
+                      props=props)
 
 
 def test_onnx_model_shapes_and_settings_are_checked(tmp_path: Path, rgb: np.ndarray) -> None:
@@ -750,7 +744,6 @@ def test_simulated_settings_are_checked_with_the_recipe() -> None:
 def _two_output_model(path: Path, two_inputs: bool = False) -> Path:
     """UniDepth's export layout: the intrinsics [1, 3, 3] first, the depth second (or an
     intrinsics input beside the image)."""
-    import onnx
     from onnx import TensorProto, helper
 
     k = helper.make_tensor("k", TensorProto.FLOAT, [1, 3, 3], np.eye(3).reshape(-1).tolist())
@@ -760,14 +753,9 @@ def _two_output_model(path: Path, two_inputs: bool = False) -> Path:
     inputs = [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])]
     if two_inputs:
         inputs.append(helper.make_tensor_value_info("K", TensorProto.FLOAT, [1, 3, 3]))
-    graph = helper.make_graph(
-        nodes, "g", inputs,
-        [helper.make_tensor_value_info("out_K", TensorProto.FLOAT, [1, 3, 3]),
-         helper.make_tensor_value_info("depth", TensorProto.FLOAT, [1, 1, "h", "w"])])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
-    model.ir_version = 8
-    onnx.save(model, str(path))
-    return path
+    return save_graph(path, nodes, inputs, [
+        helper.make_tensor_value_info("out_K", TensorProto.FLOAT, [1, 3, 3]),
+        helper.make_tensor_value_info("depth", TensorProto.FLOAT, [1, 1, "h", "w"])])
 
 
 def test_onnx_models_of_other_shapes_are_named_before_they_run(tmp_path: Path,

@@ -47,8 +47,10 @@ class OnnxDepthConfig(BaseModel):
     # input shape, else its metadata, else 518 (Depth Anything's training size).
     input_size: tuple[int, int] | int | None = None
     # keep_aspect: height = input_size, width from the image aspect, both rounded to
-    # ``multiple_of`` (needs a model exported with dynamic height/width).
-    resize: Literal["stretch", "keep_aspect"] = "stretch"
+    # ``multiple_of`` (needs a model exported with dynamic height/width). letterbox: the
+    # whole image scaled into the input at its own aspect, centred, the rest filled with
+    # the mean colour (Metric3D's fixed 616x1064 input); the fill is cut from the output.
+    resize: Literal["stretch", "keep_aspect", "letterbox"] = "stretch"
     multiple_of: int | None = None  # 14 for ViT/14 backbones; None: metadata or 14
     interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
     mean: tuple[float, float, float] | None = None  # in [0, 1] units; None: metadata/ImageNet
@@ -57,6 +59,12 @@ class OnnxDepthConfig(BaseModel):
     layout: Literal["nchw", "nhwc"] = "nchw"
     output_index: int = 0
     output_scale: float = 1.0  # e.g. 0.001 for a network that outputs millimetres
+    # Metric3D predicts depth as seen by a canonical camera of this focal length (1000 px):
+    # its output is multiplied by the camera's focal length at the network input / this.
+    canonical_focal: float | None = None
+    # A model input that takes the camera's intrinsics at the network input (UniDepth
+    # exports with a camera input): [1, 3, 3] / [3, 3] K, or [1, 4] / [4] fx, fy, cx, cy.
+    intrinsics_input: str | None = None
     threads: int = 2  # onnxruntime intra-op threads
     # Where the network runs: cuda needs the onnxruntime-gpu package (in place of
     # onnxruntime); auto takes CUDA when that package finds a GPU, else the CPU.
@@ -74,6 +82,14 @@ class OnnxDepthConfig(BaseModel):
         hw = (v, v) if isinstance(v, int) else v
         if min(hw) <= 0:
             raise ValueError(f"input_size must be positive, got {v}")
+        return v
+
+    @field_validator("canonical_focal")
+    @classmethod
+    def _positive_focal(cls, v: float | None) -> float | None:
+        if v is not None and not v > 0:
+            raise ValueError(f"canonical_focal must be a positive focal length in pixels "
+                             f"(Metric3D: 1000), got {v}")
         return v
 
 
@@ -161,12 +177,21 @@ class OnnxDepthBackend:
         self.providers: list[str] = list(self.session.get_providers())
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
         inputs = self.session.get_inputs()
+        listed = ", ".join(f"{i.name!r} {i.shape}" for i in inputs)
+        self.intrinsics: _IntrinsicsInput | None = None
+        if config.intrinsics_input is not None:
+            named = [i for i in inputs if i.name == config.intrinsics_input]
+            if not named:
+                raise ValueError(f"{path}: intrinsics_input {config.intrinsics_input!r} is "
+                                 f"not an input of the model; its inputs are {listed}")
+            self.intrinsics = _IntrinsicsInput.of(path, named[0])
+            inputs = [i for i in inputs if i.name != config.intrinsics_input]
         if len(inputs) != 1:
             raise ValueError(
-                f"{path}: the model takes {len(inputs)} inputs ("
-                + ", ".join(f"{i.name!r} {i.shape}" for i in inputs) + "); this backend feeds "
-                "one image. Re-export it with the other inputs fixed inside the graph (e.g. "
-                "the camera intrinsics of a UniDepth / Metric3D export as constants)")
+                f"{path}: the model takes {len(self.session.get_inputs())} inputs ({listed}); "
+                "this backend feeds one image, and the camera intrinsics where "
+                "intrinsics_input names their input. Re-export it with any other input "
+                "fixed inside the graph")
         inp = inputs[0]
         self.input_name = inp.name
         self._check_input(path, inp.shape, config.layout)
@@ -197,6 +222,10 @@ class OnnxDepthBackend:
         if kind not in DEPTH_KINDS:
             raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
         self.kind: DepthKind = kind  # type: ignore[assignment]
+        if config.canonical_focal is not None and kind != "metric_depth":
+            raise ValueError(f"{path}: canonical_focal converts a canonical camera's metric "
+                             f"depth (Metric3D) to this camera's; the model's output is "
+                             f"{kind}, which a scale fit makes metric anyway: drop it")
         self.multiple_of = int(config.multiple_of or _meta_int(path, self.metadata,
                                                                "multiple_of") or 14)
         order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
@@ -231,6 +260,10 @@ class OnnxDepthBackend:
                                  f"height; the width follows the image), not "
                                  f"{list(config.input_size)}")
         self.last_input_hw: tuple[int, int] | None = None
+        # Where the image lies in the last input (top, left, height, width): all of it,
+        # except in a letterbox.
+        self.last_placement: tuple[int, int, int, int] | None = None
+        self.last_focal_factor: float | None = None
         self._warned_round: tuple[int, int] | None = None  # the rounding said in the log
         self.last_timing: dict[str, float] = {}
         # A timing stand-in (``bench_latency --export``) runs like a real network; say
@@ -299,6 +332,37 @@ class OnnxDepthBackend:
                              "with dynamic height/width")
         return h, w
 
+    def placement(self, image_hw: tuple[int, int]) -> tuple[int, int, int, int]:
+        """Where an image of ``image_hw`` lies in the network input: (top, left, height,
+        width); the whole input except with ``resize: letterbox``."""
+        h, w = self.input_hw(image_hw)
+        if self.config.resize != "letterbox":
+            return 0, 0, h, w
+        s = min(h / image_hw[0], w / image_hw[1])
+        nh = min(h, max(1, int(round(image_hw[0] * s))))
+        nw = min(w, max(1, int(round(image_hw[1] * s))))
+        return (h - nh) // 2, (w - nw) // 2, nh, nw
+
+    def network_intrinsics(self, camera: Any, image_hw: tuple[int, int]
+                           ) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) of ``camera`` (a ``PinholeCamera`` of the image) as the network
+        input sees it: scaled with the image (pixel-centre aware) and shifted by a
+        letterbox's fill."""
+        if (int(camera.height), int(camera.width)) != tuple(image_hw):
+            raise ValueError(f"{self.config.model}: the camera is {camera.width}x"
+                             f"{camera.height} but the image is {image_hw[1]}x{image_hw[0]}; "
+                             "the intrinsics must be those of the images the network sees")
+        top, left, nh, nw = self.placement(image_hw)
+        sx, sy = nw / image_hw[1], nh / image_hw[0]
+        return (float(camera.fx) * sx, float(camera.fy) * sy,
+                (float(camera.cx) + 0.5) * sx - 0.5 + left,
+                (float(camera.cy) + 0.5) * sy - 0.5 + top)
+
+    @property
+    def needs_camera(self) -> bool:
+        """Whether ``predict`` needs the camera (a canonical focal or an intrinsics input)."""
+        return self.config.canonical_focal is not None or self.intrinsics is not None
+
     # ------------------------------------------------------------------ steps
     def preprocess(self, rgb: np.ndarray) -> np.ndarray:
         """[H, W, 3] uint8 RGB -> network input [1, 3, h, w] (or [1, h, w, 3]) float32."""
@@ -306,11 +370,18 @@ class OnnxDepthBackend:
         if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"expected an RGB uint8 [H, W, 3] image, got {rgb.dtype} {rgb.shape}")
         h, w = self.input_hw(rgb.shape[:2])
+        top, left, nh, nw = self.placement(rgb.shape[:2])
+        self.last_placement = (top, left, nh, nw)
         img = rgb if self.channel_order == "rgb" else rgb[..., ::-1]
-        if (h, w) != img.shape[:2]:
-            img = cv2.resize(np.ascontiguousarray(img), (w, h),
+        if (nh, nw) != img.shape[:2]:
+            img = cv2.resize(np.ascontiguousarray(img), (nw, nh),
                              interpolation=_INTERP[self.config.interpolation])
-        x = (img.astype(np.float32) / np.float32(255.0) - self.mean) / self.std  # [h, w, 3]
+        x = (img.astype(np.float32) / np.float32(255.0) - self.mean) / self.std  # [nh, nw, 3]
+        if (nh, nw) != (h, w):
+            # The fill is the mean colour: zero once normalised (Metric3D pads so).
+            full = np.zeros((h, w, 3), np.float32)  # [h, w, 3]
+            full[top:top + nh, left:left + nw] = x
+            x = full
         if self.config.layout == "nchw":
             x = x.transpose(2, 0, 1)
         return np.ascontiguousarray(x[None], dtype=self.input_dtype)
@@ -329,6 +400,14 @@ class OnnxDepthBackend:
         if not _image_shaped(out.shape, self.last_input_hw):
             raise ValueError(self._not_depth_message(np.shape(raw)))
         out = out * np.float32(self.config.output_scale)
+        if self.config.resize == "letterbox" and self.last_placement is not None:
+            # Cut the fill, at the output's own resolution (which may be a fraction of the
+            # input's).
+            top, left, nh, nw = self.last_placement
+            ry, rx = out.shape[0] / self.last_input_hw[0], out.shape[1] / self.last_input_hw[1]
+            r0, c0 = int(round(top * ry)), int(round(left * rx))
+            out = out[r0:max(r0 + 1, int(round((top + nh) * ry))),
+                      c0:max(c0 + 1, int(round((left + nw) * rx)))]
         bad = ~np.isfinite(out)
         if self.kind != "relative_disparity":
             bad |= out <= 0  # a depth of zero or less is no depth; disparity 0 is fine
@@ -342,15 +421,25 @@ class OnnxDepthBackend:
             out[bad] = np.nan
         return out
 
-    def predict(self, rgb: np.ndarray, **_: Any) -> DepthPrediction:
-        """Run the network on one RGB frame [H, W, 3] uint8."""
+    def predict(self, rgb: np.ndarray, camera: Any = None, **_: Any) -> DepthPrediction:
+        """Run the network on one RGB frame [H, W, 3] uint8. ``camera`` (the image's
+        ``PinholeCamera``) is needed with ``canonical_focal`` or ``intrinsics_input``."""
         t0 = time.perf_counter()
+        if self.needs_camera and camera is None:
+            raise ValueError(f"{self.config.model}: canonical_focal / intrinsics_input need "
+                             "the camera's intrinsics: pass camera= (the depth stage passes "
+                             "the sequence's)")
         x = self.preprocess(rgb)
         hw = x.shape[2:4] if self.config.layout == "nchw" else x.shape[1:3]
         self.last_input_hw = (int(hw[0]), int(hw[1]))
+        feeds = {self.input_name: x}
+        if self.needs_camera:
+            fx, fy, cx, cy = self.network_intrinsics(camera, rgb.shape[:2])
+            if self.intrinsics is not None:
+                feeds[self.intrinsics.name] = self.intrinsics.tensor(fx, fy, cx, cy)
         t1 = time.perf_counter()
         try:
-            raw = self.session.run([self.output_name], {self.input_name: x})[0]
+            raw = self.session.run([self.output_name], feeds)[0]
         except Exception as e:  # onnxruntime's own exception types, from its C++ core
             raise ValueError(
                 f"{self.config.model}: onnxruntime failed on a {hw[1]}x{hw[0]} input: "
@@ -359,6 +448,11 @@ class OnnxDepthBackend:
                 f"{self.multiple_of}) or an input_size it takes") from e
         t2 = time.perf_counter()
         values = self.postprocess(raw, rgb.shape[:2])
+        if self.config.canonical_focal is not None:
+            # The geometric mean: a stretched input has two focal lengths, the canonical
+            # camera one (equal to fx for any aspect-keeping resize).
+            self.last_focal_factor = float(np.sqrt(fx * fy)) / self.config.canonical_focal
+            values *= np.float32(self.last_focal_factor)
         t3 = time.perf_counter()
         self.last_timing = {"preprocess_s": t1 - t0, "network_s": t2 - t1,
                             "postprocess_s": t3 - t2}
@@ -375,9 +469,40 @@ class OnnxDepthBackend:
                 "multiple_of": self.multiple_of, "interpolation": self.config.interpolation,
                 "output_index": self.config.output_index, "output": self.output_name,
                 "output_scale": self.config.output_scale,
+                "canonical_focal": self.config.canonical_focal,
+                "focal_factor": self.last_focal_factor,
+                "intrinsics_input": self.config.intrinsics_input,
+                "placement": list(self.last_placement) if self.last_placement else None,
                 "providers": self.providers,
                 "spin": self.config.spin, "metadata": self.metadata,
                 **({"warning": self.warning} if self.warning else {})}
+
+
+class _IntrinsicsInput:
+    """A model input that takes the camera: K [1, 3, 3] / [3, 3] or fx, fy, cx, cy
+    [1, 4] / [4], in the input's float type."""
+
+    def __init__(self, name: str, shape: tuple[int, ...], dtype: type) -> None:
+        self.name, self.shape, self.dtype = name, shape, dtype
+
+    @classmethod
+    def of(cls, path: Path, inp: Any) -> _IntrinsicsInput:
+        # A symbolic batch axis takes one camera.
+        dims = tuple(d if isinstance(d, int) else 1 for d in inp.shape)
+        dtype = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
+                 "tensor(double)": np.float64}.get(inp.type)
+        if dims not in ((1, 3, 3), (3, 3), (1, 4), (4,)) or dtype is None:
+            raise ValueError(f"{path}: intrinsics input {inp.name!r} is {inp.type} "
+                             f"{inp.shape}; expected a float K [1, 3, 3] / [3, 3] or fx, fy, "
+                             "cx, cy [1, 4] / [4]")
+        return cls(inp.name, dims, dtype)
+
+    def tensor(self, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+        if self.shape[-1] == 4:
+            values = np.array([fx, fy, cx, cy])
+        else:
+            values = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return values.reshape(self.shape).astype(self.dtype)
 
 
 def _resize_valid(values: np.ndarray, bad: np.ndarray, hw: tuple[int, int]) -> np.ndarray:

@@ -27,7 +27,7 @@ class DepthConfig(StageConfig):
     model: Path | None = None
     output: DepthKind | None = None  # what the network outputs; None: the model's metadata
     input_size: tuple[int, int] | int | None = None
-    resize: Literal["stretch", "keep_aspect"] = "stretch"
+    resize: Literal["stretch", "keep_aspect", "letterbox"] = "stretch"
     multiple_of: int | None = None
     interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
     # per network input channel, in its channel_order (None: the model's metadata, else
@@ -38,6 +38,9 @@ class DepthConfig(StageConfig):
     layout: Literal["nchw", "nhwc"] = "nchw"
     output_index: int = Field(0, ge=0)  # which output is the depth (models with several)
     output_scale: float = Field(1.0, gt=0)
+    # Metric3D: the focal length (px) of the canonical camera its depth is for (1000)
+    canonical_focal: float | None = Field(None, gt=0)
+    intrinsics_input: str | None = None  # the model input that takes the camera (UniDepth)
     threads: int = Field(2, ge=1)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # cuda: needs onnxruntime-gpu
     # --- simulated: a preset, then per-parameter overrides
@@ -71,6 +74,10 @@ class DepthConfig(StageConfig):
         if self.backend == "onnx" and self.model is None:
             raise ValueError("backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
                              "datasets/models/small-depth.onnx")
+        if self.canonical_focal is not None and self.output not in (None, "metric_depth"):
+            raise ValueError(f"canonical_focal converts a canonical camera's metric depth "
+                             f"(Metric3D) to this camera's; output is {self.output}: drop "
+                             "canonical_focal or set output: metric_depth")
         if self.backend == "dav2s_random":
             try:
                 _input_hw(self.input_size)
@@ -113,7 +120,8 @@ def make_backend(cfg: DepthConfig) -> Any:
         multiple_of=cfg.multiple_of, interpolation=cfg.interpolation, mean=cfg.mean,
         std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
         output_index=cfg.output_index, output_scale=cfg.output_scale, threads=cfg.threads,
-        device=cfg.device))
+        device=cfg.device, canonical_focal=cfg.canonical_focal,
+        intrinsics_input=cfg.intrinsics_input))
 
 
 class DepthStage(Stage):
@@ -201,10 +209,14 @@ class DepthStage(Stage):
         timer = WorkTimer()
         simulated = cfg.backend == "simulated"
 
+        # A Metric3D / UniDepth export needs the camera the images were taken with.
+        camera = ({"camera": seq.rig.camera} if getattr(backend, "needs_camera", False)
+                  else {})
+
         def load(i: int) -> tuple[np.ndarray, dict]:
             # In a thread, ahead of the network (image decoding releases the GIL).
             return seq.frames[i].image, (
-                {"gt_depth": gt.depth(i), "frame_index": i} if simulated else {})
+                {"gt_depth": gt.depth(i), "frame_index": i} if simulated else camera)
 
         frames = prefetched(load, todo, 2 if cfg.prefetch else 0)
         for i, (rgb, kwargs) in ctx.progress(frames, total=len(todo), description="depth"):

@@ -1,0 +1,168 @@
+"""Metric networks that depend on the camera: a letterbox into a fixed input (Metric3D's
+616x1064), a canonical focal length (Metric3D), an intrinsics input (UniDepth exports).
+Each on a model built node by node whose answer is known."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from onnx_graphs import save_graph  # the tests folder is on sys.path
+
+from toolkit.camera import PinholeCamera
+
+onnx = pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+from onnx import TensorProto, helper  # noqa: E402
+
+from toolkit.depth.onnx_backend import OnnxDepthBackend  # noqa: E402
+from toolkit.depth.onnx_backend import OnnxDepthConfig as C  # noqa: E402
+
+
+def _mean_model(path: Path, shape: list) -> Path:
+    """depth = softplus(mean over the channels): [1, 1, h, w]."""
+    return save_graph(path, [helper.make_node("ReduceMean", ["image"], ["m"], axes=[1], keepdims=1),
+                        helper.make_node("Softplus", ["m"], ["depth"])],
+                 [helper.make_tensor_value_info("image", TensorProto.FLOAT, shape)])
+
+
+def _intrinsics_model(path: Path, k_shape: list, pick: np.ndarray, elem: int) -> Path:
+    """depth = sum(K * pick) at every pixel (plus 0 x the image, so the output has the
+    input's size): one intrinsic, where the network put it."""
+    w = helper.make_tensor("w", elem, list(pick.shape), pick.reshape(-1).tolist())
+    nodes = [helper.make_node("ReduceMean", ["image"], ["m"], axes=[1], keepdims=1),
+             helper.make_node("Constant", [], ["zero"],
+                              value=helper.make_tensor("z", TensorProto.FLOAT, [], [0.0])),
+             helper.make_node("Mul", ["m", "zero"], ["m0"]),
+             helper.make_node("Constant", [], ["pick"], value=w),
+             helper.make_node("Mul", ["K", "pick"], ["kp"]),
+             helper.make_node("ReduceSum", ["kp"], ["ks"], keepdims=0),
+             helper.make_node("Cast", ["ks"], ["ksf"], to=TensorProto.FLOAT),
+             helper.make_node("Add", ["m0", "ksf"], ["depth"])]
+    return save_graph(path, nodes, [
+        helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"]),
+        helper.make_tensor_value_info("K", elem, k_shape)])
+
+
+@pytest.fixture
+def rgb() -> np.ndarray:
+    return np.random.default_rng(0).integers(0, 256, (45, 61, 3), dtype=np.uint8)
+
+
+def test_letterbox_fits_the_image_and_cuts_the_fill(tmp_path: Path, rgb: np.ndarray) -> None:
+    path = _mean_model(tmp_path / "fixed.onnx", [1, 3, 28, 42])
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", resize="letterbox",
+                            interpolation="linear", threads=1))
+    # 45x61 into 28x42 at its own aspect: 28 x 38, centred (2 columns of fill each side).
+    assert be.placement((45, 61)) == (0, 2, 28, 38)
+    x = be.preprocess(rgb)
+    assert x.shape == (1, 3, 28, 42)
+    assert np.all(x[..., :2] == 0) and np.all(x[..., 40:] == 0)  # the mean colour
+    small = cv2.resize(rgb, (38, 28), interpolation=cv2.INTER_LINEAR)
+    ref_in = (small.astype(np.float32) / 255 - be.mean) / be.std  # [28, 38, 3]
+    np.testing.assert_allclose(x[0].transpose(1, 2, 0)[:, 2:40], ref_in, rtol=1e-6, atol=1e-6)
+    # The output loses the fill before it is resized back: no column of the image takes
+    # the fill's depth.
+    out = be.predict(rgb).values
+    ref = cv2.resize(np.log1p(np.exp(ref_in.mean(axis=2))), (61, 45),
+                     interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+    assert be.describe()["placement"] == [0, 2, 28, 38]
+    # A wider image is filled above and below; a square input from one number.
+    assert be.placement((20, 84)) == (9, 0, 10, 42)
+    dyn = OnnxDepthBackend(C(model=_mean_model(tmp_path / "dyn.onnx", [1, 3, "h", "w"]),
+                             kind="metric_depth", resize="letterbox", input_size=56))
+    assert dyn.placement((45, 61)) == (7, 0, 41, 56)
+
+
+def test_canonical_focal_gives_the_cameras_metric_depth(tmp_path: Path,
+                                                         rgb: np.ndarray) -> None:
+    """Metric3D predicts depth z * f_c / f for a camera of focal f at the network input:
+    the output times f / f_c is z, whatever the resize did to f."""
+    path = _mean_model(tmp_path / "m.onnx", [1, 3, "h", "w"])
+    cam = PinholeCamera(61, 45, 500.0, 480.0, 30.0, 22.0)
+    plain = OnnxDepthBackend(C(model=path, kind="metric_depth", input_size=(28, 42),
+                               multiple_of=1, threads=1)).predict(rgb).values
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", input_size=(28, 42),
+                            multiple_of=1, canonical_focal=1000.0, threads=1))
+    got = be.predict(rgb, camera=cam).values
+    f_in = np.sqrt(500.0 * 42 / 61 * 480.0 * 28 / 45)  # a stretch scales fx and fy apart
+    np.testing.assert_allclose(got, plain * f_in / 1000.0, rtol=1e-5)
+    assert be.describe()["focal_factor"] == pytest.approx(f_in / 1000.0)
+    # Letterboxed, the camera keeps one scale: 28 / 45 on both axes (38 / 61 across).
+    box = OnnxDepthBackend(C(model=path, kind="metric_depth", input_size=(28, 42),
+                             multiple_of=1, canonical_focal=1000.0, resize="letterbox"))
+    fx, fy, cx, cy = box.network_intrinsics(cam, (45, 61))
+    assert (fx, fy) == pytest.approx((500.0 * 38 / 61, 480.0 * 28 / 45))
+    assert (cx, cy) == pytest.approx((30.5 * 38 / 61 - 0.5 + 2, 22.5 * 28 / 45 - 0.5))
+    box.predict(rgb, camera=cam)
+    assert box.last_focal_factor == pytest.approx(np.sqrt(fx * fy) / 1000.0)
+    with pytest.raises(ValueError, match="need the camera's intrinsics: pass camera="):
+        be.predict(rgb)
+    with pytest.raises(ValueError, match="the camera is 640x480 but the image is 61x45"):
+        be.predict(rgb, camera=PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0))
+    with pytest.raises(ValueError, match="output is relative_disparity.*drop it"):
+        OnnxDepthBackend(C(model=path, kind="relative_disparity", canonical_focal=1000.0))
+    with pytest.raises(ValueError, match="canonical_focal must be a positive"):
+        C(model=path, canonical_focal=0.0)
+
+
+@pytest.mark.parametrize("k_shape,flat_index,elem,name", [
+    ([1, 3, 3], 2, TensorProto.FLOAT, "cx"),    # K[0, 2]
+    ([3, 3], 5, TensorProto.DOUBLE, "cy"),      # K[1, 2]
+    (["batch", 4], 2, TensorProto.FLOAT, "cx"),  # fx, fy, cx, cy
+    ([4], 1, TensorProto.FLOAT16, "fy")])
+def test_intrinsics_input_takes_the_camera_at_the_network_input(
+        tmp_path: Path, rgb: np.ndarray, k_shape: list, flat_index: int, elem: int,
+        name: str) -> None:
+    dims = [1 if isinstance(d, str) else d for d in k_shape]
+    pick = np.zeros(int(np.prod(dims)))
+    pick[flat_index] = 1.0
+    path = _intrinsics_model(tmp_path / "uni.onnx", k_shape, pick.reshape(dims), elem)
+    cam = PinholeCamera(61, 45, 500.0, 480.0, 30.0, 22.0)
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", input_size=(28, 42),
+                            resize="letterbox", intrinsics_input="K", threads=1))
+    fx, fy, cx, cy = be.network_intrinsics(cam, (45, 61))
+    want = {"fx": fx, "fy": fy, "cx": cx, "cy": cy}[name]
+    out = be.predict(rgb, camera=cam).values
+    np.testing.assert_allclose(out, want, rtol=2e-3 if elem == TensorProto.FLOAT16 else 1e-5)
+
+
+def test_intrinsics_inputs_are_checked_when_loaded(tmp_path: Path) -> None:
+    pick = np.zeros((1, 3, 3), np.float32)
+    path = _intrinsics_model(tmp_path / "uni.onnx", [1, 3, 3], pick, TensorProto.FLOAT)
+    with pytest.raises(ValueError, match=r"takes 2 inputs \('image'.*'K'.*intrinsics_input"):
+        OnnxDepthBackend(C(model=path, kind="metric_depth"))
+    with pytest.raises(ValueError, match=r"intrinsics_input 'cam' is not an input.*'K'"):
+        OnnxDepthBackend(C(model=path, kind="metric_depth", intrinsics_input="cam"))
+    bad = _intrinsics_model(tmp_path / "bad.onnx", [1, 3, 4], np.zeros((1, 3, 4), np.float32),
+                            TensorProto.FLOAT)
+    with pytest.raises(ValueError, match=r"intrinsics input 'K' is tensor\(float\) \[1, 3, 4\]"):
+        OnnxDepthBackend(C(model=bad, kind="metric_depth", intrinsics_input="K"))
+
+
+def test_depth_stage_gives_the_network_its_camera(tmp_path: Path) -> None:
+    """The stage passes the sequence's camera: an output of fx at the network input is
+    the camera's fx scaled to it, stored for every frame."""
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.depth.store import DepthStore
+    from toolkit.fusion.synthetic import write_box_room
+    from toolkit.io.sequence import read_sequence
+
+    path = _intrinsics_model(tmp_path / "uni.onnx", [1, 3, 3],
+                             np.array([[[1, 0, 0], [0, 0, 0], [0, 0, 0]]], np.float32),
+                             TensorProto.FLOAT)
+    seq_dir = write_box_room(tmp_path / "seq", n_frames=2)  # 160x120 images
+    res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq_dir)},
+                                {"stage": "depth", "model": str(path), "threads": 1,
+                                 "output": "metric_depth", "input_size": [60, 80],
+                                 "multiple_of": 1, "intrinsics_input": "K"}],
+                     {"t_sequence": SequenceFolder, "depth": DepthStage})
+    assert res.ok, res.error
+    fx = read_sequence(seq_dir).rig.camera.fx
+    store = DepthStore(tmp_path / "run" / "depth" / "depth")
+    for i in (0, 1):
+        np.testing.assert_allclose(store.read(i).values, fx * 0.5, rtol=1e-5)
