@@ -27,11 +27,19 @@ def _mean_model(path: Path, shape: list) -> Path:
                  [helper.make_tensor_value_info("image", TensorProto.FLOAT, shape)])
 
 
-def _intrinsics_model(path: Path, k_shape: list, pick: np.ndarray, elem: int) -> Path:
+def _intrinsics_model(path: Path, k_shape: list, pick: np.ndarray, elem: int,
+                      nhwc_k_first: bool = False) -> Path:
     """depth = sum(K * pick) at every pixel (plus 0 x the image, so the output has the
-    input's size): one intrinsic, where the network put it."""
+    input's size): one intrinsic, where the network put it. ``nhwc_k_first``: the image
+    channels last, listed after the intrinsics."""
     w = helper.make_tensor("w", elem, list(pick.shape), pick.reshape(-1).tolist())
-    nodes = [helper.make_node("ReduceMean", ["image"], ["m"], axes=[1], keepdims=1),
+    image = helper.make_tensor_value_info(
+        "image", TensorProto.FLOAT, [1, 28, 42, 3] if nhwc_k_first else [1, 3, "h", "w"])
+    k_input = helper.make_tensor_value_info("K", elem, k_shape)
+    first = [helper.make_node("Transpose", ["image"], ["chw"], perm=[0, 3, 1, 2])]
+    nodes = (first if nhwc_k_first else []) + [
+             helper.make_node("ReduceMean", ["chw" if nhwc_k_first else "image"], ["m"],
+                              axes=[1], keepdims=1),
              helper.make_node("Constant", [], ["zero"],
                               value=helper.make_tensor("z", TensorProto.FLOAT, [], [0.0])),
              helper.make_node("Mul", ["m", "zero"], ["m0"]),
@@ -40,9 +48,7 @@ def _intrinsics_model(path: Path, k_shape: list, pick: np.ndarray, elem: int) ->
              helper.make_node("ReduceSum", ["kp"], ["ks"], keepdims=0),
              helper.make_node("Cast", ["ks"], ["ksf"], to=TensorProto.FLOAT),
              helper.make_node("Add", ["m0", "ksf"], ["depth"])]
-    return save_graph(path, nodes, [
-        helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"]),
-        helper.make_tensor_value_info("K", elem, k_shape)])
+    return save_graph(path, nodes, [k_input, image] if nhwc_k_first else [image, k_input])
 
 
 @pytest.fixture
@@ -142,9 +148,63 @@ def test_intrinsics_inputs_are_checked_when_loaded(tmp_path: Path) -> None:
         OnnxDepthBackend(C(model=bad, kind="metric_depth", intrinsics_input="K"))
 
 
+def test_channels_last_image_after_the_intrinsics(tmp_path: Path, rgb: np.ndarray) -> None:
+    """The image's fixed size is read from the image input, not from the first one (K's
+    [1, 3, 3] was taken for a 3x3 image)."""
+    pick = np.zeros((1, 3, 3), np.float32)
+    pick[0, 0, 0] = 1.0
+    path = _intrinsics_model(tmp_path / "k.onnx", [1, 3, 3], pick, TensorProto.FLOAT,
+                             nhwc_k_first=True)
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", layout="nhwc",
+                            intrinsics_input="K", threads=1))
+    assert be.input_hw((45, 61)) == (28, 42)
+    cam = PinholeCamera(61, 45, 500.0, 480.0, 30.0, 22.0)
+    np.testing.assert_allclose(be.predict(rgb, camera=cam).values, 500.0 * 42 / 61, rtol=1e-5)
+
+
+@pytest.mark.parametrize("pool", [2, 4])
+def test_letterbox_of_a_coarser_output_keeps_the_pixels_in_place(tmp_path: Path,
+                                                                 pool: int) -> None:
+    """A network whose output is 1/2 or 1/4 of its input: the fill is cut at the input's
+    resolution. Image: a horizontal ramp; network: mean over the channels, average-pooled.
+    The depth at each image column is that column's ramp value (cut at whole output
+    pixels, it was up to 2.7 columns off)."""
+    H, W = 45, 61
+    rgb = np.repeat((np.arange(W) * 4).astype(np.uint8)[None, :, None], H, 0).repeat(3, 2)
+    one = helper.make_tensor("o", TensorProto.FLOAT, [], [1.0])
+    path = save_graph(tmp_path / "pool.onnx", [
+        helper.make_node("ReduceMean", ["image"], ["m"], axes=[1], keepdims=1),
+        helper.make_node("Constant", [], ["one"], value=one),
+        helper.make_node("Add", ["m", "one"], ["a"]),
+        helper.make_node("AveragePool", ["a"], ["depth"], kernel_shape=[pool, pool],
+                         strides=[pool, pool])],
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, 32, 64])])
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", resize="letterbox",
+                            mean=(0, 0, 0), std=(1, 1, 1), interpolation="linear", threads=1))
+    column = (be.predict(rgb).values[H // 2] - 1) * 255 / 4  # [W] the column each came from
+    np.testing.assert_allclose(column[8:W - 8], np.arange(8, W - 8), atol=0.15)
+
+
+def test_letterbox_fill_in_pixel_units(tmp_path: Path, rgb: np.ndarray) -> None:
+    """Metric3D's own export takes raw pixels (mean 0, std 1/255) and is padded with its
+    mean colour: the fill is given in 0-255 units and normalised like the image."""
+    path = _mean_model(tmp_path / "fixed.onnx", [1, 3, 28, 42])
+    fill = (123.675, 116.28, 103.53)
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", resize="letterbox",
+                            mean=(0.0, 0.0, 0.0), std=(1 / 255,) * 3, fill=fill))
+    x = be.preprocess(rgb)[0]  # [3, 28, 42]
+    np.testing.assert_allclose(x[:, :, 0], np.broadcast_to(np.array(fill)[:, None], (3, 28)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(x[:, :, 2:40].transpose(1, 2, 0),
+                               cv2.resize(rgb, (38, 28), interpolation=cv2.INTER_CUBIC)
+                               .astype(np.float32), rtol=1e-5)
+
+
 def test_depth_stage_gives_the_network_its_camera(tmp_path: Path) -> None:
-    """The stage passes the sequence's camera: an output of fx at the network input is
-    the camera's fx scaled to it, stored for every frame."""
+    """The stage passes the sequence's camera: an output of fx at the network input, times
+    the canonical-focal factor, is the camera's fx scaled to it, stored for every frame."""
+    import json
+
     from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
 
     from toolkit.depth.stage import DepthStage
@@ -158,11 +218,18 @@ def test_depth_stage_gives_the_network_its_camera(tmp_path: Path) -> None:
     seq_dir = write_box_room(tmp_path / "seq", n_frames=2)  # 160x120 images
     res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq_dir)},
                                 {"stage": "depth", "model": str(path), "threads": 1,
-                                 "output": "metric_depth", "input_size": [60, 80],
-                                 "multiple_of": 1, "intrinsics_input": "K"}],
+                                 "output": "metric_depth", "input_size": [60, 100],
+                                 "resize": "letterbox", "multiple_of": 1,
+                                 "intrinsics_input": "K", "canonical_focal": 100.0}],
                      {"t_sequence": SequenceFolder, "depth": DepthStage})
     assert res.ok, res.error
     fx = read_sequence(seq_dir).rig.camera.fx
+    fy = read_sequence(seq_dir).rig.camera.fy
+    factor = np.sqrt(fx * 0.5 * fy * 0.5) / 100.0  # 160x120 fits 60x100 as 80x60
     store = DepthStore(tmp_path / "run" / "depth" / "depth")
     for i in (0, 1):
-        np.testing.assert_allclose(store.read(i).values, fx * 0.5, rtol=1e-5)
+        np.testing.assert_allclose(store.read(i).values, fx * 0.5 * factor, rtol=1e-5)
+    # meta.json says where the image lay and the factor, written before any frame
+    meta = json.loads((tmp_path / "run" / "depth" / "depth" / "meta.json").read_text())
+    assert meta["placement"] == [0, 10, 60, 80] and meta["input_hw"] == [60, 100]
+    assert meta["focal_factor"] == pytest.approx(factor)

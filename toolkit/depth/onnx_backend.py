@@ -62,6 +62,10 @@ class OnnxDepthConfig(BaseModel):
     # Metric3D predicts depth as seen by a canonical camera of this focal length (1000 px):
     # its output is multiplied by the camera's focal length at the network input / this.
     canonical_focal: float | None = None
+    # The letterbox fill in 0-255 pixel units per network input channel (channel_order);
+    # None: the mean colour. Metric3D's own export normalises inside its graph (it takes
+    # raw pixels: mean 0, std 1/255) and is padded with [123.675, 116.28, 103.53].
+    fill: tuple[float, float, float] | None = None
     # A model input that takes the camera's intrinsics at the network input (UniDepth
     # exports with a camera input): [1, 3, 3] / [3, 3] K, or [1, 4] / [4] fx, fy, cx, cy.
     intrinsics_input: str | None = None
@@ -213,6 +217,7 @@ class OnnxDepthBackend:
                 _image_shaped(shape) and min(d for d in shape if d != 1) >= 4):
             raise ValueError(self._not_depth_message(shape))
         self._fixed_hw = self._fixed_input_hw(inp.shape)
+        self._image_shape = list(inp.shape)  # the image's, wherever the intrinsics input is
         kind = config.kind or self.metadata.get("depth_kind")
         if kind is None:
             raise ValueError(
@@ -301,7 +306,7 @@ class OnnxDepthBackend:
         cfg = self.config
         fixed = self._fixed_hw
         if cfg.layout == "nhwc":
-            shape = self.session.get_inputs()[0].shape
+            shape = self._image_shape
             fixed = (int(shape[1]), int(shape[2])) if all(
                 isinstance(d, int) for d in shape[1:3]) else None
         size = cfg.input_size
@@ -358,6 +363,16 @@ class OnnxDepthBackend:
                 (float(camera.cx) + 0.5) * sx - 0.5 + left,
                 (float(camera.cy) + 0.5) * sy - 0.5 + top)
 
+    def focal_factor(self, camera: Any, image_hw: tuple[int, int]) -> float:
+        """What ``canonical_focal`` multiplies the output by: the camera's focal length at
+        the network input / the canonical one. The geometric mean of fx and fy there: a
+        stretched input has two focal lengths, the canonical camera one (equal to fx for
+        any aspect-keeping resize)."""
+        if self.config.canonical_focal is None:
+            raise ValueError(f"{self.config.model}: no canonical_focal set")
+        fx, fy, _, _ = self.network_intrinsics(camera, image_hw)
+        return float(np.sqrt(fx * fy)) / self.config.canonical_focal
+
     @property
     def needs_camera(self) -> bool:
         """Whether ``predict`` needs the camera (a canonical focal or an intrinsics input)."""
@@ -378,8 +393,11 @@ class OnnxDepthBackend:
                              interpolation=_INTERP[self.config.interpolation])
         x = (img.astype(np.float32) / np.float32(255.0) - self.mean) / self.std  # [nh, nw, 3]
         if (nh, nw) != (h, w):
-            # The fill is the mean colour: zero once normalised (Metric3D pads so).
+            # The mean colour is zero once normalised.
             full = np.zeros((h, w, 3), np.float32)  # [h, w, 3]
+            if self.config.fill is not None:
+                full[:] = (np.asarray(self.config.fill, np.float32) / np.float32(255.0)
+                           - self.mean) / self.std
             full[top:top + nh, left:left + nw] = x
             x = full
         if self.config.layout == "nchw":
@@ -400,26 +418,37 @@ class OnnxDepthBackend:
         if not _image_shaped(out.shape, self.last_input_hw):
             raise ValueError(self._not_depth_message(np.shape(raw)))
         out = out * np.float32(self.config.output_scale)
+        bad = self._invalid(out)
         if self.config.resize == "letterbox" and self.last_placement is not None:
-            # Cut the fill, at the output's own resolution (which may be a fraction of the
-            # input's).
+            # Cut the fill at the input's resolution: an output at a fraction of it (1/2,
+            # 1/4) cut at whole output pixels moved the depth by up to 2 image columns.
             top, left, nh, nw = self.last_placement
-            ry, rx = out.shape[0] / self.last_input_hw[0], out.shape[1] / self.last_input_hw[1]
-            r0, c0 = int(round(top * ry)), int(round(left * rx))
-            out = out[r0:max(r0 + 1, int(round((top + nh) * ry))),
-                      c0:max(c0 + 1, int(round((left + nw) * rx)))]
-        bad = ~np.isfinite(out)
-        if self.kind != "relative_disparity":
-            bad |= out <= 0  # a depth of zero or less is no depth; disparity 0 is fine
-        H, W = image_hw
-        if out.shape != (H, W):
-            # Bilinear with half-pixel centres, as torch's align_corners=False.
-            out = _resize_valid(out, bad, (H, W)) if bad.any() else cv2.resize(
-                out, (W, H), interpolation=cv2.INTER_LINEAR)
-        elif bad.any():
+            if out.shape != self.last_input_hw:
+                out = self._resize(out, bad, self.last_input_hw)
+                bad = ~np.isfinite(out)
+            out = out[top:top + nh, left:left + nw]
+            bad = bad[top:top + nh, left:left + nw]
+        if out.shape != tuple(image_hw):
+            return self._resize(out, bad, image_hw)
+        if bad.any():
             out = out.copy()
             out[bad] = np.nan
         return out
+
+    def _invalid(self, out: np.ndarray) -> np.ndarray:
+        """[h, w] bool: no value (a depth of zero or less is no depth; disparity 0 is)."""
+        bad = ~np.isfinite(out)
+        if self.kind != "relative_disparity":
+            bad |= out <= 0
+        return bad
+
+    @staticmethod
+    def _resize(out: np.ndarray, bad: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+        """Bilinear with half-pixel centres, as torch's align_corners=False; from the valid
+        pixels only where some are not."""
+        if bad.any():
+            return _resize_valid(out, bad, hw)
+        return cv2.resize(out, (hw[1], hw[0]), interpolation=cv2.INTER_LINEAR)
 
     def predict(self, rgb: np.ndarray, camera: Any = None, **_: Any) -> DepthPrediction:
         """Run the network on one RGB frame [H, W, 3] uint8. ``camera`` (the image's
@@ -449,9 +478,7 @@ class OnnxDepthBackend:
         t2 = time.perf_counter()
         values = self.postprocess(raw, rgb.shape[:2])
         if self.config.canonical_focal is not None:
-            # The geometric mean: a stretched input has two focal lengths, the canonical
-            # camera one (equal to fx for any aspect-keeping resize).
-            self.last_focal_factor = float(np.sqrt(fx * fy)) / self.config.canonical_focal
+            self.last_focal_factor = self.focal_factor(camera, rgb.shape[:2])
             values *= np.float32(self.last_focal_factor)
         t3 = time.perf_counter()
         self.last_timing = {"preprocess_s": t1 - t0, "network_s": t2 - t1,
@@ -469,7 +496,7 @@ class OnnxDepthBackend:
                 "multiple_of": self.multiple_of, "interpolation": self.config.interpolation,
                 "output_index": self.config.output_index, "output": self.output_name,
                 "output_scale": self.config.output_scale,
-                "canonical_focal": self.config.canonical_focal,
+                "canonical_focal": self.config.canonical_focal, "fill": self.config.fill,
                 "focal_factor": self.last_focal_factor,
                 "intrinsics_input": self.config.intrinsics_input,
                 "placement": list(self.last_placement) if self.last_placement else None,

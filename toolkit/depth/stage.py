@@ -40,6 +40,8 @@ class DepthConfig(StageConfig):
     output_scale: float = Field(1.0, gt=0)
     # Metric3D: the focal length (px) of the canonical camera its depth is for (1000)
     canonical_focal: float | None = Field(None, gt=0)
+    # letterbox fill, 0-255 per network input channel (None: the mean colour)
+    fill: tuple[float, float, float] | None = None
     intrinsics_input: str | None = None  # the model input that takes the camera (UniDepth)
     threads: int = Field(2, ge=1)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # cuda: needs onnxruntime-gpu
@@ -103,6 +105,19 @@ def _device(backend: Any) -> str:
     return "cuda" if providers[0] == "CUDAExecutionProvider" else "cpu"
 
 
+def _camera_settings(backend: Any, camera: Any) -> dict[str, Any]:
+    """Where the image lies in the network input and the canonical-focal factor, known
+    before the first frame (``meta.json`` is written from ``describe()`` before any frame;
+    a resumed run may predict none)."""
+    hw = (camera.height, camera.width)
+    out: dict[str, Any] = {}
+    if callable(getattr(backend, "placement", None)):
+        out["placement"] = list(backend.placement(hw))
+    if getattr(getattr(backend, "config", None), "canonical_focal", None) is not None:
+        out["focal_factor"] = backend.focal_factor(camera, hw)
+    return out
+
+
 def make_backend(cfg: DepthConfig) -> Any:
     """The configured backend (onnxruntime is imported only for ``onnx``)."""
     if cfg.backend == "simulated":
@@ -120,7 +135,7 @@ def make_backend(cfg: DepthConfig) -> Any:
         multiple_of=cfg.multiple_of, interpolation=cfg.interpolation, mean=cfg.mean,
         std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
         output_index=cfg.output_index, output_scale=cfg.output_scale, threads=cfg.threads,
-        device=cfg.device, canonical_focal=cfg.canonical_focal,
+        device=cfg.device, canonical_focal=cfg.canonical_focal, fill=cfg.fill,
         intrinsics_input=cfg.intrinsics_input))
 
 
@@ -196,6 +211,10 @@ class DepthStage(Stage):
             # The network input these frames take (after rounding to whole patches), known
             # before the first prediction: meta.json recorded null.
             info["input_hw"] = list(input_hw((seq.rig.camera.height, seq.rig.camera.width)))
+        try:
+            info.update(_camera_settings(backend, seq.rig.camera))
+        except ValueError as e:  # intrinsics that are not those of the images
+            raise StageError(f"depth: {e}") from None
         writer = DepthStoreWriter(out, backend.kind, info, cfg.dtype,
                                   resume_key=ctx.resume_key or None)
         indices = list(range(0, len(seq.frames), cfg.every))
