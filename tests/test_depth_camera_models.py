@@ -233,3 +233,82 @@ def test_depth_stage_gives_the_network_its_camera(tmp_path: Path) -> None:
     meta = json.loads((tmp_path / "run" / "depth" / "depth" / "meta.json").read_text())
     assert meta["placement"] == [0, 10, 60, 80] and meta["input_hw"] == [60, 100]
     assert meta["focal_factor"] == pytest.approx(factor)
+    assert f"times {factor:.4f}" in (tmp_path / "run" / "report.md").read_text()
+
+
+def _confidence_model(path: Path, shape: list) -> Path:
+    """UniDepth V2's export layout: out_K, depth, depth_ssi, confidence. depth =
+    softplus(mean over the channels), confidence = the first input channel."""
+    k = helper.make_tensor("k", TensorProto.FLOAT, [1, 3, 3], np.eye(3).reshape(-1).tolist())
+    starts = helper.make_tensor("s0", TensorProto.INT64, [1], [0])
+    ends = helper.make_tensor("s1", TensorProto.INT64, [1], [1])
+    axes = helper.make_tensor("ax", TensorProto.INT64, [1], [1])
+    nodes = [helper.make_node("Constant", [], ["out_K"], value=k),
+             helper.make_node("ReduceMean", ["image"], ["m"], axes=[1], keepdims=1),
+             helper.make_node("Softplus", ["m"], ["depth"]),
+             helper.make_node("Identity", ["depth"], ["depth_ssi"])] + [
+             helper.make_node("Constant", [], [t.name], value=t) for t in (starts, ends, axes)
+             ] + [helper.make_node("Slice", ["image", "s0", "s1", "ax"], ["confidence"])]
+    outputs = [helper.make_tensor_value_info("out_K", TensorProto.FLOAT, [1, 3, 3])] + [
+        helper.make_tensor_value_info(n, TensorProto.FLOAT, None)
+        for n in ("depth", "depth_ssi", "confidence")]
+    return save_graph(path, nodes, [helper.make_tensor_value_info(
+        "image", TensorProto.FLOAT, shape)], outputs)
+
+
+def test_low_confidence_pixels_are_dropped(tmp_path: Path, rgb: np.ndarray) -> None:
+    path = _confidence_model(tmp_path / "conf.onnx", [1, 3, "h", "w"])
+    be = OnnxDepthBackend(C(model=path, kind="metric_depth", output_index=1,
+                            confidence_index=3, min_confidence=0.5, mean=(0, 0, 0),
+                            std=(1, 1, 1), input_size=(45, 61), multiple_of=1, threads=1))
+    pred = be.predict(rgb)
+    sure = rgb[..., 0] / 255.0 >= 0.5  # the confidence, at the image's own size
+    assert np.isfinite(pred.values[sure]).all() and np.isnan(pred.values[~sure]).all()
+    assert pred.extra["confident_fraction"] == pytest.approx(sure.mean())
+    assert be.describe()["confidence_output"] == "confidence"
+    # Letterboxed into a fixed input, the confidence is placed as the depth is: a dark
+    # left half is dropped, the bright right half kept (one column of blend between).
+    half = np.zeros((45, 61, 3), np.uint8)
+    half[:, 31:] = 255
+    box = OnnxDepthBackend(C(model=_confidence_model(tmp_path / "f.onnx", [1, 3, 28, 42]),
+                             kind="metric_depth", output_index=1, confidence_index=3,
+                             min_confidence=0.5, mean=(0, 0, 0), std=(1, 1, 1),
+                             resize="letterbox", interpolation="linear"))
+    kept = np.isfinite(box.predict(half).values)
+    assert not kept[:, :30].any() and kept[:, 32:].all()
+    for bad in (1, 4):
+        with pytest.raises(ValueError, match=f"confidence_index {bad} is not another output"):
+            OnnxDepthBackend(C(model=path, kind="metric_depth", output_index=1,
+                               confidence_index=bad))
+    with pytest.raises(ValueError, match=r"output 0 \('out_K'\) has shape \[1, 3, 3\], not "
+                       "one confidence image"):
+        OnnxDepthBackend(C(model=path, kind="metric_depth", output_index=1,
+                           confidence_index=0))
+
+
+def test_depth_stage_records_what_the_confidence_kept(tmp_path: Path) -> None:
+    import csv
+
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.synthetic import write_box_room
+
+    path = _confidence_model(tmp_path / "conf.onnx", [1, 3, "h", "w"])
+    seq_dir = write_box_room(tmp_path / "seq", n_frames=2)  # 160x120 images
+    res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq_dir)},
+                                {"stage": "depth", "model": str(path), "threads": 1,
+                                 "output": "metric_depth", "output_index": 1,
+                                 "confidence_index": 3, "min_confidence": 0.5,
+                                 "mean": [0, 0, 0], "std": [1, 1, 1],
+                                 "input_size": [120, 160], "multiple_of": 1}],
+                     {"t_sequence": SequenceFolder, "depth": DepthStage})
+    assert res.ok, res.error
+    folder = tmp_path / "run" / "depth"
+    with open(folder / "depth" / "index.csv") as f:
+        rows = list(csv.DictReader(f))
+    fractions = [float(r["confident_fraction"]) for r in rows]
+    assert len(fractions) == 2 and all(0.0 <= v <= 1.0 for v in fractions)
+    assert res.metrics["depth"]["confident_fraction_mean"] == pytest.approx(np.mean(fractions))
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert f"kept {100 * np.mean(fractions):.1f} % of the pixels with depth" in report

@@ -69,6 +69,11 @@ class OnnxDepthConfig(BaseModel):
     # A model input that takes the camera's intrinsics at the network input (UniDepth
     # exports with a camera input): [1, 3, 3] / [3, 3] K, or [1, 4] / [4] fx, fy, cx, cy.
     intrinsics_input: str | None = None
+    # A confidence map among the outputs (UniDepth V2's export: output 3, higher is more
+    # sure): pixels below ``min_confidence`` are dropped (NaN), as glass, mirrors and
+    # open sky are where such networks guess.
+    confidence_index: int | None = None
+    min_confidence: float = 0.0
     threads: int = 2  # onnxruntime intra-op threads
     # Where the network runs: cuda needs the onnxruntime-gpu package (in place of
     # onnxruntime); auto takes CUDA when that package finds a GPU, else the CPU.
@@ -216,6 +221,20 @@ class OnnxDepthBackend:
         if all(isinstance(d, int) for d in shape) and not (
                 _image_shaped(shape) and min(d for d in shape if d != 1) >= 4):
             raise ValueError(self._not_depth_message(shape))
+        self.confidence_name: str | None = None
+        if config.confidence_index is not None:
+            ci = config.confidence_index
+            if not 0 <= ci < len(outputs) or ci == config.output_index:
+                raise ValueError(f"{path}: confidence_index {ci} is not another output of "
+                                 f"the model; its outputs are {self._outputs_text}")
+            cshape = outputs[ci].shape
+            if all(isinstance(d, int) for d in cshape) and not (
+                    _image_shaped(cshape) and min(d for d in cshape if d != 1) >= 4):
+                raise ValueError(f"{path}: output {ci} ({outputs[ci].name!r}) has shape "
+                                 f"{list(cshape)}, not one confidence image; the model's "
+                                 f"outputs are {self._outputs_text}")
+            self.confidence_name = outputs[ci].name
+        self.last_confident_fraction: float | None = None
         self._fixed_hw = self._fixed_input_hw(inp.shape)
         self._image_shape = list(inp.shape)  # the image's, wherever the intrinsics input is
         kind = config.kind or self.metadata.get("depth_kind")
@@ -412,13 +431,25 @@ class OnnxDepthBackend:
 
     def postprocess(self, raw: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
         """Network output ([1, 1, h, w], [1, h, w] or [h, w]) -> [H, W] float32, NaN invalid."""
-        out = np.asarray(raw, dtype=np.float32)
-        if out.ndim > 2:  # [1, 1, h, w], [1, h, w, 1], [1, h, w]: drop the unit axes
-            out = out.reshape([n for n in out.shape if n != 1] or [1])
+        out = _squeezed(raw)
         if not _image_shaped(out.shape, self.last_input_hw):
             raise ValueError(self._not_depth_message(np.shape(raw)))
         out = out * np.float32(self.config.output_scale)
-        bad = self._invalid(out)
+        return self._to_image(out, self._invalid(out), image_hw)
+
+    def confidence(self, raw: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
+        """The confidence output -> [H, W] float32 over the image, as the depth is placed."""
+        conf = _squeezed(raw)
+        if not _image_shaped(conf.shape, self.last_input_hw):
+            raise ValueError(f"{self.config.model}: output {self.config.confidence_index} "
+                             f"({self.confidence_name!r}) has shape {list(np.shape(raw))}, "
+                             "not one confidence image")
+        return self._to_image(conf, ~np.isfinite(conf), image_hw)
+
+    def _to_image(self, out: np.ndarray, bad: np.ndarray, image_hw: tuple[int, int]
+                  ) -> np.ndarray:
+        """[h, w] output -> [H, W]: a letterbox's fill cut, resized to the image from the
+        valid pixels, NaN where ``bad``."""
         if self.config.resize == "letterbox" and self.last_placement is not None:
             # Cut the fill at the input's resolution: an output at a fraction of it (1/2,
             # 1/4) cut at whole output pixels moved the depth by up to 2 image columns.
@@ -467,8 +498,9 @@ class OnnxDepthBackend:
             if self.intrinsics is not None:
                 feeds[self.intrinsics.name] = self.intrinsics.tensor(fx, fy, cx, cy)
         t1 = time.perf_counter()
+        names = [self.output_name] + ([self.confidence_name] if self.confidence_name else [])
         try:
-            raw = self.session.run([self.output_name], feeds)[0]
+            raws = self.session.run(names, feeds)
         except Exception as e:  # onnxruntime's own exception types, from its C++ core
             raise ValueError(
                 f"{self.config.model}: onnxruntime failed on a {hw[1]}x{hw[0]} input: "
@@ -476,7 +508,14 @@ class OnnxDepthBackend:
                 f"of 32 (MiDaS, ZoeDepth) or 16 (DPT-BEiT), set multiple_of (now "
                 f"{self.multiple_of}) or an input_size it takes") from e
         t2 = time.perf_counter()
-        values = self.postprocess(raw, rgb.shape[:2])
+        values = self.postprocess(raws[0], rgb.shape[:2])
+        extra: dict[str, Any] = {}
+        if self.confidence_name is not None:
+            unsure = ~(self.confidence(raws[1], rgb.shape[:2]) >= self.config.min_confidence)
+            had = np.isfinite(values)
+            values[unsure] = np.nan
+            self.last_confident_fraction = float(np.isfinite(values).sum() / max(1, had.sum()))
+            extra["confident_fraction"] = self.last_confident_fraction
         if self.config.canonical_focal is not None:
             self.last_focal_factor = self.focal_factor(camera, rgb.shape[:2])
             values *= np.float32(self.last_focal_factor)
@@ -484,7 +523,7 @@ class OnnxDepthBackend:
         self.last_timing = {"preprocess_s": t1 - t0, "network_s": t2 - t1,
                             "postprocess_s": t3 - t2}
         return DepthPrediction(values, self.kind, latency_s=t2 - t1,
-                               extra={"input_hw": hw, **self.last_timing})
+                               extra={"input_hw": hw, **self.last_timing, **extra})
 
     def describe(self) -> dict[str, Any]:
         """Settings actually used (for the report and the depth index)."""
@@ -499,6 +538,9 @@ class OnnxDepthBackend:
                 "canonical_focal": self.config.canonical_focal, "fill": self.config.fill,
                 "focal_factor": self.last_focal_factor,
                 "intrinsics_input": self.config.intrinsics_input,
+                "confidence_index": self.config.confidence_index,
+                "confidence_output": self.confidence_name,
+                "min_confidence": self.config.min_confidence,
                 "placement": list(self.last_placement) if self.last_placement else None,
                 "providers": self.providers,
                 "spin": self.config.spin, "metadata": self.metadata,
@@ -530,6 +572,14 @@ class _IntrinsicsInput:
         else:
             values = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         return values.reshape(self.shape).astype(self.dtype)
+
+
+def _squeezed(raw: np.ndarray) -> np.ndarray:
+    """float32 with the unit axes dropped: [1, 1, h, w], [1, h, w, 1], [1, h, w] -> [h, w]."""
+    out = np.asarray(raw, dtype=np.float32)
+    if out.ndim > 2:
+        out = out.reshape([n for n in out.shape if n != 1] or [1])
+    return out
 
 
 def _resize_valid(values: np.ndarray, bad: np.ndarray, hw: tuple[int, int]) -> np.ndarray:

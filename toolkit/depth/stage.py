@@ -43,6 +43,9 @@ class DepthConfig(StageConfig):
     # letterbox fill, 0-255 per network input channel (None: the mean colour)
     fill: tuple[float, float, float] | None = None
     intrinsics_input: str | None = None  # the model input that takes the camera (UniDepth)
+    # a confidence output (UniDepth V2: 3); pixels below min_confidence are dropped
+    confidence_index: int | None = Field(None, ge=0)
+    min_confidence: float = 0.0
     threads: int = Field(2, ge=1)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # cuda: needs onnxruntime-gpu
     # --- simulated: a preset, then per-parameter overrides
@@ -136,7 +139,8 @@ def make_backend(cfg: DepthConfig) -> Any:
         std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
         output_index=cfg.output_index, output_scale=cfg.output_scale, threads=cfg.threads,
         device=cfg.device, canonical_focal=cfg.canonical_focal, fill=cfg.fill,
-        intrinsics_input=cfg.intrinsics_input))
+        intrinsics_input=cfg.intrinsics_input, confidence_index=cfg.confidence_index,
+        min_confidence=cfg.min_confidence))
 
 
 class DepthStage(Stage):
@@ -245,12 +249,15 @@ class DepthStage(Stage):
         writer.close()
         ctx.provide("depth", out)
         lat = np.array([float(r["latency_s"]) for r in writer.rows])
+        kept = [float(r["confident_fraction"]) for r in writer.rows if "confident_fraction" in r]
         metrics = {"frames": len(indices), "kind": backend.kind, "backend": cfg.backend,
                    "frames_resumed": len(indices) - len(todo),
                    "latency_mean_s": float(lat.mean()), "latency_median_s": float(np.median(lat)),
                    "fps": float(1.0 / lat.mean()) if lat.mean() > 0 else None,
                    "device": _device(backend),
-                   **timer.metrics(len(todo))}
+                   **timer.metrics(len(todo)),
+                   # of the pixels with depth, the share the confidence kept
+                   **({"confident_fraction_mean": float(np.mean(kept))} if kept else {})}
         # The first frame as stored, whichever run predicted it: a resumed run draws the
         # figure a whole one does (it drew the first frame predicted after the restart).
         i = indices[0]
@@ -271,6 +278,14 @@ class DepthStage(Stage):
         md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames"
               f"{resumed}, network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms){where}."]
+        if kept:
+            md.append(f"The network's confidence (output {cfg.confidence_index}, at least "
+                      f"{cfg.min_confidence:g}) kept {100 * float(np.mean(kept)):.1f} % of the "
+                      "pixels with depth (mean over frames).")
+        if info.get("focal_factor") is not None:
+            md.append(f"Canonical camera depth (focal {cfg.canonical_focal:g} px) times "
+                      f"{info['focal_factor']:.4f}, this camera's focal length at the network "
+                      "input over it.")
         fig = ctx.stage_dir / "depth_sample.png"
         _sample_figure(fig, *first_pred)
         md.append(f"![image and prediction]({ctx.stage_id}/{fig.name})")

@@ -94,8 +94,9 @@ class DepthStoreWriter:
         self.shape = pred.values.shape
         row = {"index": str(index), "stamp": repr(float(stamp)), "file": rel,
                "latency_s": f"{pred.latency_s:.6f}"}
-        if "true_scale" in pred.extra:
-            row["true_scale"] = repr(float(pred.extra["true_scale"]))
+        for key in ("true_scale", "confident_fraction"):
+            if key in pred.extra:
+                row[key] = repr(float(pred.extra[key]))
         self.rows.append(row)
         # After the file: a journaled frame is complete on disk. Flushed, not fsynced: this
         # guards against a killed process, not against power loss.
