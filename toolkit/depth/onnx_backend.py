@@ -49,7 +49,7 @@ class OnnxDepthConfig(BaseModel):
     # keep_aspect: height = input_size, width from the image aspect, both rounded to
     # ``multiple_of`` (needs a model exported with dynamic height/width). letterbox: the
     # whole image scaled into the input at its own aspect, centred, the rest filled with
-    # the mean colour (Metric3D's fixed 616x1064 input); the fill is cut from the output.
+    # ``fill`` (Metric3D's fixed 616x1064 input); the fill is cut from the output.
     resize: Literal["stretch", "keep_aspect", "letterbox"] = "stretch"
     multiple_of: int | None = None  # 14 for ViT/14 backbones; None: metadata or 14
     interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"

@@ -287,12 +287,13 @@ class DepthStage(Stage):
                       f"{info['focal_factor']:.4f}, this camera's focal length at the network "
                       "input over it.")
         fig = ctx.stage_dir / "depth_sample.png"
-        _sample_figure(fig, *first_pred)
+        sample_figure(fig, *first_pred)
         md.append(f"![image and prediction]({ctx.stage_id}/{fig.name})")
         ctx.report("\n\n".join(md))
 
 
-def _sample_figure(path: Path, index: int, rgb: np.ndarray, pred: Any) -> None:
+def sample_figure(path: Path, index: int, rgb: np.ndarray, pred: Any) -> None:
+    """Frame ``index``'s image [H, W, 3] beside its prediction (turbo, with a colour bar)."""
     import matplotlib
 
     matplotlib.use("Agg")
