@@ -276,6 +276,14 @@ def test_low_confidence_pixels_are_dropped(tmp_path: Path, rgb: np.ndarray) -> N
                              resize="letterbox", interpolation="linear"))
     kept = np.isfinite(box.predict(half).values)
     assert not kept[:, :30].any() and kept[:, 32:].all()
+    # A frame without depth has no share to tell: not recorded as "all dropped".
+    nothing = OnnxDepthBackend(C(model=path, kind="metric_depth", output_index=1,
+                                 confidence_index=3, min_confidence=0.5, mean=(0, 0, 0),
+                                 std=(1, 1, 1), input_size=(45, 61), multiple_of=1,
+                                 output_scale=-1.0))  # every depth negative: none valid
+    assert "confident_fraction" not in nothing.predict(rgb).extra
+    with pytest.raises(ValueError, match="min_confidence needs confidence_index"):
+        C(model=path, min_confidence=0.5)
     for bad in (1, 4):
         with pytest.raises(ValueError, match=f"confidence_index {bad} is not another output"):
             OnnxDepthBackend(C(model=path, kind="metric_depth", output_index=1,

@@ -44,6 +44,10 @@ def test_unidepth_export_is_recognised() -> None:
     assert sug.settings == {"intrinsics_input": "K", "output_index": 1,
                             "confidence_index": 3, "output": "metric_depth"}
     assert any("min_confidence" in n for n in sug.notes)
+    # its batch axis is symbolic, its size fixed: said so, not "free" (input_size 518
+    # would then be refused)
+    assert any("fixed input 462x616" in n for n in sug.notes)
+    assert not any("input size is free" in n for n in sug.notes)
 
 
 def test_unknown_settings_are_said() -> None:
@@ -99,5 +103,12 @@ def test_cli_names_a_bad_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> 
     bad.write_bytes(b"not a model")
     assert main([str(bad)]) == 2
     assert "bad.onnx" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main([str(bad), "--set", "no-equals-sign"])
+    for arg in ("no-equals-sign", "output=["):  # not KEY=VALUE, not YAML: usage, no trace
+        with pytest.raises(SystemExit):
+            main([str(bad), "--set", arg])
+        assert "--set" in capsys.readouterr().err
+    # a misspelt key is refused before it is printed into a stage
+    if SHIPPED.is_file():
+        assert main([str(SHIPPED), "--set", "min_confidense=0.5"]) == 2
+        err = capsys.readouterr().err
+        assert "not a valid depth stage" in err and "min_confidense" in err

@@ -4,12 +4,13 @@
     python -m toolkit.depth.inspect_model MODEL.onnx --image frame.png --png depth.png
     python -m toolkit.depth.inspect_model MODEL.onnx --image frame.png --camera 525,525,319.5,239.5
 
-Lists the model's inputs, outputs and metadata, recognises the layouts of the exports the
-backend knows (Metric3D's, UniDepth V2's, Depth Anything's, this project's), and prints a
+Lists the model's inputs, outputs and metadata, recognises the layouts of Metric3D's and
+UniDepth V2's exports (and reads the metadata of this project's models), and prints a
 ``depth`` stage to paste into a recipe, with a comment for each setting it could not tell
-from the file. With ``--image`` it runs that stage's backend on the image and prints what
-came out (latency, value range, share of pixels with depth), so a wrong mean/std or output
-kind shows before a long run. Nothing is downloaded; the model is only read.
+from the file (a Depth Anything or MiDaS export does not say that it outputs disparity).
+With ``--image`` it runs that stage's backend on the image and prints what came out
+(latency, value range, share of pixels with depth), so a wrong mean/std or output kind shows
+before a long run. Nothing is downloaded; the model is only read.
 """
 
 from __future__ import annotations
@@ -124,8 +125,10 @@ def suggest(inputs: list[TensorInfo], outputs: list[TensorInfo],
         s["confidence_index"] = conf[0]
         notes.append(f"output {conf[0]} ({outputs[conf[0]].name!r}) is a confidence map: set "
                      "min_confidence (its scale is the network's own) to drop unsure pixels")
-    fixed = image.fixed
-    hw = None if fixed is None else (fixed[1:3] if layout == "nhwc" else fixed[2:4])
+    # The height and width, fixed whatever the batch axis is (UniDepth's is symbolic).
+    hw = list(image.shape[1:3] if layout == "nhwc" else image.shape[2:4])
+    if not all(isinstance(d, int) for d in hw):
+        hw = None
     depth_name = outputs[depth_i].name.lower()
     kind = metadata.get("depth_kind")
     names = {t.name.lower() for t in outputs}
@@ -216,7 +219,11 @@ def _set_value(text: str) -> tuple[str, Any]:
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"--set {text!r}: give KEY=VALUE (e.g. "
                                          "output=relative_disparity, input_size=[518,518])")
-    return key.strip(), yaml.safe_load(value)
+    try:
+        return key.strip(), yaml.safe_load(value)
+    except yaml.YAMLError as e:
+        raise argparse.ArgumentTypeError(f"--set {text!r}: the value is not YAML ({e})"
+                                         ) from None
 
 
 def _camera(text: str) -> tuple[float, float, float, float]:
@@ -251,9 +258,7 @@ def try_on_image(model: Path, settings: dict[str, Any], rgb: np.ndarray,
     p1, p50, p99 = (np.percentile(v, [1, 50, 99]) if v.size else (np.nan,) * 3)
     return {"kind": pred.kind, "input_hw": list(pred.extra["input_hw"]),
             "latency_ms": 1000 * pred.latency_s, "valid_fraction": v.size / pred.values.size,
-            "p1": float(p1), "median": float(p50), "p99": float(p99), "prediction": pred,
-            **({"confident_fraction": pred.extra["confident_fraction"]}
-               if "confident_fraction" in pred.extra else {})}
+            "p1": float(p1), "median": float(p50), "p99": float(p99), "prediction": pred}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -287,6 +292,15 @@ def main(argv: list[str] | None = None) -> int:
     print("metadata: " + (", ".join(f"{k}={v!r}" for k, v in sorted(meta.items())) or "none"))
     sug = suggest(ins, outs, meta)
     sug.settings.update(dict(a.set))
+    from pydantic import ValidationError
+
+    from toolkit.depth.stage import DepthConfig
+
+    try:  # a misspelt --set key must not reach a recipe
+        DepthConfig(stage="depth", backend="onnx", model=a.model, **sug.settings)
+    except ValidationError as e:
+        print(f"error: these settings are not a valid depth stage: {e}", file=sys.stderr)
+        return 2
     if sug.recognised:
         print(f"recognised: {sug.recognised}")
     print("\ndepth stage:\n" + stage_yaml(a.model, sug))
@@ -311,8 +325,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{res['input_hw'][0]}, {res['latency_ms']:.0f} ms, {res['kind']}: 1 / 50 / 99 % "
           f"{res['p1']:.4g} / {res['median']:.4g} / {res['p99']:.4g}, "
           f"{100 * res['valid_fraction']:.1f} % of pixels have a value"
-          + (f" ({100 * res['confident_fraction']:.1f} % of them confident)"
-             if "confident_fraction" in res else ""))
+          + (" after the confidence threshold" if "confidence_index" in settings else ""))
     if a.png is not None:
         from toolkit.depth.stage import sample_figure
 

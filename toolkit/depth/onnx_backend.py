@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
 
@@ -92,6 +92,13 @@ class OnnxDepthConfig(BaseModel):
         if min(hw) <= 0:
             raise ValueError(f"input_size must be positive, got {v}")
         return v
+
+    @model_validator(mode="after")
+    def _confidence_needs_its_output(self) -> OnnxDepthConfig:
+        if self.min_confidence and self.confidence_index is None:
+            raise ValueError("min_confidence needs confidence_index (the output that holds "
+                             "the confidence)")
+        return self
 
     @field_validator("canonical_focal")
     @classmethod
@@ -512,10 +519,13 @@ class OnnxDepthBackend:
         extra: dict[str, Any] = {}
         if self.confidence_name is not None:
             unsure = ~(self.confidence(raws[1], rgb.shape[:2]) >= self.config.min_confidence)
-            had = np.isfinite(values)
+            had = int(np.isfinite(values).sum())
             values[unsure] = np.nan
-            self.last_confident_fraction = float(np.isfinite(values).sum() / max(1, had.sum()))
-            extra["confident_fraction"] = self.last_confident_fraction
+            # A frame without depth has no share to tell (0 would read as all dropped).
+            self.last_confident_fraction = (float(np.isfinite(values).sum() / had) if had
+                                            else None)
+            if had:
+                extra["confident_fraction"] = self.last_confident_fraction
         if self.config.canonical_focal is not None:
             self.last_focal_factor = self.focal_factor(camera, rgb.shape[:2])
             values *= np.float32(self.last_focal_factor)

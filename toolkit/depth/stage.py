@@ -79,6 +79,9 @@ class DepthConfig(StageConfig):
         if self.backend == "onnx" and self.model is None:
             raise ValueError("backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
                              "datasets/models/small-depth.onnx")
+        if self.min_confidence and self.confidence_index is None:
+            raise ValueError("min_confidence needs confidence_index (the output that holds "
+                             "the confidence)")
         if self.canonical_focal is not None and self.output not in (None, "metric_depth"):
             raise ValueError(f"canonical_focal converts a canonical camera's metric depth "
                              f"(Metric3D) to this camera's; output is {self.output}: drop "
