@@ -1,6 +1,7 @@
 """Fusion on a raycast box room with a walking box: projection vs ground truth, the moving
 box carved out of the map, and the depth + fuse stages through the recipe runner."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -460,3 +461,26 @@ def test_a_broken_ground_truth_mesh_stops_fuse_before_any_frame(box_room: Path,
     assert not res.ok
     assert "groundtruth/mesh.ply" in res.error and "remove it" in res.error
     assert not list((tmp_path / "run" / "fuse").glob("scaled_depth/*"))
+
+
+def test_a_metric_network_far_from_the_lidar_is_named(box_room: Path, tmp_path: Path) -> None:
+    """A metric network 4x off (millimetres read as metres would be 1000x, a canonical
+    focal left out a few x) is a setting, not accuracy: the report and log say which."""
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.stage import FuseStage, metric_scale_warning
+
+    assert metric_scale_warning("metric_depth", 1.2) is None
+    assert metric_scale_warning("relative_depth", 0.01) is None  # a relative unit is free
+    assert "0.001 for a network in millimetres" in metric_scale_warning("metric_depth", 0.001)
+    res = run_stages(tmp_path, [
+        {"stage": "t_sequence", "path": str(box_room)},
+        {"stage": "depth", "backend": "simulated", "preset": "scale_only", "output":
+         "metric_depth", "simulated": {"seed": 1, "scale": 4.0}},
+        {"stage": "fuse", "scale": "ratio", "mesh_eval_frames": 0},
+    ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
+    assert res.ok, res.error
+    assert res.metrics["fuse"]["scale_median"] == pytest.approx(0.25, rel=0.03)
+    report = (tmp_path / "run" / "report.md").read_text()
+    said = re.search(r"\*\*The metric network's depth is ([0-9.]+) times the lidar's\*\*",
+                     report)
+    assert said and float(said.group(1)) == pytest.approx(4.0, rel=0.03)

@@ -288,6 +288,18 @@ def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
     return traj
 
 
+def metric_scale_warning(kind: str, scale_median: float | None) -> str | None:
+    """What to say when a metric network's depth is far from the lidar's (median scale
+    outside 2/3..3/2): a setting is off, not the network's accuracy. None otherwise."""
+    if kind != "metric_depth" or scale_median is None or 2 / 3 <= scale_median <= 1.5:
+        return None
+    return (f"**The metric network's depth is {1 / scale_median:.3g} times the lidar's** "
+            f"(median scale {scale_median:.3g} over the frames): a setting is likely off - "
+            "the depth stage's output_scale (0.001 for a network in millimetres), "
+            "canonical_focal (Metric3D: 1000) or input size, or the camera intrinsics. The "
+            "map takes the lidar's scale either way; the unscaled figures are this far off.")
+
+
 class FuseStage(Stage):
     """Scale monocular depth with the lidar and fuse the frames into a coloured voxel map."""
 
@@ -546,6 +558,8 @@ class FuseStage(Stage):
             "pairs_visible_per_frame_median": float(np.median(
                 [int(pairs[i].seen_by_both.sum()) for i in frames])),
             "depth_kind": store.kind, "scale_method": cfg.scale,
+            # The lidar's scale over the frames it was used on (a metric network's: ~1).
+            "scale_median": float(np.median(sm.scale[sm.used])),  # type: ignore[attr-defined]
             "poses": pose_source,
             "map_points": len(final), "map_points_raw": len(raw),
             "map_points_removed_dynamic": int(masks["dynamic"].sum()),
@@ -701,6 +715,10 @@ class FuseStage(Stage):
             table.append(f"| {name} | {m[a + 'rmse_m']:.3f} | {m[b + 'rmse_m']:.3f} | "
                          f"{m[b + 'absrel']:.3f} | {m[b + 'delta1']:.3f} |")
         md.append("\n".join(table))
+        off = metric_scale_warning(store.kind, m.get("scale_median"))
+        if off:
+            ctx.log.warning("fuse: %s", off.replace("**", ""))
+            md.append(off)
         if store.kind != "metric_depth":
             md.append("Unscaled: the prediction as it comes, its values read as metres (a "
                       f"{store.kind.replace('_', ' ')} has no unit: the figure is what using "
