@@ -654,6 +654,27 @@ def test_training_resumes_from_its_checkpoint(tmp_path: Path) -> None:
         train(other)
 
 
+def test_training_set_is_filled_house_by_house(tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The renders of every house in order, as each house's own; more than memory holds
+    is refused before any render, naming --houses."""
+    import toolkit.depth.train_small as ts
+
+    cfg = ts.TrainConfig(train_seeds=(101, 102), images_per_house=2, height=24, width=32,
+                         cache=tmp_path / "cache")
+    X, D = ts.load_training_set(cfg)
+    assert X.shape == (4, 24, 32, 3) and X.dtype == np.uint8 and D.shape == (4, 24, 32)
+    for k, seed in enumerate(cfg.train_seeds):
+        imgs, depth = ts.load_or_render(seed, 2, cfg)
+        assert np.array_equal(X[2 * k:2 * k + 2], imgs)
+        assert np.array_equal(D[2 * k:2 * k + 2], depth)
+    assert ts.training_set_bytes(cfg) == 4 * 24 * 32 * 7
+    monkeypatch.setattr(ts, "_available_bytes", lambda: 10_000)
+    monkeypatch.setattr(ts, "load_or_render", lambda *a: pytest.fail("rendered anyway"))
+    with pytest.raises(MemoryError, match=r"2 houses x 2 renders at 32x24 .* fewer --houses"):
+        ts.load_training_set(cfg)
+
+
 def test_training_widths_from_the_command_line() -> None:
     import argparse
 
