@@ -94,10 +94,11 @@ class OnnxDepthConfig(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _confidence_needs_its_output(self) -> OnnxDepthConfig:
-        if self.min_confidence and self.confidence_index is None:
-            raise ValueError("min_confidence needs confidence_index (the output that holds "
-                             "the confidence)")
+    def _consistent(self) -> OnnxDepthConfig:
+        problem = settings_problem(self.kind, self.canonical_focal, self.min_confidence,
+                                   self.confidence_index)
+        if problem:
+            raise ValueError(problem)
         return self
 
     @field_validator("canonical_focal")
@@ -107,6 +108,19 @@ class OnnxDepthConfig(BaseModel):
             raise ValueError(f"canonical_focal must be a positive focal length in pixels "
                              f"(Metric3D: 1000), got {v}")
         return v
+
+
+def settings_problem(kind: str | None, canonical_focal: float | None, min_confidence: float,
+                     confidence_index: int | None) -> str | None:
+    """What is wrong with these settings together (the depth stage checks them with the
+    recipe, the backend again once the model's metadata has said its kind); None: nothing."""
+    if min_confidence and confidence_index is None:
+        return "min_confidence needs confidence_index (the output that holds the confidence)"
+    if canonical_focal is not None and kind not in (None, "metric_depth"):
+        return (f"canonical_focal converts a canonical camera's metric depth (Metric3D) to "
+                f"this camera's; the output is {kind}, which a scale fit makes metric "
+                "anyway: drop it, or set output: metric_depth if the network is metric")
+    return None
 
 
 def execution_providers(device: str, available: list[str]) -> list[str]:
@@ -225,8 +239,7 @@ class OnnxDepthBackend:
         self._outputs_text = ", ".join(f"{i}: {o.name!r} {o.shape}"
                                        for i, o in enumerate(outputs))
         shape = outputs[config.output_index].shape
-        if all(isinstance(d, int) for d in shape) and not (
-                _image_shaped(shape) and min(d for d in shape if d != 1) >= 4):
+        if _fixed_non_map(shape):
             raise ValueError(self._not_depth_message(shape))
         self.confidence_name: str | None = None
         if config.confidence_index is not None:
@@ -235,8 +248,7 @@ class OnnxDepthBackend:
                 raise ValueError(f"{path}: confidence_index {ci} is not another output of "
                                  f"the model; its outputs are {self._outputs_text}")
             cshape = outputs[ci].shape
-            if all(isinstance(d, int) for d in cshape) and not (
-                    _image_shaped(cshape) and min(d for d in cshape if d != 1) >= 4):
+            if _fixed_non_map(cshape):
                 raise ValueError(f"{path}: output {ci} ({outputs[ci].name!r}) has shape "
                                  f"{list(cshape)}, not one confidence image; the model's "
                                  f"outputs are {self._outputs_text}")
@@ -253,10 +265,10 @@ class OnnxDepthBackend:
         if kind not in DEPTH_KINDS:
             raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
         self.kind: DepthKind = kind  # type: ignore[assignment]
-        if config.canonical_focal is not None and kind != "metric_depth":
-            raise ValueError(f"{path}: canonical_focal converts a canonical camera's metric "
-                             f"depth (Metric3D) to this camera's; the model's output is "
-                             f"{kind}, which a scale fit makes metric anyway: drop it")
+        problem = settings_problem(kind, config.canonical_focal, config.min_confidence,
+                                   config.confidence_index)
+        if problem:  # the kind may come from the model's metadata
+            raise ValueError(f"{path}: {problem}")
         self.multiple_of = int(config.multiple_of or _meta_int(path, self.metadata,
                                                                "multiple_of") or 14)
         order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
@@ -366,7 +378,11 @@ class OnnxDepthBackend:
     def placement(self, image_hw: tuple[int, int]) -> tuple[int, int, int, int]:
         """Where an image of ``image_hw`` lies in the network input: (top, left, height,
         width); the whole input except with ``resize: letterbox``."""
-        h, w = self.input_hw(image_hw)
+        return self._place(self.input_hw(image_hw), image_hw)
+
+    def _place(self, input_hw: tuple[int, int], image_hw: tuple[int, int]
+               ) -> tuple[int, int, int, int]:
+        h, w = input_hw
         if self.config.resize != "letterbox":
             return 0, 0, h, w
         s = min(h / image_hw[0], w / image_hw[1])
@@ -397,7 +413,10 @@ class OnnxDepthBackend:
         if self.config.canonical_focal is None:
             raise ValueError(f"{self.config.model}: no canonical_focal set")
         fx, fy, _, _ = self.network_intrinsics(camera, image_hw)
-        return float(np.sqrt(fx * fy)) / self.config.canonical_focal
+        return self._focal_factor(fx, fy)
+
+    def _focal_factor(self, fx: float, fy: float) -> float:
+        return float(np.sqrt(fx * fy)) / float(self.config.canonical_focal)  # type: ignore
 
     @property
     def needs_camera(self) -> bool:
@@ -411,7 +430,7 @@ class OnnxDepthBackend:
         if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"expected an RGB uint8 [H, W, 3] image, got {rgb.dtype} {rgb.shape}")
         h, w = self.input_hw(rgb.shape[:2])
-        top, left, nh, nw = self.placement(rgb.shape[:2])
+        top, left, nh, nw = self._place((h, w), rgb.shape[:2])
         self.last_placement = (top, left, nh, nw)
         img = rgb if self.channel_order == "rgb" else rgb[..., ::-1]
         if (nh, nw) != img.shape[:2]:
@@ -527,7 +546,7 @@ class OnnxDepthBackend:
             if had:
                 extra["confident_fraction"] = self.last_confident_fraction
         if self.config.canonical_focal is not None:
-            self.last_focal_factor = self.focal_factor(camera, rgb.shape[:2])
+            self.last_focal_factor = self._focal_factor(fx, fy)
             values *= np.float32(self.last_focal_factor)
         t3 = time.perf_counter()
         self.last_timing = {"preprocess_s": t1 - t0, "network_s": t2 - t1,
@@ -616,6 +635,13 @@ def _image_shaped(shape: Any, input_hw: tuple[int, int] | None = None) -> bool:
     if input_hw is None:
         return True
     return all(d * 32 >= n for d, n in zip(dims, input_hw, strict=True))
+
+
+def _fixed_non_map(shape: Any) -> bool:
+    """A fully fixed output shape that is no per-pixel map (two axes of at least 4 besides
+    unit ones): known wrong before any run; a symbolic shape is checked on the output."""
+    return all(isinstance(d, int) for d in shape) and not (
+        _image_shaped(shape) and min(d for d in shape if d != 1) >= 4)
 
 
 def _floats(path: Path, metadata: dict[str, str], key: str) -> tuple[float, ...] | None:

@@ -8,6 +8,13 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
+from toolkit.depth.onnx_backend import (
+    OnnxDepthBackend,
+    OnnxDepthConfig,
+    folder_model_message,
+    model_file_problem,
+    settings_problem,
+)
 from toolkit.depth.protocol import DepthKind
 from toolkit.depth.simulated import PRESETS, SimulatedDepthBackend, SimulatedDepthParams
 from toolkit.depth.store import DepthStore, DepthStoreWriter
@@ -79,13 +86,10 @@ class DepthConfig(StageConfig):
         if self.backend == "onnx" and self.model is None:
             raise ValueError("backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
                              "datasets/models/small-depth.onnx")
-        if self.min_confidence and self.confidence_index is None:
-            raise ValueError("min_confidence needs confidence_index (the output that holds "
-                             "the confidence)")
-        if self.canonical_focal is not None and self.output not in (None, "metric_depth"):
-            raise ValueError(f"canonical_focal converts a canonical camera's metric depth "
-                             f"(Metric3D) to this camera's; output is {self.output}: drop "
-                             "canonical_focal or set output: metric_depth")
+        problem = settings_problem(self.output, self.canonical_focal, self.min_confidence,
+                                   self.confidence_index)
+        if problem:
+            raise ValueError(problem)
         if self.backend == "dav2s_random":
             try:
                 _input_hw(self.input_size)
@@ -131,8 +135,6 @@ def make_backend(cfg: DepthConfig) -> Any:
         if cfg.output is not None:
             params.setdefault("kind", cfg.output)
         return SimulatedDepthBackend(SimulatedDepthParams(**params))
-    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
-
     if cfg.model is None:
         raise StageError("depth: backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
                          "datasets/models/small-depth.onnx")
@@ -165,8 +167,6 @@ class DepthStage(Stage):
         return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
 
     def input_problems(self) -> list[str]:
-        from toolkit.depth.onnx_backend import folder_model_message, model_file_problem
-
         out = []
         for p in self.external_inputs():
             why = folder_model_message(p) if p.is_dir() else (

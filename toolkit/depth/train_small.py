@@ -196,7 +196,7 @@ def load_training_set(cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
         imgs, depth = load_or_render(seed, cfg.images_per_house, cfg)
         X[k:k + len(imgs)], D[k:k + len(imgs)] = imgs, depth
         k += len(imgs)
-    return X[:k], D[:k]
+    return X, D
 
 
 # ---------------------------------------------------------------------------- model
