@@ -53,6 +53,28 @@ def test_sim3_alignment_removes_scale():
     assert ape(est, ref, "sim3")[0].rmse == pytest.approx(0.0, abs=1e-9)
 
 
+def test_sim3_ate_does_not_depend_on_the_estimates_units():
+    """A monocular estimate's units are arbitrary: the same 3-D path at 1/100 of its scale
+    was taken for a line (its spread under the 5 cm floor in its own units) and aligned by
+    its orientations instead of Umeyama."""
+    rng = np.random.default_rng(3)
+    n = 60
+    pos = np.cumsum(rng.normal(0, 0.05, (n, 3)), 0)  # a 3-D wander of about 0.4 m
+    gt = np.stack([se3(Rotation.random(random_state=rng).as_matrix(), q) for q in pos])
+    est = gt.copy()
+    est[:, :3, 3] += rng.normal(0, 0.01, (n, 3))
+    est[:, :3, :3] = np.einsum("ij,njk->nik",
+                               Rotation.from_euler("z", 5, degrees=True).as_matrix(),
+                               est[:, :3, :3])  # orientations off: they must not be used
+    stamps = np.arange(n) * 0.1
+    base = ape(Trajectory(stamps, est), Trajectory(stamps, gt), "sim3")[0].rmse
+    for k in (0.1, 0.01):
+        small = est.copy()
+        small[:, :3, 3] *= k
+        got = ape(Trajectory(stamps, small), Trajectory(stamps, gt), "sim3")[0].rmse
+        assert got == pytest.approx(base, rel=1e-9)
+
+
 def test_rpe_of_constant_drift_per_step():
     ref = line_traj(6)
     # Each step of the estimate is 1.1 m instead of 1 m: relative error 0.1 m per step.

@@ -385,7 +385,10 @@ def pose_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -
         R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
         return R, (q - p @ R.T).mean(0), 1.0
     R, t, s = umeyama_alignment(p, q, with_scale)
-    if sv[1] >= max(0.05 * sv[0], floor):
+    # The floor is in the reference's units: a monocular estimate's own units are
+    # arbitrary, and Sim(3) alignment must not depend on them (at 1/10 of its scale a 3-D
+    # TUM trajectory was taken for a line: ATE 10.6 mm against 9.8 mm).
+    if s * sv[1] >= max(0.05 * s * sv[0], floor):
         return R, t, s
     # Along a line: R = Rot(d, theta) R_u, d the line's direction after R_u, with theta
     # maximising tr(R^T M) = const + a sin(theta) + c cos(theta) (Rodrigues' formula).
