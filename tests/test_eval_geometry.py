@@ -91,3 +91,13 @@ def test_a_perfect_mesh_is_complete_to_its_surface():
     assert (sub["points"], sub["points_scored"]) == (len(recon), len(recon[::4]))
     with pytest.raises(ValueError, match="completeness distances"):
         geometry_metrics(recon, reference, completeness_distances=np.zeros(3))
+
+
+def test_distance_thresholds_get_a_key_each():
+    from toolkit.eval.map_accuracy import distance_stats
+
+    d = np.array([0.004, 0.012, 0.018, 0.03])
+    out = distance_stats(d, (0.005, 0.015, 0.02))
+    assert (out["within_5mm"], out["within_15mm"], out["within_2cm"]) == (0.25, 0.5, 0.75)
+    with pytest.raises(ValueError, match="same key twice"):
+        distance_stats(d, (0.02, 0.0201))

@@ -183,6 +183,15 @@ def test_tum_errors_name_file_and_line(tmp_path):
     with pytest.raises(IngestError, match="64x48 but the camera model 'ros_default' is 640x480"):
         read_tum_rgbd(tmp_path / "c")
 
+    # The ground truth's repeated stamp is named by its line, as rgb.txt's are (was
+    # "message 2": the pose count, comments not counted).
+    make_tum(tmp_path / "d")
+    gt = (tmp_path / "d" / "groundtruth.txt").read_text().splitlines()
+    gt[3] = gt[2]  # file line 4 repeats line 3 (two comment lines first)
+    (tmp_path / "d" / "groundtruth.txt").write_text("\n".join(gt) + "\n")
+    with pytest.raises(IngestError, match=r"groundtruth.txt: stamps are not monotonic: line 4 "):
+        read_tum_rgbd(tmp_path / "d", TumRgbdOptions(camera=CAM))
+
 
 def test_no_groundtruth_uses_a_level_mount(tmp_path):
     make_tum(tmp_path / "tum", gt=False)

@@ -172,6 +172,14 @@ def test_colmap_text_errors_name_file_and_line(tmp_path, cameras, images, match)
         read_colmap_model(_colmap(tmp_path, cameras, images))
 
 
+def test_colmap_point_colour_out_of_range_names_file_and_line(tmp_path):
+    folder = _colmap(tmp_path, "1 PINHOLE 640 480 500 500 320 240\n", "")
+    (folder / "points3D.txt").write_text("# points\n7 0 0 1 300 0 0 0.5\n")
+    with pytest.raises(ValueError, match=r"points3D.txt:2: colour R G B \[300, 0, 0\] "
+                                         r"outside 0..255"):
+        read_colmap_model(folder)
+
+
 # ---------------------------------------------------------------------------- poses, depth
 
 
@@ -182,10 +190,26 @@ def test_kitti_tum_and_depth_readers_check_what_they_read(tmp_path):
     (tmp_path / "k.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 x\n")
     with pytest.raises(ValueError, match="k.txt:1: could not convert"):
         read_kitti(tmp_path / "k.txt")
+    (tmp_path / "k.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(FileNotFoundError, match="times.txt: KITTI times file not found"):
+        read_kitti(tmp_path / "k.txt", tmp_path / "times.txt")
     # A byte-order mark before the header comment (Windows editors) is no data line.
     (tmp_path / "t.tum").write_text("\ufeff# stamp tx ty tz qx qy qz qw\n1.0 0 0 0 0 0 0 1\n",
                                     encoding="utf-8")
     assert len(read_tum(tmp_path / "t.tum")) == 1
+    # A repeated stamp is named by its file line (comments counted), not its pose number.
+    (tmp_path / "r.tum").write_text("# a\n# b\n1.0 0 0 0 0 0 0 1\n\n1.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"r.tum:5: stamps not strictly increasing: 1.0 "
+                                         r"repeats 1.0 \(line 3\)"):
+        read_tum(tmp_path / "r.tum")
+    # format_tum's own frames line wins over a caller's header that looks like one.
+    from toolkit.geometry import Trajectory
+    from toolkit.io.tum import write_tum
+    write_tum(tmp_path / "h.tum", Trajectory(np.array([0.0]), np.eye(4)[None], "world",
+                                             "camera"),
+              header="T_odom_base_link: from the wheel encoders, not used here")
+    back = read_tum(tmp_path / "h.tum")
+    assert (back.frame, back.child) == ("world", "camera")
     (tmp_path / "d.npy").write_bytes(b"\x93NUMPY garbage")
     with pytest.raises(ValueError, match="d.npy: not a readable .npy depth map"):
         read_depth(tmp_path / "d.npy")

@@ -31,15 +31,26 @@ class MeshDistance:
 def distance_stats(d: np.ndarray, thresholds: tuple[float, ...] = (0.02, 0.05, 0.10)) -> (
     dict[str, float]
 ):
-    """mean, RMSE, median, 90th percentile (m) and the fraction under each threshold."""
+    """mean, RMSE, median, 90th percentile (m) and the fraction under each threshold
+    (``within_key``)."""
+    if len({within_key(t) for t in thresholds}) < len(thresholds):
+        raise ValueError(f"distance thresholds {list(thresholds)} name the same key twice "
+                         "(whole millimetres are told apart)")
     d = np.asarray(d, np.float64)
     if len(d) == 0:
         return {"mean_m": float("nan"), "rmse_m": float("nan"), "median_m": float("nan"),
                 "p90_m": float("nan"), "points": 0,
-                **{f"within_{int(round(t * 100))}cm": float("nan") for t in thresholds}}
+                **{within_key(t): float("nan") for t in thresholds}}
     out = {"mean_m": float(d.mean()), "rmse_m": float(np.sqrt(np.mean(d * d))),
            "median_m": float(np.median(d)), "p90_m": float(np.percentile(d, 90)),
            "points": int(len(d))}
     for t in thresholds:
-        out[f"within_{int(round(t * 100))}cm"] = float(np.mean(d <= t))
+        out[within_key(t)] = float(np.mean(d <= t))
     return out
+
+
+def within_key(threshold_m: float) -> str:
+    """``within_5cm`` for whole centimetres (the names reports use), ``within_15mm``
+    otherwise: rounded to centimetres, 5 mm and 15 mm both became ``within_2cm``."""
+    mm = int(round(threshold_m * 1000))
+    return f"within_{mm // 10}cm" if mm % 10 == 0 else f"within_{mm}mm"

@@ -348,7 +348,10 @@ def read_colmap_model(folder: Path | str) -> ColmapModel:
         try:
             ids.append(int(p[0]))
             pts.append([float(v) for v in p[1:4]])
-            cols.append([int(v) for v in p[4:7]])
+            rgb = [int(v) for v in p[4:7]]
+            if not all(0 <= c <= 255 for c in rgb):
+                raise ValueError(f"colour R G B {rgb} outside 0..255")
+            cols.append(rgb)
             errs.append(float(p[7]))
             tracks.append(np.array([int(v) for v in p[8:]], dtype=np.int64).reshape(-1, 2))
         except ValueError as e:

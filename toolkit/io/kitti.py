@@ -33,6 +33,9 @@ def read_kitti(path: Path | str, times_path: Path | str | None = None) -> Trajec
     poses = np.tile(np.eye(4), (len(M), 1, 1))
     poses[:, :3, :] = M
     if times_path is not None:
+        if not Path(times_path).exists():
+            raise FileNotFoundError(f"{times_path}: KITTI times file not found (give the "
+                                    "sequence's times.txt, or none for stamps 0, 1, 2, ...)")
         try:
             stamps = np.loadtxt(times_path, dtype=np.float64).reshape(-1)
         except (OSError, ValueError) as e:

@@ -31,18 +31,29 @@ def read_tum(
     require_monotonic: bool = True,
 ) -> Trajectory:
     """Read a TUM file; errors name the file and line. Frames come from our header if present."""
+    return read_tum_with_lines(path, frame, child, require_monotonic)[0]
+
+
+def read_tum_with_lines(
+    path: Path | str, frame: str | None = None, child: str | None = None,
+    require_monotonic: bool = True,
+) -> tuple[Trajectory, np.ndarray]:
+    """``read_tum`` and the file line [N] int of each pose, for callers that check the
+    stamps themselves and name the line."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: trajectory file not found")
-    stamps, poses = [], []
-    hdr_frame, hdr_child = "world", "base_link"
+    stamps, poses, lines = [], [], []
+    header: tuple[str, str] | None = None
     for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), 1):
         s = line.strip()
         if not s:
             continue
         if s.startswith("#"):
-            if s.startswith("# T_") and ":" in s:
-                hdr_frame, hdr_child = _header_frames(s, hdr_frame, hdr_child)
+            # The first header that names the frames wins: format_tum writes its own first,
+            # and a caller's free-text header after it must not replace it.
+            if header is None and s.startswith("# T_") and ":" in s:
+                header = _header_frames(s)
             continue
         try:
             t, T = tum_line_to_pose(s.replace(",", " "))
@@ -50,21 +61,26 @@ def read_tum(
             raise ValueError(f"{path}:{lineno}: {e}") from None
         stamps.append(t)
         poses.append(T)
+        lines.append(lineno)
     st = np.array(stamps, dtype=np.float64)
     if require_monotonic and len(st) > 1 and np.any(np.diff(st) <= 0):
         bad = int(np.argmax(np.diff(st) <= 0)) + 1
-        raise ValueError(f"{path}: stamps not strictly increasing at pose {bad} "
-                         f"({float(st[bad - 1])!r} then {float(st[bad])!r}, line order); "
-                         "sort the file by stamp and remove repeated stamps")
-    return Trajectory(st, np.array(poses).reshape(-1, 4, 4), frame or hdr_frame,
+        what = "repeats" if st[bad] == st[bad - 1] else "goes back from"
+        raise ValueError(f"{path}:{lines[bad]}: stamps not strictly increasing: "
+                         f"{float(st[bad])!r} {what} {float(st[bad - 1])!r} (line "
+                         f"{lines[bad - 1]}); sort the file by stamp and remove repeated "
+                         "stamps")
+    hdr_frame, hdr_child = header or ("world", "base_link")
+    traj = Trajectory(st, np.array(poses).reshape(-1, 4, 4), frame or hdr_frame,
                       child or hdr_child)
+    return traj, np.array(lines, dtype=np.int64)
 
 
-def _header_frames(line: str, frame: str, child: str) -> tuple[str, str]:
+def _header_frames(line: str) -> tuple[str, str] | None:
     """(frame, child) from a ``# T_<frame>_<child>: <child> pose in <frame>`` header line
     (``format_tum``'s; names may hold underscores: ``map``, ``base_footprint``,
     ``camera_optical``), else from ``# T_<frame>_<child>`` with a known frame name first;
-    ``frame``, ``child`` when neither reads."""
+    None when neither reads."""
     name, _, rest = line[4:].partition(":")
     said = re.fullmatch(r"\s*(.+?) pose in (.+?)\s*", rest)
     if said and name == f"{said.group(2)}_{said.group(1)}":
@@ -72,4 +88,4 @@ def _header_frames(line: str, frame: str, child: str) -> tuple[str, str]:
     for known in ("base_link", "camera", "laser", "odom", "world", "map"):
         if name.startswith(known + "_"):
             return known, name[len(known) + 1:]
-    return frame, child
+    return None

@@ -46,7 +46,7 @@ from toolkit.geometry import Trajectory, inv_se3
 from toolkit.ingest.recording import R_BASE_OPTICAL, FrameData, IngestError, Recording
 from toolkit.ingest.sync import stamps_keep
 from toolkit.io.depth import read_depth
-from toolkit.io.tum import read_tum
+from toolkit.io.tum import read_tum_with_lines
 from toolkit.sensors import LaserScan, Rig, load_rgb
 
 _log = logging.getLogger("toolkit.io.tum_rgbd")
@@ -250,10 +250,12 @@ def read_tum_rgbd(root: Path | str, options: TumRgbdOptions | None = None,
     gt_drop = 0
     if (root / "groundtruth.txt").exists():
         try:
-            raw = read_tum(root / "groundtruth.txt", "world", "camera", require_monotonic=False)
+            raw, gt_lines = read_tum_with_lines(root / "groundtruth.txt", "world", "camera",
+                                                require_monotonic=False)
         except ValueError as e:
             raise IngestError(str(e)) from None
-        keep = stamps_keep(raw.stamps, str(root / "groundtruth.txt"), on_non_monotonic)
+        keep = stamps_keep(raw.stamps, str(root / "groundtruth.txt"), on_non_monotonic,
+                           lines=gt_lines.tolist())
         gt_drop = int((~keep).sum())
         gt_cam = raw.slice(keep)
 
