@@ -17,7 +17,7 @@ import numpy as np
 import yaml
 
 from toolkit.camera import PinholeCamera, plumb_bob_distortion
-from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
+from toolkit.geometry import checked_rigid, inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import Rig
@@ -153,13 +153,10 @@ def _matrix(value: Any, source: str, field: str) -> np.ndarray:
     if M.shape != (4, 4) or not np.all(np.isfinite(M)):
         raise CalibrationFileError(f"{source}: field '{field}' must be a finite 4x4 matrix "
                                    f"(list of rows), got shape {M.shape}")
-    if not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-5):
-        raise CalibrationFileError(f"{source}: field '{field}' is not a rigid transform")
-    if np.linalg.det(M[:3, :3]) < 0:
-        raise CalibrationFileError(
-            f"{source}: field '{field}' is a reflection (det -1), not a rotation: frames are "
-            "right-handed (REP 103); check the optical-frame axes (x right, y down, z "
-            "forward)")
+    try:
+        M = checked_rigid(M)
+    except ValueError as e:
+        raise CalibrationFileError(f"{source}: field '{field}' {e}") from None
     return M
 
 

@@ -94,6 +94,10 @@ def test_range_max_readings_stay_no_returns():
     assert np.all((out.ranges[55:145] == 12.0) | np.isnan(out.ranges[55:145]))
     moved = np.abs(out.ranges - r) > 1e-4
     assert moved[200:300].any()  # real returns still move
+    # Nor are they points: the fusion's lidar pixels and the carving read valid_mask
+    # (15 phantom points at a corridor scan's 8 m reach before).
+    assert not scan.valid_mask()[50:150].any() and scan.valid_mask()[200:300].all()
+    assert len(scan.points()) == int(np.isfinite(r).sum()) - 100
 
 
 def test_deskew_scans_along_a_trajectory_and_only_covered():

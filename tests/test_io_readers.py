@@ -96,6 +96,25 @@ def test_mirrored_mounts_are_refused_everywhere(tmp_path):
         extrinsic_from_mapping({"T_camera_laser": MIRROR}, "ext.yaml")
 
 
+def test_rounded_rotations_are_taken_and_transposed_matrices_named(tmp_path):
+    """A 30 deg yaw written to 4 decimals (R R^T 4e-5 off) was refused as 'not
+    orthonormal', and so was a transposed matrix, for the wrong reason."""
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    T = [[0.8660, -0.5000, 0.0, 0.1], [0.5000, 0.8660, 0.0, 0.0], [0.0, 0.0, 1.0, 0.3],
+         [0.0, 0.0, 0.0, 1.0]]
+    for rig in (Rig(cam, np.eye(4), np.array(T)),
+                Rig(cam, np.eye(4), extrinsic_from_mapping({"T_camera_laser": T}, "e.yaml"))):
+        R = rig.T_base_laser[:3, :3]
+        assert np.abs(R @ R.T - np.eye(3)).max() < 1e-12
+        assert np.degrees(np.arctan2(R[1, 0], R[0, 0])) == pytest.approx(30.0, abs=0.01)
+    assert parse_transform(T, "c.yaml: field 'T_base_laser'")[0][0, 3] == 0.1
+    with pytest.raises(ValueError, match=r"T_base_laser has the last row \[0.1, 0.0, 0.3, "
+                                         r"1.0\], not \[0, 0, 0, 1\] \(transposed"):
+        Rig(cam, np.eye(4), np.array(T).T)
+    with pytest.raises(ValueError, match="T_base_camera is not a rigid transform: R R"):
+        Rig(cam, np.diag([1.0, 1.1, 1.0, 1.0]), np.eye(4))
+
+
 def test_calibration_output_feeds_bag_ingest_and_back(tmp_path):
     cam = PinholeCamera(640, 480, 519.3, 518.9, 331.1, 229.4)
     T_cl = np.array([[0, -1, 0, 0.02], [0, 0, -1, 0.1], [1, 0, 0, -0.05], [0, 0, 0, 1.0]])

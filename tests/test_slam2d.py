@@ -605,6 +605,14 @@ def test_scan_angles_must_be_finite():
         LaserScan(stamp=1.0, ranges=np.ones(4), angle_min=float("nan"), angle_increment=0.1)
 
 
+def test_odometry_of_another_shape_is_named():
+    """A 3x3 SE(2) matrix failed in a reshape ("cannot reshape array of size 9")."""
+    slam = LidarSlam2D(Slam2DConfig())
+    with pytest.raises(ValueError, match=r"odometry must be a \[4, 4\] T_odom_base or "
+                                         r"\(x, y, theta\), got shape \[3, 3\]"):
+        slam.add_scan(make_scan(np.array([6.0, 4.0, 0.0]), 0.0), np.eye(3))
+
+
 def test_odometry_in_another_time_base_is_counted_not_claimed():
     from toolkit.geometry import Trajectory
     from toolkit.slam2d.pipeline import run_slam

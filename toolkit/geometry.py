@@ -26,6 +26,34 @@ def se3(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
     return T
 
 
+def checked_rigid(T: np.ndarray) -> np.ndarray:
+    """The [4, 4] rigid transform ``T`` as given, its rotation made exactly orthonormal
+    when it is off by rounding (up to 1e-3 in R R^T: a 30 deg yaw written 0.8660 / 0.5000
+    is 4e-5 off); otherwise a ValueError whose message continues the caller's name of
+    the matrix ("T_base_laser " + message: "is a reflection ...")."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"must be a finite 4x4 matrix (list of 4 rows), got shape "
+                         f"{list(T.shape)}")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError(f"has the last row {T[3].tolist()}, not [0, 0, 0, 1] (transposed? "
+                         "give the matrix as a list of rows)")
+    R = T[:3, :3]
+    off = float(np.abs(R @ R.T - np.eye(3)).max())
+    if off > 1e-3:
+        raise ValueError(f"is not a rigid transform: R R^T is {off:.2g} off the identity "
+                         "(the rotation is not orthonormal)")
+    if np.linalg.det(R) < 0:
+        raise ValueError("is a reflection (det -1), not a rotation: frames are right-handed "
+                         "(REP 103); check the optical-frame axes (x right, y down, z "
+                         "forward)")
+    if off > 1e-12:
+        U, _, Vt = np.linalg.svd(R)
+        T = T.copy()
+        T[:3, :3] = U @ Vt  # the nearest rotation
+    return T
+
+
 def inv_se3(T: np.ndarray) -> np.ndarray:
     """Inverse of one [4, 4] or a batch [N, 4, 4] of rigid transforms (exact, no LU)."""
     T = np.asarray(T, dtype=np.float64)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import Trajectory, inv_se3
+from toolkit.geometry import Trajectory, checked_rigid, inv_se3
 
 
 @dataclass
@@ -86,11 +86,13 @@ class LaserScan:
         return max(len(self.ranges) - 1, 0) * self.time_increment
 
     def valid_mask(self) -> np.ndarray:
-        """[B] bool: finite, positive ranges inside [range_min, range_max] (a zero is "no
-        return" for many drivers, whatever range_min says: never a point at the laser)."""
+        """[B] bool: finite, positive ranges in [range_min, range_max). A zero is "no
+        return" for many drivers, whatever range_min says, and so is exactly range_max
+        (what many drivers write when nothing came back, as the SLAM and the de-skewing
+        read it): never a point at the laser or on the scanner's reach."""
         r = self.ranges
         with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r > 0) & (r >= self.range_min) & (r <= self.range_max)
+            return np.isfinite(r) & (r > 0) & (r >= self.range_min) & (r < self.range_max)
 
     def points(self) -> np.ndarray:
         """[N, 2] float64 beam end points in the laser frame, invalid beams dropped."""
@@ -153,17 +155,10 @@ class Rig:
 
     def __post_init__(self) -> None:
         for name in ("T_base_camera", "T_base_laser"):
-            T = np.asarray(getattr(self, name), dtype=np.float64)
-            if T.shape != (4, 4):
-                raise ValueError(f"{name} must be 4x4, got {T.shape}")
-            if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(
-                T[3], [0, 0, 0, 1]
-            ):
-                raise ValueError(f"{name} is not a rigid transform (rotation not orthonormal)")
-            if np.linalg.det(T[:3, :3]) < 0:
-                raise ValueError(f"{name} is a reflection (det -1), not a rotation: frames are "
-                                 "right-handed (REP 103); check the optical-frame axes (x "
-                                 "right, y down, z forward)")
+            try:
+                T = checked_rigid(getattr(self, name))
+            except ValueError as e:
+                raise ValueError(f"{name} {e}") from None
             setattr(self, name, T)
 
     def mount_warnings(self) -> list[str]:

@@ -35,7 +35,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import Trajectory, inv_se3, pose_from_xyz_quat, rotation_angle
+from toolkit.geometry import (
+    Trajectory,
+    checked_rigid,
+    inv_se3,
+    pose_from_xyz_quat,
+    rotation_angle,
+)
 from toolkit.ingest.recording import (
     FrameData,
     IngestError,
@@ -631,14 +637,10 @@ def parse_transform(value: Any, where: str) -> tuple[np.ndarray, str | None, str
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise BagError(f"{where}: expected a 4x4 matrix (list of 4 rows) or a mapping with "
                        f"parent, child, xyz, quat_xyzw; got {value!r}")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise BagError(f"{where}: not a rigid transform (rotation not orthonormal or last "
-                       "row not 0 0 0 1)")
-    if np.linalg.det(R) < 0:
-        raise BagError(f"{where}: a reflection (det -1), not a rotation: frames are "
-                       "right-handed (REP 103); check the optical-frame axes (x right, y "
-                       "down, z forward)")
+    try:
+        T = checked_rigid(T)
+    except ValueError as e:
+        raise BagError(f"{where} {e}") from None
     return T, None, None
 
 

@@ -7,10 +7,10 @@ Two stages, as in Cartographer:
    It runs branch-and-bound over a pyramid of max-pooled grids (``GridPyramid``), so one
    routine serves the small real-time window of local SLAM and the metres-wide window of
    loop closure. The pyramid level ``d`` stores, per cell ``i``, the max over the fine
-   cells ``[i * 2^d, i * 2^d + 2^(d+1))``: an upper bound of the score of all ``2^d``
-   translations a candidate stands for, at a quarter of the memory per level (Cartographer
-   keeps full-size sliding-window grids; in numpy the strided pyramid is cheaper to build
-   and to gather from). The search is breadth-first and vectorised: each level keeps the
+   cells ``[i, i + 2^d)`` at the fine resolution (Cartographer's sliding-window grids): an
+   upper bound of the score of all ``2^d`` translations a candidate stands for, read by
+   one gather at the same cell offsets on every level. The search is breadth-first and
+   vectorised: each level keeps the
    candidates whose bound beats the best score found so far (a greedy dive gives a first
    score), optionally capped to the best ``max_candidates``.
 2. ``refine``: Levenberg-Marquardt on the bicubic (Catmull-Rom) interpolated grid with

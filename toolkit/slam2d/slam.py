@@ -396,7 +396,10 @@ class LidarSlam2D:
         odom = None
         if odometry is not None:
             o = np.asarray(odometry, dtype=np.float64)
-            odom = se3_to_se2(o) if o.shape == (4, 4) else o.reshape(3).copy()
+            if o.shape not in ((4, 4), (3,)):
+                raise ValueError(f"odometry must be a [4, 4] T_odom_base or (x, y, theta), "
+                                 f"got shape {list(o.shape)}")
+            odom = se3_to_se2(o) if o.shape == (4, 4) else o.copy()
             if not np.all(np.isfinite(odom)):
                 self._warn("odometry_non_finite", f"non-finite odometry at {stamp:.6f}; ignored")
                 odom = None
