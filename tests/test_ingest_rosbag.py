@@ -403,6 +403,37 @@ def test_resume_keeps_converted_frames(tmp_path):
         assert np.array_equal(f.image, rgb)
 
 
+def test_a_new_conversion_replaces_only_the_sequence(tmp_path):
+    """Converting again into the folder that holds the bag removed the whole folder, the
+    bag and the user's notes with it; an off-plan partial sequence did the same."""
+    bag, c = make_bag(tmp_path, "ros1")  # tmp_path / run.bag
+    (tmp_path / "notes.txt").write_text("field notes")
+    convert(read_rosbag(bag), tmp_path)
+    convert(read_rosbag(bag), tmp_path)  # a finished sequence there: replaced
+    assert bag.exists() and (tmp_path / "notes.txt").read_text() == "field notes"
+    assert len(read_sequence(tmp_path).frames) == len(c.image_t)
+    # A partial sequence of more frames than another bag's plan is started afresh.
+    out = tmp_path / "out"
+    (out / "bags").mkdir(parents=True)
+    (out / "notes.txt").write_text("field notes")
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_5(it, total=None, description=""):
+        for k, x in enumerate(it):
+            if k == 5:
+                raise Stop
+            yield x
+
+    with pytest.raises(Stop):
+        convert(read_rosbag(bag), out, progress=stop_after_5)
+    short, _ = make_bag(out / "bags", "ros1", make_content(n_images=4))
+    convert(read_rosbag(short), out)
+    assert short.exists() and (out / "notes.txt").exists()
+    assert len(read_sequence(out).frames) == 4
+
+
 # ---------------------------------------------------------------------------- errors
 
 

@@ -9,7 +9,6 @@ Scans, trajectories and meta are cheap and are written again at the end.
 from __future__ import annotations
 
 import logging
-import shutil
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -182,18 +181,20 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
                  plan.dropped.get("no_depth", 0), sync.depth_tolerance_s, plan.decimated,
                  decimate.by)
 
-    if (out / "meta.yaml").exists():
+    finished = (out / "meta.yaml").exists()
+    if finished:
         # A finished sequence is no partial conversion to resume; its optional files
-        # (ground truth, held-out views) must not outlive it into the new one.
+        # (ground truth, held-out views) must not outlive it into the new one. Only the
+        # sequence's own files go (SequenceWriter without resume): the folder may hold the
+        # bag itself or the user's notes, which a removal of the folder took with it.
         log.warning("replacing the finished sequence in %s", out)
-        shutil.rmtree(out)
     writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
-                            depth_format, resume=resume)
+                            depth_format, resume=resume and not finished)
     done = writer.num_frames
     if done and (done > len(pairs) or writer.last_frame_stamp != float(stamps[done - 1])):
         log.warning("%s holds %d frames that do not match this conversion's plan; "
                     "starting it afresh", out, done)
-        shutil.rmtree(out)
+        writer.discard()
         writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
                                 depth_format)
         done = 0

@@ -567,6 +567,11 @@ class SequenceWriter:
         p.parent.mkdir(parents=True, exist_ok=True)
         return p
 
+    def discard(self) -> None:
+        """Stop without finishing: the journal is closed, nothing more is written (a new
+        writer without ``resume`` then clears the folder's sequence files)."""
+        self._journal.close()
+
     def close(self) -> Path:
         write_rig(self.root / "rig.yaml", self.rig)
         if self._rows:
