@@ -434,6 +434,26 @@ def test_a_new_conversion_replaces_only_the_sequence(tmp_path):
     assert len(read_sequence(out).frames) == 4
 
 
+def test_depth_beyond_a_png_is_counted_and_kept_as_npy(tmp_path, caplog):
+    """A 16UC1 depth camera reads up to 65 m; a depth PNG holds 13.107 m, and farther
+    pixels became invalid without a word."""
+    import logging
+
+    c = make_content(n_images=4)
+    c.depth_mm = [np.full((H, W), 15000, np.uint16) for _ in c.depth_mm]  # 15 m
+    bag, _ = make_bag(tmp_path, "sqlite3", c)
+    with caplog.at_level(logging.WARNING):
+        res = convert(read_rosbag(bag), tmp_path / "png")
+    n = res.frames * H * W
+    assert res.metrics()["depth_pixels_beyond_format"] == n
+    assert "beyond the 13.107 m" in caplog.text and "depth_format: npy" in caplog.text
+    assert "written as invalid: %d" % n in res.summary()
+    assert read_sequence(tmp_path / "png").meta["ingest"]["depth_pixels_beyond_format"] == n
+    res = convert(read_rosbag(bag), tmp_path / "npy", depth_format="npy")
+    assert res.depth_pixels_beyond_format == 0
+    assert np.all(read_sequence(tmp_path / "npy").groundtruth.depth(0) == 15.0)
+
+
 # ---------------------------------------------------------------------------- errors
 
 

@@ -25,6 +25,7 @@ from toolkit.ingest.sync import (
     match_nearest,
     plan_frames,
 )
+from toolkit.io.depth import PNG_DEPTH_MAX_M
 from toolkit.io.sequence import SequenceWriter
 
 T = TypeVar("T")
@@ -56,6 +57,7 @@ class ConvertResult:
     has_odometry: bool
     has_groundtruth: bool
     dropped_indexing: dict[str, int] = field(default_factory=dict)
+    depth_pixels_beyond_format: int = 0  # written as invalid (a PNG holds up to 13.107 m)
 
     def metrics(self) -> dict[str, Any]:
         """Figures for metrics.json (units in the names)."""
@@ -69,6 +71,7 @@ class ConvertResult:
             "scans": self.scans,
             "scans_resampled": self.scans_resampled,
             "messages_dropped_non_monotonic": sum(self.dropped_indexing.values()),
+            "depth_pixels_beyond_format": self.depth_pixels_beyond_format,
             "convert_s": round(self.seconds, 3),
         }
 
@@ -87,6 +90,10 @@ class ConvertResult:
                 lines.append(f"    dropped for lack of a depth image within tolerance: "
                              f"{p.dropped.get('no_depth', 0)}")
             lines.append(f"    decimated: {p.decimated}")
+            if self.depth_pixels_beyond_format:
+                lines.append(f"    depth pixels beyond a PNG's {PNG_DEPTH_MAX_M:.3f} m, "
+                             f"written as invalid: {self.depth_pixels_beyond_format} "
+                             "(depth_format: npy keeps them)")
         else:
             lines.append("  camera frames: none (lidar-only recording; the rig camera is a "
                          "placeholder)")
@@ -214,6 +221,10 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "
                               "planned frames could be read (the input ended early: "
                               "truncated?)")
+    if writer.depth_pixels_beyond_format:
+        log.warning("%d depth pixels lie beyond the %.3f m a 16-bit depth PNG holds and were "
+                    "written as invalid; set depth_format: npy to keep them",
+                    writer.depth_pixels_beyond_format, PNG_DEPTH_MAX_M)
     dynamic = recording.scan_dynamic
     for k, s in enumerate(scans):
         writer.add_scan(s, None if dynamic is None else dynamic[k])
@@ -234,6 +245,7 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "decimate": decimate.model_dump(),
             "scans_resampled": resampled,
             "dropped_non_monotonic": dict(recording.dropped),
+            "depth_pixels_beyond_format": writer.depth_pixels_beyond_format,
         },
     })
     root = writer.close()
@@ -243,4 +255,5 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         has_camera=recording.has_camera, has_depth=recording.depth_stamps is not None,
         has_odometry=recording.odometry is not None,
         has_groundtruth=recording.groundtruth is not None,
-        dropped_indexing=dict(recording.dropped))
+        dropped_indexing=dict(recording.dropped),
+        depth_pixels_beyond_format=writer.depth_pixels_beyond_format)

@@ -474,6 +474,9 @@ class SequenceWriter:
         self.odometry: Trajectory | None = None
         self.groundtruth_poses: Trajectory | None = None
         self.extra_meta: dict[str, Any] = {}
+        # Depth pixels written as invalid because the format cannot hold them (a PNG's
+        # 13.107 m), by this writer (not the frames a resumed run kept).
+        self.depth_pixels_beyond_format = 0
         self._journal_path = self.root / JOURNAL_NAME
         if resume:
             self._rows = _read_journal(self._journal_path, self.root / "camera")
@@ -529,7 +532,7 @@ class SequenceWriter:
             row["gt_depth"] = f"../groundtruth/depth/{i:06d}.{self.depth_format}"
             p = self.root / "camera" / row["gt_depth"]
             p.parent.mkdir(parents=True, exist_ok=True)
-            write_depth(p, gt_depth)
+            self.depth_pixels_beyond_format += write_depth(p, gt_depth)
         if gt_mask is not None:
             row["gt_mask"] = f"../groundtruth/masks/{i:06d}.png"
             p = self.root / "camera" / row["gt_mask"]
@@ -555,7 +558,8 @@ class SequenceWriter:
         (hdir / "images").mkdir(parents=True, exist_ok=True)
         (hdir / "depth").mkdir(parents=True, exist_ok=True)
         _write_rgb(hdir / f"images/{i:06d}.png", image)
-        write_depth(hdir / f"depth/{i:06d}.{self.depth_format}", depth)
+        self.depth_pixels_beyond_format += write_depth(
+            hdir / f"depth/{i:06d}.{self.depth_format}", depth)
         self._held_rows.append({"index": str(i), "stamp": repr(float(stamp)),
                                 "image": f"images/{i:06d}.png",
                                 "gt_depth": f"depth/{i:06d}.{self.depth_format}"})
