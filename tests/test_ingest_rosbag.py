@@ -447,7 +447,7 @@ def test_depth_beyond_a_png_is_counted_and_kept_as_npy(tmp_path, caplog):
     n = res.frames * H * W
     assert res.metrics()["depth_pixels_beyond_format"] == n
     assert "beyond the 13.107 m" in caplog.text and "depth_format: npy" in caplog.text
-    assert "written as invalid: %d" % n in res.summary()
+    assert f"written as invalid: {n}" in res.summary()
     assert read_sequence(tmp_path / "png").meta["ingest"]["depth_pixels_beyond_format"] == n
     res = convert(read_rosbag(bag), tmp_path / "npy", depth_format="npy")
     assert res.depth_pixels_beyond_format == 0
@@ -849,3 +849,99 @@ def test_a_bag_replayed_at_another_rate_is_one_clock(tmp_path):
     bag = write_bag(tmp_path / "replayed", "ros1", msgs)
     rec = read_rosbag(bag)
     assert len(rec.scans) == len(c.scan_t) and rec.frame_stamps[0] >= T0 + 1.2
+
+
+# ---------------------------------------------------------------------------- driver faults
+
+
+def _replace_scans(b: BagBuilder, c: BagContent, **fields) -> list:
+    """standard_messages with every LaserScan's ``fields`` replaced (a per-scan callable
+    of the scan number is called)."""
+    out, k = [], 0
+    for topic, typ, t, m in standard_messages(b, c, depth=False):
+        if typ == SCAN_T:
+            kw = {f: getattr(m, f) for f in ("header", "angle_min", "angle_max",
+                                             "angle_increment", "time_increment", "scan_time",
+                                             "range_min", "range_max", "ranges", "intensities")}
+            kw.update({f: v(k) if callable(v) else v for f, v in fields.items()})
+            m = b.T[SCAN_T](**kw)
+            k += 1
+        out.append((topic, typ, t, m))
+    return out
+
+
+def test_a_bad_transform_off_the_rigs_path_is_skipped_and_named(tmp_path, caplog):
+    """A map -> odom transform with a zero quaternion (a localisation node before its first
+    fix) stopped the whole conversion though no lookup needs it."""
+    import logging
+
+    c = make_content(n_images=4)
+    b = BagBuilder(False)
+    msgs = standard_messages(b, c)
+    zero = b.tf([b.T["geometry_msgs/msg/TransformStamped"](
+        header=b.header(T0 + 0.5, "map"), child_frame_id="odom",
+        transform=b.T["geometry_msgs/msg/Transform"](
+            translation=b.T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+            rotation=b.T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0)))])
+    msgs = sorted([*msgs, ("/tf", TF_T, T0 + 0.5, zero)], key=lambda m: m[2])
+    bag = write_bag(tmp_path / "run", "sqlite3", msgs)
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(bag)
+    assert len(rec.scans) == len(c.scan_t)
+    assert "no rotation were skipped map -> odom (1x)" in caplog.text
+
+
+def test_driver_faults_name_topic_field_and_fix(tmp_path, caplog):
+    import logging
+
+    c = make_content(n_images=4)
+    b = BagBuilder(False)
+    # range_min >= range_max: converted, then unreadable naming scans.npz.
+    bag = write_bag(tmp_path / "limits", "sqlite3",
+                    _replace_scans(b, c, range_min=0.0, range_max=0.0))
+    with pytest.raises(BagError, match=r"topic /scan: message 0: fields 'range_min' \(0.0\) "
+                                       r"and 'range_max' \(0.0\)"):
+        read_rosbag(bag)
+    # One glitched time_increment: stamped at its first beam, scan 5 went before scan 4
+    # and convert failed with "the reader should have caught this".
+    bag = write_bag(tmp_path / "sweep", "sqlite3", _replace_scans(
+        b, c, time_increment=lambda k: (0.2 if k == 5 else 0.05) / 89))
+    with pytest.raises(BagError, match=r"scan 5 .* no longer after scan 4.*beam_timing: "
+                                       "ignore"):
+        read_rosbag(bag, RosbagOptions(beam_timing="last_beam"))
+    # Intensities of another length than the ranges: zeros, now counted.
+    c2 = make_content(n_images=4)
+    c2.intensities = [i[:-1] if k % 2 else i for k, i in enumerate(c2.intensities)]
+    bag = write_bag(tmp_path / "inten", "sqlite3", standard_messages(b, c2, depth=False))
+    with caplog.at_level(logging.WARNING):
+        read_rosbag(bag)
+    assert "10 scans carry intensities of another length" in caplog.text
+    # Coefficients past k3 were cut off without a word.
+    msg = b.camera_info(0.0, model="plumb_bob", d=[0.1, -0.05, 0, 0, 0.01, 0.3, 0, 0])
+    with pytest.raises(BagError, match=r"non-zero past k1 k2 p1 p2 k3 \(D\[5\] = 0.3\)"):
+        camera_info_to_camera(msg, "topic /cam/camera_info")
+
+
+def test_a_calibrations_body_frame_for_the_camera_is_refused(tmp_path, caplog):
+    """A tf-style T_base_camera whose child is camera_link (x forward) was read as the
+    optical frame: the view turned up, without a word."""
+    import logging
+
+    c = make_content(n_images=4)
+    b = BagBuilder(False)
+    bag = write_bag(tmp_path / "run", "sqlite3", standard_messages(b, c, depth=False, tf=False))
+    laser = {"parent": "base_link", "child": "laser", "xyz": [0.2, 0, 0.15],
+             "quat_xyzw": [0, 0, 0, 1]}
+    calib = tmp_path / "calib.yaml"
+    calib.write_text(yaml.safe_dump({
+        "T_base_camera": {"parent": "base_link", "child": "camera_link", "xyz": [0.1, 0, 0.3],
+                          "quat_xyzw": [0, 0, 0, 1]}, "T_base_laser": laser}))
+    with pytest.raises(BagError, match="field 'T_base_camera' has child 'camera_link', but "
+                                       "the frame it maps from is 'camera_optical'"):
+        read_rosbag(bag, RosbagOptions(calibration=str(calib)))
+    # Unnamed, the same body-frame matrix is warned about.
+    calib.write_text(yaml.safe_dump({"T_base_camera": np.eye(4).tolist(),
+                                     "T_base_laser": laser}))
+    with caplog.at_level(logging.WARNING):
+        read_rosbag(bag, RosbagOptions(calibration=str(calib)))
+    assert "is not the optical frame's transform" in caplog.text

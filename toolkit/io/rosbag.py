@@ -464,10 +464,13 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
     if not np.any(K):
         raise BagError(f"{where}: field 'K' is all zero (the camera was not calibrated); {fix}")
     if model in ("plumb_bob", "rational_polynomial", "") or (model == "none" and not D.any()):
-        if model == "rational_polynomial" and np.any(D[5:] != 0):
-            raise BagError(f"{where}: distortion_model rational_polynomial with k4..k6 = "
-                           f"{list(D[5:8])}; only the 5-term (plumb_bob) model is supported. "
-                           "Convert the rectified images (image_rect) instead, or " + fix)
+        if np.any(D[5:] != 0):
+            # Dropped, the coefficients past k3 left every pixel off by what they add.
+            extra = ", ".join(f"D[{i}] = {D[i]:g}" for i in np.flatnonzero(D[5:]) + 5)
+            raise BagError(f"{where}: distortion_model {model or '(empty)'!r} with {len(D)} "
+                           f"coefficients, non-zero past k1 k2 p1 p2 k3 ({extra}); only the "
+                           "5-term (plumb_bob) model is supported. Convert the rectified "
+                           "images (image_rect) instead, or " + fix)
         if model == "" and D.any():
             raise BagError(f"{where}: field 'D' has {len(D)} coefficients but "
                            f"'distortion_model' is empty; {fix}")
@@ -518,6 +521,21 @@ class TfTree:
         self._static: set[tuple[str, str]] = set()
         self._first: dict[tuple[str, str], np.ndarray] = {}
         self.moving: set[tuple[str, str]] = set()
+        # Transforms that were no rotation (a zero quaternion: a localisation node before
+        # its first fix), skipped: (parent, child) -> count. Fatal only where a lookup
+        # needs that edge.
+        self.invalid: dict[tuple[str, str], int] = {}
+
+    def add_invalid(self, parent: str, child: str) -> None:
+        key = (_frame(parent), _frame(child))
+        self.invalid[key] = self.invalid.get(key, 0) + 1
+
+    def invalid_note(self) -> str:
+        """The skipped transforms, for a message ('' when none)."""
+        if not self.invalid:
+            return ""
+        return "; skipped as no rotation (quaternion zero or not finite): " + ", ".join(
+            f"{p} -> {c} ({n}x)" for (p, c), n in sorted(self.invalid.items()))
 
     def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str) -> None:
         key = (_frame(parent), _frame(child))
@@ -588,9 +606,12 @@ class Calibration:
     # key -> (parent, child) where a T_* entry was given tf style, to check its direction
     names: dict[str, tuple[str | None, str | None]] = field(default_factory=dict)
 
-    def check_direction(self, key: str, parent: str, child: str) -> None:
+    def check_direction(self, key: str, parent: str, child: str,
+                        child_known: bool = True) -> None:
         """Fail if a tf-style entry names its frames the other way round (a likely mix-up:
-        the key, not the order, fixes the direction)."""
+        the key, not the order, fixes the direction), or names another parent, or (when
+        the sensor's frame is known: ``child_known``) another child: a body frame
+        (camera_link, x forward) given for the optical one turned the view up."""
         given = self.names.get(key)
         if given is None or given == (None, None):
             return
@@ -603,6 +624,11 @@ class Calibration:
         if gp is not None and gp != parent:
             raise BagError(f"{self.path}: field '{key}' has parent {gp!r}, but the frame it "
                            f"must map into is {parent!r} (rosbag.frames)")
+        if child_known and gc is not None and gc != child:
+            raise BagError(f"{self.path}: field '{key}' has child {gc!r}, but the frame it "
+                           f"maps from is {child!r} (the sensor messages' header.frame_id, "
+                           "or rosbag.frames); give that frame's transform (for a camera, "
+                           "its optical frame: x right, y down, z forward) and name it")
 
 
 def parse_transform(value: Any, where: str) -> tuple[np.ndarray, str | None, str | None]:
@@ -963,6 +989,7 @@ class _Index:
     info: Any = None
     tf: TfTree = field(default_factory=TfTree)
     seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
+    intensities_dropped: int = 0  # scans whose intensities did not match their ranges
 
 
 def _stamp(msg: Any, ns: int, opts: RosbagOptions, where: str) -> int:
@@ -992,8 +1019,17 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
         idx.seen[topic] = (n + 1, min(first, t), max(last, t))
         if topic == ch.scan:
             stamp = _stamp(msg, ns, opts, where)
+            # (A default-constructed message, no ranges, holds zeros there: a dropout.)
+            if len(msg.ranges) and not float(msg.range_min) < float(msg.range_max):
+                raise BagError(f"{where}: message {len(idx.scans)}: fields 'range_min' "
+                               f"({float(msg.range_min)}) and 'range_max' "
+                               f"({float(msg.range_max)}): no reading could count as a "
+                               "return; the driver fills them wrongly (fix its parameters or "
+                               "rewrite the bag's scans)")
             try:
                 inten = np.array(msg.intensities, dtype=np.float32)
+                if len(inten) and len(inten) != len(msg.ranges):
+                    idx.intensities_dropped += 1
                 inc = float(msg.angle_increment)
                 if not len(msg.ranges) and inc == 0:
                     # A default-constructed message (a driver's dropout): its layout is
@@ -1022,7 +1058,10 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             try:
                 T = transform_to_matrix(msg.pose.pose)
             except ValueError as e:
-                raise BagError(f"{where}: field 'pose.pose.orientation': {e}") from None
+                raise BagError(f"{where}: message {len(idx.odom)}: field "
+                               f"'pose.pose.orientation': {e}. Fix: leave the odometry out "
+                               "(rosbag.topics.odometry: none; the SLAM runs on the scans "
+                               "alone) or name another topic") from None
             idx.odom_ns.append(_stamp(msg, ns, opts, where))
             idx.odom_bag_ns.append(ns)
             idx.odom.append(T)
@@ -1033,9 +1072,9 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             for tr in msg.transforms:
                 try:
                     T = transform_to_matrix(tr.transform)
-                except ValueError as e:
-                    raise BagError(f"{where}: transform {tr.header.frame_id} -> "
-                                   f"{tr.child_frame_id}: {e}") from None
+                except ValueError:
+                    idx.tf.add_invalid(str(tr.header.frame_id), str(tr.child_frame_id))
+                    continue
                 idx.tf.add(str(tr.header.frame_id), str(tr.child_frame_id), T, static, topic)
     return idx
 
@@ -1111,8 +1150,20 @@ def _beam_timing(scans: list[LaserScan], use: str, stamps: str, where: str,
             f"every {period:.4f} s; the driver's beam timing is wrong - set "
             "'rosbag: {beam_timing: ignore}' to use the scans without it")
     if use == "last_beam":
-        return [replace(s, stamp=s.stamp - s.sweep_s) if s.time_increment else s
-                for s in scans]
+        out = [replace(s, stamp=s.stamp - s.sweep_s) if s.time_increment else s
+               for s in scans]
+        # Each scan moves back by its own sweep: one glitched time_increment put a scan
+        # before the one ahead of it, which the stamp checks had passed.
+        back = np.flatnonzero(np.diff([s.stamp for s in out]) <= 0)
+        if len(back):
+            i = int(back[0]) + 1
+            raise BagError(
+                f"{where}: scan {i} (of those kept): stamped at its first beam, "
+                f"{scans[i].sweep_s:.4f} s before its stamp (time_increment "
+                f"{scans[i].time_increment:g}), it is no longer after scan {i - 1}; the "
+                "driver's beam timing is wrong for it - set 'rosbag: {beam_timing: ignore}' "
+                "to use the scans without it")
+        return out
     return scans
 
 
@@ -1121,6 +1172,13 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
            name: str | None) -> Recording:
     bag_name = ", ".join(str(p) for p in paths)
     _check_clocks(idx, ch, opts, bag_name)
+    if idx.tf.invalid:
+        log.warning("%s: tf transforms that are no rotation were skipped%s", bag_name,
+                    idx.tf.invalid_note().partition(":")[2])
+    if idx.intensities_dropped:
+        log.warning("%s: topic %s: %d scans carry intensities of another length than their "
+                    "ranges; stored without intensities (zeros)", bag_name, ch.scan,
+                    idx.intensities_dropped)
     dropped: dict[str, int] = {}
     # --- stamps
     k = _keep(idx.scan_ns, f"{bag_name}: topic {ch.scan}", policy, dropped, str(ch.scan))
@@ -1179,9 +1237,10 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     sources: dict[str, str] = {}
     if has_camera:
         if cal is not None and cal.T_base_camera is not None:
-            cal.check_direction("T_base_camera", base, cam_frame or "camera")
+            cal.check_direction("T_base_camera", base, cam_frame or "camera", bool(cam_frame))
             T_base_camera = cal.T_base_camera
             sources["T_base_camera"] = str(cal.path)
+            _warn_if_not_upright(T_base_camera, cam_frame or "camera", opts, log, cal.path)
         else:
             if not cam_frame:
                 raise BagError(f"{bag_name}: topic {ch.image}: field 'header.frame_id' is "
@@ -1203,11 +1262,12 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         T_base_camera = optical_mount()
         sources["T_base_camera"] = "placeholder (no camera)"
     if cal is not None and cal.T_base_laser is not None:
-        cal.check_direction("T_base_laser", base, laser_frame or "laser")
+        cal.check_direction("T_base_laser", base, laser_frame or "laser", bool(laser_frame))
         T_base_laser = cal.T_base_laser
         sources["T_base_laser"] = str(cal.path)
     elif cal is not None and cal.T_camera_laser is not None and has_camera:
-        cal.check_direction("T_camera_laser", cam_frame or "camera", laser_frame or "laser")
+        cal.check_direction("T_camera_laser", cam_frame or "camera", laser_frame or "laser",
+                            bool(laser_frame))
         T_base_laser = T_base_camera @ cal.T_camera_laser
         sources["T_base_laser"] = f"T_base_camera @ T_camera_laser from {cal.path}"
     else:
@@ -1299,7 +1359,8 @@ def _lookup(tree: TfTree, base: str, frame: str, role: str, bag_name: str, ch: T
         raise MissingTransformError(
             f"{bag_name}: the transform {base} <- {frame} ({role}) passes through a joint that "
             f"moves during the recording (path {' -> '.join(moving[1])}); the toolkit needs a "
-            f"fixed mount. Give {key} in a calibration YAML (rosbag.calibration)")
+            f"fixed mount. Give {key} in a calibration YAML (rosbag.calibration)"
+            f"{tree.invalid_note()}")
     example = _CALIB_EXAMPLE.format(base=base, camera=frame if role == "camera" else other
                                     or "camera_optical_frame",
                                     laser=frame if role == "laser" else other or "laser")
@@ -1308,19 +1369,28 @@ def _lookup(tree: TfTree, base: str, frame: str, role: str, bag_name: str, ch: T
         f"{frame!r} (rosbag.frames.{role}, by default the "
         f"{'images' if role == 'camera' else 'scans'}' header.frame_id) in "
         f"{', '.join(ch.tf) or 'the bag (it has no tf topics)'}. Frames tf knows: "
-        f"{', '.join(known) or 'none'}. Fix: give {key} in a calibration YAML and set "
+        f"{', '.join(known) or 'none'}{tree.invalid_note()}. Fix: give {key} in a "
+        "calibration YAML and set "
         f"'rosbag.calibration: calib.yaml', e.g.\n{example}\nor name other frames with "
         f"rosbag.frames.base / rosbag.frames.{role}")
 
 
 def _warn_if_not_upright(T: np.ndarray, frame: str, opts: RosbagOptions,
-                         log: logging.Logger) -> None:
+                         log: logging.Logger, calibration: Path | None = None) -> None:
     """Warn when the image's down direction (optical +y, ``T_base_camera[:3, 1]``) is more
     than 60 deg from the base's down: on a ground robot that is almost always a frame
     taken in the wrong convention (camera_link read as optical turns the view up or
     sideways; an optical frame read as body turns it by 90 deg)."""
     angle = image_down_angle_deg(T)
     if angle <= 60.0:
+        return
+    if calibration is not None:
+        log.warning("T_base_camera in %s: the image's down direction is %.0f deg from the "
+                    "base's down and the camera looks along %s in the base frame. If the "
+                    "camera is not mounted rolled, upside down or straight down, this is not "
+                    "the optical frame's transform (x right, y down, z forward): a body "
+                    "frame's (camera_link: x forward) needs the optical rotation after it",
+                    calibration, angle, np.round(T[:3, 2], 2).tolist())
         return
     other = "body" if opts.frames.camera_convention == "optical" else "optical"
     log.warning("camera frame %r read as %s: the image's down direction is %.0f deg from "
