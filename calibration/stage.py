@@ -112,16 +112,10 @@ class CalibrateStage(Stage):
             return [Path(cfg.extrinsic)] if cfg.extrinsic else []
         if cfg.source == "simulate":
             return []
-        files: list[Path] = []
-        for p in (cfg.capture, cfg.images, cfg.scans, cfg.camera):
-            if p is None:
-                continue
-            path = Path(p)
-            if path.is_dir():
-                files += sorted(q for q in path.rglob("*") if q.is_file())
-            else:
-                files.append(path)
-        return files
+        # Folders as they are: the runner fingerprints every file under them, through
+        # linked folders too.
+        return [Path(p) for p in (cfg.capture, cfg.images, cfg.scans, cfg.camera)
+                if p is not None]
 
     # ------------------------------------------------------------------ inputs
     def _inputs(self, ctx: StageContext, base_rig: Any) -> tuple[Path, Path, Path | None,

@@ -1098,3 +1098,139 @@ def test_output_digests_cover_what_a_reader_can_read(tmp_path: Path) -> None:
     assert _content_digest(f) != _content_digest(out)
     (out / "link").symlink_to(tmp_path)  # what it points to can change unseen
     assert _content_digest(out) == ""
+
+
+# --- review of session 20: inputs through links, interruptions, output folders ----------
+
+
+def test_a_change_inside_a_linked_input_folder_reruns(tmp_path: Path) -> None:
+    """Path.rglob does not enter linked folders: a dataset laid out as ``images ->
+    /big/disk/images`` kept its stage cached when frames there changed, or the link moved."""
+    data_dir, disk = tmp_path / "dataset", tmp_path / "disk"
+    (disk / "a").mkdir(parents=True)
+    (disk / "b").mkdir()
+    (disk / "a" / "000.txt").write_text("frame v1")
+    (disk / "b" / "000.txt").write_text("frame v1")
+    data_dir.mkdir()
+    (data_dir / "images").symlink_to(disk / "a", target_is_directory=True)
+    (data_dir / "loop").symlink_to(data_dir, target_is_directory=True)  # walked once
+    counter = str(tmp_path / "ext_calls.txt")
+    ext = _write_recipe(tmp_path, {"name": "ext", "output": str(tmp_path / "ext"), "stages": [
+        {"stage": "t_external", "counter": counter, "source_file": str(data_dir)}]}, "e.yaml")
+    assert _run(ext).statuses == {"t_external": "ran"}
+    assert _run(ext).statuses == {"t_external": "cached"}
+    (disk / "a" / "000.txt").write_text("frame v2, longer")
+    assert _run(ext).statuses == {"t_external": "ran"}
+    (data_dir / "images").unlink()
+    (data_dir / "images").symlink_to(disk / "b", target_is_directory=True)  # same sizes
+    os.utime(disk / "b" / "000.txt", ns=((disk / "a" / "000.txt").stat().st_mtime_ns,) * 2)
+    (disk / "b" / "000.txt").write_text("frame v2, longer")
+    os.utime(disk / "b" / "000.txt", ns=((disk / "a" / "000.txt").stat().st_mtime_ns,) * 2)
+    assert _run(ext).statuses == {"t_external": "ran"}  # only the link's target changed
+
+
+class ExtrasStage(Source):
+    """Write a number and files nothing declares (per-frame caches, unlinked figures)."""
+
+    name = "t_extras"
+
+    def run(self, ctx: StageContext) -> None:
+        super().run(ctx)
+        for i in range(12):
+            atomic_write_text(ctx.stage_dir / f"extra_{i}.txt", "x")
+
+
+def test_an_interrupted_emptying_is_no_finished_stage(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """--force empties a finished stage's folder; a Ctrl-C halfway left its finished
+    marker (removed last), and the next run took the half-emptied folder as finished."""
+    registry.register("t_extras", ExtrasStage)
+    try:
+        path = _write_recipe(tmp_path, {"name": "x", "output": str(tmp_path / "run"), "stages": [
+            {"stage": "t_extras", "counter": str(tmp_path / "calls.txt")}]})
+        _run(path)
+        stage_dir = tmp_path / "run" / "t_extras"
+        real_unlink = Path.unlink
+
+        def interrupted(self: Path, missing_ok: bool = False) -> None:
+            real_unlink(self, missing_ok=missing_ok)
+            if self.parent == stage_dir and self.name.startswith("extra_"):
+                raise KeyboardInterrupt  # after the first file nothing declares
+
+        monkeypatch.setattr(Path, "unlink", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            _run(path, force=True)
+        monkeypatch.setattr(Path, "unlink", real_unlink)
+        assert _run(path).statuses["t_extras"] == "ran"
+        assert len(list(stage_dir.glob("extra_*.txt"))) == 12
+    finally:
+        registry.unregister("t_extras")
+
+
+def test_a_killed_marker_write_does_not_block_the_next_run(tmp_path: Path) -> None:
+    """The started marker's atomic write left its temporary alone in a new stage folder;
+    the next run refused the folder as someone else's files."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    stage_dir = tmp_path / "run" / "t_source"
+    stage_dir.mkdir(parents=True)
+    (tmp_path / "run" / ".lock").touch()  # the killed run's
+    (stage_dir / "..stage.started.4388.03aa09a6.tmp.json").write_text("{")
+    assert _run(path).statuses["t_source"] == "ran"
+    assert not list(stage_dir.glob(".*.tmp.json"))
+
+
+def test_an_output_folder_of_other_files_is_refused(tmp_path: Path) -> None:
+    """output: pointed at a folder of one's own (a typo, '.'): report.md and metrics.json
+    there were replaced without a word."""
+    data = _recipe_data(tmp_path)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "report.md").write_text("# my notes")
+    path = _write_recipe(tmp_path, data)
+    with pytest.raises(RecipeError, match=r"holds files but no run of a recipe \(report.md\)"):
+        _run(path)
+    assert (tmp_path / "run" / "report.md").read_text() == "# my notes"
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["report.md"]
+    (tmp_path / "run" / "report.md").unlink()
+    assert _run(path).statuses["t_source"] == "ran"
+    assert _run(path).statuses["t_source"] == "cached"  # its own run folder is fine
+
+
+def test_a_filesystem_without_locks_is_named(tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+    import fcntl
+
+    def no_locks(fd: int, op: int) -> None:
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError, match="does not support file locks"):
+        _run(path)
+
+
+def test_recipe_values_that_read_as_something_else_are_named(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    data = _recipe_data(tmp_path)
+    data["stages"][0]["value"] = True  # was value 1
+    with pytest.raises(RecipeError, match=r"stages\[0\] \(t_source\): value: true / false "
+                                          "where a number goes"):
+        _run(_write_recipe(tmp_path, data))
+    # An unset variable names the file and the key.
+    monkeypatch.delenv("T_UNSET_DIR", raising=False)
+    data = _recipe_data(tmp_path)
+    data["stages"][0]["label"] = "${T_UNSET_DIR}/x"
+    path = _write_recipe(tmp_path, data, "env.yaml")
+    with pytest.raises(RecipeError, match=r"env.yaml: stages\[0\].label: .*T_UNSET_DIR is not "
+                                          "set"):
+        _run(path)
+    # A reader before its provider is told to move the provider; an empty id is refused.
+    data = _recipe_data(tmp_path)
+    data["stages"] = [data["stages"][1], data["stages"][0], data["stages"][2]]
+    with pytest.raises(RecipeError, match=r"stages\[1\] \(t_source\) provides it: move that "
+                                          "stage before this one"):
+        _run(_write_recipe(tmp_path, data))
+    data = _recipe_data(tmp_path)
+    data["stages"][0]["id"] = ""
+    with pytest.raises(RecipeError, match="id '' may hold only"):
+        _run(_write_recipe(tmp_path, data))

@@ -19,6 +19,7 @@ run token to every output, which is what later keys were made of then.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
@@ -49,6 +50,7 @@ from rich.progress import (
 from toolkit.io.atomic import (
     atomic_write_json,
     atomic_write_text,
+    remove_leftover_temps,
     remove_temps_under,
     to_jsonable,
 )
@@ -165,6 +167,13 @@ def run_recipe(
     except OSError as exc:  # a file in the way, no permission
         raise RecipeError(f"output: cannot make the run folder {run_dir}: {exc}; set "
                           f"'output' to a folder path") from None
+    others = _not_a_run_folder(run_dir, recipe)
+    if others:
+        raise RecipeError(
+            f"output: {run_dir} holds files but no run of a recipe ({', '.join(others[:5])}"
+            f"{', ...' if len(others) > 5 else ''}): a run writes report.md, metrics.json and "
+            "run.log there, replacing files of those names. Set 'output' to a new or empty "
+            "folder (nothing was changed)")
     with _exclusive(run_dir):
         try:
             foreign = foreign_stage_folders(recipe, run_dir)
@@ -181,11 +190,32 @@ def run_recipe(
             raise
 
 
+def _not_a_run_folder(run_dir: Path, recipe: Recipe) -> list[str]:
+    """The entries of ``run_dir`` when it holds files but no sign of a run (its lock, log or
+    resolved recipe, or a stage folder with a marker): a typo'd or data folder as
+    ``output``, whose report.md or metrics.json a run replaced. Empty when it is fine."""
+    names = sorted(p.name for p in run_dir.iterdir())
+    if not names or {LOCK_FILE, LOG_FILE, RESOLVED_FILE} & set(names):
+        return []
+    for spec in recipe.stages:
+        d = run_dir / spec.id
+        if (d / STAGE_FILE).exists() or (d / STARTED_FILE).exists():
+            return []
+    return names
+
+
 def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
     return (f"{stage_dir} holds files but no record of a run of stage {stage_id!r} "
             f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
             "of an older version of the toolkit. Move or delete the folder, then run "
             "again (nothing was changed)")
+
+
+def _clear_marker_temporaries(stage_dir: Path) -> None:
+    """Remove what a killed write of the runner's markers left (their atomic writes'
+    temporaries): alone in a folder they made it look like files of someone else's."""
+    for name in _MARKERS:
+        remove_leftover_temps(stage_dir / name)
 
 
 def foreign_stage_folders(recipe: Recipe, run_dir: Path) -> list[str]:
@@ -195,6 +225,8 @@ def foreign_stage_folders(recipe: Recipe, run_dir: Path) -> list[str]:
     out = []
     for spec in recipe.stages:
         d = run_dir / spec.id
+        if d.is_dir():
+            _clear_marker_temporaries(d)
         if (d.is_dir() and any(d.iterdir()) and not (d / STAGE_FILE).exists()
                 and _started_folder_key(d / STARTED_FILE) is None):
             out.append(_foreign_folder_message(d, spec.id))
@@ -399,6 +431,8 @@ class _Run:
         read as this run's (an old per-frame depth beside the new, an old capture, old
         renders), and ``--force`` means from scratch."""
         stage_dir = self.run_dir / record.spec.id
+        if stage_dir.exists():
+            _clear_marker_temporaries(stage_dir)
         if not stage_dir.exists() or not any(stage_dir.iterdir()):
             return
         done = (stage_dir / STAGE_FILE).exists()
@@ -409,10 +443,14 @@ class _Run:
         # --from, --only, other settings, a lost output).
         if not self.force and not done and started == record.folder_key:
             return
-        # The markers go last: a run interrupted while this empties the folder leaves it
-        # recognisably the runner's, to be emptied again.
-        markers = (STAGE_FILE, STARTED_FILE)
-        for child in sorted(stage_dir.iterdir(), key=lambda p: p.name in markers):
+        # A started marker no run resumes from goes in first, then the finished one: a run
+        # interrupted while this empties the folder leaves it recognisably the runner's and
+        # unfinished, to be emptied again (with the finished marker kept to the end, a
+        # half-emptied folder was taken as finished by the next run of those settings).
+        atomic_write_json(stage_dir / STARTED_FILE, {"key": None, "folder_key": "emptying"},
+                          fsync=True)
+        (stage_dir / STAGE_FILE).unlink(missing_ok=True)
+        for child in sorted(stage_dir.iterdir(), key=lambda p: p.name == STARTED_FILE):
             if child.is_dir() and not child.is_symlink():
                 shutil.rmtree(child)
             else:
@@ -730,12 +768,35 @@ def _fingerprint(path: Path) -> dict[str, Any]:
     """Size and mtime of a file (every file, for a folder): cheap, unlike hashing a bag."""
     path = Path(os.path.abspath(path))
     if path.is_dir():
-        files = sorted(p for p in path.rglob("*") if p.is_file())
-        entries = [[p.relative_to(path).as_posix(), *_stat(p)] for p in files]
-        return {"path": str(path), "files": entries}
+        files, links = _walk_files(path)
+        entries = [[p.relative_to(path).as_posix(), *_stat(p)] for p in sorted(files)]
+        out: dict[str, Any] = {"path": str(path), "files": entries}
+        if links:  # a link pointed at another recording is another input
+            out["links"] = sorted([p.relative_to(path).as_posix(), t] for p, t in links)
+        return out
     if path.exists():
         return {"path": str(path), "file": _stat(path)}
     return {"path": str(path), "missing": True}
+
+
+def _walk_files(root: Path) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """Every file under ``root``, through linked folders too (a dataset laid out as
+    ``images -> /big/disk/images``: Path.rglob does not enter them, and changes there kept
+    every stage cached), each real folder once; and the folder links with their targets."""
+    files: list[Path] = []
+    links: list[tuple[Path, str]] = []
+    seen: set[tuple[int, int]] = set()
+    for top, dirs, names in os.walk(root, followlinks=True):
+        st = os.stat(top)
+        if (st.st_dev, st.st_ino) in seen:  # a link loop, or a folder reached twice
+            dirs.clear()
+            continue
+        seen.add((st.st_dev, st.st_ino))
+        for d in dirs:
+            if os.path.islink(os.path.join(top, d)):
+                links.append((Path(top, d), os.readlink(os.path.join(top, d))))
+        files.extend(p for p in (Path(top, n) for n in names) if p.is_file())
+    return files, links
 
 
 def _stat(path: Path) -> list[int]:
@@ -861,8 +922,14 @@ def _exclusive(run_dir: Path) -> Iterator[None]:
     with open(run_dir / LOCK_FILE, "a") as handle:
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise RecipeError(f"{run_dir} is in use by another run; wait for it to end") from None
+        except OSError as exc:
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise RecipeError(f"{run_dir} is in use by another run; wait for it to "
+                                  "end") from None
+            raise RecipeError(f"{run_dir}: cannot lock {LOCK_FILE} ({exc.strerror or exc}): "
+                              "this filesystem does not support file locks (some network "
+                              "or FUSE mounts); set 'output' to a folder on a local disk"
+                              ) from None
         yield
 
 

@@ -223,7 +223,10 @@ def parse_recipe(
     apply_overrides(data, overrides)
     # ~/ in --set values too (the shell leaves it in KEY=~/x); ${NAME} once, after --set,
     # which may replace a value naming a variable that is not set here.
-    data = _unshared(data, environment=True)
+    unset: list[str] = []
+    data = _unshared(data, environment=True, unset=unset)
+    if unset:
+        raise RecipeError([f"{where}: {line}" for line in unset])
 
     problems: list[str] = []
     for key in data:
@@ -296,7 +299,9 @@ def _parse_stage(index: int, raw: Any, problems: list[str]) -> StageSpec | None:
             f"{where}: missing 'stage: TYPE' (known types: {', '.join(known) or 'none'})"
         )
         return None
-    stage_id = raw.get("id") or stage_type
+    stage_id = raw.get("id", stage_type)
+    if stage_id is None:  # ``id:`` left empty in YAML: the type, as without the key
+        stage_id = stage_type
     if not isinstance(stage_id, str) or not _ID_RE.match(stage_id):
         problems.append(
             f"{where} ({stage_type}): id {stage_id!r} may hold only letters, digits, '_' "
@@ -315,12 +320,86 @@ def _parse_stage(index: int, raw: Any, problems: list[str]) -> StageSpec | None:
     except ImportError as exc:
         problems.append(f"{label}: {exc}")
         return None
+    flags = _booleans_for_numbers(cls.Config, raw)
+    if flags:
+        problems.extend(f"{label}: {key}: true / false where a number goes; write the "
+                        "number (pydantic reads true as 1)" for key in flags)
+        return None
     try:
         config = cls.Config.model_validate({**raw, "id": stage_id})
     except ValidationError as exc:
         problems.extend(format_validation_error(exc, label, cls.Config))
         return None
     return StageSpec(index=index, id=stage_id, type=stage_type, cls=cls, config=config)
+
+
+def _booleans_for_numbers(model: type[BaseModel], data: Any, at: tuple[Any, ...] = ()) -> (
+    list[str]
+):
+    """Key paths where ``data`` gives true / false for a setting of ``model`` that takes no
+    boolean (``seed: true`` was seed 1, ``completeness_views: false`` 0, without a word)."""
+    if not isinstance(data, dict):
+        return []
+    out: list[str] = []
+    fields = _field_types(model)
+    for key, value in data.items():
+        if key in fields:
+            out += _bool_in(fields[key], value, (*at, key))
+    return out
+
+
+def _bool_in(tp: Any, value: Any, at: tuple[Any, ...]) -> list[str]:
+    if tp is Any or tp is bool:
+        return []
+    while typing.get_origin(tp) is typing.Annotated:
+        tp = typing.get_args(tp)[0]
+    members = _union_members(tp)
+    if members is not None:
+        if any(m is bool or m is Any for m in members):
+            return []
+        models = [m for m in members if _is_model(m)]
+        if isinstance(value, dict) and len(models) == 1:
+            return _booleans_for_numbers(models[0], value, at)
+        if isinstance(value, bool):
+            return [] if _admits_bool(tp) else [_fmt_loc(at)]
+        if isinstance(value, list):
+            seqs = [m for m in members if typing.get_origin(m) in (list, tuple)]
+            if len(seqs) == 1:
+                return _bool_in(seqs[0], value, at)
+        return []
+    if _is_model(tp):
+        return _booleans_for_numbers(tp, value, at)
+    if isinstance(value, bool):
+        return [] if _admits_bool(tp) else [_fmt_loc(at)]
+    origin = typing.get_origin(tp)
+    if isinstance(value, list) and origin in (list, tuple):
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        if not args:
+            return []
+        out: list[str] = []
+        for i, v in enumerate(value):
+            item = args[0] if len(args) == 1 else args[i] if i < len(args) else None
+            if item is not None:
+                out += _bool_in(item, v, (*at, i))
+        return out
+    if isinstance(value, dict) and origin is dict:
+        args = typing.get_args(tp)
+        if len(args) == 2:
+            return [k for key, v in value.items() for k in _bool_in(args[1], v, (*at, key))]
+    return []
+
+
+def _admits_bool(tp: Any) -> bool:
+    """Whether a setting of type ``tp`` may be true / false: bool itself, Any, a Literal of
+    them, or a type it cannot be confused with a number for (strings refuse it anyway)."""
+    if tp is bool or tp is Any:
+        return True
+    if typing.get_origin(tp) is typing.Literal:
+        return any(isinstance(a, bool) for a in typing.get_args(tp))
+    members = _union_members(tp)
+    if members is not None:
+        return any(_admits_bool(m) for m in members)
+    return tp not in (int, float)
 
 
 def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSpec]:
@@ -361,12 +440,17 @@ def _wire_artifacts(specs: list[StageSpec], problems: list[str]) -> list[StageSp
             if name in provided:
                 sources[name] = provided[name]
                 continue
+            later = [s.label for s in specs[specs.index(spec) + 1:] if name in s.cls.provides]
             makers = registry.providers_of(name)
-            hint = f"; add a stage that provides it before this one ({', '.join(makers)})"
+            if later:
+                hint = f"; {later[0]} provides it: move that stage before this one"
+            elif makers:
+                hint = f"; add a stage that provides it before this one ({', '.join(makers)})"
+            else:
+                hint = ""
             problems.append(
                 f"{spec.label}: requires artifact {name!r}, which no earlier stage provides"
-                + (hint if makers else "")
-            )
+                + hint)
         for name in spec.cls.optional_requires:
             if name in provided and name not in chosen:
                 sources[name] = provided[name]
@@ -455,18 +539,27 @@ def _expand_env(text: str) -> str:
     return _ENV_RE.sub(value, text)
 
 
-def _unshared(value: Any, environment: bool = True) -> Any:
+def _unshared(value: Any, environment: bool = True, at: str = "",
+              unset: list[str] | None = None) -> Any:
     """A copy of YAML data with every mapping and list its own, environment variables in
     strings expanded (``${TOOLKIT_SHARED_DATA:-../shared/data}/killian.g2o``: data a
     recipe shares with other checkouts), and paths written from the home folder
     (``~/data/run.bag``) expanded: a string starting with ``~/`` is nothing else in a
-    recipe (recorded topic names are absolute)."""
+    recipe (recorded topic names are absolute). A variable that is not set is a
+    RecipeError, or, given ``unset``, a line there naming its key path (``at``)."""
     if isinstance(value, dict):
-        return {k: _unshared(v, environment) for k, v in value.items()}
+        return {k: _unshared(v, environment, f"{at}.{k}" if at else str(k), unset)
+                for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_unshared(v, environment) for v in value]
+        return [_unshared(v, environment, f"{at}[{i}]", unset) for i, v in enumerate(value)]
     if environment and isinstance(value, str) and "${" in value:
-        value = _expand_env(value)
+        try:
+            value = _expand_env(value)
+        except RecipeError as exc:
+            if unset is None:
+                raise
+            unset.append(f"{at}: {exc}" if at else str(exc))
+            return value
     if isinstance(value, str) and value.startswith("~/"):
         return os.path.expanduser(value)
     return value
