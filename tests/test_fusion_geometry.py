@@ -471,3 +471,32 @@ def test_sampling_values_not_at_the_image_size_is_refused() -> None:
     for shape in ((24, 32), (64, 48)):
         with pytest.raises(ValueError, match="at the camera image's size"):
             sample_depth(np.ones(shape), lp)
+
+
+def test_carving_sees_the_whole_image_of_a_barrel_lens() -> None:
+    """The views' field of view came from cx / fx (+10 %): a barrel lens sees to tan 1.0
+    where 0.88 was used, and an obstacle at the image's side was never carved."""
+    from toolkit.fusion.dynamic import CarveOptions, SeeThroughCounter
+
+    cam = PinholeCamera(640, 480, 400.0, 400.0, 319.5, 239.5, np.array([-0.3, 0.1, 0, 0, 0]))
+    pts = np.array([[1.0, 0.0, 2.0], [1.9, 0.0, 2.0], [-1.9, 0.0, 2.0]])  # tan 0.5, +-0.95
+    assert cam.in_image(cam.project(pts)[0]).all()
+    c = SeeThroughCounter(pts, CarveOptions())
+    for _ in range(4):  # a wall at 5 m seen through them
+        c.add_depth_view(cam, np.eye(4), np.full((480, 640), 5.0, np.float32), 1, 7.0)
+    assert c.free.tolist() == [4, 4, 4]
+
+
+def test_pair_edges_are_tested_on_depth_for_a_disparity() -> None:
+    """A smooth slanted wall at 4-5.3 m spans 0.7 % in depth around a pixel; its raw
+    disparity (1/z = d + 0.18) spans more than the 6 % threshold at the far end."""
+    h, w = 120, 160
+    z = 4.0 + 0.008 * np.arange(w)[None, :].repeat(h, 0)
+    d = (1 / z - 0.18).astype(np.float32)
+    cols = np.arange(10, 150, 5)
+    rows = np.full(cols.size, 60)
+    lp = LidarPixels(np.stack([cols, rows], 1).astype(float), z[rows, cols],
+                     np.zeros((cols.size, 3)), np.arange(cols.size), np.zeros(cols.size, int))
+    assert edge_pairs(d, lp, 0.06).sum() > 0  # the raw disparity's span
+    assert edge_pairs(d, lp, 0.06, 5, True, 1.0, 0.18).sum() == 0
+    assert edge_pairs(z.astype(np.float32), lp, 0.06).sum() == 0

@@ -367,3 +367,34 @@ def test_depth_order_agreement_tells_depth_from_disparity() -> None:
     assert n == 5 and rho > 0.99
     rho, _ = depth_order_agreement((z, 1.0 / z + 0.2) for z, _ in frames)
     assert rho < -0.99
+
+
+def test_a_wall_with_pairs_past_its_edge_gets_the_scale_alone() -> None:
+    """The shift is observable only where the inliers spread in depth: measured over all
+    pairs, the 30 % seen past the wall's edge spread them, and robust fitted a line
+    through the one cluster (scale halved, shift 5x, flagged ok: 2 m read 1.3-2.9 m)."""
+    from toolkit.fusion.scale import estimate_robust
+
+    s_true, t_true = 0.3, 0.05
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        wall = 2.0 + 0.02 * rng.standard_normal(200)
+        disp = (1 / wall - t_true) / s_true * (1 + 0.01 * rng.standard_normal(200))
+        lidar = wall.copy()
+        past = rng.random(200) < 0.3
+        lidar[past] = rng.uniform(3.0, 5.0, past.sum())
+        e = estimate_robust(lidar, disp, True, min_pairs=20)
+        assert e.shift == 0.0 and e.ok
+        assert 1 / (e.scale * (0.5 - t_true) / s_true) == pytest.approx(2.0, rel=0.02)
+
+
+def test_a_long_gap_borrows_the_pair_of_its_nearest_good_frames() -> None:
+    """In a gap without lidar, a frame took the (scale, shift) of the good frame with the
+    nearest scale among all of the drive's, another room's shift (2 m read as 1.25 m)."""
+    good_a = [ScaleEstimate(s, 0.10, 50, 50, "ok", "robust") for s in (0.97, 1.03, 0.97, 1.03)]
+    gap = [ScaleEstimate(float("nan"), 0.0, 0, 3, "few_pairs", "robust")] * 36
+    good_b = [ScaleEstimate(1.0, 0.40, 50, 50, "ok", "robust")] * 4
+    sm = smooth_scales([*good_a, *gap, *good_b], window=9)
+    assert all(sm.shift[i] == 0.10 for i in (5, 8, 14, 20))
+    assert all(sm.shift[i] == 0.40 for i in (25, 35))
+    assert len(smooth_scales([]).scale) == 0  # was a TypeError

@@ -406,9 +406,6 @@ class Fusion:
             covis &= ~occluded_lidar(lidar, self.camera.fx, self.camera.cx, self._beam_step,
                                      c.pair_occlusion_beams, c.pair_occlusion_margin_m,
                                      c.pair_occlusion_margin_rel)
-        vis = covis.copy()
-        if c.pair_edge_filter and c.edge_threshold > 0:
-            vis &= ~edge_pairs(pred.values, lidar, c.edge_threshold, self.cloud_opts.edge_window)
         if c.scale == "none":
             est = ScaleEstimate(1.0, 0.0, len(d), len(d), "ok", "none")
         else:
@@ -426,6 +423,14 @@ class Fusion:
             # alone gave a slightly worse scale (simulated house: median error vs the oracle
             # 0.76 % instead of 0.70 %, worst frame 5.1 % instead of 3.1 %).
             est = estimate_scale(c.scale, lidar.z, d, pred.is_disparity, **opts)
+        vis = covis.copy()
+        if c.pair_edge_filter and c.edge_threshold > 0:
+            # The same test as the map's flying pixels, on depth: a disparity's span is
+            # another one (with its shift unknown, the raw one: a scale alone keeps it).
+            known = est.ok and np.isfinite(est.scale) and est.scale > 0
+            vis &= ~edge_pairs(pred.values, lidar, c.edge_threshold, self.cloud_opts.edge_window,
+                               pred.is_disparity, est.scale if known else 1.0,
+                               est.shift if known else 0.0)
         return FramePairs(lidar, d, est, vis, covis)
 
     def dynamic_hits(self, index: int) -> np.ndarray:

@@ -209,25 +209,39 @@ def estimate_robust(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False
     rng = np.random.default_rng(seed)
     if fit_shift and _spread(1.0 / l if disparity else l) < MIN_SPREAD:
         fit_shift = False  # pairs at one depth: the shift is not observable (module doc)
-    if not fit_shift:
-        y, x = (1.0 / l, d) if disparity else (l, d)
-        keep = x > 0
-        y, x = y[keep], x[keep]
-        if len(x) < min_pairs:  # disparities <= 0 are beyond infinity for a scale alone
-            return _failed(len(x), "robust")
-        r = np.log(y / x)  # [n] log ratio: the scale model is a constant in log space
-        # RANSAC with 1-point samples: the candidate with most ratios within the band.
-        cand = r[rng.integers(0, len(r), min(iterations, len(r)))]
-        support = (np.abs(r[None, :] - cand[:, None]) < threshold).sum(1)
-        logs = float(cand[int(np.argmax(support))])
-        for _ in range(10):
-            w = _tukey_weights(r - logs, 2.0 * threshold)
-            if w.sum() <= 0:
-                break
-            logs = float((w * r).sum() / w.sum())
-        inl = np.abs(r - logs) < threshold
-        return _finish(float(np.exp(logs)), 0.0, int(inl.sum()), n, "robust", min_pairs)
-    # Scale and shift on y = 1 / l (disparity) or y = l (depth with an offset).
+    if fit_shift:
+        fit = _robust_affine(l, d, disparity, threshold, iterations, rng)
+        if fit is not None:
+            s, t, inliers = fit
+            return _finish(s, t, inliers, n, "robust", min_pairs)
+    # The scale alone (no shift asked for, or none observable).
+    y, x = (1.0 / l, d) if disparity else (l, d)
+    keep = x > 0
+    y, x = y[keep], x[keep]
+    if len(x) < min_pairs:  # disparities <= 0 are beyond infinity for a scale alone
+        return _failed(len(x), "robust")
+    r = np.log(y / x)  # [n] log ratio: the scale model is a constant in log space
+    # RANSAC with 1-point samples: the candidate with most ratios within the band.
+    cand = r[rng.integers(0, len(r), min(iterations, len(r)))]
+    support = (np.abs(r[None, :] - cand[:, None]) < threshold).sum(1)
+    logs = float(cand[int(np.argmax(support))])
+    for _ in range(10):
+        w = _tukey_weights(r - logs, 2.0 * threshold)
+        if w.sum() <= 0:
+            break
+        logs = float((w * r).sum() / w.sum())
+    inl = np.abs(r - logs) < threshold
+    return _finish(float(np.exp(logs)), 0.0, int(inl.sum()), n, "robust", min_pairs)
+
+
+def _robust_affine(l: np.ndarray, d: np.ndarray, disparity: bool, threshold: float,
+                   iterations: int, rng: np.random.Generator) -> tuple[float, float, int] | None:
+    """(scale, shift, inliers) on y = 1 / l (disparity) or y = l (depth with an offset):
+    RANSAC on pairs of pairs, then Tukey IRLS; None when the inliers lie at one depth.
+    The spread of all pairs is not enough: facing a wall, the pairs seen past its edge
+    spread them (0.52 against the wall's 0.03), and a line through the one cluster took
+    any slope (scale halved, shift 5x, flagged ok: 2 m read as 1.3-2.9 m)."""
+    n = len(l)
     y = 1.0 / l if disparity else l
     x = d
     # Residuals relative to y so that near and far pairs count alike.
@@ -238,10 +252,12 @@ def estimate_robust(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False
         t_c = y1 - s_c * x1
     okc = np.isfinite(s_c) & (s_c > 0)
     if not okc.any():
-        return _failed(n, "robust", LOW_INLIERS)
+        return None
     s_c, t_c = s_c[okc], t_c[okc]
     rel = np.abs(s_c[:, None] * x[None, :] + t_c[:, None] - y[None, :]) / y[None, :]
     best = int(np.argmax((rel < threshold).sum(1)))
+    if _spread(y[rel[best] < threshold]) < MIN_SPREAD:
+        return None
     s, t = float(s_c[best]), float(t_c[best])
     A = np.stack([x, np.ones(n)], -1)  # [n, 2]
     for _ in range(10):
@@ -255,7 +271,7 @@ def estimate_robust(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False
         except np.linalg.LinAlgError:
             break
     inl = np.abs((s * x + t - y) / y) < threshold
-    return _finish(float(s), float(t), int(inl.sum()), n, "robust", min_pairs)
+    return float(s), float(t), int(inl.sum())
 
 
 def _finish(scale: float, shift: float, inliers: int, n: int, method: str,
@@ -365,8 +381,9 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     def nearest_good(values: np.ndarray, mask: np.ndarray, i: int, target: float) -> int:
         lo, hi = max(0, i - half), min(n, i + half + 1)
         idx = np.arange(lo, hi)[mask[lo:hi]]
-        if not len(idx):  # the widened window of window_median: all good frames
+        if not len(idx):  # the widened window of window_median: its nearest good frames
             idx = np.flatnonzero(mask)
+            idx = idx[np.argsort(np.abs(idx - i), kind="stable")[: max(1, half)]]
         return int(idx[np.argmin(np.abs(values[idx] - target))])
 
     # In a sequence of (scale, shift) fits, a frame fitted with the scale alone (a wall
@@ -405,7 +422,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
                     backed[i] = True
                     continue
             flags[i] = OUTLIER_FRAME
-    good2 = good & np.array([f == OK for f in flags])
+    good2 = good & np.array([f == OK for f in flags], bool)
     out_s = np.full(n, np.nan)
     out_t = np.zeros(n)
     # A scale and a shift hold together, and an affine (disparity) network's pair changes

@@ -313,7 +313,9 @@ class FuseStage(Stage):
     # backed by their own pairs keep their scale; moving pixels out of the written depth.
     # 4: the camera's exposure divided out of the map's colours (exposure: gain)
     # 5: regions around lidar runs the smooth shape field cannot follow rescaled (refine)
-    version = 5
+    # 6: robust's shift only where its inliers spread; a gap's frames take their nearest
+    #    good frames' pair; pair edges tested on depth; carving sees a distorted image whole
+    version = 6
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
