@@ -101,3 +101,12 @@ def test_distance_thresholds_get_a_key_each():
     assert (out["within_5mm"], out["within_15mm"], out["within_2cm"]) == (0.25, 0.5, 0.75)
     with pytest.raises(ValueError, match="same key twice"):
         distance_stats(d, (0.02, 0.0201))
+
+
+def test_fscore_thresholds_get_a_key_each() -> None:
+    """round(t * 100) named 15, 20 and 25 mm all 'fscore_2cm' (one kept) and 5 mm '0cm'."""
+    pts = grid(20)
+    out = geometry_metrics(pts, pts, (0.005, 0.015, 0.02))
+    assert {"fscore_5mm", "fscore_15mm", "fscore_2cm"} <= set(out)
+    with pytest.raises(ValueError, match="same key twice"):
+        geometry_metrics(pts, pts, (0.02, 0.0201))

@@ -78,3 +78,17 @@ def test_errors() -> None:
     with pytest.raises(ValueError, match="divide 0..255 float images by 255"):
         psnr(a * 255, b * 255)  # scored -42 dB
     assert np.isfinite(psnr(a * 255, b * 255, data_range=255.0))
+
+
+def test_a_uint8_mask_counts_its_nonzero_pixels() -> None:
+    """A 0/1 uint8 mask was read as an image (0 and 1/255): PSNR took it, SSIM found no
+    pixel in it."""
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    b = a.copy()
+    b[:, :8] = 0  # different outside the mask only
+    inside = np.zeros((32, 32), bool)
+    inside[:, 16:] = True
+    for mask in (inside, inside.astype(np.uint8), inside.astype(np.uint8) * 255):
+        assert ssim(a, b, mask=mask) == pytest.approx(1.0)
+        assert psnr(a, b, mask=mask) == float("inf")

@@ -151,7 +151,9 @@ class TSDFStage(Stage):
     requires = ("sequence",)
     optional_requires = ("trajectory", "fused")
     provides = ("tsdf_mesh",)
-    version = 2  # 2: completeness to the mesh's surface; no poses across trajectory gaps
+    # 2: completeness to the mesh's surface; no poses across trajectory gaps. 3: the poses
+    # it was built at written beside the mesh (camera_poses.tum)
+    version = 3
 
     def run(self, ctx: StageContext) -> None:
         import cv2
@@ -250,6 +252,14 @@ class TSDFStage(Stage):
                              f"beyond depth_max_m={cfg.depth_max_m}?)")
         out = ctx.stage_dir / "mesh.ply"
         write_mesh(out, mesh)
+        # The poses the mesh was built at, beside it: evaluate aligns a mesh built at SLAM
+        # poses to the world, and leaves one built at ground-truth poses where it is.
+        from toolkit.geometry import Trajectory
+        from toolkit.io.tum import write_tum
+
+        write_tum(ctx.stage_dir / "camera_poses.tum",
+                  Trajectory(seq.frame_stamps[indices], poses, "world", "camera"),
+                  f"poses: {fp.source}")
         ctx.provide("tsdf_mesh", out)
         metrics: dict[str, Any] = {
             "depth_source": cfg.depth_source, "poses": fp.source, "frames": int(len(indices)),

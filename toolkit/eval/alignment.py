@@ -57,3 +57,19 @@ def apply(S: np.ndarray | None, points: np.ndarray) -> np.ndarray:
     if S is None:
         return points
     return np.asarray(points) @ S[:3, :3].T + S[:3, 3]
+
+
+def built_at_ground_truth(seq: Sequence, poses: Trajectory, tol_m: float = 1e-3) -> bool:
+    """Whether ``poses`` (T_world_camera a map was built at) are the sequence's ground-truth
+    camera poses (every camera centre the ground truth covers within ``tol_m``): such a map
+    is in the world frame already, and moving it by a SLAM map's alignment put a perfect
+    map 0.65 m off (F@5cm 0.011)."""
+    gt = seq.groundtruth
+    if gt is None or gt.poses_base is None or not len(poses):
+        return False
+    inside = gt.poses_base.covers(poses.stamps, slack_s=0.05)
+    if not inside.any():
+        return False
+    ref = ground_truth_camera(seq, poses.stamps[inside])
+    off = np.linalg.norm(poses.positions[inside] - ref.positions, axis=1)
+    return bool(off.max() <= tol_m)

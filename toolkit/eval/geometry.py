@@ -17,6 +17,13 @@ from scipy.spatial import cKDTree
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.10)
 
 
+def within_key(threshold_m: float) -> str:
+    """``within_5cm`` for whole centimetres (the names reports use), ``within_15mm``
+    otherwise: rounded to centimetres, 5 mm and 15 mm both became ``within_2cm``."""
+    mm = int(round(threshold_m * 1000))
+    return f"within_{mm // 10}cm" if mm % 10 == 0 else f"within_{mm}mm"
+
+
 def load_mesh(mesh: Any) -> Any:
     """An Open3D TriangleMesh as given, or read from a path (PLY, OBJ, ...)."""
     import open3d as o3d
@@ -119,11 +126,14 @@ def geometry_metrics(
         "points": int(len(whole)),
         "points_scored": int(len(recon)),
     }
-    for t in thresholds_m:
+    tags = [within_key(t).removeprefix("within_") for t in thresholds_m]
+    if len(set(tags)) < len(tags):
+        raise ValueError(f"thresholds {list(thresholds_m)} name the same key twice (whole "
+                         "millimetres are told apart)")
+    for t, tag in zip(thresholds_m, tags, strict=True):
         p = float(np.mean(acc < t))
         r = float(np.mean(comp < t))
         f = 2 * p * r / (p + r) if p + r > 0 else 0.0
-        tag = f"{round(t * 100):d}cm"
         out[f"precision_{tag}"] = p
         out[f"recall_{tag}"] = r
         out[f"fscore_{tag}"] = f

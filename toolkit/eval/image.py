@@ -33,6 +33,14 @@ def _as_float(img: Array) -> Tensor:
     return img
 
 
+def _as_mask(mask: Array) -> Tensor:
+    """A mask as bool, whatever it came as: a 0/1 uint8 mask read as an image was 0 and
+    1/255, and SSIM found no pixel in it."""
+    if isinstance(mask, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(mask) != 0)
+    return mask.bool()
+
+
 def _check(a: Tensor, b: Tensor) -> None:
     if a.shape != b.shape:
         raise ValueError(f"images differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
@@ -50,8 +58,7 @@ def mse(a: Array, b: Array, mask: Array | None = None) -> Any:
     _check(ta, tb)
     d = (ta - tb) ** 2
     if mask is not None:
-        m = _as_float(mask).to(torch.bool) if isinstance(mask, np.ndarray) else mask.bool()
-        d = d[m]
+        d = d[_as_mask(mask)]
     return _out(d.mean(), a)
 
 
@@ -119,7 +126,7 @@ def ssim(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
     s = ssim_map(a, b, data_range, window, sigma)  # [h, w, C]
     if mask is None:
         return _out(s.mean(), a)
-    m = _as_float(mask).to(s.device, s.dtype)
+    m = _as_mask(mask).to(s.device, s.dtype)
     if m.shape != _as_float(a).shape[:2]:
         raise ValueError(f"mask of {tuple(m.shape)} for images of {tuple(_as_float(a).shape)}")
     inside = F.avg_pool2d(m[None, None], window, stride=1)[0, 0]  # [h, w] valid share

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from toolkit.eval.geometry import load_mesh
+from toolkit.eval.geometry import load_mesh, within_key
 
 
 class MeshDistance:
@@ -48,9 +48,3 @@ def distance_stats(d: np.ndarray, thresholds: tuple[float, ...] = (0.02, 0.05, 0
         out[within_key(t)] = float(np.mean(d <= t))
     return out
 
-
-def within_key(threshold_m: float) -> str:
-    """``within_5cm`` for whole centimetres (the names reports use), ``within_15mm``
-    otherwise: rounded to centimetres, 5 mm and 15 mm both became ``within_2cm``."""
-    mm = int(round(threshold_m * 1000))
-    return f"within_{mm // 10}cm" if mm % 10 == 0 else f"within_{mm}mm"

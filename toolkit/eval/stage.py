@@ -14,7 +14,11 @@ from typing import Literal
 
 import numpy as np
 
-from toolkit.eval.alignment import covered_ground_truth, ground_truth_camera
+from toolkit.eval.alignment import (
+    built_at_ground_truth,
+    covered_ground_truth,
+    ground_truth_camera,
+)
 from toolkit.eval.geometry import (
     DEFAULT_THRESHOLDS_M,
     geometry_metrics,
@@ -91,7 +95,8 @@ class EvaluateStage(Stage):
     provides = ("evaluation",)
     # 2: a TSDF mesh's completeness to its surface; 'points' is the map's size; a
     #    lidar-only recording scores the base trajectory
-    version = 2
+    # 3: a map built at ground-truth poses is not moved by the SLAM alignment
+    version = 3
 
     def run(self, ctx: StageContext) -> None:
         import open3d as o3d
@@ -173,18 +178,26 @@ class EvaluateStage(Stage):
                                            max_depth_m=cfg.completeness_max_depth_m)
         rng = np.random.default_rng(cfg.seed)
 
-        def score(points: np.ndarray, label: str,
+        def frame_of(folder: Path) -> np.ndarray:
+            """The alignment of the map in ``folder``: none for one built at ground-truth
+            poses (its stage's ``camera_poses.tum``), the trajectory's otherwise."""
+            path = folder / "camera_poses.tum"
+            if path.exists() and built_at_ground_truth(seq, read_tum(path)):
+                return np.eye(4)
+            return S
+
+        def score(points: np.ndarray, label: str, M: np.ndarray,
                   surface: o3d.geometry.TriangleMesh | None = None) -> dict[str, float]:
             # Accuracy on a random subset (exact mesh distances are the cost), completeness
             # against every point - or, for a mesh (``surface``), against its surface.
-            full = points @ S[:3, :3].T + S[:3, 3]
+            full = points @ M[:3, :3].T + M[:3, 3]
             pts = full
             if len(full) > cfg.max_points:
                 pts = full[rng.choice(len(full), cfg.max_points, replace=False)]
             to_surface = None
             if surface is not None:
                 moved = o3d.geometry.TriangleMesh(surface)
-                moved.transform(S)
+                moved.transform(M)
                 to_surface = mesh_distances(reference, moved)
             return geometry_metrics(pts, reference, DEFAULT_THRESHOLDS_M,
                                     accuracy_distances=mesh_distances(pts, mesh),
@@ -193,13 +206,14 @@ class EvaluateStage(Stage):
         table = []
         if reference is not None and ctx.has_artifact("fused"):
             pcd = o3d.io.read_point_cloud(str(ctx.artifact("fused") / "map.ply"))
-            m = score(np.asarray(pcd.points), "fused")
+            m = score(np.asarray(pcd.points), "fused", frame_of(ctx.artifact("fused")))
             metrics["fused_map"] = m
             table.append(("fused cloud (lidar-scaled depth)", m))
         if reference is not None and ctx.has_artifact("tsdf_mesh"):
             tm = o3d.io.read_triangle_mesh(str(ctx.artifact("tsdf_mesh")))
             if len(tm.triangles) > 0:
-                m = score(sample_mesh(tm, cfg.mesh_spacing_m, cfg.seed), "tsdf", tm)
+                m = score(sample_mesh(tm, cfg.mesh_spacing_m, cfg.seed), "tsdf",
+                          frame_of(ctx.artifact("tsdf_mesh").parent), tm)
                 metrics["tsdf_mesh"] = m
                 table.append((f"TSDF mesh (points: samples every {cfg.mesh_spacing_m * 100:g} "
                               "cm on its surface)", m))
