@@ -242,7 +242,10 @@ def board_edge_points(points: np.ndarray, board_idx: np.ndarray, min_gap_m: floa
         return np.zeros((0, 2)), np.zeros(0)
     step = float(np.median(steps))
     n, off, _ = fit_line(pts[idx])
-    b_ang = ang[idx]
+    # Bearings about the board's own mean: a board across the laser's +-180 deg bearing
+    # (a backward-mounted or 360 deg lidar) had its two ends taken from inside it.
+    mean = np.arctan2(np.sin(ang[idx]).sum(), np.cos(ang[idx]).sum())
+    b_ang = (ang[idx] - mean + np.pi) % (2 * np.pi) - np.pi
     out, sig = [], []
     for end, sign in ((int(idx[np.argmin(b_ang)]), -1.0), (int(idx[np.argmax(b_ang)]), 1.0)):
         a_end = ang[end]

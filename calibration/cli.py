@@ -149,16 +149,17 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
         max_offset_m=args.max_offset,
         mount=args.mount, seed=args.seed)
     init = load_extrinsic(Path(args.init)) if args.init else None
+    # Read before the solve: a wrong --rig path failed only after it.
+    base = None
+    if args.out and args.rig:
+        from toolkit.io.sequence import read_rig
+
+        base = read_rig(Path(args.rig))
     run = run_extrinsic(cands, board, camera, search, _options(args), init, loo=not args.no_loo)
     run.skipped = {**skipped, **run.skipped}
     summary = run.summary()
     _print_extrinsic(run.result.T_camera_laser, summary)
     if args.out:
-        base = None
-        if args.rig:
-            from toolkit.io.sequence import read_rig
-
-            base = read_rig(Path(args.rig))
         rig = rig_for_extrinsic(camera, run.result.T_camera_laser, base)
         out_path = Path(args.out)
         if not summary["reliable"]:

@@ -77,8 +77,13 @@ def calibrate_intrinsics(detections: list[Detection], board: BoardSpec, model: s
         raise IntrinsicsError(f"model {model!r}: choose one of {', '.join(MODELS)}")
     sizes = {d.image_size for d in detections}
     if len(sizes) > 1:
-        raise IntrinsicsError(f"images have different sizes {sorted(sizes)}; calibrate each "
-                              "camera resolution separately")
+        count = {s: sum(d.image_size == s for d in detections) for s in sizes}
+        common = max(sorted(sizes), key=lambda s: count[s])
+        odd = [d.name for d in detections if d.image_size != common]
+        raise IntrinsicsError(
+            f"images have different sizes {sorted(sizes)}: {len(odd)} not {common[0]}x"
+            f"{common[1]} ({', '.join(odd[:5])}{', ...' if len(odd) > 5 else ''}); calibrate "
+            "each camera resolution separately")
     dets = list(detections)
     rejected: dict[str, str] = {}
     obj = board.object_points().astype(np.float32)

@@ -373,9 +373,15 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
     views, skipped = build_views(cands, board, camera, search, guess=guess)
     if len(views) < opts.min_views:
         detail = "; ".join(f"{k}: {v}" for k, v in skipped.items())
+        ranges = [np.linalg.norm(c.scan.points, axis=1) for c in cands if len(c.scan.points)]
+        median = float(np.median(np.concatenate(ranges))) if ranges else 0.0
+        # Millimetres read as metres put every board 1000x too far: nothing else says so.
+        units = (f" The scans' median range is {median:.0f}: are they in millimetres? "
+                 "Scans are read in metres; convert them." if median > 100.0 else "")
         raise ExtrinsicError(
             f"the board was found in the scans of only {len(views)} of {len(cands)} paired "
-            f"views ({detail}); at least {opts.min_views} are needed. Pass --angle-window MIN "
+            f"views ({detail}); at least {opts.min_views} are needed.{units} Pass "
+            "--angle-window MIN "
             "MAX (degrees, laser frame, e.g. 150 210 behind it) around the board's "
             "direction, --mount any (or --init) if the laser's 0 deg does not point where "
             "the camera looks (a lidar mounted turned), --max-offset if the sensors are far "

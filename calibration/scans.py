@@ -216,6 +216,12 @@ def read_csv_scan(path: Path) -> np.ndarray:
         raise ScanFormatError(f"{path}: empty CSV")
     head = [h.strip().lower() for h in rows[0]]
     body = [r for r in rows[1:] if r and any(c.strip() for c in r)]
+    if not body:
+        raise ScanFormatError(f"{path}: no data rows below the header {head}")
+    ragged = [n for n, r in enumerate(body, start=2) if len(r) != len(head)]
+    if ragged:
+        raise ScanFormatError(f"{path}: row {ragged[0]} has {len(body[ragged[0] - 2])} "
+                              f"values for the {len(head)} columns of the header {head}")
     try:
         data = np.array([[float(c) for c in r] for r in body], dtype=np.float64)
     except ValueError as e:

@@ -311,3 +311,41 @@ def test_wrong_square_size_is_named(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert main(args) == 3
     out = capsys.readouterr().out
     assert "square size (--square) is probably 1.1" in out
+
+
+def test_cli_names_units_sizes_and_a_missing_rig_first(capture: tuple[Path, object],
+                                                      tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Millimetre scans said only 'no segment matches the board'; a missing --rig failed
+    after the whole solve; mixed image sizes named no image."""
+    import shutil
+    import time
+
+    import cv2
+
+    from calibration.scans import read_pcd
+    from calibration.synthetic import write_pcd
+
+    cap_dir, _ = capture
+    mm = tmp_path / "mm"
+    mm.mkdir()
+    for p in sorted((cap_dir / "lasers").glob("*.pcd")):
+        write_pcd(mm / p.name, read_pcd(p) * 1000.0)
+    args = _args(cap_dir, "--no-loo")
+    args[args.index("--scans") + 1] = str(mm)
+    assert main(args) == 2
+    assert "are they in millimetres?" in capsys.readouterr().err
+    t0 = time.perf_counter()
+    assert main(_args(cap_dir, "--no-loo", "--out", str(tmp_path / "r.yaml"), "--rig",
+                      str(tmp_path / "missing.yaml"))) == 2
+    assert "missing.yaml: rig file not found" in capsys.readouterr().err
+    assert time.perf_counter() - t0 < 5.0  # before the solve
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for i, p in enumerate(sorted((cap_dir / "images").glob("*.png"))[:6]):
+        shutil.copy(p, mixed / f"{i}.png")
+    img = cv2.imread(str(mixed / "4.png"))
+    cv2.imwrite(str(mixed / "4.png"), cv2.resize(img, (800, 600)))
+    assert main(["intrinsics", "--images", str(mixed), "--board", "11x8", "--square", "0.05",
+                 "--out", str(tmp_path / "c.yaml")]) == 2
+    assert "1 not 640x480 (4.png)" in capsys.readouterr().err

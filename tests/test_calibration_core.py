@@ -102,6 +102,12 @@ def test_scan_readers(tmp_path: Path) -> None:
     (tmp_path / "4.csv").write_text("a,b\n1,2\n")
     with pytest.raises(ScanFormatError, match=r"4\.csv.*x,y"):
         read_csv_scan(tmp_path / "4.csv")
+    (tmp_path / "4b.csv").write_text("x,y\n")  # was numpy's reshape error, uncaught
+    with pytest.raises(ScanFormatError, match=r"4b\.csv: no data rows below the header"):
+        read_csv_scan(tmp_path / "4b.csv")
+    (tmp_path / "4c.csv").write_text("x,y\n1,2\n3\n")
+    with pytest.raises(ScanFormatError, match=r"4c\.csv: row 3 has 1 values for the 2"):
+        read_csv_scan(tmp_path / "4c.csv")
     (tmp_path / "5.csv").write_text("x,y,z\n1,2,0.5\n")
     with pytest.raises(ScanFormatError, match="planar"):
         read_csv_scan(tmp_path / "5.csv")
@@ -463,3 +469,16 @@ def test_angle_window_across_the_back_of_the_laser() -> None:
     np.testing.assert_array_equal(in_bearing_window(np.degrees(a), 170, -170, 360.0),
                                   [True, True, False, False])
     assert in_bearing_window(np.degrees(a), -180, 180, 360.0).all()
+
+
+def test_board_edges_across_the_lasers_back() -> None:
+    """A board across the +-180 deg bearing (a backward-mounted lidar): its two ends were
+    taken from inside it and both edges dropped."""
+    cap = make_capture(n_views=3, seed=0)
+    v = cap.views[0]
+    idx = np.nonzero(v.on_board)[0]
+    e0, _ = board_edge_points(v.scan_points, idx)
+    a = np.pi - np.arctan2(*v.scan_points[idx].mean(0)[::-1])
+    R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    e1, _ = board_edge_points(v.scan_points @ R.T, idx)
+    assert len(e0) == 2 and np.allclose(e1, e0 @ R.T, atol=1e-9)
