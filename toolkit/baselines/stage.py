@@ -152,7 +152,8 @@ class TSDFStage(Stage):
     optional_requires = ("trajectory", "fused")
     provides = ("tsdf_mesh",)
     # 2: completeness to the mesh's surface; no poses across trajectory gaps. 3: the poses
-    # it was built at written beside the mesh (camera_poses.tum)
+    # it was built at written beside the mesh (camera_poses.tum); the observed reference
+    # keeps surface seen at grazing angles
     version = 3
 
     def run(self, ctx: StageContext) -> None:
@@ -656,8 +657,9 @@ class CameraOnlyStage(Stage):
     optional_requires = ("colmap", "trajectory")
     provides = ("camera_only",)
     # 2: recall against every map point; alignment on covered poses. 3: one thread by
-    # default (repeatable); SfM points collapsed onto their camera left out
-    version = 3
+    # default (repeatable); SfM points collapsed onto their camera left out. 4: the
+    # observed reference keeps surface seen at grazing angles
+    version = 4
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction

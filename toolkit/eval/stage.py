@@ -95,7 +95,8 @@ class EvaluateStage(Stage):
     provides = ("evaluation",)
     # 2: a TSDF mesh's completeness to its surface; 'points' is the map's size; a
     #    lidar-only recording scores the base trajectory
-    # 3: a map built at ground-truth poses is not moved by the SLAM alignment
+    # 3: a map built at ground-truth poses is not moved by the SLAM alignment; the
+    #    observed reference keeps surface seen at grazing angles
     version = 3
 
     def run(self, ctx: StageContext) -> None:
