@@ -256,3 +256,25 @@ def test_points_collapsed_onto_their_camera_are_not_taken_as_depth(
     # The damaged frame keeps the scale its sound points give (collapsed: ~1e-8 of it).
     k = runs[1].frame_indices.index(frame_of[name])
     assert runs[1].used[k] and runs[1].scale[k] == pytest.approx(runs[0].scale[k], rel=0.02)
+
+
+def test_sparse_depth_pairs_each_point_with_the_pixel_it_was_seen_at() -> None:
+    """Reprojected with our camera, a model reconstructed with a focal 15 % off (COLMAP's
+    own, intrinsics: unknown / refine) put each SfM depth up to 20 px from its feature."""
+    from types import SimpleNamespace as NS
+
+    from toolkit.baselines.camera_only import sparse_depth
+
+    ours = PinholeCamera(320, 240, 200.0, 200.0, 159.5, 119.5)
+    seen_at = np.array([[300.0, 100.0], [30.0, 200.0], [159.5, 119.5]])
+    z = np.array([2.0, 3.0, 4.0])
+    f_model = 230.0  # the model is consistent with its own focal length
+    X = np.c_[(seen_at - [159.5, 119.5]) / f_model * z[:, None], z]
+    image = NS(get_observation_points2D=lambda: [NS(point3D_id=k, xy=seen_at[k] + 0.5)
+                                                 for k in range(3)],
+               cam_from_world=NS(matrix=lambda: np.eye(4)[:3]))
+    rec = NS(find_image_with_name=lambda name: image,
+             points3D={k: NS(xyz=X[k]) for k in range(3)})
+    sp = sparse_depth(NS(reconstruction=rec), "a.png", ours)
+    np.testing.assert_allclose(sp.uv, seen_at, atol=1e-9)
+    np.testing.assert_allclose(sp.z, z)

@@ -97,8 +97,11 @@ def collapsed_depth(sfm: SfMResult) -> float:
 def sparse_depth(sfm: SfMResult, name: str, camera: PinholeCamera,
                  min_z: float = 0.0) -> SparseDepth:
     """The SfM points observed in image ``name`` at depth above ``min_z`` (model units;
-    ``collapsed_depth``), projected with ``camera`` (which may have distortion: predictions
-    live in the original image)."""
+    ``collapsed_depth``), at the pixels where they were observed, in the original image of
+    ``camera`` (which may have distortion: predictions live there). COLMAP saw the frames
+    undistorted with ``camera``'s own K (``image_folder``); its refined focal length
+    (``intrinsics: unknown`` / ``refine``) would put a reprojected point up to 20 px from
+    its feature."""
     rec = sfm.reconstruction
     im = rec.find_image_with_name(name)
     if im is None:
@@ -108,8 +111,13 @@ def sparse_depth(sfm: SfMResult, name: str, camera: PinholeCamera,
         return SparseDepth(np.zeros((0, 2)), np.zeros(0))
     X = np.array([rec.points3D[p.point3D_id].xyz for p in obs], dtype=np.float64)  # [K, 3]
     T_cw = cam_from_world_matrix(im)
-    pc = X @ T_cw[:3, :3].T + T_cw[:3, 3]
-    uv, z = camera.project(pc)
+    z = X @ T_cw[2, :3] + T_cw[2, 3]  # [K] depth in the model's units
+    # The feature's pixel in the undistorted frame (COLMAP's centres at +0.5), its ray
+    # through our K, and that ray's pixel in the original image.
+    xy = np.array([p.xy for p in obs], dtype=np.float64) - 0.5  # [K, 2]
+    ray = np.stack([(xy[:, 0] - camera.cx) / camera.fx, (xy[:, 1] - camera.cy) / camera.fy,
+                    np.ones(len(xy))], -1)
+    uv, _ = camera.project(ray)
     ok = (z > max(min_z, 0.0)) & camera.in_image(uv)
     return SparseDepth(uv[ok], z[ok])
 
