@@ -16,7 +16,7 @@ from toolkit.splat.model import GaussianModel, init_from_points
 from toolkit.splat.rasterize import RenderMeta, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
 from toolkit.splat.synthetic import ground_truth_model, orbit_poses, room_points
-from toolkit.splat.trainer import TrainConfig, Trainer, TrainView, evaluate_views
+from toolkit.splat.trainer import TrainConfig, Trainer, TrainView, evaluate_views, masked_l1
 
 BACKEND = "auto"  # the C++ path when it builds, else the reference: both must train
 
@@ -166,6 +166,12 @@ def test_resume_refuses_other_settings_or_data_and_takes_finished_runs(tmp_path:
     summary = again.train()
     assert summary.steps == done.steps and summary.final_loss == done.final_loss
     assert torch.equal(again.model.means, same.model.means)
+    # the intervals leave a finished run's model too (it was trained again from step 0)
+    for kw in ({"checkpoint_every": 3}, {"log_every": 50}):
+        interval = Trainer(_start_model(300), views, _cfg(**kw), tmp_path)
+        assert interval.resume() and interval.step == done.steps
+    # another time limit does not: the model it stopped at may differ
+    assert not Trainer(_start_model(300), views, _cfg(max_seconds=0.5), tmp_path).resume()
     # more steps asked of a finished run: another training (the rates decay over the run)
     longer = Trainer(_start_model(300), views, _cfg(iterations=done.steps + 4), tmp_path)
     assert not longer.resume() and longer.step == 0
@@ -306,3 +312,19 @@ def test_exposure_compensation_keeps_colours_apart_from_the_cameras_gain() -> No
         scores[mode] = evaluate_views(model, clean, BACKEND)
     for key in ("psnr_db", "psnr_exposure_matched_db"):
         assert scores["gain"][key] > scores["none"][key] + 1.0, (key, scores)
+
+
+def test_masked_l1_is_the_mean_over_the_valid_pixels() -> None:
+    """A mean over every pixel (the masked ones set to the target) shrank the colour loss
+    and its gradients by the valid share."""
+    gt = torch.zeros(20, 30, 3)
+    mask = torch.ones(20, 30, dtype=torch.bool)
+    mask[:, :10] = False  # a third of the image: lens corners
+    render = torch.full((20, 30, 3), 0.5, requires_grad=True)
+    color = torch.where(mask[..., None], render, gt)
+    loss = masked_l1(color, gt, mask)
+    assert float(loss.detach()) == pytest.approx(0.5)
+    loss.backward()
+    assert float(render.grad[0, 15, 0]) == pytest.approx(1 / (20 * 20 * 3))
+    assert float(render.grad[0, 5, 0]) == 0.0
+    assert float(masked_l1(render.detach(), gt)) == pytest.approx(0.5)

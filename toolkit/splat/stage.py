@@ -347,8 +347,9 @@ class SplatStage(Stage):
     speed_settings = frozenset({"view_cache_mb"})
     provides = ("splats",)
     # 2: off-path views masked like the path's; SSIM over valid windows. 3: images at the
-    # fuse stage's exposure gains (exposure: auto)
-    version = 3
+    # fuse stage's exposure gains (exposure: auto). 4: the colour L1 over the valid pixels
+    # of a masked view (a distorted camera's lens corners)
+    version = 4
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]

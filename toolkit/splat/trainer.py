@@ -140,6 +140,16 @@ class TrainView:
         return self.image.to(device, non_blocking=True).to(torch.float32) / 255.0
 
 
+def masked_l1(color: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Mean absolute error of ``color`` [H, W, C] against ``target`` over the pixels of
+    ``mask`` [H, W] (``TrainView.masked`` set the others to the target). A mean over every
+    pixel shrank the colour loss and its gradients by the valid share: the depth term, a
+    mean over its own pixels, grew against it, and the densification threshold rose."""
+    if mask is None:
+        return (color - target).abs().mean()
+    return (color - target).abs().sum() / (target.shape[-1] * mask.sum().clamp(min=1))
+
+
 def exposure_gain(render: Tensor, target: Tensor, mask: Tensor | None = None,
                   reg: float = 0.0) -> Tensor:
     """[3] per-channel gain g minimising sum |g render - target|^2 over ``mask``'s pixels
@@ -251,12 +261,14 @@ def _adam(params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
 def config_digest(cfg: TrainConfig, whole: bool = False) -> str:
     """What a checkpoint must agree with to be resumed (the time limit and the checkpoint
     and log intervals may change: they do not touch the optimisation; the step count does,
-    through the learning-rate decay over the whole run); ``whole``: every setting, what a
-    finished run's model must agree with to be taken as the result."""
+    through the learning-rate decay over the whole run); ``whole``: with the time limit,
+    what a finished run's model must agree with to be taken as the result (the intervals
+    still not: a finished training was thrown away and redone from step 0 for another
+    ``log_every``)."""
     d = cfg.model_dump(mode="json")
-    if not whole:
-        for k in ("checkpoint_every", "log_every", "max_seconds"):
-            d.pop(k, None)
+    for k in ("checkpoint_every", "log_every") if whole else (
+            "checkpoint_every", "log_every", "max_seconds"):
+        d.pop(k, None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -354,7 +366,7 @@ class Trainer:
             rendered = rendered * exposure_gain(rendered, gt, view.mask_on(gt.device),
                                                 cfg.exposure_reg)
         color = view.masked(rendered, gt)
-        l1 = (color - gt).abs().mean()
+        l1 = masked_l1(color, gt, view.mask_on(gt.device))
         loss = l1
         if cfg.lambda_dssim > 0:
             loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_fn(color, gt))
