@@ -328,3 +328,13 @@ def test_masked_l1_is_the_mean_over_the_valid_pixels() -> None:
     assert float(render.grad[0, 15, 0]) == pytest.approx(1 / (20 * 20 * 3))
     assert float(render.grad[0, 5, 0]) == 0.0
     assert float(masked_l1(render.detach(), gt)) == pytest.approx(0.5)
+
+
+def test_refinement_stops_at_half_the_training_by_default() -> None:
+    """gsplat refines for 15000 of 30000 steps; the default of 15000 refined a 1500-step
+    training to its step 1400 (its last clones had 100 steps to settle)."""
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    default = Trainer(_start_model(300), views, _cfg(iterations=40))
+    assert default.strategy.cfg.refine_stop_iter == 20
+    fixed = _cfg(iterations=40, densify=StrategyConfig(refine_stop_iter=35))
+    assert Trainer(_start_model(300), views, fixed).strategy.cfg.refine_stop_iter == 35

@@ -33,7 +33,15 @@ from toolkit.splat.rasterize.common import quat_to_rotmat
 
 class StrategyConfig(BaseModel):
     """gsplat DefaultStrategy settings (its defaults, except the iteration counts, which
-    are scaled for CPU-length trainings of a few thousand steps)."""
+    are scaled for CPU-length trainings of a few thousand steps).
+
+    ``refine_stop_iter`` None: half the training's steps, as gsplat's 15000 of 30000 (the
+    trainer fills it in; a strategy on its own refines to the end). Refining to step 1400
+    of 1500 left the last clones 100 steps to settle: stopping at 750 gave the quickstart's
+    splats 42 % fewer Gaussians and 0.04 / 0.15 dB more on the held-out path / off-path
+    views. ``reset_every`` stays gsplat's 3000: no opacity reset (and so no pruning of
+    large Gaussians, which waits for the first) in shorter trainings; every 300 steps of
+    the quickstart's 1500 it cost 0.9 / 0.4 dB."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -43,7 +51,7 @@ class StrategyConfig(BaseModel):
     grow_scale3d: float = 0.01  # x scene scale: below this a Gaussian is cloned, else split
     prune_scale3d: float = 0.1  # x scene scale
     refine_start_iter: int = 100
-    refine_stop_iter: int = 15_000
+    refine_stop_iter: int | None = None
     refine_every: int = 100
     reset_every: int = 3_000
     pause_refine_after_reset: int = 0
@@ -100,7 +108,8 @@ class DefaultStrategy:
         """Accumulate statistics and refine when due; returns counts of what changed."""
         cfg = self.cfg
         report = self.no_changes()
-        if not cfg.enabled or step >= cfg.refine_stop_iter:
+        if not cfg.enabled or (cfg.refine_stop_iter is not None
+                                and step >= cfg.refine_stop_iter):
             return report
         self._accumulate(state, meta)
         if (step > cfg.refine_start_iter and step % cfg.refine_every == 0

@@ -297,7 +297,10 @@ class Trainer:
         self.step = 0
         self.cap = gaussian_cap(config)
         self.scene_scale = config.scene_scale or scene_scale_of(views, model.means)
-        self.strategy = DefaultStrategy(config.densify, max_gaussians=self.cap)
+        densify = config.densify
+        if densify.refine_stop_iter is None:
+            densify = densify.model_copy(update={"refine_stop_iter": config.iterations // 2})
+        self.strategy = DefaultStrategy(densify, max_gaussians=self.cap)
         self.strategy_state = self.strategy.initialize_state(len(model), self.scene_scale,
                                                              self.device)
         self.generator = torch.Generator().manual_seed(config.seed)
