@@ -475,6 +475,10 @@ class LidarRenderer:
             cos_inc = np.abs(np.einsum("ij,ij->i", normal, d))
             p_drop = spec.dropout + spec.grazing_dropout * np.clip((0.2 - cos_inc) / 0.2, 0.0,
                                                                    1.0)
+            # A beam that hits nothing has no surface to drop a return from: it stays +inf
+            # (its zero normal read as grazing made half of them NaN in an open scene). The
+            # draws are the same, so a closed house's scans do not change.
+            p_drop[~np.isfinite(r)] = 0.0
             out[rng.random(len(out)) < p_drop] = np.nan
         with np.errstate(invalid="ignore"):
             out[out > spec.range_max] = np.inf
