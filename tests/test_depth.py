@@ -859,3 +859,45 @@ def test_depth_settings_that_cannot_run_are_refused_with_the_recipe() -> None:
         DepthConfig(stage="depth", backend="onnx", model=None)
     with pytest.raises(ValidationError, match="needs input_size"):
         DepthConfig(stage="depth", backend="dav2s_random")
+
+
+def test_the_simulated_wander_drifts_without_jumps() -> None:
+    """Drawn after its steps, the series' first value changed with the length generated,
+    and the log-scale jumped at frames 256, 512, ...: 39x a normal step for a wander of
+    2000 frames."""
+    steps_at, steps_else = [], []
+    for seed in range(10):
+        b = SimulatedDepthBackend(SimulatedDepthParams(wander_sigma=0.05, wander_frames=2000,
+                                                       seed=seed))
+        w = np.array([b._wander(i) for i in range(600)])
+        steps_at += [abs(w[256] - w[255]), abs(w[512] - w[511])]
+        steps_else.append(np.median(np.abs(np.diff(w))))
+    assert np.median(steps_at) < 3 * np.median(steps_else)
+    # A backend asked for frame 500 first gives frame 10 what a fresh one gives.
+    late = SimulatedDepthBackend(SimulatedDepthParams(seed=3))
+    late.frame_scale(500)
+    fresh = SimulatedDepthBackend(SimulatedDepthParams(seed=3))
+    assert late.frame_scale(10) == fresh.frame_scale(10)
+
+
+@pytest.mark.parametrize("corr", [0.1, 0.3, 1.5])
+def test_simulated_noise_has_the_std_asked_for(corr: float) -> None:
+    """The continuous-limit factor 2 sqrt(pi) sigma gave 0.36x the std at sigma 0.1."""
+    b = SimulatedDepthBackend(SimulatedDepthParams(noise_corr_px=corr))
+    stds = [float(b.noise_field(240, 320, i).std()) for i in range(4)]
+    assert np.mean(stds) == pytest.approx(1.0, rel=0.04)
+
+
+def test_simulated_settings_that_contradict_or_leak_are_caught() -> None:
+    from toolkit.depth.stage import DepthConfig
+
+    with pytest.raises(ValueError, match="seed"):
+        DepthConfig(stage="depth", backend="simulated", simulated={"seed": -1})
+    with pytest.raises(ValueError, match="output is relative_disparity but preset groundtruth "
+                                         "makes metric_depth"):
+        DepthConfig(stage="depth", backend="simulated", preset="groundtruth",
+                    output="relative_disparity")
+    # Turning on the scale draw no longer redraws the distortion field.
+    a = SimulatedDepthBackend(SimulatedDepthParams(scale_log_sigma=0.0))
+    b = SimulatedDepthBackend(SimulatedDepthParams(scale_log_sigma=1e-9))
+    assert np.array_equal(a.distortion_field(30, 40, 5), b.distortion_field(30, 40, 5))

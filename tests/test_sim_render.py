@@ -192,11 +192,6 @@ def test_distorted_camera_depth_still_exact(room: Scene) -> None:
 def test_a_beam_that_hits_nothing_stays_no_return() -> None:
     """A miss's zero normal read as grazing incidence: half the no-return beams of an open
     scene became NaN (dropout) instead of +inf (REP 117)."""
-    from toolkit.geometry import se3
-    from toolkit.sim.scene import Box, Scene
-    from toolkit.sim.sensors import LidarRenderer, LidarSpec
-    from toolkit.sim.textures import build_texture_bank
-
     scene = Scene.from_boxes([Box([3.0, 0, 1.0], [0.1, 2.0, 2.0])], build_texture_bank(0))
     lidar = LidarRenderer(scene, LidarSpec())
     rng = np.random.default_rng(0)

@@ -63,7 +63,7 @@ class SimulatedDepthParams(BaseModel):
     low_texture_gain: float = Field(1.5, ge=0)
     texture_threshold: float = Field(6.0, gt=0)  # grey levels per pixel
     max_depth_m: float = Field(20.0, gt=0)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -92,6 +92,11 @@ def low_texture_weight(rgb: np.ndarray, threshold: float, window: int = 15) -> n
     return np.clip(1.0 - mag / np.float32(threshold), 0.0, 1.0)
 
 
+def _gauss_ksize(sigma: float) -> int:
+    """The kernel size cv2.GaussianBlur takes for ``sigma`` with ksize (0, 0) (float32)."""
+    return max(1, int(round(sigma * 4 * 2 + 1)) | 1)
+
+
 class SimulatedDepthBackend:
     """``DepthBackend`` that needs ``gt_depth`` (and ``frame_index``) with each frame."""
 
@@ -100,8 +105,9 @@ class SimulatedDepthBackend:
         self.kind: DepthKind = self.params.kind
         p = self.params
         rng = np.random.default_rng([p.seed, 1])
-        self.sequence_scale = float(p.scale * np.exp(rng.normal(0.0, p.scale_log_sigma))) if (
-            p.scale_log_sigma > 0) else float(p.scale)
+        # Drawn whatever the sigma (0 gives the scale itself): drawn only for a positive
+        # sigma, turning it on redrew the whole distortion field below.
+        self.sequence_scale = float(p.scale * np.exp(rng.normal(0.0, p.scale_log_sigma)))
         # Random cosines of the distortion field: 4 directions and phases per seed.
         n = 4
         ang = rng.uniform(0, np.pi, n)
@@ -121,20 +127,20 @@ class SimulatedDepthBackend:
         p = self.params
         if p.wander_sigma == 0:
             return 0.0
-        # Frame i reads the series generated to length n(i) = 256, 512, 1024, ... (the
-        # first that holds it), whatever frames were asked for before: a depth stage resumed
-        # at frame 300 predicts what an uninterrupted one did. (The length was the history's:
-        # the series' first value is drawn after its steps, so it changed with the length.)
-        # These are the lengths a run in frame order generated, so its values are kept.
-        n = 256
-        while n <= index:
-            n *= 2
-        if len(self._log_wander) != n:
+        # The series' first value is drawn before its steps, so a longer series begins
+        # with the same values (numpy draws in order): frame i reads the same value
+        # whichever length was generated, and a depth stage resumed at frame 300 predicts
+        # what an uninterrupted one did. (Drawn after the steps, it changed with the
+        # length, and the log-scale jumped at frames 256, 512, ...: 39x a normal step for
+        # a wander of 2000 frames.)
+        if len(self._log_wander) <= index:
+            n = max(256, 2 * index)
             rng = np.random.default_rng([p.seed, 2])
             a = np.exp(-1.0 / p.wander_frames)
+            first = rng.normal(0.0, p.wander_sigma)
             steps = rng.normal(0.0, p.wander_sigma * np.sqrt(1 - a * a), n)
             w = np.empty(n)
-            w[0] = rng.normal(0.0, p.wander_sigma)
+            w[0] = first
             for i in range(1, n):
                 w[i] = a * w[i - 1] + steps[i]
             self._log_wander = w
@@ -164,10 +170,12 @@ class SimulatedDepthBackend:
         n = rng.standard_normal((h, w), dtype=np.float32)
         s = self.params.noise_corr_px
         if s > 0:
+            # Blurring white noise scales its std by the kernel's L2 norm; undo it so
+            # 'noise' is the per-pixel std the recipe asked for. The kernel OpenCV uses
+            # (1 / (2 sqrt(pi) s) in the continuous limit was 0.36x the std at s = 0.1).
+            k1 = cv2.getGaussianKernel(_gauss_ksize(s), s).ravel().astype(np.float64)
             n = cv2.GaussianBlur(n, (0, 0), s)
-            # Blurring shrinks the std by about 1 / (2 sqrt(pi) s); undo it so 'noise' is the
-            # per-pixel std the recipe asked for.
-            n *= np.float32(2.0 * np.sqrt(np.pi) * s)
+            n *= np.float32(1.0 / float(np.sum(k1 * k1)))
         return n
 
     # ------------------------------------------------------------------ predict

@@ -73,10 +73,18 @@ class DepthConfig(StageConfig):
         if unknown:
             raise ValueError(f"simulated: unknown key(s) {unknown}; allowed: "
                              f"{sorted(SimulatedDepthParams.model_fields)}")
+        params = {**PRESETS[self.preset], **self.simulated}
         try:
-            SimulatedDepthParams(**{**PRESETS[self.preset], **self.simulated})
+            SimulatedDepthParams(**params)
         except ValidationError as e:
             raise ValueError(f"simulated: {e}") from None
+        if (self.backend == "simulated" and self.output is not None and "kind" in params
+                and params["kind"] != self.output):
+            # The preset's or simulated.kind's kind won without a word: the recipe said one
+            # kind and the stage wrote another.
+            where = "simulated.kind" if "kind" in self.simulated else f"preset {self.preset}"
+            raise ValueError(f"output is {self.output} but {where} makes "
+                             f"{params['kind']}; set one of them, or both alike")
         return self
 
     @model_validator(mode="after")
@@ -155,7 +163,10 @@ class DepthStage(Stage):
     Config = DepthConfig
     requires = ("sequence",)
     provides = ("depth",)
-    version = 2  # 2: BGR default normalisation; input_hw recorded; order-free wander
+    # 2: BGR default normalisation; input_hw recorded; order-free wander. 3: simulated: the
+    # wander's first value drawn before its steps (no jump at frames 256, 512, ...), the
+    # noise normalised by OpenCV's own kernel
+    version = 3
     # The same depth maps on any thread count or device (up to float rounding): an
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
     # for its timings).
