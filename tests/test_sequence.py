@@ -278,3 +278,46 @@ def test_lookups_far_outside_the_recording_are_errors(tmp_path: Path) -> None:
         seq.scan_at(seq.scan_stamps[-1] + 0.3, max_dt=0.05)
     with pytest.raises(LookupError, match="nothing within"):
         seq.frame_at(t0 + 1.2, max_dt=0.1)
+
+
+def test_formats_round_trip_what_they_hold(tmp_path: Path) -> None:
+    """A scan without intensities beside scans with them read back as zeros; a copy lost
+    the exposure gains and meta.yaml's own keys; a scan_dynamic.npz of another beam count
+    was taken; JPEG frames could not be copied."""
+    import cv2
+
+    write_small(tmp_path / "a")
+    seq = read_sequence(tmp_path / "a")
+    scans = seq.scans
+    scans[0] = LaserScan(scans[0].stamp, scans[0].ranges, scans[0].angle_min,
+                         scans[0].angle_increment, scans[0].range_min, scans[0].range_max,
+                         np.arange(90, dtype=np.float32))
+    w = SequenceWriter(tmp_path / "b", make_rig(), name="b")
+    w.add_frame(0.0, np.zeros((H, W, 3), np.uint8))
+    for s in scans[:3]:
+        w.add_scan(s)
+    w.close()
+    back = read_sequence(tmp_path / "b").scans
+    assert np.array_equal(back[0].intensities, np.arange(90)) and back[1].intensities is None
+    # The simulator's gains and meta survive a copy.
+    (tmp_path / "a" / "groundtruth" / "exposure_gain.csv").write_text(
+        "index,stamp,gain\n" + "".join(f"{k},{f.stamp!r},{1 + 0.1 * k}\n"
+                                       for k, f in enumerate(seq.frames)))
+    meta = yaml.safe_load((tmp_path / "a" / "meta.yaml").read_text())
+    (tmp_path / "a" / "meta.yaml").write_text(yaml.safe_dump({**meta, "simulator": {"seed": 3}}))
+    write_sequence(read_sequence(tmp_path / "a"), tmp_path / "c")
+    copy = read_sequence(tmp_path / "c")
+    assert np.allclose(copy.groundtruth.exposure_gain, [1.0, 1.1, 1.2, 1.3])
+    assert copy.meta["simulator"] == {"seed": 3}
+    # A dynamic-beam file of the wrong width is refused, naming it.
+    np.savez(tmp_path / "a" / "groundtruth" / "scan_dynamic.npz", dynamic=np.zeros((6, 7), bool))
+    with pytest.raises(SequenceFormatError, match=r"scan_dynamic.npz: 'dynamic' is \[6, 7\] for "
+                                                  r"6 scans of 90 beams"):
+        read_sequence(tmp_path / "a")
+    # JPEG frames are decoded and stored as PNG.
+    jpg = tmp_path / "f.jpg"
+    cv2.imwrite(str(jpg), np.full((H, W, 3), 128, np.uint8))
+    w = SequenceWriter(tmp_path / "d", make_rig(), name="d")
+    w.add_frame(0.0, None, image_path=jpg)  # type: ignore[arg-type]
+    w.close()
+    assert read_sequence(tmp_path / "d").frames[0].image.shape == (H, W, 3)

@@ -42,7 +42,15 @@ from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from toolkit.io.depth import write_depth
 from toolkit.io.tum import read_tum, write_tum
 from toolkit.io.yaml_file import load_yaml
-from toolkit.sensors import CameraFrame, GroundTruth, HeldOutViews, LaserScan, Rig, Sequence
+from toolkit.sensors import (
+    CameraFrame,
+    GroundTruth,
+    HeldOutViews,
+    LaserScan,
+    Rig,
+    Sequence,
+    load_rgb,
+)
 
 _log = logging.getLogger(__name__)
 
@@ -150,11 +158,14 @@ def scans_to_arrays(scans: list[LaserScan], source: str = "scans") -> dict[str, 
         "range_min": np.array([s.range_min for s in scans], dtype=np.float64),
         "range_max": np.array([s.range_max for s in scans], dtype=np.float64),
     }
-    if any(s.intensities is not None for s in scans):
+    has = np.array([s.intensities is not None for s in scans], bool)  # [S]
+    if has.any():
         out["intensities"] = np.stack([
             s.intensities if s.intensities is not None else np.zeros(len(s), np.float32)
             for s in scans
         ]).astype(np.float32)
+        if not has.all():  # which rows are zeros for want of intensities, not measured zeros
+            out["has_intensities"] = has
     if any(s.time_increment != 0 for s in scans):
         out["time_increment"] = np.array([s.time_increment for s in scans], dtype=np.float64)
     return out
@@ -195,6 +206,12 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
     if inten is not None and inten.shape[:1] != (n,):
         rows = inten.shape[0] if inten.ndim else 0
         raise SequenceFormatError(f"{source}: 'intensities' has {rows} rows for {n} scans")
+    has = np.ones(n, bool)
+    if "has_intensities" in data:
+        has = np.asarray(data["has_intensities"], bool).reshape(-1)
+        if has.shape != (n,):
+            raise SequenceFormatError(f"{source}: 'has_intensities' has {len(has)} values for "
+                                      f"{n} scans")
     # Written only when a scan has per-beam timing; files from before it hold none.
     dt = np.broadcast_to(np.asarray(data["time_increment"] if "time_increment" in data else 0.0,
                                        np.float64), (n,))
@@ -204,7 +221,8 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
     return [
         LaserScan(float(stamps[i]), ranges[i], float(per["angle_min"][i]),
                   float(per["angle_increment"][i]), float(per["range_min"][i]),
-                  float(per["range_max"][i]), None if inten is None else inten[i],
+                  float(per["range_max"][i]),
+                  None if inten is None or not has[i] else inten[i],
                   float(dt[i]))
         for i in range(n)
     ]
@@ -329,7 +347,8 @@ def read_sequence(root: Path | str) -> Sequence:
                                   "a sequence needs images, scans or both")
     odom = read_tum(root / "odometry.tum", "odom", "base_link") if (
         root / "odometry.tum").exists() else None
-    gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans))
+    gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans),
+                           len(scans[0].ranges) if scans else 0)
     if gt is not None and gt.exposure_gain is not None and len(gt.exposure_gain) != len(frames):
         raise SequenceFormatError(
             f"{root / 'groundtruth' / 'exposure_gain.csv'}: {len(gt.exposure_gain)} gains for "
@@ -381,7 +400,7 @@ def _read_exposure_gains(path: Path) -> np.ndarray:
 
 
 def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | None,
-                      n_scans: int) -> GroundTruth | None:
+                      n_scans: int, n_beams: int) -> GroundTruth | None:
     gdir = root / "groundtruth"
     if not gdir.is_dir() and depth is None and masks is None:
         return None
@@ -393,9 +412,10 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
             if "dynamic" not in d.files:
                 raise SequenceFormatError(f"{gdir / 'scan_dynamic.npz'}: missing array 'dynamic'")
             dyn = d["dynamic"].astype(bool)
-        if len(dyn) != n_scans:
-            raise SequenceFormatError(f"{gdir / 'scan_dynamic.npz'}: 'dynamic' has {len(dyn)} "
-                                      f"rows for {n_scans} scans")
+        if dyn.shape != (n_scans, n_beams):
+            raise SequenceFormatError(f"{gdir / 'scan_dynamic.npz'}: 'dynamic' is "
+                                      f"{list(dyn.shape)} for {n_scans} scans of {n_beams} "
+                                      "beams; rewrite it with one flag per beam of every scan")
         gt.scan_dynamic = dyn
     if (gdir / "mesh.ply").exists():
         gt.mesh_path = gdir / "mesh.ply"
@@ -521,6 +541,12 @@ class SequenceWriter:
                                  f"{pixels.shape[0]}, the camera {w}x{h}")
             atomic_write_bytes(dst, data)
         else:
+            if image is None and image_path is not None:
+                # Another format (a JPEG sequence): decoded, stored as PNG like any frame.
+                image = load_rgb(Path(image_path))
+                if image.shape[:2] != (h, w):
+                    raise ValueError(f"{image_path}: frame {i} is {image.shape[1]}x"
+                                     f"{image.shape[0]}, the camera {w}x{h}")
             if image is None:
                 raise ValueError(f"frame {i}: neither pixels nor an image path")
             _write_rgb(dst, image)
@@ -672,6 +698,10 @@ def _write_csv(path: Path, rows: list[dict[str, str]]) -> None:
     atomic_write_text(path, buf.getvalue())
 
 
+# meta.yaml keys SequenceWriter writes itself (a copy's come from the writer, not the source)
+_OWN_META = frozenset({"format", "version", "name", "source", "frames", "scans"})
+
+
 def write_sequence(seq: Sequence, root: Path | str, depth_format: str = "png") -> Path:
     """Write a whole in-memory or on-disk ``Sequence`` to ``root`` (copying image files)."""
     w = SequenceWriter(root, seq.rig, seq.name, str(seq.meta.get("source", "")), depth_format)
@@ -693,10 +723,21 @@ def write_sequence(seq: Sequence, root: Path | str, depth_format: str = "png") -
             shutil.copyfile(gt.mesh_path, w.mesh_path())
         if gt.heldout is not None:
             from toolkit.io.depth import read_depth
-            from toolkit.sensors import load_rgb
 
             h = gt.heldout
             for j, T in enumerate(h.poses_camera.poses):
                 w.add_heldout(h.poses_camera.stamps[j], T, load_rgb(h.image_paths[j]),
                               read_depth(h.depth_paths[j]))
+        # What the reader reads besides (a copy lost the simulator's exposure gains and
+        # meta.yaml's own keys): the gains, and the other ground-truth files as they are.
+        if gt.exposure_gain is not None:
+            (w.root / "groundtruth").mkdir(exist_ok=True)
+            atomic_write_text(w.root / "groundtruth" / "exposure_gain.csv",
+                              "index,stamp,gain\n" + "".join(
+                                  f"{k},{float(f.stamp)!r},{float(g)!r}\n" for k, (f, g)
+                                  in enumerate(zip(seq.frames, gt.exposure_gain, strict=True))))
+        src = None if seq.root is None else Path(seq.root) / "groundtruth"
+        if src is not None and (src / "house.json").exists():
+            shutil.copyfile(src / "house.json", w.root / "groundtruth" / "house.json")
+    w.extra_meta.update({k: v for k, v in seq.meta.items() if k not in _OWN_META})
     return w.close()
