@@ -484,3 +484,40 @@ def test_a_metric_network_far_from_the_lidar_is_named(box_room: Path, tmp_path: 
     said = re.search(r"\*\*The metric network's depth is ([0-9.]+) times the lidar's\*\*",
                      report)
     assert said and float(said.group(1)) == pytest.approx(4.0, rel=0.03)
+
+
+def test_the_fuse_report_counts_every_flag_and_states_the_voxel_size(tmp_path) -> None:
+    """Frames flagged low_inliers were in 'N flagged' but in none of its counts; a voxel of
+    1.5 cm was reported as 2 cm (whole centimetres)."""
+    import logging
+    import types
+
+    from toolkit.fusion.scale import ScaleEstimate, _finish, smooth_scales
+    from toolkit.fusion.stage import FuseConfig, FuseStage
+
+    bad = _finish(1.2, 0.0, 40, 200, "robust", min_pairs=10)  # 40 of 200 agree: < 30 %
+    good = [ScaleEstimate(1.0, pairs=60, inliers=58) for _ in range(8)]
+    sm = smooth_scales(good[:4] + [bad] + good[4:], 9, 0.1, "median")
+    flags = list(sm.flag)
+    m = {"frames": 9, "frames_fused": int(sm.used.sum()),
+         "frames_flagged": sum(f != "ok" for f in flags),
+         "frames_few_pairs": flags.count("few_pairs"),
+         "frames_outlier": flags.count("outlier_frame"),
+         "frames_low_inliers": flags.count("low_inliers"),
+         "frames_outlier_indices": [], "pairs_per_frame_median": 60.0,
+         "pairs_visible_per_frame_median": 55.0, "frames_resumed_scales": 0,
+         "frames_resumed_map": 0, "map_points": 100, "map_points_removed_dynamic": 0,
+         "map_points_removed_consensus": 0, "map_points_removed_outlier": 0,
+         "fusion_fps": 10.0, "fusion_fps_cpu": 10.0}
+    out: list[str] = []
+    ctx = types.SimpleNamespace(stage_id="fuse", stage_dir=tmp_path,
+                                log=logging.getLogger("t"), report=out.append)
+    cfg = FuseConfig(stage="fuse", voxel_size_m=0.015, consensus=False, write_depth="none")
+    pts = np.random.default_rng(0).uniform(0, 3, (100, 3))
+    mp = types.SimpleNamespace(points=pts, colors=np.full((100, 3), 128, np.uint8))
+    FuseStage._report(ctx, cfg, None, m, "", None, list(range(9)), sm, np.full(9, np.nan),
+                      types.SimpleNamespace(meta={}, kind="relative_depth"), mp,
+                      {"dynamic": np.zeros(100, bool)}, mp,
+                      types.SimpleNamespace(positions=np.zeros((5, 3))))
+    assert "1 flagged (too few lidar pairs: 0, too few of them agreeing: 1" in out[0]
+    assert "voxels of 1.5 cm" in out[0]

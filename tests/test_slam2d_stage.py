@@ -154,3 +154,19 @@ def test_a_broken_relations_file_stops_the_stage_before_the_slam(
     stage = Slam2DStage(Slam2DStage.Config(stage="slam2d", relations=str(bad)))
     with pytest.raises(StageError, match=r"'relations'.*log.relations:1: expected"):
         stage.run(_Ctx(tmp_path))
+
+
+def test_the_report_shows_zero_camera_poses_and_plots_a_late_reference() -> None:
+    """No camera frame with a pose (another clock) dropped the report's row, the failure
+    it should show; a ground truth stamped 0.5 ms after each scan lost its plotted path."""
+    from toolkit.geometry import Trajectory, se2_to_se3
+    from toolkit.slam2d.stage import _aligned_ref, _report
+
+    m = {"scans_used": 10, "nodes": 10, "submaps": 1, "loop_closures": 0,
+         "camera_poses": 0, "camera_frames_outside_scan_span": 300}
+    assert "| camera poses | 0 (camera frames outside the scans' time span: 300)" in _report(
+        "slam2d", m)
+    stamps = np.arange(50) * 0.1
+    poses = np.stack([se2_to_se3(0.1 * k, 0.02 * k, 0.01 * k) for k in range(50)])
+    ref = _aligned_ref(Trajectory(stamps, poses), Trajectory(stamps + 0.0005, poses))
+    assert ref is not None and np.allclose(ref, poses[:, :2, 3], atol=1e-9)

@@ -342,8 +342,18 @@ class FuseStage(Stage):
                          "method achieves with its own SLAM poses.**")
             ctx.log.warning("fuse: no trajectory artifact; using GROUND-TRUTH poses")
         if traj is None:
-            raise StageError("fuse: no poses - run slam2d before fuse, or use a sequence with "
-                             "ground-truth poses (poses: groundtruth)")
+            if cfg.poses == "groundtruth":
+                raise StageError(f"fuse: poses: groundtruth, but sequence {seq.name} has no "
+                                 "ground-truth poses (groundtruth/poses_base.tum); set poses: "
+                                 "auto (or trajectory) to fuse at a slam2d stage's poses (add "
+                                 "one before fuse if there is none)")
+            if cfg.poses == "trajectory":
+                raise StageError("fuse: poses: trajectory, but no stage upstream provides a "
+                                 "trajectory; add a slam2d stage before fuse, or set poses: "
+                                 "groundtruth for a sequence with ground-truth poses")
+            raise StageError(f"fuse: no poses: no stage upstream provides a trajectory and "
+                             f"sequence {seq.name} has no ground-truth poses; add a slam2d "
+                             "stage before fuse")
         # Scans swept while moving (time_increment) are placed beam by beam first.
         seq = deskew_sequence(seq, traj)
         frame_poses, scan_poses, inside = pose_arrays(seq, traj)
@@ -508,7 +518,7 @@ class FuseStage(Stage):
                     st.depth_rows.append(f"{i},{seq.frames[i].stamp!r},{name},{s!r},{t!r}")
                 st.pose_rows.append((seq.frames[i].stamp, fusion.T_world_camera(i)))
                 if i == fig_frame:
-                    st.fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp)
+                    st.fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp, s)
                 st.map_done += 1
                 if ckpt.due():
                     writes.flush()  # the checkpoint promises these frames' files
@@ -553,6 +563,7 @@ class FuseStage(Stage):
             "frames_flagged": int(sum(f != "ok" for f in sm.flag)),
             "frames_few_pairs": int(sum(f == "few_pairs" for f in sm.flag)),
             "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
+            "frames_low_inliers": int(sum(f == "low_inliers" for f in sm.flag)),
             # Which frames (up to 50), to look them up in scales.csv and the figure.
             "frames_outlier_indices": [int(i) for i, f in zip(frames, sm.flag, strict=True)
                                        if f == "outlier_frame"][:50],
@@ -689,8 +700,9 @@ class FuseStage(Stage):
                       "were kept.")
         md.append(f"Scale estimator `{cfg.scale}` on `{store.kind}` predictions; "
                   f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
-                  f"flagged (too few lidar pairs: {m['frames_few_pairs']}, scale an outlier "
-                  f"among its neighbours': {m['frames_outlier']}"
+                  f"flagged (too few lidar pairs: {m['frames_few_pairs']}, too few of them "
+                  f"agreeing: {m.get('frames_low_inliers', 0)}, scale an outlier among its "
+                  f"neighbours': {m['frames_outlier']}"
                   + (f", frames {', '.join(map(str, m['frames_outlier_indices']))}"
                      if 0 < m["frames_outlier"] <= 10 else "") + "); median "
                   f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
@@ -745,7 +757,7 @@ class FuseStage(Stage):
         consensus = (f"{m['map_points_removed_consensus']} farther than "
                      f"{cfg.consensus_m * 100:g} cm from the multi-view consensus surface, "
                      if cfg.consensus else "")
-        extra = [f"map: {m['map_points']} voxels of {cfg.voxel_size_m * 100:.0f} cm "
+        extra = [f"map: {m['map_points']} voxels of {cfg.voxel_size_m * 100:g} cm "
                  f"({m['map_points_removed_dynamic']} removed as moving, {consensus}"
                  f"{m['map_points_removed_outlier']} statistical outliers)",
                  f"fusion throughput {m['fusion_fps']:.1f} frames/s wall clock, "
@@ -778,11 +790,16 @@ class FuseStage(Stage):
                          f"{100 * m['scale_error_max']:.1f} %")
         md.append("\n".join(f"- {e}" for e in extra))
         if fig_data is not None:
-            i, rgb, unscaled, scaled, g, fp = fig_data  # type: ignore[misc]
+            i, rgb, unscaled, scaled, g, fp, *used = fig_data  # type: ignore[misc]
+            # The scale the panel's depth was scaled by (smoothed, or lent to a flagged
+            # frame), not the frame's own fit (a checkpoint of an older run holds only that).
+            scale = float(used[0]) if used else fp.estimate.scale
+            own = (f", its own fit {fp.estimate.scale:.3f}"
+                   if used and abs(fp.estimate.scale - scale) > 5e-4 * scale else "")
             figures.lidar_overlay(ctx.stage_dir / "lidar_overlay.png", rgb, fp.lidar.uv,
                                   fp.lidar.z, f"frame {i}: lidar in the image")
             figures.depth_panels(ctx.stage_dir / "depth_scaled_vs_unscaled.png", rgb, unscaled,
-                                 scaled, g, f"frame {i}: scale {fp.estimate.scale:.3f}")
+                                 scaled, g, f"frame {i}: scale {scale:.3f}{own}")
             md.append(f"![lidar overlay]({sid}/lidar_overlay.png)")
             md.append(f"![scaled vs unscaled depth]({sid}/depth_scaled_vs_unscaled.png)")
         frames_arr = np.array(frames)

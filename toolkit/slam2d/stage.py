@@ -115,6 +115,15 @@ class Slam2DStage(Stage):
             ctx.log.warning("%d camera frames fall in gaps between scans (no scan for over "
                             "%.1f s): they get no pose", metrics["camera_frames_in_scan_gaps"],
                             traj.gap_limit_s())
+        if len(fs) and metrics["camera_frames_outside_scan_span"] > len(fs) // 2:
+            # Most frames outside the scans' time span: another time base (or a large time
+            # offset), not frames before and after the drive.
+            ctx.log.warning("%d of %d camera frames lie outside the scans' time span "
+                            "(%.3f..%.3f s; frames %.3f..%.3f s) and get no pose: are the "
+                            "camera's and the lidar's stamps on the same clock?",
+                            metrics["camera_frames_outside_scan_span"], len(fs),
+                            float(traj.stamps[0]), float(traj.stamps[-1]), float(fs[0]),
+                            float(fs[-1]))
 
         occ = grid_to_occupancy(result.map)
         write_occupancy(out / "map.yaml", occ)
@@ -143,7 +152,11 @@ def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pa
     from toolkit.geometry import umeyama_alignment
 
     st = gt.stamps
-    i = np.clip(np.searchsorted(traj.stamps, st), 0, len(traj) - 1)
+    # The nearest SLAM stamp (the first at or after it missed a ground truth stamped a hair
+    # later than each scan, and the plot lost its reference path).
+    j = np.clip(np.searchsorted(traj.stamps, st), 1, max(len(traj) - 1, 1))
+    i = np.where(np.abs(traj.stamps[j - 1] - st) <= np.abs(traj.stamps[j] - st), j - 1, j)
+    i = np.clip(i, 0, len(traj) - 1)
     ok = np.abs(traj.stamps[i] - st) < 1e-3
     if ok.sum() < 3:
         return None
@@ -177,7 +190,7 @@ def _report(stage_id: str, m: dict) -> str:
         rows.append(("position error vs ground truth (ATE, SE(2)-aligned)",
                      f"RMSE {100 * m['gt_ate_rmse_m']:.2f} cm, max "
                      f"{100 * m['gt_ate_max_m']:.2f} cm over {m['gt_ate_poses']} poses"))
-    if m.get("camera_poses"):
+    if "camera_poses" in m and (m["camera_poses"] or m.get("camera_frames_outside_scan_span")):
         gaps = m.get("camera_frames_in_scan_gaps", 0)
         rows.append(("camera poses", f"{m['camera_poses']} (camera frames outside the scans' "
                                      f"time span: {m['camera_frames_outside_scan_span']}"
