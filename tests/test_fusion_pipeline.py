@@ -521,3 +521,16 @@ def test_the_fuse_report_counts_every_flag_and_states_the_voxel_size(tmp_path) -
                       types.SimpleNamespace(positions=np.zeros((5, 3))))
     assert "1 flagged (too few lidar pairs: 0, too few of them agreeing: 1" in out[0]
     assert "voxels of 1.5 cm" in out[0]
+
+
+def test_the_figure_frame_is_one_that_was_fused() -> None:
+    """With few_pairs: skip the wanted (or middle) frame may not be fused: the report's
+    overlay and depth figures were then left out without a word."""
+    from toolkit.fusion.stage import figure_frame
+
+    frames = list(range(0, 100, 2))
+    assert figure_frame(None, frames, frames) == 50
+    assert figure_frame(40, frames, frames) == 40
+    assert figure_frame(None, frames, [0, 2, 46, 58]) == 46  # nearest fused to the middle
+    assert figure_frame(7, frames, [0, 2, 46, 58]) == 46  # 7 is not a frame: the middle's
+    assert figure_frame(None, frames, []) == 50

@@ -300,6 +300,16 @@ def metric_scale_warning(kind: str, scale_median: float | None) -> str | None:
             "map takes the lidar's scale either way; the unscaled figures are this far off.")
 
 
+def figure_frame(wanted: int | None, frames: list[int], fused: list[int]) -> int:
+    """The frame the report's lidar-overlay and depth figures show: ``wanted`` (else the
+    middle of ``frames``), or the fused frame nearest it (with ``few_pairs: skip`` the
+    wanted one may not be fused, and the figures were left out without a word)."""
+    want = wanted if wanted in frames else frames[len(frames) // 2]
+    if not fused or want in fused:
+        return want
+    return min(fused, key=lambda i: (abs(i - want), i))
+
+
 class FuseStage(Stage):
     """Scale monocular depth with the lidar and fuse the frames into a coloured voxel map."""
 
@@ -466,7 +476,7 @@ class FuseStage(Stage):
         out_depth = ctx.stage_dir / "scaled_depth"
         if cfg.write_depth != "none":
             out_depth.mkdir(parents=True, exist_ok=True)
-        fig_frame = cfg.figure_frame if cfg.figure_frame in frames else frames[len(frames) // 2]
+        fig_frame = figure_frame(cfg.figure_frame, frames, [i for _, i in used])
         eval_frames = set(np.linspace(0, len(frames) - 1, min(cfg.mesh_eval_frames,
                                                               len(frames))).astype(int).tolist())
         gain_of = {} if st.gains is None else {i: st.gains[k] for k, (_, i) in enumerate(used)}
