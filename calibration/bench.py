@@ -137,6 +137,12 @@ def sweep(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             if size is not None:
                 board = BoardSpec(board.cols, board.rows, board.square, size)
         for n in views:
+            if len(cands) < n:
+                # The capture lost views (no board found, no scan paired): a row of n views
+                # solved from fewer would read as n.
+                raise SystemExit(f"seed {seed}: {len(cands)} usable views of the {n_max} "
+                                 f"captured, fewer than the {n} of a row; rerun with "
+                                 "fewer --views (or look at why the capture lost views)")
             run = run_extrinsic(cands[:n], board, camera, BoardSearch(), SolverOptions(),
                                 loo=False)
             errors[n].append(transform_error(run.result.T_camera_laser, T_gt))

@@ -249,6 +249,19 @@ def test_fusion_bench_reports_the_fastest_of_its_runs(box_room: Path) -> None:
     assert 0 < res["fps_including_finish"] <= res["fps_per_frame_work"]
 
 
+def test_fusion_bench_counts_the_frames_it_fused(box_room: Path) -> None:
+    """Rates were divided by the frames given: a run that fused none reported 2763 frames/s;
+    the fuse stage counts fused frames (Table II)."""
+    from toolkit.fusion.bench import run_bench
+    from toolkit.fusion.pipeline import FusionConfig
+
+    res = run_bench(box_room, 6, "clustered", 2, repeat=1)
+    assert res["frames_fused"] == res["frames"] == 6
+    cfg = FusionConfig(scale="clustered", stride=2, few_pairs="skip", min_pairs=100000)
+    with pytest.raises(ValueError, match="no frame of the 6 was fused"):
+        run_bench(box_room, 6, repeat=1, config=cfg)
+
+
 def test_fusion_bench_times_a_recipe_stage_as_it_runs(box_room: Path, tmp_path: Path) -> None:
     """``--recipe``/``--stage`` take every fusion setting from the stage (the network row's
     refine grid and gates), flags beside them override, and a stage of another type is

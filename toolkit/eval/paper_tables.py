@@ -308,8 +308,21 @@ class PaperTablesStage(Stage):
                                f"{load:.0f} %", ok))
         md += [f"| paper (i9 + RTX 4090) | | | | | | {PAPER['fps']} | {PAPER['cpu_load_pct']} %"
                " |", ""]
-        notes = [f"- {r.label}: fusion time taken from `{r.fusion_time_from}` (same fusion, "
-                 "depth values do not change its cost)." for r in cfg.rows if r.fusion_time_from]
+        notes = []
+        for r in cfg.rows:
+            if not r.fusion_time_from:
+                continue
+            src = res[r.fusion_time_from].metrics
+            row = out.get(r.label, {})
+            # Per frame of the source run: its end-of-run work is spread over its own frame
+            # count, which may not be this row's (the DA-V2 row's every 2nd frame: a
+            # 322-frame fusion would pay that work about whole, not halved).
+            notes.append(
+                f"- {r.label}: fusion time per frame taken from `{r.fusion_time_from}` (same "
+                f"fusion, depth values do not change its cost), measured there over "
+                f"{src.get('work_frames', '?')} frames against this row's "
+                f"{row.get('frames', '?')}; its end-of-run work "
+                f"({_num(src.get('finish_seconds'), '.1f', 1, ' s')}) is counted per frame.")
         if notes:
             md += [*notes, ""]
         extra = []

@@ -98,6 +98,12 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
                        preds[idx[0]].is_disparity)
     te, ce = time.perf_counter(), time.process_time()
     used = [(j, int(i)) for j, i in enumerate(idx) if sm.used[j]]
+    if not used:
+        raise ValueError(f"no frame of the {n} was fused (none got a scale): a throughput of "
+                         "nothing; check the recording's lidar pairs (min_pairs)")
+    # Rates per fused frame, as the fuse stage counts them (Table II): frames left out
+    # by the scale smoothing are not fusion work.
+    nu = len(used)
     gains: dict[int, np.ndarray] = {}
     if cfg.exposure == "gain" and used:
         opts = cfg.exposure_options()
@@ -117,17 +123,18 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
     raw, masks = fusion.finish()
     t3, c3 = time.perf_counter(), time.process_time()
     return {
-        "points_per_frame": points / n, "map_voxels": len(raw),
-        "scale_ms_per_frame": 1000 * (te - t0) / n,
-        "exposure_ms_per_frame": 1000 * (t1 - te) / n,
-        "integrate_ms_per_frame": 1000 * (t2 - t1) / n,
-        "finish_s": t3 - t2, "finish_ms_per_frame": 1000 * (t3 - t2) / n,
-        "fps_per_frame_work": n / (t2 - t0), "fps_including_finish": n / (t3 - t0),
+        "frames": n, "frames_fused": nu,
+        "points_per_frame": points / nu, "map_voxels": len(raw),
+        "scale_ms_per_frame": 1000 * (te - t0) / n,  # every frame gets a scale estimate
+        "exposure_ms_per_frame": 1000 * (t1 - te) / nu,
+        "integrate_ms_per_frame": 1000 * (t2 - t1) / nu,
+        "finish_s": t3 - t2, "finish_ms_per_frame": 1000 * (t3 - t2) / nu,
+        "fps_per_frame_work": nu / (t2 - t0), "fps_including_finish": nu / (t3 - t0),
         "cpu_scale_ms_per_frame": 1000 * (ce - c0) / n,
-        "cpu_exposure_ms_per_frame": 1000 * (c1 - ce) / n,
-        "cpu_integrate_ms_per_frame": 1000 * (c2 - c1) / n,
+        "cpu_exposure_ms_per_frame": 1000 * (c1 - ce) / nu,
+        "cpu_integrate_ms_per_frame": 1000 * (c2 - c1) / nu,
         "cpu_finish_s": c3 - c2,
-        "cpu_fps_per_frame_work": n / (c2 - c0), "cpu_fps_including_finish": n / (c3 - c0),
+        "cpu_fps_per_frame_work": nu / (c2 - c0), "cpu_fps_including_finish": nu / (c3 - c0),
     }
 
 
