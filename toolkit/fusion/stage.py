@@ -712,7 +712,7 @@ class FuseStage(Stage):
                   f"{m['frames_fused']}/{m['frames']} frames fused, {m['frames_flagged']} "
                   f"flagged (too few lidar pairs: {m['frames_few_pairs']}, too few of them "
                   f"agreeing: {m.get('frames_low_inliers', 0)}, scale an outlier among its "
-                  f"neighbours': {m['frames_outlier']}"
+                  f"neighbours: {m['frames_outlier']}"
                   + (f", frames {', '.join(map(str, m['frames_outlier_indices']))}"
                      if 0 < m["frames_outlier"] <= 10 else "") + "); median "
                   f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
