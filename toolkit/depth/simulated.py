@@ -92,9 +92,16 @@ def low_texture_weight(rgb: np.ndarray, threshold: float, window: int = 15) -> n
     return np.clip(1.0 - mag / np.float32(threshold), 0.0, 1.0)
 
 
-def _gauss_ksize(sigma: float) -> int:
-    """The kernel size cv2.GaussianBlur takes for ``sigma`` with ksize (0, 0) (float32)."""
-    return max(1, int(round(sigma * 4 * 2 + 1)) | 1)
+def _blur_gain(sigma: float) -> float:
+    """1 / the L2 norm of the kernel cv2.GaussianBlur uses for ``sigma`` on float32
+    images: blurring white noise scales its std by that norm. Read off OpenCV itself (a
+    blurred unit impulse is the kernel), not from the continuous limit 1 / (2 sqrt(pi)
+    sigma), which gave 0.36x the std at sigma 0.1."""
+    m = 2 * int(np.ceil(4 * sigma)) + 5  # room for OpenCV's radius of about 4 sigma
+    impulse = np.zeros((m, m), np.float32)
+    impulse[m // 2, m // 2] = 1.0
+    k = cv2.GaussianBlur(impulse, (0, 0), sigma).astype(np.float64)
+    return float(1.0 / np.sqrt(np.sum(k * k)))
 
 
 class SimulatedDepthBackend:
@@ -117,6 +124,7 @@ class SimulatedDepthBackend:
         self._phase_rate = rng.choice([-1.0, 1.0], n) * rng.uniform(0.5, 1.5, n)
         self._log_wander = np.zeros(0)
         self._grid_cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._noise_gain = _blur_gain(p.noise_corr_px) if p.noise_corr_px > 0 else 1.0
 
     # ------------------------------------------------------------------ pieces
     def frame_scale(self, index: int) -> float:
@@ -170,12 +178,9 @@ class SimulatedDepthBackend:
         n = rng.standard_normal((h, w), dtype=np.float32)
         s = self.params.noise_corr_px
         if s > 0:
-            # Blurring white noise scales its std by the kernel's L2 norm; undo it so
-            # 'noise' is the per-pixel std the recipe asked for. The kernel OpenCV uses
-            # (1 / (2 sqrt(pi) s) in the continuous limit was 0.36x the std at s = 0.1).
-            k1 = cv2.getGaussianKernel(_gauss_ksize(s), s).ravel().astype(np.float64)
+            # Undone so that 'noise' is the per-pixel std the recipe asked for.
             n = cv2.GaussianBlur(n, (0, 0), s)
-            n *= np.float32(1.0 / float(np.sum(k1 * k1)))
+            n *= np.float32(self._noise_gain)
         return n
 
     # ------------------------------------------------------------------ predict

@@ -17,11 +17,16 @@ from scipy.spatial import cKDTree
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.10)
 
 
-def within_key(threshold_m: float) -> str:
-    """``within_5cm`` for whole centimetres (the names reports use), ``within_15mm``
-    otherwise: rounded to centimetres, 5 mm and 15 mm both became ``within_2cm``."""
+def threshold_tag(threshold_m: float) -> str:
+    """``5cm`` for whole centimetres (the names reports use), ``15mm`` otherwise: rounded
+    to centimetres, 5 mm and 15 mm both became ``2cm``."""
     mm = int(round(threshold_m * 1000))
-    return f"within_{mm // 10}cm" if mm % 10 == 0 else f"within_{mm}mm"
+    return f"{mm // 10}cm" if mm % 10 == 0 else f"{mm}mm"
+
+
+def within_key(threshold_m: float) -> str:
+    """``within_<threshold_tag>``: the key of the share of distances under a threshold."""
+    return f"within_{threshold_tag(threshold_m)}"
 
 
 def load_mesh(mesh: Any) -> Any:
@@ -126,7 +131,7 @@ def geometry_metrics(
         "points": int(len(whole)),
         "points_scored": int(len(recon)),
     }
-    tags = [within_key(t).removeprefix("within_") for t in thresholds_m]
+    tags = [threshold_tag(t) for t in thresholds_m]
     if len(set(tags)) < len(tags):
         raise ValueError(f"thresholds {list(thresholds_m)} name the same key twice (whole "
                          "millimetres are told apart)")

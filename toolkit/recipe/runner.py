@@ -431,8 +431,6 @@ class _Run:
         read as this run's (an old per-frame depth beside the new, an old capture, old
         renders), and ``--force`` means from scratch."""
         stage_dir = self.run_dir / record.spec.id
-        if stage_dir.exists():
-            _clear_marker_temporaries(stage_dir)
         if not stage_dir.exists() or not any(stage_dir.iterdir()):
             return
         done = (stage_dir / STAGE_FILE).exists()

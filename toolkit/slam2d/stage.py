@@ -150,14 +150,12 @@ class Slam2DStage(Stage):
 def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pair
     """Ground-truth positions [N, 2] moved into the SLAM's world frame (for the plot)."""
     from toolkit.geometry import umeyama_alignment
+    from toolkit.ingest.sync import match_nearest
 
-    st = gt.stamps
     # The nearest SLAM stamp (the first at or after it missed a ground truth stamped a hair
     # later than each scan, and the plot lost its reference path).
-    j = np.clip(np.searchsorted(traj.stamps, st), 1, max(len(traj) - 1, 1))
-    i = np.where(np.abs(traj.stamps[j - 1] - st) <= np.abs(traj.stamps[j] - st), j - 1, j)
-    i = np.clip(i, 0, len(traj) - 1)
-    ok = np.abs(traj.stamps[i] - st) < 1e-3
+    i = match_nearest(gt.stamps, traj.stamps, 1e-3)
+    ok = i >= 0
     if ok.sum() < 3:
         return None
     R, t, _ = umeyama_alignment(gt.positions[ok, :2], traj.positions[i[ok], :2])
