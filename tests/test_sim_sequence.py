@@ -237,9 +237,20 @@ def test_swept_scans_have_ground_truth_for_every_beam_and_people_where_they_were
     simulate(cfg, tmp_path / "seq")
     seq = read_sequence(tmp_path / "seq")
     gt = seq.groundtruth
-    for scan in seq.scans:
-        gt.poses_base.interpolate(scan.stamp + scan.beam_times())  # raises outside
     world = build_world(cfg)
+    # Each beam's pose read off the written ground truth is the one it was rendered from
+    # (between a sweep's first and last beam alone, the yaw was interpolated linearly
+    # where the path turned faster and faster).
+    yaw_errors = []
+    for scan in seq.scans:
+        tb = scan.stamp + scan.beam_times()
+        T = gt.poses_base.interpolate(tb).poses  # raises outside
+        T_true = world.path.T_world_base(np.minimum(tb - cfg.start_time,
+                                                    world.path.duration))
+        R_rel = np.swapaxes(T[:, :2, :2], 1, 2) @ T_true[:, :2, :2]  # [B, 2, 2]
+        yaw_errors.append(np.arctan2(R_rel[:, 1, 0], R_rel[:, 0, 0]))
+        assert np.abs(T[:, :2, 3] - T_true[:, :2, 3]).max() < 1e-6
+    assert np.degrees(np.abs(np.concatenate(yaw_errors)).max()) < 1e-4
     renderer = LidarRenderer(world.scene, cfg.lidar)
     errors = []
     for s, scan in enumerate(seq.scans):

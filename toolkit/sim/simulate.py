@@ -206,7 +206,14 @@ def simulate(config: SimConfig, out_dir: Path | str,
     # is where the robot was then, not where it took the image; before and after the drive
     # it stands at its ends).
     stamped = cam_t + config.camera.stamp_delay_s
-    stamps = np.unique(np.concatenate([cam_t, las_t, sweep_ends, stamped]))
+    # The path's own samples inside each sweep too: the yaw rate changes within a sweep at
+    # a corner, so interpolating between a sweep's first and last beam alone put a
+    # mid-sweep beam's pose up to 0.74 deg off the one it was rendered from.
+    in_sweep = np.zeros(len(path.t), dtype=bool)
+    if spec.sweep:
+        k = np.searchsorted(las_t, path.t, side="right") - 1  # the sweep begun last
+        in_sweep = (k >= 0) & (path.t < sweep_ends[np.maximum(k, 0)])
+    stamps = np.unique(np.concatenate([cam_t, las_t, sweep_ends, stamped, path.t[in_sweep]]))
     poses2d = path.pose2d(stamps)
     writer.groundtruth_poses = Trajectory(t0 + stamps, path.T_world_base(stamps), "world",
                                           "base_link")
