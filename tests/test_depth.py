@@ -323,7 +323,8 @@ def test_depth_store_keeps_an_interrupted_writers_frames_under_the_same_key(
     s = DepthStore(root)
     assert s.indices == [0, 1, 2, 3] and s.meta["height"] == 3 and s.meta["width"] == 4
     np.testing.assert_array_equal(s.read(2).values, vals + 2)
-    assert not (root / "journal.jsonl").exists()
+    # The journal outlives close(): a kill before the stage is recorded finished keeps all.
+    assert DepthStoreWriter(root, "metric_depth", resume_key="k1").done == {0, 1, 2, 3}
     # Other settings (another key) start from nothing.
     w = DepthStoreWriter(root, "metric_depth", resume_key="k2")
     assert w.resumed == 0 and not list((root / "frames").glob("*.npy"))
@@ -421,6 +422,25 @@ def test_depth_stage_killed_after_its_last_frame_predicts_nothing_again(
     assert calls == [] and res.metrics["depth"]["frames_resumed"] == 4
     assert DepthStore(tmp_path / "run/depth/depth").indices == [0, 1, 2, 3]
     assert (tmp_path / "run/depth/depth_sample.png").stat().st_size > 1000
+
+    # Killed after the index was written, before the stage was recorded as finished
+    # (drawing its figure): the frames are still kept (the journal was deleted with the
+    # index's writing, and every frame predicted again).
+    import toolkit.depth.stage as depth_stage
+
+    def killed_figure(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt("killed while drawing the sample figure")
+
+    other = tmp_path / "killed_later"
+    other.mkdir()
+    with monkeypatch.context() as m:
+        m.setattr(depth_stage, "sample_figure", killed_figure)
+        with pytest.raises(KeyboardInterrupt):
+            run_stages(other, stages, register)
+    calls.clear()
+    res = run_stages(other, stages, register)
+    assert res.ok, res.error
+    assert calls == [] and res.metrics["depth"]["frames_resumed"] == 4
 
 
 # ------------------------------------------------------------------ small network
@@ -760,6 +780,20 @@ def test_simulated_settings_are_checked_with_the_recipe() -> None:
     with pytest.raises(ValidationError, match="simulated"):
         DepthConfig(stage="depth", backend="simulated", simulated={"scale": "big"})
     assert DepthConfig(stage="depth", backend="simulated", simulated={"scale": 2.0})
+    # The network's input size and rounding too (they passed `validate` and failed after
+    # the earlier stages had run; multiple_of 0 ran as 14).
+    for bad in ({"input_size": 0}, {"input_size": [480, -640]}, {"multiple_of": 0}):
+        with pytest.raises(ValidationError, match="input_size|multiple_of"):
+            DepthConfig(stage="depth", model="m.onnx", **bad)
+
+
+def test_onnx_multiple_of_one_keeps_the_asked_size(tmp_path: Path) -> None:
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    be = OnnxDepthBackend(OnnxDepthConfig(model=_export(tmp_path / "t.onnx", None),
+                                          kind="relative_depth", input_size=(480, 640),
+                                          multiple_of=1))
+    assert be.input_hw((480, 640)) == (480, 640)
 
 
 def _two_output_model(path: Path, two_inputs: bool = False) -> Path:

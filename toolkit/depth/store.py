@@ -3,8 +3,10 @@
     <dir>/meta.json        kind, backend settings, image size, frame count
     <dir>/index.csv        index,stamp,file,latency_s[,true_scale]
     <dir>/frames/NNNNNN.npy  [H, W] float32 (float16 when asked), NaN invalid
-    <dir>/journal.jsonl    while writing: a key line, then a line per frame on disk (a
-                           killed run's frames are kept by a writer with the same key)
+    <dir>/journal.jsonl    a key line, then a line per frame on disk (a killed run's
+                           frames are kept by a writer with the same key); kept after
+                           ``close``, since the stage is not finished until its runner
+                           says so
 
 ``.npy`` and not 16-bit PNG: relative predictions have no unit, and disparity can be
 tiny or negative, which the TUM depth PNG cannot hold.
@@ -118,8 +120,9 @@ class DepthStoreWriter:
                 "frames": len(self.rows), "height": self.shape[0] if self.shape else None,
                 "width": self.shape[1] if self.shape else None, **self.info}
         atomic_write_json(self.root / "meta.json", meta)
+        # The journal stays: a kill after this (the stage's figure and report, the
+        # runner's manifest) resumes with every frame kept, not none.
         self._journal.close()
-        self._journal_path.unlink(missing_ok=True)
         return self.root
 
 
