@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
 
@@ -33,6 +33,16 @@ METADATA_KEYS = ("depth_kind", "input_height", "input_width", "mean", "std", "ch
 
 _INTERP = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "area": cv2.INTER_AREA,
            "nearest": cv2.INTER_NEAREST}
+
+
+def positive_input_size(v: Any) -> Any:
+    """``v`` (an input size: one side or (height, width)) when every side is positive."""
+    if v is None:
+        return v
+    hw = (v, v) if isinstance(v, int) else v
+    if min(hw) <= 0:
+        raise ValueError(f"input_size must be positive, got {v}")
+    return v
 
 
 class OnnxDepthConfig(BaseModel):
@@ -51,7 +61,8 @@ class OnnxDepthConfig(BaseModel):
     # whole image scaled into the input at its own aspect, centred, the rest filled with
     # ``fill`` (Metric3D's fixed 616x1064 input); the fill is cut from the output.
     resize: Literal["stretch", "keep_aspect", "letterbox"] = "stretch"
-    multiple_of: int | None = None  # 14 for ViT/14 backbones; None: metadata or 14
+    # 14 for ViT/14 backbones, 1 for no rounding; None: metadata or 14
+    multiple_of: int | None = Field(None, ge=1)
     interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
     mean: tuple[float, float, float] | None = None  # in [0, 1] units; None: metadata/ImageNet
     std: tuple[float, float, float] | None = None
@@ -86,12 +97,7 @@ class OnnxDepthConfig(BaseModel):
     @field_validator("input_size")
     @classmethod
     def _positive(cls, v: Any) -> Any:
-        if v is None:
-            return v
-        hw = (v, v) if isinstance(v, int) else v
-        if min(hw) <= 0:
-            raise ValueError(f"input_size must be positive, got {v}")
-        return v
+        return positive_input_size(v)
 
     @model_validator(mode="after")
     def _consistent(self) -> OnnxDepthConfig:
@@ -269,8 +275,10 @@ class OnnxDepthBackend:
                                    config.confidence_index)
         if problem:  # the kind may come from the model's metadata
             raise ValueError(f"{path}: {problem}")
-        self.multiple_of = int(config.multiple_of or _meta_int(path, self.metadata,
-                                                               "multiple_of") or 14)
+        multiple = config.multiple_of  # >= 1, as the metadata's
+        if multiple is None:
+            multiple = _meta_int(path, self.metadata, "multiple_of")
+        self.multiple_of = int(multiple if multiple is not None else 14)
         order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
         if order not in ("rgb", "bgr"):
             raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")

@@ -6,13 +6,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from toolkit.depth.onnx_backend import (
     OnnxDepthBackend,
     OnnxDepthConfig,
     folder_model_message,
     model_file_problem,
+    positive_input_size,
     settings_problem,
 )
 from toolkit.depth.protocol import DepthKind
@@ -35,7 +36,7 @@ class DepthConfig(StageConfig):
     output: DepthKind | None = None  # what the network outputs; None: the model's metadata
     input_size: tuple[int, int] | int | None = None
     resize: Literal["stretch", "keep_aspect", "letterbox"] = "stretch"
-    multiple_of: int | None = None
+    multiple_of: int | None = Field(None, ge=1)  # 1: no rounding
     interpolation: Literal["linear", "cubic", "area", "nearest"] = "cubic"
     # per network input channel, in its channel_order (None: the model's metadata, else
     # ImageNet's, reversed for bgr)
@@ -64,6 +65,11 @@ class DepthConfig(StageConfig):
     # Decode the next images in a thread while the network runs (quickstart 13.4 -> 9.2 s);
     # the thread's CPU then counts in the measured work. Benchmarks that report it: false.
     prefetch: bool = True
+
+    @field_validator("input_size")
+    @classmethod
+    def _positive_size(cls, v: Any) -> Any:
+        return positive_input_size(v)
 
     @model_validator(mode="after")
     def _simulated_keys(self) -> DepthConfig:
