@@ -32,6 +32,17 @@ class CarveOptions:
     free_ratio: float = 0.5  # ... and this fraction of the views that tested it
 
 
+def beam_of(bearing: np.ndarray, angle_min: np.ndarray | float,
+            angle_increment: np.ndarray | float) -> np.ndarray:
+    """Nearest beam index (float, not bounded) of bearings (rad), counted from
+    ``angle_min`` the way the beams run: a scan from 0 to 270 deg, or one running
+    backwards, finds its beams past +-180 deg too (``arctan2`` turns them negative)."""
+    inc = np.asarray(angle_increment, np.float64)
+    sign, step = np.sign(inc), np.abs(inc)
+    ahead = np.mod(sign * (bearing - angle_min) + step / 2, 2 * np.pi) - step / 2
+    return np.rint(ahead / step)
+
+
 class SeeThroughCounter:
     """Per-voxel counts of see-through (free) and consistent (hit) views."""
 
@@ -161,19 +172,29 @@ class SeeThroughCounter:
         x = p @ T[0, :3] + T[0, 3]
         y = p @ T[1, :3] + T[1, 3]
         r = np.hypot(x, y)
-        beam = np.rint((np.arctan2(y, x) - scan.angle_min) / scan.angle_increment)
+        beam = beam_of(np.arctan2(y, x), scan.angle_min, scan.angle_increment)
         n = len(scan.ranges)
         # Bearings past the scan's ends wrap for a 360 degree scanner only.
-        span = abs(scan.angle_increment) * n
-        if span >= 2 * np.pi - 1e-6:
+        wrap = abs(scan.angle_increment) * n >= 2 * np.pi - 1e-6
+        if wrap:
             beam = np.mod(beam, n)
         ok = (beam >= 0) & (beam < n)
         near, r, beam = near[ok], r[ok], beam[ok].astype(np.int64)
-        ranges = scan.ranges[beam]
-        valid = scan.valid_mask()[beam]
-        near, r, ranges = near[valid], r[valid], ranges[valid]
-        self.free[near[r < ranges - o.lidar_margin_m]] += 1
-        self.hit[near[np.abs(r - ranges) <= o.lidar_margin_m]] += 1
+        valid_beam = scan.valid_mask()
+        ranges = np.where(valid_beam, scan.ranges, np.nan)  # [B]
+        hit = valid_beam[beam] & (np.abs(r - ranges[beam]) <= o.lidar_margin_m)
+        self.hit[near[hit]] += 1
+        # Seen through: the beam and both its neighbours reach past the voxel (as in
+        # dynamic_beams). The nearest beam alone carved a wall seen at a grazing angle,
+        # where the neighbours' ranges differ by decimetres, and slipped past cells
+        # thinner than the beam spacing.
+        free = np.ones(len(beam), bool)
+        for db in (-1, 0, 1):
+            bb = np.mod(beam + db, n) if wrap else beam + db
+            inside = (bb >= 0) & (bb < n)
+            with np.errstate(invalid="ignore"):
+                free &= inside & (r < ranges[np.clip(bb, 0, n - 1)] - o.lidar_margin_m)
+        self.free[near[free]] += 1
 
     def _near_plane(self, T_laser_world: np.ndarray) -> _Blocks:
         """Voxels within the plane tolerance of a scan plane, by block, cached while the
@@ -281,13 +302,15 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
                   offsets_s: tuple[float, ...] = (-4.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 4.0),
                   margin_m: float = 0.15, margin_rel: float = 0.03, min_votes: int = 2,
                   plane_tol_m: float = 0.1, isolated: bool = False,
-                  chunk: int = 256) -> list[np.ndarray]:
+                  no_return_is_free: bool = False, chunk: int = 256) -> list[np.ndarray]:
     """Per scan, [B] bool: beams whose end point other scans see through (a moving obstacle).
 
     Scan k's end points are moved into scan j's laser frame (j at the given time offsets);
     a point is seen through when scan j's beams at its bearing (and both neighbours, so a
     corner grazed from another side does not count) reach further by ``margin``. Beams
-    beyond ``range_max`` (+inf) count as reaching further; dropouts (NaN) say nothing.
+    without a return (+inf, ``range_max``) say nothing, as dropouts (NaN) do, unless
+    ``no_return_is_free`` (open spaces beyond the scanner's reach, no glass or black
+    surfaces): then they reach as far as the scanner does.
     A flagged beam without a flagged neighbour is dropped unless ``isolated``: a person's leg
     spans several beams, while a lone flag is mostly a chair leg thinner than the beam
     spacing that other scans slip past (on the simulated house this took precision from
@@ -312,7 +335,7 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
         js = [j[kk] for j in partner]
         lo = int(min(kk[0], *(j.min() for j in js)))
         hi = int(max(kk[-1], *(j.max() for j in js))) + 1
-        beams = _PaddedScans(scans[lo:hi])
+        beams = _PaddedScans(scans[lo:hi], no_return_is_free)
         for off, jj in zip(offsets_s, js, strict=True):
             use = (np.abs(stamps[jj] - stamps[kk]) >= 0.5 * abs(off)) & (jj != kk)
             if not use.any():
@@ -337,7 +360,7 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
 class _PaddedScans:
     """A run of scans as [S, Bmax] arrays (beams past a scan's own count are invalid)."""
 
-    def __init__(self, scans: list[LaserScan]) -> None:
+    def __init__(self, scans: list[LaserScan], no_return_is_free: bool = False) -> None:
         S, B = len(scans), max(len(s.ranges) for s in scans)
         self.n = np.array([len(s.ranges) for s in scans])  # [S]
         self.angle_min = np.array([s.angle_min for s in scans], np.float64)
@@ -347,8 +370,11 @@ class _PaddedScans:
         self.valid = np.zeros((S, B), bool)
         self.x = np.zeros((S, B))  # end points in the scan's own laser frame
         self.y = np.zeros((S, B))
-        # How far each beam saw free space: beyond range_max (+inf) is free as far as the
-        # scanner reaches; NaN and short returns say nothing (-inf).
+        # How far each beam saw free space: to its return; NaN and short returns say
+        # nothing (-inf), and so does no return (+inf, range_max) unless
+        # ``no_return_is_free``: glass, black or shiny surfaces return nothing from most
+        # angles, and a static pane seen at last head-on was flagged as moving, with the
+        # camera points around it.
         self.reach = np.full((S, B), -np.inf)
         for i, s in enumerate(scans):
             m = len(s.ranges)
@@ -356,11 +382,14 @@ class _PaddedScans:
             v = s.valid_mask()
             a = s.angles()
             self.valid[i, :m] = v
-            self.x[i, :m] = np.where(v, r * np.cos(a), 0.0)
-            self.y[i, :m] = np.where(v, r * np.sin(a), 0.0)
-            reach = np.where(np.isposinf(r), s.range_max, r)
-            self.reach[i, :m] = np.where(
-                np.isfinite(reach) & (reach > 0) & (reach >= s.range_min), reach, -np.inf)
+            rv = np.where(v, r, 0.0)
+            self.x[i, :m] = rv * np.cos(a)
+            self.y[i, :m] = rv * np.sin(a)
+            reach = np.where(v, r, -np.inf)
+            if no_return_is_free:
+                with np.errstate(invalid="ignore"):
+                    reach = np.where(np.isposinf(r) | (r == s.range_max), s.range_max, reach)
+            self.reach[i, :m] = reach
 
     def seen_through(self, k: np.ndarray, j: np.ndarray, T_j_k: np.ndarray, margin_m: float,
                      margin_rel: float, plane_tol_m: float) -> np.ndarray:
@@ -375,8 +404,8 @@ class _PaddedScans:
         qx, qy, qz = row(0), row(1), row(2)
         rq = np.hypot(qx, qy)
         n = self.n[j, None]
-        b = np.rint((np.arctan2(qy, qx) - self.angle_min[j, None]) / self.angle_inc[j, None]
-                    ).astype(np.int64)
+        b = beam_of(np.arctan2(qy, qx), self.angle_min[j, None],
+                    self.angle_inc[j, None]).astype(np.int64)
         far = np.full(b.shape, np.inf)
         for db in (-1, 0, 1):
             bb = np.where(self.full[j, None], np.mod(b + db, n), b + db)

@@ -143,6 +143,10 @@ class FusionConfig(BaseModel):
     dynamic_radius_m: float = 0.5
     dynamic_height_m: float = 2.0
     dynamic_scan_window_s: float = 0.15
+    # A beam with no return (+inf, range_max) as free space out to range_max: for open
+    # spaces beyond the scanner's reach; off, since glass and black or shiny surfaces
+    # return nothing from most angles and would mark what is behind them as moving.
+    lidar_no_return_free: bool = False
     carve_every: int = Field(5, ge=1)  # every n-th frame is a depth view for carving
     carve_voxel_m: float = 0.06  # cell size of the carving test
     carve_scans_every: int = Field(5, ge=1)
@@ -371,8 +375,9 @@ class Fusion:
             T_wl = scan_poses @ seq.rig.T_base_laser
             self.beam_dynamic = [np.zeros(len(s.ranges), bool) for s in seq.scans]
             placed = np.flatnonzero(self.scan_covered)
-            for k, flags in zip(placed, dynamic_beams([seq.scans[k] for k in placed],
-                                                      T_wl[placed]), strict=True):
+            flagged = dynamic_beams([seq.scans[k] for k in placed], T_wl[placed],
+                                    no_return_is_free=config.lidar_no_return_free)
+            for k, flags in zip(placed, flagged, strict=True):
                 self.beam_dynamic[k] = flags
             for k, s in enumerate(seq.scans):
                 b = np.flatnonzero(self.beam_dynamic[k])

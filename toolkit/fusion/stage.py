@@ -325,7 +325,9 @@ class FuseStage(Stage):
     # 5: regions around lidar runs the smooth shape field cannot follow rescaled (refine)
     # 6: robust's shift only where its inliers spread; a gap's frames take their nearest
     #    good frames' pair; pair edges tested on depth; carving sees a distorted image whole
-    version = 6
+    # 7: consensus distance to the surface's tangent plane; a lidar cell seen through by
+    #    three beams; no return is no evidence; scans past +-180 deg tested
+    version = 7
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
