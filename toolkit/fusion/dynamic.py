@@ -388,7 +388,9 @@ class _PaddedScans:
             reach = np.where(v, r, -np.inf)
             if no_return_is_free:
                 with np.errstate(invalid="ignore"):
-                    reach = np.where(np.isposinf(r) | (r == s.range_max), s.range_max, reach)
+                    # Compared as stored (float32): 5.6 is 5.5999999 there.
+                    reach = np.where(np.isposinf(r) | (s.ranges == s.range_max), s.range_max,
+                                     reach)
             self.reach[i, :m] = reach
 
     def seen_through(self, k: np.ndarray, j: np.ndarray, T_j_k: np.ndarray, margin_m: float,

@@ -197,12 +197,17 @@ class LidarSlam2D:
     def _preprocess(self, scan: ScanLike) -> tuple[np.ndarray, np.ndarray] | None:
         """(hits [N, 2], free ends [M, 2]) in the base frame, or None for a bad scan."""
         c = self.config.scan
-        r = np.asarray(scan.ranges, dtype=np.float64)
+        stored = np.asarray(scan.ranges)
+        r = stored.astype(np.float64)
         ang = scan.angle_min + np.arange(len(r)) * scan.angle_increment
-        with np.errstate(invalid="ignore"):
+        # The limits as the ranges hold them: a driver's no-return written as range_max
+        # 5.6 is 5.5999999 in float32, which read in float64 became a wall at the
+        # scanner's reach, moving with the robot (tracking 4.4 m RMS off).
+        cast = stored.dtype.type if stored.dtype.kind == "f" else np.float64
+        with np.errstate(invalid="ignore", over="ignore"):
             finite = np.isfinite(r)
-            rmin = max(float(scan.range_min), c.min_range)
-            rmax = float(scan.range_max) if np.isfinite(scan.range_max) else np.inf
+            rmin = max(float(cast(scan.range_min)), c.min_range)
+            rmax = float(cast(scan.range_max)) if np.isfinite(scan.range_max) else np.inf
             # A reading at (or past) the sensor's range_max is a beam without return:
             # CARMEN and many drivers report no-return as exactly range_max.
             no_return = (r == np.inf) | (finite & (r >= rmax))
@@ -672,9 +677,16 @@ class LidarSlam2D:
         c = self.config
         if node_poses is None:
             node_poses = self.graph.poses[[n.vertex for n in self.nodes]]
+        # Centred on the drive, not on the world origin: with odometry the world is the
+        # odometry frame, which may start hundreds of metres (UTM: kilometres) away, and
+        # the grid grew to span that (finish() ran out of memory).
+        centre = ((node_poses[:, :2].min(0) + node_poses[:, :2].max(0)) / 2
+                  if len(node_poses) else np.zeros(2))
         grid = ProbabilityGrid(c.map.resolution, c.map.hit_probability,
                                c.map.miss_probability, c.grid.min_probability,
-                               c.grid.max_probability, initial_size_m=40.0)
+                               c.grid.max_probability, center=(float(centre[0]),
+                                                               float(centre[1])),
+                               initial_size_m=40.0)
         for n, p in zip(self.nodes, node_poses, strict=True):
             cth, sth = np.cos(p[2]), np.sin(p[2])
             R = np.array([[cth, -sth], [sth, cth]])

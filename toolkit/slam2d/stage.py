@@ -43,7 +43,9 @@ class Slam2DStage(Stage):
     requires = ("sequence",)
     optional_requires = ("rig",)  # a calibrated extrinsic (calibrate) over the sequence's
     provides = ("trajectory",)
-    version = 2  # 2: no odometry across its gaps; closure cap counts accepted closures
+    # 2: no odometry across its gaps; closure cap counts accepted closures. 3: limits
+    # compared as the ranges are stored; hit rays end in their hit cell
+    version = 3
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
