@@ -710,3 +710,13 @@ def test_a_ray_never_marks_the_cell_behind_its_hit_free() -> None:
         near_end = np.linalg.norm(centres - hit, axis=1) < 1.5 * res
         behind += bool(np.any(near_end & (along > length + 0.5 * res)))
     assert behind == 0
+
+
+def test_scan_limits_out_of_order_are_refused_with_the_settings() -> None:
+    from pydantic import ValidationError
+
+    from toolkit.slam2d.config import ScanOptions
+
+    with pytest.raises(ValidationError, match=r"scan.min_range \(5.0 m\) must be below "
+                                              r"scan.max_range \(4.0 m\)"):
+        Slam2DConfig(scan=ScanOptions(min_range=5.0, max_range=4.0))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class _Options(BaseModel):
@@ -36,6 +36,14 @@ class ScanOptions(_Options):
     max_match_points: int = Field(
         250, ge=10, description="voxel-filter the points used for matching down to this many"
     )
+
+    @model_validator(mode="after")
+    def _ordered(self) -> ScanOptions:
+        # Otherwise every scan is skipped (too few returns) after the run has started.
+        if self.min_range >= self.max_range:
+            raise ValueError(f"scan.min_range ({self.min_range} m) must be below "
+                             f"scan.max_range ({self.max_range} m)")
+        return self
 
 
 class MotionFilterOptions(_Options):
