@@ -247,3 +247,45 @@ def test_a_zip_with_a_readme_reads_the_log(tmp_path):
     (tmp_path / "intel.log").write_text(log)
     assert len(read_carmen(tmp_path / "run.zip").scans) == len(
         read_carmen(tmp_path / "intel.log").scans) == 5
+
+
+def test_flaser_beam_counts_give_the_scanner_mode_carmen_reads(tmp_path: Path, caplog):
+    """FLASER lines carry no angles: 401 beams is a SICK LMS at 0.25 deg over 100 deg
+    (CARMEN's readlog.c), not 0.45 deg over 180 deg (beam 100 was at -45 deg, not -25);
+    a count no scanner has is read as 180 deg and said so."""
+    from toolkit.io.carmen import flaser_angles
+
+    for n, inc in ((180, 1.0), (181, 1.0), (360, 0.5), (361, 0.5)):
+        amin, step = flaser_angles(n)
+        assert np.degrees(amin) == pytest.approx(-90.0) and np.degrees(step) == pytest.approx(inc)
+    amin, step = flaser_angles(401)
+    assert np.degrees(step) == pytest.approx(0.25)
+    assert np.degrees(amin + 100 * step) == pytest.approx(-25.0)
+    assert np.degrees(amin + 400 * step) == pytest.approx(50.0)
+    path = tmp_path / "odd.log"
+    path.write_text("".join(f"FLASER 5 1 1 1 1 1 0 0 0 0 0 0 {t} host {t}\n" for t in (1, 2)))
+    with caplog.at_level("WARNING"):
+        log = read_carmen(path)
+    assert len(log.scans) == 2
+    assert sum("FLASER lines of 5 beams" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_reference_stamp_glitched_into_the_future_costs_one_pose(tmp_path: Path):
+    """Corrected logs' stored poses are the ground truth: keeping whatever came after the
+    last kept stamp, one stamp glitched ahead cut off every pose after it (11 of 100
+    kept); the scans keep the longest increasing run, and so does the truth now."""
+    import logging
+
+    from toolkit.io.carmen_ingest import read_carmen_recording
+
+    lines = []
+    for i in range(100):
+        t = 100000.0 if i == 10 else 100.0 + 0.2 * i
+        lines.append(f"FLASER 180 {' '.join(['2.0'] * 180)} {0.05 * i} 0 0 {0.05 * i} 0 0 "
+                     f"{t} host {t}\n")
+    path = tmp_path / "lab-corrected.log"
+    path.write_text("".join(lines))
+    rec = read_carmen_recording(path, on_non_monotonic="drop", log=logging.getLogger("t"))
+    assert len(rec.scans) == 99 and len(rec.groundtruth) == 99
+    assert rec.groundtruth.stamps[-1] == rec.scans[-1].stamp
+    assert rec.dropped == {"scans": 1, "groundtruth": 1}

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import gzip
 import io
+import logging
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -28,7 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.geometry import Trajectory, se2_compose, se2_to_se3
+from toolkit.ingest.sync import longest_increasing
 from toolkit.sensors import LaserScan
+
+log = logging.getLogger(__name__)
 
 
 class CarmenFormatError(ValueError):
@@ -71,9 +75,21 @@ def _ranges(values: list[str], max_range: float) -> np.ndarray:
 
 
 def flaser_angles(n: int) -> tuple[float, float]:
-    """(angle_min, angle_increment) of an n-beam FLASER line (180 deg field of view)."""
+    """(angle_min, angle_increment) of an n-beam FLASER line, which carries no angles: the
+    beam count says the scanner's mode, as CARMEN's own reader guesses it (readlog.c).
+    180/181 and 360/361 beams: 180 deg from -90 deg, 1 or 0.5 deg apart; 400/401 beams: a
+    SICK LMS at 0.25 deg, which scans 100 deg, centred ahead. Any other count is taken as
+    180 deg (``flaser_fov_known`` says whether it was guessed so)."""
+    if n in (400, 401):
+        inc = np.pi / 720
+        return float(-inc * (n - 1) / 2), float(inc)
     inc = np.pi / (n - 1) if n % 2 == 1 else np.pi / n
     return -np.pi / 2, float(inc)
+
+
+def flaser_fov_known(n: int) -> bool:
+    """Whether an n-beam FLASER line's field of view is known from its beam count."""
+    return n in (180, 181, 360, 361, 400, 401)
 
 
 @dataclass
@@ -97,23 +113,14 @@ class CarmenLog:
     def reference(self) -> Trajectory:
         """The poses stored with the scans as T_world_base (for corrected logs: the
         reference solution to evaluate against, not an input). Out-of-order and duplicate
-        stamps are dropped, keeping the first."""
+        stamps are dropped: the longest increasing run of them is kept, as for the scans
+        (keeping whatever came after the last kept stamp, one stamp glitched into the
+        future cut off every pose after it)."""
         stamps = np.array([s.stamp for s in self.scans])
-        keep = _increasing(stamps)
+        keep = longest_increasing(stamps)
         poses = np.stack([se2_to_se3(*p) for p in self.scan_poses[keep]]) @ np.linalg.inv(
             self.T_base_laser) if keep.any() else np.zeros((0, 4, 4))
         return Trajectory(stamps[keep], poses, "world", "base_link")
-
-
-def _increasing(stamps: np.ndarray) -> np.ndarray:
-    """[N] bool: stamps strictly after every earlier kept stamp."""
-    keep = np.zeros(len(stamps), bool)
-    last = -np.inf
-    for i, t in enumerate(stamps):
-        if t > last:
-            keep[i] = True
-            last = t
-    return keep
 
 
 def _parse_robotlaser1(f: list[str]) -> tuple[LaserScan, np.ndarray, np.ndarray]:
@@ -150,6 +157,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
     o_p: list[list[float]] = []
     params: dict[str, str] = {}
     laser_offsets: list[np.ndarray] = []
+    guessed: set[int] = set()  # FLASER beam counts of no known scanner, warned about
     for lineno, line in enumerate(_open_text(path), 1):
         f = line.split()
         if not f or f[0].startswith("#"):
@@ -165,6 +173,13 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                     raise ValueError(f"{len(ranges)} ranges, expected {n}")
                 rest = f[2 + n :]
                 amin, inc = flaser_angles(n)
+                if not flaser_fov_known(n) and n not in guessed:
+                    guessed.add(n)
+                    log.warning("%s:%d: FLASER lines of %d beams carry no angles and no "
+                                "scanner known to CARMEN has that count: read as 180 deg "
+                                "from -90 deg (%.3f deg apart); if the scanner covers "
+                                "another angle, convert the log to ROBOTLASER1 lines",
+                                path, lineno, n, np.degrees(inc))
                 scans.append(LaserScan(stamp=float(rest[6]), ranges=ranges, angle_min=amin,
                                        angle_increment=inc, range_min=0.0,
                                        range_max=max_range))
@@ -273,7 +288,7 @@ class G2OLog:
         stamps = np.array([s.stamp for s in self.scans])
         P = np.stack([se2_to_se3(*pose[int(v)]) for v in self.scan_vertex])
         o = np.argsort(stamps, kind="stable")
-        keep = _increasing(stamps[o])
+        keep = longest_increasing(stamps[o])
         return Trajectory(stamps[o][keep], P[o][keep], "odom", "base_link")
 
     def reference(self) -> Trajectory:
@@ -282,7 +297,7 @@ class G2OLog:
         stamps = np.array([s.stamp for s in self.scans])
         P = np.stack([se2_to_se3(*self.vertex_poses[idx[int(v)]]) for v in self.scan_vertex])
         o = np.argsort(stamps, kind="stable")
-        keep = _increasing(stamps[o])
+        keep = longest_increasing(stamps[o])
         return Trajectory(stamps[o][keep], P[o][keep], "world", "base_link")
 
 

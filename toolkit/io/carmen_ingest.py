@@ -129,6 +129,8 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
     if gmode == "auto":
         gmode = "reference" if (g2o or corrected) else "none"
     groundtruth = data.reference() if gmode == "reference" else None
+    if groundtruth is not None and len(groundtruth) < len(data.scans):
+        dropped["groundtruth"] = len(data.scans) - len(groundtruth)
 
     rig = Rig(placeholder_camera(), optical_mount(), data.T_base_laser)
     span = scans[-1].stamp - scans[0].stamp if scans else 0.0
