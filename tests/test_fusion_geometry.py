@@ -271,6 +271,9 @@ def test_depth_errors_values() -> None:
     assert e.rmse_m == pytest.approx(np.sqrt((0.01 + 0 + 4) / 3))
     assert e.absrel == pytest.approx((0.1 + 0 + 0.5) / 3)
     assert e.delta1 == pytest.approx(2 / 3)
+    # A lidar beam without return (+inf) is no reference (it made every figure inf).
+    with_inf = depth_errors(np.r_[pred, 3.0], np.r_[ref, np.inf])
+    assert with_inf == e and type(e.delta1) is float
 
 
 def test_inverse_transform_consistency() -> None:

@@ -40,6 +40,10 @@ def test_psnr_matches_scikit_image_and_uint8() -> None:
     ref = metrics.peak_signal_noise_ratio(a8, b8, data_range=255)
     assert abs(psnr(a8, b8) - ref) < 1e-9
     assert psnr(a, a) == float("inf")
+    # scikit-image's call for uint8 (data_range=255) scored 48 dB too high: refused.
+    for fn in (psnr, ssim):
+        with pytest.raises(ValueError, match="uint8 images are compared on 0..1"):
+            fn(a8, b8, data_range=255)
 
 
 def test_torch_version_is_differentiable_and_agrees() -> None:

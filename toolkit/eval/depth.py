@@ -31,15 +31,17 @@ NAN_ERRORS = DepthErrors(float("nan"), float("nan"), float("nan"), float("nan"),
 
 def depth_errors(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None,
                  max_depth: float | None = None) -> DepthErrors:
-    """Errors of ``pred`` against ``ref`` (same shape, metres; NaN/0 invalid in either)."""
+    """Errors of ``pred`` against ``ref`` (same shape, metres; NaN, 0 and +inf invalid in
+    either: +inf is a lidar beam without return, not a range)."""
     # The validity test in the arrays' own precision and float64 for the valid pairs only:
     # this runs on three whole images per fused frame.
     p = np.asarray(pred).reshape(-1)
     r = np.asarray(ref).reshape(-1)
     with np.errstate(invalid="ignore"):
         # Comparisons are False for NaN, so these also drop NaN.
-        ok = (p > 0) & (p < np.inf) & (r > 0) & (r <= (np.inf if max_depth is None
-                                                        else max_depth))
+        ok = (p > 0) & (p < np.inf) & (r > 0) & (r < np.inf)
+        if max_depth is not None:
+            ok &= r <= max_depth
     if mask is not None:
         ok &= np.asarray(mask, bool).reshape(-1)
     n = int(np.count_nonzero(ok))
@@ -52,7 +54,7 @@ def depth_errors(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = No
     # max(p / r, r / p) < 1.25 without the two divisions (p, r > 0).
     d1 = np.count_nonzero((p < 1.25 * r) & (r < 1.25 * p))
     return DepthErrors(float(np.sqrt(np.dot(e, e) / n)), float(ae.sum() / n),
-                       float((ae / r).sum() / n), d1 / n, n)
+                       float((ae / r).sum() / n), float(d1 / n), n)
 
 
 class ErrorAccumulator:
