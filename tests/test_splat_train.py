@@ -330,6 +330,46 @@ def test_masked_l1_is_the_mean_over_the_valid_pixels() -> None:
     assert float(masked_l1(render.detach(), gt)) == pytest.approx(0.5)
 
 
+def test_the_ssim_term_is_taken_over_a_views_valid_pixels(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Masked pixels hold the target and score SSIM 1: over every window, a lens mask
+    shrank the SSIM term (and its gradients) by the valid share, against the L1's mean
+    over valid pixels."""
+    import dataclasses
+
+    import toolkit.splat.trainer as trainer_module
+
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    mask = torch.ones(18, 24, dtype=torch.bool)
+    mask[:, :8] = False
+    views = [dataclasses.replace(v, mask=mask) for v in views]
+    seen: list[object] = []
+    ssim = trainer_module.ssim_fn
+
+    def recording(a: torch.Tensor, b: torch.Tensor, **kw: object) -> torch.Tensor:
+        seen.append(kw.get("mask"))
+        return ssim(a, b, **kw)
+
+    monkeypatch.setattr(trainer_module, "ssim_fn", recording)
+    Trainer(_start_model(300), views, _cfg(iterations=2, checkpoint_every=0)).train()
+    assert len(seen) == 2 and all(m is not None and torch.equal(m, mask) for m in seen)
+
+
+def test_opacity_resets_can_be_turned_off_and_absgrad_is_refused() -> None:
+    """reset_every 0 (a natural "never") and refine_every 0 divided by zero mid-training;
+    absgrad was accepted and ignored."""
+    from pydantic import ValidationError
+
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    never = _cfg(iterations=12, checkpoint_every=0,
+                 densify=StrategyConfig(refine_start_iter=2, refine_every=5, reset_every=0))
+    Trainer(_start_model(300), views, never).train()
+    with pytest.raises(ValidationError, match="refine_every"):
+        StrategyConfig(refine_every=0)
+    with pytest.raises(ValidationError, match="absgrad: true"):
+        StrategyConfig(absgrad=True)
+
+
 def test_refinement_stops_at_half_the_training_by_default() -> None:
     """gsplat refines for 15000 of 30000 steps; the default of 15000 refined a 1500-step
     training to its step 1400 (its last clones had 100 steps to settle)."""

@@ -348,8 +348,9 @@ class SplatStage(Stage):
     provides = ("splats",)
     # 2: off-path views masked like the path's; SSIM over valid windows. 3: images at the
     # fuse stage's exposure gains (exposure: auto). 4: the colour L1 over the valid pixels
-    # of a masked view (a distorted camera's lens corners)
-    version = 4
+    # of a masked view (a distorted camera's lens corners). 5: the training's SSIM term
+    # over a masked view's valid windows too
+    version = 5
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]

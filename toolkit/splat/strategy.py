@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from torch import Tensor, nn
 
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
@@ -52,10 +52,20 @@ class StrategyConfig(BaseModel):
     prune_scale3d: float = 0.1  # x scene scale
     refine_start_iter: int = 100
     refine_stop_iter: int | None = None
-    refine_every: int = 100
-    reset_every: int = 3_000
-    pause_refine_after_reset: int = 0
-    absgrad: bool = False
+    refine_every: int = Field(100, ge=1)
+    reset_every: int = Field(3_000, ge=0)  # 0: never (and no pruning of large Gaussians)
+    pause_refine_after_reset: int = Field(0, ge=0)
+    absgrad: bool = False  # gsplat's AbsGS statistic: not ported, only false is accepted
+
+    @field_validator("absgrad")
+    @classmethod
+    def _plain_gradients(cls, v: bool) -> bool:
+        # Accepted and ignored, AbsGS's higher grow_grad2d (0.0008) would have starved
+        # the densification without a word.
+        if v:
+            raise ValueError("absgrad: true (AbsGS) is not ported to this trainer; leave it "
+                             "false and grow_grad2d at the plain gradient's 0.0002")
+        return v
 
 
 def _replace(model: GaussianModel, optimizers: dict[str, torch.optim.Optimizer],
@@ -113,12 +123,13 @@ class DefaultStrategy:
             return report
         self._accumulate(state, meta)
         if (step > cfg.refine_start_iter and step % cfg.refine_every == 0
-                and step % cfg.reset_every >= cfg.pause_refine_after_reset):
+                and (not cfg.reset_every
+                     or step % cfg.reset_every >= cfg.pause_refine_after_reset)):
             report["cloned"], report["split"] = self._grow(model, optimizers, state, generator)
             report["pruned"] = self._prune(model, optimizers, state, step)
             state.update(self.initialize_state(len(model), state["scene_scale"],
                                                model.means.device))
-        if step % cfg.reset_every == 0 and step > 0:
+        if cfg.reset_every and step % cfg.reset_every == 0 and step > 0:
             self._reset_opacity(model, optimizers, 2.0 * cfg.prune_opa)
             report["reset"] = 1
         return report
@@ -207,7 +218,7 @@ class DefaultStrategy:
                step: int) -> int:
         cfg = self.cfg
         prune = torch.sigmoid(model.opacity_logits.detach()) < cfg.prune_opa
-        if step > cfg.reset_every:
+        if cfg.reset_every and step > cfg.reset_every:
             big = torch.exp(model.log_scales.detach()).amax(-1) > (
                 cfg.prune_scale3d * state["scene_scale"])
             prune |= big

@@ -369,10 +369,14 @@ class Trainer:
             rendered = rendered * exposure_gain(rendered, gt, view.mask_on(gt.device),
                                                 cfg.exposure_reg)
         color = view.masked(rendered, gt)
-        l1 = masked_l1(color, gt, view.mask_on(gt.device))
+        mask = view.mask_on(gt.device)
+        l1 = masked_l1(color, gt, mask)
         loss = l1
         if cfg.lambda_dssim > 0:
-            loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim_fn(color, gt))
+            # Over the windows on valid pixels, as the L1: masked ones hold the target and
+            # scored 1, so a lens mask shrank the SSIM term by its valid share.
+            loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (
+                1 - ssim_fn(color, gt, mask=mask))
         depth_l1 = torch.zeros((), device=self.device)
         if cfg.depth_weight > 0 and view.depth is not None:
             target = view.depth.to(out.depth.device)
