@@ -706,6 +706,28 @@ def test_training_widths_from_the_command_line() -> None:
             _widths(bad)
 
 
+def test_training_refuses_bad_counts_and_sequences_before_training(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
+    """--houses 0, --every 0 (raw tracebacks after rendering) and a --sequence without
+    ground-truth depth (found only after the new model had replaced --out) are refused
+    before anything is rendered or trained; a model's card is named after it."""
+    import toolkit.depth.train_small as ts
+
+    monkeypatch.setattr(ts, "train", lambda cfg: pytest.fail("trained anyway"))
+    for args in (["--houses", "0"], ["--every", "0"], ["--threads", "-1"],
+                 ["--images-per-house", "0"], ["--minutes", "0"],
+                 ["--sequence", str(tmp_path / "missing")]):
+        with pytest.raises(SystemExit) as e:
+            ts.main(["--out", str(tmp_path / "m.onnx"), *args])
+        assert e.value.code == 2, args
+    assert "--sequence" in capsys.readouterr().err
+    assert ts.card_path(tmp_path / "experiment.onnx") == tmp_path / "experiment.md"
+    # The card's command names a non-default --images-per-house.
+    c = {"minutes": 5.0, "train_seeds": [101], "threads": 2, "widths": [4, 8, 8, 8, 8],
+         "height": 120, "width": 160, "lr": ts.TrainConfig.lr, "images_per_house": 20}
+    assert "--images-per-house 20" in ts._command(c, "m.onnx")
+
+
 def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
                  props: dict[str, str] | None = None) -> Path:
     """A model built node by node: mean over the channels, then softplus (depth > 0)."""

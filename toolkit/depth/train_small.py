@@ -23,8 +23,9 @@ random yaw, height and pitch changes so that views are not all straight down the
 Renders are cached (``--cache``), so a second training run starts at once.
 
 The shipped file was made by this module's defaults (45 minutes, 40 houses), then
-fine-tuned 25 minutes at 320x240, on an otherwise idle 2-core machine; the model card next
-to it has both commands and the figures.
+fine-tuned at 320x240 several times on more houses, on a 2-core machine; its card
+(``datasets/models/small-depth.md``, written next to every model as ``<model>.md``) lists
+every run of that chain with its command and figures.
 
     python -m toolkit.depth.train_small --eval-only MODEL.onnx \
         --sequence runs/quickstart/simulate/sequence
@@ -46,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
+from toolkit.io.atomic import atomic_write_text
 
 
 @dataclass
@@ -58,8 +60,10 @@ class TrainConfig:
     height: int = 120  # network input (4:3 like the 640x480 camera)
     width: int = 160
     # Renders are made at render_factor x the input size and shrunk with the same cubic
-    # resize the ONNX backend applies to 640x480 frames, so training images look like the
-    # inputs the network gets at run time (point-sampled renders alias differently).
+    # resize the ONNX backend applies to 640x480 frames (point-sampled renders alias
+    # differently). At 320x240 (the shipped network's input) the two are the same 2x
+    # shrink; at the first run's 160x120 the frames are shrunk 4x at run time, so they
+    # hold a little more fine detail than these renders.
     render_factor: int = 2
     # Training crops (same pixel scale). Off by default: trained on 96x128 crops of the
     # 120x160 frames (with stronger colour changes) for 25 minutes, the network was worse
@@ -433,6 +437,20 @@ def evaluate(model: object, imgs: np.ndarray, depth: np.ndarray) -> dict[str, fl
     return {"absrel": e.absrel, "rmse_m": e.rmse_m, "delta1": e.delta1}
 
 
+def sequence_problem(sequence: Path) -> str | None:
+    """Why ``sequence`` cannot be evaluated against (None: it can); asked before a training
+    run, which would otherwise fail only after its model had replaced ``--out``."""
+    from toolkit.io.sequence import SequenceFormatError, read_sequence
+
+    try:
+        seq = read_sequence(sequence)
+    except (SequenceFormatError, FileNotFoundError, ValueError) as e:
+        return str(e)
+    if seq.groundtruth is None or seq.groundtruth.depth_paths is None:
+        return f"{sequence}: no ground-truth depth to evaluate against"
+    return None
+
+
 def evaluate_sequence(model_path: Path, sequence: Path, every: int = 4, threads: int = 2,
                       max_depth: float = 10.0) -> dict[str, float]:
     """A model run through ``OnnxDepthBackend`` (the depth stage's code path, full
@@ -604,7 +622,7 @@ def export(model: object, cfg: TrainConfig) -> None:
     m = onnx.load(str(tmp))
     onnx.helper.set_model_props(m, {
         "depth_kind": "relative_depth", "input_height": str(cfg.height),
-        "input_width": str(cfg.width), "multiple_of": "8", "channel_order": "rgb",
+        "input_width": str(cfg.width), "multiple_of": "1", "channel_order": "rgb",
         "mean": ",".join(str(v) for v in IMAGENET_MEAN),
         "std": ",".join(str(v) for v in IMAGENET_STD),
         "name": "lidarcam small-depth U-Net", "training": "toolkit.depth.train_small"})
@@ -621,6 +639,8 @@ def _command(c: dict, out: str, seq_arg: str = "") -> str:
         args += [f"--height {c['height']}", f"--width {c['width']}"]
     if c["lr"] != TrainConfig.lr:
         args.append(f"--lr {c['lr']:g}")
+    if c.get("images_per_house", TrainConfig.images_per_house) != TrainConfig.images_per_house:
+        args.append(f"--images-per-house {c['images_per_house']}")
     if c.get("init"):
         args.append(f"--init {c['init']}")
     return "python -m toolkit.depth.train_small " + " ".join(args) + f" --out {out}{seq_arg}"
@@ -704,6 +724,12 @@ def _training_line(cfg: TrainConfig, stats: dict, seq_arg: str) -> str:
     return " ".join(parts)
 
 
+def card_path(model: Path) -> Path:
+    """The model card of ``model``: beside it, named after it (one card per model file; a
+    shared MODEL_CARD.md was overwritten by every experiment in the same folder)."""
+    return Path(model).with_suffix(".md")
+
+
 def write_card(path: Path, cfg: TrainConfig, stats: dict) -> None:
     size_mb = Path(cfg.out).stat().st_size / 1e6
     v = stats["validation"]
@@ -724,7 +750,7 @@ delta<1.25 {seq['delta1']:.3f}; network {seq['network_ms_median']:.1f} ms per fr
         bc = chain[0]["config"]  # the oldest run of a fine-tune chain
         if (bc["width"], bc["height"]) != (cfg.width, cfg.height):
             size_note = f" ({bc['width']}x{bc['height']} in the first run)"
-    text = f"""# small-depth.onnx: the project's small monocular depth network
+    text = f"""# {Path(cfg.out).name}: the project's small monocular depth network
 
 **What it is.** A compact U-Net ({stats['params'] / 1e6:.2f} M parameters, {size_mb:.1f} MB)
 that predicts **relative depth** (z-depth up to one unknown scale per image) from one RGB
@@ -765,8 +791,6 @@ images. Relative depth only: no metric scale without the lidar.
 
 **Licence.** Same as the project (MIT); trained only on data the project generates.
 """
-    from toolkit.io.atomic import atomic_write_text
-
     atomic_write_text(path, text)
 
 
@@ -782,14 +806,34 @@ def _widths(text: str) -> tuple[int, ...]:
     return w
 
 
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number of at least 1")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a number above 0")
+    return v
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=TrainConfig.out)
-    ap.add_argument("--minutes", type=float, default=TrainConfig.minutes)
-    ap.add_argument("--images-per-house", type=int, default=TrainConfig.images_per_house)
-    ap.add_argument("--houses", type=int, default=len(TrainConfig.train_seeds),
+    ap.add_argument("--minutes", type=_positive_float, default=TrainConfig.minutes)
+    ap.add_argument("--images-per-house", type=_positive_int, default=TrainConfig.images_per_house)
+    ap.add_argument("--houses", type=_positive_int, default=len(TrainConfig.train_seeds),
                     help="train on house seeds 101 .. 100 + N")
-    ap.add_argument("--threads", type=int, default=TrainConfig.threads)
+    ap.add_argument("--threads", type=_positive_int, default=TrainConfig.threads)
     ap.add_argument("--widths", type=_widths, default=TrainConfig.widths,
                     help="channels of the five stages at 1/2 .. 1/32 resolution, "
                          "comma-separated (default %(default)s)")
@@ -803,7 +847,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sequence", type=Path, default=None,
                     help="simulated sequence to evaluate the model on after training "
                          "(e.g. runs/quickstart/simulate/sequence); goes into the card")
-    ap.add_argument("--every", type=int, default=4, help="--sequence: every n-th frame")
+    ap.add_argument("--every", type=_positive_int, default=4, help="--sequence: every n-th frame")
     ap.add_argument("--height", type=int, default=TrainConfig.height,
                     help="network input height (default %(default)s)")
     ap.add_argument("--width", type=int, default=TrainConfig.width,
@@ -835,6 +879,10 @@ def main(argv: list[str] | None = None) -> int:
                       width=a.width, lr=a.lr, init=a.init)
     if a.height < 8 or a.width < 8:
         ap.error(f"--height {a.height} / --width {a.width}: at least 8 pixels")
+    if a.sequence is not None:
+        problem = sequence_problem(a.sequence)
+        if problem:
+            ap.error(f"--sequence: {problem}")
     base = None
     if a.init is not None:
         if not a.init.is_file():
@@ -849,16 +897,23 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if base is not None:
         stats["base"] = base
+    card = card_path(cfg.out)
+
+    def describe() -> None:
+        # Right after the model: whatever fails later, the card and .train.json beside
+        # it describe these weights, not an earlier run's.
+        write_card(card, cfg, stats)
+        atomic_write_text(Path(cfg.out).with_suffix(".train.json"), json.dumps(
+            {"config": {k: str(v) if isinstance(v, Path) else v
+                        for k, v in asdict(cfg).items() if k != "log"}, **stats}, indent=2))
+
+    describe()
     if a.sequence is not None:
         stats["sequence_eval"] = {"sequence": str(a.sequence), "every": a.every,
                                   **evaluate_sequence(cfg.out, a.sequence, a.every,
                                                       cfg.threads)}
         print(f"quickstart sequence (oracle scale): {stats['sequence_eval']}")
-    card = Path(cfg.out).with_name("MODEL_CARD.md")
-    write_card(card, cfg, stats)
-    (Path(cfg.out).with_suffix(".train.json")).write_text(json.dumps(
-        {"config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()
-                    if k != "log"}, **stats}, indent=2))
+        describe()
     print(f"wrote {cfg.out} ({Path(cfg.out).stat().st_size / 1e6:.1f} MB) and {card}")
     return 0
 
