@@ -236,6 +236,50 @@ def test_depth_stage_gives_the_network_its_camera(tmp_path: Path) -> None:
     assert f"times {factor:.4f}" in (tmp_path / "run" / "report.md").read_text()
 
 
+def test_depth_stage_takes_a_calibrated_camera_from_upstream(tmp_path: Path) -> None:
+    """A calibrate stage's rig replaces the sequence's camera in fuse; the depth stage gave
+    a camera-input network the sequence's own intrinsics all the same."""
+    from dataclasses import replace
+
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.depth.store import DepthStore
+    from toolkit.fusion.synthetic import write_box_room
+    from toolkit.io.sequence import read_sequence, write_rig
+    from toolkit.recipe.stage import Stage, StageConfig
+
+    seq_dir = write_box_room(tmp_path / "seq", n_frames=2)  # 160x120 images
+    rig = read_sequence(seq_dir).rig
+    calibrated = replace(rig, camera=replace(rig.camera, fx=rig.camera.fx * 1.5))
+
+    class RigConfig(StageConfig):
+        pass
+
+    class RigStage(Stage):
+        name = "t_rig"
+        Config = RigConfig
+        provides = ("rig",)
+
+        def run(self, ctx: object) -> None:
+            path = ctx.stage_dir / "rig.yaml"  # type: ignore[attr-defined]
+            write_rig(path, calibrated)
+            ctx.provide("rig", path)  # type: ignore[attr-defined]
+
+    path = _intrinsics_model(tmp_path / "uni.onnx", [1, 3, 3],
+                             np.array([[[1, 0, 0], [0, 0, 0], [0, 0, 0]]], np.float32),
+                             TensorProto.FLOAT)
+    res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq_dir)},
+                                {"stage": "t_rig"},
+                                {"stage": "depth", "model": str(path), "threads": 1,
+                                 "output": "metric_depth", "input_size": [60, 80],
+                                 "multiple_of": 1, "intrinsics_input": "K"}],
+                     {"t_sequence": SequenceFolder, "t_rig": RigStage, "depth": DepthStage})
+    assert res.ok, res.error
+    store = DepthStore(tmp_path / "run" / "depth" / "depth")
+    np.testing.assert_allclose(store.read(0).values, calibrated.camera.fx * 0.5, rtol=1e-5)
+
+
 def _confidence_model(path: Path, shape: list) -> Path:
     """UniDepth V2's export layout: out_K, depth, depth_ssi, confidence. depth =
     softplus(mean over the channels), confidence = the first input channel."""

@@ -168,6 +168,9 @@ class DepthStage(Stage):
     name = "depth"
     Config = DepthConfig
     requires = ("sequence",)
+    # rig: a calibrated camera (calibrate), whose intrinsics a Metric3D / UniDepth export
+    # takes, as the fuse stage uses them (it used the sequence's own)
+    optional_requires = ("rig",)
     provides = ("depth",)
     # 2: BGR default normalisation; input_hw recorded; order-free wander. 3: simulated: the
     # wander's first value drawn before its steps (no jump at frames 256, 512, ...), the
@@ -209,10 +212,15 @@ class DepthStage(Stage):
         return cfg.model_copy(update={"backend": "onnx", "model": path})
 
     def run(self, ctx: StageContext) -> None:
-        from toolkit.io.sequence import read_sequence
+        from toolkit.io.sequence import SequenceFormatError, read_sequence, sequence_with_rig
 
         cfg: DepthConfig = self.config  # type: ignore[assignment]
         seq = read_sequence(ctx.artifact("sequence"))
+        if ctx.has_artifact("rig"):
+            try:
+                seq = sequence_with_rig(seq, ctx.artifact("rig"))
+            except SequenceFormatError as e:
+                raise StageError(f"depth: {e}") from None
         if not seq.frames:
             raise StageError(f"depth: sequence {seq.name} has no camera frames")
         random_weights = cfg.backend == "dav2s_random"
