@@ -45,6 +45,37 @@ def test_estimators_recover_scale_with_30_percent_outliers(method: str, opts: di
     assert 0.6 * len(l) < est.inliers < 0.85 * len(l)
 
 
+def _near_outliers(n: int, fraction: float, lo: float, hi: float,
+                   seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Scale 2 with 1 % noise; ``fraction`` of the pairs see lo..hi x further (the lidar
+    past a depth edge the camera's pixel is in front of)."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.8, 6.0, n)
+    d = z / 2 * (1 + 0.01 * rng.standard_normal(n))
+    l = z.copy()
+    bad = rng.random(n) < fraction
+    l[bad] = z[bad] * rng.uniform(lo, hi, bad.sum())
+    return l, d
+
+
+@pytest.mark.parametrize("n", [150, 300, 600])
+def test_clustered_does_not_chain_into_outliers_near_the_scale(n: int) -> None:
+    """A DBSCAN cluster is a chain: once outliers are dense enough to be core points it ran
+    from the true ratio into them (30 % of the pairs 0-50 % further: up to 8 % off at 150-600
+    pairs, flagged ok; 60 % of them 1.1-2.5x further: another cluster, up to 95 % off).
+    Ratios with no common scale are flagged, not fitted."""
+    for seed in range(6):
+        for fraction, lo, hi in ((0.3, 1.0, 1.5), (0.6, 1.1, 2.5)):
+            est = estimate_scale("clustered", *_near_outliers(n, fraction, lo, hi, seed),
+                                 min_pairs=20)
+            assert est.quality == OK and est.scale == pytest.approx(2.0, rel=0.01), (
+                seed, fraction, est)
+        rng = np.random.default_rng(seed)
+        z = rng.uniform(0.8, 6.0, n)
+        junk = estimate_scale("clustered", z, z / 2 * rng.uniform(0.3, 3.0, n), min_pairs=20)
+        assert junk.quality != OK, (seed, junk)
+
+
 def test_plain_paper_ratio_is_biased_by_outliers() -> None:
     # Why the ratio estimator gates pairs by default: alpha = sum(l) / sum(d) over all
     # pairs is pulled by the outliers.
@@ -398,3 +429,20 @@ def test_a_long_gap_borrows_the_pair_of_its_nearest_good_frames() -> None:
     assert all(sm.shift[i] == 0.10 for i in (5, 8, 14, 20))
     assert all(sm.shift[i] == 0.40 for i in (25, 35))
     assert len(smooth_scales([]).scale) == 0  # was a TypeError
+
+
+def test_labels_say_whether_pairs_were_few_or_disagreed() -> None:
+    """150 pairs with no common scale are low_inliers (they were labelled few_pairs, "too
+    few lidar pairs", sending users to the lidar's coverage); a zero ratio gate, which no
+    pair passes, is refused with the setting for the plain formula."""
+    from pydantic import ValidationError
+
+    from toolkit.fusion.pipeline import FusionConfig
+
+    rng = np.random.default_rng(0)
+    z = rng.uniform(0.8, 6.0, 150)
+    est = estimate_scale("robust", z, z * rng.uniform(0.3, 3.0, 150), min_pairs=20)
+    assert est.quality == "low_inliers"
+    assert estimate_scale("robust", z[:10], z[:10], min_pairs=20).quality == "few_pairs"
+    with pytest.raises(ValidationError, match="null for the paper's plain sum"):
+        FusionConfig(ratio_gate=0)

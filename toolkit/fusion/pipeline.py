@@ -62,7 +62,9 @@ class FusionConfig(BaseModel):
 
     # scale estimation
     scale: Literal["ratio", "clustered", "robust", "none"] = "clustered"
-    ratio_gate: float | None = 0.2  # log-ratio gate for valid pairs; None: paper's plain sum
+    # log-ratio gate for valid pairs; None (null): the paper's plain sum. Not 0: no pair
+    # passes a zero gate, and every frame went unscaled.
+    ratio_gate: float | None = 0.2
     cluster_algorithm: Literal["dbscan", "meanshift"] = "dbscan"
     cluster_eps: float = Field(0.03, gt=0)
     cluster_min_samples: int = 5
@@ -177,6 +179,10 @@ class FusionConfig(BaseModel):
         if self.min_depth_m >= self.max_depth_m:
             raise ValueError(f"min_depth_m ({self.min_depth_m}) must be below max_depth_m "
                              f"({self.max_depth_m}): no depth would reach the map")
+        if self.ratio_gate is not None and not self.ratio_gate > 0:
+            raise ValueError(f"ratio_gate {self.ratio_gate}: no pair passes a gate of 0 and "
+                             "no frame would get a scale; give a positive log-ratio gate "
+                             "(0.2), or null for the paper's plain sum over all pairs")
         return self
 
     def cloud_options(self, fx: float = 0.0) -> CloudOptions:
