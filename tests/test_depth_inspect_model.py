@@ -107,6 +107,10 @@ def test_cli_names_a_bad_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> 
         with pytest.raises(SystemExit):
             main([str(bad), "--set", arg])
         assert "--set" in capsys.readouterr().err
+    # values read as a recipe reads them (YAML 1.2: 0240 is 240, not octal 160)
+    from toolkit.depth.inspect_model import _set_value
+
+    assert _set_value("input_size=[0240,0320]") == ("input_size", [240, 320])
     # a misspelt key is refused before it is printed into a stage
     if SHIPPED.is_file():
         assert main([str(SHIPPED), "--set", "min_confidense=0.5"]) == 2

@@ -364,6 +364,10 @@ def test_set_overrides_are_validated(tmp_path: Path) -> None:
         load_recipe(path, ["t_source.label=true"])
     quoted = load_recipe(path, ['t_source.label="true"']).stages[0].config
     assert quoted.label == "true"  # type: ignore[attr-defined]
+    # Text read as text: quoting is no fix, so it is not suggested.
+    with pytest.raises(RecipeError) as text_value:
+        load_recipe(path, ["t_double.factor=five"])
+    assert "quote" not in str(text_value.value)
     recipe = load_recipe(path, ["t_double.factor=5", "name=renamed", "output=elsewhere"])
     assert recipe.stages[1].config.factor == 5  # type: ignore[attr-defined]
     assert (recipe.name, recipe.output) == ("renamed", Path("elsewhere"))
@@ -1234,3 +1238,15 @@ def test_recipe_values_that_read_as_something_else_are_named(
     data["stages"][0]["id"] = ""
     with pytest.raises(RecipeError, match="id '' may hold only"):
         _run(_write_recipe(tmp_path, data))
+
+
+def test_a_bad_value_of_a_generic_union_member_is_named_by_its_key(tmp_path: Path) -> None:
+    """depth.input_size is tuple[int, int] | int: pydantic tags the tuple branch
+    'tuple[int, int]', which was left in the path the user was shown."""
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump({"name": "t", "output": str(tmp_path / "out"), "stages": [
+        {"stage": "depth", "backend": "simulated", "input_size": "abc"}]}))
+    with pytest.raises(RecipeError) as e:
+        load_recipe(path, [])
+    assert "stages[0] (depth): input_size: Input should be a valid tuple" in str(e.value)
+    assert "tuple[int, int]" not in str(e.value)

@@ -307,7 +307,8 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="Depth-Anything-V2-Small-sized ONNX latency")
+    ap = argparse.ArgumentParser(prog="python -m toolkit.depth.bench_latency",
+                                 description="Depth-Anything-V2-Small-sized ONNX latency")
     ap.add_argument("--out", type=Path, default=Path("runs/bench/depth_latency.json"))
     ap.add_argument("--sizes", default="518x518,364x364,308x308,266x350",
                     help="HxW list, multiples of 14 (266x350 keeps a 640x480 frame's 4:3)")

@@ -215,12 +215,15 @@ def stage_yaml(model: Path, sug: Suggestion) -> str:
 def _set_value(text: str) -> tuple[str, Any]:
     import yaml
 
+    from toolkit.recipe.schema import read_yaml_value
+
     key, sep, value = text.partition("=")
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"--set {text!r}: give KEY=VALUE (e.g. "
                                          "output=relative_disparity, input_size=[518,518])")
     try:
-        return key.strip(), yaml.safe_load(value)
+        # As a recipe reads it (YAML 1.2): this prints a stage to paste into one.
+        return key.strip(), read_yaml_value(value)
     except yaml.YAMLError as e:
         raise argparse.ArgumentTypeError(f"--set {text!r}: the value is not YAML ({e})"
                                          ) from None
@@ -262,7 +265,8 @@ def try_on_image(model: Path, settings: dict[str, Any], rgb: np.ndarray,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+    ap = argparse.ArgumentParser(prog="python -m toolkit.depth.inspect_model",
+                                 description=__doc__.split("\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n\n", 1)[1])
     ap.add_argument("model", type=Path, help="the .onnx file")

@@ -827,7 +827,8 @@ def _positive_float(text: str) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m toolkit.depth.train_small",
+                                 description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=TrainConfig.out)
     ap.add_argument("--minutes", type=_positive_float, default=TrainConfig.minutes)
     ap.add_argument("--images-per-house", type=_positive_int, default=TrainConfig.images_per_house)

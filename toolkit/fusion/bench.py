@@ -139,16 +139,20 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="fusion throughput (network excluded)")
-    ap.add_argument("--sequence", type=Path, default=None)
-    ap.add_argument("--frames", type=positive_int, default=300)
+    ap = argparse.ArgumentParser(prog="python -m toolkit.fusion.bench",
+                                 description="fusion throughput (network excluded)")
+    ap.add_argument("--sequence", type=Path, default=None,
+                    help="a simulated sequence folder (its ground-truth depth is made into "
+                         "monocular-like predictions); default: a synthetic box room")
+    ap.add_argument("--frames", type=positive_int, default=300,
+                    help="frames fused per timed run (default %(default)s)")
     ap.add_argument("--scale", default=None, choices=["ratio", "clustered", "robust"],
                     help="scale estimator (default: the --stage's, else clustered)")
     ap.add_argument("--stride", type=positive_int, default=None,
                     help="pixel stride of the map (default: the --stage's, else 2)")
     ap.add_argument("--refine", default=None, choices=["none", "floor_lidar", "lidar"],
                     help="shape correction (default: the --stage's, else none)")
-    ap.add_argument("--consensus", action="store_true", default=None,
+    ap.add_argument("--consensus", action=argparse.BooleanOptionalAction, default=None,
                     help="multi-view consensus filter (default: the --stage's, else off)")
     ap.add_argument("--exposure", choices=["none", "gain"], default=None,
                     help="exposure gains solved and divided out (default: the --stage's, "
@@ -161,7 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stage", default=None, help="id of that fuse stage (with --recipe)")
     ap.add_argument("--repeat", type=positive_int, default=3,
                     help="timed runs; the figures are the fastest run's")
-    ap.add_argument("--out", type=Path, default=Path("runs/bench/fusion.json"))
+    ap.add_argument("--out", type=Path, default=Path("runs/bench/fusion.json"),
+                    help="JSON figures written here, replacing the file (default "
+                         "%(default)s, under the current folder)")
     a = ap.parse_args(argv)
     if a.out.is_dir():
         ap.error(f"--out {a.out} is a folder; give the JSON file to write")

@@ -161,6 +161,16 @@ def read_yaml_value(text: str) -> Any:
     return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
 
 
+def _read_otherwise(item: str) -> bool:
+    """Whether a ``--set KEY=VALUE`` value is not the text typed once read as YAML (true,
+    null, 1.10, [a]): only then is quoting it the fix to suggest."""
+    value = item.partition("=")[2]
+    try:
+        return not isinstance(read_yaml_value(value), str)
+    except yaml.YAMLError:
+        return True
+
+
 def _mapping_without_repeats(loader: _UniqueKeyLoader, node: yaml.MappingNode,
                              deep: bool = False) -> dict[Any, Any]:
     seen: dict[Any, int] = {}
@@ -271,7 +281,8 @@ def parse_recipe(
     if not problems:
         specs = _wire_artifacts(specs, problems)
     if problems:
-        if overrides and any("unknown key" not in q for q in problems):
+        if any(_read_otherwise(o) for o in overrides) and any(
+                "unknown key" not in q for q in problems):
             # A --set value is YAML: true, null, 1.10, [a] and '#...' are not the text typed
             # (said for a bad value; a misspelt key has its own "did you mean").
             problems.append(
@@ -622,7 +633,8 @@ def _resolve_loc(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[tuple[An
         current = _unwrap(current)
         members = _union_members(current)
         if members is not None:
-            match = [m for m in members if getattr(m, "__name__", None) == part]
+            # pydantic tags a generic member by its repr ('tuple[int, int]')
+            match = [m for m in members if part in (getattr(m, "__name__", None), str(m))]
             if match:  # a union tag: not part of the user's path
                 current = match[0]
                 continue

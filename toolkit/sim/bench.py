@@ -119,7 +119,8 @@ def run_bench(duration_s: float = 20.0, preset: str = "small_house", seed: int =
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m toolkit.sim.bench",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of driving")
     ap.add_argument("--preset", default="small_house", choices=["small_house", "large_building"])
     ap.add_argument("--seed", type=int, default=0)

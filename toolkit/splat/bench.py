@@ -140,7 +140,8 @@ def run_bench(n: int = 50_000, width: int = 320, height: int = 240, backends: tu
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="python -m toolkit.splat.bench",
+                                description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("bench_splat.json"))
     p.add_argument("-n", "--gaussians", type=positive_int, default=50_000)
