@@ -260,6 +260,7 @@ class Sequence:
 
     @property
     def time_span(self) -> tuple[float, float]:
+        """(first, last) stamp in seconds over the camera frames and scans together."""
         stamps = np.concatenate([self._frame_stamps, self._scan_stamps])
         if len(stamps) == 0:
             raise ValueError("empty sequence")
