@@ -95,9 +95,24 @@ def test_moving_pixels_cover_the_walking_box_at_full_resolution(box_room: Path) 
     assert box > 500 and hit > 0.95 * box and wrong < 0.7 * hit
 
 
-def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path) -> None:
+def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     from toolkit.depth.stage import DepthStage
+    from toolkit.depth.store import DepthStore
+    from toolkit.fusion import figures
     from toolkit.fusion.stage import FuseStage
+
+    drawn: dict = {}
+    depth_panels = figures.depth_panels
+
+    def keep_panels(path: Path, rgb: np.ndarray, unscaled: np.ndarray, scaled: np.ndarray,
+                    gt: np.ndarray | None, title: str = "",
+                    refined: np.ndarray | None = None) -> None:
+        drawn.update(panels=figures.depth_panel_images(unscaled, scaled, gt, refined),
+                     title=title)
+        depth_panels(path, rgb, unscaled, scaled, gt, title, refined)
+
+    monkeypatch.setattr(figures, "depth_panels", keep_panels)
 
     # Registered for the run: the registry may not list depth/fuse yet in isolation.
     res = run_stages(tmp_path, [
@@ -125,6 +140,23 @@ def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path) ->
         assert f"(fuse/{png})" in report and (run / "fuse" / png).stat().st_size > 1000
     assert (run / "fuse" / "map.ply").exists() and (run / "fuse" / "scales.csv").exists()
     assert len(list((run / "fuse" / "scaled_depth").glob("*.png"))) == 20
+    # The depth figure's "scaled" panel is the prediction x the frame's lidar scale (+ shift),
+    # what "scaled" means in every table; the shape-corrected depth the map used has a panel
+    # of its own (it was drawn as "scaled", with about half the error of the scale alone).
+    i = int(re.match(r"frame (\d+): ", drawn["title"]).group(1))
+    rows = [r.split(",") for r in
+            (run / "fuse" / "scaled_depth" / "index.csv").read_text().splitlines()[1:]]
+    s, t = next((float(r[3]), float(r[4])) for r in rows if int(r[0]) == i)
+    panels = drawn["panels"]
+    expected = DepthStore(run / "depth" / "depth").read(i).as_depth(s, t)  # [H, W]
+    np.testing.assert_array_equal(panels["scaled"], expected)
+    assert list(panels) == ["unscaled", "scaled", "after shape correction", "ground truth",
+                            "|scaled - truth|", "|corrected - truth|"]
+    assert not np.array_equal(panels["after shape correction"], expected, equal_nan=True)
+    gt = read_sequence(box_room).groundtruth.depth(i)
+    ok = (gt > 0) & np.isfinite(expected)
+    np.testing.assert_allclose(panels["|scaled - truth|"][ok], np.abs(expected - gt)[ok])
+    assert "then shape correction floor_lidar" in drawn["title"]
 
 
 def test_projection_matches_simulator_ground_truth(tmp_path: Path) -> None:

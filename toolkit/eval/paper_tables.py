@@ -529,7 +529,7 @@ class PaperTablesStage(Stage):
                    "check/overlay_vs_rotated_0.png", "lidar overlay, true vs rotated 2 deg")),
             ("Figure 3: lidar points projected into the image (fusion pairs)",
              _link(fuse, "lidar_overlay.png", "lidar overlay")),
-            ("Figure 6: depth error, scaled vs unscaled",
+            ("Figure 6: depth error, scaled (per-frame lidar scale) vs unscaled",
              _link(fuse, "depth_scaled_vs_unscaled.png", "depth error")),
             ("The coloured map (fused cloud)", _link(fuse, "map_views.png", "map views")),
             ("The TSDF mesh", _link(res.get(first.tsdf) if first.tsdf else None, "views.png",

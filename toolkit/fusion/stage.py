@@ -530,7 +530,10 @@ class FuseStage(Stage):
                     st.depth_rows.append(f"{i},{seq.frames[i].stamp!r},{name},{s!r},{t!r}")
                 st.pose_rows.append((seq.frames[i].stamp, fusion.T_world_camera(i)))
                 if i == fig_frame:
-                    st.fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp, s)
+                    # The per-frame-scaled depth last: a checkpoint of an older run
+                    # ends at the scale.
+                    st.fig_data = (i, rgb, pred.as_depth(1.0, 0.0), scaled, g, fp, s,
+                                   alpha_scaled)
                 st.map_done += 1
                 if ckpt.due():
                     writes.flush()  # the checkpoint promises these frames' files
@@ -802,16 +805,28 @@ class FuseStage(Stage):
                          f"{100 * m['scale_error_max']:.1f} %")
         md.append("\n".join(f"- {e}" for e in extra))
         if fig_data is not None:
-            i, rgb, unscaled, scaled, g, fp, *used = fig_data  # type: ignore[misc]
+            i, rgb, unscaled, fused, g, fp, *used = fig_data  # type: ignore[misc]
             # The scale the panel's depth was scaled by (smoothed, or lent to a flagged
             # frame), not the frame's own fit (a checkpoint of an older run holds only that).
             scale = float(used[0]) if used else fp.estimate.scale
             own = (f", its own fit {fp.estimate.scale:.3f}"
                    if used and abs(fp.estimate.scale - scale) > 5e-4 * scale else "")
+            if len(used) > 1:
+                scaled = used[1]
+            else:  # an older run's checkpoint kept only the depth the map used
+                j = frames.index(i)
+                scaled = store.read(i).as_depth(float(sm.scale[j]),  # type: ignore[attr-defined]
+                                                float(sm.shift[j]))  # type: ignore[attr-defined]
+            # "scaled" is the per-frame scale alone, as in every table; the map's depth
+            # after the shape correction is a panel of its own (drawn as "scaled" it showed
+            # half the error of the paper's method).
+            refined = None if np.array_equal(fused, scaled, equal_nan=True) else fused
             figures.lidar_overlay(ctx.stage_dir / "lidar_overlay.png", rgb, fp.lidar.uv,
                                   fp.lidar.z, f"frame {i}: lidar in the image")
             figures.depth_panels(ctx.stage_dir / "depth_scaled_vs_unscaled.png", rgb, unscaled,
-                                 scaled, g, f"frame {i}: scale {scale:.3f}{own}")
+                                 scaled, g, f"frame {i}: scale {scale:.3f}{own}"
+                                 + (f", then shape correction {cfg.refine}"
+                                    if refined is not None else ""), refined)
             md.append(f"![lidar overlay]({sid}/lidar_overlay.png)")
             md.append(f"![scaled vs unscaled depth]({sid}/depth_scaled_vs_unscaled.png)")
         frames_arr = np.array(frames)
