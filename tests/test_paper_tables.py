@@ -82,7 +82,8 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     fuse = {"work_seconds": 3.0, "work_cpu_seconds": 3.0, "work_frames": 100,
             "lidar_unscaled_rmse_m": 1.5, "lidar_scaled_rmse_m": 0.12,
             "lidar_rmse_ratio_scaled_unscaled": 0.08, "gt_scaled_absrel": 0.03,
-            "gt_rmse_ratio_scaled_unscaled": 0.12, "dynamic_fraction": 0.004}
+            "gt_rmse_ratio_scaled_unscaled": 0.12, "dynamic_fraction": 0.004,
+            "dynamic_fraction_before_carving": 0.007, "dynamic_fraction_raw": 0.005}
     geo = {"accuracy_mean_m": 0.02, "completeness_mean_m": 0.03, "chamfer_m": 0.025,
            "fscore_2cm": 0.5, "fscore_5cm": 0.92, "fscore_10cm": 0.97}
 
@@ -133,6 +134,10 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     report = (tmp_path / "run" / "report.md").read_text()
     for heading in ("Table I", "Table II", "Table III", "Table IV", "Targets"):
         assert heading in report
+    # The share before carving is over the map the same consensus and outlier steps leave
+    # (the raw map's, 0.5 %, is before those steps too: it read as if carving added people).
+    assert ("| 0.40 % (0.70 % without carving, after the same consensus and outlier steps; "
+            "without removal 6.00 %) |") in report
     assert (tmp_path / "run" / "paper_tables" / "figure5_trajectories.png").exists()
 
     # A "without removal" stage that did remove moving obstacles is refused, by name.

@@ -454,7 +454,7 @@ class PaperTablesStage(Stage):
                 "lidar_visible_rmse_ratio_scaled_unscaled", "pairs_visible_fraction",
                 "lidar_unscaled_rmse_m", "lidar_scaled_rmse_m", "lidar_rmse_ratio_scaled_unscaled",
                 "gt_scaled_rmse_m", "gt_scaled_absrel", "gt_scaled_delta1", "scale_error_median",
-                "dynamic_fraction", "dynamic_fraction_before_carving",
+                "dynamic_fraction", "dynamic_fraction_before_carving", "dynamic_fraction_raw",
                 "gt_rmse_ratio_scaled_unscaled", "gt_refined_rmse_m", "gt_refined_absrel",
                 "refine")}
             dyn = m.get("dynamic_fraction")
@@ -469,6 +469,12 @@ class PaperTablesStage(Stage):
                                + (f" (without the removal: {100 * dyn_off:.2f} %)"
                                   if dyn_off is not None else ""),
                                f"{100 * dyn:.2f} %", dyn <= cfg.dynamic_fraction_target))
+            # A fuse result of older code held the raw map's share there: before the
+            # consensus and outlier steps too, which drop static voxels (and so it read as if
+            # carving added people: 0.38 % before, 0.48 % after).
+            before_carving = ("without carving, after the same consensus and outlier steps"
+                              if "dynamic_fraction_raw" in m else
+                              "of the raw map, before carving, consensus and outlier steps")
             gt_ratio = m.get("gt_rmse_ratio_scaled_unscaled")
             ok = ok_vis = ok_gt = None
             if first and ratio is not None:
@@ -497,8 +503,9 @@ class PaperTablesStage(Stage):
                 f"{_num(m.get('gt_scaled_absrel'))} | {_num(m.get('gt_scaled_delta1'))} | "
                 f"{_num(m.get('gt_refined_absrel'))} | "
                 f"{_num(m.get('scale_error_median'), '.1f', 100, ' %')} | "
-                f"{_num(dyn, '.2f', 100, ' %')} (before carving, after lidar masking "
-                f"{_num(m.get('dynamic_fraction_before_carving'), '.2f', 100, ' %')}"
+                f"{_num(dyn, '.2f', 100, ' %')} "
+                f"({_num(m.get('dynamic_fraction_before_carving'), '.2f', 100, ' %')} "
+                f"{before_carving}"
                 + (f"; without removal {_num(dyn_off, '.2f', 100, ' %')}"
                    if row.fuse_without_removal else "") + ") |")
         if cfg.camera_only:
