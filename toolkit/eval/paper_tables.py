@@ -71,6 +71,12 @@ class PaperTablesConfig(StageConfig):
     cpu_load_limit_pct: float = 200.0
     depth_ratio_target: float = 0.10
     dynamic_fraction_target: float = Field(0.01, ge=0, le=1)  # map points on moving obstacles
+    # The first row with simulated depth: its scaled AbsRel vs ground truth, and the median
+    # over frames of each frame's cloud's median distance to the true mesh.
+    absrel_target: float = Field(0.05, gt=0)
+    frame_to_mesh_target_m: float = Field(0.03, gt=0)
+    # The first row's fusion alone (network excluded), wall clock with the end of the run.
+    fusion_fps_target: float = Field(30.0, gt=0)
     splat_psnr_target_db: float = 28.0
     splat_gain_over_tsdf_target_db: float = 3.0
     max_time_diff_s: float = 0.02
@@ -183,6 +189,7 @@ class PaperTablesStage(Stage):
         md += self._table_ii(cfg, res, tables, checks)
         md += self._table_iii(cfg, res, tables, checks)
         md += self._table_iv(cfg, res, tables, checks)
+        self._fusion_checks(cfg, res, checks)
         md += self._figures(cfg, res)
         if cfg.calibrate:
             cm = res[cfg.calibrate].metrics
@@ -419,6 +426,43 @@ class PaperTablesStage(Stage):
                "numbers are not comparable with this house and are not quoted.", ""]
         tables["table_iii"] = out
         return md
+
+    # ------------------------------------------------------------------ fusion targets
+    @staticmethod
+    def _fusion_checks(cfg: PaperTablesConfig, res: dict[str, StageResult],
+                       checks: list) -> None:
+        """The fusion's targets of docs/depth_fusion.md that no table checks: scaled AbsRel
+        and per-frame map-to-mesh distance with simulated depth (a network's error is its
+        own), and the fusion's throughput without the network."""
+        rows = [r for r in cfg.rows if r.fuse and not r.timing_only]
+        sim = next((r for r in rows if r.depth and
+                    res[r.depth].metrics.get("backend") == "simulated"), None)
+        if sim is not None:
+            m = res[sim.fuse].metrics  # type: ignore[index]
+            absrel = m.get("gt_scaled_absrel")
+            if absrel is not None:
+                checks.append((f"{sim.label}: scaled depth AbsRel vs ground truth <= "
+                               f"{cfg.absrel_target:g} (simulated depth)", f"{absrel:.3f}",
+                               absrel <= cfg.absrel_target))
+            d = m.get("frame_to_mesh_median_m")
+            if d is not None:
+                worst = m.get("frame_to_mesh_median_max_m")
+                checks.append((f"{sim.label}: per-frame median map-to-mesh distance, median "
+                               f"over frames <= {100 * cfg.frame_to_mesh_target_m:g} cm "
+                               "(simulated depth)", f"{100 * d:.1f} cm"
+                               + (f" (worst frame {100 * worst:.1f} cm)"
+                                  if worst is not None else ""),
+                               d <= cfg.frame_to_mesh_target_m))
+        if rows:
+            m = res[rows[0].fuse].metrics  # type: ignore[index]
+            fps = m.get("fusion_fps")
+            if fps is not None:
+                per_frame = m.get("fusion_fps_per_frame_only")
+                checks.append((f"{rows[0].label}: fusion >= {cfg.fusion_fps_target:g} frames/s "
+                               "(network excluded, wall clock with the end of the run)",
+                               f"{fps:.1f} frames/s" + (f" (per-frame work {per_frame:.1f})"
+                                                        if per_frame is not None else ""),
+                               fps >= cfg.fusion_fps_target))
 
     # ------------------------------------------------------------------ Table IV
     def _table_iv(self, cfg: PaperTablesConfig, res: dict[str, StageResult],
