@@ -1,6 +1,7 @@
 """Fusion on a raycast box room with a walking box: projection vs ground truth, the moving
 box carved out of the map, and the depth + fuse stages through the recipe runner."""
 
+import os
 import re
 from pathlib import Path
 
@@ -168,6 +169,10 @@ def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path,
     assert res.ok, res.error
     m = res.metrics["fuse"]
     assert m["poses"] == "groundtruth"
+    # The cores the work ran on, for Table II's heading (a cached stage's may be another
+    # machine's): the process's affinity mask.
+    assert m["work_cpu_cores"] == res.metrics["depth"]["work_cpu_cores"] == len(
+        os.sched_getaffinity(0))
     assert m["gt_scaled_rmse_m"] < 0.5 * m["gt_unscaled_rmse_m"]
     assert m["scale_error_median"] < 0.03
     # The shape correction ran on the frames and took their error down, not up.

@@ -172,3 +172,34 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     spec["stages"][4]["figures"] = {"dynamic_fraction": 0.004}
     res = run_recipe(parse_recipe(spec))
     assert not res.ok and "does not record dynamic_removal" in res.error
+
+
+def test_table_ii_heading_says_what_the_stages_ran_on() -> None:
+    """The heading comes from the cores and depth device the stages recorded (it was a
+    fixed "2 CPU cores, no GPU", also for a depth stage on cuda on a 16-core machine)."""
+    from toolkit.eval.paper_tables import PaperTablesConfig, PaperTablesStage, TableRow
+    from toolkit.recipe.stage import StageResult
+
+    def heading(cores: list[int | None], devices: list[str]) -> str:
+        work = [{"work_seconds": 1.0, "work_cpu_seconds": 2.0, "work_frames": 100}
+                | ({"work_cpu_cores": c} if c else {}) for c in cores]
+        metrics = {"slam2d": work[0], "fuse": work[1]}
+        rows = []
+        for k, dev in enumerate(devices):
+            metrics[f"depth{k}"] = work[2 + k] | {"device": dev}
+            rows.append(TableRow(label=f"R{k}", depth=f"depth{k}", fuse="fuse"))
+        res = {i: StageResult(i, i, m, 1.0, 1.0, Path("/nonexistent") / i)
+               for i, m in metrics.items()}
+        cfg = PaperTablesConfig(rows=rows)
+        return PaperTablesStage(cfg)._table_ii(cfg, res, {}, [])[0]
+
+    assert heading([16, 16, 16], ["cuda"]) == (
+        "### Table II: runtime (16 CPU cores; depth of 'R0' on cuda)")
+    assert heading([2, 2, 2, 2], ["cpu", "cpu"]) == (
+        "### Table II: runtime (2 CPU cores; no GPU used)")
+    # Cached stages of another machine, and one from before the cores were recorded.
+    assert heading([2, 16, None, 16], ["cpu", "cuda"]) == (
+        "### Table II: runtime (2-16 CPU cores: stages from different machines, not recorded "
+        "by 1 of 4 stages; depth of 'R1' on cuda)")
+    assert heading([None, None, None], ["cpu"]) == (
+        "### Table II: runtime (CPU cores not recorded; no GPU used)")

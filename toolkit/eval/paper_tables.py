@@ -139,6 +139,30 @@ def _per_frame(m: dict[str, Any], key: str, default_frames: int) -> float:
     return float(m[key]) / max(int(m.get("work_frames") or default_frames), 1)
 
 
+def _machine(timed: list[dict[str, Any]], depth: dict[str, dict[str, Any]]) -> str:
+    """What ran Table II's stages, from what they recorded: the CPU cores of the stages in
+    ``timed`` (``work_cpu_cores``) and the device of each row's depth stage in ``depth``
+    (by row label). A fixed "2 CPU cores, no GPU" was wrong for a run anywhere else."""
+    cores = sorted({int(m["work_cpu_cores"]) for m in timed if m.get("work_cpu_cores")})
+    missing = sum(not m.get("work_cpu_cores") for m in timed)
+    if not cores:
+        text = "CPU cores not recorded"
+    else:
+        # Cached stages keep the figures of the machine that ran them.
+        text = (f"{cores[0]} CPU cores" if len(cores) == 1 else
+                f"{cores[0]}-{cores[-1]} CPU cores: stages from different machines")
+        if missing:
+            text += f", not recorded by {missing} of {len(timed)} stages"
+    devices = {label: str(m["device"]) for label, m in depth.items() if m.get("device")}
+    if not devices:
+        return f"{text}; depth device not recorded"
+    if set(devices.values()) == {"cpu"}:
+        return f"{text}; no GPU used" + ("" if len(devices) == len(depth) else
+                                         " by the depth stages that recorded it")
+    return f"{text}; " + ", ".join(f"depth of '{label}' on {dev}"
+                                   for label, dev in devices.items() if dev != "cpu")
+
+
 def _link(res: StageResult | None, name: str, alt: str) -> str | None:
     if res is None or not (res.stage_dir / name).exists():
         return None
@@ -276,7 +300,9 @@ class PaperTablesStage(Stage):
     def _table_ii(self, cfg: PaperTablesConfig, res: dict[str, StageResult],
                   tables: dict[str, Any], checks: list) -> list[str]:
         slam = res[cfg.slam].metrics if cfg.slam else {}
-        md = ["### Table II: runtime (2 CPU cores, no GPU)", "",
+        timed: list[dict[str, Any]] = [slam] if cfg.slam else []
+        depth_of: dict[str, dict[str, Any]] = {}
+        md = ["### Table II: runtime", "",
               "Per configuration, the work of SLAM + depth network + fusion (each stage's own "
               "processing; reports and scoring excluded), frames/s over the fused frames and "
               "CPU load as % of one core.", "",
@@ -294,6 +320,8 @@ class PaperTablesStage(Stage):
                      (fus.get("work_seconds"), fus.get("work_cpu_seconds"))]
             if any(p[0] is None for p in parts):
                 continue
+            timed += [dep, fus]
+            depth_of[row.label] = dep
             frames = int(dep.get("work_frames") or 0)
             # Per-frame costs: SLAM and fusion may have handled other frame counts than depth.
             wall_pf = [_per_frame(m, "work_seconds", frames) for m in (slam, dep, fus)]
@@ -315,6 +343,8 @@ class PaperTablesStage(Stage):
                                f"{load:.0f} %", ok))
         md += [f"| paper (i9 + RTX 4090) | | | | | | {PAPER['fps']} | {PAPER['cpu_load_pct']} %"
                " |", ""]
+        if depth_of:
+            md[0] += f" ({_machine(list({id(m): m for m in timed}.values()), depth_of)})"
         notes = []
         for r in cfg.rows:
             if not r.fusion_time_from:
