@@ -249,6 +249,37 @@ def test_colmap_stage_keeps_the_database_of_a_killed_run(
     assert extractions == [1] and not res.metrics["colmap"]["database_resumed"]
 
 
+def test_colmap_figure_draws_the_lidar_path_aligned_to_ground_truth() -> None:
+    """A SLAM map frame starts at the robot's first pose, so the lidar curve is stored a
+    rigid motion away from ground truth; trajectories.png must draw it on the ground truth,
+    not 1.4 m beside it (as it did on the paper benchmark)."""
+    from scipy.spatial.transform import Rotation
+
+    from toolkit.baselines.stage import lidar_curve
+    from toolkit.geometry import Trajectory, inv_se3
+
+    n = 40
+    a = np.linspace(0.0, 1.8 * np.pi, n)
+    P = np.tile(np.eye(4), (n, 1, 1))  # [N, 4, 4] a loop in the world, heading along it
+    P[:, :3, 3] = np.stack([1.5 + np.cos(a), np.sin(a), np.full(n, 0.45)], axis=1)
+    P[:, :3, :3] = Rotation.from_euler("z", (a + np.pi / 2)[:, None]).as_matrix()
+    stamps = np.arange(n) * 0.1
+    gt = Trajectory(stamps, P, "world", "camera")
+    # The map frame: the first pose is the origin.
+    lidar = Trajectory(stamps, inv_se3(P[0]) @ P, "map", "camera")
+    assert np.linalg.norm(lidar.positions - gt.positions, axis=1).min() > 0.5
+    drawn = lidar_curve(lidar, gt)
+    assert drawn is not None
+    label, xyz = drawn
+    assert label == "lidar SLAM (SE(3)-aligned)"
+    np.testing.assert_allclose(xyz, gt.positions, atol=1e-9)
+    # No ground truth: nothing to align to, the curve is drawn as stored.
+    label, xyz = lidar_curve(lidar, None)  # type: ignore[misc]
+    assert label == "lidar SLAM" and np.array_equal(xyz, lidar.positions)
+    # No stamps in common: left out rather than drawn in another frame.
+    assert lidar_curve(Trajectory(stamps + 100.0, lidar.poses), gt) is None
+
+
 def test_colmap_without_any_poses_runs_sfm_alone(tmp_path: Path) -> None:
     """A recording with neither slam2d upstream nor ground truth: the defaults (triangulate
     and export at our poses) must not fail the stage after its SfM has run."""

@@ -48,31 +48,57 @@ def lidar_overlay(path: Path, rgb: np.ndarray, uv: np.ndarray, z: np.ndarray,
     _save(fig, path)
 
 
+def depth_panel_images(unscaled: np.ndarray, scaled: np.ndarray, gt: np.ndarray | None,
+                       refined: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The depth and error panels [H, W] of ``depth_panels`` by title, in drawing order.
+
+    ``scaled`` is the per-frame lidar scale alone, what "scaled" means in every table;
+    ``refined`` (None: no shape correction, or it changed nothing) gets a panel and an error
+    map of its own: drawn as "scaled" it showed about half the error of the paper's method.
+    """
+    panels = {"unscaled": unscaled, "scaled": scaled}
+    if refined is not None:
+        panels["after shape correction"] = refined
+    if gt is not None:
+        panels["ground truth"] = np.where(gt > 0, gt, np.nan)
+        for name, d in (("scaled", scaled), ("corrected", refined)):
+            if d is not None:
+                panels[f"|{name} - truth|"] = np.where((gt > 0) & np.isfinite(d),
+                                                       np.abs(d - gt), np.nan)
+    return panels
+
+
 def depth_panels(path: Path, rgb: np.ndarray, unscaled: np.ndarray, scaled: np.ndarray,
-                 gt: np.ndarray | None, title: str = "") -> None:
-    """Image, unscaled and scaled depth on one colour scale, and the ground truth (or the
-    scaled depth's error) when there is one."""
+                 gt: np.ndarray | None, title: str = "",
+                 refined: np.ndarray | None = None) -> None:
+    """Image, unscaled and scaled depth on one colour scale (and the depth after the shape
+    correction when ``refined`` is given), and the ground truth with each one's error when
+    there is one (``depth_panel_images``)."""
     plt = _plt()
+    panels = depth_panel_images(unscaled, scaled, gt, refined)
     ref = gt if gt is not None else scaled
     finite = ref[np.isfinite(ref) & (ref > 0)]
     vmax = float(np.percentile(finite, 98)) if len(finite) else 5.0
-    n = 5 if gt is not None else 3
-    fig, ax = plt.subplots(1, n, figsize=(3.2 * n, 3.0))
+    n = 1 + len(panels)
+    # Seven panels in one row were too small to read: two rows of four then.
+    cols = n if n <= 5 else 4
+    rows = -(-n // cols)
+    fig, ax = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    ax = ax.reshape(-1)
     ax[0].imshow(rgb)
     ax[0].set_title("image")
-    im = None
-    for a, img, name in ((ax[1], unscaled, "unscaled"), (ax[2], scaled, "scaled")):
-        im = a.imshow(img, cmap="turbo", vmin=0, vmax=vmax)
+    depth_im = err_im = None
+    depth_ax = err_ax = ax[0]
+    for a, (name, img) in zip(ax[1:], panels.items(), strict=False):
+        if name.startswith("|"):
+            err_im, err_ax = a.imshow(img, cmap="magma", vmin=0, vmax=max(0.05, 0.1 * vmax)), a
+        else:
+            depth_im, depth_ax = a.imshow(img, cmap="turbo", vmin=0, vmax=vmax), a
         a.set_title(name)
-    if gt is not None:
-        ax[3].imshow(np.where(gt > 0, gt, np.nan), cmap="turbo", vmin=0, vmax=vmax)
-        ax[3].set_title("ground truth")
-        err = np.where((gt > 0) & np.isfinite(scaled), np.abs(scaled - gt), np.nan)
-        e = ax[4].imshow(err, cmap="magma", vmin=0, vmax=max(0.05, 0.1 * vmax))
-        ax[4].set_title("|scaled - truth|")
-        fig.colorbar(e, ax=ax[4], fraction=0.046, label="m")
-    if im is not None:
-        fig.colorbar(im, ax=ax[2], fraction=0.046, label="m")
+    if depth_im is not None:
+        fig.colorbar(depth_im, ax=depth_ax, fraction=0.046, label="m")
+    if err_im is not None:
+        fig.colorbar(err_im, ax=err_ax, fraction=0.046, label="m")
     for a in ax:
         a.axis("off")
     if title:

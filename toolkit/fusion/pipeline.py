@@ -622,11 +622,14 @@ class Fusion:
         (what the fuse stage writes): not on a moving obstacle, near the multi-view
         surface when ``consensus`` is on, not a statistical outlier. Masks [V] bool:
         ``keep``, ``dynamic`` (removed as moving: lidar-detected or carved), ``consensus``
-        (removed: off the consensus surface), ``outlier``; with ``dynamic_removal`` also
-        ``carved`` (seen through by later views) and ``free_views`` / ``hit_views`` [V] int
-        (views that saw through / hit each voxel's carving cell)."""
+        (removed: off the consensus surface), ``outlier``, ``dynamic_off_surface`` (removed
+        as moving, and off the consensus surface too: the map without carving would lack
+        them as well); with ``dynamic_removal`` also ``carved`` (seen through by later
+        views) and ``free_views`` / ``hit_views`` [V] int (views that saw through / hit each
+        voxel's carving cell)."""
         raw = self.map.arrays(min_frames=self.cfg.min_voxel_frames)
-        masks = {k: np.zeros(len(raw), bool) for k in ("dynamic", "consensus", "outlier")}
+        masks = {k: np.zeros(len(raw), bool) for k in ("dynamic", "consensus", "outlier",
+                                                      "dynamic_off_surface")}
         c = self.cfg
         cell_inv: np.ndarray | None = None  # [V] carving cell of every voxel
         cell_size = 0.0
@@ -665,10 +668,15 @@ class Fusion:
         # A consensus without a surface (frames of a few pixels each) judges nothing.
         if (self.consensus is not None and self.consensus.frames and keep.any()
                 and len(self.consensus.surface())):
-            idx = np.flatnonzero(keep)
-            off = self.consensus.off_surface(raw.points[idx], c.consensus_m)
-            masks["consensus"][idx[off]] = True
-            keep[idx[off]] = False
+            # The voxels removed as moving are judged too (each point on its own, so the
+            # rest's verdicts are unchanged): the share of moving obstacles before carving
+            # is over the map the consensus leaves without it, not over the raw map (there
+            # the 1.5 M static voxels the consensus drops made carving look as if it added
+            # people: 0.38 % before, 0.48 % after, with half of them removed).
+            off = self.consensus.off_surface(raw.points, c.consensus_m)  # [V]
+            masks["consensus"] = off & keep
+            masks["dynamic_off_surface"] = off & masks["dynamic"]
+            keep &= ~off
         if c.outlier_neighbors > 0 and keep.sum() > c.outlier_neighbors:
             idx = np.flatnonzero(keep)
             pts = raw.points[idx]

@@ -10,6 +10,7 @@ sum(work_cpu_seconds) / sum(work_seconds) as % of one core (the paper's Table II
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -41,13 +42,24 @@ class WorkTimer:
         return work_metrics(self.seconds, self.cpu_seconds, frames)
 
 
+def usable_cpus() -> int:
+    """CPU cores this process may run on: its affinity mask (what taskset or a container's
+    cpuset leaves it), else the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # no affinity call on macOS / Windows
+        return os.cpu_count() or 1
+
+
 def work_metrics(seconds: float, cpu_seconds: float, frames: int) -> dict[str, float | int]:
     """``work_seconds``, ``work_cpu_seconds``, ``work_frames``, ``work_fps``,
-    ``work_cpu_load_pct`` (100 = one core busy)."""
+    ``work_cpu_load_pct`` (100 = one core busy) and ``work_cpu_cores`` (``usable_cpus``:
+    a cached stage may have run on another machine, so each records its own)."""
     return {
         "work_seconds": round(float(seconds), 4),
         "work_cpu_seconds": round(float(cpu_seconds), 4),
         "work_frames": int(frames),
         "work_fps": float(frames / seconds) if seconds > 0 else None,
         "work_cpu_load_pct": float(100.0 * cpu_seconds / seconds) if seconds > 0 else None,
+        "work_cpu_cores": usable_cpus(),
     }
