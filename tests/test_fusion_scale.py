@@ -207,6 +207,20 @@ def test_smoothing_rejects_outlier_frames_and_fills_flagged_ones() -> None:
     assert own.scale[5] == ests[5].scale
 
 
+def test_smoothing_a_drifting_scale_is_not_pulled_at_the_ends_or_beside_a_gap() -> None:
+    """A scale drifting 1.2 % per frame, exact fits: a window cut off at the sequence's
+    ends or by a lidar gap took its median from one side (the end frames 2.6 % and 2.1 %
+    off, those beside the gap 1.7 %); as many frames before as after keep them on it."""
+    true = 1.2 * np.exp(0.012 * np.arange(60))
+    ests = [ScaleEstimate(float(s), 0.0, 100, 120, OK, "x") for s in true]
+    for k in range(30, 40):
+        ests[k] = ScaleEstimate(float("nan"), 0.0, 0, 4, FEW_PAIRS, "x")
+    sm = smooth_scales(ests, window=9, outlier_tol=0.1)
+    good = np.array([e.quality == OK for e in ests])
+    assert np.max(np.abs(sm.scale[good] / true[good] - 1)) < 1e-9
+    assert np.max(np.abs(sm.scale[~good] / true[~good] - 1)) < 0.15  # filled from a side
+
+
 def test_clustered_disparity_with_a_shift_and_outliers() -> None:
     """Ratios drift with depth under a shift: the cluster takes in outliers, and a plain
     least-squares refit on it tilted the line (12-24 % depth error per frame)."""

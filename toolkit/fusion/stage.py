@@ -338,7 +338,8 @@ class FuseStage(Stage):
     #    good frames' pair; pair edges tested on depth; carving sees a distorted image whole
     # 7: consensus distance to the surface's tangent plane; a lidar cell seen through by
     #    three beams; no return is no evidence; scans past +-180 deg tested
-    # 8: clustered keeps the pairs near the densest ratio (no chain into outliers)
+    # 8: clustered keeps the pairs near the densest ratio (no chain into outliers); a good
+    #    frame's smoothing window as long before it as after it
     version = 8
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
