@@ -349,3 +349,18 @@ def test_cli_names_units_sizes_and_a_missing_rig_first(capture: tuple[Path, obje
     assert main(["intrinsics", "--images", str(mixed), "--board", "11x8", "--square", "0.05",
                  "--out", str(tmp_path / "c.yaml")]) == 2
     assert "1 not 640x480 (4.png)" in capsys.readouterr().err
+
+
+def test_allow_unreliable_writes_out_marked(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """--allow-unreliable: --out gets the result anyway (the CLI had no such switch, only
+    the recipe stage), still marked reliable: false so that readers warn, and exit 0."""
+    flat = write_capture(make_capture(6, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01),
+                         tmp_path / "flat")
+    rig = tmp_path / "rig.yaml"
+    assert main(_args(flat, "--no-loo", "--out", str(rig), "--allow-unreliable")) == 0
+    out = capsys.readouterr().out
+    assert "RESULT UNRELIABLE, used anyway (--allow-unreliable)" in out
+    assert not (tmp_path / "rig.unreliable.yaml").exists()
+    d = yaml.safe_load(rig.read_text())
+    assert d["calibration"]["reliable"] is False and d["calibration"]["unreliable_because"]
