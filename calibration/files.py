@@ -233,9 +233,29 @@ def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
         "(parent, child, translation, rotation xyzw)")
 
 
+def read_extrinsic(path: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML, and the marks it was
+    estimated with (``reliable``, ``unreliable_because``; None when the file has none).
+
+    The marks sit in a rig's ``calibration`` block, or at the top of the ``--json`` and
+    ``calibration.yaml`` results. A file marked ``reliable: false`` logs a warning, as
+    ``read_rig`` does: checked or passed on, it was read without a word.
+    """
+    from toolkit.io.sequence import warn_if_unreliable
+
+    data = _load_yaml(path, "extrinsic")
+    T = extrinsic_from_mapping(data, str(path))
+    block = data.get("calibration", data)
+    if not isinstance(block, dict) or "reliable" not in block:
+        return T, None
+    marks = {k: block[k] for k in ("reliable", "unreliable_because") if k in block}
+    warn_if_unreliable(path, {"calibration": marks})
+    return T, marks
+
+
 def load_extrinsic(path: Path) -> np.ndarray:
-    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML."""
-    return extrinsic_from_mapping(_load_yaml(path, "extrinsic"), str(path))
+    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML (see ``read_extrinsic``)."""
+    return read_extrinsic(path)[0]
 
 
 def extrinsic_to_mapping(T_camera_laser: np.ndarray) -> dict[str, Any]:
