@@ -785,11 +785,16 @@ def _check_offset(T: np.ndarray, max_offset_m: float | None, views: list[View]) 
     dist = float(np.linalg.norm(T[:3, 3]))
     if max_offset_m is None or dist <= max_offset_m:
         return
+    # A wrong square size moves the laser as far (5 % off on the ACFR pairs: 1.41 m), and
+    # raising --max-offset would accept that: the scale fit finds it at this solution.
+    warning, unreliable = _scale_verdict(views, T)
+    scale = warning or unreliable
     why = degenerate_views_reason(views)
     raise ExtrinsicError(
         f"the best fit of the {len(views)} views puts the laser {dist:.2f} m from the camera, "
-        f"beyond the largest offset allowed ({max_offset_m:g} m, --max-offset): a wrong "
-        "solution that too few or too similar views cannot rule out"
+        f"beyond the largest offset allowed ({max_offset_m:g} m, --max-offset). "
+        + (f"First check the board's size: {scale}. Otherwise it is " if scale else "It is ")
+        + "a wrong solution that too few or too similar views cannot rule out"
         + (f"; here {why}" if why else ". Capture more views (10 or more), the board leaned "
            "forward and back and turned left and right by 20-45 degrees")
         + ". Raise --max-offset only if the sensors really are that far apart.")

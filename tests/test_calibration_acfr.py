@@ -74,3 +74,20 @@ def test_acfr_measured_mount_as_prior_gives_a_usable_rig(
     # The default weak prior (20 deg, 0.5 m) holds nothing: still unreliable.
     assert main([*base, "--out", str(tmp_path / "weak.yaml")]) == 3
     assert "UNRELIABLE: the 5 board normals" in capsys.readouterr().out
+
+
+def test_acfr_square_5_percent_off_names_square(acfr: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """--square 0.02 (the recording's other script) puts the laser 1.41 m out: the error
+    blamed the capture and --max-offset only; the scale fit there finds 0.926."""
+    from calibration.cli import main
+    from calibration.files import write_camera
+
+    write_camera(tmp_path / "camera.yaml", ACFR_CAMERA)
+    assert main(["extrinsic", "--images", str(acfr / "images"), "--scans", str(acfr / "lasers"),
+                 "--camera", str(tmp_path / "camera.yaml"), "--board", "11x8", "--square",
+                 "0.02", "--no-loo"]) == 2
+    err = capsys.readouterr().err
+    assert "laser 1.41 m from the camera" in err
+    assert "(--square) is probably 0.926 times" in err
+    assert err.index("--square") < err.index("Raise --max-offset")

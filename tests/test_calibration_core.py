@@ -301,6 +301,22 @@ def test_solution_beyond_max_offset_is_refused() -> None:
                             camera=cap.camera)
 
 
+def test_max_offset_error_names_a_wrong_square_size_first() -> None:
+    """Squares given 10 % small put the laser 0.25 m out, past --max-offset 0.2: the error
+    blamed the capture and --max-offset and never named --square (the real ACFR pairs with
+    --square 0.02, 5 % off: 1.41 m, the same), although the scale fit finds the slip."""
+    cap = make_capture(8, seed=2)
+    small = BoardSpec(11, 8, 0.045)  # the true squares are 0.05 m: factor 1.111
+    views = [make_view(v.name, v.corners, small, cap.camera, v.scan_points[v.on_board])
+             for v in cap.views]
+    with pytest.raises(ExtrinsicError) as e:
+        calibrate_extrinsic(views, options=SolverOptions(max_offset_m=0.2), camera=cap.camera)
+    msg = str(e.value)
+    assert "laser 0.25 m from the camera" in msg
+    assert "(--square) is probably 1.11" in msg  # 1.113 +- 0.011
+    assert msg.index("--square") < msg.index("Raise --max-offset")
+
+
 def test_untilted_boards_are_marked_unreliable() -> None:
     """Boards only rolled in their plane (normals all facing the camera): the review's
     near-degenerate case, tens of degrees off with a reported std of 1-2 degrees."""
