@@ -664,7 +664,7 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
         J = _jacobian(P, N, T[:3, :3])
         info = J.T @ J / max(float(r @ r) / max(len(r) - 6, 1), sigma_line**2, 1e-12)
     cov, weak = _covariance(info, opts.weak_std)
-    _check_offset(T, opts.max_offset_m, used)
+    _check_offset(T, opts.max_offset_m, used, rejected)
     warnings = []
     if len(used) < 5:
         warnings.append(
@@ -780,8 +780,15 @@ def _scale_verdict(views: list[View], T: np.ndarray,
     return (None, text) if abs(off) > SCALE_UNRELIABLE else (text, None)
 
 
-def _check_offset(T: np.ndarray, max_offset_m: float | None, views: list[View]) -> None:
-    """Raise when the solution puts the laser farther from the camera than allowed."""
+def left_out_text(left_out: dict[str, str]) -> str:
+    """``NAME: reason; ...`` of views or images left out, for error messages."""
+    return "; ".join(f"{k}: {v}" for k, v in left_out.items())
+
+
+def _check_offset(T: np.ndarray, max_offset_m: float | None, views: list[View],
+                  rejected: dict[str, str]) -> None:
+    """Raise when the solution puts the laser farther from the camera than allowed; the
+    message names the views the solve left out (``rejected``), which may be good ones."""
     dist = float(np.linalg.norm(T[:3, 3]))
     if max_offset_m is None or dist <= max_offset_m:
         return
@@ -790,13 +797,18 @@ def _check_offset(T: np.ndarray, max_offset_m: float | None, views: list[View]) 
     warning, unreliable = _scale_verdict(views, T)
     scale = warning or unreliable
     why = degenerate_views_reason(views)
+    kept = (f"{len(views)} views kept of {len(views) + len(rejected)} (left out: "
+            f"{left_out_text(rejected)})" if rejected else f"{len(views)} views")
     raise ExtrinsicError(
-        f"the best fit of the {len(views)} views puts the laser {dist:.2f} m from the camera, "
+        f"the best fit of the {kept} puts the laser {dist:.2f} m from the camera, "
         f"beyond the largest offset allowed ({max_offset_m:g} m, --max-offset). "
         + (f"First check the board's size: {scale}. Otherwise it is " if scale else "It is ")
         + "a wrong solution that too few or too similar views cannot rule out"
-        + (f"; here {why}" if why else ". Capture more views (10 or more), the board leaned "
-           "forward and back and turned left and right by 20-45 degrees")
+        + (f"; here {why.rstrip('.')}" if why else ". Capture more views (10 or more), the "
+           "board leaned forward and back and turned left and right by 20-45 degrees")
+        + (". A view left out may be a good one outvoted by bad ones (an image paired with "
+           "another view's scan, a wrong segment): check the pairing and the overlays"
+           if rejected else "")
         + ". Raise --max-offset only if the sensors really are that far apart.")
 
 

@@ -41,6 +41,7 @@ from calibration.extrinsic import (
     calibrate_extrinsic,
     leave_one_out,
     leave_one_out_warning,
+    left_out_text,
     make_view,
 )
 from calibration.files import CalibrationFileError, check_image_size
@@ -386,14 +387,14 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
             "direction, --mount any (or --init) if the laser's 0 deg does not point where "
             "the camera looks (a lidar mounted turned), --max-offset if the sensors are far "
             "apart, --board-size, and check --square (the size of one square in metres).")
-    first = calibrate_extrinsic(views, guess, opts, camera)
+    first = _solve_naming_skipped(skipped, views, guess, opts, camera)
     tol = max(0.03, 3.0 * first.residual_rms_m)
     views2, skipped2 = build_views(cands, board, camera, search, first.T_camera_laser, tol)
     if len(views2) >= opts.min_views:
         # Same data, better points: no need to search for a start again.
         opts2 = SolverOptions(**{**opts.__dict__, "multistart": False})
-        result = calibrate_extrinsic(views2, guess, opts2, camera, start=first.T_camera_laser,
-                                     outline=board.outline())
+        result = _solve_naming_skipped(skipped2, views2, guess, opts2, camera,
+                                       start=first.T_camera_laser, outline=board.outline())
         views, skipped = views2, skipped2
     else:
         result = first
@@ -403,6 +404,18 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
         if warning is not None:
             result.warnings.append(warning)
     return ExtrinsicRun(result, stab, views, cands, skipped, board)
+
+
+def _solve_naming_skipped(skipped: dict[str, str], views: list[View], *args: Any,
+                          **kwargs: Any) -> ExtrinsicResult:
+    """``calibrate_extrinsic``, its errors naming the paired views that gave no board
+    points: the solve knows only the views it was given."""
+    try:
+        return calibrate_extrinsic(views, *args, **kwargs)
+    except ExtrinsicError as e:
+        if not skipped:
+            raise
+        raise ExtrinsicError(f"{e} Not in the solve: {left_out_text(skipped)}.") from e
 
 
 def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera: PinholeCamera,

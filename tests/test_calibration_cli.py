@@ -364,3 +364,25 @@ def test_allow_unreliable_writes_out_marked(tmp_path: Path,
     assert not (tmp_path / "rig.unreliable.yaml").exists()
     d = yaml.safe_load(rig.read_text())
     assert d["calibration"]["reliable"] is False and d["calibration"]["unreliable_because"]
+
+
+def test_max_offset_error_names_views_not_in_the_solve(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Two scans swapped and one scan without the board: the fit of the other five puts
+    the laser 1.1 m out. The error named none of the six images the user gave."""
+    from calibration.scans import read_pcd
+    from calibration.synthetic import write_pcd
+
+    cap = make_capture(6, seed=0)
+    cap_dir = write_capture(cap, tmp_path / "cap")
+    pcds = sorted((cap_dir / "lasers").glob("*.pcd"))
+    a, b = read_pcd(pcds[1]), read_pcd(pcds[2])
+    write_pcd(pcds[1], b)
+    write_pcd(pcds[2], a)
+    last = cap.views[-1]
+    write_pcd(pcds[-1], last.scan_points[~last.on_board])  # the board left the scan
+    assert main(_args(cap_dir, "--no-loo")) == 2
+    err = capsys.readouterr().err
+    image = sorted((cap_dir / "images").glob("*.png"))[-1].name
+    assert "laser 1.12 m from the camera" in err
+    assert f"Not in the solve: {image}: scan {pcds[-1].name}: no segment matches" in err

@@ -317,6 +317,21 @@ def test_max_offset_error_names_a_wrong_square_size_first() -> None:
     assert msg.index("--square") < msg.index("Raise --max-offset")
 
 
+def test_max_offset_error_names_the_views_left_out() -> None:
+    """Two views' scans swapped (a pairing slip): the solve leaves one view out, and the
+    fit of the other four puts the laser 0.84 m out. The error said 'the best fit of the 4
+    views' of the user's 5, naming none, and ended '... each way.. Raise'."""
+    cap = make_capture(5, seed=0)
+    views = _views(cap)
+    views[1].points, views[2].points = views[2].points, views[1].points
+    with pytest.raises(ExtrinsicError) as e:
+        calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                            SolverOptions(max_offset_m=0.5), camera=cap.camera)
+    msg = str(e.value)
+    assert "the best fit of the 4 views kept of 5 (left out: view" in msg
+    assert "point-to-plane RMS" in msg and ".." not in msg
+
+
 def test_untilted_boards_are_marked_unreliable() -> None:
     """Boards only rolled in their plane (normals all facing the camera): the review's
     near-degenerate case, tens of degrees off with a reported std of 1-2 degrees."""
