@@ -736,6 +736,15 @@ def board_distance_scale(views: list[View], T: np.ndarray,
     views at the true extrinsic gave 0.92 +- 0.009), and a measured mount pins them
     (1.000 +- 0.001 with 0.1 deg / 1 mm).
     """
+    s, sd, _ = _distance_scale_fit(views, T, prior)
+    return s, sd
+
+
+def _distance_scale_fit(views: list[View], T: np.ndarray,
+                        prior: tuple[np.ndarray, float, float] | None = None) -> (
+    tuple[float, float, np.ndarray]
+):
+    """``board_distance_scale``'s (s, std) and the extrinsic [4, 4] fitted with it."""
     P, N, D, _ = _stack(views)
     R0, t0 = T[:3, :3], T[:3, 3]
     # The prior's rows in metres of laser noise, so that one loss and one variance
@@ -756,11 +765,12 @@ def board_distance_scale(views: list[View], T: np.ndarray,
     J = sol.jac  # [M (+6), 7]
     dof = max(len(D) - 7, 1)
     sigma2 = max(float(sol.fun[:len(D)] @ sol.fun[:len(D)]) / dof, 1e-8)
+    T_s = se3(Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0, sol.x[3:6])
     try:
         cov = np.linalg.inv(J.T @ J) * sigma2
     except np.linalg.LinAlgError:
-        return float(sol.x[6]), float("inf")
-    return float(sol.x[6]), float(np.sqrt(max(cov[6, 6], 0.0)))
+        return float(sol.x[6]), float("inf"), T_s
+    return float(sol.x[6]), float(np.sqrt(max(cov[6, 6], 0.0))), T_s
 
 
 def _scale_verdict(views: list[View], T: np.ndarray,
@@ -769,15 +779,23 @@ def _scale_verdict(views: list[View], T: np.ndarray,
 ):
     """(warning, unreliable reason) from ``board_distance_scale``."""
     s, sd = board_distance_scale(views, T, prior)
+    text = _scale_text(s, sd)
+    if text is None:
+        return None, None
+    return (None, text) if abs(s - 1.0) > SCALE_UNRELIABLE else (text, None)
+
+
+def _scale_text(s: float, sd: float) -> str | None:
+    """What a board distance scale ``s`` +- ``sd`` says of --square, or None when it is
+    within ``SCALE_WARN`` of 1 or within 5 sd."""
     off = s - 1.0
     if not (abs(off) > SCALE_WARN and abs(off) > 5.0 * sd):
-        return None, None
-    text = (f"the laser puts the boards {abs(off) * 100:.1f} % {'farther' if off > 0 else 'nearer'}"
+        return None
+    return (f"the laser puts the boards {abs(off) * 100:.1f} % {'farther' if off > 0 else 'nearer'}"
             f" than the camera's board poses do (distance scale {s:.3f} +- {sd:.3f}): the "
             f"board's square size (--square) is probably {s:.3f} times the one given - "
             "measure a square on the printed board (printers scale pages) - or the camera's "
             "focal length is off by that factor")
-    return (None, text) if abs(off) > SCALE_UNRELIABLE else (text, None)
 
 
 def left_out_text(left_out: dict[str, str]) -> str:
@@ -793,16 +811,22 @@ def _check_offset(T: np.ndarray, max_offset_m: float | None, views: list[View],
     if max_offset_m is None or dist <= max_offset_m:
         return
     # A wrong square size moves the laser as far (5 % off on the ACFR pairs: 1.41 m), and
-    # raising --max-offset would accept that: the scale fit finds it at this solution.
-    warning, unreliable = _scale_verdict(views, T)
-    scale = warning or unreliable
+    # raising --max-offset would accept that: the scale fit finds it at this solution. It is
+    # named only when the distances so scaled bring the laser within the limit: at a wrong
+    # solution (two ACFR scans swapped) the fit gave 0.113 and left the laser 2 m out.
+    s, sd, T_s = _distance_scale_fit(views, T)
+    scale = _scale_text(s, sd)
+    if scale is not None and float(np.linalg.norm(T_s[:3, 3])) > max_offset_m:
+        scale = None
     why = degenerate_views_reason(views)
     kept = (f"{len(views)} views kept of {len(views) + len(rejected)} (left out: "
             f"{left_out_text(rejected)})" if rejected else f"{len(views)} views")
     raise ExtrinsicError(
         f"the best fit of the {kept} puts the laser {dist:.2f} m from the camera, "
         f"beyond the largest offset allowed ({max_offset_m:g} m, --max-offset). "
-        + (f"First check the board's size: {scale}. Otherwise it is " if scale else "It is ")
+        + (f"First check the board's size: {scale}; with the distances so scaled the laser "
+           f"comes to {float(np.linalg.norm(T_s[:3, 3])):.2f} m. Otherwise it is "
+           if scale else "It is ")
         + "a wrong solution that too few or too similar views cannot rule out"
         + (f"; here {why.rstrip('.')}" if why else ". Capture more views (10 or more), the "
            "board leaned forward and back and turned left and right by 20-45 degrees")
