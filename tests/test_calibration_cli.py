@@ -389,3 +389,27 @@ def test_max_offset_error_names_views_not_in_the_solve(tmp_path: Path,
     # The board distance scale fitted at that wrong solution is 0.876 +- 0.006, but scaling
     # the distances leaves the laser 1 m out: the square size is not what to check.
     assert "--square" not in err
+
+
+def test_intrinsics_names_images_without_the_board(capture: tuple[Path, object], tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Two images of the given 11x8 board and three of a 12x9 one: the error said only '2
+    usable views ... Rejected: {}', hiding the images without the board and the grid that
+    was there (extrinsic names both)."""
+    from calibration.board import BoardSpec
+
+    cap_dir, _ = capture
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for i, p in enumerate(sorted((cap_dir / "images").glob("*.png"))[:2]):
+        shutil.copy(p, folder / f"a{i}.png")
+    other = write_capture(make_capture(3, seed=4, board=BoardSpec(12, 9, 0.04)), tmp_path / "o")
+    for i, p in enumerate(sorted((other / "images").glob("*.png"))):
+        shutil.copy(p, folder / f"b{i}.png")
+    assert main(["intrinsics", "--images", str(folder), "--board", "11x8", "--square", "0.05",
+                 "--out", str(tmp_path / "cam.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "found in only 2 of the 5 images" in err and "at least 3 are needed" in err
+    assert "no board found in b0.png, b1.png, b2.png" in err
+    assert "grid was found in b0.png; pass --board 12x9" in err and "Rejected: {}" not in err
+    assert not (tmp_path / "cam.yaml").exists()
