@@ -277,7 +277,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         frames = check_frames_from_pairs(Path(args.images), Path(args.scans), camera,
                                          str(args.camera), args.max_dt,
                                          Path(args.depth) if args.depth else None,
-                                         args.stamp_unit)
+                                         args.stamp_unit, args.frames)
     # Scored first: a check that cannot score (no depth maps for --score depth) writes no
     # overlays.
     scores = sensitivity(frames, T, camera, args.perturb_deg, args.score)
@@ -462,7 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),
                     help="auto: depth when every frame has a depth map, else edges")
     pc.add_argument("--frames", type=positive_int, default=12,
-                    help="frames to use (default 12)")
+                    help="frames (or image/scan pairs) to use, spread evenly (default 12)")
     pc.add_argument("--max-dt", type=float, default=0.1, metavar="S",
                     help="largest image-scan time difference (default 0.1 s, as extrinsic)")
     _add_stamp_unit(pc)

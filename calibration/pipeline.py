@@ -462,6 +462,11 @@ def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
 # ---------------------------------------------------------------------------- check inputs
 
 
+def spread_pick(n: int, max_frames: int) -> list[int]:
+    """Indices of at most ``max_frames`` of ``n`` items, spread evenly, first and last kept."""
+    return [int(k) for k in np.unique(np.linspace(0, n - 1, min(max_frames, n)).round())]
+
+
 def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frames: int = 12,
                                max_dt: float = 0.05, depth_dir: Path | None = None,
                                use_gt_depth: bool = True, camera: PinholeCamera | None = None,
@@ -486,8 +491,7 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
     if not usable:
         raise PairingError(f"{root}: no camera frame has a scan within {max_dt * 1000:.0f} ms; "
                            "raise --max-dt")
-    pick = [usable[int(k)] for k in np.unique(np.linspace(0, len(usable) - 1,
-                                                          min(max_frames, len(usable))).round())]
+    pick = [usable[k] for k in spread_pick(len(usable), max_frames)]
     traj = seq.odometry
     if traj is None and seq.groundtruth is not None:
         traj = seq.groundtruth.poses_base
@@ -541,9 +545,11 @@ def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any
 
 def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCamera,
                             camera_source: str, max_dt: float, depth_dir: Path | None = None,
-                            stamp_unit: str = "auto") -> list[Any]:
+                            stamp_unit: str = "auto", max_frames: int = 12) -> list[Any]:
     """Frames for ``check`` from an image folder and a scan folder (a calibration capture),
-    with the depth maps of ``depth_dir`` (named by image stem or image index)."""
+    with the depth maps of ``depth_dir`` (named by image stem or image index): at most
+    ``max_frames`` pairs spread evenly, as on a sequence (a large capture was loaded and
+    drawn whole)."""
     from calibration.check import CheckFrame
     from toolkit.io.depth import read_depth
     from toolkit.sensors import load_rgb
@@ -564,7 +570,7 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
                                       images.stamps, np.array([s.stamp for s in scans]),
                                       max_dt))
     frames = []
-    for p in pairs:
+    for p in (pairs[k] for k in spread_pick(len(pairs), max_frames)):
         path = images.paths[p.image_index]
         img = load_rgb(path)
         check_image_size(camera, camera_source, path, (img.shape[1], img.shape[0]))

@@ -413,3 +413,18 @@ def test_intrinsics_names_images_without_the_board(capture: tuple[Path, object],
     assert "no board found in b0.png, b1.png, b2.png" in err
     assert "grid was found in b0.png; pass --board 12x9" in err and "Rejected: {}" not in err
     assert not (tmp_path / "cam.yaml").exists()
+
+
+def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, object],
+                                                           tmp_path: Path) -> None:
+    """check --images/--scans --frames 3 scored and drew all 8 pairs (--frames applied to
+    --sequence only): now 3, spread as on a sequence (pairs 0, 4 and 7)."""
+    cap_dir, cap = capture
+    ext = tmp_path / "true.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    assert main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+                 "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--frames",
+                 "3", "--out", str(tmp_path / "chk")]) == 0
+    images = sorted((cap_dir / "images").glob("*.png"))
+    chk = json.loads((tmp_path / "chk" / "check.json").read_text())
+    assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 4, 7)]
