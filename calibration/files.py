@@ -36,6 +36,11 @@ def _load_yaml(path: Path, what: str) -> Any:
 # ---------------------------------------------------------------------------- camera
 
 
+_CAMERA_FIELDS = ("(need width, height, fx, fy, cx, cy[, distortion]; or a ROS "
+                  "camera_calibration YAML: image_width, image_height, camera_matrix, "
+                  "distortion_coefficients; or a CameraInfo message dump: width, height, k, d)")
+
+
 def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
     """A camera from the toolkit's camera/rig YAML or a ROS ``camera_info`` YAML."""
     if not isinstance(d, dict):
@@ -57,6 +62,12 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
             dist = np.asarray(d.get("d", d.get("D")) or [], dtype=np.float64).reshape(-1)
             dist = _plumb_bob(d.get("distortion_model"), dist, source, "d")
             return PinholeCamera.from_K(K, int(d["width"]), int(d["height"]), dist)
+        # Named here: PinholeCamera's KeyError text, wrapped below, read as one odd field
+        # name ("camera is missing ['cy']").
+        missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in d]
+        if missing:
+            raise CalibrationFileError(f"{source}: missing field "
+                                       f"{', '.join(map(repr, missing))} {_CAMERA_FIELDS}")
         # The toolkit's own layout names its lens model under "model" (to_dict writes
         # "pinhole"); COLMAP-style names such as OPENCV_FISHEYE mean another lens.
         model = d.get("distortion_model", d.get("model"))
@@ -70,11 +81,7 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
     except CalibrationFileError:
         raise
     except KeyError as e:
-        raise CalibrationFileError(f"{source}: missing field {e} (need width, height, fx, fy, "
-                                   "cx, cy[, distortion]; or a ROS camera_calibration YAML: "
-                                   "image_width, image_height, camera_matrix, "
-                                   "distortion_coefficients; or a CameraInfo message dump: "
-                                   "width, height, k, d)") from None
+        raise CalibrationFileError(f"{source}: missing field {e} {_CAMERA_FIELDS}") from None
     except (TypeError, ValueError) as e:
         raise CalibrationFileError(f"{source}: bad camera field: {e}") from None
 

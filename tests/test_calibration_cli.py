@@ -428,3 +428,14 @@ def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, 
     images = sorted((cap_dir / "images").glob("*.png"))
     chk = json.loads((tmp_path / "chk" / "check.json").read_text())
     assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 4, 7)]
+
+
+def test_bench_markdown_says_the_real_result_is_unreliable() -> None:
+    """bench.md's ACFR paragraph gave the residual and spread but not the verdict that
+    bench.json holds (reliable: false)."""
+    from calibration.bench import markdown
+
+    why = "the 5 board normals all lie within 1.3 degrees (RMS) of one plane"
+    text = markdown({"acfr": {"residual_rms_m": 0.0039, "views_used": 5, "weak_directions": [],
+                              "reliable": False, "unreliable_because": [why]}})
+    assert f"RESULT UNRELIABLE: {why}" in text

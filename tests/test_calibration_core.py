@@ -508,6 +508,12 @@ def test_camera_files_of_other_lenses_and_message_dumps() -> None:
             "d": [-0.1, 0.02, 0.0, 0.0, 0.0], "k": [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1]}
     cam = camera_from_mapping(echo, "ros2_echo.yaml")  # ros2 topic echo of a CameraInfo
     assert cam.fx == 500.0 and cam.dist[0] == -0.1
+    # A missing field is named as such (it read: missing field "camera is missing ['cy']").
+    with pytest.raises(CalibrationFileError, match=r"cam.yaml: missing field 'cy' \(need"):
+        camera_from_mapping({k: v for k, v in fisheye.items() if k not in ("cy", "model")},
+                            "cam.yaml")
+    with pytest.raises(CalibrationFileError, match="missing field 'camera_matrix' "):
+        camera_from_mapping({"image_width": 640, "image_height": 480}, "ros.yaml")
 
 
 def test_angle_window_across_the_back_of_the_laser() -> None:
