@@ -279,6 +279,9 @@ def markdown(res: dict[str, Any]) -> str:
                   f"{np.round(loo.get('rotation_std_deg', []), 2).tolist()} deg, translation "
                   f"along x y z {t_std} mm.", "",
                   "Weakly constrained: " + ("; ".join(real["weak_directions"]) or "none"), ""]
+        if real.get("reliable") is False:
+            lines += ["RESULT UNRELIABLE: " + "; ".join(real.get("unreliable_because") or []),
+                      ""]
     return "\n".join(lines)
 
 

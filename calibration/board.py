@@ -154,8 +154,9 @@ def _subpix_half_window(corners: np.ndarray, board: BoardSpec) -> int:
     return int(np.clip(0.4 * min(dx, dy), 2, 11))
 
 
-def board_hint(image: np.ndarray, board: BoardSpec) -> str:
-    """A hint for when the board is not found: does a neighbouring grid size match?"""
+def board_hint(image: np.ndarray, board: BoardSpec, where: str = "the first image") -> str:
+    """A hint for when the board is not found: does a neighbouring grid size match in
+    ``image`` (named ``where``)?"""
     gray = _gray(np.asarray(image))
     for c, r in ((board.cols - 1, board.rows - 1), (board.cols + 1, board.rows + 1),
                  (board.rows, board.cols)):
@@ -164,7 +165,7 @@ def board_hint(image: np.ndarray, board: BoardSpec) -> str:
         ok, _ = cv2.findChessboardCorners(gray, (c, r), flags=cv2.CALIB_CB_ADAPTIVE_THRESH
                                           | cv2.CALIB_CB_NORMALIZE_IMAGE)
         if ok:
-            return (f" A {c}x{r} inner-corner grid was found in the first image; "
+            return (f" A {c}x{r} inner-corner grid was found in {where}; "
                     f"pass --board {c}x{r} (the board counts inner corners, not squares).")
     return (" Check --board (inner corners: a board of 12x9 squares is 11x8), that the whole "
             "board is visible with a white margin, and that the images are in focus.")

@@ -158,17 +158,19 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
     run = run_extrinsic(cands, board, camera, search, _options(args), init, loo=not args.no_loo)
     run.skipped = {**skipped, **run.skipped}
     summary = run.summary()
-    _print_extrinsic(run.result.T_camera_laser, summary)
+    _print_extrinsic(run.result.T_camera_laser, summary, args.allow_unreliable)
     if args.out:
         rig = rig_for_extrinsic(camera, run.result.T_camera_laser, base)
         out_path = Path(args.out)
-        if not summary["reliable"]:
+        if not summary["reliable"] and not args.allow_unreliable:
             # --out is what the rest of a workflow reads: an unreliable result goes beside
             # it, so that it never replaces a good one.
             out_path = unreliable_path(out_path)
         write_rig_with_calibration(out_path, rig, _np(summary))
-        print(f"wrote {out_path}" + ("" if summary["reliable"] else
-                                     f" (not {args.out}: the result is unreliable)"))
+        print(f"wrote {out_path}" + (
+            "" if summary["reliable"] else " (marked reliable: false, as --allow-unreliable "
+            "asked)" if args.allow_unreliable else f" (not {args.out}: the result is "
+            "unreliable)"))
     if args.json:
         from calibration.files import extrinsic_to_mapping
         from toolkit.io.atomic import atomic_write_json
@@ -193,7 +195,7 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
             with atomic_path(out / f"{Path(c.name).stem}_overlay.png") as tmp:
                 cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         print(f"wrote {len(run.candidates)} overlays to {out}")
-    return 0 if summary["reliable"] else EXIT_UNRELIABLE
+    return 0 if summary["reliable"] or args.allow_unreliable else EXIT_UNRELIABLE
 
 
 def unreliable_path(path: Path) -> Path:
@@ -206,7 +208,7 @@ def _sequence_image(root: Path, name: str) -> Path:
     return root / "camera" / "images" / name
 
 
-def _print_extrinsic(T: np.ndarray, s: dict[str, Any]) -> None:
+def _print_extrinsic(T: np.ndarray, s: dict[str, Any], allow_unreliable: bool = False) -> None:
     from calibration.files import extrinsic_to_mapping
 
     tf = extrinsic_to_mapping(T)["tf"]
@@ -232,10 +234,14 @@ def _print_extrinsic(T: np.ndarray, s: dict[str, Any]) -> None:
     # Last, so that it is what a user sees: the numbers above may look fine.
     for why in s["unreliable_because"]:
         print(f"UNRELIABLE: {why}")
-    if not s["reliable"]:
+    if not s["reliable"] and allow_unreliable:
+        print("WARNING: RESULT UNRELIABLE, used anyway (--allow-unreliable): the reasons above "
+              "stand; --out gets it, marked 'reliable: false', so that every later read of "
+              "it warns. Exit code 0.")
+    elif not s["reliable"]:
         print("RESULT UNRELIABLE: do not use this extrinsic as it is (the file written says "
               "'reliable: false', and is not --out itself); see the reasons above. Exit "
-              f"code {EXIT_UNRELIABLE}.")
+              f"code {EXIT_UNRELIABLE} (--allow-unreliable writes --out anyway).")
 
 
 # ---------------------------------------------------------------------------- check
@@ -271,7 +277,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         frames = check_frames_from_pairs(Path(args.images), Path(args.scans), camera,
                                          str(args.camera), args.max_dt,
                                          Path(args.depth) if args.depth else None,
-                                         args.stamp_unit)
+                                         args.stamp_unit, args.frames)
     # Scored first: a check that cannot score (no depth maps for --score depth) writes no
     # overlays.
     scores = sensitivity(frames, T, camera, args.perturb_deg, args.score)
@@ -434,6 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="robust loss of the refinement (default soft_l1)")
     pe.add_argument("--seed", type=int, default=0, help="RANSAC seed (default 0)")
     pe.add_argument("--no-loo", action="store_true", help="skip the leave-one-out runs")
+    pe.add_argument("--allow-unreliable", action="store_true",
+                    help="write --out even when the checks call the result unreliable (it is "
+                         "still marked reliable: false, and readers of it warn) and exit 0")
     pe.set_defaults(func=cmd_extrinsic)
 
     pc = sub.add_parser(
@@ -453,7 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),
                     help="auto: depth when every frame has a depth map, else edges")
     pc.add_argument("--frames", type=positive_int, default=12,
-                    help="frames to use (default 12)")
+                    help="frames (or image/scan pairs) to use, spread evenly (default 12)")
     pc.add_argument("--max-dt", type=float, default=0.1, metavar="S",
                     help="largest image-scan time difference (default 0.1 s, as extrinsic)")
     _add_stamp_unit(pc)

@@ -36,6 +36,11 @@ def _load_yaml(path: Path, what: str) -> Any:
 # ---------------------------------------------------------------------------- camera
 
 
+_CAMERA_FIELDS = ("(need width, height, fx, fy, cx, cy[, distortion]; or a ROS "
+                  "camera_calibration YAML: image_width, image_height, camera_matrix, "
+                  "distortion_coefficients; or a CameraInfo message dump: width, height, k, d)")
+
+
 def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
     """A camera from the toolkit's camera/rig YAML or a ROS ``camera_info`` YAML."""
     if not isinstance(d, dict):
@@ -57,6 +62,12 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
             dist = np.asarray(d.get("d", d.get("D")) or [], dtype=np.float64).reshape(-1)
             dist = _plumb_bob(d.get("distortion_model"), dist, source, "d")
             return PinholeCamera.from_K(K, int(d["width"]), int(d["height"]), dist)
+        # Named here: PinholeCamera's KeyError text, wrapped below, read as one odd field
+        # name ("camera is missing ['cy']").
+        missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in d]
+        if missing:
+            raise CalibrationFileError(f"{source}: missing field "
+                                       f"{', '.join(map(repr, missing))} {_CAMERA_FIELDS}")
         # The toolkit's own layout names its lens model under "model" (to_dict writes
         # "pinhole"); COLMAP-style names such as OPENCV_FISHEYE mean another lens.
         model = d.get("distortion_model", d.get("model"))
@@ -70,11 +81,7 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
     except CalibrationFileError:
         raise
     except KeyError as e:
-        raise CalibrationFileError(f"{source}: missing field {e} (need width, height, fx, fy, "
-                                   "cx, cy[, distortion]; or a ROS camera_calibration YAML: "
-                                   "image_width, image_height, camera_matrix, "
-                                   "distortion_coefficients; or a CameraInfo message dump: "
-                                   "width, height, k, d)") from None
+        raise CalibrationFileError(f"{source}: missing field {e} {_CAMERA_FIELDS}") from None
     except (TypeError, ValueError) as e:
         raise CalibrationFileError(f"{source}: bad camera field: {e}") from None
 
@@ -233,9 +240,29 @@ def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
         "(parent, child, translation, rotation xyzw)")
 
 
+def read_extrinsic(path: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML, and the marks it was
+    estimated with (``reliable``, ``unreliable_because``; None when the file has none).
+
+    The marks sit in a rig's ``calibration`` block, or at the top of the ``--json`` and
+    ``calibration.yaml`` results. A file marked ``reliable: false`` logs a warning, as
+    ``read_rig`` does: checked or passed on, it was read without a word.
+    """
+    from toolkit.io.sequence import warn_if_unreliable
+
+    data = _load_yaml(path, "extrinsic")
+    T = extrinsic_from_mapping(data, str(path))
+    block = data.get("calibration", data)
+    if not isinstance(block, dict) or "reliable" not in block:
+        return T, None
+    marks = {k: block[k] for k in ("reliable", "unreliable_because") if k in block}
+    warn_if_unreliable(path, {"calibration": marks})
+    return T, marks
+
+
 def load_extrinsic(path: Path) -> np.ndarray:
-    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML."""
-    return extrinsic_from_mapping(_load_yaml(path, "extrinsic"), str(path))
+    """T_camera_laser [4, 4] from a calibration, rig or tf-style YAML (see ``read_extrinsic``)."""
+    return read_extrinsic(path)[0]
 
 
 def extrinsic_to_mapping(T_camera_laser: np.ndarray) -> dict[str, Any]:

@@ -89,9 +89,11 @@ def calibrate_intrinsics(detections: list[Detection], board: BoardSpec, model: s
     obj = board.object_points().astype(np.float32)
     while True:
         if len(dets) < min_images:
+            # Only the first pass gets here: an image is dropped only while more than
+            # min_images remain, so nothing has been rejected yet.
             raise IntrinsicsError(
                 f"{len(dets)} usable views; at least {min_images} are needed (10-20 recommended, "
-                f"with the board tilted and reaching the image corners). Rejected: {rejected}")
+                "with the board tilted and reaching the image corners)")
         size = dets[0].image_size
         flags = _FLAGS[model]
         if len(dets) < 5 and model != "pinhole":
@@ -122,22 +124,40 @@ def calibrate_intrinsics(detections: list[Detection], board: BoardSpec, model: s
                             dist_m)
 
 
-def detect_folder(folder: Path, board: BoardSpec) -> tuple[list[Detection], dict[str, str]]:
-    """Detections in every image of ``folder``; the images without a board, with reasons."""
+def detect_folder(folder: Path, board: BoardSpec, min_images: int = 3) -> (
+    tuple[list[Detection], dict[str, str]]
+):
+    """Detections in every image of ``folder``; the images without a board, with reasons.
+
+    Found in fewer than ``min_images`` (``calibrate_intrinsics``' least), the error names
+    the images without it and, from the first of them, a grid size that is there: a wrong
+    --board said only "1 usable views", naming neither.
+    """
     paths = list_images(folder)
     dets: list[Detection] = []
     missed: dict[str, str] = {}
     first = None
+    first_missed = None
     for p in paths:
         img = read_image(p)
         first = img if first is None else first
         d = detect_corners(img, board, name=p.name)
         if d is None:
             missed[p.name] = f"no {board.cols}x{board.rows} board found"
+            first_missed = (img, p.name) if first_missed is None else first_missed
         else:
             dets.append(d)
     if not dets:
         hint = board_hint(first, board) if first is not None else ""
         raise BoardError(f"no {board} found in any of the {len(paths)} images in "
                          f"{folder}.{hint}")
+    if len(dets) < min_images and first_missed is not None:
+        names = list(missed)
+        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10
+                                         else "")
+        raise BoardError(
+            f"the {board} was found in only {len(dets)} of the {len(paths)} images in "
+            f"{folder} ({', '.join(d.name for d in dets)}); at least {min_images} are "
+            f"needed, and there is no board found in {shown}."
+            + board_hint(first_missed[0], board, first_missed[1]))
     return dets, missed

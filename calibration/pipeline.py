@@ -41,6 +41,7 @@ from calibration.extrinsic import (
     calibrate_extrinsic,
     leave_one_out,
     leave_one_out_warning,
+    left_out_text,
     make_view,
 )
 from calibration.files import CalibrationFileError, check_image_size
@@ -386,14 +387,14 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
             "direction, --mount any (or --init) if the laser's 0 deg does not point where "
             "the camera looks (a lidar mounted turned), --max-offset if the sensors are far "
             "apart, --board-size, and check --square (the size of one square in metres).")
-    first = calibrate_extrinsic(views, guess, opts, camera)
+    first = _solve_naming_skipped(skipped, views, guess, opts, camera)
     tol = max(0.03, 3.0 * first.residual_rms_m)
     views2, skipped2 = build_views(cands, board, camera, search, first.T_camera_laser, tol)
     if len(views2) >= opts.min_views:
         # Same data, better points: no need to search for a start again.
         opts2 = SolverOptions(**{**opts.__dict__, "multistart": False})
-        result = calibrate_extrinsic(views2, guess, opts2, camera, start=first.T_camera_laser,
-                                     outline=board.outline())
+        result = _solve_naming_skipped(skipped2, views2, guess, opts2, camera,
+                                       start=first.T_camera_laser, outline=board.outline())
         views, skipped = views2, skipped2
     else:
         result = first
@@ -403,6 +404,18 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
         if warning is not None:
             result.warnings.append(warning)
     return ExtrinsicRun(result, stab, views, cands, skipped, board)
+
+
+def _solve_naming_skipped(skipped: dict[str, str], views: list[View], *args: Any,
+                          **kwargs: Any) -> ExtrinsicResult:
+    """``calibrate_extrinsic``, its errors naming the paired views that gave no board
+    points: the solve knows only the views it was given."""
+    try:
+        return calibrate_extrinsic(views, *args, **kwargs)
+    except ExtrinsicError as e:
+        if not skipped:
+            raise
+        raise ExtrinsicError(f"{e} Not in the solve: {left_out_text(skipped)}.") from e
 
 
 def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera: PinholeCamera,
@@ -449,6 +462,11 @@ def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
 # ---------------------------------------------------------------------------- check inputs
 
 
+def spread_pick(n: int, max_frames: int) -> list[int]:
+    """Indices of at most ``max_frames`` of ``n`` items, spread evenly, first and last kept."""
+    return [int(k) for k in np.unique(np.linspace(0, n - 1, min(max_frames, n)).round())]
+
+
 def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frames: int = 12,
                                max_dt: float = 0.05, depth_dir: Path | None = None,
                                use_gt_depth: bool = True, camera: PinholeCamera | None = None,
@@ -473,8 +491,7 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
     if not usable:
         raise PairingError(f"{root}: no camera frame has a scan within {max_dt * 1000:.0f} ms; "
                            "raise --max-dt")
-    pick = [usable[int(k)] for k in np.unique(np.linspace(0, len(usable) - 1,
-                                                          min(max_frames, len(usable))).round())]
+    pick = [usable[k] for k in spread_pick(len(usable), max_frames)]
     traj = seq.odometry
     if traj is None and seq.groundtruth is not None:
         traj = seq.groundtruth.poses_base
@@ -528,9 +545,11 @@ def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any
 
 def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCamera,
                             camera_source: str, max_dt: float, depth_dir: Path | None = None,
-                            stamp_unit: str = "auto") -> list[Any]:
+                            stamp_unit: str = "auto", max_frames: int = 12) -> list[Any]:
     """Frames for ``check`` from an image folder and a scan folder (a calibration capture),
-    with the depth maps of ``depth_dir`` (named by image stem or image index)."""
+    with the depth maps of ``depth_dir`` (named by image stem or image index): at most
+    ``max_frames`` pairs spread evenly, as on a sequence (a large capture was loaded and
+    drawn whole)."""
     from calibration.check import CheckFrame
     from toolkit.io.depth import read_depth
     from toolkit.sensors import load_rgb
@@ -551,7 +570,7 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
                                       images.stamps, np.array([s.stamp for s in scans]),
                                       max_dt))
     frames = []
-    for p in pairs:
+    for p in (pairs[k] for k in spread_pick(len(pairs), max_frames)):
         path = images.paths[p.image_index]
         img = load_rgb(path)
         check_image_size(camera, camera_source, path, (img.shape[1], img.shape[0]))

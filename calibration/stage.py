@@ -84,7 +84,8 @@ class CalibrateConfig(StageConfig):
     # upstream sequence's rig
     extrinsic: str | None = None
     # An extrinsic the checks call unreliable stops the stage (as the CLI exits 3), its
-    # result kept in calibration.unreliable.yaml; true passes it on as the rig anyway.
+    # result kept in calibration.unreliable.yaml; so does, in mode check, an extrinsic file
+    # marked reliable: false. true passes it on as the rig anyway, the mark kept in it.
     allow_unreliable: bool = False
 
 
@@ -258,7 +259,12 @@ class CalibrateStage(Stage):
         """``mode: check``: score an existing extrinsic on the sequence, pass the rig on."""
         from calibration.cli import USER_ERRORS
         from calibration.extrinsic import transform_error
-        from calibration.files import extrinsic_to_mapping, load_extrinsic, rig_for_extrinsic
+        from calibration.files import (
+            extrinsic_to_mapping,
+            read_extrinsic,
+            rig_for_extrinsic,
+            write_rig_with_calibration,
+        )
         from toolkit.io.atomic import atomic_write_text, to_jsonable
         from toolkit.io.sequence import write_rig
 
@@ -266,12 +272,21 @@ class CalibrateStage(Stage):
         if seq_dir is None or base_rig is None:
             raise StageError("calibrate: mode 'check' needs a sequence from an earlier stage "
                              "(simulate or ingest) to check the extrinsic on")
+        marks = None
         if cfg.extrinsic:
             try:
-                T = load_extrinsic(Path(cfg.extrinsic))
+                T, marks = read_extrinsic(Path(cfg.extrinsic))
             except USER_ERRORS as e:
                 raise StageError(f"calibrate: {e}") from e
             what = f"the extrinsic of {cfg.extrinsic}"
+            if marks is not None and marks["reliable"] is False and not cfg.allow_unreliable:
+                # Passed on, it is what the later stages place every lidar point with.
+                raise StageError(
+                    f"calibrate: {cfg.extrinsic} is marked reliable: false (field "
+                    "'reliable' of its calibration): "
+                    f"{'; '.join(map(str, marks.get('unreliable_because') or [])) or 'no reason'}"
+                    ". Calibrate again with more varied board views, or set allow_unreliable: "
+                    "true to check it and pass it on as the rig anyway")
         else:
             T = base_rig.T_camera_laser
             what = "the sequence's extrinsic"
@@ -299,11 +314,20 @@ class CalibrateStage(Stage):
             metrics["rotation_error_deg"], metrics["translation_error_m"] = rot, tra
         rig = rig_for_extrinsic(base_rig.camera, T, base_rig) if cfg.extrinsic else base_rig
         rig_path = ctx.stage_dir / "rig.yaml"
-        write_rig(rig_path, rig)
+        if marks is not None:
+            # The mark travels with the extrinsic, so that every later reader warns.
+            metrics["reliable"] = bool(marks["reliable"])
+            write_rig_with_calibration(rig_path, rig, to_jsonable(marks))
+            if marks["reliable"] is False:
+                lines.append(f"**Unreliable:** {cfg.extrinsic} is marked reliable: false ("
+                             + "; ".join(map(str, marks.get("unreliable_because") or []))
+                             + "); passed on as the rig because allow_unreliable: true.")
+        else:
+            write_rig(rig_path, rig)
         calib_path = ctx.stage_dir / "calibration.yaml"
         atomic_write_text(calib_path, yaml.safe_dump(
             to_jsonable({**extrinsic_to_mapping(T), "mode": "check", "checked": what,
-                         "check": metrics}), sort_keys=False))
+                         **(marks or {}), "check": metrics}), sort_keys=False))
         ctx.add_metrics(metrics)
         ctx.report("\n\n".join(lines))
         ctx.provide("rig", rig_path)

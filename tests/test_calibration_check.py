@@ -186,6 +186,50 @@ def test_stage_check_only_scores_the_rig_and_a_given_extrinsic(scene, tmp_path) 
     assert res2.metrics["calibrate"]["check_score"] < 0.8 * m["check_score"]
 
 
+def test_stage_check_only_gates_an_extrinsic_marked_unreliable(scene, tmp_path,  # noqa: ANN001
+                                                               caplog) -> None:  # noqa: ANN001
+    """mode: check with extrinsic: a rig.unreliable.yaml. It was published as the rig with
+    no warning and without its reliable: false mark, so no later reader warned either."""
+    import logging
+
+    import yaml
+
+    from calibration.cli import main
+    from calibration.files import extrinsic_to_mapping
+
+    frames, camera, T = scene
+    _write_sequence(scene, tmp_path / "seq")
+    why = "the 5 board normals all lie within 1.3 degrees (RMS) of one plane"
+    marked = tmp_path / "rig.unreliable.yaml"
+    marked.write_text(yaml.safe_dump({**extrinsic_to_mapping(T), "calibration": {
+        "reliable": False, "unreliable_because": [why]}}))
+    stage = {"stage": "calibrate", "mode": "check", "check_frames": 2, "time_offset": False,
+             "extrinsic": str(marked)}
+    (tmp_path / "a").mkdir()
+    with caplog.at_level(logging.WARNING):
+        res = _run_with_sequence(tmp_path / "seq", [stage], tmp_path / "a")
+    assert not res.ok and "reliable: false" in str(res.error)
+    assert "allow_unreliable" in str(res.error) and why in str(res.error)
+    assert not (tmp_path / "a" / "run" / "calibrate" / "rig.yaml").exists()
+    assert any("marked unreliable" in r.getMessage() for r in caplog.records)
+    (tmp_path / "b").mkdir()
+    res = _run_with_sequence(tmp_path / "seq", [{**stage, "allow_unreliable": True}],
+                             tmp_path / "b")
+    assert res.ok, res.error
+    assert res.metrics["calibrate"]["reliable"] is False
+    published = yaml.safe_load((tmp_path / "b" / "run" / "calibrate" / "rig.yaml").read_text())
+    assert published["calibration"]["reliable"] is False
+    assert published["calibration"]["unreliable_because"] == [why]
+    assert why in (tmp_path / "b" / "run" / "report.md").read_text()
+    # The command's check warns on such a file too (it read it silently).
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert main(["check", "--sequence", str(tmp_path / "seq"), "--extrinsic", str(marked),
+                     "--frames", "2", "--score", "edges", "--out", str(tmp_path / "chk")]) == 0
+    assert any("marked unreliable" in r.getMessage() and why in r.getMessage()
+               for r in caplog.records)
+
+
 def test_stage_check_only_needs_a_sequence(tmp_path) -> None:  # noqa: ANN001
     from calibration.stage import CalibrateStage
 

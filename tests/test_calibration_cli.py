@@ -349,3 +349,93 @@ def test_cli_names_units_sizes_and_a_missing_rig_first(capture: tuple[Path, obje
     assert main(["intrinsics", "--images", str(mixed), "--board", "11x8", "--square", "0.05",
                  "--out", str(tmp_path / "c.yaml")]) == 2
     assert "1 not 640x480 (4.png)" in capsys.readouterr().err
+
+
+def test_allow_unreliable_writes_out_marked(tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """--allow-unreliable: --out gets the result anyway (the CLI had no such switch, only
+    the recipe stage), still marked reliable: false so that readers warn, and exit 0."""
+    flat = write_capture(make_capture(6, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01),
+                         tmp_path / "flat")
+    rig = tmp_path / "rig.yaml"
+    assert main(_args(flat, "--no-loo", "--out", str(rig), "--allow-unreliable")) == 0
+    out = capsys.readouterr().out
+    assert "RESULT UNRELIABLE, used anyway (--allow-unreliable)" in out
+    assert not (tmp_path / "rig.unreliable.yaml").exists()
+    d = yaml.safe_load(rig.read_text())
+    assert d["calibration"]["reliable"] is False and d["calibration"]["unreliable_because"]
+
+
+def test_max_offset_error_names_views_not_in_the_solve(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Two scans swapped and one scan without the board: the fit of the other five puts
+    the laser 1.1 m out. The error named none of the six images the user gave."""
+    from calibration.scans import read_pcd
+    from calibration.synthetic import write_pcd
+
+    cap = make_capture(6, seed=0)
+    cap_dir = write_capture(cap, tmp_path / "cap")
+    pcds = sorted((cap_dir / "lasers").glob("*.pcd"))
+    a, b = read_pcd(pcds[1]), read_pcd(pcds[2])
+    write_pcd(pcds[1], b)
+    write_pcd(pcds[2], a)
+    last = cap.views[-1]
+    write_pcd(pcds[-1], last.scan_points[~last.on_board])  # the board left the scan
+    assert main(_args(cap_dir, "--no-loo")) == 2
+    err = capsys.readouterr().err
+    image = sorted((cap_dir / "images").glob("*.png"))[-1].name
+    assert "laser 1.12 m from the camera" in err
+    assert f"Not in the solve: {image}: scan {pcds[-1].name}: no segment matches" in err
+    # The board distance scale fitted at that wrong solution is 0.876 +- 0.006, but scaling
+    # the distances leaves the laser 1 m out: the square size is not what to check.
+    assert "--square" not in err
+
+
+def test_intrinsics_names_images_without_the_board(capture: tuple[Path, object], tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Two images of the given 11x8 board and three of a 12x9 one: the error said only '2
+    usable views ... Rejected: {}', hiding the images without the board and the grid that
+    was there (extrinsic names both)."""
+    from calibration.board import BoardSpec
+
+    cap_dir, _ = capture
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for i, p in enumerate(sorted((cap_dir / "images").glob("*.png"))[:2]):
+        shutil.copy(p, folder / f"a{i}.png")
+    other = write_capture(make_capture(3, seed=4, board=BoardSpec(12, 9, 0.04)), tmp_path / "o")
+    for i, p in enumerate(sorted((other / "images").glob("*.png"))):
+        shutil.copy(p, folder / f"b{i}.png")
+    assert main(["intrinsics", "--images", str(folder), "--board", "11x8", "--square", "0.05",
+                 "--out", str(tmp_path / "cam.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "found in only 2 of the 5 images" in err and "at least 3 are needed" in err
+    assert "no board found in b0.png, b1.png, b2.png" in err
+    assert "grid was found in b0.png; pass --board 12x9" in err and "Rejected: {}" not in err
+    assert not (tmp_path / "cam.yaml").exists()
+
+
+def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, object],
+                                                           tmp_path: Path) -> None:
+    """check --images/--scans --frames 3 scored and drew all 8 pairs (--frames applied to
+    --sequence only): now 3, spread as on a sequence (pairs 0, 4 and 7)."""
+    cap_dir, cap = capture
+    ext = tmp_path / "true.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    assert main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+                 "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--frames",
+                 "3", "--out", str(tmp_path / "chk")]) == 0
+    images = sorted((cap_dir / "images").glob("*.png"))
+    chk = json.loads((tmp_path / "chk" / "check.json").read_text())
+    assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 4, 7)]
+
+
+def test_bench_markdown_says_the_real_result_is_unreliable() -> None:
+    """bench.md's ACFR paragraph gave the residual and spread but not the verdict that
+    bench.json holds (reliable: false)."""
+    from calibration.bench import markdown
+
+    why = "the 5 board normals all lie within 1.3 degrees (RMS) of one plane"
+    text = markdown({"acfr": {"residual_rms_m": 0.0039, "views_used": 5, "weak_directions": [],
+                              "reliable": False, "unreliable_because": [why]}})
+    assert f"RESULT UNRELIABLE: {why}" in text

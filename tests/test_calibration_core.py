@@ -301,6 +301,37 @@ def test_solution_beyond_max_offset_is_refused() -> None:
                             camera=cap.camera)
 
 
+def test_max_offset_error_names_a_wrong_square_size_first() -> None:
+    """Squares given 10 % small put the laser 0.25 m out, past --max-offset 0.2: the error
+    blamed the capture and --max-offset and never named --square (the real ACFR pairs with
+    --square 0.02, 5 % off: 1.41 m, the same), although the scale fit finds the slip."""
+    cap = make_capture(8, seed=2)
+    small = BoardSpec(11, 8, 0.045)  # the true squares are 0.05 m: factor 1.111
+    views = [make_view(v.name, v.corners, small, cap.camera, v.scan_points[v.on_board])
+             for v in cap.views]
+    with pytest.raises(ExtrinsicError) as e:
+        calibrate_extrinsic(views, options=SolverOptions(max_offset_m=0.2), camera=cap.camera)
+    msg = str(e.value)
+    assert "laser 0.25 m from the camera" in msg
+    assert "(--square) is probably 1.11" in msg  # 1.113 +- 0.011
+    assert msg.index("--square") < msg.index("Raise --max-offset")
+
+
+def test_max_offset_error_names_the_views_left_out() -> None:
+    """Two views' scans swapped (a pairing slip): the solve leaves one view out, and the
+    fit of the other four puts the laser 0.84 m out. The error said 'the best fit of the 4
+    views' of the user's 5, naming none, and ended '... each way.. Raise'."""
+    cap = make_capture(5, seed=0)
+    views = _views(cap)
+    views[1].points, views[2].points = views[2].points, views[1].points
+    with pytest.raises(ExtrinsicError) as e:
+        calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                            SolverOptions(max_offset_m=0.5), camera=cap.camera)
+    msg = str(e.value)
+    assert "the best fit of the 4 views kept of 5 (left out: view" in msg
+    assert "point-to-plane RMS" in msg and ".." not in msg
+
+
 def test_untilted_boards_are_marked_unreliable() -> None:
     """Boards only rolled in their plane (normals all facing the camera): the review's
     near-degenerate case, tens of degrees off with a reported std of 1-2 degrees."""
@@ -311,6 +342,25 @@ def test_untilted_boards_are_marked_unreliable() -> None:
     assert "camera y (down)" in res.unreliable[0]
     good = calibrate_extrinsic(_views(make_capture(10, seed=3)), camera=cap.camera)
     assert good.reliable and good.normal_spread_deg > 15.0
+
+
+def test_a_tight_prior_holds_what_untilted_boards_leave_open() -> None:
+    """Untilted boards leave the height and the tilts open; a measured mount given as the
+    prior (--init, --prior-sigma 0.1 deg / 1 mm) fixes them, so the result is usable with a
+    warning naming the prior (it stayed unreliable whatever the prior, as the docs' remedy
+    for the ACFR capture). The default 20 deg / 0.5 m prior still fixes nothing."""
+    cap = make_capture(6, seed=3, min_tilt_deg=0.0, max_tilt_deg=0.01)
+    measured = cap.T_camera_laser.copy()
+    measured[1, 3] += 0.005  # the height measured 5 mm off
+    tight = calibrate_extrinsic(_views(cap), measured,
+                                SolverOptions(prior_sigma_deg=0.1, prior_sigma_m=0.001),
+                                camera=cap.camera)
+    assert tight.reliable, tight.unreliable
+    assert any("--init" in w and "not from the views" in w for w in tight.warnings)
+    rot, tra = transform_error(tight.T_camera_laser, cap.T_camera_laser)
+    assert rot < 0.2 and tra < 0.007
+    loose = calibrate_extrinsic(_views(cap), measured, camera=cap.camera)
+    assert not loose.reliable and any("set by noise" in u for u in loose.unreliable)
 
 
 def _moved(points: np.ndarray, deg: float, shift_m: float) -> np.ndarray:
@@ -458,6 +508,12 @@ def test_camera_files_of_other_lenses_and_message_dumps() -> None:
             "d": [-0.1, 0.02, 0.0, 0.0, 0.0], "k": [500.0, 0, 320, 0, 500.0, 240, 0, 0, 1]}
     cam = camera_from_mapping(echo, "ros2_echo.yaml")  # ros2 topic echo of a CameraInfo
     assert cam.fx == 500.0 and cam.dist[0] == -0.1
+    # A missing field is named as such (it read: missing field "camera is missing ['cy']").
+    with pytest.raises(CalibrationFileError, match=r"cam.yaml: missing field 'cy' \(need"):
+        camera_from_mapping({k: v for k, v in fisheye.items() if k not in ("cy", "model")},
+                            "cam.yaml")
+    with pytest.raises(CalibrationFileError, match="missing field 'camera_matrix' "):
+        camera_from_mapping({"image_width": 640, "image_height": 480}, "ros.yaml")
 
 
 def test_angle_window_across_the_back_of_the_laser() -> None:
