@@ -83,16 +83,12 @@ def rasterize(resolution: float, sensor_xy: np.ndarray, hits: np.ndarray,
     scale = 1 << _SHIFT
     start = np.rint((u_all[-1] - b0) * scale).astype(np.int32)
     stop = np.rint((u_all[:-1] - b0) * scale).astype(np.int32)
-    hc = np.floor(hits / resolution).astype(np.int64) - b0  # [N, 2] in mask coordinates
-    # A hit ray ends inside its hit cell: rounded to 1/2^_SHIFT of a cell, a hit within
-    # that of the cell's far border drew the ray one cell on, a miss behind the wall.
-    half = scale // 2
-    stop[: len(hc)] = np.clip(stop[: len(hc)], hc * scale - half + 1, hc * scale + half - 1)
     if len(stop):
         segs = np.empty((len(stop), 2, 2), np.int32)
         segs[:, 0] = start
         segs[:, 1] = stop
         cv2.polylines(mask, list(segs), False, 1, 1, cv2.LINE_8, _SHIFT)
+    hc = np.floor(hits / resolution).astype(np.int64) - b0  # [N, 2] in mask coordinates
     Wm = mask.shape[1]
     key = np.unique(hc[:, 1] * Wm + hc[:, 0])
     hy, hx = np.divmod(key, Wm)
