@@ -304,7 +304,8 @@ class DepthStage(Stage):
         where = "" if simulated else (" on the GPU (onnxruntime CUDA)" if (
             metrics["device"] == "cuda") else f" on the CPU ({cfg.threads} threads)")
         md = [f"Depth from {label}; output kind `{backend.kind}`, {len(indices)} frames"
-              f"{resumed}, network latency {metrics['latency_mean_s'] * 1000:.1f} ms/frame "
+              f"{resumed}, {'simulation' if simulated else 'network'} time "
+              f"{metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms){where}."]
         if kept:
             md.append(f"The network's confidence (output {cfg.confidence_index}, at least "
