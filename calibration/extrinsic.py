@@ -16,7 +16,8 @@ plane: ``n . (R p + t) - d = 0``. This module solves that:
    and scan, a scan paired with another view's image): with 6 views or more, when the fit
    of all views leaves a view beyond its noise, first by consensus (fits of four-view
    subsets, the set of views that agree with one chosen by a truncated cost); then each
-   view also judged against the fit of the other views without them;
+   view also judged against the fit of the other views without them; fewer than 5 views
+   left after that is not called reliable;
 4. the covariance from the Jacobian, and the directions the views leave unconstrained;
 5. checks that the views determine the answer at all (board normals that span all three
    directions, a laser within the allowed offset of the camera) and leave-one-view-out
@@ -65,6 +66,12 @@ class ExtrinsicError(ValueError):
 # several extrinsics (the reviewer's three-view sets gave answers 157 degrees off with a
 # 3 mm residual); four is the least with any redundancy.
 MIN_VIEWS = 4
+# Below this many views left after leaving views out the result is not called reliable:
+# four views leave two constraints spare, so a wrong view is fitted as well as the right
+# ones and the views left out may be the good ones (8 synthetic views with two scans
+# swapped: four good views were left out, the swapped pair kept, and the result was 96
+# degrees off, marked reliable, with only the warning that four views are few).
+MIN_VIEWS_AFTER_REJECTION = 5
 # The views' evidence on the offset out of the plane the board normals span grows with the
 # sum of the normals' squared components out of it: N boards at an RMS angle a from that
 # plane give N sin(a)^2. Below this the estimate and its covariance are set by noise and
@@ -891,6 +898,15 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
         warnings.append(held)
     else:
         unreliable += open_reasons
+    if rejected and len(used) < MIN_VIEWS_AFTER_REJECTION:
+        # The views kept may be the wrong ones: no prior or residual tells.
+        unreliable.append(
+            f"{len(used)} views kept of {len(used) + len(rejected)} after leaving out "
+            f"{', '.join(rejected)}: with fewer than {MIN_VIEWS_AFTER_REJECTION} views a wrong "
+            "view is fitted as well as the right ones, so neither the views left out nor "
+            "the ones kept are confirmed (8 views with two scans swapped once gave a result "
+            "96 degrees off with four good views left out). Check the pairing of images and "
+            "scans and the overlays, remove the bad views yourself, and add views.")
     return ExtrinsicResult(
         T_camera_laser=T,
         residual_rms_m=float(np.sqrt(np.mean(r**2))),

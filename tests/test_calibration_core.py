@@ -363,6 +363,21 @@ def test_swapped_scans_are_found_by_consensus() -> None:
     assert rot < 0.2 and tra < 0.005
 
 
+def test_four_views_left_after_rejection_are_not_reliable() -> None:
+    """Two scans swapped among 6 views: the consensus leaves the pair out and the four
+    good views give the extrinsic (without it a good view was left out and the laser put
+    beyond --max-offset), but four views fit a wrong view as well as right ones, so the
+    result is not called reliable (it was)."""
+    cap, views = _swapped(6, 4, 1, 4)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    assert sorted(res.views_rejected) == ["view01", "view04"]
+    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+    assert rot < 0.5 and tra < 0.01
+    assert not res.reliable
+    assert any("4 views kept of 6 after leaving out view0" in u for u in res.unreliable)
+
+
 def test_untilted_boards_are_marked_unreliable() -> None:
     """Boards only rolled in their plane (normals all facing the camera): the review's
     near-degenerate case, tens of degrees off with a reported std of 1-2 degrees."""
@@ -412,6 +427,10 @@ def test_moved_board_among_five_views_is_rejected() -> None:
     assert list(res.views_rejected) == [views[2].name]
     rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
     assert rot < 0.5 and tra < 0.01
+    # Four views are left, which would fit a wrong view as well: not called reliable (it
+    # was, with only the 'only 4 views' warning).
+    assert not res.reliable
+    assert any("4 views kept of 5 after leaving out view02" in u for u in res.unreliable)
     # Clean five-view sets keep every view.
     for seed in (0, 2):
         clean = calibrate_extrinsic(_views(make_capture(5, seed=seed)), camera=cap.camera)
