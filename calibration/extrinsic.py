@@ -13,7 +13,11 @@ plane: ``n . (R p + t) - d = 0``. This module solves that:
    extrinsic with every board pose (corner reprojection errors + point-to-plane distances,
    + the scan's end points on the board outline when the board's size is known);
 3. rejection of views far off the others (wrong segment picked, board moved between image
-   and scan), also judged against the fit of the other views without them;
+   and scan, a scan paired with another view's image): with 6 views or more, when the fit
+   of all views leaves a view beyond its noise, first by consensus (fits of four-view
+   subsets, the set of views that agree with one chosen by a truncated cost); then each
+   view also judged against the fit of the other views without them; fewer than 5 views
+   left after that is not called reliable;
 4. the covariance from the Jacobian, and the directions the views leave unconstrained;
 5. checks that the views determine the answer at all (board normals that span all three
    directions, a laser within the allowed offset of the camera) and leave-one-view-out
@@ -62,6 +66,12 @@ class ExtrinsicError(ValueError):
 # several extrinsics (the reviewer's three-view sets gave answers 157 degrees off with a
 # 3 mm residual); four is the least with any redundancy.
 MIN_VIEWS = 4
+# Below this many views left after leaving views out the result is not called reliable:
+# four views leave two constraints spare, so a wrong view is fitted as well as the right
+# ones and the views left out may be the good ones (8 synthetic views with two scans
+# swapped: four good views were left out, the swapped pair kept, and the result was 96
+# degrees off, marked reliable, with only the warning that four views are few).
+MIN_VIEWS_AFTER_REJECTION = 5
 # The views' evidence on the offset out of the plane the board normals span grows with the
 # sum of the normals' squared components out of it: N boards at an RMS angle a from that
 # plane give N sin(a)^2. Below this the estimate and its covariance are set by noise and
@@ -520,6 +530,185 @@ def _held_by_prior(views: list[View], info: np.ndarray,
             "measure them.")
 
 
+# ---------------------------------------------------------------------------- consensus
+
+# Views in each hypothesis of the consensus search: the least with any redundancy.
+CONSENSUS_SUBSET = MIN_VIEWS
+# From this many views the views that agree are first sought by consensus. Of five views
+# any four can be made to agree, so there the rule in ``_outlier_view`` decides alone.
+CONSENSUS_MIN_VIEWS = 6
+# Subsets tried: all of them when there are no more than this (8 views: 70), else up to
+# this many drawn at random with a fixed seed. With 4 bad views among 15 a quarter of the
+# four-view subsets are all good, so 100 draws all miss with probability 1e-12.
+CONSENSUS_MAX_SUBSETS = 100
+
+
+def _plane_residuals(P: np.ndarray, N: np.ndarray, D: np.ndarray, R: np.ndarray,
+                     t: np.ndarray) -> np.ndarray:
+    """[S, M] point-to-plane residuals of points P [M, 3] under S transforms R [S, 3, 3],
+    t [S, 3]."""
+    return ((P @ R.transpose(0, 2, 1)) * N).sum(2) + t @ N.T - D
+
+
+def _fit_many(P: np.ndarray, N: np.ndarray, D: np.ndarray, T0: np.ndarray,
+              iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Plain least-squares point-to-plane fits from S starts T0 [S, 4, 4] at once
+    (Levenberg-Marquardt): the transforms [S, 4, 4] and their sums of squares [S].
+
+    For the consensus search, which fits hundreds of four-view subsets assumed clean:
+    ``_fit`` took 49 ms a subset (three starts through scipy), too slow for that.
+    """
+    R = T0[:, :3, :3].copy()  # [S, 3, 3]
+    t = T0[:, :3, 3].copy()  # [S, 3]
+    r = _plane_residuals(P, N, D, R, t)  # [S, M]
+    cost = (r**2).sum(1)  # [S]
+    lam = np.full(len(R), 1e-3)
+    for _ in range(iterations):
+        q = P @ R.transpose(0, 2, 1)  # [S, M, 3]
+        J = np.concatenate([np.cross(q, N), np.broadcast_to(N, q.shape)], axis=2)  # [S, M, 6]
+        H = np.einsum("smi,smj->sij", J, J)  # [S, 6, 6]
+        g = np.einsum("smi,sm->si", J, r)  # [S, 6]
+        d = np.einsum("sii->si", H) + 1e-12  # [S, 6]
+        step = -np.linalg.solve(H + lam[:, None, None] * (d[:, :, None] * np.eye(6)),
+                                g[..., None])[..., 0]  # [S, 6]
+        R_new = Rotation.from_rotvec(step[:, :3]).as_matrix() @ R
+        t_new = t + step[:, 3:]
+        r_new = _plane_residuals(P, N, D, R_new, t_new)
+        cost_new = (r_new**2).sum(1)
+        better = cost_new < cost
+        done = np.all(cost - np.where(better, cost_new, cost) <= 1e-9 * cost)
+        R[better], t[better], r[better], cost[better] = (R_new[better], t_new[better],
+                                                         r_new[better], cost_new[better])
+        lam = np.where(better, lam * 0.1, lam * 10.0)
+        if done and np.all(better | (lam > 1e3)):
+            break
+    T = np.tile(np.eye(4), (len(R), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, t
+    return T, cost
+
+
+def _agree_limit(views: list[View], opts: SolverOptions) -> np.ndarray:
+    """[V] metres: the point-to-plane RMS up to which each view agrees with a fit,
+    ``reject_factor`` times its points' scatter about their own line (the laser noise,
+    measured without the extrinsic) and at least ``reject_min_m``."""
+    scatter = np.array([_line_scatter([v]) for v in views])  # [V]
+    return np.maximum(opts.reject_factor * scatter, opts.reject_min_m)
+
+
+def _consensus(views: list[View], opts: SolverOptions, guess: np.ndarray | None,
+               T: np.ndarray) -> tuple[np.ndarray, np.ndarray, str, np.ndarray] | None:
+    """The views that agree with each other, when the fit of all of them ``T`` leaves
+    some view beyond its noise; None when every view agrees (or too few do to tell).
+
+    The rejection rule of ``_outlier_view`` judges views by the fit they all pulled on,
+    so bad views that pull it their way get good ones rejected: two scans swapped among
+    8 views left the fit 178 degrees off and four good views were rejected one by one.
+    Here four-view subsets that span all directions are fitted (RANSAC), each fit names
+    the views within ``_agree_limit`` of it, each such set is refitted by itself, and the
+    set whose refit has the lowest truncated cost over all views wins (MSAC: a view adds
+    its squared RMS over its limit, at most 1). It is refitted as the solve does, and
+    views that agree with that refit join it. All subsets are tried up to
+    ``CONSENSUS_MAX_SUBSETS`` (8 views: 70); beyond, that many are drawn with a fixed
+    seed, stopping once a subset of views that agree with the best fit so far would have
+    been drawn with probability 0.999 (adaptive RANSAC).
+
+    Returns a mask [V] of the views kept, their fit [4, 4], its start's name and every
+    view's RMS [V] under it.
+    """
+    limit = _agree_limit(views, opts)  # [V]
+    if np.all(_view_rms(views, T) <= limit):
+        return None
+    P, N, D, ids = _stack(views)
+    first = np.r_[0, np.cumsum([len(v.points) for v in views])[:-1]]  # [V]
+    n_pts = np.array([len(v.points) for v in views], dtype=float)  # [V]
+
+    def rms_of(Ts: np.ndarray) -> np.ndarray:  # [S, V] per-view RMS under Ts [S, 4, 4]
+        r = _plane_residuals(P, N, D, Ts[:, :3, :3], Ts[:, :3, 3])
+        return np.sqrt(np.add.reduceat(r**2, first, axis=1) / n_pts)
+
+    def near(Ts: np.ndarray) -> np.ndarray:  # [S] bool: within the allowed offset
+        return (np.ones(len(Ts), bool) if opts.max_offset_m is None
+                else np.linalg.norm(Ts[:, :3, 3], axis=1) <= opts.max_offset_m)
+
+    lin = linear_init(views)
+    starts = np.stack([x for x in (T, guess, lin) if x is not None])  # [S, 4, 4]
+    axes = _axis_aligned_rotations()
+    n_views = len(views)
+    sampled = math.comb(n_views, CONSENSUS_SUBSET) > CONSENSUS_MAX_SUBSETS
+    if not sampled:
+        subsets = list(itertools.combinations(range(n_views), CONSENSUS_SUBSET))
+    else:
+        rng = np.random.default_rng(0)
+        chosen: dict[tuple[int, ...], None] = {}
+        while len(chosen) < CONSENSUS_MAX_SUBSETS:
+            chosen[tuple(sorted(rng.choice(n_views, CONSENSUS_SUBSET, replace=False)
+                                .tolist()))] = None
+        subsets = list(chosen)
+    hyps = [T]
+    # Views the best fit so far agrees with; a fit beyond the allowed offset counts none.
+    most = int(np.sum(_view_rms(views, T) <= limit)) if near(T[None])[0] else 0
+    for tried, s in enumerate(subsets):
+        # Adaptive RANSAC where the subsets are drawn: stop once a subset of views that
+        # agree with the best fit so far would have been drawn with probability 0.999.
+        share = (most / n_views) ** CONSENSUS_SUBSET
+        if sampled and (share >= 1.0 or (share > 0.0 and tried >= math.log(1e-3)
+                                         / math.log(1.0 - share))):
+            break
+        if degenerate_views_reason([views[i] for i in s]) is not None:
+            continue  # its fit would be set by noise
+        m = np.isin(ids, s)
+        Ps, Ns, Ds = P[m], N[m], D[m]
+        Ts, cost = _fit_many(Ps, Ns, Ds, starts)
+        ok = near(Ts)
+        fits = ok.any() and bool(np.all(
+            rms_of(Ts[[int(np.argmin(np.where(ok, cost, np.inf)))]])[0, list(s)]
+            <= limit[list(s)]))
+        if not fits and opts.multistart:
+            # As in ``_fit``: the mounts a wrong start cannot reach.
+            T_ax = np.stack([se3(R, _translation_given_rotation(Ps, Ns, Ds, R)) for R in axes])
+            Ta, cost_a = _fit_many(Ps, Ns, Ds, T_ax)
+            Ts, cost, ok = np.r_[Ts, Ta], np.r_[cost, cost_a], np.r_[ok, near(Ta)]
+        if ok.any():
+            hyps.append(Ts[int(np.argmin(np.where(ok, cost, np.inf)))])
+            most = max(most, int(np.sum(rms_of(hyps[-1][None])[0] <= limit)))
+    H = np.stack(hyps)  # [K, 4, 4]
+    agree = rms_of(H) <= limit  # [K, V]
+    # Each set of views a fit is agreed with is refitted by itself and judged by the
+    # truncated cost of that refit (MSAC): every view adds its squared RMS over its
+    # limit, at most 1. A four-view fit strays on the views it did not see, and counting
+    # agreeing views rewards fits that absorb a bad view (two boards moved among 6 views:
+    # a set of 5 with both moved ones in it, 6.4 degrees off, beat the 4 good ones).
+    best_cost, keep, T_c = np.inf, agree[0], T
+    seen: list[np.ndarray] = []
+    for k in range(len(H)):
+        if agree[k].sum() < CONSENSUS_SUBSET or any(np.array_equal(agree[k], a) for a in seen):
+            continue
+        seen.append(agree[k])
+        m = np.isin(ids, np.flatnonzero(agree[k]))
+        T_k = _fit_many(P[m], N[m], D[m], H[k][None])[0]
+        if not near(T_k)[0]:
+            continue  # a mount beyond the allowed offset loses, as in ``_fit``
+        rms_k = rms_of(T_k)[0]
+        cost = float(np.minimum((rms_k / limit) ** 2, 1.0).sum())
+        if cost < best_cost:
+            best_cost, keep, T_c = cost, agree[k] | (rms_k <= limit), T_k[0]
+    if not np.isfinite(best_cost) or keep.all() or keep.sum() < max(opts.min_views,
+                                                                     MIN_VIEWS):
+        return None
+    # Views that agree with the refit join; none leaves: a view that the refit leaves
+    # just beyond its limit is for ``_outlier_view`` to judge against the others. The
+    # consensus only settles which views can agree at all.
+    for _ in range(3):
+        T_c, method = _fit([views[i] for i in np.flatnonzero(keep)], opts, guess, start=T_c)
+        again = keep | (_view_rms(views, T_c) <= limit)
+        if np.array_equal(again, keep):
+            break
+        keep = again
+    else:
+        T_c, method = _fit([views[i] for i in np.flatnonzero(keep)], opts, guess, start=T_c)
+    return keep, T_c, method, _view_rms(views, T_c)
+
+
 def _outlier_view(views: list[View], opts: SolverOptions, guess: np.ndarray | None,
                   T: np.ndarray) -> tuple[int, float, float] | None:
     """(index, its RMS, the others' median RMS) of the view to reject, or None.
@@ -629,6 +818,18 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
     rejected: dict[str, str] = {}
     used = list(views)
     T, init_method = _fit(used, opts, init, start)
+    found_c = (_consensus(used, opts, init, T)
+               if len(used) >= CONSENSUS_MIN_VIEWS and len(used) > opts.min_views else None)
+    if found_c is not None:
+        keep, T, init_method, rms_c = found_c
+        median = float(np.median(rms_c[keep]))
+        for i in np.flatnonzero(~keep):
+            rejected[used[i].name] = (
+                f"point-to-plane RMS {rms_c[i] * 100:.1f} cm against a median of "
+                f"{median * 100:.1f} cm for the {int(keep.sum())} views that agree with each "
+                "other (wrong scan segment, board moved between image and scan, the scan of "
+                "another image, or a bad corner detection)")
+        used = [v for v, k in zip(used, keep, strict=True) if k]
     while len(used) > opts.min_views:
         found = _outlier_view(used, opts, init, T)
         if found is None:
@@ -697,6 +898,15 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
         warnings.append(held)
     else:
         unreliable += open_reasons
+    if rejected and len(used) < MIN_VIEWS_AFTER_REJECTION:
+        # The views kept may be the wrong ones: no prior or residual tells.
+        unreliable.append(
+            f"{len(used)} views kept of {len(used) + len(rejected)} after leaving out "
+            f"{', '.join(rejected)}: with fewer than {MIN_VIEWS_AFTER_REJECTION} views a wrong "
+            "view is fitted as well as the right ones, so neither the views left out nor "
+            "the ones kept are confirmed (8 views with two scans swapped once gave a result "
+            "96 degrees off with four good views left out). Check the pairing of images and "
+            "scans and the overlays, remove the bad views yourself, and add views.")
     return ExtrinsicResult(
         T_camera_laser=T,
         residual_rms_m=float(np.sqrt(np.mean(r**2))),

@@ -38,7 +38,7 @@ from calibration.scans import (
     read_scan_file,
     stamp_from_name,
 )
-from calibration.synthetic import make_capture, render_board, write_pcd
+from calibration.synthetic import SyntheticCapture, make_capture, render_board, write_pcd
 from toolkit.geometry import inv_se3, se3
 
 
@@ -332,6 +332,52 @@ def test_max_offset_error_names_the_views_left_out() -> None:
     assert "point-to-plane RMS" in msg and ".." not in msg
 
 
+def _swapped(n_views: int, seed: int, a: int, b: int) -> tuple[SyntheticCapture, list[View]]:
+    """A capture whose views ``a`` and ``b`` have each other's scans (a pairing slip)."""
+    cap = make_capture(n_views, seed=seed)
+    views = _views(cap)
+    views[a].points, views[b].points = views[b].points, views[a].points
+    return cap, views
+
+
+def test_swapped_scans_are_found_by_consensus() -> None:
+    """Two scans swapped among 8 views: the fit of all views landed 178 degrees off, and
+    dropping the worst-fitting view from it, one at a time, dropped four good views and
+    kept the swapped pair: 96 deg / 0.24 m off, marked reliable (with or without the
+    forward mount guess). Fits of four-view subsets find the six views that agree."""
+    for init in (mount_guess(BoardSearch(), None), None):  # --mount forward, --mount any
+        cap, views = _swapped(8, 1, 1, 2)
+        res = calibrate_extrinsic(views, init, SolverOptions(max_offset_m=0.3),
+                                  camera=cap.camera)
+        assert sorted(res.views_rejected) == ["view01", "view02"]
+        assert "the 6 views that agree with each other" in res.views_rejected["view01"]
+        rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+        assert rot < 0.5 and tra < 0.01
+        assert res.reliable, res.unreliable
+    # 15 views: 100 of the 1365 four-view subsets drawn, fewer once most views agree.
+    cap, views = _swapped(15, 0, 1, 8)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    assert sorted(res.views_rejected) == ["view01", "view08"]
+    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+    assert rot < 0.2 and tra < 0.005
+
+
+def test_four_views_left_after_rejection_are_not_reliable() -> None:
+    """Two scans swapped among 6 views: the consensus leaves the pair out and the four
+    good views give the extrinsic (without it a good view was left out and the laser put
+    beyond --max-offset), but four views fit a wrong view as well as right ones, so the
+    result is not called reliable (it was)."""
+    cap, views = _swapped(6, 4, 1, 4)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    assert sorted(res.views_rejected) == ["view01", "view04"]
+    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+    assert rot < 0.5 and tra < 0.01
+    assert not res.reliable
+    assert any("4 views kept of 6 after leaving out view0" in u for u in res.unreliable)
+
+
 def test_untilted_boards_are_marked_unreliable() -> None:
     """Boards only rolled in their plane (normals all facing the camera): the review's
     near-degenerate case, tens of degrees off with a reported std of 1-2 degrees."""
@@ -381,6 +427,10 @@ def test_moved_board_among_five_views_is_rejected() -> None:
     assert list(res.views_rejected) == [views[2].name]
     rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
     assert rot < 0.5 and tra < 0.01
+    # Four views are left, which would fit a wrong view as well: not called reliable (it
+    # was, with only the 'only 4 views' warning).
+    assert not res.reliable
+    assert any("4 views kept of 5 after leaving out view02" in u for u in res.unreliable)
     # Clean five-view sets keep every view.
     for seed in (0, 2):
         clean = calibrate_extrinsic(_views(make_capture(5, seed=seed)), camera=cap.camera)
@@ -400,6 +450,22 @@ def test_moved_board_among_ten_noisy_views_is_rejected() -> None:
         assert list(res.views_rejected) == [views[3].name]
         rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
         assert rot < 0.3 and tra < 0.005
+
+
+def test_two_moved_boards_among_eight_views_are_left_out() -> None:
+    """Two boards turned 8 degrees and moved 4 cm between image and scan, among 8 views
+    with 1 cm lidar noise: the fit of all views spread their error so that neither went,
+    26 mm off and marked unreliable. The consensus of the six good views leaves both out."""
+    cap = make_capture(8, seed=1)
+    views = _views(cap)
+    views[1].points = _moved(views[1].points, 8.0, 0.04)
+    views[5].points = _moved(views[5].points, -8.0, -0.04)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    assert sorted(res.views_rejected) == ["view01", "view05"]
+    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+    assert rot < 1.0 and tra < 0.015
+    assert res.reliable, res.unreliable
 
 
 def test_disagreeing_view_among_four_is_named() -> None:
