@@ -183,6 +183,19 @@ def test_a_partly_corrected_recording_is_told_the_whole_setting(delayed: Path,
 
     res = TimeOffsetResult(0.0301, 0.001, 100, 5, 0.3, 0.1, 0.2, True)
     assert "camera_delay_s: 0.0601}" in advice(res, 0.03)
+    # The whole setting applied to the measured folder itself moves it by the rest only,
+    # to the stamps a single conversion of the original gives (it took 30 ms out twice).
+    # Unset, a conversion keeps the folder's correction.
+    once = convert(read_sequence_recording(delayed), tmp_path / "once",
+                   SyncOptions(camera_delay_s=0.06))
+    again = convert(read_sequence_recording(tmp_path / "part"), tmp_path / "again",
+                    SyncOptions(camera_delay_s=0.06))
+    kept = convert(read_sequence_recording(tmp_path / "part"), tmp_path / "kept")
+    stamps = {p.name: read_sequence(p).frame_stamps
+              for p in (once.root, again.root, kept.root, tmp_path / "part")}
+    np.testing.assert_allclose(stamps["again"], stamps["once"], atol=1e-9)
+    np.testing.assert_allclose(stamps["kept"], stamps["part"], atol=1e-9)
+    assert read_sequence(again.root).meta["ingest"]["camera_delay_s"] == 0.06
     assert "Nothing to correct (+30.0 ms already taken out" in advice(
         TimeOffsetResult(0.0004, 0.001, 100, 5, 0.3, 0.1, 0.1, True), 0.03)
 

@@ -135,13 +135,24 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         raise IngestError(f"{recording.source}: scan stamps are not strictly increasing; "
                           "the reader should have caught this")
     poses = recording.odometry if recording.odometry is not None else recording.groundtruth
-    delay = sync.camera_delay_s
-    frame_stamps = recording.frame_stamps - delay  # the exposure times
+    # The whole delay against the raw stamps: a folder converted with a delay already
+    # taken out is shifted by the rest only (following the time-offset advice, the whole
+    # setting, on the measured folder itself took the earlier delay out twice); unset, it
+    # keeps the source's.
+    delay = (recording.camera_delay_applied_s if sync.camera_delay_s is None
+             else sync.camera_delay_s)
+    shift = delay - recording.camera_delay_applied_s
+    if shift and recording.camera_delay_applied_s:
+        log.info("%s: %.1f ms of camera delay were taken out at its conversion; shifting "
+                 "the frames by %.1f ms more for sync.camera_delay_s %.1f ms in all",
+                 recording.source, 1000 * recording.camera_delay_applied_s, 1000 * shift,
+                 1000 * delay)
+    frame_stamps = recording.frame_stamps - shift  # the exposure times
     # A depth camera's own stream is late like the colour one (one driver), except where
     # the scans are made from it: then it is the clock the delay was measured against.
     depth_stamps = recording.depth_stamps
     if depth_stamps is not None and not recording.depth_is_scan_clock:
-        depth_stamps = depth_stamps - delay
+        depth_stamps = depth_stamps - shift
     plan = plan_frames(frame_stamps, scan_stamps, depth_stamps, sync, decimate, poses)
     pairs = plan.pairs()
     stamps = frame_stamps[plan.frames] if len(pairs) else np.zeros(0)
@@ -212,10 +223,10 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         frames = recording.load(todo)
         for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
             expected = float(stamps[done + k])
-            stamp = float(np.float64(fd.stamp) - delay)  # as the planned stamps were made
+            stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
             if stamp != expected:
                 raise IngestError(f"{recording.source}: loader returned frame at {fd.stamp!r} "
-                                  f"where {expected + delay!r} was planned")
+                                  f"where {expected + shift!r} was planned")
             writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path)
         if writer.num_frames != len(pairs):
             raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "

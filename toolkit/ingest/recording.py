@@ -63,6 +63,9 @@ class Recording:
     # stream is then the lidar's clock and keeps its stamps when the camera's delay
     # (sync.camera_delay_s) is taken out of the colour stamps.
     depth_is_scan_clock: bool = False
+    # Camera delay already taken out of frame_stamps (a sequence folder converted before
+    # with sync.camera_delay_s): sync.camera_delay_s is the total against the raw stamps.
+    camera_delay_applied_s: float = 0.0
     finish: Callable[[Any], None] | None = None  # extra writes on the SequenceWriter
 
 

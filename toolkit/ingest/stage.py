@@ -163,12 +163,15 @@ def read_sequence_recording(root: Path, name: str | None = None) -> Recording:
 
     meta = {k: v for k, v in seq.meta.items()
             if k not in ("format", "version", "name", "source", "frames", "scans", "ingest")}
+    ingest = seq.meta.get("ingest")
+    applied = float(ingest.get("camera_delay_s") or 0.0) if isinstance(ingest, dict) else 0.0
     return Recording(
         name=name or seq.name, source=f"sequence {root}", rig=seq.rig, scans=seq.scans,
         frame_stamps=seq.frame_stamps, load=load, odometry=seq.odometry,
         groundtruth=gt.poses_base if gt is not None else None,
         has_camera=bool(meta.pop("has_camera", True)) and bool(seq.frames), meta=meta,
-        scan_dynamic=gt.scan_dynamic if gt is not None else None, finish=finish)
+        scan_dynamic=gt.scan_dynamic if gt is not None else None, finish=finish,
+        camera_delay_applied_s=applied)
 
 
 def _fingerprint(cfg: IngestConfig, inputs: list[Path]) -> str:

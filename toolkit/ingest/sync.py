@@ -39,8 +39,10 @@ class SyncOptions(BaseModel):
     # The camera's stamps are this much later than its exposures (a driver stamping on
     # arrival): frame stamps (and a depth camera's, except TUM RGB-D's, whose depth images
     # make the scans) are moved back by it before anything is paired.
-    # `python -m calibration time-offset` measures it.
-    camera_delay_s: float = Field(0.0, ge=-1.0, le=1.0)
+    # `python -m calibration time-offset` measures it. The whole delay against the raw
+    # stamps: a sequence folder converted before with one is moved by the difference;
+    # None keeps what the source has (0 for recordings).
+    camera_delay_s: float | None = Field(None, ge=-1.0, le=1.0)
 
 
 class DecimateOptions(BaseModel):
