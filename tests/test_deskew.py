@@ -118,6 +118,13 @@ def test_deskew_scans_along_a_trajectory_and_only_covered():
     assert deskew_scans([scan], holed, np.eye(4), covered_only=True)[0] is scan
     early = replace(scan, stamp=-0.95)
     assert deskew_scans([early], holed, np.eye(4), covered_only=True)[0] is not early
+    # A trajectory stamped at the scans ends at the last scan's first beam: its sweep
+    # takes the motion of the trajectory's last stretch as long as the sweep (clipped to
+    # the end pose it got none and stayed skewed), half past the end as well.
+    for end in (0.0, scan.sweep_s / 2):
+        ending = traj.slice(t <= end + 1e-9)
+        out = deskew_scans([scan], ending, np.eye(4))[0]
+        assert np.median(np.abs(out.ranges - truth)) < 2e-3, end
 
 
 def test_scan_files_store_beam_timing(tmp_path: Path):

@@ -106,9 +106,13 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
                  covered_only: bool = False) -> list[LaserScan]:
     """Every scan with per-beam timing de-skewed with the motion of ``traj`` (T_base in
     any fixed frame: world, odom) over its sweep; scans without timing come back as they
-    are. Sweeps reaching outside the trajectory take its end poses (no motion there), or
-    with ``covered_only`` keep their timing for someone else to de-skew - as do sweeps in
-    a gap of it then (``Trajectory.covers``: a straight line across a gap is a guess)."""
+    are. A sweep reaching outside the trajectory takes the motion of the same length of
+    time at the trajectory's end (constant velocity, as de-skewing assumes within a
+    sweep; clipped to the end poses, the last scan of a trajectory stamped at the scans
+    got no motion at all and stayed skewed: 6.9 cm median, 78 cm worst, turning at
+    1 rad/s), or with ``covered_only`` keeps its timing for someone else to de-skew - as
+    do sweeps in a gap of it then (``Trajectory.covers``: a straight line across a gap
+    is a guess)."""
     lo, hi = (traj.stamps[0], traj.stamps[-1]) if len(traj) else (np.inf, -np.inf)
     timed = [k for k, s in enumerate(scans) if is_swept(s)]
     if covered_only and timed and len(traj):
@@ -118,7 +122,15 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
     if not timed or not len(traj):
         return scans
     t0 = np.array([scans[k].stamp for k in timed])
-    t1 = t0 + np.array([scans[k].sweep_s for k in timed])
+    sweep = np.array([scans[k].sweep_s for k in timed])  # [T] negative: beams ran back
+    t1 = t0 + sweep
+    # Sweeps past an end slide inside the trajectory where it is long enough to hold them.
+    start = np.minimum(t0, t1)
+    length = np.abs(sweep)
+    fits = length <= hi - lo
+    slid = np.where(fits, np.clip(start, lo, hi - np.where(fits, length, 0.0)), start)
+    t0 = np.where(sweep >= 0, slid, slid + length)
+    t1 = np.where(sweep >= 0, slid + length, slid)
     poses = interpolate_poses(traj.stamps, traj.poses, np.clip(np.concatenate([t0, t1]), lo, hi))
     T_wl = poses @ T_base_laser  # [2T, 4, 4]
     motion = planar_motion(T_wl[: len(timed)], T_wl[len(timed):])  # [T, 3]
