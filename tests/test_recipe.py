@@ -1250,3 +1250,11 @@ def test_a_bad_value_of_a_generic_union_member_is_named_by_its_key(tmp_path: Pat
         load_recipe(path, [])
     assert "stages[0] (depth): input_size: Input should be a valid tuple" in str(e.value)
     assert "tuple[int, int]" not in str(e.value)
+    # ... and pydantic's other tags: splat.threads is a positive int or 'auto'.
+    path.write_text(yaml.safe_dump({"name": "t", "output": str(tmp_path / "out"), "stages": [
+        {"stage": "splat", "threads": 0}]}))
+    with pytest.raises(RecipeError) as e:
+        load_recipe(path, [])
+    assert "stages[0] (splat): threads: Input should be greater than or equal to 1" in str(
+        e.value)
+    assert "constrained-int" not in str(e.value) and "literal[" not in str(e.value)

@@ -370,6 +370,19 @@ def test_opacity_resets_can_be_turned_off_and_absgrad_is_refused() -> None:
         StrategyConfig(absgrad=True)
 
 
+def test_settings_out_of_range_are_refused_before_training() -> None:
+    """A 0..255 background trained against a colour no render reaches and crashed the
+    TSDF comparison after training; a negative lr_means_final made the rate complex at
+    step 1; negative rates failed once the views were loaded."""
+    from pydantic import ValidationError
+
+    for bad in ({"background": (255, 255, 255)}, {"lr_means_final": -0.1},
+                {"lr_scales": -1.0}, {"pose_reg": -1.0}):
+        with pytest.raises(ValidationError):
+            TrainConfig(**bad)  # type: ignore[arg-type]
+    assert TrainConfig(background=(1.0, 1.0, 1.0)).background == (1.0, 1.0, 1.0)
+
+
 def test_refinement_stops_at_half_the_training_by_default() -> None:
     """gsplat refines for 15000 of 30000 steps; the default of 15000 refined a 1500-step
     training to its step 1400 (its last clones had 100 steps to settle)."""

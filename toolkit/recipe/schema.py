@@ -641,7 +641,10 @@ def _resolve_loc(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[tuple[An
             models = [m for m in members if _is_model(m) and part in _field_types(m)]
             current = models[0] if models else None
             if current is None:
-                clean.append(part)
+                # No member's key either: one of pydantic's other tags ('constrained-int',
+                # "literal['auto']", a generic's repr), not part of the user's path.
+                if not isinstance(part, str):
+                    clean.append(part)
                 continue
         if _is_model(current) and isinstance(part, str):
             clean.append(part)

@@ -149,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--backends", default="cpp,torch", help="comma list of cpp, torch, gsplat")
     p.add_argument("--iters", type=positive_int, default=10)
-    p.add_argument("--ref-iters", type=int, default=3, help="iterations for the slow reference")
+    p.add_argument("--ref-iters", type=positive_int, default=3,
+                   help="iterations for the slow reference")
     p.add_argument("--state", choices=("trained", "init"), default="trained")
     p.add_argument("--threads", type=int, default=None, help="torch threads")
     p.add_argument("--composite-threads", type=int, default=None,
@@ -168,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(backends) - {"cpp", "torch", "gsplat"})
     if unknown:
         p.error(f"--backends: unknown {unknown}; choose from cpp, torch, gsplat")
+    if "gsplat" in backends and a.device != "cuda":
+        p.error("--backends gsplat renders on the GPU: add --device cuda")
     if a.out.is_dir():
         p.error(f"--out {a.out} is a folder; give the JSON file to write")
     res = run_bench(a.gaussians, a.width, a.height, backends, a.iters,

@@ -38,7 +38,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
@@ -95,7 +95,7 @@ class SplatConfig(TrainConfig, StageConfig):
     # loaded: on a shared 2-core machine PyTorch with 2 OpenMP threads ran 10x slower in wall
     # time than with 1 once other processes kept both cores busy (docs/splatting.md). The
     # compositing kernels keep all cores either way (one parallel loop per pass).
-    threads: int | Literal["auto"] = "auto"
+    threads: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     # Where the model trains. cuda: on the GPU, rendered by gsplat (the `cuda` extra); auto:
     # cuda where torch sees a GPU and gsplat imports, else the CPU. The CPU is the default
     # because the CUDA path of this stage has not yet been run on a GPU in this project

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
@@ -56,14 +56,18 @@ class TrainConfig(BaseModel):
     sh_degree_interval: int = Field(300, ge=1, description="steps per SH degree increase")
     lambda_dssim: float = Field(0.2, ge=0.0, le=1.0)
     depth_weight: float = Field(0.1, ge=0.0, description="weight of the L1 depth term (1/m)")
-    lr_means: float = 1.6e-4  # x scene scale
-    lr_means_final: float = 0.01  # fraction of lr_means reached at the last step
-    lr_scales: float = 5e-3
-    lr_quats: float = 1e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lr_means: float = Field(1.6e-4, gt=0)  # x scene scale
+    # fraction of lr_means reached at the last step (a negative one made the rate complex)
+    lr_means_final: float = Field(0.01, gt=0, le=1)
+    lr_scales: float = Field(5e-3, gt=0)
+    lr_quats: float = Field(1e-3, gt=0)
+    lr_opacities: float = Field(5e-2, gt=0)
+    lr_sh0: float = Field(2.5e-3, gt=0)
+    lr_shN: float = Field(2.5e-3 / 20, gt=0)
+    # RGB in 0..1, as the renders and PSNR are (white = [1, 1, 1]; 255 trained against a
+    # background no render can reach and crashed the TSDF comparison)
+    background: tuple[Annotated[float, Field(ge=0, le=1)], Annotated[float, Field(ge=0, le=1)],
+                      Annotated[float, Field(ge=0, le=1)]] = (0.0, 0.0, 0.0)
     backend: Literal["auto", "cpp", "torch", "gsplat"] = "auto"
     densify: StrategyConfig = StrategyConfig()
     max_gaussians: int = Field(300_000, ge=1)
@@ -71,8 +75,8 @@ class TrainConfig(BaseModel):
         None, gt=0, description="caps the Gaussian count so parameters + Adam state fit")
     scene_scale: float | None = Field(None, gt=0, description="None: from the camera spread")
     pose_refine: bool = False
-    lr_pose: float = 1e-5
-    pose_reg: float = 1e-6
+    lr_pose: float = Field(1e-5, ge=0)
+    pose_reg: float = Field(1e-6, ge=0)
     checkpoint_every: int = Field(500, ge=0, description="0: only at the end")
     log_every: int = Field(100, ge=1)
     max_seconds: float | None = Field(None, gt=0, description="stop early after this long")
