@@ -312,3 +312,25 @@ def test_views_read_on_demand_train_the_same_splats_and_keep_the_cache(
     again = run_recipe(load_recipe(_recipe(tmp_path / "a", with_traj=True, iterations=12,
                                            view_cache_mb=0.05)))
     assert again.statuses["splat"] == "cached"
+
+
+def test_ground_truth_poses_are_refused_for_a_map_built_at_other_poses(
+        tmp_path: Path) -> None:
+    """splat.poses: groundtruth beside a map fused at the SLAM poses trained splats from a
+    map 1.4 m off them without a word (the report blamed a missing trajectory)."""
+    from toolkit.eval.alignment import ground_truth_camera
+    from toolkit.geometry import se3
+    from toolkit.io.sequence import read_sequence
+    from toolkit.recipe import StageError
+    from toolkit.splat.synthetic import write_synthetic_inputs
+
+    seq_dir, fused = write_synthetic_inputs(tmp_path / "in", n_frames=6, width=48, height=36,
+                                            n_gaussians=200)
+    seq = read_sequence(seq_dir)
+    at_gt = ground_truth_camera(seq, seq.frame_stamps)
+    write_tum(fused / "camera_poses.tum", at_gt)
+    SplatStage._same_frame_as_the_map(seq, fused)  # built at ground truth: fine
+    shifted = at_gt.transform(T_left=se3(np.eye(3), [1.4, 0.0, 0.0]))
+    write_tum(fused / "camera_poses.tum", shifted)
+    with pytest.raises(StageError, match="set the fuse stage's poses to groundtruth"):
+        SplatStage._same_frame_as_the_map(seq, fused)
