@@ -945,3 +945,22 @@ def test_a_calibrations_body_frame_for_the_camera_is_refused(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         read_rosbag(bag, RosbagOptions(calibration=str(calib)))
     assert "is not the optical frame's transform" in caplog.text
+
+
+def test_a_ros2_bag_is_named_by_its_folder_or_metadata_not_by_one_of_its_files(tmp_path):
+    """One storage file of a split recording was converted in part without a word; a
+    path to metadata.yaml was read as a damaged sqlite3 file."""
+    import yaml
+
+    from toolkit.io.rosbag import BagError, bag_paths
+
+    bag = tmp_path / "run"
+    bag.mkdir()
+    for name in ("run_0.mcap", "run_1.mcap"):
+        (bag / name).write_bytes(b"\x89MCAP0\r\n")
+    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
+        "relative_file_paths": ["run_0.mcap", "run_1.mcap"]}}))
+    assert bag_paths(bag) == [bag]
+    assert bag_paths(bag / "metadata.yaml") == [bag]
+    with pytest.raises(BagError, match="one of the 2 storage files .* give the folder"):
+        bag_paths(bag / "run_0.mcap")

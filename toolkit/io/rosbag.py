@@ -152,9 +152,14 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
     items = [Path(path)] if isinstance(path, str | Path) else [Path(p) for p in path]
     if not items:
         raise BagError("no bag given")
+    # A ROS 2 bag's metadata.yaml stands for its folder (it was read as a damaged sqlite3
+    # file, with a repair hint, even for an mcap bag).
+    items = [p.parent if p.name == "metadata.yaml" and p.is_file() else p for p in items]
     for p in items:
         if not p.exists():
             raise BagError(f"{p}: bag not found")
+        if p.is_file() and not is_ros1_bag(p) and (p.parent / "metadata.yaml").exists():
+            _whole_recording(p)
         if p.is_dir() and not (p / "metadata.yaml").exists():
             ros1_files = sorted(str(f) for f in p.iterdir() if is_ros1_bag(f))
             if ros1_files:
@@ -170,6 +175,23 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
         raise BagError(f"{', '.join(map(str, items))}: a ROS 2 recording is one folder "
                        "(with metadata.yaml); give that folder")
     return items
+
+
+def _whole_recording(storage: Path) -> None:
+    """Refuse one storage file of a ROS 2 recording split over several (it was converted
+    in part, without a word: half the scans and images)."""
+    import yaml
+
+    try:
+        meta = yaml.safe_load((storage.parent / "metadata.yaml").read_text()) or {}
+        listed = meta["rosbag2_bagfile_information"]["relative_file_paths"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return  # not a metadata.yaml that lists files: nothing to compare with
+    names = [Path(str(f)).name for f in listed or []]
+    if len(names) > 1 and storage.name in names:
+        raise BagError(f"{storage}: one of the {len(names)} storage files of the recording "
+                       f"in {storage.parent} ({', '.join(names)}); give the folder to read "
+                       "all of it")
 
 
 def is_ros1_bag(path: Path) -> bool:
