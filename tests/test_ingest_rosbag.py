@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 from dataclasses import dataclass, field
@@ -964,3 +965,33 @@ def test_a_ros2_bag_is_named_by_its_folder_or_metadata_not_by_one_of_its_files(t
     assert bag_paths(bag / "metadata.yaml") == [bag]
     with pytest.raises(BagError, match="one of the 2 storage files .* give the folder"):
         bag_paths(bag / "run_0.mcap")
+
+
+@pytest.mark.parametrize("change", ["recalibrated", "calibrated_later"])
+def test_camera_info_is_read_as_a_stream(tmp_path, change, caplog):
+    """Only the first CameraInfo was read: intrinsics changed mid-bag were applied to every
+    frame without a word, and a camera calibrated while recording (K all zero first) was
+    refused as uncalibrated."""
+    b = BagBuilder(True)
+    c = make_content()
+    msgs = standard_messages(b, c)
+    at = [i for i, m in enumerate(msgs) if m[0] == "/camera/color/camera_info"]
+    for i in at[: len(at) // 2]:
+        topic, kind, t, info = msgs[i]
+        k = np.array(info.K, dtype=np.float64)  # the builder's arrays are shared
+        p = np.array(info.P, dtype=np.float64)
+        if change == "recalibrated":
+            k[0] *= 0.75
+        else:
+            k[:] = 0.0
+            p[:] = 0.0
+        msgs[i] = (topic, kind, t, dataclasses.replace(info, K=k, P=p))
+    bag = write_bag(tmp_path / "run", "ros1", msgs)
+    if change == "recalibrated":
+        with pytest.raises(BagError, match="field 'K' changes at stamp .* calibration YAML"):
+            read_rosbag(bag)
+    else:
+        with caplog.at_level(logging.INFO, logger="toolkit"):
+            rec = read_rosbag(bag)
+        assert np.array_equal(rec.rig.camera.K, K)
+        assert "K all zero (not yet calibrated)" in caplog.text

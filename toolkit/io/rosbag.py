@@ -1008,10 +1008,42 @@ class _Index:
     odom_bag_ns: list[int] = field(default_factory=list)
     odom: list[np.ndarray] = field(default_factory=list)
     odom_frames: tuple[str, str] = ("odom", "base_link")
-    info: Any = None
+    info: Any = None  # the first calibrated CameraInfo (else the first one)
+    info_uncalibrated: int = 0  # CameraInfo messages with K all zero before a calibrated one
+    # (stamp ns, field) where a later CameraInfo first differs from ``info``
+    info_changed: tuple[int, str] | None = None
     tf: TfTree = field(default_factory=TfTree)
     seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
     intensities_dropped: int = 0  # scans whose intensities did not match their ranges
+
+
+def _camera_info_fields(msg: Any) -> dict[str, np.ndarray]:
+    return {"width/height": np.array([int(msg.width), int(msg.height)], np.float64),
+            "K": np.asarray(_field(msg, "k", "K"), np.float64),
+            "D": np.asarray(_field(msg, "d", "D"), np.float64),
+            "P": np.asarray(_field(msg, "p", "P"), np.float64),
+            "R": np.asarray(_field(msg, "r", "R"), np.float64)}
+
+
+def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int) -> None:
+    """Keep the first calibrated CameraInfo; note where a later one differs from it. Only
+    the first one was read: a camera calibrated while recording took the uncalibrated
+    first message's all-zero K (refused as uncalibrated), and intrinsics changed mid-bag
+    were applied to every frame without a word."""
+    if idx.info is None or (not np.any(_field(idx.info, "k", "K"))
+                            and np.any(_field(msg, "k", "K"))):
+        if idx.info is not None:
+            idx.info_uncalibrated += 1
+        idx.info = msg
+        return
+    if idx.info_changed is not None or not np.any(_field(msg, "k", "K")):
+        return
+    first, now = _camera_info_fields(idx.info), _camera_info_fields(msg)
+    for name, value in now.items():
+        if value.shape != first[name].shape or not np.allclose(value, first[name],
+                                                               rtol=1e-9, atol=1e-9):
+            idx.info_changed = (stamp_ns, name)
+            return
 
 
 def _stamp(msg: Any, ns: int, opts: RosbagOptions, where: str) -> int:
@@ -1074,8 +1106,7 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             compressed = ch.image_compressed if topic == ch.image else ch.depth_compressed
             s.sizes.append((-1, -1) if compressed else (int(msg.width), int(msg.height)))
         elif topic == ch.camera_info:
-            if idx.info is None:
-                idx.info = msg
+            _note_camera_info(idx, msg, _stamp(msg, ns, opts, where))
         elif topic == ch.odometry:
             try:
                 T = transform_to_matrix(msg.pose.pose)
@@ -1229,6 +1260,19 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     elif cal is not None and cal.camera is not None:
         camera = cal.camera
     elif idx.info is not None:
+        if idx.info_changed is not None:
+            t, what = idx.info_changed
+            raise BagError(
+                f"{bag_name}: topic {ch.camera_info}: field '{what}' changes at stamp "
+                f"{t / 1e9:.6f} s (the camera was calibrated again while recording): one set "
+                "of intrinsics would be applied to every frame. Fix: give the intrinsics "
+                "that hold for the images in a calibration YAML ('camera: {width, height, "
+                "fx, fy, cx, cy, distortion}', rosbag.calibration), or convert the parts "
+                "before and after the change separately")
+        if idx.info_uncalibrated:
+            log.info("%s: %d CameraInfo messages with K all zero (not yet calibrated) came "
+                     "before the first calibrated one; that one is used", bag_name,
+                     idx.info_uncalibrated)
         camera = camera_info_to_camera(idx.info, f"{bag_name}: topic {ch.camera_info}",
                                        rectified=bool(rectified))
     else:
