@@ -768,8 +768,10 @@ def test_empty_compressed_image_is_a_bag_error(tmp_path):
             if t.endswith("/compressed") and abs(s - 0.03 - c.image_t[3]) < 1e-9 else (t, m, s, x)
             for t, m, s, x in msgs]
     bag = write_bag(tmp_path / "empty_image", "ros1", msgs)
-    with pytest.raises(BagError, match=r"/compressed.*0 bytes.*does not decode"):
+    with pytest.raises(BagError, match=r"/compressed.*0 bytes.*does not decode") as e:
         convert(read_rosbag(bag), tmp_path / "seq")
+    # ... naming the message, so that it can be cut out of the bag
+    assert f"message stamped {ns(c.image_t[3]) / 1e9:.9f} s" in str(e.value)
 
 
 def test_folder_of_ros1_bags_asks_for_the_list(tmp_path):

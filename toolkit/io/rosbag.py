@@ -1496,8 +1496,13 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
                 stamp = ns if opts.stamps == "bag" else header_ns(msg)
                 if topic == ch.image and (stamp, ns) in want_img:
                     k = want_img.pop((stamp, ns))
-                    rgb = compressed_to_rgb(msg, where) if ch.image_compressed else \
-                        image_to_rgb(msg, where)
+                    # Which message: a bad one stops every run at the same frame, and the
+                    # user cuts it out of the bag by its time (rosbag filter, ros2 bag
+                    # convert).
+                    at = (f"{where}, message stamped {stamp / 1e9:.9f} s (recorded at "
+                          f"{ns / 1e9:.9f} s)")
+                    rgb = compressed_to_rgb(msg, at) if ch.image_compressed else \
+                        image_to_rgb(msg, at)
                     if rgb.shape[1] != w or rgb.shape[0] != h:
                         raise BagError(
                             f"{where}: image at {stamp / 1e9:.9f} s is {rgb.shape[1]}x"
