@@ -31,6 +31,7 @@ class FakeSourceConfig(StageConfig):
     # Where the map was built: at the SLAM poses (its frame) or at ground-truth poses (the
     # world's, as fuse with ``poses: groundtruth`` beside a slam2d stage writes it).
     map_frame: Literal["slam", "world"] = "slam"
+    with_mesh: bool = True
 
 
 class FakeScene(Stage):
@@ -54,7 +55,8 @@ class FakeScene(Stage):
         if gt != "none":
             part = slice(5, 15) if gt == "partial" else slice(None)  # mocap started late
             w.groundtruth_poses = Trajectory(stamps[part], poses[part])
-            o3d.io.write_triangle_mesh(str(w.mesh_path()), _room_mesh())
+            if self.config.with_mesh:  # type: ignore[attr-defined]
+                o3d.io.write_triangle_mesh(str(w.mesh_path()), _room_mesh())
         w.close()
         # Exact trajectory, expressed in the SLAM frame.
         cams = T_SLAM_WORLD @ poses @ rig.T_base_camera
@@ -202,3 +204,13 @@ def test_evaluate_scores_the_base_of_a_lidar_only_recording(tmp_path: Path) -> N
     assert m["trajectory"]["position_rmse_m"] == pytest.approx(
         res.metrics["slam2d"]["gt_ate_rmse_m"], abs=0.01)
     assert m["trajectory"]["position_rmse_m"] < 0.05
+
+
+def test_maps_left_unscored_without_a_mesh_are_said_to_be(tmp_path: Path, fake_scene):
+    """Ground-truth poses but no mesh (motion capture, no scanned model): the maps were
+    dropped from the report and metrics without a word."""
+    res = run_recipe(parse_recipe({"name": "t", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "t_scene", "with_mesh": False}, {"stage": "evaluate"}]}))
+    assert res.ok, res.error
+    assert res.metrics["evaluate"]["maps_scored"] is False
+    assert "the maps are not scored" in (tmp_path / "run" / "report.md").read_text()

@@ -61,15 +61,38 @@ def sample_mesh(mesh: Any, spacing_m: float = 0.01, seed: int = 0,
     return np.asarray(mesh.sample_points_uniformly(number_of_points=n).points)
 
 
+def distance_scene(mesh: Any) -> tuple[Any, np.ndarray]:
+    """(Open3D RaycastingScene of ``mesh``, its float64 origin [3]): the scene holds the
+    mesh moved by -origin, and queries must be too. Open3D casts in float32, which spaces
+    values 0.5 m apart at 5.4e6 m (UTM northings): a perfect map there scored 0.32 cm mean
+    and 50 cm worst from its own mesh."""
+    import open3d as o3d
+
+    legacy = load_mesh(mesh)
+    vertices = np.asarray(legacy.vertices, dtype=np.float64)  # [V, 3]
+    origin = vertices.mean(0) if len(vertices) else np.zeros(3)
+    t = o3d.t.geometry.TriangleMesh(o3d.core.Device("CPU:0"))
+    t.vertex.positions = o3d.core.Tensor((vertices - origin).astype(np.float32))
+    t.triangle.indices = o3d.core.Tensor(np.asarray(legacy.triangles, dtype=np.int32))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(t)
+    return scene, origin
+
+
+def scene_distances(scene: Any, origin: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """[N] distances of points [N, 3] to a ``distance_scene``."""
+    import open3d as o3d
+
+    if len(points) == 0:
+        return np.zeros(0)
+    q = np.ascontiguousarray(np.asarray(points, dtype=np.float64) - origin, dtype=np.float32)
+    return scene.compute_distance(o3d.core.Tensor(q)).numpy().astype(np.float64)
+
+
 def mesh_distances(points: np.ndarray, mesh: Any) -> np.ndarray:
     """[N] exact distance from each point [N, 3] to the surface of an Open3D TriangleMesh
     (or a path to one)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(load_mesh(mesh)))
-    q = o3d.core.Tensor(np.asarray(points, dtype=np.float32))
-    return scene.compute_distance(q).numpy().astype(np.float64)
+    return scene_distances(*distance_scene(mesh), points)
 
 
 def point_distances(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -6,26 +6,19 @@ from typing import Any
 
 import numpy as np
 
-from toolkit.eval.geometry import load_mesh, within_key
+from toolkit.eval.geometry import distance_scene, scene_distances, within_key
 
 
 class MeshDistance:
     """Unsigned distance of points to a triangle mesh (built once, queried many times)."""
 
     def __init__(self, mesh: Any) -> None:
-        import open3d as o3d
-
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(load_mesh(mesh)))
+        # About the mesh's own origin: Open3D casts in float32 (see distance_scene).
+        self.scene, self.origin = distance_scene(mesh)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """[N] metres from points [N, 3] to the nearest surface."""
-        import open3d as o3d
-
-        if len(points) == 0:
-            return np.zeros(0)
-        q = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
-        return self.scene.compute_distance(q).numpy().astype(np.float64)
+        return scene_distances(self.scene, self.origin, points)
 
 
 def distance_stats(d: np.ndarray, thresholds: tuple[float, ...] = (0.02, 0.05, 0.10)) -> (
