@@ -1030,13 +1030,13 @@ def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int) -> None:
     the first one was read: a camera calibrated while recording took the uncalibrated
     first message's all-zero K (refused as uncalibrated), and intrinsics changed mid-bag
     were applied to every frame without a word."""
-    if idx.info is None or (not np.any(_field(idx.info, "k", "K"))
-                            and np.any(_field(msg, "k", "K"))):
-        if idx.info is not None:
-            idx.info_uncalibrated += 1
-        idx.info = msg
+    calibrated = bool(np.any(_field(msg, "k", "K")))
+    if idx.info is None or not np.any(_field(idx.info, "k", "K")):  # none calibrated yet
+        idx.info_uncalibrated += not calibrated
+        if idx.info is None or calibrated:
+            idx.info = msg
         return
-    if idx.info_changed is not None or not np.any(_field(msg, "k", "K")):
+    if idx.info_changed is not None or not calibrated:
         return
     first, now = _camera_info_fields(idx.info), _camera_info_fields(msg)
     for name, value in now.items():
@@ -1269,7 +1269,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
                 "that hold for the images in a calibration YAML ('camera: {width, height, "
                 "fx, fy, cx, cy, distortion}', rosbag.calibration), or convert the parts "
                 "before and after the change separately")
-        if idx.info_uncalibrated:
+        if idx.info_uncalibrated and np.any(_field(idx.info, "k", "K")):
             log.info("%s: %d CameraInfo messages with K all zero (not yet calibrated) came "
                      "before the first calibrated one; that one is used", bag_name,
                      idx.info_uncalibrated)
