@@ -340,6 +340,17 @@ def _swapped(n_views: int, seed: int, a: int, b: int) -> tuple[SyntheticCapture,
     return cap, views
 
 
+def _solve_swapped(n_views: int, seed: int, a: int, b: int) -> tuple[ExtrinsicResult, float,
+                                                                   float]:
+    """The solve of ``_swapped``'s capture with the forward mount guess: (result, rotation
+    error deg, translation error m)."""
+    cap, views = _swapped(n_views, seed, a, b)
+    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
+                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
+    return res, rot, tra
+
+
 def test_swapped_scans_are_found_by_consensus() -> None:
     """Two scans swapped among 8 views: the fit of all views landed 178 degrees off, and
     dropping the worst-fitting view from it, one at a time, dropped four good views and
@@ -355,11 +366,8 @@ def test_swapped_scans_are_found_by_consensus() -> None:
         assert rot < 0.5 and tra < 0.01
         assert res.reliable, res.unreliable
     # 15 views: 100 of the 1365 four-view subsets drawn, fewer once most views agree.
-    cap, views = _swapped(15, 0, 1, 8)
-    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
-                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    res, rot, tra = _solve_swapped(15, 0, 1, 8)
     assert sorted(res.views_rejected) == ["view01", "view08"]
-    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
     assert rot < 0.2 and tra < 0.005
 
 
@@ -368,11 +376,8 @@ def test_four_views_left_after_rejection_are_not_reliable() -> None:
     good views give the extrinsic (without it a good view was left out and the laser put
     beyond --max-offset), but four views fit a wrong view as well as right ones, so the
     result is not called reliable (it was)."""
-    cap, views = _swapped(6, 4, 1, 4)
-    res = calibrate_extrinsic(views, mount_guess(BoardSearch(), None),
-                              SolverOptions(max_offset_m=0.3), camera=cap.camera)
+    res, rot, tra = _solve_swapped(6, 4, 1, 4)
     assert sorted(res.views_rejected) == ["view01", "view04"]
-    rot, tra = transform_error(res.T_camera_laser, cap.T_camera_laser)
     assert rot < 0.5 and tra < 0.01
     assert not res.reliable
     assert any("4 views kept of 6 after leaving out view0" in u for u in res.unreliable)

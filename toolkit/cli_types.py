@@ -11,3 +11,11 @@ def positive_int(text: str) -> int:
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
     return v
+
+
+def positive_float(text: str) -> float:
+    """A number above 0 (durations, sizes)."""
+    v = float(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be above 0, got {v}")
+    return v

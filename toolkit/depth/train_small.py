@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.cli_types import positive_float, positive_int
 from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
 from toolkit.io.atomic import atomic_write_text
 
@@ -806,35 +807,15 @@ def _widths(text: str) -> tuple[int, ...]:
     return w
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        v = 0
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: a whole number of at least 1")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: a number above 0")
-    return v
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m toolkit.depth.train_small",
                                  description=__doc__.split("\n")[0])
     ap.add_argument("--out", type=Path, default=TrainConfig.out)
-    ap.add_argument("--minutes", type=_positive_float, default=TrainConfig.minutes)
-    ap.add_argument("--images-per-house", type=_positive_int, default=TrainConfig.images_per_house)
-    ap.add_argument("--houses", type=_positive_int, default=len(TrainConfig.train_seeds),
+    ap.add_argument("--minutes", type=positive_float, default=TrainConfig.minutes)
+    ap.add_argument("--images-per-house", type=positive_int, default=TrainConfig.images_per_house)
+    ap.add_argument("--houses", type=positive_int, default=len(TrainConfig.train_seeds),
                     help="train on house seeds 101 .. 100 + N")
-    ap.add_argument("--threads", type=_positive_int, default=TrainConfig.threads)
+    ap.add_argument("--threads", type=positive_int, default=TrainConfig.threads)
     ap.add_argument("--widths", type=_widths, default=TrainConfig.widths,
                     help="channels of the five stages at 1/2 .. 1/32 resolution, "
                          "comma-separated (default %(default)s)")
@@ -848,7 +829,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sequence", type=Path, default=None,
                     help="simulated sequence to evaluate the model on after training "
                          "(e.g. runs/quickstart/simulate/sequence); goes into the card")
-    ap.add_argument("--every", type=_positive_int, default=4, help="--sequence: every n-th frame")
+    ap.add_argument("--every", type=positive_int, default=4, help="--sequence: every n-th frame")
     ap.add_argument("--height", type=int, default=TrainConfig.height,
                     help="network input height (default %(default)s)")
     ap.add_argument("--width", type=int, default=TrainConfig.width,

@@ -68,15 +68,12 @@ def distance_scene(mesh: Any) -> tuple[Any, np.ndarray]:
     and 50 cm worst from its own mesh."""
     import open3d as o3d
 
-    legacy = load_mesh(mesh)
-    vertices = np.asarray(legacy.vertices, dtype=np.float64)  # [V, 3]
-    origin = vertices.mean(0) if len(vertices) else np.zeros(3)
-    t = o3d.t.geometry.TriangleMesh(o3d.core.Device("CPU:0"))
-    t.vertex.positions = o3d.core.Tensor((vertices - origin).astype(np.float32))
-    t.triangle.indices = o3d.core.Tensor(np.asarray(legacy.triangles, dtype=np.int32))
+    moved = o3d.geometry.TriangleMesh(load_mesh(mesh))  # a copy: the caller's stays put
+    origin = moved.get_center() if moved.has_vertices() else np.zeros(3)
+    moved.translate(-origin)  # in float64, before the float32 cast
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(t)
-    return scene, origin
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(moved))
+    return scene, np.asarray(origin, dtype=np.float64)
 
 
 def scene_distances(scene: Any, origin: np.ndarray, points: np.ndarray) -> np.ndarray:
