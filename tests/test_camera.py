@@ -213,3 +213,10 @@ def test_camera_fields_name_what_is_wrong():
         with pytest.raises(ValueError, match=match):
             PinholeCamera.from_dict({**base, key: value})
     assert PinholeCamera.from_dict({**base, "width": 640.0}).width == 640
+
+
+def test_no_pixels_undistort_and_backproject_to_no_rays(cam):
+    # OpenCV returns None for an empty array: a frame whose lidar returns all fall outside
+    # the image would stop the fusion.
+    assert cam.undistort_points(np.zeros((0, 2))).shape == (0, 2)
+    assert cam.backproject(np.zeros((0, 2)), np.zeros(0)).shape == (0, 3)

@@ -125,3 +125,17 @@ def test_observations_and_tracks_round_trip(tmp_path: Path) -> None:
     np.testing.assert_array_equal(r.tracks[0], [[1, 0]])
     with pytest.raises(ValueError, match="space"):
         format_images(model_from_poses(cam, ["a b.png"], _poses(1)).images)
+
+
+def test_integer_colours_of_any_width_are_0_to_255_and_out_of_range_is_refused():
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    pts = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 2.0]])
+    cols = np.array([[200, 100, 50], [0, 255, 7]])  # numpy's default int64
+    m = model_from_poses(cam, ["a.png"], np.eye(4)[None], pts, cols)
+    np.testing.assert_array_equal(m.colors, cols.astype(np.uint8))
+    m = model_from_poses(cam, ["a.png"], np.eye(4)[None], pts, np.array([[1.0, 0.5, 0], [0, 0, 0]]))
+    np.testing.assert_array_equal(m.colors, [[255, 128, 0], [0, 0, 0]])
+    with pytest.raises(ValueError, match="0..255"):
+        model_from_poses(cam, ["a.png"], np.eye(4)[None], pts, cols * 2)
+    with pytest.raises(ValueError, match="uint8"):
+        model_from_poses(cam, ["a.png"], np.eye(4)[None], pts, cols.astype(np.float32))

@@ -273,6 +273,10 @@ class PinholeCamera:
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         if not self.has_distortion:
             return np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy], -1)
+        if len(uv) == 0:
+            # cv2.undistortPoints returns None for no points: a frame whose lidar returns all
+            # fall outside the image would stop the run.
+            return np.zeros((0, 2))
         out = cv2.undistortPoints(
             uv.reshape(-1, 1, 2), self.K, self.dist, None, None, None, _UNDISTORT_CRITERIA
         ).reshape(-1, 2)

@@ -200,6 +200,24 @@ def write_colmap_model(folder: Path | str, model: ColmapModel) -> Path:
     return folder
 
 
+def _colors_uint8(C: np.ndarray) -> np.ndarray:
+    """[P, 3] uint8 of colours given as integers 0..255 or floats 0..1. Integers of any width
+    are 0..255 (numpy's default int64 scaled by 255 saturated to white)."""
+    if np.issubdtype(C.dtype, np.integer) or C.dtype == np.bool_:
+        if C.size and (C.min() < 0 or C.max() > 255):
+            raise ValueError(
+                f"integer point colours must lie in 0..255, got {C.min()}..{C.max()}"
+            )
+        return C.astype(np.uint8)
+    C = np.asarray(C, dtype=np.float64)
+    if C.size and not (np.nanmin(C) >= 0.0 and np.nanmax(C) <= 1.0):
+        raise ValueError(
+            f"float point colours must lie in 0..1, got {np.nanmin(C):g}..{np.nanmax(C):g}; "
+            "pass colours 0..255 as uint8"
+        )
+    return np.round(np.nan_to_num(C) * 255.0).astype(np.uint8)
+
+
 def model_from_poses(
     camera: PinholeCamera,
     names: list[str],
@@ -228,10 +246,9 @@ def model_from_poses(
         C = np.full((len(P), 3), 128, np.uint8)
     else:
         C = np.asarray(colors)
-        if C.dtype != np.uint8:
-            C = np.clip(np.round(C * 255.0), 0, 255).astype(np.uint8)
         if C.shape != P.shape:
             raise ValueError(f"{len(C)} colours for {len(P)} points")
+        C = _colors_uint8(C)
     return ColmapModel(
         cameras={camera_id: (model_name, camera.width, camera.height, np.asarray(params))},
         images=images,
