@@ -120,3 +120,11 @@ def test_unreadable_ply_names_the_file(tmp_path: Path) -> None:
     bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\n")
     with pytest.raises(ValueError, match=r"cut.ply: not a readable PLY file"):
         read_ply(bad)
+
+
+def test_one_nan_colour_does_not_turn_an_8_bit_float_cloud_white() -> None:
+    pts = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]])
+    rgb = np.array([[200.0, 40.0, 90.0], [np.nan, 0.0, 0.0], [10.0, 20.0, 30.0]])
+    m = init_from_points(pts, rgb, sh_degree=0)
+    colour = m.params["sh0"].detach().numpy() * C0 + 0.5  # [2, 3]
+    np.testing.assert_allclose(colour, rgb[[0, 2]] / 255.0, atol=1e-6)

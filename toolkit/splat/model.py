@@ -181,7 +181,9 @@ def init_from_points(
                              "point")
         # A NaN colour trains NaN Gaussians that spread to their neighbours' gradients.
         finite &= np.all(np.isfinite(rgb), axis=1)
-        if np.asarray(colors).dtype.kind in "ui" or rgb.max(initial=0.0) > 1.5:
+        # The range is judged on the finite rows: one NaN made the maximum NaN, and a
+        # 0..255 cloud was then clipped to white.
+        if np.asarray(colors).dtype.kind in "ui" or rgb[finite].max(initial=0.0) > 1.5:
             rgb = rgb / 255.0  # 8-bit colours (a float cloud a hair over 1 is still 0..1)
         rgb = np.clip(rgb, 0.0, 1.0)
     pts, rgb = pts[finite], rgb[finite]

@@ -8,8 +8,8 @@ projected centre and, every ``refine_every`` steps:
   large ones into two samples of themselves scaled by 1/1.6 (over-reconstruction);
 - prunes Gaussians that are nearly transparent, and (after the first opacity reset) ones
   larger than ``prune_scale3d`` times the scene scale;
-- every ``reset_every`` steps clamps all opacities down to twice the prune threshold, so
-  Gaussians that the images do not need fade out and get pruned.
+- every ``reset_every`` steps while it refines clamps all opacities down to twice the
+  prune threshold, so Gaussians that the images do not need fade out and get pruned.
 
 Growth never takes the model above ``max_gaussians``: when the candidates would, the ones
 with the largest gradients win. Every parameter change updates the matching Adam state
@@ -39,8 +39,10 @@ class StrategyConfig(BaseModel):
     trainer fills it in; a strategy on its own refines to the end). Refining to step 1400
     of 1500 left the last clones 100 steps to settle: stopping at 750 gave the quickstart's
     splats 42 % fewer Gaussians and 0.04 / 0.15 dB more on the held-out path / off-path
-    views. ``reset_every`` stays gsplat's 3000: no opacity reset (and so no pruning of
-    large Gaussians, which waits for the first) in shorter trainings; every 300 steps of
+    views. ``reset_every`` stays gsplat's 3000, and a reset happens only before
+    ``refine_stop_iter`` (gsplat's order): no opacity reset (and so no pruning of large
+    Gaussians, which waits for the first) in trainings of up to twice that with the
+    trainer's default stop; every 300 steps of
     the quickstart's 1500 it cost 0.9 / 0.4 dB."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
