@@ -137,6 +137,26 @@ def test_robot_drives_a_loop_within_limits() -> None:
     assert 0.3 <= p60.v_max <= 0.6 and abs(p60.duration - 60.0) < 0.5
 
 
+@pytest.mark.parametrize(("preset", "seed"), [("small_house", 44), ("large_building", 2)])
+def test_the_lap_closes_when_a_door_lies_beside_the_start(preset: str, seed: int) -> None:
+    # The south door's corridor point lies within 5 cm of the start: the route's last point
+    # (the start) was dropped as its duplicate, and the robot ended turned 90 deg away.
+    house = generate_house(preset, seed)
+    np.testing.assert_array_equal(house.route[-1], house.route[0])
+    path = plan_path(house.route, house.start_yaw)
+    assert np.allclose(path.xy[-1], path.xy[0], atol=1e-9)
+    assert abs(np.sin(path.yaw[-1] - path.yaw[0])) < 1e-9
+
+
+def test_a_drive_of_several_laps_lasts_as_long_as_asked() -> None:
+    house = generate_house("small_house", 0)
+    lap = plan_path(house.route, house.start_yaw, MotionLimits(v_max=0.3)).duration
+    for asked in (2 * lap, 3 * lap - 0.3):
+        path = plan_path(house.route, house.start_yaw, MotionLimits(), duration_s=asked)
+        assert path.duration == pytest.approx(asked, abs=1e-9)
+        assert np.all(np.diff(path.t) > 0)
+
+
 def test_odometry_drift_follows_the_noise_model() -> None:
     house = generate_house("small_house", 0)
     path = plan_path(house.route, house.start_yaw)

@@ -274,7 +274,7 @@ def generate_house(preset: str | HouseParams = "small_house", seed: int = 0) -> 
               np.array([ds_in.center[0], 0.0]), ds_in.through()[0]]
     route += cross_row("south", list(range(n - 1, -1, -1)), ds_in, ds_exit)
     route += [ds_exit.through()[0], np.array([ds_exit.center[0], 0.0]), start]
-    route_arr = _dedupe(np.array(route))
+    route_arr = _dedupe(np.array(route), keep_last=True)
 
     # People: back and forth between the corridor and a room, or between neighbouring
     # rooms, on lines beside the robot's (they give way to it, see people.py).
@@ -314,11 +314,22 @@ def generate_house(preset: str | HouseParams = "small_house", seed: int = 0) -> 
                  np.array(segments), seed=seed, extra={"corridor_width": c})
 
 
-def _dedupe(pts: np.ndarray, eps: float = 0.05) -> np.ndarray:
+def _dedupe(pts: np.ndarray, eps: float = 0.05, keep_last: bool = False) -> np.ndarray:
+    """[M, 2] of ``pts`` [N, 2] without points within ``eps`` of the one before.
+    ``keep_last``: the last point is kept (in place of the one it is close to), since the
+    route's end at its start is what makes the planner close the lap; dropped, the robot
+    ended turned 90 deg from its start on seeds whose south door lay within 5 cm of it."""
     out = [pts[0]]
+    last_kept = True
     for p in pts[1:]:
-        if np.linalg.norm(p - out[-1]) > eps:
+        last_kept = bool(np.linalg.norm(p - out[-1]) > eps)
+        if last_kept:
             out.append(p)
+    if keep_last and not last_kept:
+        if len(out) > 1:
+            out[-1] = pts[-1]
+        else:
+            out.append(pts[-1])
     return np.array(out)
 
 

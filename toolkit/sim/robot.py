@@ -248,6 +248,12 @@ def plan_path(route: np.ndarray, start_yaw: float, lim: MotionLimits = MotionLim
         xy = np.concatenate([xy[:1], xy, xy[-1:]])
         yaw = np.concatenate([yaw[:1], yaw, yaw[-1:]])
     done = float(t[-1])
+    if duration_s is not None and done < duration_s - 1e-9:
+        # Laps were counted with one lap's pauses and final turn each, which the joined
+        # path holds once: the robot stands at the start for the rest of the time.
+        t = np.concatenate([t, [duration_s]])
+        xy = np.concatenate([xy, xy[-1:]])
+        yaw = np.concatenate([yaw, yaw[-1:]])
     if duration_s is not None and done > duration_s + 1e-9:
         keep = t <= duration_s
         end = np.array([np.interp(duration_s, t, xy[:, 0]), np.interp(duration_s, t, xy[:, 1])])

@@ -132,7 +132,8 @@ class SimulateStage(Stage):
     name = "simulate"
     Config = SimulateConfig
     provides = ("sequence",)
-    version = 2  # 2: swept scans: ground truth to the last beam, people per beam group
+    version = 3  # 2: swept scans: ground truth to the last beam, people per beam group;
+    # 3: a lap whose south door lies beside the start closes, laps fill duration_s
 
     config: SimulateConfig
 
