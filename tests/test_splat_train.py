@@ -15,8 +15,15 @@ from toolkit.geometry import inv_se3
 from toolkit.splat.model import GaussianModel, init_from_points
 from toolkit.splat.rasterize import RenderMeta, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
-from toolkit.splat.synthetic import ground_truth_model, orbit_poses, room_points
-from toolkit.splat.trainer import TrainConfig, Trainer, TrainView, evaluate_views, masked_l1
+from toolkit.splat.synthetic import ground_truth_model, look_pose, orbit_poses, room_points
+from toolkit.splat.trainer import (
+    TrainConfig,
+    Trainer,
+    TrainView,
+    evaluate_views,
+    masked_l1,
+    scene_scale_of,
+)
 
 BACKEND = "auto"  # the C++ path when it builds, else the reference: both must train
 
@@ -391,3 +398,22 @@ def test_refinement_stops_at_half_the_training_by_default() -> None:
     assert default.strategy.cfg.refine_stop_iter == 20
     fixed = _cfg(iterations=40, densify=StrategyConfig(refine_stop_iter=35))
     assert Trainer(_start_model(300), views, fixed).strategy.cfg.refine_stop_iter == 35
+
+
+def test_scene_scale_is_continuous_in_the_cameras_spread() -> None:
+    # A 6 x 4 x 2.6 m room seen from cameras 2 x 9 cm and 2 x 11 cm apart: the scale (and
+    # the means' rate and the size tests with it) jumped 22x at 10 cm.
+    pts, _ = room_points(3000, seed=0)
+    means = torch.as_tensor(pts)
+    median = float(np.median(np.linalg.norm(pts - pts.mean(0), axis=1)))
+    cam = PinholeCamera.from_fov(16, 12, 70.0)
+    img = np.zeros((12, 16, 3), np.uint8)
+
+    def scale(half: float) -> float:
+        poses = [inv_se3(look_pose(np.array([x, 0.0, 1.2]), 0.0)) for x in (-half, half)]
+        return scene_scale_of([TrainView(img, cam, T, None, f"v{i}")
+                               for i, T in enumerate(poses)], means)
+
+    assert scale(0.09) == pytest.approx(median, rel=1e-3)  # torch: the lower middle value
+    assert scale(0.11) == pytest.approx(median, rel=1e-3)
+    assert scale(5.0) == pytest.approx(5.5, rel=1e-9)  # cameras around the scene: gsplat's

@@ -349,8 +349,9 @@ class SplatStage(Stage):
     # 2: off-path views masked like the path's; SSIM over valid windows. 3: images at the
     # fuse stage's exposure gains (exposure: auto). 4: the colour L1 over the valid pixels
     # of a masked view (a distorted camera's lens corners). 5: the training's SSIM term
-    # over a masked view's valid windows too
-    version = 5
+    # over a masked view's valid windows too. 6: the scene scale is at least the initial
+    # cloud's median radius (short drives in large rooms)
+    version = 6
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]
