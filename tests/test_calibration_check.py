@@ -260,3 +260,98 @@ def test_check_on_a_sequence_refuses_a_rig_or_depth_of_another_size(scene, tmp_p
         np.save(depth / f"{i:06d}.npy", np.ones((h // 2, w // 2), np.float32))
     assert main(["check", "--sequence", str(tmp_path / "seq"), "--frames", "3", "--depth",
                  str(depth), "--out", str(tmp_path / "d")]) == 2
+
+
+def _write_swept_sequence(root, odometry: bool = True):  # noqa: ANN001, ANN202
+    """The boxes room seen by a robot turning on the spot at 1 rad/s under a 10 Hz spinning
+    lidar: beam i measured at the scan's stamp + i * time_increment (as a ROS LaserScan
+    carries it), images at the scans' stamps, the exact rig; with odometry when asked."""
+    from toolkit.geometry import Trajectory
+    from toolkit.io.sequence import SequenceWriter
+    from toolkit.sensors import LaserScan, Rig
+
+    camera = PinholeCamera.from_fov(320, 240, 70.0)
+    T_bc = se3(R_BASE_OPTICAL, [0.05, 0.0, 0.5])
+    T_bl = se3(np.eye(3), [0.0, 0.0, 0.3])  # on the turning axis: the laser does not move
+
+    def pose(t: float) -> np.ndarray:
+        return se2_to_se3(0.0, 0.0, -0.5 + 1.0 * (t - 10.0))
+
+    w = SequenceWriter(root, Rig(camera, T_bc, T_bl), name="swept")
+    rays = camera.pixel_rays().reshape(-1, 3)  # [P, 3], z = 1
+    nb, inc = 720, np.radians(0.5)
+    ang = -np.pi + inc * np.arange(nb)  # [B]
+    for k in range(5):
+        t = 10.0 + 0.1 * k
+        T_wc = pose(t) @ T_bc
+        depth, grey = _raycast(T_wc[:3, 3], rays @ T_wc[:3, :3].T)
+        img = np.repeat(grey.reshape(camera.height, camera.width, 1), 3, 2).astype(np.uint8)
+        w.add_frame(t, img, gt_depth=depth.reshape(camera.height, camera.width).astype(
+            np.float32))
+        # Beam i left the laser i * 0.1 s / B after the stamp, the robot turned meanwhile.
+        yaw = -0.5 + (t - 10.0) + ang + 0.1 * np.arange(nb) / nb  # [B] world bearing
+        r, _ = _raycast(np.array([0.0, 0.0, 0.3]), np.c_[np.cos(yaw), np.sin(yaw),
+                                                         np.zeros(nb)])
+        w.add_scan(LaserScan(t, r.astype(np.float32), -np.pi, inc, time_increment=0.1 / nb))
+    if odometry:
+        st = np.arange(9.5, 11.0, 0.01)
+        w.odometry = Trajectory(st, np.stack([pose(s) for s in st]), "odom", "base_link")
+    w.close()
+    return inv_se3(T_bc) @ T_bl
+
+
+def test_check_on_a_sequence_deskews_swept_scans(tmp_path) -> None:  # noqa: ANN001
+    """Scans whose beams carry their own times are de-skewed with the odometry before
+    scoring, as the fusion does: projected as one instant, the exact extrinsic scored
+    0.42 and the same turned 2 degrees 0.83, and the check said to rotate it."""
+    from calibration.pipeline import check_frames_from_sequence
+
+    T = _write_swept_sequence(tmp_path / "seq")
+    frames, seq = check_frames_from_sequence(tmp_path / "seq", T, 5)
+    sc = sensitivity(frames, T, seq.rig.camera, 2.0, "depth")
+    assert sc.score > 0.95, sc.to_dict()
+    assert sc.drop("ry+2deg") > 0.2 and sc.drop("ry-2deg") > 0.2, sc.to_dict()
+
+
+def test_check_on_a_sequence_refuses_swept_scans_without_poses(tmp_path, capsys) -> None:  # noqa: ANN001
+    """Without odometry or ground-truth poses swept scans cannot be de-skewed: exit 2 with
+    a message saying what to do, instead of a score that blames the extrinsic."""
+    from calibration.cli import main
+
+    _write_swept_sequence(tmp_path / "seq", odometry=False)
+    assert main(["check", "--sequence", str(tmp_path / "seq"), "--frames", "3", "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "time_increment" in err and "odometry" in err and "beam_timing" in err, err
+    assert not (tmp_path / "out" / "check.json").exists()
+
+
+def test_stage_check_deskews_swept_scans_or_says_why_not(tmp_path) -> None:  # noqa: ANN001
+    """The recipe stage's check de-skews as the command does; without poses, mode check
+    stops naming the fix, and mode calibrate keeps its extrinsic and says the check was
+    not run (it scored swept scans as one instant)."""
+    from calibration.synthetic import make_capture, write_capture
+
+    T = _write_swept_sequence(tmp_path / "seq")
+    (tmp_path / "a").mkdir()
+    check = {"stage": "calibrate", "mode": "check", "check_frames": 5, "time_offset": False}
+    res = _run_with_sequence(tmp_path / "seq", [check], tmp_path / "a")
+    assert res.ok, res.error
+    m = res.metrics["calibrate"]
+    assert m["check_score"] > 0.95 and m["check_scores_rotated_2deg"]["ry-2deg"] < 0.8, m
+
+    _write_swept_sequence(tmp_path / "bare", odometry=False)
+    (tmp_path / "b").mkdir()
+    res = _run_with_sequence(tmp_path / "bare", [check], tmp_path / "b")
+    assert not res.ok and "time_increment" in str(res.error), res.error
+    cap = make_capture(6, seed=3, camera=PinholeCamera.from_fov(320, 240, 70.0),
+                       T_camera_laser=T)
+    write_capture(cap, tmp_path / "capture")
+    (tmp_path / "c").mkdir()
+    res = _run_with_sequence(tmp_path / "bare", [
+        {"stage": "calibrate", "capture": str(tmp_path / "capture"), "square_m": 0.05,
+         "leave_one_out": False, "check_frames": 3, "time_offset": False}], tmp_path / "c")
+    assert res.ok, res.error
+    assert "check_score" not in res.metrics["calibrate"]
+    report = (tmp_path / "c" / "run" / "report.md").read_text()
+    assert "Check not run" in report and "time_increment" in report
