@@ -151,6 +151,7 @@ def write_camera(path: Path, camera: PinholeCamera, info: dict[str, Any] | None 
 def _matrix(value: Any, source: str, field: str) -> np.ndarray:
     if isinstance(value, dict):  # tf style, as ingest's calibration files allow
         _check_tf_direction(value, source, field)
+        _check_camera_frame(value, source, field)
         M = _tf(value, f"{source}: field '{field}'")
     else:
         try:
@@ -198,8 +199,8 @@ def _check_tf_direction(value: dict[str, Any], source: str, field: str) -> None:
     """A tf-style ``T_a_b`` whose parent / child name b's and a's frames: the key fixes the
     direction, so the transform would be used inverted (bag ingest refuses it too)."""
     roles = field.split("_")[1:]
-    parent = str(value.get("parent", value.get("frame_id", ""))).strip("/")
-    child = str(value.get("child", value.get("child_frame_id", ""))).strip("/")
+    parent = _frame_name(value, "parent", "frame_id")
+    child = _frame_name(value, "child", "child_frame_id")
     if len(roles) != 2 or not all(r in _ROLE_NAMES for r in roles):
         return
     a, b = roles
@@ -208,6 +209,43 @@ def _check_tf_direction(value: dict[str, Any], source: str, field: str) -> None:
             f"{source}: field '{field}' has parent {parent!r} and child {child!r}, which is "
             f"reversed: {field} maps {b} points into the {a} frame, so parent: {a} frame and "
             f"child: {b} frame (swap them, or invert the transform)")
+
+
+# How to get from a body frame to the optical one: what the errors below suggest.
+_OPTICAL_HINT = ("A camera body frame (ROS REP 103: x forward, y left, z up; camera_link, "
+                 "*_camera_frame) is not the optical frame (x right, y down, z forward): read "
+                 "as it, the view turns 120 degrees. Compose the transform with T_body_optical "
+                 "(translation 0, rotation quat_xyzw [-0.5, 0.5, -0.5, 0.5]) and name the "
+                 "optical frame (e.g. camera_optical_frame)")
+
+
+def _frame_name(value: dict[str, Any], key: str, alt: str) -> str:
+    return str(value.get(key, value.get(alt, ""))).strip("/")
+
+
+def _is_body_frame(name: str) -> bool:
+    """Whether a camera frame's name is a ROS body frame's (``camera_link``, RealSense's
+    ``camera_color_frame``, ZED's ``zed_left_camera_frame``), not an optical one's. Other
+    names (``cam0``) say nothing and pass."""
+    n = name.lower().rsplit("/", 1)[-1]
+    return (n not in _CAMERA_NAMES and "optical" not in n
+            and (n.endswith("link") or n.endswith("_frame")))
+
+
+def _check_camera_frame(value: dict[str, Any], source: str, field: str) -> None:
+    """A tf-style ``T_camera_*`` / ``T_*_camera`` naming a body frame for the camera: it
+    was read as the optical frame, 120 degrees off (bag ingest and the bare tf layout
+    refuse it)."""
+    roles = field.split("_")[1:]
+    if len(roles) != 2 or "camera" not in roles:
+        return
+    key, alt = (("parent", "frame_id") if roles[0] == "camera"
+                else ("child", "child_frame_id"))
+    name = _frame_name(value, key, alt)
+    if _is_body_frame(name):
+        raise CalibrationFileError(
+            f"{source}: field '{field}' has {key} {name!r}, a camera body frame, but "
+            f"{field} needs the camera's optical frame. {_OPTICAL_HINT}.")
 
 
 def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
@@ -232,8 +270,8 @@ def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
             return inv_se3(T)
         raise CalibrationFileError(
             f"{source}: tf from {parent!r} to {child!r}: need a camera optical frame "
-            f"({sorted(_CAMERA_NAMES)}) and a laser frame ({sorted(_LASER_NAMES)}). A "
-            "camera_link (x forward) frame is not the optical frame; convert it first.")
+            f"({sorted(_CAMERA_NAMES)}) and a laser frame ({sorted(_LASER_NAMES)}). "
+            f"{_OPTICAL_HINT}.")
     raise CalibrationFileError(
         f"{source}: no extrinsic found: give 'T_camera_laser' (4x4, {DIRECTION}), "
         "'T_laser_camera', a rig (T_base_camera + T_base_laser) or a tf mapping "

@@ -39,7 +39,7 @@ from calibration.scans import (
     stamp_from_name,
 )
 from calibration.synthetic import SyntheticCapture, make_capture, render_board, write_pcd
-from toolkit.geometry import inv_se3, se3
+from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat, se3
 
 
 def _views(cap) -> list[View]:  # noqa: ANN001
@@ -557,6 +557,42 @@ def test_extrinsic_mappings_round_trip() -> None:
     assert np.allclose(extrinsic_from_mapping({"T_camera_laser": {**d["tf"]}}, "x"), T)
     with pytest.raises(CalibrationFileError, match="T_camera_laser' has parent 'laser'.*reversed"):
         extrinsic_from_mapping({"T_camera_laser": tf_inverse}, "f.yaml")
+
+
+def test_camera_body_frame_in_a_tf_entry_is_refused() -> None:
+    """A camera described by its body frame (camera_link: x forward, z up) in a rig's or
+    T_camera_laser's tf entry was read as the optical frame: 120 degrees off. Refused with
+    the conversion, which then gives the true extrinsic."""
+    from calibration.frames import R_CAMERA_LASER_NOMINAL
+
+    T_base_link = se3(np.eye(3), [0.1, 0.0, 0.5])  # camera body frame, looking forward
+    T_base_laser = se3(np.eye(3), [0.0, 0.0, 0.3])
+    T_true = inv_se3(T_base_link @ se3(R_CAMERA_LASER_NOMINAL.T)) @ T_base_laser
+
+    def tf(T: np.ndarray, parent: str, child: str) -> dict:
+        xyz, q = pose_to_xyz_quat(T)
+        return {"parent": parent, "child": child, "xyz": xyz.tolist(), "quat_xyzw": q.tolist()}
+
+    laser = tf(T_base_laser, "base_link", "laser")
+    cases = {"T_base_camera": {"T_base_camera": tf(T_base_link, "base_link", "camera_link"),
+                               "T_base_laser": laser},
+             "T_camera_laser": {"T_camera_laser": tf(inv_se3(T_base_link) @ T_base_laser,
+                                                     "camera_link", "laser")},
+             "T_laser_camera": {"T_laser_camera": tf(inv_se3(T_base_laser) @ T_base_link,
+                                                     "laser", "camera_color_frame")}}
+    for field, d in cases.items():
+        with pytest.raises(CalibrationFileError, match=rf"r.yaml: field '{field}' has .*"
+                           r"body frame.*quat_xyzw \[-0.5, 0.5, -0.5, 0.5\]"):
+            extrinsic_from_mapping(d, "r.yaml")
+    # The conversion the message gives, with the optical frame named, reads the truth.
+    T_link_optical = pose_from_xyz_quat(np.zeros(3), np.array([-0.5, 0.5, -0.5, 0.5]))
+    fixed = {"T_base_camera": tf(T_base_link @ T_link_optical, "base_link",
+                                 "camera_optical_frame"), "T_base_laser": laser}
+    assert np.allclose(extrinsic_from_mapping(fixed, "r.yaml"), T_true, atol=1e-12)
+    # Names that say nothing about the axes (Kalibr's cam0) are taken as given.
+    plain = {"T_base_camera": tf(T_base_link @ T_link_optical, "base_link", "cam0"),
+             "T_base_laser": laser}
+    assert np.allclose(extrinsic_from_mapping(plain, "r.yaml"), T_true, atol=1e-12)
 
 
 def test_scan_name_stamps_and_degree_angles(tmp_path: Path) -> None:
