@@ -31,7 +31,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import transform_points
+from toolkit.geometry import inv_se3, transform_points
 
 
 class CheckError(ValueError):
@@ -239,10 +239,23 @@ def score_frames(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: P
     return (float(np.sum(vals) / n) if n else float("nan")), n, kind
 
 
+# Below this many scored points a score says nothing about the extrinsic.
+MIN_CHECK_POINTS = 10
+
+
 def sensitivity(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: PinholeCamera,
-                deg: float = 2.0, kind: str = "auto") -> CheckScores:
-    """The score of the extrinsic and of it rotated by +-``deg`` about each camera axis."""
+                deg: float = 2.0, kind: str = "auto", source: str = "the extrinsic") -> (
+                    CheckScores):
+    """The score of the extrinsic and of it rotated by +-``deg`` about each camera axis.
+
+    A ``CheckError`` naming the likely causes when fewer than ``MIN_CHECK_POINTS`` points
+    can be scored (``source`` names where the extrinsic came from): a translation in
+    millimetres or the inverse matrix stored put no point in any image, and the check
+    printed "score nan" and exited 0.
+    """
     s0, n, kind = score_frames(frames, T_camera_laser, camera, kind)
+    if n < MIN_CHECK_POINTS or not np.isfinite(s0):
+        raise CheckError(_why_unscored(frames, T_camera_laser, camera, n, kind, source))
     out = CheckScores(kind, s0, n_points=n)
     for axis, name in enumerate("xyz"):
         for sign in (1, -1):
@@ -250,3 +263,46 @@ def sensitivity(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: Pi
             out.perturbed[f"r{name}{'+' if sign > 0 else '-'}{deg:g}deg"] = score_frames(
                 frames, T, camera, kind)[0]
     return out
+
+
+def _why_unscored(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: PinholeCamera,
+                  n: int, kind: str, source: str) -> str:
+    """What put (almost) no scan point where it can be scored: the unit and direction slips
+    tried out (each is said with the points it would score), else where the points went."""
+    head = (f"{source}: only {n} scan points of {len(frames)} frames can be scored "
+            f"({kind} score; at least {MIN_CHECK_POINTS} are needed)")
+    pts = [np.asarray(f.points, np.float64) for f in frames]
+    total = sum(len(q) for q in pts)
+    if total == 0:
+        return f"{head}: the scans of these frames hold no points."
+    causes = []
+    offset = float(np.linalg.norm(T_camera_laser[:3, 3]))
+    T_m = T_camera_laser.copy()
+    T_m[:3, 3] /= 1000.0
+    # One slip at a time: with a translation in millimetres the inverse lands points too.
+    n_m = score_frames(frames, T_m, camera, kind)[1]
+    n_inv = 0 if n_m >= MIN_CHECK_POINTS else score_frames(
+        frames, inv_se3(T_camera_laser), camera, kind)[1]
+    if n_m >= MIN_CHECK_POINTS or (offset > 5.0 and n_inv < MIN_CHECK_POINTS):
+        causes.append(f"T_camera_laser puts the laser {offset:.3g} m from the camera: is its "
+                      "translation in millimetres? It is read in metres"
+                      + (f" (divided by 1000, {n_m} points would be scored)"
+                         if n_m >= MIN_CHECK_POINTS else ""))
+    elif n_inv >= MIN_CHECK_POINTS:
+        causes.append(f"Its inverse would score {n_inv} points: is T_laser_camera stored "
+                      "under the key T_camera_laser? T_camera_laser maps laser points into "
+                      "the camera's optical frame (x right, y down, z forward)")
+    if not causes:
+        seen = sum(len(project_scan(q, T_camera_laser, camera).index) for q in pts)
+        if seen < MIN_CHECK_POINTS:
+            causes.append(f"{seen} of the {total} points land in the images: does the camera "
+                          "look where the laser scans (the extrinsic's rotation)?")
+        elif kind == "depth":
+            causes.append(f"{seen} points land in the images but the depth maps hold no "
+                          "valid depth there: are they metric depth maps of these images?")
+        else:
+            causes.append(f"{seen} points land in the images but hardly any at a range jump "
+                          "(the near side of a jump of 0.2 m or more), which the edge score "
+                          "needs: check frames where objects stand in front of walls, or give "
+                          "depth maps (--depth)")
+    return f"{head}. " + " ".join(f"{c}." for c in causes)

@@ -149,6 +149,14 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
         max_offset_m=args.max_offset,
         mount=args.mount, seed=args.seed)
     init = load_extrinsic(Path(args.init)) if args.init else None
+    if init is not None and np.linalg.norm(init[:3, 3]) > args.max_offset:
+        # The solve refuses a result beyond --max-offset: such a start only fails later,
+        # as "board found in only 0 views", with a hint to pass --init.
+        raise CalibrationFileError(
+            f"{args.init}: the --init extrinsic puts the laser "
+            f"{np.linalg.norm(init[:3, 3]):.3g} m from the camera, beyond --max-offset "
+            f"{args.max_offset:g} m: is its translation in millimetres (it is read in "
+            "metres)? If the sensors are that far apart, raise --max-offset")
     # Read before the solve: a wrong --rig path failed only after it.
     base = None
     if args.out and args.rig:
@@ -280,7 +288,8 @@ def cmd_check(args: argparse.Namespace) -> int:
                                          args.stamp_unit, args.frames)
     # Scored first: a check that cannot score (no depth maps for --score depth) writes no
     # overlays.
-    scores = sensitivity(frames, T, camera, args.perturb_deg, args.score)
+    source = args.extrinsic or args.rig or str(Path(args.sequence) / "rig.yaml")
+    scores = sensitivity(frames, T, camera, args.perturb_deg, args.score, source)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for f in frames:

@@ -31,7 +31,6 @@ The check also measures the camera's stamp delay against the wheel odometry
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -369,7 +368,10 @@ class CalibrateStage(Stage):
 
         for k, f in enumerate(frames[:4]):
             write(f"overlay_{k}.png", overlay(f.image, project_scan(f.points, T, camera)))
-        sc = sensitivity(frames, T, camera, 2.0)
+        cfg = self.config
+        source = ("the calibrated extrinsic" if cfg.mode == "calibrate" else cfg.extrinsic
+                  or f"{seq_dir / 'rig.yaml'}")
+        sc = sensitivity(frames, T, camera, 2.0, source=source)
         metrics["check_score"] = sc.score
         metrics["check_kind"] = sc.kind
         metrics["check_points"] = sc.n_points
@@ -428,8 +430,6 @@ class CalibrateStage(Stage):
         lines += [f"![lidar points on the image coloured by range: left the "
                   f"{'true' if T_true is not None else 'checked'} extrinsic, right turned by 2 "
                   f"degrees]({rel}/check/{n})" for n in pairs]
-        if not math.isfinite(sc.score):
-            lines.append("(no scan points landed in the checked images)")
         if self.config.time_offset:
             lines += self._time_offset(ctx, seq, out, metrics)
         return lines

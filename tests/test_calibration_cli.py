@@ -430,6 +430,34 @@ def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, 
     assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 4, 7)]
 
 
+def test_check_that_scores_no_point_fails_naming_the_slip(capture: tuple[Path, object],
+                                                          tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    """An extrinsic that puts no scan point into any image (translation in millimetres, the
+    inverse stored) printed "0 points; score nan" and exited 0; now exit 2 naming the slip,
+    and --init so far off is refused before the board search."""
+    from toolkit.geometry import inv_se3
+
+    cap_dir, cap = capture
+    T = np.asarray(cap.T_camera_laser)  # type: ignore[attr-defined]
+    T_mm = T.copy()
+    T_mm[:3, 3] *= 1000.0
+    base = ["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+            "--camera", str(cap_dir / "camera.yaml"), "--out", str(tmp_path / "chk")]
+    for name, M, says in (("mm", T_mm, "is its translation in millimetres"),
+                          ("inv", inv_se3(T), "is T_laser_camera stored under the key")):
+        ext = tmp_path / f"{name}.yaml"
+        ext.write_text(yaml.safe_dump({"T_camera_laser": M.tolist()}))
+        assert main([*base, "--extrinsic", str(ext)]) == 2, name
+        err = capsys.readouterr().err
+        assert f"{ext}: only 0 scan points" in err and says in err, err
+        assert not (tmp_path / "chk" / "check.json").exists()
+    assert main(_args(cap_dir, "--init", str(tmp_path / "mm.yaml"))) == 2
+    err = capsys.readouterr().err
+    assert "beyond --max-offset 0.5 m" in err and "millimetres" in err, err
+
+
 def test_bench_markdown_says_the_real_result_is_unreliable() -> None:
     """bench.md's ACFR paragraph gave the residual and spread but not the verdict that
     bench.json holds (reliable: false)."""
