@@ -142,7 +142,9 @@ def read_pcd(path: Path) -> np.ndarray:
             raise ScanFormatError(f"{path}: data row {short + 1} has {len(rows[short])} values "
                                   f"but header fields 'FIELDS'/'COUNT' make {width} per point")
         try:
-            data = np.array([[float(v) for v in r[:width]] for r in rows], dtype=np.float64)
+            # [N, width] even for N = 0 (a scan with no returns is valid input)
+            data = np.array([[float(v) for v in r[:width]] for r in rows],
+                            dtype=np.float64).reshape(len(rows), width)
         except ValueError as e:
             raise ScanFormatError(f"{path}: non-numeric PCD data: {e}") from None
         offs = np.cumsum([0, *counts])

@@ -102,7 +102,7 @@ class CalibrateStage(Stage):
     # 5: the check measures the camera's time offset
     # 6: the check de-skews scans with per-beam timing along the sequence's poses (the
     #    exact extrinsic scored 0.42 on a robot turning at 1 rad/s, 0.98 now) and refuses
-    #    them without poses
+    #    them without poses; a check that scores no point stops (it reported a NaN score)
     version = 6
 
     config: CalibrateConfig

@@ -163,6 +163,16 @@ def test_malformed_binary_pcd_names_file_and_field(tmp_path: Path) -> None:
         assert f"{name}.pcd" in str(e.value) and field in str(e.value), str(e.value)
 
 
+def test_pcd_without_points_reads_as_an_empty_scan(tmp_path: Path) -> None:
+    """POINTS 0 (a scan with no returns) read as [0, 2] in binary but raised numpy's
+    IndexError in ASCII, stopping extrinsic and check even for a scan paired with no image."""
+    head = ("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\n"
+            "HEIGHT 1\nPOINTS 0\nDATA {}\n")
+    for kind in ("ascii", "binary"):
+        (tmp_path / f"{kind}.pcd").write_text(head.format(kind))
+        assert read_pcd(tmp_path / f"{kind}.pcd").shape == (0, 2), kind
+
+
 def test_pairing_tolerance_and_one_scan_per_image() -> None:
     images = np.array([0.0, 1.0, 1.02, 5.0])
     scans = np.array([0.01, 1.015, 3.0])
