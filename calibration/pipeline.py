@@ -564,12 +564,23 @@ def _check_depth_size(depth: np.ndarray, img: np.ndarray, depth_dir: Path, name:
 
 
 def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any) -> np.ndarray:
+    """[H, W] metres of frame ``index`` from ``depth_dir`` (by index or image stem); a file
+    that is no depth map is a ``CalibrationFileError`` saying what one is."""
+    from toolkit.io.depth import PNG_DEPTH_SCALE
+
     stems = [f"{index:06d}"] + ([image_path.stem] if image_path is not None else [])
     for stem in stems:
         for ext in (".npy", ".png"):
             p = Path(depth_dir) / f"{stem}{ext}"
             if p.exists():
-                return reader(p)
+                try:
+                    return reader(p)
+                except ValueError as e:  # the reader names the file and what it found
+                    raise CalibrationFileError(
+                        f"{e}. --depth takes [H, W] float32 metres in .npy, or single-channel "
+                        f"16-bit PNG at {PNG_DEPTH_SCALE:g} per metre (TUM's scale: a "
+                        "millimetre PNG, ROS 16UC1, reads 5x too deep; save it as .npy in "
+                        "metres)") from None
     raise FileNotFoundError(f"{depth_dir}: no depth map for frame {index} (looked for "
                             f"{', '.join(s + '.npy|.png' for s in stems)})")
 

@@ -257,6 +257,32 @@ def test_check_with_depth_maps_on_image_folders(capture: tuple[Path, object], tm
     assert chk["relative_drop"]["ry+2deg"] > 0.3
 
 
+def test_malformed_depth_file_is_a_one_line_error(capture: tuple[Path, object],
+                                                   tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """An 8-bit depth PNG or an [H, W, 3] .npy under --depth gave a traceback and exit 1;
+    now exit 2 naming the file and what a depth map is (PNG at TUM's 5000 per metre)."""
+    import cv2
+
+    cap_dir, cap = capture
+    ext = tmp_path / "true.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    w, h = cap.camera.size  # type: ignore[attr-defined]
+    for name, write in (("000000.png", lambda f: cv2.imwrite(str(f), np.full((h, w), 100,
+                                                                               np.uint8))),
+                        ("000000.npy", lambda f: np.save(f, np.ones((h, w, 3), np.float32)))):
+        depth = tmp_path / Path(name).suffix[1:]
+        depth.mkdir()
+        write(depth / name)
+        assert main(["check", "--images", str(cap_dir / "images"), "--scans",
+                     str(cap_dir / "lasers"), "--camera", str(cap_dir / "camera.yaml"),
+                     "--extrinsic", str(ext), "--depth", str(depth), "--out",
+                     str(tmp_path / "chk")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {depth / name}: depth ") and "5000 per metre" in err
+        assert len(err.strip().splitlines()) == 1, err
+
+
 def test_wrong_paths_stop_before_any_output(capture: tuple[Path, object], tmp_path: Path,
                                             capsys: pytest.CaptureFixture[str]) -> None:
     """A folder given for a YAML file, a folder in the way of an output file, a check that
