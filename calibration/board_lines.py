@@ -52,6 +52,46 @@ def fit_line(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     return n, off, rms
 
 
+def range_noise(scans: list[np.ndarray], min_samples: int = 100) -> float | None:
+    """The lidar's range noise (1 sigma, metres) measured on scans [N, 2] themselves, or
+    None when they hold fewer than ``min_samples`` usable beam triples.
+
+    Each beam's range is compared with where the chord between its two neighbours crosses
+    its bearing: zero on any straight surface whatever the incidence, the range noise
+    combined with half each neighbour's (variance 1.5 sigma^2) otherwise. The median
+    absolute difference ignores the few triples across depth jumps and corners. Simulated
+    captures read 9.9 / 19.8 / 24.8 / 29.7 mm at 1 / 2 / 2.5 / 3 cm of noise, the ACFR
+    Hokuyo 2.2 mm.
+    """
+    devs = []
+    for pts in scans:
+        p = np.asarray(pts, dtype=np.float64)
+        if len(p) < 3:
+            continue
+        a = np.arctan2(p[:, 1], p[:, 0])
+        order = np.argsort(a)
+        p, a = p[order], a[order]
+        da = np.diff(a)
+        if not np.any(da > 1e-9):
+            continue
+        step = float(np.median(da[da > 1e-9]))
+        # Triples of neighbouring beams: no beam missing between them.
+        i = np.flatnonzero((np.abs(da[:-1] - step) < 0.5 * step)
+                           & (np.abs(da[1:] - step) < 0.5 * step)) + 1
+        prev, chord = p[i - 1], p[i + 1] - p[i - 1]  # [T, 2]
+        u = np.stack([np.cos(a[i]), np.sin(a[i])], -1)  # [T, 2] the middle beam's ray
+        cross_u = u[:, 0] * chord[:, 1] - u[:, 1] * chord[:, 0]
+        cross_p = prev[:, 0] * chord[:, 1] - prev[:, 1] * chord[:, 0]
+        # A chord nearly along the ray (grazing incidence) says nothing about the range.
+        ok = np.abs(cross_u) > 0.2 * np.linalg.norm(chord, axis=1)
+        r = np.linalg.norm(p[i], axis=1)
+        devs.append(r[ok] - cross_p[ok] / cross_u[ok])
+    d = np.concatenate(devs) if devs else np.zeros(0)
+    if len(d) < min_samples:
+        return None
+    return float(1.4826 * np.median(np.abs(d)) / np.sqrt(1.5))
+
+
 def extract_segments(points: np.ndarray, seed: int = 0, inlier_m: float = 0.02,
                      min_points: int = 6, max_gap_m: float = 0.1, max_segments: int = 30,
                      iterations: int = 300) -> list[Segment]:

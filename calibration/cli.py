@@ -22,7 +22,7 @@ from calibration.files import CalibrationFileError
 from calibration.intrinsics import IntrinsicsError
 from calibration.scans import PairingError, ScanFormatError
 from calibration.time_offset import TimeOffsetError
-from toolkit.cli_types import positive_int
+from toolkit.cli_types import positive_float, positive_int
 
 # The extrinsic was estimated but the views do not pin it down (scripts must not go on).
 EXIT_UNRELIABLE = 3
@@ -147,7 +147,7 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
     search = BoardSearch(
         angle_window_deg=tuple(args.angle_window) if args.angle_window else None,
         max_offset_m=args.max_offset,
-        mount=args.mount, seed=args.seed)
+        mount=args.mount, seed=args.seed, range_noise_m=args.range_noise)
     init = load_extrinsic(Path(args.init)) if args.init else None
     if init is not None and np.linalg.norm(init[:3, 3]) > args.max_offset:
         # The solve refuses a result beyond --max-offset: such a start only fails later,
@@ -231,6 +231,13 @@ def _print_extrinsic(T: np.ndarray, s: dict[str, Any], allow_unreliable: bool = 
     print("std rotation (deg, about camera x y z): "
           f"{np.round(s['std_rotation_deg'], 3).tolist()}; translation (mm, along x y z): "
           f"{np.round(np.array(s['std_translation_m']) * 1000, 1).tolist()}")
+    if "lidar_range_noise_m" in s:
+        noise = s["lidar_range_noise_m"]
+        said = ("not measurable (too few neighbouring beams)" if noise is None
+                else f"{noise * 1000:.1f} mm ({s['lidar_range_noise_source']})")
+        print(f"lidar range noise {said}: board points within "
+              f"{s['board_line_band_m'] * 100:.1f} cm of a line, then "
+              f"{s['board_reselect_band_m'] * 100:.1f} cm of the predicted board")
     loo = s.get("leave_one_out")
     if loo:
         print(f"leave-one-view-out: rotation spread {loo['rotation_spread_deg']:.3f} deg, "
@@ -448,6 +455,10 @@ def build_parser() -> argparse.ArgumentParser:
                     choices=("linear", "soft_l1", "huber", "cauchy", "arctan"),
                     help="robust loss of the refinement (default soft_l1)")
     pe.add_argument("--seed", type=int, default=0, help="RANSAC seed (default 0)")
+    pe.add_argument("--range-noise", type=positive_float, metavar="M",
+                    help="the lidar's range noise (1 sigma, metres): board points are taken "
+                         "within 2 sigma of a line and 3 sigma of the predicted board (at "
+                         "least 2 and 3 cm); default: measured from the scans")
     pe.add_argument("--no-loo", action="store_true", help="skip the leave-one-out runs")
     pe.add_argument("--allow-unreliable", action="store_true",
                     help="write --out even when the checks call the result unreliable (it is "

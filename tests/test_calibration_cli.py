@@ -58,6 +58,10 @@ def test_extrinsic_end_to_end(capture: tuple[Path, object], tmp_path: Path,
     assert d["tf"]["parent"] == "camera_optical" and d["tf"]["child"] == "laser"
     res = json.loads((tmp_path / "r.json").read_text())
     assert res["views_used"] == 8 and res["residual_rms_m"] < 0.012
+    # 1 cm of lidar noise, measured: the 2 / 3 cm bands it always had.
+    assert res["lidar_range_noise_m"] == pytest.approx(0.01, rel=0.1)
+    assert res["board_line_band_m"] == pytest.approx(0.02, rel=0.1)
+    assert "lidar range noise 10." in out and "(measured)" in out
     assert len(list((tmp_path / "ov").glob("*_overlay.png"))) == 8
     # The written extrinsic is accepted back by check (rig with T_camera_laser).
     rc = main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),

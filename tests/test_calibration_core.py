@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.board import BoardError, BoardSpec, detect_corners
+from calibration.board import BoardError, BoardSpec, Detection, detect_corners
 from calibration.board_lines import board_edge_points, extract_segments, select_board_segment
 from calibration.check import CheckError, CheckFrame, score_frames
 from calibration.extrinsic import (
@@ -171,6 +171,48 @@ def test_pcd_without_points_reads_as_an_empty_scan(tmp_path: Path) -> None:
     for kind in ("ascii", "binary"):
         (tmp_path / f"{kind}.pcd").write_text(head.format(kind))
         assert read_pcd(tmp_path / f"{kind}.pcd").shape == (0, 2), kind
+
+
+def test_range_noise_is_measured_on_the_scans() -> None:
+    """The lidar's range noise from neighbouring beams, whatever the surfaces' incidence."""
+    from calibration.board_lines import range_noise
+
+    for noise in (0.01, 0.03):
+        cap = make_capture(4, seed=0, lidar_noise=noise)
+        got = range_noise([v.scan_points for v in cap.views])
+        assert got == pytest.approx(noise, rel=0.1), (noise, got)
+    # A noise-free wall 2 m away seen from 0 to 70 degrees incidence: no noise at all.
+    a = np.radians(np.arange(0.0, 70.0, 0.25))
+    wall = np.c_[np.full(len(a), 2.0), 2.0 * np.tan(a)]  # [N, 2] on x = 2
+    assert range_noise([wall]) < 1e-6
+    assert range_noise([wall[:50]]) is None  # too few beam triples to tell
+
+
+def test_noisy_lidar_keeps_its_board_points_and_honest_sigmas() -> None:
+    """3 cm of range noise: the fixed 2 / 3 cm bands clipped the board's points (19 % kept
+    in one view) and gave 2.69 deg / 59 mm, 7.9 reported sigmas off, marked reliable. The
+    bands now follow the measured noise (2 and 3 sigma)."""
+    from scipy.spatial.transform import Rotation as R
+
+    from calibration.pipeline import ViewCandidate, run_extrinsic
+    from calibration.scans import StampedScan
+
+    cap = make_capture(10, seed=5, lidar_noise=0.03)
+    cands = [ViewCandidate(v.name, Detection(v.name, v.corners, cap.camera.size),
+                           StampedScan(v.stamp, v.scan_points, v.name), 0.0) for v in cap.views]
+    run = run_extrinsic(cands, cap.board, cap.camera, loo=False)
+    res, T_true = run.result, cap.T_camera_laser
+    s = run.summary()
+    assert s["lidar_range_noise_m"] == pytest.approx(0.03, rel=0.1)
+    assert s["lidar_range_noise_source"] == "measured"
+    assert s["board_line_band_m"] == pytest.approx(0.06, rel=0.1)
+    kept = [len(w.points) / v.on_board.sum() for v, w in zip(cap.views, run.views, strict=True)]
+    assert min(kept) > 0.95, kept
+    e_rot = R.from_matrix(res.T_camera_laser[:3, :3] @ T_true[:3, :3].T).as_rotvec(True)
+    e_t = res.T_camera_laser[:3, 3] - T_true[:3, 3]
+    assert np.linalg.norm(e_rot) < 1.0 and np.linalg.norm(e_t) < 0.02
+    assert np.max(np.abs(e_rot) / res.std_rotation_deg) < 3.0
+    assert np.max(np.abs(e_t) / res.std_translation_m) < 3.0
 
 
 def test_pairing_tolerance_and_one_scan_per_image() -> None:

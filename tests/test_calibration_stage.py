@@ -20,7 +20,8 @@ def test_calibrate_stage_writes_rig_and_metrics(tmp_path: Path) -> None:
     write_capture(cap, tmp_path / "capture")
     res = run_stages(tmp_path, [
         {"stage": "calibrate", "capture": str(tmp_path / "capture"), "board": "11x8",
-         "square_m": 0.05, "leave_one_out": False}], {"calibrate": CalibrateStage})
+         "square_m": 0.05, "leave_one_out": False, "range_noise_m": 0.012}],
+        {"calibrate": CalibrateStage})
     assert res.ok, res.error
     m = res.metrics["calibrate"]
     assert m["views_used"] == 6 and m["residual_rms_m"] < 0.012
@@ -29,6 +30,9 @@ def test_calibrate_stage_writes_rig_and_metrics(tmp_path: Path) -> None:
     assert np.allclose(rig.T_camera_laser, cap.T_camera_laser, atol=0.01)
     calib = yaml.safe_load((tmp_path / "run" / "calibrate" / "calibration.yaml").read_text())
     assert "T_camera_laser" in calib and "error_vs_ground_truth" in calib
+    # The range noise given sets the board-line band (2 sigma) instead of the measured one.
+    assert calib["lidar_range_noise_source"] == "given"
+    assert calib["board_line_band_m"] == pytest.approx(0.024)
     assert "Extrinsic from 6 board views" in (tmp_path / "run" / "report.md").read_text()
 
 
