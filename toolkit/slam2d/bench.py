@@ -1,13 +1,15 @@
-"""Benchmarks of the 2D SLAM on the shipped real logs and a simulated corridor.
+"""Benchmarks of the 2D SLAM on the shipped real logs and simulated corridors.
 
-    python -m toolkit.slam2d.bench killian|intel|aces|corridor [--out DIR] [--set local.x=1 ...]
+    python -m toolkit.slam2d.bench killian|intel|aces|corridor|doors [--out DIR] [--set k=v ...]
 
 killian: scans + the sequential EDGE_SE2 odometry of killian.g2o; the Freiburg relations
 metric on the relations whose two stamps are scans of the file (658). intel / aces: the
 Radish logs scan-only; ATE after SE(2) alignment against the GMapping-corrected poses
 stored in the log. corridor: a simulated drive down a 40 m featureless corridor and back
 (8 m lidar, 3 % odometry error; ``toolkit.slam2d.corridor``), ATE against the true poses:
-the degenerate case. Writes ``<out>/<log>.json``, the map (PGM + YAML) and a PNG.
+the degenerate case. doors: the same corridor with identical door niches every
+``--door-spacing`` m (5), whose views repeat (a match one door off scores as well).
+Writes ``<out>/<log>.json``, the map (PGM + YAML) and a PNG.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
 from toolkit.slam2d.plot import save_map_png
 
-LOGS = ("killian", "intel", "aces", "corridor")
+LOGS = ("killian", "intel", "aces", "corridor", "doors")
 
 
 def shared_data_dir() -> Path:
@@ -75,9 +77,11 @@ def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
 
 
 def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
-                  data_dir: Path | None = None, corridor_angle_deg: float = 0.0) -> dict:
+                  data_dir: Path | None = None, corridor_angle_deg: float = 0.0,
+                  door_spacing_m: float = 5.0) -> dict:
     """Run one log; write JSON, map and PNG under ``out``; return the figures.
-    ``corridor_angle_deg``: the corridor's angle to the SLAM grid (corridor only)."""
+    ``corridor_angle_deg``: the corridor's angle to the SLAM grid (corridor, doors);
+    ``door_spacing_m``: the doors' spacing (doors only)."""
     from toolkit.eval.relations import read_relations, relations_metric, select_relations
     from toolkit.io.carmen import read_carmen, read_g2o
 
@@ -96,12 +100,17 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
         scans, odom, T_bl = log.scans, None, log.T_base_laser
         reference = log.reference()
         figures["input"] = "scans only (the log's GMapping poses are the reference)"
-    elif name == "corridor":
+    elif name in ("corridor", "doors"):
         from toolkit.slam2d.corridor import corridor_drive
 
-        drive = corridor_drive(angle_deg=corridor_angle_deg)
+        spacing = door_spacing_m if name == "doors" else 0.0
+        if name == "doors" and not spacing > 0:
+            raise ValueError(f"--door-spacing must be > 0 m, got {door_spacing_m:g}")
+        drive = corridor_drive(angle_deg=corridor_angle_deg, door_spacing=spacing)
         scans, odom, T_bl, reference = drive.scans, drive.odometry, None, drive.truth
-        figures["input"] = ("simulated: 40 m x 2 m corridor without features, down and back, "
+        what = (f"identical door niches every {spacing:g} m" if spacing
+                else "without features")
+        figures["input"] = (f"simulated: 40 m x 2 m corridor {what}, down and back, "
                             "8 m lidar, 0.1 m per scan, 3 % odometry error, "
                             f"{corridor_angle_deg:g} deg to the grid")
     else:
@@ -150,7 +159,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="override a setting, e.g. --set loop_closure.min_score=0.6")
     ap.add_argument("--config", type=Path, help="YAML file of settings (Slam2DConfig)")
     ap.add_argument("--corridor-angle", type=float, default=0.0, metavar="DEG",
-                    help="corridor: its angle to the SLAM grid (walls as stair-steps)")
+                    help="corridor, doors: its angle to the SLAM grid (walls as stair-steps)")
+    ap.add_argument("--door-spacing", type=float, default=5.0, metavar="M",
+                    help="doors: metres between the door niches (default: 5)")
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
@@ -164,7 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, KeyError) as e:  # pydantic's ValidationError is a ValueError
         print(f"error: {e.args[0] if isinstance(e, KeyError) else e}", file=sys.stderr)
         return 2
-    figures = run_benchmark(args.log, args.out, config, corridor_angle_deg=args.corridor_angle)
+    try:
+        figures = run_benchmark(args.log, args.out, config,
+                                corridor_angle_deg=args.corridor_angle,
+                                door_spacing_m=args.door_spacing)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     show = {k: v for k, v in figures.items() if k != "config"}
     json.dump(show, sys.stdout, indent=1)
     print()

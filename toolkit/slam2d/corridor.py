@@ -17,12 +17,23 @@ from toolkit.geometry import Trajectory, se2_between, se2_compose, se2_to_se3
 from toolkit.sensors import LaserScan
 
 
-def corridor_walls(length: float, width: float) -> np.ndarray:
-    """[4, 4] wall segments (x0, y0, x1, y1): the corridor from x = -1 to ``length`` - 1,
-    y = 0 to ``width``, closed at both ends."""
+def corridor_walls(length: float, width: float, door_spacing: float = 0.0,
+                   door_width: float = 1.0, door_depth: float = 0.4) -> np.ndarray:
+    """[S, 4] wall segments (x0, y0, x1, y1): the corridor from x = -1 to ``length`` - 1,
+    y = 0 to ``width``, closed at both ends. ``door_spacing`` > 0: identical door niches
+    (``door_width`` x ``door_depth``) in the y = 0 wall every ``door_spacing`` m from
+    x = 1, an office corridor whose views repeat."""
     x0, x1 = -1.0, length - 1.0
-    return np.array([[x0, 0.0, x1, 0.0], [x0, width, x1, width], [x0, 0.0, x0, width],
-                     [x1, 0.0, x1, width]], dtype=np.float64)
+    walls = [[x0, width, x1, width], [x0, 0.0, x0, width], [x1, 0.0, x1, width]]
+    x = x0
+    if door_spacing > 0:
+        for xd in np.arange(1.0, x1 - door_width, door_spacing):
+            xe = xd + door_width
+            walls += [[x, 0.0, xd, 0.0], [xd, 0.0, xd, -door_depth],
+                      [xd, -door_depth, xe, -door_depth], [xe, -door_depth, xe, 0.0]]
+            x = xe
+    walls.append([x, 0.0, x1, 0.0])
+    return np.array(walls, dtype=np.float64)
 
 
 def cast_rays(walls: np.ndarray, pose: np.ndarray, angles: np.ndarray,
@@ -47,14 +58,14 @@ class CorridorDrive:
     scans: list[LaserScan]
     odometry: Trajectory  # T_odom_base with the per-step error
     truth: Trajectory  # T_world_base
-    walls: np.ndarray  # [4, 4]
+    walls: np.ndarray  # [S, 4]
 
 
 def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 8.0,
                    step: float = 0.1, back: bool = True, odometry_error: float = 0.03,
                    heading_noise: float = 0.002, range_noise: float = 0.01,
                    beams: int = 360, rate_hz: float = 10.0, angle_deg: float = 0.0,
-                   seed: int = 0) -> CorridorDrive:
+                   seed: int = 0, door_spacing: float = 0.0) -> CorridorDrive:
     """Drive along the corridor's centre line from x = 0.5 to 2.5 m short of its far end
     (``step`` m per scan), and with ``back`` turn on the spot and drive back.
 
@@ -63,10 +74,11 @@ def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 
     heading. Beams without a return read ``max_range``
     (the ROS convention for "nothing within range"). ``angle_deg`` turns the whole world
     (corridor, path, odometry) about the origin: the SLAM's grid axes follow the first
-    pose, so this sets the corridor's angle to the grid.
+    pose, so this sets the corridor's angle to the grid. ``door_spacing``: door niches
+    along one wall (``corridor_walls``).
     """
     rng = np.random.default_rng(seed)
-    walls = corridor_walls(length, width)
+    walls = corridor_walls(length, width, door_spacing)
     end = length - 3.5
     y = width / 2
     out = [np.array([x, y, 0.0]) for x in np.arange(0.5, end + 1e-9, step)]
@@ -75,8 +87,9 @@ def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 
         out += [np.array([x, y, np.pi]) for x in np.arange(end - step, 0.5 - 1e-9, -step)]
     turn = np.array([0.0, 0.0, np.radians(angle_deg)])
     truth = se2_compose(turn, np.array(out))  # [N, 3]
-    walls = np.concatenate([se2_compose(turn, np.c_[walls[:, :2], np.zeros(4)])[:, :2],
-                            se2_compose(turn, np.c_[walls[:, 2:], np.zeros(4)])[:, :2]], 1)
+    zero = np.zeros(len(walls))
+    walls = np.concatenate([se2_compose(turn, np.c_[walls[:, :2], zero])[:, :2],
+                            se2_compose(turn, np.c_[walls[:, 2:], zero])[:, :2]], 1)
     angles = -np.pi + np.arange(beams) * 2 * np.pi / beams
     odo = [truth[0].copy()]
     for k in range(1, len(truth)):

@@ -8,7 +8,9 @@ Cartographer's sparse pose adjustment (``SpaCostFunction2D``)::
 
 scaled by sqrt(translation_weight) and sqrt(rotation_weight). Loop-closure edges carry a
 robust loss (Huber or Cauchy on the scaled residual norm, applied by iteratively
-reweighted least squares) so that a wrong closure is outvoted instead of bending the map.
+reweighted least squares) so that a stray wrong closure is outvoted instead of bending
+the map (Huber bounds a closure's pull, it does not remove it: a consistent set of wrong
+ones, a corridor's doors one spacing off, is kept out by the loop closer's ambiguity test).
 
 Why our own solver rather than ``scipy.optimize.least_squares``: that routine applies one
 loss to every residual (we need plain squares on odometry and scan-matching edges and a

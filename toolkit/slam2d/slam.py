@@ -706,6 +706,7 @@ class LidarSlam2D:
             "loop_closure_wide_searches": self.loop.wide_searches,
             "loop_closure_outliers": self.counts["loop_outliers"],
             "loop_closures_degenerate": self.counts["loop_closures_degenerate"],
+            "loop_closures_ambiguous": self.loop.ambiguous,
             "nodes_stationary": self.counts["nodes_stationary"],
             "submaps_search_bounded": sum(self.loop.saturated(sm.index)
                                           for sm in self.submaps.all),
