@@ -245,6 +245,33 @@ def test_depth_to_points_transform_colour_and_range() -> None:
     np.testing.assert_allclose(uv[:, 0], idx % 40, atol=1e-4)
 
 
+def test_depth_to_points_refuses_images_that_are_not_rgb() -> None:
+    cam = PinholeCamera(40, 30, 30.0, 30.0, 19.5, 14.5)
+    rays = RayCache(cam, stride=1)
+    depth = np.full((30, 40), 2.0, np.float32)
+    for shape in ((30, 40, 4), (30, 40)):  # RGBA gave half the points shifted colours
+        with pytest.raises(ValueError, match=r"RGB image \[H, W, 3\]"):
+            depth_to_points(depth, np.zeros(shape, np.uint8), rays, np.eye(4), CloudOptions())
+
+
+def test_poses_beyond_the_maps_key_range_are_refused_before_fusing() -> None:
+    from toolkit.fusion.pipeline import FusionConfig, check_world_extent
+
+    poses = np.stack([se3(None, [x, 0.0, 0.0]) for x in (0.0, 5.0)])
+    check_world_extent(poses, FusionConfig())
+    check_world_extent(poses + se3(None, [15000.0, -12000.0, 0.0]) - np.eye(4),
+                       FusionConfig())  # within +-21 km at 2 cm
+    utm = poses + se3(None, [500000.0, 5000000.0, 0.0]) - np.eye(4)
+    with pytest.raises(ValueError, match="local frame") as e:
+        check_world_extent(utm, FusionConfig())
+    assert "voxel_size_m 0.02" in str(e.value)
+    # 10 cm voxels reach 105 km; the exposure's 10 cm cells 52 km.
+    far = poses + se3(None, [60000.0, 0.0, 0.0]) - np.eye(4)
+    with pytest.raises(ValueError, match="exposure_cell_m 0.1"):
+        check_world_extent(far, FusionConfig(voxel_size_m=0.1))
+    check_world_extent(far, FusionConfig(voxel_size_m=0.1, exposure="none"))
+
+
 def test_voxel_map_means_counts_and_frames() -> None:
     vm = VoxelMap(0.1, batch_entries=5)  # tiny batches exercise the merging
     a = np.array([[0.01, 0.01, 0.01], [0.03, 0.05, 0.02], [0.55, 0.0, 0.0]])

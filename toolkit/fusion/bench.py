@@ -89,7 +89,7 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
     from toolkit.fusion.pipeline import Fusion
 
     n = len(idx)
-    fusion = Fusion(seq, cfg, fp, sp, scan_covered=covered)  # type: ignore[arg-type]  # type: ignore[arg-type]
+    fusion = Fusion(seq, cfg, fp, sp, scan_covered=covered)  # type: ignore[arg-type]
     fusion.frame_pairs(int(idx[0]), preds[idx[0]])  # warm caches outside the clock
     # Wall clock and CPU time: on a shared machine the wall clock measures the neighbours.
     t0, c0 = time.perf_counter(), time.process_time()

@@ -126,6 +126,10 @@ def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,
                          f"{rays.camera.height}x{rays.camera.width}")
     if rgb.shape[:2] != depth.shape:
         raise ValueError(f"image {rgb.shape[:2]} does not match the depth {depth.shape}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        # An RGBA image read as three channels a pixel gave half the points shifted colours.
+        raise ValueError(f"image {list(rgb.shape)}: give an RGB image [H, W, 3] (drop an "
+                         "alpha channel, stack a grey one)")
     ok = valid_pixels(depth, opts) if valid is None else valid
     ok = ok[::s, ::s]
     if rays.reachable is not None:

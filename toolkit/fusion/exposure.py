@@ -89,6 +89,7 @@ class ExposureOptions:
 
 _CELL_BITS = 20
 _CELL_OFFSET = 1 << (_CELL_BITS - 1)
+CELL_RANGE = _CELL_OFFSET  # points within this many cells of the origin can be keyed
 
 
 def cell_keys(points: np.ndarray, origin: np.ndarray, cell_m: float) -> np.ndarray:

@@ -30,7 +30,7 @@ from toolkit.fusion.dynamic import (
     dynamic_beams,
     grow_dynamic,
 )
-from toolkit.fusion.exposure import ExposureOptions, cell_observations
+from toolkit.fusion.exposure import CELL_RANGE, ExposureOptions, cell_observations
 from toolkit.fusion.projection import (
     LidarPixels,
     LidarProjector,
@@ -47,7 +47,13 @@ from toolkit.fusion.scale import (
     pair_agreement,
     smooth_scales,
 )
-from toolkit.fusion.voxel_map import MapArrays, VoxelMap, statistical_inliers, voxel_keys
+from toolkit.fusion.voxel_map import (
+    KEY_RANGE_VOXELS,
+    MapArrays,
+    VoxelMap,
+    statistical_inliers,
+    voxel_keys,
+)
 from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
 from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence
@@ -322,6 +328,26 @@ def scans_covered(seq: Sequence, T_world_base: Trajectory) -> np.ndarray:
     return T_world_base.covers(seq.scan_stamps, slack_s=Trajectory.END_SLACK_S)
 
 
+def check_world_extent(T_world_base: np.ndarray, config: FusionConfig) -> None:
+    """Refuse poses [F, 4, 4] whose points the map cannot key (``voxel_map.voxel_keys``:
+    +-2^20 voxels, 21 km at 2 cm), before any frame is fused: a trajectory in a UTM-like
+    frame (the odometry's, 500 km out) failed after every frame had been scaled."""
+    if len(T_world_base) == 0:
+        return
+    reach = float(np.abs(T_world_base[:, :3, 3]).max()) + config.max_depth_m + 1.0
+    limits = {"voxel_size_m": KEY_RANGE_VOXELS * config.voxel_size_m}
+    if config.exposure != "none":
+        limits["exposure_cell_m"] = CELL_RANGE * config.exposure_cell_m
+    key, limit = min(limits.items(), key=lambda kv: kv[1])
+    if reach > limit:
+        raise ValueError(
+            f"the robot's poses lie up to {reach / 1000:.1f} km from the world frame's "
+            f"origin, and the map keys points within +-{limit / 1000:.1f} km (by {key} "
+            f"{getattr(config, key):g}; float32 points lose millimetres further out): "
+            "express the trajectory in a local frame, e.g. subtract its first position "
+            "from every pose (and from the ground truth, to score against it)")
+
+
 class Fusion:
     """Per-frame pieces of the fusion, shared by the stage and the benchmark."""
 
@@ -341,6 +367,7 @@ class Fusion:
             log.warning("fusion: %s", warning)
         self.frame_poses = frame_poses  # [F, 4, 4] T_world_base
         self.scan_poses = scan_poses  # [S, 4, 4]
+        check_world_extent(frame_poses, config)
         self.scan_covered = (np.ones(len(seq.scans), bool) if scan_covered is None
                              else np.asarray(scan_covered, bool))  # [S]
         if len(self.scan_covered) != len(seq.scans):

@@ -23,6 +23,7 @@ import numpy as np
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)  # voxel indices in [-2^20, 2^20): +-21 km at 2 cm
 _MASK = (1 << _BITS) - 1
+KEY_RANGE_VOXELS = _OFFSET  # points within this many voxels of the origin can be keyed
 
 
 def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
