@@ -115,12 +115,39 @@ class FakeSlam(Stage):
         ctx.provide("trajectory", ctx.stage_dir)
 
 
+class MapFrameSlam(Stage):
+    """trajectory_camera.tum = the small room's true camera poses in a map frame turned
+    40 deg and shifted from the world, for a sequence without ground-truth poses."""
+
+    name = "t_slam_map"
+    Config = StageConfig
+    requires = ("sequence",)
+    provides = ("trajectory",)
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.geometry import Trajectory, se3
+        from toolkit.io.sequence import read_sequence
+        from toolkit.io.tum import write_tum
+
+        seq = read_sequence(ctx.artifact("sequence"))
+        room = SyntheticRoom(size=(3.2, 2.6, 2.2), boxes=[((0.4, 1.6, 0.0), (1.0, 2.2, 0.8))])
+        poses = orbit_poses(room, len(seq.frames), radius_m=0.4, height_m=1.1,
+                            sweep_deg=300.0, look_distance_m=1.5)
+        a = np.radians(40.0)
+        T_map_world = se3(np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0],
+                                    [0, 0, 1]]), [-1.5, 0.7, 0.0])
+        write_tum(ctx.stage_dir / "trajectory_camera.tum",
+                  Trajectory(seq.frame_stamps, T_map_world @ poses, "world", "camera"))
+        ctx.provide("trajectory", ctx.stage_dir)
+
+
 @pytest.fixture(autouse=True)
 def stages() -> Iterator[None]:
     from toolkit.baselines.stage import CameraOnlyStage, ColmapStage, TSDFStage
 
     names = {"t_room": RoomSequence, "t_depth": FakeDepth, "t_fused": FakeFuse,
-             "t_slam": FakeSlam, "tsdf": TSDFStage, "colmap": ColmapStage,
+             "t_slam": FakeSlam, "t_slam_map": MapFrameSlam, "tsdf": TSDFStage,
+             "colmap": ColmapStage,
              "camera_only": CameraOnlyStage}
     for n, cls in names.items():
         registry.register(n, cls)
@@ -152,6 +179,22 @@ def test_tsdf_stage_groundtruth_depth_without_trajectory(tmp_path: Path) -> None
     assert (run / "tsdf" / "views.png").exists()
     report = (run / "report.md").read_text()
     assert "GROUND TRUTH" in report and "tsdf/views.png" in report
+
+
+def test_tsdf_mesh_in_a_map_frame_is_not_scored_without_poses_to_align_it(
+        tmp_path: Path) -> None:
+    # A ground-truth mesh but no ground-truth poses: the mesh, exact but in the SLAM map
+    # frame, scored 1.50 m accuracy and F@5cm 0.043 "vs GT mesh".
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 12, "width": 160, "height": 120,
+                           "small": True, "poses": False},
+                          {"stage": "t_slam_map"},
+                          {"stage": "tsdf", "depth_source": "groundtruth", "views": 0,
+                           "eval_spacing_m": 0.015}])
+    assert res.ok, res.error
+    m = res.metrics["tsdf"]
+    assert m["poses"] != "groundtruth" and "geometry" not in m
+    assert m["geometry_scored"] is False
+    assert "not scored" in (tmp_path / "run" / "report.md").read_text()
 
 
 def test_tsdf_stage_scaled_depth_at_trajectory_poses(tmp_path: Path) -> None:
