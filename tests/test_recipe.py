@@ -615,6 +615,57 @@ def test_resume_after_exception(tmp_path: Path) -> None:
     assert (run_dir / "t_sink" / "checkpoint.txt").exists()
 
 
+def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Once its marker is written a stage is finished (the next run takes it as cached):
+    Ctrl-C or an I/O error while the runner digests its outputs was reported as the
+    stage failing, its figures left out of metrics.json and the report (and on an error
+    the later stages were not run)."""
+    import toolkit.recipe.runner as runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    real_digest = runner._content_digest
+    doubled = tmp_path / "run" / "t_double" / "doubled.txt"
+
+    def interrupted(p: Path) -> str:
+        if p == doubled:
+            raise KeyboardInterrupt
+        return real_digest(p)
+
+    monkeypatch.setattr(runner, "_content_digest", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _run(path)
+    run_dir = tmp_path / "run"
+    assert (run_dir / "t_double" / ".stage.json").exists()
+    assert json.loads((run_dir / "metrics.json").read_text()) == {
+        "t_source": {"value": 3}, "t_double": {"doubled": 6, "nested": {"a": 1, "b": None}}}
+    text = (run_dir / "report.md").read_text()
+    assert "| t_double | ran |" in text and "| t_sink | not run |" in text
+    assert "Doubled: **6**." in text and "**Failed:**" not in text
+    assert "**Stopped:** interrupted after stage 't_double' finished" in text
+    monkeypatch.setattr(runner, "_content_digest", real_digest)
+    assert _run(path).statuses == {"t_source": "cached", "t_double": "cached", "t_sink": "ran"}
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
+
+    def unreadable(p: Path) -> str:
+        if p == doubled:
+            raise PermissionError(13, "Permission denied", str(p))
+        return real_digest(p)
+
+    monkeypatch.setattr(runner, "_content_digest", unreadable)
+    caplog.clear()
+    result = _run(path, "t_double.factor=5")
+    assert result.ok and result.statuses == {
+        "t_source": "cached", "t_double": "ran", "t_sink": "ran"}
+    assert result.metrics["t_sink"] == {"sum": 18}
+    warning = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warning) == 1 and warning[0].startswith(
+        f"stage t_double finished, but its outputs could not be digested: {doubled}: "
+        "Permission denied; the stage stays finished")
+    monkeypatch.setattr(runner, "_content_digest", real_digest)
+    assert set(_run(path, "t_double.factor=5").statuses.values()) == {"cached"}
+
+
 def test_a_finished_stage_folder_holds_no_leftover_temporaries(tmp_path: Path) -> None:
     """A write killed half way leaves its hidden temporary (a resumed fuse kept them in
     its finished scaled_depth/); the stage's success removes them, and nothing else."""

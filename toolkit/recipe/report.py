@@ -69,8 +69,10 @@ def build_report(
     stages: Sequence[StageSummary],
     description: str = "",
     error: str | None = None,
+    interrupted: str | None = None,
 ) -> str:
-    """The whole ``report.md``: title, finished stages' sections in order, timing table."""
+    """The whole ``report.md``: title, finished stages' sections in order, timing table;
+    ``error`` names a failed stage, ``interrupted`` a run stopped after a stage finished."""
     parts = [f"# {title}"]
     if description:
         parts.append(description.strip())
@@ -86,6 +88,8 @@ def build_report(
     parts.append(timing)
     if error:
         parts.append(f"**Failed:** {error} (details in run.log)")
+    if interrupted:
+        parts.append(f"**Stopped:** {interrupted}.")
     stale = [f"`{s.id}`" for s in stages if s.status == "not run" and s.stale_files]
     if stale:
         parts.append(f"**Not run this time:** {', '.join(stale)}: "

@@ -271,6 +271,8 @@ class _Run:
         self.records = {spec.id: _Record(spec) for spec in recipe.stages}
         self.error: str | None = None
         self.failed_stage: str | None = None
+        # Set when Ctrl-C / SIGTERM stopped the run after a stage finished, not inside one.
+        self.interrupted: str | None = None
         self.bar_active = False
         self._resolved_written = False
 
@@ -505,19 +507,6 @@ class _Run:
                 "manifest": {n: _manifest(p) for n, p in record.provides.items()},
             }
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
-            (stage_dir / STARTED_FILE).unlink(missing_ok=True)
-            # The outputs are digested once the stage stands finished: interrupted here, it
-            # stays finished, its readers keyed by the run token (an hour's outputs take a
-            # minute or more to read).
-            if spec.cls.outputs_repeat:
-                t = time.perf_counter()
-                tokens = {n: _content_digest(p) for n, p in record.provides.items()}
-                if all(tokens.values()):
-                    atomic_write_json(stage_dir / STAGE_FILE, {**marker, "output_tokens": tokens},
-                                      fsync=True)
-                    record.output_tokens = tokens
-                self.log.info("stage %s: outputs digested in %.1f s", spec.id,
-                              time.perf_counter() - t, extra=_FILE_ONLY)
         except Exception as exc:
             self.fail(record, exc, start)
             return False
@@ -526,10 +515,43 @@ class _Run:
             self.settle_pending()
             self.write_outputs()
             raise
+        # The marker is written: the stage is finished on disk (the next run takes it as
+        # cached), so this run counts it finished too, its figures in metrics.json and the
+        # report, whatever happens while its outputs are digested.
         record.status = "ran"
         self.console.print(f"[green]{spec.id}[/] ran in {record.seconds:.1f} s")
         self.log.info("stage %s finished in %.2f s", spec.id, record.seconds, extra=_FILE_ONLY)
+        try:
+            (stage_dir / STARTED_FILE).unlink(missing_ok=True)
+            self.digest_outputs(record, marker)
+        except Exception as exc:  # an unreadable output, a disk error: only the digest lost
+            self.log.warning("stage %s finished, but its outputs could not be digested: %s",
+                             spec.id, _digest_failure(exc))
+        except BaseException:  # Ctrl-C / SIGTERM: this stage is done, the run stops here
+            self.interrupted = (f"interrupted after stage {spec.id!r} finished, while its "
+                                "outputs were digested; the stages after it did not run")
+            self.log.warning("run stopped: %s", self.interrupted)
+            self.settle_pending()
+            self.write_outputs()
+            raise
         return True
+
+    def digest_outputs(self, record: _Record, marker: dict[str, Any]) -> None:
+        """Record the content digest of a finished stage's outputs, for early cutoff.
+
+        Taken once the stage stands finished (an hour's outputs take a minute or more to
+        read): a marker left without them keys the stage's readers by its run token."""
+        spec = record.spec
+        if not spec.cls.outputs_repeat:
+            return
+        t = time.perf_counter()
+        tokens = {n: _content_digest(p) for n, p in record.provides.items()}
+        if all(tokens.values()):
+            atomic_write_json(self.run_dir / spec.id / STAGE_FILE,
+                              {**marker, "output_tokens": tokens}, fsync=True)
+            record.output_tokens = tokens
+        self.log.info("stage %s: outputs digested in %.1f s", spec.id,
+                      time.perf_counter() - t, extra=_FILE_ONLY)
 
     def fail(self, record: _Record, exc: BaseException, start: float) -> None:
         record.status = "failed"
@@ -561,6 +583,7 @@ class _Run:
             [r.summary(self.run_dir) for r in self.records.values()],
             description=self.recipe.description,
             error=self.error,
+            interrupted=self.interrupted,
         )
         report.write_report(self.run_dir, text)
 
@@ -884,6 +907,17 @@ def _content_digest(path: Path) -> str:
             while chunk := fh.read(1 << 20):
                 h.update(chunk)
     return h.hexdigest()
+
+
+def _digest_failure(exc: Exception) -> str:
+    """What went wrong digesting a finished stage's outputs, what it costs and the fix."""
+    cost = ("the stage stays finished, and the stages reading its outputs rerun after any "
+            "rerun of it, even one that writes the same bytes")
+    if isinstance(exc, OSError) and exc.filename:
+        return (f"{exc.filename}: {exc.strerror or exc}; {cost}. Check that file (its "
+                f"permissions, the disk) before the stage's next rerun")
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0] if lines else ''}; {cost}"
 
 
 def _manifest_changes(path: Path, files: list[list[Any]]) -> str | None:
