@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -1309,3 +1310,21 @@ def test_a_bad_value_of_a_generic_union_member_is_named_by_its_key(tmp_path: Pat
     assert "stages[0] (splat): threads: Input should be greater than or equal to 1" in str(
         e.value)
     assert "constrained-int" not in str(e.value) and "literal[" not in str(e.value)
+
+
+def test_the_readme_names_settings_an_interrupted_run_resumes_under() -> None:
+    """The README said an interrupted run resumes after a change of splat.iterations,
+    which empties the splat folder (its checkpoint with it): the settings it names as
+    resumable are the stages' resume or speed settings, and the one it names as training
+    afresh is neither."""
+    text = " ".join((REPO / "README.md").read_text(encoding="utf-8").split())
+    start = text.index("Only an interrupted run is resumed")
+    sentence = text[start:text.index("; any other run of a stage", start)]
+    named = re.findall(r"`(\w+)\.(\w+)`", sentence)
+    afresh = re.findall(r"another `(\w+)\.(\w+)` trains afresh", sentence)
+    assert named
+    for stage, key in named:
+        cls = registry.load_stage(stage)
+        assert key in cls.Config.model_fields
+        resumes = key in cls.resume_settings | cls.speed_settings
+        assert resumes == ((stage, key) not in afresh), f"{stage}.{key}"
