@@ -634,7 +634,7 @@ def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(
         return real_digest(p)
 
     monkeypatch.setattr(runner, "_content_digest", interrupted)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(runner.StoppedAfterStage):
         _run(path)
     run_dir = tmp_path / "run"
     assert (run_dir / "t_double" / ".stage.json").exists()
@@ -665,6 +665,43 @@ def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(
         "Permission denied; the stage stays finished")
     monkeypatch.setattr(runner, "_content_digest", real_digest)
     assert set(_run(path, "t_double.factor=5").statuses.values()) == {"cached"}
+
+
+def test_the_advice_after_an_interrupt_is_the_command_that_resumes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """After Ctrl-C in a `--only X` run the CLI said to drop --only, whose plain run also
+    ran every other stale stage; `--only X` without --force resumes X."""
+    from toolkit.recipe import cli
+    from toolkit.recipe.runner import StoppedAfterStage
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    raised: list[BaseException] = []
+
+    def interrupted(*args: Any, **kwargs: Any) -> None:
+        raise raised[-1]
+
+    monkeypatch.setattr(cli, "run_recipe", interrupted)
+
+    def advice(*argv: str, exc: BaseException | None = None) -> str:
+        raised.append(exc or KeyboardInterrupt())
+        assert cli.main(["run", str(path), *argv]) == 130
+        return capsys.readouterr().err.strip()
+
+    again = f"interrupted; run python -m toolkit.recipe run {path}"
+    assert advice("--only", "t_double", "--force") == (
+        f"{again} --only t_double to resume (without --force or --from, which would redo "
+        "finished stages)")
+    assert advice("--set", "t_source.label=a b", "--from", "t_double", "--force").startswith(
+        f"{again} --set 't_source.label=a b' to resume")
+    assert advice("--only", "t_double") == "interrupted; run the same command to resume"
+    assert advice() == "interrupted; run the same command to resume"
+    # Stopped once the stage had finished (its outputs were being digested): --only it
+    # again would redo it.
+    assert advice("--only", "t_double", "--force", exc=StoppedAfterStage("t_double")) == (
+        "interrupted; stage 't_double' had finished: nothing is left to resume")
+    assert advice("--force", exc=StoppedAfterStage("t_double")).startswith(
+        f"{again} to resume")
 
 
 def test_a_finished_stage_folder_holds_no_leftover_temporaries(tmp_path: Path) -> None:

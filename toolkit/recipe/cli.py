@@ -7,6 +7,7 @@ Exit codes: 0 success, 1 a stage failed, 2 the recipe or the command line is wro
 from __future__ import annotations
 
 import argparse
+import shlex
 import signal
 import sys
 from collections.abc import Sequence
@@ -14,7 +15,7 @@ from types import FrameType
 from typing import Any
 
 from toolkit.recipe import registry
-from toolkit.recipe.runner import missing_inputs, run_recipe
+from toolkit.recipe.runner import StoppedAfterStage, missing_inputs, run_recipe
 from toolkit.recipe.schema import Recipe, RecipeError, load_recipe
 
 
@@ -84,12 +85,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:  # the run's own files (report, metrics) could not be written
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        redo = any(getattr(args, k, None) for k in ("force", "from_stage", "only"))
-        again = "it without --force, --from or --only (they would redo finished stages)" \
-            if redo else "the same command"
-        print(f"interrupted; run {again} to resume", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"interrupted; {_resume_advice(args, exc)}", file=sys.stderr)
         return 130
+
+
+def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:
+    """The command that goes on with an interrupted run.
+
+    ``--force`` and ``--from`` rerun finished stages, so they are dropped (a plain run takes
+    up from the stage that stopped, the earlier ones cached); ``--only X`` is kept: without
+    ``--force`` it resumes X in its folder, where a plain run would also run every other
+    stale stage."""
+    only = getattr(args, "only", None)
+    if isinstance(exc, StoppedAfterStage) and only == exc.stage:
+        return f"stage {only!r} had finished: nothing is left to resume"
+    if not (getattr(args, "force", False) or getattr(args, "from_stage", None)):
+        return "run the same command to resume"
+    words = ["python", "-m", "toolkit.recipe", "run", args.file]
+    for item in args.set:
+        words += ["--set", item]
+    if only:
+        words += ["--only", only]
+    return (f"run {shlex.join(words)} to resume (without --force or --from, which would "
+            "redo finished stages)")
 
 
 def _list() -> int:

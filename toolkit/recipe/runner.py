@@ -82,6 +82,15 @@ LOCK_FILE = ".lock"
 _FILE_ONLY = {"console": False}
 
 
+class StoppedAfterStage(KeyboardInterrupt):
+    """Ctrl-C / SIGTERM once ``stage`` had finished (while its outputs were digested): that
+    stage is done, and rerunning it (``--only`` it, ``--force``) would redo it."""
+
+    def __init__(self, stage: str) -> None:
+        super().__init__(f"interrupted after stage {stage!r} finished")
+        self.stage = stage
+
+
 @dataclass
 class RunResult:
     """Outcome of ``run_recipe``: per-stage status and seconds, merged metrics, run dir."""
@@ -527,12 +536,14 @@ class _Run:
         except Exception as exc:  # an unreadable output, a disk error: only the digest lost
             self.log.warning("stage %s finished, but its outputs could not be digested: %s",
                              spec.id, _digest_failure(exc))
-        except BaseException:  # Ctrl-C / SIGTERM: this stage is done, the run stops here
+        except BaseException as exc:  # Ctrl-C / SIGTERM: this stage is done, the run stops
             self.interrupted = (f"interrupted after stage {spec.id!r} finished, while its "
                                 "outputs were digested; the stages after it did not run")
             self.log.warning("run stopped: %s", self.interrupted)
             self.settle_pending()
             self.write_outputs()
+            if isinstance(exc, KeyboardInterrupt):
+                raise StoppedAfterStage(spec.id) from None
             raise
         return True
 
