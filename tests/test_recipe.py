@@ -1365,3 +1365,38 @@ def test_the_readme_names_settings_an_interrupted_run_resumes_under() -> None:
         assert key in cls.Config.model_fields
         resumes = key in cls.resume_settings | cls.speed_settings
         assert resumes == ((stage, key) not in afresh), f"{stage}.{key}"
+
+
+def test_validation_messages_point_at_the_fix(tmp_path: Path) -> None:
+    """The advice to quote a --set value came with every value YAML reads as other than
+    text, numbers included (quoting -1 gives the same error); a too-short tuple was three
+    'missing required key' lines; `id: 2024` was told to hold only letters and digits."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError) as err:
+        load_recipe(path, ["t_source.label=true", "t_double.factor=[2]"])
+    assert err.value.problems[-1] == (
+        "(with --set t_source.label=true: values are read as YAML, so quote text that YAML "
+        "reads otherwise: --set 't_source.label=\"true\"')")
+    for bad in ("t_double.factor=[2]", "t_source.value=1.5"):
+        with pytest.raises(RecipeError) as err:
+            load_recipe(path, [bad])
+        assert len(err.value.problems) == 1 and "quote" not in str(err.value), bad
+
+    sim = tmp_path / "sim.yaml"
+    sim.write_text(yaml.safe_dump({"name": "t", "output": str(tmp_path / "out"), "stages": [
+        {"stage": "simulate", "duration_s": 4, "camera": {"distortion": [0.1, 0.01]}}]}))
+    with pytest.raises(RecipeError) as err:
+        load_recipe(sim, ["simulate.duration_s=-1"])
+    assert err.value.problems == [
+        "stages[0] (simulate): camera.distortion: expects 5 values, got 2 ([0.1, 0.01])",
+        "stages[0] (simulate): duration_s: Input should be greater than 0 (got -1)"]
+
+    sim.write_text(f"name: t\noutput: {tmp_path / 'out'}\nstages:\n  - stage: simulate\n"
+                   "    id: 2024\n  - stage: simulate\n    id: true\n")
+    with pytest.raises(RecipeError) as err:
+        load_recipe(sim)
+    assert err.value.problems == [
+        "stages[0] (simulate): id 2024 is read by YAML as a number; an id is text: quote it "
+        "(id: '2024')",
+        "stages[1] (simulate): id true is read by YAML as a boolean; an id is text: quote it "
+        "(id: 'true')"]

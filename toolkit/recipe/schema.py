@@ -7,8 +7,10 @@ in the last stage of a long recipe fails in a second instead of after an hour of
 from __future__ import annotations
 
 import difflib
+import json
 import os
 import re
+import shlex
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -163,12 +165,41 @@ def read_yaml_value(text: str) -> Any:
 
 def _read_otherwise(item: str) -> bool:
     """Whether a ``--set KEY=VALUE`` value is not the text typed once read as YAML (true,
-    null, 1.10, [a]): only then is quoting it the fix to suggest."""
+    null, 1.10, [a]): only then may quoting it be the fix to suggest."""
     value = item.partition("=")[2]
     try:
         return not isinstance(read_yaml_value(value), str)
     except yaml.YAMLError:
         return True
+
+
+def _quoted(item: str) -> str:
+    """A ``--set`` item with its value as the text typed (a YAML double-quoted scalar)."""
+    key, _, text = item.partition("=")
+    return f"{key}={json.dumps(text.strip(), ensure_ascii=False)}"
+
+
+def _quoting_hint(data: Any, overrides: Sequence[str], source: str | Path | None,
+                  problems: int) -> str | None:
+    """The advice to quote the ``--set`` values that YAML read as something other than the
+    text typed, for those whose quoting leaves fewer problems (``label=true`` for a text
+    setting; not ``duration_s=-1``, which reads as the same number quoted)."""
+    helps = []
+    for i, item in enumerate(overrides):
+        if not _read_otherwise(item):
+            continue
+        trial = [*overrides[:i], _quoted(item), *overrides[i + 1:]]
+        try:
+            _parse_recipe(data, trial, source)
+        except RecipeError as exc:
+            if len(exc.problems) >= problems:
+                continue
+        helps.append(item)
+    if not helps:
+        return None
+    fixes = " ".join(f"--set {shlex.quote(_quoted(item))}" for item in helps)
+    return (f"(with --set {' '.join(helps)}: values are read as YAML, so quote text that YAML "
+            f"reads otherwise: {fixes})")
 
 
 def _mapping_without_repeats(loader: _UniqueKeyLoader, node: yaml.MappingNode,
@@ -221,6 +252,16 @@ def parse_recipe(
     data: Any, overrides: Sequence[str] = (), source: str | Path | None = None
 ) -> Recipe:
     """Validate recipe data already loaded from YAML (or built in code)."""
+    try:
+        return _parse_recipe(data, overrides, source)
+    except RecipeError as exc:
+        hint = _quoting_hint(data, overrides, source, len(exc.problems)) if overrides else None
+        if hint is None:
+            raise
+        raise RecipeError([*exc.problems, hint]) from None
+
+
+def _parse_recipe(data: Any, overrides: Sequence[str], source: str | Path | None) -> Recipe:
     where = str(source) if source is not None else "recipe"
     if not isinstance(data, dict):
         raise RecipeError(
@@ -281,13 +322,6 @@ def parse_recipe(
     if not problems:
         specs = _wire_artifacts(specs, problems)
     if problems:
-        if any(_read_otherwise(o) for o in overrides) and any(
-                "unknown key" not in q for q in problems):
-            # A --set value is YAML: true, null, 1.10, [a] and '#...' are not the text typed
-            # (said for a bad value; a misspelt key has its own "did you mean").
-            problems.append(
-                f"(with --set {' '.join(overrides)}: values are read as YAML, so quote text "
-                f"that YAML reads otherwise, e.g. --set 'ingest.topic=\"null\"')")
         raise RecipeError(problems)
     return Recipe(
         name=name,
@@ -313,6 +347,12 @@ def _parse_stage(index: int, raw: Any, problems: list[str]) -> StageSpec | None:
     stage_id = raw.get("id", stage_type)
     if stage_id is None:  # ``id:`` left empty in YAML: the type, as without the key
         stage_id = stage_type
+    if isinstance(stage_id, bool | int):
+        text = str(stage_id).lower()  # true, not Python's True
+        problems.append(f"{where} ({stage_type}): id {text} is read by YAML as a "
+                        f"{'boolean' if isinstance(stage_id, bool) else 'number'}; an id is "
+                        f"text: quote it (id: '{text}')")
+        return None
     if not isinstance(stage_id, str) or not _ID_RE.match(stage_id):
         problems.append(
             f"{where} ({stage_type}): id {stage_id!r} may hold only letters, digits, '_' "
@@ -597,6 +637,7 @@ def format_validation_error(
     """One readable line per problem, each starting with ``label`` and the key path."""
     lines: list[str] = []
     merged: dict[str, list[str]] = {}
+    short: dict[str, tuple[int, Any]] = {}  # where -> (values expected, values given)
     for item in error.errors():
         loc = tuple(item["loc"])
         kind = item["type"]
@@ -608,6 +649,13 @@ def format_validation_error(
             if allowed:
                 line += f"; allowed keys: {', '.join(allowed)}"
             lines.append(line)
+        elif kind == "missing" and isinstance(loc[-1], int) and isinstance(
+                item.get("input"), list | tuple):
+            # A fixed-length tuple given too few values: one error per absent position.
+            parent, _ = _resolve_loc(model, loc[:-1])
+            given = item["input"]
+            where = f"{label}: {_fmt_loc(parent)}"
+            short[where] = (max(short.get(where, (0, given))[0], loc[-1] + 1), given)
         elif kind == "missing" and loc:
             parent, _ = _resolve_loc(model, loc[:-1])
             lines.append(f"{label}: missing required key {_fmt_loc((*parent, loc[-1]))!r}")
@@ -616,6 +664,9 @@ def format_validation_error(
             where = f"{label}: {_fmt_loc(path)}" if path else label
             got = _short(repr(item.get("input")))
             merged.setdefault(f"{where}: ", []).append(f"{item['msg']} (got {got})")
+    for where, (expected, given) in short.items():
+        lines.append(f"{where}: expects {expected} values, got {len(given)} "
+                     f"({_short(repr(list(given)))})")
     for where, messages in merged.items():
         lines.append(where + "; or ".join(dict.fromkeys(messages)))
     return list(dict.fromkeys(lines))
