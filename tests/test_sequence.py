@@ -321,3 +321,37 @@ def test_formats_round_trip_what_they_hold(tmp_path: Path) -> None:
     w.add_frame(0.0, None, image_path=jpg)  # type: ignore[arg-type]
     w.close()
     assert read_sequence(tmp_path / "d").frames[0].image.shape == (H, W, 3)
+
+
+def test_trajectory_headers_naming_other_frames_are_refused(tmp_path: Path) -> None:
+    """odometry.tum / poses_base.tum hold base poses; a header saying camera, laser or
+    inverted poses was overridden and the poses read as base ones (camera ground truth
+    scored ATE against the camera's lever-arm path)."""
+    root = tmp_path / "a"
+    truth = write_small(root)
+    gt_path, odo_path = root / "groundtruth" / "poses_base.tum", root / "odometry.tum"
+    stamps = np.arange(10) * 0.05
+    cases = [
+        (gt_path, Trajectory(stamps, truth["poses"], "world", "camera"),
+         r"poses_base.tum: its header says the poses are T_world_camera.*"
+         r"T_world_camera @ inv\(T_base_camera\)"),
+        (odo_path, Trajectory(stamps, truth["poses"], "base_link", "odom"),
+         r"odometry.tum: its header says the poses are T_base_link_odom.*invert every pose"),
+        (odo_path, Trajectory(stamps, truth["poses"], "odom", "laser"),
+         r"odometry.tum: .*T_odom_laser @ inv\(T_base_laser\)"),
+    ]
+    for path, traj, match in cases:
+        original = path.read_bytes()
+        write_tum(path, traj)
+        with pytest.raises(SequenceFormatError, match=match):
+            read_sequence(root)
+        path.write_bytes(original)
+    # REP 105's other names for the same frames, and a file without a header, still read.
+    write_tum(gt_path, Trajectory(stamps, truth["poses"], "map", "base_footprint"))
+    odo_path.write_text("".join(line + "\n" for line in odo_path.read_text().splitlines()
+                                if not line.startswith("#")))
+    seq = read_sequence(root)
+    assert (seq.groundtruth.poses_base.frame, seq.groundtruth.poses_base.child) == (
+        "world", "base_link")
+    assert (seq.odometry.frame, seq.odometry.child) == ("odom", "base_link")
+    assert np.allclose(seq.groundtruth.poses_base.poses, truth["poses"], atol=1e-12)

@@ -40,7 +40,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from toolkit.io.depth import write_depth
-from toolkit.io.tum import read_tum, write_tum
+from toolkit.io.tum import read_tum, tum_header_frames, write_tum
 from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import (
     CameraFrame,
@@ -303,6 +303,36 @@ def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) ->
 # ---------------------------------------------------------------------------- reading
 
 
+# Names of the robot's base frame (REP 105) a trajectory header may use for base_link.
+_BASE_NAMES = ("base_link", "base_footprint", "base")
+
+
+def _read_base_trajectory(path: Path, frame: str) -> Trajectory:
+    """T_<frame>_base_link poses of ``path`` (odometry.tum, poses_base.tum). A header
+    (``# T_a_b: b pose in a``, as format_tum writes) naming other frames is refused: camera
+    or laser poses, or inverted ones, were read as base poses without a word."""
+    hdr = tum_header_frames(path)
+    if hdr is not None:
+        h_frame, h_child = hdr
+        said = f"its header says the poses are T_{h_frame}_{h_child} ({h_child} in {h_frame})"
+        want = f"this file holds T_{frame}_base_link (base_link poses in a fixed frame)"
+        if h_frame in _BASE_NAMES:
+            raise SequenceFormatError(
+                f"{path}: {said}, {want}. Fix: invert every pose (T_{h_child}_{h_frame} = "
+                f"inv(T_{h_frame}_{h_child})) and write the header '# T_{frame}_base_link: "
+                f"base_link pose in {frame}'")
+        if h_child not in _BASE_NAMES:
+            mount = ("T_base_camera from rig.yaml" if h_child.startswith("camera")
+                     else "T_base_laser from rig.yaml"
+                     if h_child.startswith(("laser", "lidar", "scan", "base_scan"))
+                     else f"T_base_{h_child}, where {h_child} sits on the base")
+            raise SequenceFormatError(
+                f"{path}: {said}, {want}. Fix: write T_{h_frame}_base_link = "
+                f"T_{h_frame}_{h_child} @ inv(T_base_{h_child}) ({mount}) under the header "
+                f"'# T_{h_frame}_base_link: base_link pose in {h_frame}'")
+    return read_tum(path, frame, "base_link")
+
+
 def read_sequence(root: Path | str) -> Sequence:
     """Load a sequence folder (images stay on disk until used)."""
     root = Path(root)
@@ -345,7 +375,7 @@ def read_sequence(root: Path | str) -> Sequence:
     if not frames and not scans:
         raise SequenceFormatError(f"{root}: neither camera/frames.csv nor scans.npz found; "
                                   "a sequence needs images, scans or both")
-    odom = read_tum(root / "odometry.tum", "odom", "base_link") if (
+    odom = _read_base_trajectory(root / "odometry.tum", "odom") if (
         root / "odometry.tum").exists() else None
     gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans),
                            len(scans[0].ranges) if scans else 0)
@@ -406,7 +436,7 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
         return None
     gt = GroundTruth(depth_paths=depth, mask_paths=masks)
     if (gdir / "poses_base.tum").exists():
-        gt.poses_base = read_tum(gdir / "poses_base.tum", "world", "base_link")
+        gt.poses_base = _read_base_trajectory(gdir / "poses_base.tum", "world")
     if (gdir / "scan_dynamic.npz").exists():
         with np.load(gdir / "scan_dynamic.npz") as d:
             if "dynamic" not in d.files:
