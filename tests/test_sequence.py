@@ -355,3 +355,52 @@ def test_trajectory_headers_naming_other_frames_are_refused(tmp_path: Path) -> N
         "world", "base_link")
     assert (seq.odometry.frame, seq.odometry.child) == ("odom", "base_link")
     assert np.allclose(seq.groundtruth.poses_base.poses, truth["poses"], atol=1e-12)
+
+
+def test_stamps_in_other_units_or_clocks_are_refused(tmp_path: Path) -> None:
+    """Unix nanoseconds (what ROS 2 and most drivers log) were read as seconds: a folder
+    wholly in ns read as the year 5e10, frames in ns against scans in s reached ingest's
+    bag advice, and odometry in ns overlapped no scan without a word."""
+    root = tmp_path / "a"
+    write_small(root)
+    csv_path, scans_path, odo_path = (root / "camera" / "frames.csv", root / "scans.npz",
+                                      root / "odometry.tum")
+    originals = {p: p.read_bytes() for p in (csv_path, scans_path, odo_path)}
+    ns = 1_700_000_000_000_000_000
+
+    def frames_ns() -> None:
+        lines = csv_path.read_text().splitlines()
+        csv_path.write_text("\n".join([lines[0]] + [
+            ",".join([r.split(",")[0], str(ns + 10**8 * i)] + r.split(",")[2:])
+            for i, r in enumerate(lines[1:])]) + "\n")
+
+    def scans_ns() -> None:
+        with np.load(scans_path) as d:
+            arrays = {k: d[k] for k in d.files}
+        arrays["stamps"] = ns + np.arange(len(arrays["stamps"]), dtype=np.int64) * 10**8
+        np.savez(scans_path, **arrays)
+
+    def odometry(stamps: np.ndarray) -> None:
+        odo = read_tum(odo_path)
+        write_tum(odo_path, Trajectory(stamps, odo.poses, "odom", "base_link"))
+
+    stamps = np.arange(10) * 0.05
+    cases = [
+        (frames_ns, r"frames.csv:2: field 'stamp' holds 1.7e\+18, which looks like "
+                    r"nanoseconds.*divide them by 1e9"),
+        (scans_ns, r"scans.npz: field 'stamps' holds 1.7e\+18.*nanoseconds.*by 1e9"),
+        (lambda: odometry(1.7e12 + 1000 * stamps),
+         r"odometry.tum: field 'timestamp' holds 1.7e\+12.*milliseconds.*by 1e3"),
+        (lambda: odometry(1000.0 + stamps),
+         r"frames.csv spans 0.013 .. 0.313 s and odometry.tum 1000.000 .. 1000.450 s: they "
+         r"share no moment.*one clock"),
+    ]
+    for spoil, match in cases:
+        spoil()
+        with pytest.raises(SequenceFormatError, match=match):
+            read_sequence(root)
+        for p, data in originals.items():
+            p.write_bytes(data)
+    # Odometry starting just after the last frame (within a second) is one clock.
+    odometry(0.8 + stamps)
+    assert read_sequence(root).odometry.stamps[0] == 0.8

@@ -62,6 +62,25 @@ class SequenceFormatError(ValueError):
     """A sequence folder is malformed; the message names the file and the field."""
 
 
+# Stamps are seconds; a larger one (after the year 5000) is a count of ms, us or ns (what
+# ROS 2 and most drivers log), which was read as seconds without a word.
+MAX_STAMP_S = 1e11
+
+
+def check_seconds(stamps: Any, where: str, field: str) -> None:
+    """Refuse stamps [N] too large to be seconds, naming ``where``, the field and the
+    divisor that makes them seconds."""
+    st = np.abs(np.asarray(stamps, dtype=np.float64).reshape(-1))  # [N]
+    big = st > MAX_STAMP_S
+    if not big.any():
+        return
+    v = float(st[np.argmax(big)])
+    unit, scale = (("nanoseconds", "1e9") if v > 1e17 else ("microseconds", "1e6") if v > 1e14
+                   else ("milliseconds", "1e3"))
+    raise SequenceFormatError(f"{where}: field '{field}' holds {v:.10g}, which looks like "
+                              f"{unit} since 1970: stamps are seconds; divide them by {scale}")
+
+
 # ---------------------------------------------------------------------------- rig YAML
 
 
@@ -176,6 +195,7 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
         if key not in data:
             raise SequenceFormatError(f"{source}: missing array '{key}'")
     stamps = np.asarray(data["stamps"], dtype=np.float64)
+    check_seconds(stamps, source, "stamps")
     ranges = np.asarray(data["ranges"], dtype=np.float32)
     n = len(stamps)
     if ranges.ndim != 2 or len(ranges) != n:
@@ -277,6 +297,7 @@ def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) ->
                                       f"{row['stamp']!r}") from None
         if not np.isfinite(stamp):
             raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' is not finite")
+        check_seconds(stamp, f"{csv_path}:{line}", "stamp")
         if stamp <= prev:
             raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' not strictly increasing "
                                       f"({prev!r} then {stamp!r})")
@@ -330,7 +351,24 @@ def _read_base_trajectory(path: Path, frame: str) -> Trajectory:
                 f"{path}: {said}, {want}. Fix: write T_{h_frame}_base_link = "
                 f"T_{h_frame}_{h_child} @ inv(T_base_{h_child}) ({mount}) under the header "
                 f"'# T_{h_frame}_base_link: base_link pose in {h_frame}'")
-    return read_tum(path, frame, "base_link")
+    traj = read_tum(path, frame, "base_link")
+    check_seconds(traj.stamps, str(path), "timestamp")
+    return traj
+
+
+def _check_overlap(spans: list[tuple[str, np.ndarray]], root: Path) -> None:
+    """Refuse files whose stamps [N] share no moment with another's: stamps on two clocks
+    (or in two units) that a stage later met as 'no scan near this frame'."""
+    spans = [(name, st) for name, st in spans if len(st)]
+    slack = 1.0  # seconds: a frame just before the first scan is no clock mismatch
+    for i, (a, sa) in enumerate(spans):
+        for b, sb in spans[i + 1:]:
+            if max(sa[0], sb[0]) > min(sa[-1], sb[-1]) + slack:
+                raise SequenceFormatError(
+                    f"{root}: {a} spans {sa[0]:.3f} .. {sa[-1]:.3f} s and {b} "
+                    f"{sb[0]:.3f} .. {sb[-1]:.3f} s: they share no moment, so their stamps are "
+                    "on different clocks. Fix: write every file's stamps on one clock (add "
+                    "the offset between the clocks to one of them)")
 
 
 def read_sequence(root: Path | str) -> Sequence:
@@ -379,6 +417,9 @@ def read_sequence(root: Path | str) -> Sequence:
         root / "odometry.tum").exists() else None
     gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans),
                            len(scans[0].ranges) if scans else 0)
+    _check_overlap([("camera/frames.csv", np.array([f.stamp for f in frames])),
+                    ("scans.npz", np.array([sc.stamp for sc in scans])),
+                    ("odometry.tum", odom.stamps if odom is not None else np.zeros(0))], root)
     if gt is not None and gt.exposure_gain is not None and len(gt.exposure_gain) != len(frames):
         raise SequenceFormatError(
             f"{root / 'groundtruth' / 'exposure_gain.csv'}: {len(gt.exposure_gain)} gains for "
@@ -456,6 +497,7 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
         rows = _read_frames_csv(hdir / "frames.csv")
         frames, hdepth, _ = _frames_from_rows(rows, hdir, hdir / "frames.csv")
         poses = read_tum(hdir / "poses_camera.tum", "world", "camera")
+        check_seconds(poses.stamps, str(hdir / "poses_camera.tum"), "timestamp")
         if len(poses) != len(frames):
             raise SequenceFormatError(f"{hdir / 'poses_camera.tum'}: {len(poses)} poses for "
                                       f"{len(frames)} held-out images")
