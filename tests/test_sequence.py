@@ -404,3 +404,30 @@ def test_stamps_in_other_units_or_clocks_are_refused(tmp_path: Path) -> None:
     # Odometry starting just after the last frame (within a second) is one clock.
     odometry(0.8 + stamps)
     assert read_sequence(root).odometry.stamps[0] == 0.8
+
+
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_exif_orientation_is_not_applied_to_frames(tmp_path: Path, orientation: int) -> None:
+    """A JPEG tagged 'rotate 180' (3) was read rotated, its white top-left corner at the
+    bottom right, while the size check read it as stored: the camera rolled 180 degrees
+    against its rig without a word; tagged 'rotate 90' (6) it came out 24x32 after the
+    32x24 size check passed. Frames are the stored pixels, as the intrinsics are."""
+    from PIL import Image
+
+    from toolkit.sensors import load_rgb
+
+    root = tmp_path / "seq"
+    w = SequenceWriter(root, make_rig(), name="jpeg")
+    img = np.zeros((H, W, 3), np.uint8)  # [H, W, 3]
+    img[:4, :4] = 255
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    for i in range(2):
+        jpg = tmp_path / f"{i}.jpg"
+        Image.fromarray(img).save(jpg, exif=exif.tobytes(), quality=95)
+        assert load_rgb(jpg).shape == (H, W, 3)
+        w.add_frame(0.1 * i, None, image_path=jpg)  # type: ignore[arg-type]
+    w.close()
+    frame = read_sequence(root).frames[0].image
+    assert frame.shape == (H, W, 3)
+    assert np.allclose(np.argwhere(frame[..., 0] > 200).mean(0), [1.5, 1.5], atol=0.5)
