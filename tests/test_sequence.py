@@ -431,3 +431,37 @@ def test_exif_orientation_is_not_applied_to_frames(tmp_path: Path, orientation: 
     frame = read_sequence(root).frames[0].image
     assert frame.shape == (H, W, 3)
     assert np.allclose(np.argwhere(frame[..., 0] > 200).mean(0), [1.5, 1.5], atol=0.5)
+
+
+def test_writer_refuses_stamps_its_reader_would_refuse(tmp_path: Path) -> None:
+    """NaN / inf frame stamps and unsorted, repeated or NaN scan stamps were written and
+    close()d as a finished folder that read_sequence then refused."""
+    img = np.zeros((H, W, 3), np.uint8)
+
+    def scan(t: float) -> LaserScan:
+        return LaserScan(t, np.full(8, 2.0, np.float32), -1.5, 3.0 / 7, 0.1, 10.0)
+
+    cases = [
+        ([np.nan, 0.1], [], r"frame 0: stamp nan is not finite"),
+        ([0.0, np.nan, 0.2], [], r"frame 1: stamp nan is not finite"),
+        ([0.0, np.inf], [], r"frame 1: stamp inf is not finite"),
+        ([0.0, 0.1, 0.05], [], r"frame 2: stamp 0.05 not after the previous frame's 0.1"),
+        ([1.7e18], [], r"frame 0: field 'stamp' holds 1.7e\+18.*nanoseconds"),
+        ([0.0], [0.1, 0.0, 0.2], r"scan 1: stamp 0.0 not after scan 0's 0.1; sort the scans"),
+        ([0.0], [0.0, 0.0], r"scan 1: stamp 0.0 not after scan 0's 0.0"),
+        ([0.0], [0.0, np.nan], r"scan 1: stamp nan is not finite"),
+    ]
+    for frames, scans, match in cases:
+        w = SequenceWriter(tmp_path / "s", make_rig())
+        with pytest.raises(ValueError, match=match):
+            for t in frames:
+                w.add_frame(t, img)
+            for t in scans:
+                w.add_scan(scan(t))
+        w.discard()
+    w = SequenceWriter(tmp_path / "s", make_rig())
+    w.add_frame(0.0, img)
+    for t in (0.0, 0.05):
+        w.add_scan(scan(t))
+    w.close()
+    assert read_sequence(tmp_path / "s").scan_stamps.tolist() == [0.0, 0.05]

@@ -594,8 +594,15 @@ class SequenceWriter:
                   gt_mask: np.ndarray | None = None, image_path: Path | None = None) -> int:
         """Write one RGB image [H, W, 3] (or copy ``image_path``) with optional ground truth."""
         i = len(self._rows)
+        # Checked here, not by the reader only: a NaN passed 'stamp <= previous' (and
+        # disabled it for the next frame), and the folder was refused after the whole
+        # recording had been written.
+        if not np.isfinite(stamp):
+            raise ValueError(f"frame {i}: stamp {stamp!r} is not finite")
+        check_seconds(stamp, f"frame {i}", "stamp")
         if self._rows and stamp <= float(self._rows[-1]["stamp"]):
-            raise ValueError(f"frame {i}: stamp {stamp!r} not after the previous frame")
+            raise ValueError(f"frame {i}: stamp {float(stamp)!r} not after the previous "
+                             f"frame's {float(self._rows[-1]['stamp'])!r}")
         rel = f"images/{i:06d}.png"
         dst = self.root / "camera" / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -645,6 +652,15 @@ class SequenceWriter:
         return i
 
     def add_scan(self, scan: LaserScan, dynamic: np.ndarray | None = None) -> None:
+        """Keep one scan for ``close()``; its stamp must be finite and after the last's."""
+        k = len(self._scans)
+        if not np.isfinite(scan.stamp):
+            raise ValueError(f"scan {k}: stamp {scan.stamp!r} is not finite")
+        check_seconds(scan.stamp, f"scan {k}", "stamp")
+        if self._scans and scan.stamp <= self._scans[-1].stamp:
+            raise ValueError(f"scan {k}: stamp {float(scan.stamp)!r} not after scan {k - 1}'s "
+                             f"{float(self._scans[-1].stamp)!r}; sort the scans by stamp and "
+                             "drop repeated stamps")
         self._scans.append(scan)
         if dynamic is not None:
             self._dynamic.append(np.asarray(dynamic, dtype=bool))
