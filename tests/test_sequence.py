@@ -465,3 +465,25 @@ def test_writer_refuses_stamps_its_reader_would_refuse(tmp_path: Path) -> None:
         w.add_scan(scan(t))
     w.close()
     assert read_sequence(tmp_path / "s").scan_stamps.tolist() == [0.0, 0.05]
+
+
+def test_frames_csv_as_spreadsheets_save_it(tmp_path: Path) -> None:
+    """Excel's "CSV UTF-8" starts with a BOM, which hid the 'stamp' column; a cp1252 file
+    raised a bare UnicodeDecodeError naming no file; spaces after the commas hid every
+    column but the first."""
+    root = tmp_path / "a"
+    write_small(root)
+    csv_path = root / "camera" / "frames.csv"
+    lines = csv_path.read_text().splitlines()
+    header = lines[0].split(",")
+    # stamp first: the BOM landed in its name
+    body = "\n".join([",".join(header[1:])] + [",".join(r.split(",")[1:]) for r in lines[1:]])
+    csv_path.write_bytes(b"\xef\xbb\xbf" + body.replace("\n", "\r\n").encode() + b"\r\n")
+    assert read_sequence(root).frame_stamps.tolist() == [0.1 * i + 0.013 for i in range(4)]
+    csv_path.write_text("\n".join(r.replace(",", ", ") for r in lines) + "\n")
+    assert read_sequence(root).frame_stamps.tolist() == [0.1 * i + 0.013 for i in range(4)]
+    csv_path.write_bytes(("\n".join(lines[:2] + [lines[2] + ",bild_\xe4.png"]) + "\n")
+                         .encode("cp1252"))
+    with pytest.raises(SequenceFormatError, match=r"frames.csv:3: not UTF-8 text "
+                                                  r"\(byte b'\\xe4'\); save the file as UTF-8"):
+        read_sequence(root)

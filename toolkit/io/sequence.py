@@ -270,11 +270,25 @@ def read_scans(path: Path) -> list[LaserScan]:
 # ---------------------------------------------------------------------------- frames.csv
 
 
+def _csv_rows(path: Path) -> list[dict[str, str]]:
+    """Rows of a CSV file with a header. UTF-8 with or without a BOM (Excel's "CSV UTF-8"
+    put it into the first column's name, so 'stamp' was missing); spaces after the commas
+    are dropped (an 'index, stamp, image' header was refused too)."""
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise SequenceFormatError(f"{path}:{line}: not UTF-8 text (byte "
+                                  f"{data[e.start:e.start + 1]!r}); "
+                                  "save the file as UTF-8") from None
+    return list(csv.DictReader(io.StringIO(text, newline=""), skipinitialspace=True))
+
+
 def _read_frames_csv(path: Path) -> list[dict[str, str]]:
     if not path.exists():
         raise SequenceFormatError(f"{path}: frame index not found")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = _csv_rows(path)
     if rows and not {"stamp", "image"} <= set(rows[0]):
         raise SequenceFormatError(f"{path}: header must contain 'stamp' and 'image', got "
                                   f"{list(rows[0])}")
@@ -456,8 +470,7 @@ def read_sequence(root: Path | str) -> Sequence:
 
 def _read_exposure_gains(path: Path) -> np.ndarray:
     """[F] gains from ``index,stamp,gain`` rows, one per frame in frame order."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = _csv_rows(path)
     try:
         idx = np.array([int(r["index"]) for r in rows])
         gains = np.array([float(r["gain"]) for r in rows])
