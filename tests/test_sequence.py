@@ -160,8 +160,14 @@ def test_image_count_mismatch(tmp_path):
     write_small(tmp_path / "b")
     extra = tmp_path / "b" / "camera" / "images" / "000099.png"
     extra.write_bytes((tmp_path / "b" / "camera" / "images" / "000000.png").read_bytes())
-    with pytest.raises(SequenceFormatError, match="lists 4 images but"):
+    with pytest.raises(SequenceFormatError, match=r"lists 4 images but .* holds 5 \(not "
+                                                  r"listed: 000099.png\)"):
         read_sequence(tmp_path / "b")
+    # Files that are no images (Windows' Thumbs.db) made a valid folder unreadable.
+    extra.unlink()
+    (extra.parent / "Thumbs.db").write_bytes(b"\0" * 64)
+    (extra.parent / "desktop.ini").write_text("[.ShellClassInfo]\n")
+    assert len(read_sequence(tmp_path / "b").frames) == 4
 
 
 def test_nan_pose(tmp_path):

@@ -338,6 +338,11 @@ def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) ->
 # ---------------------------------------------------------------------------- reading
 
 
+# Files of camera/images that count as frames (not Thumbs.db, desktop.ini, notes).
+_IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp",
+                             ".ppm", ".pgm", ".jp2", ".exr"})
+
+
 # Names of the robot's base frame (REP 105) a trajectory header may use for base_link.
 _BASE_NAMES = ("base_link", "base_footprint", "base")
 
@@ -418,11 +423,18 @@ def read_sequence(root: Path | str) -> Sequence:
                                                       frames_csv)
         images_dir = cam_dir / "images"
         if images_dir.is_dir():
-            on_disk = sum(1 for p in images_dir.iterdir() if not p.name.startswith("."))
-            if on_disk != len(frames):
+            # Images only: Windows' Thumbs.db or a notes file made a valid folder unreadable.
+            on_disk = [p for p in images_dir.iterdir() if not p.name.startswith(".")
+                       and p.suffix.lower() in _IMAGE_SUFFIXES]
+            if len(on_disk) != len(frames):
+                listed = {f.path.resolve() for f in frames if f.path is not None}
+                unlisted = sorted(p.name for p in on_disk if p.resolve() not in listed)
                 raise SequenceFormatError(
-                    f"{frames_csv}: lists {len(frames)} images but {images_dir} holds {on_disk}; "
-                    "the index and the folder disagree (an interrupted copy?)")
+                    f"{frames_csv}: lists {len(frames)} images but {images_dir} holds "
+                    f"{len(on_disk)}" + (f" (not listed: {', '.join(unlisted[:3])}"
+                                         f"{', ...' if len(unlisted) > 3 else ''})"
+                                         if unlisted else "")
+                    + "; the index and the folder disagree (an interrupted copy?)")
     scans = read_scans(root / "scans.npz") if (root / "scans.npz").exists() else []
     if not frames and not scans:
         raise SequenceFormatError(f"{root}: neither camera/frames.csv nor scans.npz found; "
