@@ -493,3 +493,23 @@ def test_frames_csv_as_spreadsheets_save_it(tmp_path: Path) -> None:
     with pytest.raises(SequenceFormatError, match=r"frames.csv:3: not UTF-8 text "
                                                   r"\(byte b'\\xe4'\); save the file as UTF-8"):
         read_sequence(root)
+
+
+def test_frames_of_more_than_8_bits_are_refused(tmp_path: Path) -> None:
+    """A 16-bit PNG of 12-bit data (4000) read as 15 of 255 and ingest copied the 16-bit
+    file on, although frames are 8-bit."""
+    import cv2
+
+    root = tmp_path / "a"
+    write_small(root)
+    deep = np.full((H, W, 3), 4000, np.uint16)  # [H, W, 3]
+    cv2.imwrite(str(root / "camera" / "images" / "000000.png"), deep)
+    with pytest.raises(SequenceFormatError, match=r"000000.png: a uint16 image \(brightest "
+                                                  r"value 4000\); frames are 8-bit.*by 16"):
+        read_sequence(root)
+    src = tmp_path / "deep.png"
+    cv2.imwrite(str(src), deep)
+    w = SequenceWriter(tmp_path / "b", make_rig())
+    with pytest.raises(ValueError, match=r"deep.png: a uint16 image"):
+        w.add_frame(0.0, None, image_path=src)  # type: ignore[arg-type]
+    w.discard()

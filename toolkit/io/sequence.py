@@ -461,6 +461,7 @@ def read_sequence(root: Path | str) -> Sequence:
             raise SequenceFormatError(
                 f"{frames[0].path}: image is {first.shape[1]}x{first.shape[0]} but "
                 f"{root / 'rig.yaml'} field 'camera' says {w}x{h}")
+        _check_8bit(frames[0].path, first)
         # Ground truth of another size failed deep in a stage (an index error in fuse's
         # labels, a shape mismatch in its depth figures) after the work before it.
         for kind, paths in (("depth", gt_depth), ("mask", gt_mask)):
@@ -478,6 +479,16 @@ def read_sequence(root: Path | str) -> Sequence:
                     f"images are {w}x{h} ({root / 'rig.yaml'} field 'camera'): write it at "
                     "the image size, or drop the column from camera/frames.csv")
     return seq
+
+
+def _check_8bit(path: Path, pixels: np.ndarray) -> None:
+    """Refuse a frame that is not 8-bit: OpenCV's colour read keeps the top 8 of 16 bits,
+    so 12-bit data (4000) became 15 of 255, a near-black image, without a word."""
+    if pixels.dtype != np.uint8:
+        hi = int(pixels.max())
+        raise SequenceFormatError(
+            f"{path}: a {pixels.dtype} image (brightest value {hi}); frames are 8-bit RGB. "
+            "Fix: convert the frames to 8 bits (12-bit data divided by 16, 16-bit by 256)")
 
 
 def _read_exposure_gains(path: Path) -> np.ndarray:
@@ -643,6 +654,7 @@ class SequenceWriter:
             if pixels.shape[:2] != (h, w):
                 raise ValueError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
                                  f"{pixels.shape[0]}, the camera {w}x{h}")
+            _check_8bit(Path(image_path), pixels)
             atomic_write_bytes(dst, data)
         else:
             if image is None and image_path is not None:
