@@ -187,8 +187,10 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """[H, W, 3] uint8 (BGR order: only used for detection and drawing) with a clear error."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    """[H, W, 3] uint8 (BGR order: only used for detection and drawing) with a clear error.
+    The stored pixels, EXIF orientation not applied, as ``toolkit.sensors.load_rgb`` reads
+    the frames these intrinsics are then used on."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise FileNotFoundError(f"{path}: missing or not a readable image")
     return img

@@ -108,7 +108,9 @@ class CalibrateStage(Stage):
     #    them without poses; a check that scores no point stops (it reported a NaN score);
     #    the board's points are taken in bands of 2 and 3 range-noise sigmas (measured; were
     #    2 and 3 cm: a 3 cm lidar's board was found in 1 of 10 views)
-    version = 6
+    # 7: images are read as stored, a JPEG's EXIF orientation tag not applied (intrinsics
+    #    from rotated pixels did not fit the frames the sequence reader gives)
+    version = 7
 
     config: CalibrateConfig
 

@@ -1,5 +1,7 @@
 """PinholeCamera against OpenCV, with distortion."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -220,3 +222,23 @@ def test_no_pixels_undistort_and_backproject_to_no_rays(cam):
     # the image would stop the fusion.
     assert cam.undistort_points(np.zeros((0, 2))).shape == (0, 2)
     assert cam.backproject(np.zeros((0, 2)), np.zeros(0)).shape == (0, 3)
+
+
+def test_distortion_under_other_tools_names_is_refused():
+    """ROS's D, Kalibr / ORB-SLAM's k1 k2 p1 p2 keys or 'coeffs' were ignored and the lens
+    taken as undistorted: with k1 = -0.3 the image corner was modelled 56 px off."""
+    base = {"model": "pinhole", "width": 640, "height": 480, "fx": 525.0, "fy": 525.0,
+            "cx": 319.5, "cy": 239.5}
+    coeffs = [-0.3, 0.1, 0.0, 0.0, 0.0]
+    for extra, named in (({"D": coeffs}, "['D']"), ({"coeffs": coeffs}, "['coeffs']"),
+                         ({"k1": -0.3, "k2": 0.1, "p1": 0.0, "p2": 0.0},
+                          "['k1', 'k2', 'p1', 'p2']"),
+                         ({"K": [[525, 0, 319.5], [0, 525, 239.5], [0, 0, 1]]}, "['K']")):
+        with pytest.raises(ValueError, match=rf"unknown key\(s\) {re.escape(named)}: the lens "
+                                             r"distortion is read only from 'distortion'"):
+            PinholeCamera.from_dict({**base, **extra})
+    cam = PinholeCamera.from_dict({**base, "distortion": coeffs})
+    # The corner ray lands where OpenCV's lens puts it.
+    ray = np.array([[(0 - 319.5) / 525, (0 - 239.5) / 525, 1.0]])
+    ref = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), cam.K, np.array(coeffs))[0]
+    assert np.allclose(cam.project(ray)[0], ref.reshape(-1, 2), atol=1e-6)

@@ -160,8 +160,14 @@ def test_image_count_mismatch(tmp_path):
     write_small(tmp_path / "b")
     extra = tmp_path / "b" / "camera" / "images" / "000099.png"
     extra.write_bytes((tmp_path / "b" / "camera" / "images" / "000000.png").read_bytes())
-    with pytest.raises(SequenceFormatError, match="lists 4 images but"):
+    with pytest.raises(SequenceFormatError, match=r"lists 4 images but .* holds 5 \(not "
+                                                  r"listed: 000099.png\)"):
         read_sequence(tmp_path / "b")
+    # Files that are no images (Windows' Thumbs.db) made a valid folder unreadable.
+    extra.unlink()
+    (extra.parent / "Thumbs.db").write_bytes(b"\0" * 64)
+    (extra.parent / "desktop.ini").write_text("[.ShellClassInfo]\n")
+    assert len(read_sequence(tmp_path / "b").frames) == 4
 
 
 def test_nan_pose(tmp_path):
@@ -321,3 +327,189 @@ def test_formats_round_trip_what_they_hold(tmp_path: Path) -> None:
     w.add_frame(0.0, None, image_path=jpg)  # type: ignore[arg-type]
     w.close()
     assert read_sequence(tmp_path / "d").frames[0].image.shape == (H, W, 3)
+
+
+def test_trajectory_headers_naming_other_frames_are_refused(tmp_path: Path) -> None:
+    """odometry.tum / poses_base.tum hold base poses; a header saying camera, laser or
+    inverted poses was overridden and the poses read as base ones (camera ground truth
+    scored ATE against the camera's lever-arm path)."""
+    root = tmp_path / "a"
+    truth = write_small(root)
+    gt_path, odo_path = root / "groundtruth" / "poses_base.tum", root / "odometry.tum"
+    stamps = np.arange(10) * 0.05
+    cases = [
+        (gt_path, Trajectory(stamps, truth["poses"], "world", "camera"),
+         r"poses_base.tum: its header says the poses are T_world_camera.*"
+         r"T_world_camera @ inv\(T_base_camera\)"),
+        (odo_path, Trajectory(stamps, truth["poses"], "base_link", "odom"),
+         r"odometry.tum: its header says the poses are T_base_link_odom.*invert every pose"),
+        (odo_path, Trajectory(stamps, truth["poses"], "odom", "laser"),
+         r"odometry.tum: .*T_odom_laser @ inv\(T_base_laser\)"),
+    ]
+    for path, traj, match in cases:
+        original = path.read_bytes()
+        write_tum(path, traj)
+        with pytest.raises(SequenceFormatError, match=match):
+            read_sequence(root)
+        path.write_bytes(original)
+    # REP 105's other names for the same frames, and a file without a header, still read.
+    write_tum(gt_path, Trajectory(stamps, truth["poses"], "map", "base_footprint"))
+    odo_path.write_text("".join(line + "\n" for line in odo_path.read_text().splitlines()
+                                if not line.startswith("#")))
+    seq = read_sequence(root)
+    assert (seq.groundtruth.poses_base.frame, seq.groundtruth.poses_base.child) == (
+        "world", "base_link")
+    assert (seq.odometry.frame, seq.odometry.child) == ("odom", "base_link")
+    assert np.allclose(seq.groundtruth.poses_base.poses, truth["poses"], atol=1e-12)
+
+
+def test_stamps_in_other_units_or_clocks_are_refused(tmp_path: Path) -> None:
+    """Unix nanoseconds (what ROS 2 and most drivers log) were read as seconds: a folder
+    wholly in ns read as the year 5e10, frames in ns against scans in s reached ingest's
+    bag advice, and odometry in ns overlapped no scan without a word."""
+    root = tmp_path / "a"
+    write_small(root)
+    csv_path, scans_path, odo_path = (root / "camera" / "frames.csv", root / "scans.npz",
+                                      root / "odometry.tum")
+    originals = {p: p.read_bytes() for p in (csv_path, scans_path, odo_path)}
+    ns = 1_700_000_000_000_000_000
+
+    def frames_ns() -> None:
+        lines = csv_path.read_text().splitlines()
+        csv_path.write_text("\n".join([lines[0]] + [
+            ",".join([r.split(",")[0], str(ns + 10**8 * i)] + r.split(",")[2:])
+            for i, r in enumerate(lines[1:])]) + "\n")
+
+    def scans_ns() -> None:
+        with np.load(scans_path) as d:
+            arrays = {k: d[k] for k in d.files}
+        arrays["stamps"] = ns + np.arange(len(arrays["stamps"]), dtype=np.int64) * 10**8
+        np.savez(scans_path, **arrays)
+
+    def odometry(stamps: np.ndarray) -> None:
+        odo = read_tum(odo_path)
+        write_tum(odo_path, Trajectory(stamps, odo.poses, "odom", "base_link"))
+
+    stamps = np.arange(10) * 0.05
+    cases = [
+        (frames_ns, r"frames.csv:2: field 'stamp' holds 1.7e\+18, which looks like "
+                    r"nanoseconds.*divide them by 1e9"),
+        (scans_ns, r"scans.npz: field 'stamps' holds 1.7e\+18.*nanoseconds.*by 1e9"),
+        (lambda: odometry(1.7e12 + 1000 * stamps),
+         r"odometry.tum: field 'timestamp' holds 1.7e\+12.*milliseconds.*by 1e3"),
+        (lambda: odometry(1000.0 + stamps),
+         r"frames.csv spans 0.013 .. 0.313 s and odometry.tum 1000.000 .. 1000.450 s: they "
+         r"share no moment.*one clock"),
+    ]
+    for spoil, match in cases:
+        spoil()
+        with pytest.raises(SequenceFormatError, match=match):
+            read_sequence(root)
+        for p, data in originals.items():
+            p.write_bytes(data)
+    # Odometry starting just after the last frame (within a second) is one clock.
+    odometry(0.8 + stamps)
+    assert read_sequence(root).odometry.stamps[0] == 0.8
+
+
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_exif_orientation_is_not_applied_to_frames(tmp_path: Path, orientation: int) -> None:
+    """A JPEG tagged 'rotate 180' (3) was read rotated, its white top-left corner at the
+    bottom right, while the size check read it as stored: the camera rolled 180 degrees
+    against its rig without a word; tagged 'rotate 90' (6) it came out 24x32 after the
+    32x24 size check passed. Frames are the stored pixels, as the intrinsics are."""
+    from PIL import Image
+
+    from toolkit.sensors import load_rgb
+
+    root = tmp_path / "seq"
+    w = SequenceWriter(root, make_rig(), name="jpeg")
+    img = np.zeros((H, W, 3), np.uint8)  # [H, W, 3]
+    img[:4, :4] = 255
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    for i in range(2):
+        jpg = tmp_path / f"{i}.jpg"
+        Image.fromarray(img).save(jpg, exif=exif.tobytes(), quality=95)
+        assert load_rgb(jpg).shape == (H, W, 3)
+        w.add_frame(0.1 * i, None, image_path=jpg)  # type: ignore[arg-type]
+    w.close()
+    frame = read_sequence(root).frames[0].image
+    assert frame.shape == (H, W, 3)
+    assert np.allclose(np.argwhere(frame[..., 0] > 200).mean(0), [1.5, 1.5], atol=0.5)
+
+
+def test_writer_refuses_stamps_its_reader_would_refuse(tmp_path: Path) -> None:
+    """NaN / inf frame stamps and unsorted, repeated or NaN scan stamps were written and
+    close()d as a finished folder that read_sequence then refused."""
+    img = np.zeros((H, W, 3), np.uint8)
+
+    def scan(t: float) -> LaserScan:
+        return LaserScan(t, np.full(8, 2.0, np.float32), -1.5, 3.0 / 7, 0.1, 10.0)
+
+    cases = [
+        ([np.nan, 0.1], [], r"frame 0: stamp nan is not finite"),
+        ([0.0, np.nan, 0.2], [], r"frame 1: stamp nan is not finite"),
+        ([0.0, np.inf], [], r"frame 1: stamp inf is not finite"),
+        ([0.0, 0.1, 0.05], [], r"frame 2: stamp 0.05 not after the previous frame's 0.1"),
+        ([1.7e18], [], r"frame 0: field 'stamp' holds 1.7e\+18.*nanoseconds"),
+        ([0.0], [0.1, 0.0, 0.2], r"scan 1: stamp 0.0 not after scan 0's 0.1; sort the scans"),
+        ([0.0], [0.0, 0.0], r"scan 1: stamp 0.0 not after scan 0's 0.0"),
+        ([0.0], [0.0, np.nan], r"scan 1: stamp nan is not finite"),
+    ]
+    for frames, scans, match in cases:
+        w = SequenceWriter(tmp_path / "s", make_rig())
+        with pytest.raises(ValueError, match=match):
+            for t in frames:
+                w.add_frame(t, img)
+            for t in scans:
+                w.add_scan(scan(t))
+        w.discard()
+    w = SequenceWriter(tmp_path / "s", make_rig())
+    w.add_frame(0.0, img)
+    for t in (0.0, 0.05):
+        w.add_scan(scan(t))
+    w.close()
+    assert read_sequence(tmp_path / "s").scan_stamps.tolist() == [0.0, 0.05]
+
+
+def test_frames_csv_as_spreadsheets_save_it(tmp_path: Path) -> None:
+    """Excel's "CSV UTF-8" starts with a BOM, which hid the 'stamp' column; a cp1252 file
+    raised a bare UnicodeDecodeError naming no file; spaces after the commas hid every
+    column but the first."""
+    root = tmp_path / "a"
+    write_small(root)
+    csv_path = root / "camera" / "frames.csv"
+    lines = csv_path.read_text().splitlines()
+    header = lines[0].split(",")
+    # stamp first: the BOM landed in its name
+    body = "\n".join([",".join(header[1:])] + [",".join(r.split(",")[1:]) for r in lines[1:]])
+    csv_path.write_bytes(b"\xef\xbb\xbf" + body.replace("\n", "\r\n").encode() + b"\r\n")
+    assert read_sequence(root).frame_stamps.tolist() == [0.1 * i + 0.013 for i in range(4)]
+    csv_path.write_text("\n".join(r.replace(",", ", ") for r in lines) + "\n")
+    assert read_sequence(root).frame_stamps.tolist() == [0.1 * i + 0.013 for i in range(4)]
+    csv_path.write_bytes(("\n".join(lines[:2] + [lines[2] + ",bild_\xe4.png"]) + "\n")
+                         .encode("cp1252"))
+    with pytest.raises(SequenceFormatError, match=r"frames.csv:3: not UTF-8 text "
+                                                  r"\(byte b'\\xe4'\); save the file as UTF-8"):
+        read_sequence(root)
+
+
+def test_frames_of_more_than_8_bits_are_refused(tmp_path: Path) -> None:
+    """A 16-bit PNG of 12-bit data (4000) read as 15 of 255 and ingest copied the 16-bit
+    file on, although frames are 8-bit."""
+    import cv2
+
+    root = tmp_path / "a"
+    write_small(root)
+    deep = np.full((H, W, 3), 4000, np.uint16)  # [H, W, 3]
+    cv2.imwrite(str(root / "camera" / "images" / "000000.png"), deep)
+    with pytest.raises(SequenceFormatError, match=r"000000.png: a uint16 image \(brightest "
+                                                  r"value 4000\); frames are 8-bit.*by 16"):
+        read_sequence(root)
+    src = tmp_path / "deep.png"
+    cv2.imwrite(str(src), deep)
+    w = SequenceWriter(tmp_path / "b", make_rig())
+    with pytest.raises(ValueError, match=r"deep.png: a uint16 image"):
+        w.add_frame(0.0, None, image_path=src)  # type: ignore[arg-type]
+    w.discard()

@@ -44,6 +44,13 @@ def plumb_bob_distortion(model: Any, dist: np.ndarray) -> np.ndarray | None:
     return dist if name in PLUMB_BOB_NAMES else None
 
 
+# Lower-cased names other tools give the lens distortion or the intrinsic matrix (ROS
+# camera_info's D and K, Kalibr / ORB-SLAM's separate coefficients): refused in a camera
+# mapping, which reads them only as 'distortion' and fx, fy, cx, cy.
+_LENS_KEYS = frozenset({"d", "k", "coeffs", "coefficients", "camera_matrix", "radial",
+                        "tangential", "p1", "p2", *(f"k{i}" for i in range(1, 7))})
+
+
 @dataclass(eq=False)
 class PinholeCamera:
     """Intrinsics of one camera: image size, focal lengths, principal point, distortion."""
@@ -122,13 +129,18 @@ class PinholeCamera:
         missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in d]
         if missing:
             raise KeyError(f"camera is missing {missing}")
-        # A misspelt distortion key (distorsion, distortion_coeffs) read as no distortion
-        # without a word.
-        odd = [k for k in d if "dist" in str(k).lower()
+        # A misspelt distortion key (distorsion, distortion_coeffs), or the names other
+        # tools give it (ROS's D, Kalibr's and ORB-SLAM's k1 k2 p1 p2), read as no
+        # distortion without a word: the corner of a k1 = -0.3 lens 56 px off.
+        odd = [k for k in d if ("dist" in str(k).lower() or str(k).lower() in _LENS_KEYS)
                and k not in ("distortion", "distortion_model")]
         if odd:
-            raise ValueError(f"unknown key(s) {odd}: the lens distortion is 'distortion' "
-                             "[k1, k2, p1, p2, k3] (its model: 'distortion_model')")
+            raise ValueError(
+                f"unknown key(s) {odd}: the lens distortion is read only from 'distortion' "
+                "[k1, k2, p1, p2, k3] (OpenCV order; its model: 'distortion_model') and the "
+                "intrinsics from fx, fy, cx, cy; under other names the lens would be taken "
+                "as undistorted. Fix: write them there (e.g. 'D: [...]' or 'k1: .., k2: .., "
+                "p1: .., p2: ..' as 'distortion: [k1, k2, p1, p2, k3]')")
         given = d.get("distortion")
         dist = np.asarray([] if given is None else given, dtype=np.float64).reshape(-1)
         key = "distortion_model" if "distortion_model" in d else "model"

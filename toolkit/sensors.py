@@ -131,8 +131,12 @@ class CameraFrame:
 
 
 def load_rgb(path: Path) -> np.ndarray:
-    """Read an image file as RGB uint8 [H, W, 3], with an error naming the file."""
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    """Read an image file as RGB uint8 [H, W, 3], with an error naming the file.
+
+    The pixels as stored: a JPEG's EXIF orientation tag is not applied, since the
+    intrinsics, the depth and the masks describe the sensor's pixels (applied, a phone's
+    180-degree tag rolled the camera against its rig without a word)."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise FileNotFoundError(f"{path}: missing or not a readable image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

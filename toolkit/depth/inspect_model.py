@@ -312,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     import cv2
 
-    bgr = cv2.imread(str(a.image), cv2.IMREAD_COLOR)
+    bgr = cv2.imread(str(a.image), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         print(f"error: {a.image}: not an image OpenCV can read", file=sys.stderr)
         return 2

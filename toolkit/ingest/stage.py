@@ -76,7 +76,10 @@ class IngestStage(Stage):
     name = "ingest"
     Config = IngestConfig
     provides = ("sequence",)
-    version = 2  # 2: frames by (stamp, bag time); rectified R; lens models; decimation
+    # 2: frames by (stamp, bag time); rectified R; lens models; decimation
+    # 3: a JPEG frame's EXIF orientation tag is not applied (a 180-degree tag rolled the
+    #    images against the rig; a 90-degree one failed the size check)
+    version = 3
 
     config: IngestConfig
 

@@ -40,7 +40,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from toolkit.io.depth import write_depth
-from toolkit.io.tum import read_tum, write_tum
+from toolkit.io.tum import read_tum, tum_header_frames, write_tum
 from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import (
     CameraFrame,
@@ -60,6 +60,25 @@ FORMAT_VERSION = 1
 
 class SequenceFormatError(ValueError):
     """A sequence folder is malformed; the message names the file and the field."""
+
+
+# Stamps are seconds; a larger one (after the year 5000) is a count of ms, us or ns (what
+# ROS 2 and most drivers log), which was read as seconds without a word.
+MAX_STAMP_S = 1e11
+
+
+def check_seconds(stamps: Any, where: str, field: str) -> None:
+    """Refuse stamps [N] too large to be seconds, naming ``where``, the field and the
+    divisor that makes them seconds."""
+    st = np.abs(np.asarray(stamps, dtype=np.float64).reshape(-1))  # [N]
+    big = st > MAX_STAMP_S
+    if not big.any():
+        return
+    v = float(st[np.argmax(big)])
+    unit, scale = (("nanoseconds", "1e9") if v > 1e17 else ("microseconds", "1e6") if v > 1e14
+                   else ("milliseconds", "1e3"))
+    raise SequenceFormatError(f"{where}: field '{field}' holds {v:.10g}, which looks like "
+                              f"{unit} since 1970: stamps are seconds; divide them by {scale}")
 
 
 # ---------------------------------------------------------------------------- rig YAML
@@ -176,6 +195,7 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
         if key not in data:
             raise SequenceFormatError(f"{source}: missing array '{key}'")
     stamps = np.asarray(data["stamps"], dtype=np.float64)
+    check_seconds(stamps, source, "stamps")
     ranges = np.asarray(data["ranges"], dtype=np.float32)
     n = len(stamps)
     if ranges.ndim != 2 or len(ranges) != n:
@@ -250,11 +270,25 @@ def read_scans(path: Path) -> list[LaserScan]:
 # ---------------------------------------------------------------------------- frames.csv
 
 
+def _csv_rows(path: Path) -> list[dict[str, str]]:
+    """Rows of a CSV file with a header. UTF-8 with or without a BOM (Excel's "CSV UTF-8"
+    put it into the first column's name, so 'stamp' was missing); spaces after the commas
+    are dropped (an 'index, stamp, image' header was refused too)."""
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise SequenceFormatError(f"{path}:{line}: not UTF-8 text (byte "
+                                  f"{data[e.start:e.start + 1]!r}); "
+                                  "save the file as UTF-8") from None
+    return list(csv.DictReader(io.StringIO(text, newline=""), skipinitialspace=True))
+
+
 def _read_frames_csv(path: Path) -> list[dict[str, str]]:
     if not path.exists():
         raise SequenceFormatError(f"{path}: frame index not found")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = _csv_rows(path)
     if rows and not {"stamp", "image"} <= set(rows[0]):
         raise SequenceFormatError(f"{path}: header must contain 'stamp' and 'image', got "
                                   f"{list(rows[0])}")
@@ -277,6 +311,7 @@ def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) ->
                                       f"{row['stamp']!r}") from None
         if not np.isfinite(stamp):
             raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' is not finite")
+        check_seconds(stamp, f"{csv_path}:{line}", "stamp")
         if stamp <= prev:
             raise SequenceFormatError(f"{csv_path}:{line}: field 'stamp' not strictly increasing "
                                       f"({prev!r} then {stamp!r})")
@@ -301,6 +336,58 @@ def _frames_from_rows(rows: list[dict[str, str]], base: Path, csv_path: Path) ->
 
 
 # ---------------------------------------------------------------------------- reading
+
+
+# Files of camera/images that count as frames (not Thumbs.db, desktop.ini, notes).
+_IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp",
+                             ".ppm", ".pgm", ".jp2", ".exr"})
+
+
+# Names of the robot's base frame (REP 105) a trajectory header may use for base_link.
+_BASE_NAMES = ("base_link", "base_footprint", "base")
+
+
+def _read_base_trajectory(path: Path, frame: str) -> Trajectory:
+    """T_<frame>_base_link poses of ``path`` (odometry.tum, poses_base.tum). A header
+    (``# T_a_b: b pose in a``, as format_tum writes) naming other frames is refused: camera
+    or laser poses, or inverted ones, were read as base poses without a word."""
+    hdr = tum_header_frames(path)
+    if hdr is not None:
+        h_frame, h_child = hdr
+        said = f"its header says the poses are T_{h_frame}_{h_child} ({h_child} in {h_frame})"
+        want = f"this file holds T_{frame}_base_link (base_link poses in a fixed frame)"
+        if h_frame in _BASE_NAMES:
+            raise SequenceFormatError(
+                f"{path}: {said}, {want}. Fix: invert every pose (T_{h_child}_{h_frame} = "
+                f"inv(T_{h_frame}_{h_child})) and write the header '# T_{frame}_base_link: "
+                f"base_link pose in {frame}'")
+        if h_child not in _BASE_NAMES:
+            mount = ("T_base_camera from rig.yaml" if h_child.startswith("camera")
+                     else "T_base_laser from rig.yaml"
+                     if h_child.startswith(("laser", "lidar", "scan", "base_scan"))
+                     else f"T_base_{h_child}, where {h_child} sits on the base")
+            raise SequenceFormatError(
+                f"{path}: {said}, {want}. Fix: write T_{h_frame}_base_link = "
+                f"T_{h_frame}_{h_child} @ inv(T_base_{h_child}) ({mount}) under the header "
+                f"'# T_{h_frame}_base_link: base_link pose in {h_frame}'")
+    traj = read_tum(path, frame, "base_link")
+    check_seconds(traj.stamps, str(path), "timestamp")
+    return traj
+
+
+def _check_overlap(spans: list[tuple[str, np.ndarray]], root: Path) -> None:
+    """Refuse files whose stamps [N] share no moment with another's: stamps on two clocks
+    (or in two units) that a stage later met as 'no scan near this frame'."""
+    spans = [(name, st) for name, st in spans if len(st)]
+    slack = 1.0  # seconds: a frame just before the first scan is no clock mismatch
+    for i, (a, sa) in enumerate(spans):
+        for b, sb in spans[i + 1:]:
+            if max(sa[0], sb[0]) > min(sa[-1], sb[-1]) + slack:
+                raise SequenceFormatError(
+                    f"{root}: {a} spans {sa[0]:.3f} .. {sa[-1]:.3f} s and {b} "
+                    f"{sb[0]:.3f} .. {sb[-1]:.3f} s: they share no moment, so their stamps are "
+                    "on different clocks. Fix: write every file's stamps on one clock (add "
+                    "the offset between the clocks to one of them)")
 
 
 def read_sequence(root: Path | str) -> Sequence:
@@ -336,19 +423,29 @@ def read_sequence(root: Path | str) -> Sequence:
                                                       frames_csv)
         images_dir = cam_dir / "images"
         if images_dir.is_dir():
-            on_disk = sum(1 for p in images_dir.iterdir() if not p.name.startswith("."))
-            if on_disk != len(frames):
+            # Images only: Windows' Thumbs.db or a notes file made a valid folder unreadable.
+            on_disk = [p for p in images_dir.iterdir() if not p.name.startswith(".")
+                       and p.suffix.lower() in _IMAGE_SUFFIXES]
+            if len(on_disk) != len(frames):
+                listed = {f.path.resolve() for f in frames if f.path is not None}
+                unlisted = sorted(p.name for p in on_disk if p.resolve() not in listed)
                 raise SequenceFormatError(
-                    f"{frames_csv}: lists {len(frames)} images but {images_dir} holds {on_disk}; "
-                    "the index and the folder disagree (an interrupted copy?)")
+                    f"{frames_csv}: lists {len(frames)} images but {images_dir} holds "
+                    f"{len(on_disk)}" + (f" (not listed: {', '.join(unlisted[:3])}"
+                                         f"{', ...' if len(unlisted) > 3 else ''})"
+                                         if unlisted else "")
+                    + "; the index and the folder disagree (an interrupted copy?)")
     scans = read_scans(root / "scans.npz") if (root / "scans.npz").exists() else []
     if not frames and not scans:
         raise SequenceFormatError(f"{root}: neither camera/frames.csv nor scans.npz found; "
                                   "a sequence needs images, scans or both")
-    odom = read_tum(root / "odometry.tum", "odom", "base_link") if (
+    odom = _read_base_trajectory(root / "odometry.tum", "odom") if (
         root / "odometry.tum").exists() else None
     gt = _read_groundtruth(root, gt_depth, gt_mask, len(scans),
                            len(scans[0].ranges) if scans else 0)
+    _check_overlap([("camera/frames.csv", np.array([f.stamp for f in frames])),
+                    ("scans.npz", np.array([sc.stamp for sc in scans])),
+                    ("odometry.tum", odom.stamps if odom is not None else np.zeros(0))], root)
     if gt is not None and gt.exposure_gain is not None and len(gt.exposure_gain) != len(frames):
         raise SequenceFormatError(
             f"{root / 'groundtruth' / 'exposure_gain.csv'}: {len(gt.exposure_gain)} gains for "
@@ -364,6 +461,7 @@ def read_sequence(root: Path | str) -> Sequence:
             raise SequenceFormatError(
                 f"{frames[0].path}: image is {first.shape[1]}x{first.shape[0]} but "
                 f"{root / 'rig.yaml'} field 'camera' says {w}x{h}")
+        _check_8bit(frames[0].path, first)
         # Ground truth of another size failed deep in a stage (an index error in fuse's
         # labels, a shape mismatch in its depth figures) after the work before it.
         for kind, paths in (("depth", gt_depth), ("mask", gt_mask)):
@@ -383,10 +481,19 @@ def read_sequence(root: Path | str) -> Sequence:
     return seq
 
 
+def _check_8bit(path: Path, pixels: np.ndarray) -> None:
+    """Refuse a frame that is not 8-bit: OpenCV's colour read keeps the top 8 of 16 bits,
+    so 12-bit data (4000) became 15 of 255, a near-black image, without a word."""
+    if pixels.dtype != np.uint8:
+        hi = int(pixels.max())
+        raise SequenceFormatError(
+            f"{path}: a {pixels.dtype} image (brightest value {hi}); frames are 8-bit RGB. "
+            "Fix: convert the frames to 8 bits (12-bit data divided by 16, 16-bit by 256)")
+
+
 def _read_exposure_gains(path: Path) -> np.ndarray:
     """[F] gains from ``index,stamp,gain`` rows, one per frame in frame order."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = _csv_rows(path)
     try:
         idx = np.array([int(r["index"]) for r in rows])
         gains = np.array([float(r["gain"]) for r in rows])
@@ -406,7 +513,7 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
         return None
     gt = GroundTruth(depth_paths=depth, mask_paths=masks)
     if (gdir / "poses_base.tum").exists():
-        gt.poses_base = read_tum(gdir / "poses_base.tum", "world", "base_link")
+        gt.poses_base = _read_base_trajectory(gdir / "poses_base.tum", "world")
     if (gdir / "scan_dynamic.npz").exists():
         with np.load(gdir / "scan_dynamic.npz") as d:
             if "dynamic" not in d.files:
@@ -426,6 +533,7 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
         rows = _read_frames_csv(hdir / "frames.csv")
         frames, hdepth, _ = _frames_from_rows(rows, hdir, hdir / "frames.csv")
         poses = read_tum(hdir / "poses_camera.tum", "world", "camera")
+        check_seconds(poses.stamps, str(hdir / "poses_camera.tum"), "timestamp")
         if len(poses) != len(frames):
             raise SequenceFormatError(f"{hdir / 'poses_camera.tum'}: {len(poses)} poses for "
                                       f"{len(frames)} held-out images")
@@ -522,8 +630,15 @@ class SequenceWriter:
                   gt_mask: np.ndarray | None = None, image_path: Path | None = None) -> int:
         """Write one RGB image [H, W, 3] (or copy ``image_path``) with optional ground truth."""
         i = len(self._rows)
+        # Checked here, not by the reader only: a NaN passed 'stamp <= previous' (and
+        # disabled it for the next frame), and the folder was refused after the whole
+        # recording had been written.
+        if not np.isfinite(stamp):
+            raise ValueError(f"frame {i}: stamp {stamp!r} is not finite")
+        check_seconds(stamp, f"frame {i}", "stamp")
         if self._rows and stamp <= float(self._rows[-1]["stamp"]):
-            raise ValueError(f"frame {i}: stamp {stamp!r} not after the previous frame")
+            raise ValueError(f"frame {i}: stamp {float(stamp)!r} not after the previous "
+                             f"frame's {float(self._rows[-1]['stamp'])!r}")
         rel = f"images/{i:06d}.png"
         dst = self.root / "camera" / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -539,6 +654,7 @@ class SequenceWriter:
             if pixels.shape[:2] != (h, w):
                 raise ValueError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
                                  f"{pixels.shape[0]}, the camera {w}x{h}")
+            _check_8bit(Path(image_path), pixels)
             atomic_write_bytes(dst, data)
         else:
             if image is None and image_path is not None:
@@ -573,6 +689,15 @@ class SequenceWriter:
         return i
 
     def add_scan(self, scan: LaserScan, dynamic: np.ndarray | None = None) -> None:
+        """Keep one scan for ``close()``; its stamp must be finite and after the last's."""
+        k = len(self._scans)
+        if not np.isfinite(scan.stamp):
+            raise ValueError(f"scan {k}: stamp {scan.stamp!r} is not finite")
+        check_seconds(scan.stamp, f"scan {k}", "stamp")
+        if self._scans and scan.stamp <= self._scans[-1].stamp:
+            raise ValueError(f"scan {k}: stamp {float(scan.stamp)!r} not after scan {k - 1}'s "
+                             f"{float(self._scans[-1].stamp)!r}; sort the scans by stamp and "
+                             "drop repeated stamps")
         self._scans.append(scan)
         if dynamic is not None:
             self._dynamic.append(np.asarray(dynamic, dtype=bool))
