@@ -704,27 +704,6 @@ def test_scan_limits_out_of_order_are_refused_with_the_settings() -> None:
 
 # ------------------------------------------------------------------ repeating corridors
 
-def test_search_leaves_out_the_excluded_translations():
-    # Door niches every 5 m: the search's best pose, then the best one at least 1 m away.
-    drive = corridor_drive(length=40.0, back=False, door_spacing=5.0)
-    g = ProbabilityGrid(0.05, center=(13.5, 1.0))
-    for k in range(95, 165):  # 10 .. 17 m along
-        p = se3_to_se2(drive.truth.poses[k])
-        g.insert(p[:2], corridor_points(drive, k, 8.0) + p[:2])
-    field, origin = g.matching_field(0.1)
-    pyr = GridPyramid(field, origin, 0.05, 5, g.p_min, 140)
-    truth = se3_to_se2(drive.truth.poses[130])
-    pts = corridor_points(drive, 130, 8.0)[::3]
-    args = (pyr, pts, truth, 7.0, np.radians(10.0), np.radians(0.5))
-    best = correlative_search(*args)
-    other = correlative_search(*args, exclude_xy=best.pose[:2], exclude_radius=1.0)
-    assert np.hypot(*(best.pose[:2] - truth[:2])) < 0.1
-    assert other.found and np.hypot(*(other.pose[:2] - best.pose[:2])) >= 1.0 - 1e-9
-    assert other.score <= best.score
-    # The next best lies a door spacing along the corridor, scoring nearly as well.
-    assert abs(abs(other.pose[0] - truth[0]) - 5.0) < 0.2 and other.score > best.score - 0.15
-
-
 @pytest.mark.parametrize("spacing", [4.0, 5.0])
 def test_closures_one_door_off_are_rejected_as_ambiguous(spacing):
     # Down and back a corridor whose doors repeat: closures snapped a door spacing off

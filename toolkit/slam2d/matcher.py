@@ -93,17 +93,13 @@ def correlative_search(
     rotation_cost: float = 0.0,
     max_candidates: int = 4000,
     greedy_dives: int = 4,
-    exclude_xy: np.ndarray | None = None,
-    exclude_radius: float = 0.0,
 ) -> SearchResult:
     """Best pose of ``points`` [N, 2] (scan frame) in the window around ``initial_pose``.
 
     The score of a pose is mean_n P(cell under point n), times
     ``exp(-(translation_cost * |dt| + rotation_cost * |dtheta|)^2)`` when the costs are
     non-zero (Cartographer's real-time correlative matcher). Windows are half-widths; the
-    linear one is clamped to the window the pyramid was padded for. ``exclude_xy`` [2]
-    (grid frame): translations within ``exclude_radius`` of it are left out, at every
-    angle (the best pose elsewhere: a second mode of the score).
+    linear one is clamped to the window the pyramid was padded for.
     """
     pts = np.asarray(points, dtype=np.float64)
     x0, y0, th0 = (float(v) for v in initial_pose)
@@ -125,21 +121,6 @@ def correlative_search(
     norm = 1.0 / (255.0 * max(n, 1))
     use_prior = translation_cost > 0.0 or rotation_cost > 0.0
     abs_dth = np.abs(dth)
-    if exclude_xy is not None and exclude_radius > 0.0:
-        ex = (float(exclude_xy[0]) - x0) / res  # exclusion centre in offset cells
-        ey = (float(exclude_xy[1]) - y0) / res
-        r2 = (exclude_radius / res) ** 2
-
-    def allowed(level: int, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
-        """Candidates [M] not wholly inside the exclusion: a level-``level`` candidate
-        stands for offsets [o, o + 2^level - 1] per axis, dropped when its farthest
-        corner is inside."""
-        if exclude_xy is None or exclude_radius <= 0.0:
-            return np.ones(len(ox), bool)
-        size = (1 << level) - 1
-        fx = np.maximum(np.abs(ox - ex), np.abs(ox + size - ex))
-        fy = np.maximum(np.abs(oy - ey), np.abs(oy + size - ey))
-        return fx * fx + fy * fy > r2
 
     def score(level: int, k: np.ndarray, ox: np.ndarray, oy: np.ndarray) -> np.ndarray:
         """Bound (level > 0) or exact score (level 0) of candidates [M]."""
@@ -172,7 +153,7 @@ def correlative_search(
         kk = np.repeat(k, 4)
         xx = np.repeat(ox, 4) + np.tile([0, half, 0, half], len(k))
         yy = np.repeat(oy, 4) + np.tile([0, 0, half, half], len(k))
-        keep = (xx <= w) & (yy <= w) & allowed(level - 1, xx, yy)
+        keep = (xx <= w) & (yy <= w)
         return kk[keep], xx[keep], yy[keep]
 
     top = 1 << D
@@ -180,8 +161,6 @@ def correlative_search(
     K = len(dth)
     kk, xx, yy = np.meshgrid(np.arange(K), offs, offs, indexing="ij")
     k, ox, oy = kk.ravel(), xx.ravel(), yy.ravel()
-    keep = allowed(D, ox, oy)
-    k, ox, oy = k[keep], ox[keep], oy[keep]
     sc = score(D, k, ox, oy)
     evaluated = len(k)
 
@@ -195,9 +174,6 @@ def correlative_search(
         leaf = float(sc[i])
         for level in range(D, 0, -1):
             ck, cxo, cyo = children(level, ck, cxo, cyo)
-            if len(ck) == 0:  # every child in the exclusion
-                leaf = -np.inf
-                break
             s_ch = score(level - 1, ck, cxo, cyo)
             evaluated += len(ck)
             j = int(np.argmax(s_ch))
