@@ -331,7 +331,7 @@ def test_unsynchronised_sensors_are_told_apart_from_clocks_that_disagree(tmp_pat
 def test_a_broken_image_in_a_sequence_is_named_at_ingest(tmp_path):
     """A truncated PNG at frame 3 was copied unread; depth failed later naming the run's
     copy, which a rerun overwrote with the bad source. Now ingest names the source file; a
-    frame of another size is caught there too."""
+    frame of another size is caught by the sequence reader, from its header."""
     import cv2
 
     from toolkit.fusion.synthetic import write_box_room
@@ -344,7 +344,8 @@ def test_a_broken_image_in_a_sequence_is_named_at_ingest(tmp_path):
     assert not res.ok and str(bad) in res.error and "not a readable PNG" in res.error
     cv2.imwrite(str(bad), np.zeros((24, 32, 3), np.uint8))
     res = run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src))))
-    assert not res.ok and "is 32x24, the camera 160x120" in res.error
+    assert not res.ok and f"{bad}: image is 32x24 but" in res.error  # the reader's check
+    assert "says 160x120" in res.error
     bad.write_bytes(good)
     assert run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src)))).ok
 

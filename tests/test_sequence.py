@@ -12,6 +12,7 @@ from toolkit.io.depth import read_depth, write_depth
 from toolkit.io.sequence import (
     SequenceFormatError,
     SequenceWriter,
+    image_header,
     read_sequence,
     write_sequence,
 )
@@ -513,3 +514,45 @@ def test_frames_of_more_than_8_bits_are_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"deep.png: a uint16 image"):
         w.add_frame(0.0, None, image_path=src)  # type: ignore[arg-type]
     w.discard()
+
+
+def test_every_frame_is_checked_for_the_cameras_size_and_8_bits(tmp_path: Path) -> None:
+    # Only frame 0 was: a later frame of another size passed read_sequence.
+    import cv2
+
+    root = tmp_path / "a"
+    write_small(root)
+    images = root / "camera" / "images"
+    cv2.imwrite(str(images / "000002.png"), np.zeros((2 * H, 2 * W, 3), np.uint8))
+    with pytest.raises(SequenceFormatError, match=rf"000002.png: image is {2 * W}x{2 * H} "
+                                                  rf"but .*says {W}x{H} \(frame 2"):
+        read_sequence(root)
+    cv2.imwrite(str(images / "000002.png"), np.zeros((H, W, 3), np.uint16))
+    with pytest.raises(SequenceFormatError, match=r"000002.png: a 16-bit image \(frame 2\)"):
+        read_sequence(root)
+    jpg = tmp_path / "f.jpg"
+    cv2.imwrite(str(jpg), np.zeros((H, W, 3), np.uint8))
+    assert image_header(jpg) == (W, H, 8)
+
+
+def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> None:
+    root = tmp_path / "a"
+    write_small(root)
+    path = root / "scans.npz"
+    with np.load(path) as f:
+        good = {k: f[k] for k in f.files}
+    n = len(good["stamps"])
+
+    def refused(match: str, **change: np.ndarray) -> None:
+        np.savez(path, **{**good, **change})
+        with pytest.raises(SequenceFormatError, match=match) as e:
+            read_sequence(root)
+        assert "not a readable npz" not in str(e.value)
+
+    refused(r"'range_min' has 4 values for 6 scans; give one per scan or one for all",
+            range_min=np.full(4, 0.1))
+    refused(r"scan 0: .*angles are radians", angle_min=np.full(n, -90.0),
+            angle_increment=np.full(n, 180.0 / 89))
+    refused(r"not strictly increasing at scan 1 \(1700000000.0 then 1700000000.0\); they are "
+            r"float32.*store them as float64",
+            stamps=(1.7e9 + good["stamps"]).astype(np.float32))

@@ -27,6 +27,7 @@ import json
 import logging
 import re
 import shutil
+import struct
 import zipfile
 from dataclasses import replace
 from pathlib import Path
@@ -205,12 +206,18 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
         raise SequenceFormatError(f"{source}: 'stamps' holds non-finite values")
     if n > 1 and np.any(np.diff(stamps) <= 0):
         i = int(np.argmax(np.diff(stamps) <= 0)) + 1
+        # float32 holds Unix seconds to 128 s: every stamp of a minute's drive is one value.
+        why = ("; they are float32, which holds Unix seconds to 128 s: store them as float64"
+               if np.asarray(data["stamps"]).dtype == np.float32 else "")
         raise SequenceFormatError(f"{source}: 'stamps' not strictly increasing at scan {i} "
-                                  f"({stamps[i - 1]!r} then {stamps[i]!r})")
+                                  f"({float(stamps[i - 1])!r} then {float(stamps[i])!r}){why}")
     per = {}
     for key in ("angle_min", "angle_increment", "range_min", "range_max"):
-        a = np.broadcast_to(np.asarray(data[key], dtype=np.float64), (n,))
-        per[key] = a
+        a = np.asarray(data[key], dtype=np.float64)
+        if a.size not in (1, n):
+            raise SequenceFormatError(f"{source}: '{key}' has {a.size} values for {n} scans; "
+                                      "give one per scan or one for all")
+        per[key] = np.broadcast_to(a.reshape(-1), (n,))
     if np.any(per["angle_increment"] == 0):
         raise SequenceFormatError(f"{source}: 'angle_increment' is zero for some scans")
     for key, a in per.items():
@@ -238,14 +245,18 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
     if not np.all(np.isfinite(dt)):
         raise SequenceFormatError(f"{source}: 'time_increment' holds non-finite values "
                                   "(0 for scans without per-beam timing)")
-    return [
-        LaserScan(float(stamps[i]), ranges[i], float(per["angle_min"][i]),
-                  float(per["angle_increment"][i]), float(per["range_min"][i]),
-                  float(per["range_max"][i]),
-                  None if inten is None or not has[i] else inten[i],
-                  float(dt[i]))
-        for i in range(n)
-    ]
+    scans = []
+    for i in range(n):
+        try:
+            scans.append(LaserScan(float(stamps[i]), ranges[i], float(per["angle_min"][i]),
+                                   float(per["angle_increment"][i]), float(per["range_min"][i]),
+                                   float(per["range_max"][i]),
+                                   None if inten is None or not has[i] else inten[i],
+                                   float(dt[i])))
+        except ValueError as e:
+            # The file is readable; one scan's values are not (degrees for radians, ...).
+            raise SequenceFormatError(f"{source}: scan {i}: {e}") from None
+    return scans
 
 
 def write_scans(path: Path, scans: list[LaserScan]) -> None:
@@ -462,6 +473,20 @@ def read_sequence(root: Path | str) -> Sequence:
                 f"{frames[0].path}: image is {first.shape[1]}x{first.shape[0]} but "
                 f"{root / 'rig.yaml'} field 'camera' says {w}x{h}")
         _check_8bit(frames[0].path, first)
+        # The others from their headers (a decode each cost more than reading the folder).
+        for f in frames[1:]:
+            head = image_header(f.path)  # type: ignore[arg-type]
+            if head is None:
+                continue
+            fw, fh, bits = head
+            if (fw, fh) != (w, h):
+                raise SequenceFormatError(
+                    f"{f.path}: image is {fw}x{fh} but {root / 'rig.yaml'} field 'camera' "
+                    f"says {w}x{h} (frame {f.index}; every frame must be the camera's size)")
+            if bits != 8:
+                raise SequenceFormatError(
+                    f"{f.path}: a {bits}-bit image (frame {f.index}); frames are 8-bit RGB: "
+                    "convert it (12-bit data divided by 16)")
         # Ground truth of another size failed deep in a stage (an index error in fuse's
         # labels, a shape mismatch in its depth figures) after the work before it.
         for kind, paths in (("depth", gt_depth), ("mask", gt_mask)):
@@ -479,6 +504,39 @@ def read_sequence(root: Path | str) -> Sequence:
                     f"images are {w}x{h} ({root / 'rig.yaml'} field 'camera'): write it at "
                     "the image size, or drop the column from camera/frames.csv")
     return seq
+
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def image_header(path: Path, max_bytes: int = 1 << 17) -> tuple[int, int, int] | None:
+    """(width, height, bits per sample) of a PNG or JPEG from its header, without decoding
+    the pixels; None for other formats or a header not found in the first ``max_bytes``."""
+    with open(path, "rb") as fh:
+        data = fh.read(max_bytes)
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 25:
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h), int(data[24])
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xDA)):  # standalone markers carry no length
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        if marker in _JPEG_SOF and i + 9 <= len(data):
+            bits = data[i + 4]
+            h, w = struct.unpack(">HH", data[i + 5:i + 9])
+            return int(w), int(h), int(bits)
+        i += 2 + length
+    return None
 
 
 def _check_8bit(path: Path, pixels: np.ndarray) -> None:
