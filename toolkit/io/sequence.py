@@ -513,12 +513,13 @@ def image_header(path: Path, max_bytes: int = 1 << 17) -> tuple[int, int, int] |
     """(width, height, bits per sample) of a PNG or JPEG from its header, without decoding
     the pixels; None for other formats or a header not found in the first ``max_bytes``."""
     with open(path, "rb") as fh:
-        data = fh.read(max_bytes)
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 25:
-        w, h = struct.unpack(">II", data[16:24])
-        return int(w), int(h), int(data[24])
-    if data[:2] != b"\xff\xd8":
-        return None
+        data = fh.read(32)
+        if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 25:
+            w, h = struct.unpack(">II", data[16:24])
+            return int(w), int(h), int(data[24])
+        if data[:2] != b"\xff\xd8":
+            return None
+        data += fh.read(max_bytes - len(data))  # a JPEG's frame header follows its tables
     i = 2
     while i + 4 <= len(data):
         if data[i] != 0xFF:
