@@ -237,7 +237,26 @@ def test_simulated_scale_only_is_exact_scale() -> None:
     ok = z > 0
     np.testing.assert_allclose(p.values[ok], 1.7 * z[ok], rtol=1e-6)
     assert p.extra["true_scale"] == pytest.approx(1.7)
-    assert p.values[~ok].min() == pytest.approx(1.7 * 20.0)  # filled with max_depth
+    assert np.isnan(p.values[~ok]).all()  # no ground truth, no prediction
+
+
+def test_simulated_edge_blur_leaves_holes_out_of_their_borders() -> None:
+    # A wall at 2 m with a missing pixel and a NaN line: filled with 20 m and blurred, the
+    # pixels beside them came out 51 % and 192 % too far.
+    z = np.full((40, 60), 2.0, np.float32)
+    z[10, 10] = 0.0
+    z[25, :] = np.nan
+    rgb = np.zeros((40, 60, 3), np.uint8)
+    be = SimulatedDepthBackend(SimulatedDepthParams(**{**PRESETS["scale_only"],
+                                                       "edge_blur_px": 1.5}, scale=1.0))
+    p = be.predict(rgb, gt_depth=z, frame_index=0).values
+    ok = np.isfinite(z) & (z > 0)
+    np.testing.assert_allclose(p[ok], 2.0, rtol=1e-5)
+    assert np.isnan(p[~ok]).all()
+    d = SimulatedDepthBackend(SimulatedDepthParams(**PRESETS["scale_only"], scale=1.0,
+                                                   shift=0.2, kind="relative_disparity"))
+    disp = d.predict(rgb, gt_depth=z, frame_index=0).values
+    np.testing.assert_allclose(disp[ok], 0.5 * 1.2, rtol=1e-5)  # median over the valid
 
 
 def test_simulated_disparity_is_affine_in_inverse_depth() -> None:

@@ -4,17 +4,19 @@ A real monocular network is wrong in structured ways, and "without lidar" number
 mean something if the simulated errors are those and are stated. Each error below is one
 documented parameter of ``SimulatedDepthParams`` (set in the recipe), applied in order:
 
-1. invalid ground truth (0/NaN) is filled with ``max_depth_m``: a network predicts
-   every pixel;
+1. invalid ground truth (0/NaN: a sensor's holes, in TUM RGB-D or a bag) stays invalid
+   (NaN): there is nothing to make a prediction from;
 2. ``edge_blur_px``: Gaussian blur of the depth, so edges become ramps (flying pixels)
-   as with a network's limited receptive field at object borders;
+   as with a network's limited receptive field at object borders; over the valid pixels
+   only (filled with a far depth first, a hole's border came out up to 9 m deep);
 3. ``distortion``: a smooth low-frequency multiplicative field ``exp(a * f(u, v, t))``
    (a few random cosines of ``distortion_cycles`` cycles per image, RMS 1) that drifts
    over ``distortion_frames`` frames: the shape error of monocular depth;
 4. ``noise``: per-pixel multiplicative noise, spatially correlated over
    ``noise_corr_px``;
-5. low texture: errors 3 and 4 are multiplied by ``1 + low_texture_gain`` where the
-   image gradient is below ``texture_threshold`` (flat walls are where networks guess);
+5. low texture: errors 3 and 4 are multiplied by ``1 + low_texture_gain * ramp``, the
+   ramp rising from 0 at an image gradient of ``texture_threshold`` to 1 at none (flat
+   walls are where networks guess);
 6. ``scale``: one unknown scale for the whole sequence (prediction = scale * depth),
    optionally drawn per seed with ``scale_log_sigma``, times a slow per-frame wander
    (an Ornstein-Uhlenbeck process in log scale with stationary std ``wander_sigma`` and
@@ -62,7 +64,6 @@ class SimulatedDepthParams(BaseModel):
     noise_corr_px: float = Field(1.5, ge=0)
     low_texture_gain: float = Field(1.5, ge=0)
     texture_threshold: float = Field(6.0, gt=0)  # grey levels per pixel
-    max_depth_m: float = Field(20.0, gt=0)
     seed: int = Field(0, ge=0)
 
 
@@ -191,9 +192,20 @@ class SimulatedDepthBackend:
         h, w = z.shape
         if rgb.shape[:2] != (h, w):
             raise ValueError(f"image {rgb.shape[:2]} and ground-truth depth {z.shape} differ")
-        z = np.where(np.isfinite(z) & (z > 0), z, np.float32(p.max_depth_m))
-        if p.edge_blur_px > 0:
-            z = cv2.GaussianBlur(z, (0, 0), p.edge_blur_px)
+        valid = np.isfinite(z) & (z > 0)  # [H, W]
+        if valid.all():
+            if p.edge_blur_px > 0:
+                z = cv2.GaussianBlur(z, (0, 0), p.edge_blur_px)
+        else:
+            z = np.where(valid, z, np.float32(0.0))
+            if p.edge_blur_px > 0:
+                # Normalised convolution: the blur of the valid depth over the blur of
+                # the valid mask, so a hole adds nothing to its border.
+                m = valid.astype(np.float32)
+                wsum = cv2.GaussianBlur(m, (0, 0), p.edge_blur_px)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    z = cv2.GaussianBlur(z, (0, 0), p.edge_blur_px) / wsum
+            z = np.where(valid, z, np.float32(np.nan))
         gain = np.float32(1.0)
         if p.low_texture_gain > 0 and (p.distortion > 0 or p.noise > 0):
             gain = 1.0 + np.float32(p.low_texture_gain) * low_texture_weight(
@@ -206,7 +218,7 @@ class SimulatedDepthBackend:
         z = z * np.exp(log_err * gain) * np.float32(self.frame_scale(index))
         if p.kind == "relative_disparity":
             disp = 1.0 / z
-            return (disp + np.float32(p.shift) * np.median(disp)).astype(np.float32)
+            return (disp + np.float32(p.shift) * np.nanmedian(disp)).astype(np.float32)
         return z.astype(np.float32)
 
     def predict(self, rgb: np.ndarray, gt_depth: np.ndarray | None = None,

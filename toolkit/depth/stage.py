@@ -174,8 +174,9 @@ class DepthStage(Stage):
     provides = ("depth",)
     # 2: BGR default normalisation; input_hw recorded; order-free wander. 3: simulated: the
     # wander's first value drawn before its steps (no jump at frames 256, 512, ...), the
-    # noise normalised by OpenCV's own kernel
-    version = 3
+    # noise normalised by OpenCV's own kernel. 4: simulated: invalid ground truth stays
+    # invalid (was filled with 20 m and blurred into its valid neighbours)
+    version = 4
     # The same depth maps on any thread count or device (up to float rounding): an
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
     # for its timings).
