@@ -191,6 +191,25 @@ def test_sequence_source_decimates_a_copy(tmp_path):
     assert b.meta["has_camera"] is True and b.meta["topics"] == a.meta["topics"]
 
 
+def test_sequence_source_keeps_the_kept_frames_exposure_gains_and_the_house(tmp_path):
+    # Re-synced or decimated, a sequence lost groundtruth/exposure_gain.csv (fuse then
+    # dropped its gain figures without a word) and house.json.
+    bag, c = make_bag(tmp_path, "sqlite3")
+    convert(read_rosbag(bag), tmp_path / "a")
+    a = read_sequence(tmp_path / "a")
+    gains = 1.0 + 0.1 * np.arange(len(a.frames))
+    rows = [f"{k},{f.stamp!r},{float(g)!r}\n"
+            for k, (f, g) in enumerate(zip(a.frames, gains, strict=True))]
+    (tmp_path / "a" / "groundtruth" / "exposure_gain.csv").write_text(
+        "index,stamp,gain\n" + "".join(rows))
+    (tmp_path / "a" / "groundtruth" / "house.json").write_text('{"rooms": []}')
+    convert(read_sequence_recording(tmp_path / "a"), tmp_path / "b",
+            decimate=DecimateOptions(by="time", min_interval_s=0.39))
+    b = read_sequence(tmp_path / "b")
+    np.testing.assert_array_equal(b.groundtruth.exposure_gain, gains[::2])
+    assert (tmp_path / "b" / "groundtruth" / "house.json").read_text() == '{"rooms": []}'
+
+
 # ---------------------------------------------------------------------------- sync helpers
 
 
@@ -238,7 +257,12 @@ def test_plan_counts_each_reason():
     p = plan_frames(frames, scans, depth, SyncOptions(tolerance_s=0.05, depth_tolerance_s=0.02),
                     DecimateOptions())
     assert p.frames.tolist() == [0, 2] and p.depth.tolist() == [0, 1]
-    assert p.dropped == {"no_scan": 1, "no_depth": 2}
+    assert p.dropped == {"no_scan": 1, "no_depth": 2} and p.without_scan == 0
+    # Kept without a scan (require_scan: false), they are counted: they were not at all.
+    kept = plan_frames(frames, scans, None, SyncOptions(tolerance_s=0.05, require_scan=False),
+                       DecimateOptions())
+    assert kept.frames.tolist() == [0, 1, 2, 3, 4] and kept.dropped == {}
+    assert kept.without_scan == 1
     with pytest.raises(IngestError, match="decimate.by: motion needs poses"):
         plan_frames(frames, scans, None, SyncOptions(), DecimateOptions(by="motion"))
 
@@ -364,3 +388,20 @@ def test_a_lidar_only_recording_passes_the_calibrate_check(tmp_path):
     assert res.ok, res.error
     report = (res.run_dir / "report.md").read_text()
     assert "No camera in this recording (lidar only)" in report
+
+
+def test_a_dropped_carmen_line_is_one_dropped_message(tmp_path):
+    # The reference poses come from the scan lines: one glitched line was counted twice.
+    lines = []
+    for i in range(8):
+        t = 999.0 if i == 4 else 1000.0 + 0.2 * i
+        ranges = " ".join(["2.0"] * 181)
+        lines.append(f"FLASER 181 {ranges} {0.1 * i} 0 0 {0.1 * i} 0 0 {t!r} host {t!r}")
+    log = tmp_path / "intel-corrected.log"
+    log.write_text("\n".join(lines) + "\n")
+    rec = read_carmen_recording(log, on_non_monotonic="drop")
+    assert rec.dropped == {"scans": 1}
+    res = convert(rec, tmp_path / "seq")
+    assert res.metrics()["messages_dropped_non_monotonic"] == 1
+    seq = read_sequence(tmp_path / "seq")
+    assert len(seq.scans) == 7 and len(seq.groundtruth.poses_base) == 7

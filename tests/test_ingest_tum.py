@@ -154,6 +154,21 @@ def test_virtual_lidar_plane_below_the_camera():
     # nothing in the band: all beams invalid (NaN), never zero
     far = lidar.scan(np.zeros((H, W), np.float32), 0.0)
     assert np.all(np.isnan(far.ranges))
+    # A wall beyond range_max on the left half, too near on the right half of the
+    # remaining: REP 117's +inf (the SLAM clears free space along it; NaN cleared none)
+    # and -inf; a hole stays NaN.
+    d = np.full((H, W), 3.0, np.float32)
+    d[:, : W // 4] = 9.0  # beyond the default 8 m
+    d[:, W // 4: W // 2] = 0.0  # no depth
+    d[:, 3 * W // 4:] = 0.05  # nearer than range_min
+    wide = VirtualLidar(cam, R_BASE_OPTICAL, VirtualLidarOptions(height_m=-0.3, band_m=0.6))
+    s = wide.scan(d, 0.0)
+    left = s.angles() > np.radians(25)  # image left is base +y, positive bearing
+    right = s.angles() < -np.radians(25)
+    assert np.all(np.isposinf(s.ranges[left]))
+    assert np.all(np.isneginf(s.ranges[right]))
+    hole = (s.angles() > np.radians(3)) & (s.angles() < np.radians(15))
+    assert hole.any() and np.all(np.isnan(s.ranges[hole]))
 
 
 def test_plane_outside_the_view_is_an_error(tmp_path):

@@ -65,6 +65,7 @@ class ConvertResult:
             "frames": self.frames,
             "frames_candidates": self.plan.candidates,
             "frames_dropped_no_scan": self.plan.dropped.get("no_scan", 0),
+            "frames_without_scan": self.plan.without_scan,
             "frames_dropped_no_depth": self.plan.dropped.get("no_depth", 0),
             "frames_decimated": self.plan.decimated,
             "frames_resumed": self.frames_resumed,
@@ -86,6 +87,9 @@ class ConvertResult:
                    if self.frames_resumed else ""))
             lines.append(f"    dropped for lack of a scan within tolerance: "
                          f"{p.dropped.get('no_scan', 0)}")
+            if p.without_scan:
+                lines.append(f"    kept without a scan within tolerance (require_scan: "
+                             f"false): {p.without_scan}")
             if self.has_depth:
                 lines.append(f"    dropped for lack of a depth image within tolerance: "
                              f"{p.dropped.get('no_depth', 0)}")
@@ -242,13 +246,14 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     writer.odometry = recording.odometry
     writer.groundtruth_poses = recording.groundtruth
     if recording.finish is not None:
-        recording.finish(writer)
+        recording.finish(writer, np.asarray(plan.frames, dtype=np.int64).reshape(-1))
     writer.extra_meta.update({
         "has_camera": recording.has_camera,
         **recording.meta,
         "ingest": {
             "candidates": plan.candidates,
             "dropped_no_scan": plan.dropped.get("no_scan", 0),
+            "without_scan": plan.without_scan,
             "dropped_no_depth": plan.dropped.get("no_depth", 0),
             "decimated": plan.decimated,
             "sync_tolerance_s": sync.tolerance_s,

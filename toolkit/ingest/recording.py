@@ -66,7 +66,8 @@ class Recording:
     # Camera delay already taken out of frame_stamps (a sequence folder converted before
     # with sync.camera_delay_s): sync.camera_delay_s is the total against the raw stamps.
     camera_delay_applied_s: float = 0.0
-    finish: Callable[[Any], None] | None = None  # extra writes on the SequenceWriter
+    # Extra writes on the SequenceWriter, given the source frames kept [F] (in order).
+    finish: Callable[[Any, np.ndarray], None] | None = None
 
 
 def placeholder_camera() -> PinholeCamera:

@@ -23,7 +23,7 @@ import json
 import shutil
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import model_validator
@@ -79,7 +79,9 @@ class IngestStage(Stage):
     # 2: frames by (stamp, bag time); rectified R; lens models; decimation
     # 3: a JPEG frame's EXIF orientation tag is not applied (a 180-degree tag rolled the
     #    images against the rig; a 90-degree one failed the size check)
-    version = 3
+    # 4: a sequence's exposure gains and house.json kept; TUM beams beyond range_max +inf;
+    #    frames kept without a scan counted; a dropped CARMEN line counted once
+    version = 4
 
     config: IngestConfig
 
@@ -153,16 +155,29 @@ def read_sequence_recording(root: Path, name: str | None = None) -> Recording:
                             depth=gt.depth(f) if gt is not None and gt.depth_paths else None,
                             mask=gt.mask(f) if gt is not None and gt.mask_paths else None)
 
-    def finish(writer: object) -> None:
+    def finish(writer: Any, kept: np.ndarray) -> None:
+        """Copy the ground truth the frames do not carry; ``kept`` [F]: source frames."""
         if gt is None:
             return
         if gt.mesh_path is not None:
-            shutil.copyfile(gt.mesh_path, writer.mesh_path())  # type: ignore[attr-defined]
+            shutil.copyfile(gt.mesh_path, writer.mesh_path())
         if gt.heldout is not None:
             h = gt.heldout
             for j, T in enumerate(h.poses_camera.poses):
-                writer.add_heldout(h.poses_camera.stamps[j], T,  # type: ignore[attr-defined]
+                writer.add_heldout(h.poses_camera.stamps[j], T,
                                    load_rgb(h.image_paths[j]), read_depth(h.depth_paths[j]))
+        # As write_sequence keeps them (re-synced or decimated, the copy lost the
+        # simulator's exposure gains, and fuse its gain figures, without a word).
+        gt_dir = writer.root / "groundtruth"
+        if gt.exposure_gain is not None and len(kept):
+            gt_dir.mkdir(exist_ok=True)
+            stamps = writer.frame_stamps
+            atomic_write_text(gt_dir / "exposure_gain.csv", "index,stamp,gain\n" + "".join(
+                f"{k},{float(stamps[k])!r},{float(gt.exposure_gain[f])!r}\n"
+                for k, f in enumerate(kept)))
+        if (root / "groundtruth" / "house.json").exists():
+            gt_dir.mkdir(exist_ok=True)
+            shutil.copyfile(root / "groundtruth" / "house.json", gt_dir / "house.json")
 
     meta = {k: v for k, v in seq.meta.items()
             if k not in ("format", "version", "name", "source", "frames", "scans", "ingest")}
@@ -197,6 +212,8 @@ def _report(cfg: IngestConfig, rec: Recording, res: ConvertResult) -> str:
         ("camera frames", f"{res.frames} of {p.candidates}" if rec.has_camera else
          "none (lidar only)"),
         ("dropped: no scan within tolerance", str(p.dropped.get("no_scan", 0))),
+        *([("kept without a scan within tolerance", str(p.without_scan))]
+          if p.without_scan else []),
         ("dropped: no depth within tolerance", str(p.dropped.get("no_depth", 0))),
         ("decimated", f"{p.decimated} ({cfg.decimate.by})"),
         ("scans", str(res.scans)),

@@ -195,6 +195,9 @@ class FramePlan:
     candidates: int
     dropped: dict[str, int] = field(default_factory=dict)  # reason -> count
     decimated: int = 0
+    # Frames kept without a scan within tolerance (require_scan: false; before the first
+    # scan or after the last, later stages cannot pose them).
+    without_scan: int = 0
 
     def pairs(self) -> list[tuple[int, int]]:
         return [(int(f), int(d)) for f, d in zip(self.frames, self.depth, strict=True)]
@@ -236,4 +239,4 @@ def plan_frames(frame_stamps: np.ndarray, scan_stamps: np.ndarray,
                                decimate.min_rotation_deg)
         decimated, idx = int((~k).sum()), idx[k]
     return FramePlan(frames=idx, depth=depth[idx], candidates=len(fs), dropped=dropped,
-                     decimated=decimated)
+                     decimated=decimated, without_scan=int((scan_match[idx] < 0).sum()))

@@ -129,8 +129,10 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
     if gmode == "auto":
         gmode = "reference" if (g2o or corrected) else "none"
     groundtruth = data.reference() if gmode == "reference" else None
-    if groundtruth is not None and len(groundtruth) < len(data.scans):
-        dropped["groundtruth"] = len(data.scans) - len(groundtruth)
+    # The reference poses come from the scan lines: a line dropped from both is one
+    # message (it was counted twice in messages_dropped_non_monotonic).
+    if groundtruth is not None and len(groundtruth) < len(data.scans) - dropped["scans"]:
+        dropped["groundtruth"] = len(data.scans) - dropped["scans"] - len(groundtruth)
 
     rig = Rig(placeholder_camera(), optical_mount(), data.T_base_laser)
     span = scans[-1].stamp - scans[0].stamp if scans else 0.0

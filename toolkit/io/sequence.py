@@ -681,6 +681,11 @@ class SequenceWriter:
         return len(self._rows)
 
     @property
+    def frame_stamps(self) -> np.ndarray:
+        """[F] stamps of the frames written so far (including resumed ones)."""
+        return np.array([float(r["stamp"]) for r in self._rows], dtype=np.float64)
+
+    @property
     def last_frame_stamp(self) -> float | None:
         """Stamp of the last frame written, None before the first."""
         return float(self._rows[-1]["stamp"]) if self._rows else None

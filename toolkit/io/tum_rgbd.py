@@ -211,14 +211,24 @@ class VirtualLidar:
         sel = (d > 0) & (np.abs(z) <= o.band_m / 2) & (p[:, 0] > 0)
         x, y = p[sel, 0], p[sel, 1]
         r = np.hypot(x, y)
-        ok = (r >= o.range_min_m) & (r <= o.range_max_m)
-        r = r[ok]
-        b = np.round((np.arctan2(y[ok], x[ok]) - self.angle_min) / self.angle_increment)
+        b = np.round((np.arctan2(y, x) - self.angle_min) / self.angle_increment)
         b = b.astype(np.int64)
         inb = (b >= 0) & (b < self.beams)
+        r, b = r[inb], b[inb]
+        ok = (r >= o.range_min_m) & (r <= o.range_max_m)
         out = np.full(self.beams, np.inf)
-        np.minimum.at(out, b[inb], r[inb])
-        out[~np.isfinite(out)] = np.nan  # no point in the bin: invalid, never zero
+        np.minimum.at(out, b[ok], r[ok])
+        # REP 117 for a bin without a point in range: +inf when its points all lie beyond
+        # range_max (nothing within reach: the SLAM clears free space along it; NaN had it
+        # cleared none), -inf when all nearer than range_min, NaN when it has none (a hole
+        # in the depth: unknown, never zero).
+        seen = np.zeros(self.beams, bool)
+        seen[b] = True
+        far = np.zeros(self.beams, bool)
+        far[b[r > o.range_max_m]] = True
+        empty = ~np.isfinite(out)
+        out[empty & ~far] = -np.inf
+        out[empty & ~seen] = np.nan
         return LaserScan(stamp, out.astype(np.float32), self.angle_min, self.angle_increment,
                          o.range_min_m, o.range_max_m)
 
