@@ -533,6 +533,14 @@ def test_every_frame_is_checked_for_the_cameras_size_and_8_bits(tmp_path: Path) 
     jpg = tmp_path / "f.jpg"
     cv2.imwrite(str(jpg), np.zeros((H, W, 3), np.uint8))
     assert image_header(jpg) == (W, H, 8)
+    # Other formats are decoded to check: a 16-bit TIFF was cut to 8 bits without a word.
+    tif = tmp_path / "deep.tif"
+    cv2.imwrite(str(tif), np.full((H, W, 3), 4000, np.uint16))
+    assert image_header(tif) is None
+    w = SequenceWriter(tmp_path / "b", make_rig())
+    with pytest.raises(ValueError, match=r"deep.tif: a uint16 image"):
+        w.add_frame(0.0, None, image_path=tif)  # type: ignore[arg-type]
+    w.discard()
 
 
 def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> None:

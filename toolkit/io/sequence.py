@@ -723,6 +723,12 @@ class SequenceWriter:
         else:
             if image is None and image_path is not None:
                 # Another format (a JPEG sequence): decoded, stored as PNG like any frame.
+                if image_header(Path(image_path)) is None:  # TIFF, JPEG 2000, ...
+                    # The colour read keeps the top 8 of 16 bits: 12-bit data went dark.
+                    raw = cv2.imread(str(image_path),
+                                     cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+                    if raw is not None:
+                        _check_8bit(Path(image_path), raw)
                 image = load_rgb(Path(image_path))
                 if image.shape[:2] != (h, w):
                     raise ValueError(f"{image_path}: frame {i} is {image.shape[1]}x"
