@@ -510,9 +510,14 @@ def test_frames_of_more_than_8_bits_are_refused(tmp_path: Path) -> None:
         read_sequence(root)
     src = tmp_path / "deep.png"
     cv2.imwrite(str(src), deep)
-    w = SequenceWriter(tmp_path / "b", make_rig())
-    with pytest.raises(ValueError, match=r"deep.png: a uint16 image"):
-        w.add_frame(0.0, None, image_path=src)  # type: ignore[arg-type]
+    _writer_refuses_frame(tmp_path / "b", src, r"deep.png: a uint16 image")
+
+
+def _writer_refuses_frame(root: Path, image_path: Path, match: str) -> None:
+    """SequenceWriter.add_frame refuses ``image_path`` with an error matching ``match``."""
+    w = SequenceWriter(root, make_rig())
+    with pytest.raises(ValueError, match=match):
+        w.add_frame(0.0, None, image_path=image_path)  # type: ignore[arg-type]
     w.discard()
 
 
@@ -537,10 +542,7 @@ def test_every_frame_is_checked_for_the_cameras_size_and_8_bits(tmp_path: Path) 
     tif = tmp_path / "deep.tif"
     cv2.imwrite(str(tif), np.full((H, W, 3), 4000, np.uint16))
     assert image_header(tif) is None
-    w = SequenceWriter(tmp_path / "b", make_rig())
-    with pytest.raises(ValueError, match=r"deep.tif: a uint16 image"):
-        w.add_frame(0.0, None, image_path=tif)  # type: ignore[arg-type]
-    w.discard()
+    _writer_refuses_frame(tmp_path / "b", tif, r"deep.tif: a uint16 image")
 
 
 def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> None:

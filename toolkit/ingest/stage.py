@@ -18,12 +18,13 @@ are the ones it was converting (a fingerprint in the stage folder says so).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import shutil
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from pydantic import model_validator
@@ -138,9 +139,7 @@ def open_source(cfg: IngestConfig, ctx: StageContext | None = None) -> Recording
 
 def read_sequence_recording(root: Path, name: str | None = None) -> Recording:
     """An existing sequence folder as a ``Recording`` (to re-sync, decimate or copy it)."""
-    from toolkit.io.depth import read_depth
-    from toolkit.io.sequence import SequenceFormatError, read_sequence
-    from toolkit.sensors import load_rgb
+    from toolkit.io.sequence import SequenceFormatError, copy_groundtruth_files, read_sequence
 
     try:
         seq = read_sequence(root)
@@ -155,30 +154,6 @@ def read_sequence_recording(root: Path, name: str | None = None) -> Recording:
                             depth=gt.depth(f) if gt is not None and gt.depth_paths else None,
                             mask=gt.mask(f) if gt is not None and gt.mask_paths else None)
 
-    def finish(writer: Any, kept: np.ndarray) -> None:
-        """Copy the ground truth the frames do not carry; ``kept`` [F]: source frames."""
-        if gt is None:
-            return
-        if gt.mesh_path is not None:
-            shutil.copyfile(gt.mesh_path, writer.mesh_path())
-        if gt.heldout is not None:
-            h = gt.heldout
-            for j, T in enumerate(h.poses_camera.poses):
-                writer.add_heldout(h.poses_camera.stamps[j], T,
-                                   load_rgb(h.image_paths[j]), read_depth(h.depth_paths[j]))
-        # As write_sequence keeps them (re-synced or decimated, the copy lost the
-        # simulator's exposure gains, and fuse its gain figures, without a word).
-        gt_dir = writer.root / "groundtruth"
-        if gt.exposure_gain is not None and len(kept):
-            gt_dir.mkdir(exist_ok=True)
-            stamps = writer.frame_stamps
-            atomic_write_text(gt_dir / "exposure_gain.csv", "index,stamp,gain\n" + "".join(
-                f"{k},{float(stamps[k])!r},{float(gt.exposure_gain[f])!r}\n"
-                for k, f in enumerate(kept)))
-        if (root / "groundtruth" / "house.json").exists():
-            gt_dir.mkdir(exist_ok=True)
-            shutil.copyfile(root / "groundtruth" / "house.json", gt_dir / "house.json")
-
     meta = {k: v for k, v in seq.meta.items()
             if k not in ("format", "version", "name", "source", "frames", "scans", "ingest")}
     ingest = seq.meta.get("ingest")
@@ -188,7 +163,8 @@ def read_sequence_recording(root: Path, name: str | None = None) -> Recording:
         frame_stamps=seq.frame_stamps, load=load, odometry=seq.odometry,
         groundtruth=gt.poses_base if gt is not None else None,
         has_camera=bool(meta.pop("has_camera", True)) and bool(seq.frames), meta=meta,
-        scan_dynamic=gt.scan_dynamic if gt is not None else None, finish=finish,
+        scan_dynamic=gt.scan_dynamic if gt is not None else None,
+        finish=functools.partial(copy_groundtruth_files, seq),
         camera_delay_applied_s=applied)
 
 

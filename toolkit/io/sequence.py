@@ -41,7 +41,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
 from toolkit.io.depth import write_depth
-from toolkit.io.tum import read_tum, tum_header_frames, write_tum
+from toolkit.io.tum import read_tum, write_tum
 from toolkit.io.yaml_file import load_yaml
 from toolkit.sensors import (
     CameraFrame,
@@ -362,28 +362,27 @@ def _read_base_trajectory(path: Path, frame: str) -> Trajectory:
     """T_<frame>_base_link poses of ``path`` (odometry.tum, poses_base.tum). A header
     (``# T_a_b: b pose in a``, as format_tum writes) naming other frames is refused: camera
     or laser poses, or inverted ones, were read as base poses without a word."""
-    hdr = tum_header_frames(path)
-    if hdr is not None:
-        h_frame, h_child = hdr
-        said = f"its header says the poses are T_{h_frame}_{h_child} ({h_child} in {h_frame})"
-        want = f"this file holds T_{frame}_base_link (base_link poses in a fixed frame)"
-        if h_frame in _BASE_NAMES:
-            raise SequenceFormatError(
-                f"{path}: {said}, {want}. Fix: invert every pose (T_{h_child}_{h_frame} = "
-                f"inv(T_{h_frame}_{h_child})) and write the header '# T_{frame}_base_link: "
-                f"base_link pose in {frame}'")
-        if h_child not in _BASE_NAMES:
-            mount = ("T_base_camera from rig.yaml" if h_child.startswith("camera")
-                     else "T_base_laser from rig.yaml"
-                     if h_child.startswith(("laser", "lidar", "scan", "base_scan"))
-                     else f"T_base_{h_child}, where {h_child} sits on the base")
-            raise SequenceFormatError(
-                f"{path}: {said}, {want}. Fix: write T_{h_frame}_base_link = "
-                f"T_{h_frame}_{h_child} @ inv(T_base_{h_child}) ({mount}) under the header "
-                f"'# T_{h_frame}_base_link: base_link pose in {h_frame}'")
-    traj = read_tum(path, frame, "base_link")
+    # Read once with the header's frames (world / base_link without one), then checked.
+    traj = read_tum(path)
+    h_frame, h_child = traj.frame, traj.child
+    said = f"its header says the poses are T_{h_frame}_{h_child} ({h_child} in {h_frame})"
+    want = f"this file holds T_{frame}_base_link (base_link poses in a fixed frame)"
+    if h_frame in _BASE_NAMES:
+        raise SequenceFormatError(
+            f"{path}: {said}, {want}. Fix: invert every pose (T_{h_child}_{h_frame} = "
+            f"inv(T_{h_frame}_{h_child})) and write the header '# T_{frame}_base_link: "
+            f"base_link pose in {frame}'")
+    if h_child not in _BASE_NAMES:
+        mount = ("T_base_camera from rig.yaml" if h_child.startswith("camera")
+                 else "T_base_laser from rig.yaml"
+                 if h_child.startswith(("laser", "lidar", "scan", "base_scan"))
+                 else f"T_base_{h_child}, where {h_child} sits on the base")
+        raise SequenceFormatError(
+            f"{path}: {said}, {want}. Fix: write T_{h_frame}_base_link = "
+            f"T_{h_frame}_{h_child} @ inv(T_base_{h_child}) ({mount}) under the header "
+            f"'# T_{h_frame}_base_link: base_link pose in {h_frame}'")
     check_seconds(traj.stamps, str(path), "timestamp")
-    return traj
+    return Trajectory(traj.stamps, traj.poses, frame, "base_link")
 
 
 def _check_overlap(spans: list[tuple[str, np.ndarray]], root: Path) -> None:
@@ -897,6 +896,36 @@ def _write_csv(path: Path, rows: list[dict[str, str]]) -> None:
 _OWN_META = frozenset({"format", "version", "name", "source", "frames", "scans"})
 
 
+def copy_groundtruth_files(seq: Sequence, w: SequenceWriter, kept: np.ndarray) -> None:
+    """Write into ``w`` the ground truth of ``seq`` that its frames and scans do not carry:
+    the mesh, the held-out views, the exposure gains of the frames ``kept`` [F] (source
+    indices, in the order written) and ``house.json`` (a copy, or a re-synced one, lost
+    the simulator's gains, and fuse its gain figures, without a word)."""
+    gt = seq.groundtruth
+    if gt is None:
+        return
+    if gt.mesh_path is not None:
+        shutil.copyfile(gt.mesh_path, w.mesh_path())
+    if gt.heldout is not None:
+        from toolkit.io.depth import read_depth
+
+        h = gt.heldout
+        for j, T in enumerate(h.poses_camera.poses):
+            w.add_heldout(h.poses_camera.stamps[j], T, load_rgb(h.image_paths[j]),
+                          read_depth(h.depth_paths[j]))
+    gt_dir = w.root / "groundtruth"
+    if gt.exposure_gain is not None and len(kept):
+        gt_dir.mkdir(exist_ok=True)
+        stamps = w.frame_stamps  # [F] as written
+        atomic_write_text(gt_dir / "exposure_gain.csv", "index,stamp,gain\n" + "".join(
+            f"{k},{float(stamps[k])!r},{float(gt.exposure_gain[f])!r}\n"
+            for k, f in enumerate(kept)))
+    src = None if seq.root is None else Path(seq.root) / "groundtruth" / "house.json"
+    if src is not None and src.exists():
+        gt_dir.mkdir(exist_ok=True)
+        shutil.copyfile(src, gt_dir / "house.json")
+
+
 def write_sequence(seq: Sequence, root: Path | str, depth_format: str = "png") -> Path:
     """Write a whole in-memory or on-disk ``Sequence`` to ``root`` (copying image files)."""
     w = SequenceWriter(root, seq.rig, seq.name, str(seq.meta.get("source", "")), depth_format)
@@ -914,25 +943,6 @@ def write_sequence(seq: Sequence, root: Path | str, depth_format: str = "png") -
     w.odometry = seq.odometry
     if gt is not None:
         w.groundtruth_poses = gt.poses_base
-        if gt.mesh_path is not None:
-            shutil.copyfile(gt.mesh_path, w.mesh_path())
-        if gt.heldout is not None:
-            from toolkit.io.depth import read_depth
-
-            h = gt.heldout
-            for j, T in enumerate(h.poses_camera.poses):
-                w.add_heldout(h.poses_camera.stamps[j], T, load_rgb(h.image_paths[j]),
-                              read_depth(h.depth_paths[j]))
-        # What the reader reads besides (a copy lost the simulator's exposure gains and
-        # meta.yaml's own keys): the gains, and the other ground-truth files as they are.
-        if gt.exposure_gain is not None:
-            (w.root / "groundtruth").mkdir(exist_ok=True)
-            atomic_write_text(w.root / "groundtruth" / "exposure_gain.csv",
-                              "index,stamp,gain\n" + "".join(
-                                  f"{k},{float(f.stamp)!r},{float(g)!r}\n" for k, (f, g)
-                                  in enumerate(zip(seq.frames, gt.exposure_gain, strict=True))))
-        src = None if seq.root is None else Path(seq.root) / "groundtruth"
-        if src is not None and (src / "house.json").exists():
-            shutil.copyfile(src / "house.json", w.root / "groundtruth" / "house.json")
+        copy_groundtruth_files(seq, w, np.arange(len(seq.frames)))
     w.extra_meta.update({k: v for k, v in seq.meta.items() if k not in _OWN_META})
     return w.close()

@@ -76,18 +76,6 @@ def read_tum_with_lines(
     return traj, np.array(lines, dtype=np.int64)
 
 
-def tum_header_frames(path: Path | str) -> tuple[str, str] | None:
-    """(frame, child) that the file's ``# T_<frame>_<child>`` header names (the one
-    ``read_tum`` takes), None for a file without one."""
-    for line in Path(path).read_text(encoding="utf-8-sig").splitlines():
-        s = line.strip()
-        if s.startswith("# T_") and ":" in s:
-            found = _header_frames(s)
-            if found is not None:
-                return found
-    return None
-
-
 def _header_frames(line: str) -> tuple[str, str] | None:
     """(frame, child) from a ``# T_<frame>_<child>: <child> pose in <frame>`` header line
     (``format_tum``'s; names may hold underscores: ``map``, ``base_footprint``,

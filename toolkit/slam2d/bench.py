@@ -104,8 +104,6 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
         from toolkit.slam2d.corridor import corridor_drive
 
         spacing = door_spacing_m if name == "doors" else 0.0
-        if name == "doors" and not spacing > 0:
-            raise ValueError(f"--door-spacing must be > 0 m, got {door_spacing_m:g}")
         drive = corridor_drive(angle_deg=corridor_angle_deg, door_spacing=spacing)
         scans, odom, T_bl, reference = drive.scans, drive.odometry, None, drive.truth
         what = (f"identical door niches every {spacing:g} m" if spacing
@@ -175,13 +173,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, KeyError) as e:  # pydantic's ValidationError is a ValueError
         print(f"error: {e.args[0] if isinstance(e, KeyError) else e}", file=sys.stderr)
         return 2
-    try:
-        figures = run_benchmark(args.log, args.out, config,
-                                corridor_angle_deg=args.corridor_angle,
-                                door_spacing_m=args.door_spacing)
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
+    if not args.door_spacing > 0:
+        print(f"error: --door-spacing must be > 0 m, got {args.door_spacing:g}",
+              file=sys.stderr)
         return 2
+    figures = run_benchmark(args.log, args.out, config, corridor_angle_deg=args.corridor_angle,
+                            door_spacing_m=args.door_spacing)
     show = {k: v for k, v in figures.items() if k != "config"}
     json.dump(show, sys.stdout, indent=1)
     print()

@@ -172,7 +172,7 @@ class LoopCloser:
         the submap has observed (0 when none does)."""
         g = submap.grid
         pts = transform_points(se2_to_matrix(*pose), node.match_points)  # [N, 2] grid frame
-        c = np.floor((pts - g.origin) / g.resolution).astype(np.int64)  # [N, 2] (ix, iy)
+        c = g.cell_of(pts)  # [N, 2] (ix, iy); the field shares the grid's cells
         H, W = g.values.shape
         on = (c[:, 0] >= 0) & (c[:, 0] < W) & (c[:, 1] >= 0) & (c[:, 1] < H)
         c = c[on]
