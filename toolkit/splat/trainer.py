@@ -46,6 +46,9 @@ IterWrapper = Callable[[Iterable[int], int, str], Iterable[int]]
 CHECKPOINT_NAME = "checkpoint.pt"
 
 
+Unit = Annotated[float, Field(ge=0, le=1)]  # a value in [0, 1]
+
+
 class TrainConfig(BaseModel):
     """Training settings (every field has a CPU-friendly default)."""
 
@@ -66,8 +69,7 @@ class TrainConfig(BaseModel):
     lr_shN: float = Field(2.5e-3 / 20, gt=0)
     # RGB in 0..1, as the renders and PSNR are (white = [1, 1, 1]; 255 trained against a
     # background no render can reach and crashed the TSDF comparison)
-    background: tuple[Annotated[float, Field(ge=0, le=1)], Annotated[float, Field(ge=0, le=1)],
-                      Annotated[float, Field(ge=0, le=1)]] = (0.0, 0.0, 0.0)
+    background: tuple[Unit, Unit, Unit] = (0.0, 0.0, 0.0)
     backend: Literal["auto", "cpp", "torch", "gsplat"] = "auto"
     densify: StrategyConfig = StrategyConfig()
     max_gaussians: int = Field(300_000, ge=1)
