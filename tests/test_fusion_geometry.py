@@ -1,5 +1,7 @@
 """Projection against known geometry, flying-pixel removal, voxel map bookkeeping."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -25,7 +27,13 @@ from toolkit.fusion.projection import (
     zbuffer_lidar,
 )
 from toolkit.fusion.synthetic import R_BASE_OPTICAL
-from toolkit.fusion.voxel_map import VoxelMap, key_centres, voxel_keys
+from toolkit.fusion.voxel_map import (
+    VoxelMap,
+    key_centres,
+    read_map_ply,
+    voxel_keys,
+    write_map_ply,
+)
 from toolkit.geometry import inv_se3, se2_to_se3, se3
 from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence
 
@@ -179,6 +187,25 @@ def test_voxel_map_weights_and_nearest_depth() -> None:
     assert m.colors[0, 0] == 20
     assert m.near[0] == pytest.approx(1.0)
     assert m.select(np.array([True])).near[0] == pytest.approx(1.0)
+
+
+def test_map_ply_reads_back_what_was_written(tmp_path: Path) -> None:
+    """Written by Open3D, read by plyfile (the splat stage's reader): same points, same
+    colours; a file that is no PLY is refused by name."""
+    vm = VoxelMap(0.1)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3, 3, (500, 3))
+    col = rng.integers(0, 256, (500, 3)).astype(np.uint8)
+    vm.integrate(pts, col, 0)
+    m = vm.arrays()
+    write_map_ply(tmp_path / "map.ply", m)
+    p, c = read_map_ply(tmp_path / "map.ply")
+    np.testing.assert_allclose(p, m.points, atol=1e-6)  # stored as float32
+    np.testing.assert_array_equal(c, m.colors)
+    bad = tmp_path / "bad.ply"
+    bad.write_text("not a ply\n")
+    with pytest.raises(ValueError, match="bad.ply"):
+        read_map_ply(bad)
 
 
 def test_edge_mask_drops_flying_pixels_only() -> None:

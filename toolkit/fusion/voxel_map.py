@@ -247,30 +247,58 @@ def statistical_inliers(points: np.ndarray, nb_neighbors: int = 20,
     return keep
 
 
-def write_map_ply(path: Path, m: MapArrays) -> None:
-    """PLY with x y z, red green blue (uchar) and per-voxel count/frames (Open3D tensor IO,
-    so common viewers read positions and colours and our tools read the counts)."""
-    import open3d as o3d
+def write_points_ply(path: Path, points: np.ndarray, colors: np.ndarray,
+                     **per_point: np.ndarray) -> None:
+    """Binary PLY of points [N, 3] (float32 x y z), colours [N, 3] (uchar red green blue)
+    and int32 per-point properties (count=..., frames=...), written atomically: common
+    viewers read positions and colours, ``read_map_ply`` reads it back."""
+    from plyfile import PlyData, PlyElement
 
     from toolkit.io.atomic import atomic_path
 
-    pc = o3d.t.geometry.PointCloud()
-    pc.point.positions = o3d.core.Tensor(np.ascontiguousarray(m.points, np.float32))
-    pc.point.colors = o3d.core.Tensor(np.ascontiguousarray(m.colors, np.uint8))
-    pc.point["count"] = o3d.core.Tensor(np.minimum(m.count, 2**31 - 1).astype(np.int32)[:, None])
-    pc.point["frames"] = o3d.core.Tensor(m.frames.astype(np.int32)[:, None])
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+              ("blue", "u1")] + [(name, "<i4") for name in per_point]
+    v = np.empty(len(points), dtype=fields)
+    for k, axis in enumerate("xyz"):
+        v[axis] = points[:, k]
+    for k, channel in enumerate(("red", "green", "blue")):
+        v[channel] = colors[:, k]
+    for name, values in per_point.items():
+        v[name] = np.clip(values, -(2**31), 2**31 - 1)
     with atomic_path(path) as tmp:
-        if not o3d.t.io.write_point_cloud(str(tmp), pc):
-            raise OSError(f"{path}: Open3D could not write the map")
+        PlyData([PlyElement.describe(v, "vertex")], text=False, byte_order="<").write(str(tmp))
+
+
+def write_map_ply(path: Path, m: MapArrays) -> None:
+    """The map as PLY: x y z, red green blue and per-voxel count / frames."""
+    write_points_ply(path, m.points, m.colors, count=m.count, frames=m.frames)
 
 
 def read_map_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Positions [N, 3] float64 and colours [N, 3] uint8 of a map PLY."""
-    import open3d as o3d
+    """Positions [N, 3] float64 and colours [N, 3] uint8 (grey where it has none) of a map
+    PLY.
 
-    pc = o3d.t.io.read_point_cloud(str(path))
-    pts = pc.point.positions.numpy().astype(np.float64)
-    col = pc.point.colors.numpy() if "colors" in pc.point else np.zeros((len(pts), 3), np.uint8)
-    if col.dtype != np.uint8:
-        col = np.clip(np.rint(col * 255), 0, 255).astype(np.uint8)
+    Read with plyfile rather than Open3D: the splat stage reads the map too, and on a GPU
+    machine set up for training it needs nothing else of Open3D's. Raises ValueError naming
+    the file for one that is not a readable point cloud PLY.
+    """
+    from plyfile import PlyData
+
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as e:  # noqa: BLE001 - plyfile raises several kinds, none naming the file
+        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e}); rerun "
+                         "the fuse stage to write it again") from e
+    v = ply["vertex"].data if "vertex" in ply else None
+    names = set(v.dtype.names or ()) if v is not None else set()
+    if not {"x", "y", "z"} <= names:
+        raise ValueError(f"{path}: no vertex x, y, z properties; not a point cloud PLY")
+    pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)  # [N, 3]
+    if {"red", "green", "blue"} <= names:
+        col = np.stack([v["red"], v["green"], v["blue"]], axis=1)  # [N, 3]
+        if col.dtype.kind == "f":  # 0..1 floats
+            col = np.rint(np.clip(col, 0.0, 1.0) * 255)
+        col = np.clip(col, 0, 255).astype(np.uint8)
+    else:  # no colours: mid grey
+        col = np.full((len(pts), 3), 128, np.uint8)
     return pts, col

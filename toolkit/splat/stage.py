@@ -281,17 +281,18 @@ def prepare_depth(depth: np.ndarray, camera: PinholeCamera, size: tuple[int, int
 
 
 def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Points [N, 3] and colours [N, 3] 0..1 of the fused map (Open3D point cloud PLY)."""
-    import open3d as o3d
+    """Points [N, 3] and colours [N, 3] 0..1 of the fuse stage's map PLY."""
+    from toolkit.fusion.voxel_map import read_map_ply
 
     if not path.exists():
         raise StageError(f"splat: fused map {path} not found")
-    pc = o3d.io.read_point_cloud(str(path))
-    pts = np.asarray(pc.points, dtype=np.float64)
+    try:
+        pts, cols = read_map_ply(path)
+    except ValueError as exc:
+        raise StageError(f"splat: {exc}") from None
     if len(pts) == 0:
         raise StageError(f"splat: fused map {path} holds no points")
-    cols = np.asarray(pc.colors, dtype=np.float64) if pc.has_colors() else None
-    return pts, cols if cols is not None else np.full_like(pts, 0.5)
+    return pts, cols.astype(np.float64) / 255.0
 
 
 def strip_depth_max(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> float:

@@ -141,14 +141,13 @@ def write_synthetic_inputs(root: Path, n_frames: int = 16, width: int = 64, heig
     w.close()
     # The fused map: the wall points with a little noise, coloured; depth as the fuse stage
     # writes it (per frame index).
-    import open3d as o3d
+    from toolkit.fusion.voxel_map import write_points_ply
 
     rng = np.random.default_rng(seed + 1)
     pts, rgb = room_points(n_gaussians, seed)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts + rng.normal(0, 0.01, pts.shape)))
-    pc.colors = o3d.utility.Vector3dVector(rgb)
     fused_dir.mkdir(parents=True, exist_ok=True)
-    o3d.io.write_point_cloud(str(fused_dir / "map.ply"), pc)
+    write_points_ply(fused_dir / "map.ply", pts + rng.normal(0, 0.01, pts.shape),
+                     np.clip(np.rint(rgb * 255), 0, 255).astype(np.uint8))
     for i in range(n_frames):
         write_depth(fused_dir / depth_folder / f"{i:06d}.npy", depths[i])
     return seq_dir, fused_dir
