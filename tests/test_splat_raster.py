@@ -235,3 +235,34 @@ def test_bench_refuses_cuda_without_a_cuda_device(capsys: pytest.CaptureFixture[
     with pytest.raises(SystemExit) as exc:
         main(["--device", "cuda", "--backends", "gsplat"])
     assert exc.value.code == 2 and "sees no CUDA device" in capsys.readouterr().err
+
+
+def test_gsplat_backend_composites_the_background_itself(monkeypatch: pytest.MonkeyPatch) -> (
+        None):
+    """gsplat 1.5.3's packed rasteriser refuses every per-camera background (its shape check
+    wants none for the camera), so the backend asks for none and composites
+    color + (1 - alpha) * background, as gsplat would have. A stand-in for gsplat with
+    1.5.3's check (the real one runs in test_splat_gpu.py on a GPU)."""
+    from types import SimpleNamespace
+
+    from toolkit.splat.rasterize import gsplat_backend
+
+    h, w, n = 4, 5, 3
+
+    def rasterization(**kw: object) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        bg = kw.get("backgrounds")
+        assert bg is None or tuple(bg.shape) == (4,), tuple(bg.shape)  # gsplat 1.5.3, packed
+        alphas = torch.full((1, h, w, 1), 0.25)
+        colors = torch.cat([torch.full((1, h, w, 3), 0.1), torch.full((1, h, w, 1), 2.0)], -1)
+        info = {"means2d": torch.zeros(n, 2), "radii": torch.ones(n, 2, dtype=torch.int32),
+                "gaussian_ids": torch.arange(n), "depths": torch.ones(n)}
+        return colors, alphas, info
+
+    monkeypatch.setattr(gsplat_backend, "_import", lambda: SimpleNamespace(
+        rasterization=rasterization))
+    g = init_from_points(np.zeros((n, 3)) + [0, 0, 2], np.full((n, 3), 0.5)).gaussians()
+    cam = CameraTensors.of(PinholeCamera(w, h, 5.0, 5.0, 2.0, 1.5), np.eye(4))
+    out = gsplat_backend.render(g, cam, torch.tensor([0.2, 0.4, 0.8]), 0, 0.01, 100.0, 0.3)
+    np.testing.assert_allclose(out.color[0, 0].numpy(), 0.1 + 0.75 * np.array([0.2, 0.4, 0.8]),
+                               rtol=1e-6)
+    assert float(out.depth[0, 0]) == 2.0 and float(out.alpha[0, 0]) == 0.25

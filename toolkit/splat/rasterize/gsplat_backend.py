@@ -68,14 +68,17 @@ def render(g: Gaussians, cam: CameraTensors, background: Tensor, sh_degree: int,
         far_plane=far,
         eps2d=eps2d,
         sh_degree=sh_degree,
-        backgrounds=background[None],
+        # No backgrounds: gsplat 1.5.3's packed rasteriser checks them against the packed
+        # means' leading dimensions (none) and so refuses the per-camera [1, 4] that its own
+        # rasterization() passes on; the background is composited below instead.
         render_mode="RGB+ED",
         packed=True,
         rasterize_mode="classic",
     )
-    color = colors[0, ..., :3]  # [H, W, 3]
+    alpha = alphas[0, ..., 0]  # [H, W]
+    # What the light left after the last Gaussian (1 - alpha) shows the background.
+    color = colors[0, ..., :3] + (1.0 - alpha)[..., None] * background  # [H, W, 3]
     depth = colors[0, ..., 3]  # [H, W] expected depth, already divided by alpha
-    alpha = alphas[0, ..., 0]
     means2d = info["means2d"]  # [nnz, 2], gsplat pixel convention
     if means2d.requires_grad:
         means2d.retain_grad()
