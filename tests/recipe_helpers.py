@@ -20,6 +20,9 @@ class SplatInputsConfig(StageConfig):
     depth_folder: str = "scaled_depth"
     exposure_gain: float | None = None  # write this gain for every frame as fuse's would
     exposure_gain_frames: int | None = None  # ... for the first this many frames only
+    width: int = 48
+    height: int = 36
+    gaussians: int = 2500
 
 
 class SplatInputs(Stage):
@@ -33,8 +36,8 @@ class SplatInputs(Stage):
         from toolkit.splat.synthetic import write_synthetic_inputs
 
         cfg: Any = self.config
-        seq, fused = write_synthetic_inputs(ctx.stage_dir, n_frames=cfg.frames, width=48,
-                                            height=36, n_gaussians=2500,
+        seq, fused = write_synthetic_inputs(ctx.stage_dir, n_frames=cfg.frames, width=cfg.width,
+                                            height=cfg.height, n_gaussians=cfg.gaussians,
                                             depth_folder=cfg.depth_folder)
         ctx.provide("sequence", seq)
         if cfg.exposure_gain is not None:

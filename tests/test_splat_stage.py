@@ -201,7 +201,7 @@ def test_settings_that_cannot_run_are_refused_with_the_recipe() -> None:
     with pytest.raises(ValidationError, match=r"random_depth_m \[5.0, 0.3\]"):
         SplatConfig(stage="splat", random_depth_m=(5.0, 0.3))
     with pytest.raises(ValidationError, match="set device: cuda"):
-        SplatConfig(stage="splat", backend="gsplat")
+        SplatConfig(stage="splat", backend="gsplat", device="cpu")
     with pytest.raises(ValidationError, match="backend cpp is a CPU rasteriser"):
         SplatConfig(stage="splat", backend="cpp", device="cuda")
     with pytest.raises(ValidationError):
@@ -334,3 +334,4 @@ def test_ground_truth_poses_are_refused_for_a_map_built_at_other_poses(
     write_tum(fused / "camera_poses.tum", shifted)
     with pytest.raises(StageError, match="set the fuse stage's poses to groundtruth"):
         SplatStage._same_frame_as_the_map(seq, fused)
+

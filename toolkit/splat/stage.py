@@ -97,10 +97,9 @@ class SplatConfig(TrainConfig, StageConfig):
     # compositing kernels keep all cores either way (one parallel loop per pass).
     threads: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     # Where the model trains. cuda: on the GPU, rendered by gsplat (the `cuda` extra); auto:
-    # cuda where torch sees a GPU and gsplat imports, else the CPU. The CPU is the default
-    # because the CUDA path of this stage has not yet been run on a GPU in this project
-    # (docs/splatting.md); views stay in CPU memory and each step's moves to the GPU.
-    device: Literal["auto", "cpu", "cuda"] = "cpu"
+    # cuda where torch sees a GPU and gsplat's kernels load, else the CPU. Views stay in CPU
+    # memory and each step's moves to the GPU (docs/splatting.md, "On a GPU").
+    device: Literal["auto", "cpu", "cuda"] = "auto"
     # A safety net for the quickstart's 4-minute budget on slow machines; benchmark recipes
     # set it to null.
     max_seconds: float | None = Field(220.0, gt=0)
@@ -478,7 +477,15 @@ class SplatStage(Stage):
                                          budget, cfg.random_depth_m, sh_degree=cfg.sh_degree,
                                          init_opacity=cfg.init_opacity, seed=cfg.seed)
         n_init = len(model)
+        gpu_wanted = cfg.device != "cpu" and cfg.backend in ("auto", "gsplat")
+        if gpu_wanted and torch.cuda.is_available():
+            ctx.log.info("splat: loading gsplat's CUDA kernels (built on first use: minutes)")
         device = choose_device(cfg.device, cfg.backend)
+        if gpu_wanted and device.type == "cpu" and torch.cuda.is_available():
+            from toolkit.splat.rasterize import gsplat_backend
+
+            ctx.log.warning("splat: device auto: a CUDA GPU is present but %s; training on "
+                            "the CPU", gsplat_backend.unavailable_reason())
         model = model.to(device)
         data_key = _data_key(fused / "map.ply" if cfg.init == "fused" and fused else None,
                              [cfg.init, budget, cfg.init_opacity, list(cfg.random_depth_m),

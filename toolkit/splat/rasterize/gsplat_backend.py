@@ -31,12 +31,26 @@ def _import() -> Any:
 
 
 def available() -> bool:
-    """gsplat imports and a CUDA device is present."""
+    """gsplat imports, its CUDA kernels load (built on first use: minutes) and a CUDA
+    device is present."""
     global _reason
     if not torch.cuda.is_available():
         _reason = "no CUDA device"
         return False
-    return _import() is not None
+    if _import() is None:
+        return False
+    # gsplat imports without its kernels and builds them at the first render; build (or
+    # load) them here, so that a machine without the CUDA toolkit is found before training.
+    try:
+        from gsplat.cuda._backend import _C  # type: ignore[import-not-found]
+    except Exception as exc:  # noqa: BLE001 - a failed nvcc / ninja build raises many kinds
+        _reason = f"gsplat could not build its CUDA kernels: {type(exc).__name__}: {exc}"
+        return False
+    if _C is None:
+        _reason = ("gsplat found no CUDA toolkit to build its kernels with (nvcc; set "
+                   "CUDA_HOME)")
+        return False
+    return True
 
 
 def unavailable_reason() -> str | None:
