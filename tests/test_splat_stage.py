@@ -335,3 +335,16 @@ def test_ground_truth_poses_are_refused_for_a_map_built_at_other_poses(
     with pytest.raises(StageError, match="set the fuse stage's poses to groundtruth"):
         SplatStage._same_frame_as_the_map(seq, fused)
 
+
+def test_stage_bench_writes_each_devices_figures(tmp_path: Path) -> None:
+    from toolkit.splat.stage_bench import main
+
+    out = tmp_path / "b.json"
+    assert main(["--frames", "8", "--width", "32", "--height", "24", "-n", "400",
+                 "--iterations", "12", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    cpu = res["devices"]["cpu"]
+    assert cpu["ok"] and cpu["device"] == "cpu" and cpu["iterations"] == 12
+    assert cpu["train_views"] == 7 and cpu["train_iters_per_s"] > 0  # frame 0 held out
+    assert res["scene"] == {"frames": 8, "width": 32, "height": 24, "gaussians": 400,
+                            "iterations": 12}
