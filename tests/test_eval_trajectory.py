@@ -228,3 +228,41 @@ def test_ground_truth_gaps_are_not_scored(tmp_path):
     kept, cam = covered_ground_truth(seq, est)
     assert holed.covers(kept.stamps, slack_s=0.05).all() and len(kept) == len(cam)
     assert len(kept) < len(est)  # the frames in the gap are left out
+
+
+def _drive(t: np.ndarray) -> np.ndarray:
+    """A robot at 1 m/s on a gently weaving path: T_world_base [N, 4, 4]."""
+    return np.stack([se2_to_se3(s, 0.5 * np.sin(s), 0.5 * np.cos(s)) for s in t])
+
+
+def test_poses_past_the_ground_truths_ends_are_not_scored() -> None:
+    """Ground truth from 0 to 10 s, frames from -0.04 to 10.04 s, the estimate exact: the
+    frames past the ends are left out (they were scored against the end pose held, up to
+    4.5 cm off), so a perfect estimate scores 0."""
+    from types import SimpleNamespace
+
+    from toolkit.eval.alignment import covered_ground_truth
+
+    gt_t = np.arange(0.0, 10.0 + 1e-9, 0.1)
+    cam_t = np.arange(-0.04, 10.04 + 1e-9, 1 / 30)
+    seq = SimpleNamespace(groundtruth=SimpleNamespace(
+        poses_base=Trajectory(gt_t, _drive(gt_t), "world", "base_link")),
+        rig=SimpleNamespace(T_base_camera=np.eye(4)))
+    est, gt = covered_ground_truth(seq, Trajectory(cam_t, _drive(cam_t), "world", "camera"))
+    assert est.stamps[0] >= 0.0 and est.stamps[-1] <= 10.0 and len(est) == 300
+    assert np.abs(est.positions - gt.positions).max() < 1e-3  # interpolation only
+
+
+def test_slam2d_ate_interpolates_a_ground_truth_on_its_own_clock() -> None:
+    """Motion capture at 100 Hz, 4 ms off the scans' clock, the estimate exact: every scan
+    is scored, at ~0 (nearest stamps within 1 ms scored a fifth of them, or none)."""
+    from toolkit.slam2d.bench import ate_se2
+
+    scan_t = np.arange(0.0, 30.0, 1 / 30)
+    gt_t = np.arange(-0.5, 30.5, 0.01) + 0.004
+    est = Trajectory(scan_t, _drive(scan_t), "world", "base_link")
+    ate = ate_se2(est, Trajectory(gt_t, _drive(gt_t), "world", "base_link"))
+    assert ate["ate_poses"] == len(scan_t)
+    assert ate["ate_rmse_m"] < 2e-4  # linear interpolation of the weave between samples
+    with pytest.raises(ValueError, match="covers 0 of"):
+        ate_se2(est, Trajectory(gt_t + 100, _drive(gt_t), "world", "base_link"))

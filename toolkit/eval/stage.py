@@ -134,9 +134,10 @@ class EvaluateStage(Stage):
                 # poses, so the robot base's are scored (they failed "0 of 0 poses").
                 body = "robot base"
                 full = read_tum(traj_dir / "trajectory_base.tum")
-                slack = gt.poses_base.END_SLACK_S
-                est = full.slice(gt.poses_base.covers(full.stamps, slack_s=slack))
-                gt_cam = gt.poses_base.interpolate(est.stamps, extrapolate_s=slack)
+                # Scored where the ground truth is measured or interpolated, no end slack
+                # (covered_ground_truth).
+                est = full.slice(gt.poses_base.covers(full.stamps))
+                gt_cam = gt.poses_base.interpolate(est.stamps)
             else:
                 body = "camera"
                 full = read_tum(traj_dir / "trajectory_camera.tum")
