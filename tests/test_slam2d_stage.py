@@ -169,4 +169,6 @@ def test_the_report_shows_zero_camera_poses_and_plots_a_late_reference() -> None
     stamps = np.arange(50) * 0.1
     poses = np.stack([se2_to_se3(0.1 * k, 0.02 * k, 0.01 * k) for k in range(50)])
     ref = _aligned_ref(Trajectory(stamps, poses), Trajectory(stamps + 0.0005, poses))
-    assert ref is not None and np.allclose(ref, poses[:, :2, 3], atol=1e-9)
+    # Within the 0.5 ms of motion (1 m/s) between the stamps: the SLAM path is interpolated
+    # at the ground truth's stamps, as ate_se2 scores it.
+    assert ref is not None and np.allclose(ref, poses[:, :2, 3], atol=1e-3)

@@ -152,17 +152,16 @@ class Slam2DStage(Stage):
 
 
 def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pair
-    """Ground-truth positions [N, 2] moved into the SLAM's world frame (for the plot)."""
+    """Ground-truth positions [N, 2] moved into the SLAM's world frame (for the plot),
+    aligned where the SLAM trajectory covers the ground truth's stamps (interpolated, as
+    ``ate_se2`` scores it)."""
     from toolkit.geometry import umeyama_alignment
-    from toolkit.ingest.sync import match_nearest
 
-    # The nearest SLAM stamp (the first at or after it missed a ground truth stamped a hair
-    # later than each scan, and the plot lost its reference path).
-    i = match_nearest(gt.stamps, traj.stamps, 1e-3)
-    ok = i >= 0
+    ok = traj.covers(gt.stamps, slack_s=1e-3)
     if ok.sum() < 3:
         return None
-    R, t, _ = umeyama_alignment(gt.positions[ok, :2], traj.positions[i[ok], :2])
+    est = traj.interpolate(gt.stamps[ok], extrapolate_s=1e-3)
+    R, t, _ = umeyama_alignment(gt.positions[ok, :2], est.positions[:, :2])
     return gt.positions[:, :2] @ R.T + t
 
 
