@@ -628,3 +628,31 @@ def test_the_figure_frame_is_one_that_was_fused() -> None:
     assert figure_frame(None, frames, [0, 2, 46, 58]) == 46  # nearest fused to the middle
     assert figure_frame(7, frames, [0, 2, 46, 58]) == 46  # 7 is not a frame: the middle's
     assert figure_frame(None, frames, []) == 50
+
+
+
+def test_the_oracle_scale_is_ground_truths_median_depth_over_prediction(
+        box_room: Path, tmp_path: Path) -> None:
+    """scales.csv's oracle scale of every frame (taken in the map pass, which reads the
+    ground truth anyway, and for the frames it skips at its end) is ground truth's median
+    depth / prediction over the pixels valid in both."""
+    from toolkit.depth.stage import DepthStage
+    from toolkit.depth.store import DepthStore
+    from toolkit.fusion.stage import FuseStage
+
+    res = run_stages(tmp_path, [
+        {"stage": "t_sequence", "path": str(box_room)},
+        {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+        {"stage": "fuse", "scale": "clustered", "mesh_eval_frames": 0},
+    ], {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage})
+    assert res.ok, res.error
+    seq = read_sequence(box_room)
+    store = DepthStore(tmp_path / "run" / "depth" / "depth")
+    rows = [r.split(",") for r in
+            (tmp_path / "run" / "fuse" / "scales.csv").read_text().splitlines()[1:]]
+    assert len(rows) == len(seq.frames)
+    for r in rows:
+        i = int(r[0])
+        g, pred = seq.groundtruth.depth(i), store.read(i).values
+        ok = (g > 0) & np.isfinite(pred) & (pred > 0)
+        assert float(r[-1]) == pytest.approx(float(np.median(g[ok] / pred[ok])), rel=1e-5)

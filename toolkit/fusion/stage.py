@@ -83,6 +83,15 @@ class FuseConfig(FusionConfig, StageConfig):
     checkpoint_every_s: float = Field(300.0, ge=0)
 
 
+def oracle_scale(gt_depth: np.ndarray, values: np.ndarray) -> float:
+    """The scale ground truth gives a frame's prediction: the median of depth / prediction
+    [H, W] over the pixels valid in both (NaN with 100 or fewer)."""
+    ok = (gt_depth > 0) & np.isfinite(values) & (values > 0)
+    if ok.sum() <= 100:
+        return float("nan")
+    return float(np.median(gt_depth[ok] / values[ok]))
+
+
 def _pair_metrics(metrics: dict[str, object], stats: PairStats, prefix: str,
                   cap: float) -> int:
     """Unscaled and scaled depth errors of lidar pairs under ``prefix``; returns the count."""
@@ -426,23 +435,17 @@ class FuseStage(Stage):
             st.fusion = None
 
         # ---------------------------------------------------------------- pass 1: scales
+        # The oracle scale (from ground-truth depth) is taken in the map pass, which reads
+        # the ground truth anyway; the frames that pass skips get theirs at its end.
         oracle_gt = has_gt_depth and not disparity
-
-        def load_pass1(i: int) -> tuple[DepthPrediction, np.ndarray | None]:
-            return store.read(i), gt.depth(i) if oracle_gt else None  # type: ignore[union-attr]
-
         ahead = 2 if cfg.prefetch else 0
         todo = frames[st.scales_done:]
-        for i, (pred, g) in ctx.progress(prefetched(load_pass1, todo, ahead), total=len(todo),
-                                         description="fuse: scales"):
+        for i, pred in ctx.progress(prefetched(store.read, todo, ahead), total=len(todo),
+                                    description="fuse: scales"):
             t0, c0 = time.perf_counter(), time.process_time()
             st.pairs[i] = fusion.frame_pairs(i, pred)
             st.t_core += time.perf_counter() - t0
             st.c_core += time.process_time() - c0
-            if g is not None:
-                ok = (g > 0) & np.isfinite(pred.values) & (pred.values > 0)
-                if ok.sum() > 100:
-                    st.oracle[st.scales_done] = float(np.median(g[ok] / pred.values[ok]))
             st.scales_done += 1
             if ckpt.due():
                 save_checkpoint()
@@ -525,6 +528,8 @@ class FuseStage(Stage):
                 st.add_errors(fp, disparity, (s, t), pred, alpha_scaled,
                               scaled if fusion.refiner is not None else None, valid, g,
                               cfg.eval_max_depth_m)
+                if oracle_gt and g is not None:
+                    st.oracle[j] = oracle_scale(g, pred.values)
                 if j in eval_frames and gt is not None and gt.mesh_path is not None:
                     from toolkit.fusion.cloud import depth_to_points
 
@@ -551,6 +556,10 @@ class FuseStage(Stage):
                 if ckpt.due():
                     writes.flush()  # the checkpoint promises these frames' files
                     save_checkpoint()
+        if oracle_gt:  # the frames the map pass skipped
+            for j in np.flatnonzero(~sm.used & np.isnan(st.oracle)):
+                i = frames[j]
+                st.oracle[j] = oracle_scale(gt.depth(i), store.read(i).values)  # type: ignore[union-attr]
         t0, c0 = time.perf_counter(), time.process_time()
         raw, masks = fusion.finish()
         t_finish = time.perf_counter() - t0
