@@ -282,6 +282,29 @@ def test_views_take_numpy_images_and_refuse_other_dtypes() -> None:
     assert isinstance(v.depth, torch.Tensor) and v.depth.dtype == torch.float32
     with pytest.raises(ValueError, match="uint8"):
         TrainView(np.zeros((6, 8, 3), np.float32), cam, np.eye(4))
+    # A 16-bit depth PNG's values (5000 per metre) are not metres.
+    with pytest.raises(ValueError, match="float metres.*read_depth"):
+        TrainView(np.zeros((6, 8, 3), np.uint8), cam, np.eye(4),
+                  np.full((6, 8), 8250, np.uint16))
+    # BGR -> RGB as cv2 users write it, a flipped depth: negative strides.
+    bgr = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
+    depth = np.arange(48, dtype=np.float32).reshape(6, 8)
+    v = TrainView(bgr[..., ::-1], cam, np.eye(4), depth[::-1], mask=np.ones((6, 8), bool))
+    assert np.array_equal(v.image.numpy(), bgr[..., ::-1])
+    assert np.array_equal(v.depth.numpy(), depth[::-1]) and bool(v.mask.all())
+
+
+def test_the_gaussian_cap_counts_the_models_own_sh_degree() -> None:
+    """A degree-3 model trained at degree 1 stores degree-3 coefficients: the memory budget
+    caps it at the degree-3 size (the config's degree let it hold 1.6 times the budget)."""
+    from toolkit.splat.trainer import bytes_per_gaussian
+
+    cfg = TrainConfig(memory_budget_mb=1.0, sh_degree=1, checkpoint_every=0)
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    pts, rgb = room_points(300, seed=1)
+    trainer = Trainer(init_from_points(pts, rgb, sh_degree=3), views, cfg)
+    assert trainer.model.max_sh_degree == 3
+    assert trainer.cap == int(2**20 / bytes_per_gaussian(3))
 
 
 def test_exposure_gain_is_the_least_squares_gain() -> None:

@@ -33,7 +33,10 @@ from toolkit.splat.rasterize.common import quat_to_rotmat
 
 class StrategyConfig(BaseModel):
     """gsplat DefaultStrategy settings (its defaults, except the iteration counts, which
-    are scaled for CPU-length trainings of a few thousand steps).
+    are scaled for CPU-length trainings of a few thousand steps). Refinement runs at the
+    multiples of ``refine_every`` after ``refine_start_iter`` (gsplat's rule): first at step
+    200 by default, so with the trainer's default stop at half the steps a training of up
+    to 400 steps does not densify.
 
     ``refine_stop_iter`` None: half the training's steps, as gsplat's 15000 of 30000 (the
     trainer fills it in; a strategy on its own refines to the end). Refining to step 1400

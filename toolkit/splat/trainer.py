@@ -110,15 +110,22 @@ class TrainView:
     mask: Tensor | None = None
 
     def __post_init__(self) -> None:
-        # numpy arrays are welcome (what images load as); the trainer works on tensors.
-        self.image = torch.as_tensor(self.image)
+        # numpy arrays are welcome (what images load as; a flipped one such as BGR -> RGB
+        # img[..., ::-1] too); the trainer works on tensors.
+        self.image = _tensor(self.image)
         if self.image.dtype != torch.uint8 or self.image.ndim != 3 or self.image.shape[2] != 3:
             raise ValueError(f"view {self.name}: image must be uint8 [H, W, 3], got "
                              f"{self.image.dtype} {tuple(self.image.shape)}")
         if self.depth is not None:
-            self.depth = torch.as_tensor(self.depth, dtype=torch.float32)
+            depth = _tensor(self.depth)
+            if not depth.is_floating_point():
+                # A 16-bit depth PNG (5000 per metre) taken as metres trained on 8271 m.
+                raise ValueError(f"view {self.name}: depth must be float metres, got "
+                                 f"{depth.dtype}; read depth files with "
+                                 "toolkit.io.depth.read_depth, which converts their units")
+            self.depth = depth.to(torch.float32)
         if self.mask is not None:
-            self.mask = torch.as_tensor(self.mask, dtype=torch.bool)
+            self.mask = _tensor(self.mask).to(torch.bool)
         h, w = self.image.shape[:2]
         if (w, h) != self.camera.size:
             raise ValueError(f"view {self.name}: image is {w}x{h} but the camera "
@@ -188,16 +195,27 @@ class TrainSummary:
     history: list[dict[str, float]] = field(default_factory=list)
 
 
+def _tensor(a: np.ndarray | Tensor, device: torch.device | str | None = None) -> Tensor:
+    """A tensor of ``a`` (on ``device`` if given); numpy views with negative strides are
+    copied (torch refuses them)."""
+    if isinstance(a, Tensor):
+        return a if device is None else a.to(device)
+    return torch.as_tensor(np.ascontiguousarray(a), device=device)
+
+
 def bytes_per_gaussian(sh_degree: int) -> int:
     """Parameter + gradient + two Adam moments, float32 (render temporaries excluded)."""
     floats = 3 + 3 + 4 + 1 + 3 * (sh_degree + 1) ** 2
     return floats * 4 * 4
 
 
-def gaussian_cap(cfg: TrainConfig) -> int:
+def gaussian_cap(cfg: TrainConfig, sh_degree: int | None = None) -> int:
+    """The most Gaussians ``max_gaussians`` and ``memory_budget_mb`` allow, at the model's
+    SH degree (None: the config's)."""
     cap = cfg.max_gaussians
+    degree = cfg.sh_degree if sh_degree is None else sh_degree
     if cfg.memory_budget_mb is not None:
-        cap = min(cap, int(cfg.memory_budget_mb * 2**20 / bytes_per_gaussian(cfg.sh_degree)))
+        cap = min(cap, int(cfg.memory_budget_mb * 2**20 / bytes_per_gaussian(degree)))
     return max(cap, 1)
 
 
@@ -304,7 +322,9 @@ class Trainer:
         self.data_key = data_key or _default_data_key(model, views)
         self.done: dict[str, Any] | None = None  # a finished run's summary, once resumed
         self.step = 0
-        self.cap = gaussian_cap(config)
+        # The model's own SH degree sizes it (a degree-3 model under a degree-1 config held
+        # 1.6 times its memory budget).
+        self.cap = gaussian_cap(config, max(config.sh_degree, model.max_sh_degree))
         self.scene_scale = config.scene_scale or scene_scale_of(views, model.means)
         densify = config.densify
         if densify.refine_stop_iter is None:
@@ -664,7 +684,7 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
         ss.append(float(ssim_fn(pred, gt, mask=v.mask_on(dev))))
         gd = gt_depths[i] if gt_depths is not None else None
         if gd is not None:
-            gdt = torch.as_tensor(gd, dtype=torch.float32, device=dev)
+            gdt = _tensor(gd, dev).to(torch.float32)
             m = (gdt > 0) & (out.alpha > 0.5)
             if bool(m.any()):
                 e = (out.depth - gdt)[m]
