@@ -252,6 +252,28 @@ def test_clustered_disparity_with_a_shift_and_outliers() -> None:
     assert np.median(errs) < 0.01 and np.mean(np.array(errs) < 0.05) >= 0.9
 
 
+@pytest.mark.parametrize("shift", [0.4, 0.5])
+def test_clustered_disparity_with_a_large_positive_shift(shift: float) -> None:
+    """With a positive shift the far pairs' ratios s / (1 - t z) fan out, so the dominant
+    cluster is the near pairs plus past-edge outliers; the refit started from that
+    cluster's least-squares line and settled on a wrong one (shift 0.5 of the median
+    inverse depth: 20 of 20 frames low_inliers, at 0.4 15 of 20 and one flagged ok 3 %
+    off). It starts from the best 2-point line among the cluster's pairs."""
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        z = rng.uniform(0.6, 7.0, 300)  # [N] true depth
+        t = shift * np.median(1.0 / z)
+        disp = (1.0 / z - t) / 2.0 * (1 + 0.005 * rng.standard_normal(300))
+        lidar = z.copy()
+        past = rng.random(300) < 0.3  # seen past an edge
+        lidar[past] *= rng.uniform(1.1, 2.5, past.sum())
+        e = estimate_clustered(lidar, disp, disparity=True, min_pairs=20)
+        assert e.ok, (seed, e)
+        assert e.scale == pytest.approx(2.0, rel=0.02) and e.shift == pytest.approx(t, rel=0.02)
+        scaled = 1.0 / (e.scale * disp + e.shift)
+        assert np.median(np.abs(scaled / z - 1)) < 0.005, (seed, e)
+
+
 def test_smoothing_keeps_each_frames_scale_and_shift_pair() -> None:
     est = [ScaleEstimate(s, t, 50, 60, "ok", "robust")
            for s, t in [(2.0, 0.1), (2.1, 0.05), (1.9, 0.15), (2.05, 0.08), (2.0, 0.1)]]
