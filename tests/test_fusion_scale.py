@@ -233,6 +233,30 @@ def test_smoothing_a_drifting_scale_is_not_pulled_at_the_ends_or_beside_a_gap() 
     assert np.max(np.abs(sm.scale[~good] / true[~good] - 1)) < 0.15  # filled from a side
 
 
+@pytest.mark.parametrize("mode", ["median", "none"])
+@pytest.mark.parametrize("wrong,gap", [
+    ((0, 1, 2), ()), ((0, 1, 2, 3), ()), ((37, 38, 39), ()),
+    ((20, 21, 22), tuple(range(10, 20))), ((7, 8, 9), tuple(range(10, 20))),
+])
+def test_wrong_frames_at_the_ends_or_beside_a_gap_are_outliers(
+        wrong: tuple[int, ...], gap: tuple[int, ...], mode: str) -> None:
+    """A run of frames 50 % off (a person in front of the robot as the recording starts):
+    the outlier test's window was cut at the sequence's ends and by a lidar gap, so the
+    run made its median (frame 0 of 3 wrong, frames 0-2 of 4, the first after a gap of 3
+    kept 3.0 in both modes). The window keeps its length, shifted inside the sequence."""
+    true = 2.0 * (1 + 0.003 * np.sin(np.arange(40)))
+    ests = [ScaleEstimate(float(s), 0.0, 100, 120, OK, "x") for s in true]
+    for k in wrong:
+        ests[k] = ScaleEstimate(3.0, 0.0, 100, 120, OK, "x")
+    for k in gap:
+        ests[k] = ScaleEstimate(float("nan"), 0.0, 0, 3, FEW_PAIRS, "x")
+    sm = smooth_scales(ests, window=9, outlier_tol=0.1, mode=mode)  # type: ignore[arg-type]
+    assert [sm.flag[k] for k in wrong] == [OUTLIER_FRAME] * len(wrong)
+    assert np.max(np.abs(sm.scale[list(wrong)] / 2.0 - 1)) < 0.01
+    good = [k for k in range(40) if k not in wrong and k not in gap]
+    assert all(sm.flag[k] == OK for k in good)
+
+
 def test_clustered_disparity_with_a_shift_and_outliers() -> None:
     """Ratios drift with depth under a shift: the cluster takes in outliers, and a plain
     least-squares refit on it tilted the line (12-24 % depth error per frame)."""

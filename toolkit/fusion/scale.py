@@ -384,8 +384,10 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     """Reject outlier frames and smooth the scale (and shift) over ``window`` frames.
 
     A good frame is an outlier when its log scale is more than ``outlier_tol`` from the
-    median of the good frames in its window (at least three of them; with shifts, frames
-    fitted with a shift only, and a frame fitted with the scale alone keeps it).
+    median of the ``window`` good frames nearest it, itself included (the window shifted
+    inside the sequence at its ends and past a lidar gap; at least three of them; with
+    shifts, frames fitted with a shift only, and a frame fitted with the scale alone
+    keeps it).
     ``mode="median"`` gives every good frame the median of its own value and the good
     frames' around it, as many before as after it within the window (the scale wanders
     slowly, a single frame's fit does not); ``"none"`` keeps good
@@ -411,15 +413,19 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     logs = np.where(good, np.log(np.where(good, raw, 1.0)), np.nan)
     half = max(0, window // 2)
 
+    def nearest_frames(mask: np.ndarray, i: int, k: int) -> np.ndarray:
+        """The k frames of ``mask`` [F] nearest frame i (ties to the earlier one) [<= k]."""
+        idx = np.flatnonzero(mask)
+        return idx[np.argsort(np.abs(idx - i), kind="stable")[:k]]
+
     def window_median(values: np.ndarray, mask: np.ndarray, i: int) -> float:
         lo, hi = max(0, i - half), min(n, i + half + 1)
         m = mask[lo:hi]
         if not m.any():
             # Widen until some good frame is found: a long gap takes its nearest neighbours.
-            idx = np.flatnonzero(mask)
-            if len(idx) == 0:
+            near = nearest_frames(mask, i, max(1, half))
+            if len(near) == 0:
                 return float("nan")
-            near = idx[np.argsort(np.abs(idx - i), kind="stable")[: max(1, half)]]
             return float(np.median(values[near]))
         return float(np.median(values[lo:hi][m]))
 
@@ -438,8 +444,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
         lo, hi = max(0, i - half), min(n, i + half + 1)
         idx = np.arange(lo, hi)[mask[lo:hi]]
         if not len(idx):  # the widened window of window_median: its nearest good frames
-            idx = np.flatnonzero(mask)
-            idx = idx[np.argsort(np.abs(idx - i), kind="stable")[: max(1, half)]]
+            idx = nearest_frames(mask, i, max(1, half))
         return int(idx[np.argmin(np.abs(values[idx] - target))])
 
     # In a sequence of (scale, shift) fits, a frame fitted with the scale alone (a wall
@@ -463,15 +468,20 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
                 if theirs >= 0.5 and theirs >= 2.0 * agreement(i, float(raw[i]), 0.0):
                     flags[i] = OUTLIER_FRAME
             continue
-        lo, hi = max(0, i - half), min(n, i + half + 1)
+        # The window is the 2 half + 1 comparable frames nearest i: kept at full length,
+        # shifted inside the sequence at its ends and past a lidar gap. Cut there, it held
+        # 5 frames at the first one, and a run of 3 wrong frames at the start (someone in
+        # front of the robot as the recording starts) made the median: frame 0 kept a
+        # scale 50 % off, in both modes; so did the first frame after a gap.
+        near = nearest_frames(comparable, i, 2 * half + 1)  # [<= window]
         # With two frames in the window, the median is their mean: both would be flagged
         # when they differ, and neither is known to be the wrong one.
-        if comparable[lo:hi].sum() < 3:
+        if len(near) < 3:
             continue
-        med = window_median(logs, comparable, i)
-        if np.isfinite(med) and abs(logs[i] - med) > outlier_tol:
+        med = float(np.median(logs[near]))
+        if abs(logs[i] - med) > outlier_tol:
             if agreement is not None:
-                j = nearest_good(logs, comparable, i, med) if affine else -1
+                j = int(near[np.argmin(np.abs(logs[near] - med))]) if affine else -1
                 theirs = (raw[j], shift[j]) if j >= 0 else (float(np.exp(med)), 0.0)
                 own = agreement(i, float(raw[i]), float(shift[i]))
                 if own >= 0.5 and own >= 2.0 * agreement(i, *theirs):

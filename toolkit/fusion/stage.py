@@ -341,7 +341,8 @@ class FuseStage(Stage):
     # 8: clustered keeps the pairs near the densest ratio (no chain into outliers); a good
     #    frame's smoothing window as long before it as after it
     # 9: clustered's disparity refit starts from the best 2-point line among its cluster's
-    #    pairs (a large positive shift had most frames low_inliers)
+    #    pairs (a large positive shift had most frames low_inliers); the outlier-frame
+    #    test's window keeps its length at the sequence's ends and beside lidar gaps
     version = 9
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
