@@ -115,7 +115,8 @@ def _affine_refit(x: np.ndarray, y: np.ndarray, start: np.ndarray,
     """(s, t) of ``y = s x + t`` with residuals relative to y: the best 2-point line among
     the pairs ``start`` [n] bool (support counted over all pairs), least squares on its
     inliers, then Tukey reweighting of all pairs (inlier band ``threshold``); None where
-    the pairs cannot separate them (too little spread, not a positive scale).
+    the pairs cannot separate them (too little spread in the start pairs or in the fit's
+    own inliers, not a positive scale).
     The reweighting matters: with a shift the per-pair ratios drift with depth, so a ratio
     cluster can take in outliers whose plain least squares tilts the line (scaled depth
     12-24 % off with 10-30 % outliers). So does the 2-point start: with a large positive
@@ -143,7 +144,13 @@ def _affine_refit(x: np.ndarray, y: np.ndarray, start: np.ndarray,
             s, t = (float(v) for v in np.linalg.solve(AtW @ A, AtW @ y))
         except np.linalg.LinAlgError:
             return None
-    return (s, t) if s > 0 else None
+    # The start pairs' spread is not enough (as in _robust_affine): facing a wall, pairs
+    # seen just past its edge chain onto its cluster and spread it, and the line through
+    # the wall took any slope (scale halved, shift 5x, flagged ok: 1 m read 1.32 m).
+    inliers = np.abs((s * x + t - y) / y) < threshold  # [n]
+    if s <= 0 or inliers.sum() < 3 or _spread(y[inliers]) < MIN_SPREAD:
+        return None
+    return s, t
 
 
 def _best_line(x: np.ndarray, y: np.ndarray, idx: np.ndarray,

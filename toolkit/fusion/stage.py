@@ -342,7 +342,8 @@ class FuseStage(Stage):
     #    frame's smoothing window as long before it as after it
     # 9: clustered's disparity refit starts from the best 2-point line among its cluster's
     #    pairs (a large positive shift had most frames low_inliers); the outlier-frame
-    #    test's window keeps its length at the sequence's ends and beside lidar gaps
+    #    test's window keeps its length at the sequence's ends and beside lidar gaps;
+    #    clustered's refit needs its own inliers to spread (a wall gets the scale alone)
     version = 9
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
