@@ -68,8 +68,9 @@ class FusionConfig(BaseModel):
 
     # scale estimation
     scale: Literal["ratio", "clustered", "robust", "none"] = "clustered"
-    # log-ratio gate for valid pairs; None (null): the paper's plain sum. Not 0: no pair
-    # passes a zero gate, and every frame went unscaled.
+    # widest log-ratio gate for valid pairs (narrowed to 3 robust sigmas of each frame's
+    # ratios, down to 0.03); None (null): the paper's plain sum. Not 0: no pair passes a
+    # zero gate, and every frame went unscaled.
     ratio_gate: float | None = 0.2
     cluster_algorithm: Literal["dbscan", "meanshift"] = "dbscan"
     cluster_eps: float = Field(0.03, gt=0)

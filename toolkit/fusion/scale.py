@@ -11,7 +11,8 @@ gets the scale alone instead of a confident nonsense shift.
 Estimators (selected in the recipe):
 
 - ``ratio``: the paper's alpha = sum(l_j) / sum(d_j). With ``gate`` set, pairs whose own
-  ratio is further than ``gate`` (in log) from the median ratio are not valid pairs; with
+  ratio is further than 3 robust sigmas of the frame's log ratios (at least
+  ``RATIO_GATE_MIN``, at most ``gate``) from the median ratio are not valid pairs; with
   ``gate=None`` it is the paper's formula over all pairs.
 - ``clustered``: the paper's per-pair ratios alpha_j = l_j / d_j, clustered in log space
   with DBSCAN (or mean-shift); alpha = sum(l) / sum(d) over the dominant cluster. A core
@@ -41,6 +42,10 @@ METHODS: tuple[str, ...] = ("ratio", "clustered", "robust")
 # depths for disparity) below which a shift is not fitted: at one depth scale and shift are
 # one unknown.
 MIN_SPREAD = 0.2
+
+# Narrowest log-ratio gate of ``ratio``: its gate is 3 robust sigmas of a frame's ratios,
+# and exact pairs (no spread) still need a band to pass.
+RATIO_GATE_MIN = 0.03
 
 # quality flags
 OK = "ok"
@@ -85,7 +90,8 @@ def _failed(n: int, method: str, quality: str = FEW_PAIRS) -> ScaleEstimate:
 
 def estimate_ratio(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False,
                    gate: float | None = 0.2, min_pairs: int = 10) -> ScaleEstimate:
-    """The paper's alpha = sum(l) / sum(d) over valid pairs (see module docstring)."""
+    """The paper's alpha = sum(l) / sum(d) over valid pairs (see module docstring):
+    ``gate`` is the widest log-ratio gate, None for all pairs."""
     l, d = _clean_pairs(lidar, pred, disparity)
     if disparity:
         l, d = 1.0 / l, d  # fit 1/z = s * d
@@ -96,8 +102,13 @@ def estimate_ratio(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False,
         return _failed(n, "ratio")
     valid = np.ones(n, bool)
     if gate is not None:
-        r = np.log(l / d)
-        valid = np.abs(r - np.median(r)) < gate
+        r = np.log(l / d)  # [n]
+        dev = np.abs(r - np.median(r))  # [n]
+        # The gate narrows to 3 robust sigmas of the frame's own ratios: at the fixed 0.2,
+        # outliers within 22 % of the scale (pairs seen just past an edge) counted as
+        # valid, 2-4 % scale error flagged ok with 30 % of them at 1 % noise.
+        width = min(gate, max(RATIO_GATE_MIN, 3.0 * 1.4826 * float(np.median(dev))))
+        valid = dev < width
     s = float(l[valid].sum() / d[valid].sum())
     return _finish(s, 0.0, int(valid.sum()), n, "ratio", min_pairs)
 
@@ -110,15 +121,27 @@ def _spread(y: np.ndarray) -> float:
 
 
 def _affine_refit(x: np.ndarray, y: np.ndarray, start: np.ndarray,
-                  threshold: float = 0.05) -> tuple[float, float] | None:
-    """(s, t) of ``y = s x + t`` with residuals relative to y: least squares on the pairs
-    ``start`` [n] bool, then Tukey reweighting of all pairs (inlier band ``threshold``);
-    None where the pairs cannot separate them (too little spread, not a positive scale).
+                  threshold: float = 0.05, iterations: int = 200,
+                  seed: int = 0) -> tuple[float, float] | None:
+    """(s, t) of ``y = s x + t`` with residuals relative to y: the best 2-point line among
+    the pairs ``start`` [n] bool (support counted over all pairs), least squares on its
+    inliers, then Tukey reweighting of all pairs (inlier band ``threshold``); None where
+    the pairs cannot separate them (too little spread in the start pairs or in the fit's
+    own inliers, not a positive scale).
     The reweighting matters: with a shift the per-pair ratios drift with depth, so a ratio
     cluster can take in outliers whose plain least squares tilts the line (scaled depth
-    12-24 % off with 10-30 % outliers)."""
+    12-24 % off with 10-30 % outliers). So does the 2-point start: with a large positive
+    shift the far true ratios fan out of the cluster, which is then the near pairs plus
+    past-edge outliers, and reweighting from its least-squares line settled on a wrong
+    one (shift 0.5 of the median inverse depth, 30 % outliers: 20 of 20 frames
+    low_inliers; at 0.4, 15 of 20 and one flagged ok 3 % off)."""
     if start.sum() < 3 or _spread(y[start]) < MIN_SPREAD:
         return None
+    pool = np.flatnonzero(start)
+    rng = np.random.default_rng(seed)
+    line = _best_line(x, y, pool[rng.integers(0, len(pool), (iterations, 2))], threshold)
+    if line is not None:
+        start = line[2]
     A = np.stack([x, np.ones(len(x))], -1)  # [n, 2]
     w = np.where(start, 1.0 / (y * y), 0.0)
     s = t = 0.0
@@ -132,7 +155,32 @@ def _affine_refit(x: np.ndarray, y: np.ndarray, start: np.ndarray,
             s, t = (float(v) for v in np.linalg.solve(AtW @ A, AtW @ y))
         except np.linalg.LinAlgError:
             return None
-    return (s, t) if s > 0 else None
+    # The start pairs' spread is not enough (as in _robust_affine): facing a wall, pairs
+    # seen just past its edge chain onto its cluster and spread it, and the line through
+    # the wall took any slope (scale halved, shift 5x, flagged ok: 1 m read 1.32 m).
+    inliers = np.abs((s * x + t - y) / y) < threshold  # [n]
+    if s <= 0 or inliers.sum() < 3 or _spread(y[inliers]) < MIN_SPREAD:
+        return None
+    return s, t
+
+
+def _best_line(x: np.ndarray, y: np.ndarray, idx: np.ndarray,
+               threshold: float) -> tuple[float, float, np.ndarray] | None:
+    """(s, t, inliers [n] bool) of the line ``y = s x + t`` through the pairs of pairs
+    ``idx`` [m, 2] with a positive slope that the most pairs x [n], y [n] lie within
+    ``threshold`` of (relative to y, so that near and far pairs count alike); None when
+    no candidate has a positive slope."""
+    x1, x2, y1, y2 = x[idx[:, 0]], x[idx[:, 1]], y[idx[:, 0]], y[idx[:, 1]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_c = (y2 - y1) / (x2 - x1)
+        t_c = y1 - s_c * x1
+    okc = np.isfinite(s_c) & (s_c > 0)
+    if not okc.any():
+        return None
+    s_c, t_c = s_c[okc], t_c[okc]
+    rel = np.abs(s_c[:, None] * x[None, :] + t_c[:, None] - y[None, :]) / y[None, :]
+    best = int(np.argmax((rel < threshold).sum(1)))
+    return float(s_c[best]), float(t_c[best]), rel[best] < threshold
 
 
 def estimate_clustered(lidar: np.ndarray, pred: np.ndarray, disparity: bool = False,
@@ -151,8 +199,8 @@ def estimate_clustered(lidar: np.ndarray, pred: np.ndarray, disparity: bool = Fa
     once outliers are dense enough to be core points it ran from the true ratio into
     them (a dense lidar's 30 % of pairs seeing up to 1.5x further past edges moved the
     scale by up to 8 %; ratios with no common scale chained into one cluster flagged ok).
-    ``fit_shift`` (default: for disparity) refits scale and shift starting from the whole
-    cluster's pairs.
+    ``fit_shift`` (default: for disparity) refits scale and shift starting from the best
+    2-point line among the cluster's pairs (``_affine_refit``).
     """
     l, d = _clean_pairs(lidar, pred, disparity)
     if disparity:
@@ -270,21 +318,10 @@ def _robust_affine(l: np.ndarray, d: np.ndarray, disparity: bool, threshold: flo
     n = len(l)
     y = 1.0 / l if disparity else l
     x = d
-    # Residuals relative to y so that near and far pairs count alike.
-    idx = rng.integers(0, n, (iterations, 2))
-    x1, x2, y1, y2 = x[idx[:, 0]], x[idx[:, 1]], y[idx[:, 0]], y[idx[:, 1]]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_c = (y2 - y1) / (x2 - x1)
-        t_c = y1 - s_c * x1
-    okc = np.isfinite(s_c) & (s_c > 0)
-    if not okc.any():
+    line = _best_line(x, y, rng.integers(0, n, (iterations, 2)), threshold)
+    if line is None or _spread(y[line[2]]) < MIN_SPREAD:
         return None
-    s_c, t_c = s_c[okc], t_c[okc]
-    rel = np.abs(s_c[:, None] * x[None, :] + t_c[:, None] - y[None, :]) / y[None, :]
-    best = int(np.argmax((rel < threshold).sum(1)))
-    if _spread(y[rel[best] < threshold]) < MIN_SPREAD:
-        return None
-    s, t = float(s_c[best]), float(t_c[best])
+    s, t = line[0], line[1]
     A = np.stack([x, np.ones(n)], -1)  # [n, 2]
     for _ in range(10):
         res = (s * x + t - y) / y
@@ -365,8 +402,10 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     """Reject outlier frames and smooth the scale (and shift) over ``window`` frames.
 
     A good frame is an outlier when its log scale is more than ``outlier_tol`` from the
-    median of the good frames in its window (at least three of them; with shifts, frames
-    fitted with a shift only, and a frame fitted with the scale alone keeps it).
+    median of the ``window`` good frames nearest it, itself included (the window shifted
+    inside the sequence at its ends and past a lidar gap; at least three of them; with
+    shifts, frames fitted with a shift only, and a frame fitted with the scale alone
+    keeps it).
     ``mode="median"`` gives every good frame the median of its own value and the good
     frames' around it, as many before as after it within the window (the scale wanders
     slowly, a single frame's fit does not); ``"none"`` keeps good
@@ -392,15 +431,19 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     logs = np.where(good, np.log(np.where(good, raw, 1.0)), np.nan)
     half = max(0, window // 2)
 
+    def nearest_frames(mask: np.ndarray, i: int, k: int) -> np.ndarray:
+        """The k frames of ``mask`` [F] nearest frame i (ties to the earlier one) [<= k]."""
+        idx = np.flatnonzero(mask)
+        return idx[np.argsort(np.abs(idx - i), kind="stable")[:k]]
+
     def window_median(values: np.ndarray, mask: np.ndarray, i: int) -> float:
         lo, hi = max(0, i - half), min(n, i + half + 1)
         m = mask[lo:hi]
         if not m.any():
             # Widen until some good frame is found: a long gap takes its nearest neighbours.
-            idx = np.flatnonzero(mask)
-            if len(idx) == 0:
+            near = nearest_frames(mask, i, max(1, half))
+            if len(near) == 0:
                 return float("nan")
-            near = idx[np.argsort(np.abs(idx - i), kind="stable")[: max(1, half)]]
             return float(np.median(values[near]))
         return float(np.median(values[lo:hi][m]))
 
@@ -419,8 +462,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
         lo, hi = max(0, i - half), min(n, i + half + 1)
         idx = np.arange(lo, hi)[mask[lo:hi]]
         if not len(idx):  # the widened window of window_median: its nearest good frames
-            idx = np.flatnonzero(mask)
-            idx = idx[np.argsort(np.abs(idx - i), kind="stable")[: max(1, half)]]
+            idx = nearest_frames(mask, i, max(1, half))
         return int(idx[np.argmin(np.abs(values[idx] - target))])
 
     # In a sequence of (scale, shift) fits, a frame fitted with the scale alone (a wall
@@ -444,15 +486,20 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
                 if theirs >= 0.5 and theirs >= 2.0 * agreement(i, float(raw[i]), 0.0):
                     flags[i] = OUTLIER_FRAME
             continue
-        lo, hi = max(0, i - half), min(n, i + half + 1)
+        # The window is the 2 half + 1 comparable frames nearest i: kept at full length,
+        # shifted inside the sequence at its ends and past a lidar gap. Cut there, it held
+        # 5 frames at the first one, and a run of 3 wrong frames at the start (someone in
+        # front of the robot as the recording starts) made the median: frame 0 kept a
+        # scale 50 % off, in both modes; so did the first frame after a gap.
+        near = nearest_frames(comparable, i, 2 * half + 1)  # [<= window]
         # With two frames in the window, the median is their mean: both would be flagged
         # when they differ, and neither is known to be the wrong one.
-        if comparable[lo:hi].sum() < 3:
+        if len(near) < 3:
             continue
-        med = window_median(logs, comparable, i)
-        if np.isfinite(med) and abs(logs[i] - med) > outlier_tol:
+        med = float(np.median(logs[near]))
+        if abs(logs[i] - med) > outlier_tol:
             if agreement is not None:
-                j = nearest_good(logs, comparable, i, med) if affine else -1
+                j = int(near[np.argmin(np.abs(logs[near] - med))]) if affine else -1
                 theirs = (raw[j], shift[j]) if j >= 0 else (float(np.exp(med)), 0.0)
                 own = agreement(i, float(raw[i]), float(shift[i]))
                 if own >= 0.5 and own >= 2.0 * agreement(i, *theirs):

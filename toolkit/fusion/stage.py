@@ -349,7 +349,12 @@ class FuseStage(Stage):
     #    three beams; no return is no evidence; scans past +-180 deg tested
     # 8: clustered keeps the pairs near the densest ratio (no chain into outliers); a good
     #    frame's smoothing window as long before it as after it
-    version = 8
+    # 9: clustered's disparity refit starts from the best 2-point line among its cluster's
+    #    pairs (a large positive shift had most frames low_inliers); the outlier-frame
+    #    test's window keeps its length at the sequence's ends and beside lidar gaps;
+    #    clustered's refit needs its own inliers to spread (a wall gets the scale alone);
+    #    ratio's gate narrows to 3 robust sigmas of each frame's ratios
+    version = 9
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
