@@ -182,7 +182,8 @@ class TSDFStage(Stage):
     # keeps surface seen at grazing angles. 4: its views scored against the images at the
     # mesh's exposure. 5: colour averaged in float32 (uint16 truncated it: darker meshes);
     # frames without valid depth skipped; no geometry score without an alignment
-    version = 5
+    # 6: the alignment fits on the frames the ground truth covers, no end slack
+    version = 6
 
     def run(self, ctx: StageContext) -> None:
         import cv2
@@ -472,7 +473,8 @@ class ColmapStage(Stage):
     # 2: written alignments on covered poses; no poses across trajectory gaps. 3: one
     # thread by default (repeatable). 4: points at SLAM poses not scored against the
     # ground-truth mesh without ground-truth poses to align them
-    version = 4
+    # 5: the alignment fits on the frames the ground truth covers, no end slack
+    version = 5
     outputs_repeat = False  # sfm/summary.json holds the steps' seconds
 
     def run(self, ctx: StageContext) -> None:
@@ -727,7 +729,8 @@ class CameraOnlyStage(Stage):
     # 2: recall against every map point; alignment on covered poses. 3: one thread by
     # default (repeatable); SfM points collapsed onto their camera left out. 4: the
     # observed reference keeps surface seen at grazing angles
-    version = 4
+    # 5: scored on the frames the ground truth covers, no end slack
+    version = 5
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction

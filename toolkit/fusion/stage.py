@@ -353,7 +353,8 @@ class FuseStage(Stage):
     #    pairs (a large positive shift had most frames low_inliers); the outlier-frame
     #    test's window keeps its length at the sequence's ends and beside lidar gaps;
     #    clustered's refit needs its own inliers to spread (a wall gets the scale alone);
-    #    ratio's gate narrows to 3 robust sigmas of each frame's ratios
+    #    ratio's gate narrows to 3 robust sigmas of each frame's ratios; the map metrics'
+    #    alignment fits on the frames the ground truth covers, no end slack
     version = 9
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
