@@ -1,6 +1,7 @@
 """Depth backends: onnx preprocessing/output handling exact on a tiny model; simulated
 predictions follow their documented error model; the depth folder round-trips."""
 
+import re
 from pathlib import Path
 
 import cv2
@@ -890,6 +891,56 @@ def test_onnx_models_of_other_shapes_are_named_before_they_run(tmp_path: Path,
         OnnxDepthBackend(C(model=bad, kind="relative_depth"))
     with pytest.raises(ValueError, match=r"depth stage's 'output' setting"):
         OnnxDepthBackend(C(model=dyn))
+
+
+def test_depth_settings_the_model_refuses_are_found_before_the_run(tmp_path: Path) -> None:
+    """validate and the start of run read the model's inputs, outputs and metadata: what
+    the backend refuses when it loads the model stopped the run only after the stages
+    before depth (a missing depth_kind after the simulator had run)."""
+    from onnx import TensorProto
+
+    from toolkit.recipe.runner import missing_inputs, run_recipe
+    from toolkit.recipe.schema import RecipeError, load_recipe
+
+    dyn = _graph_model(tmp_path / "dyn.onnx", [1, 3, "h", "w"], TensorProto.FLOAT, False)
+    fixed = _graph_model(tmp_path / "fixed.onnx", [1, 3, 28, 42], TensorProto.FLOAT, False)
+    recipe = tmp_path / "r.yaml"
+
+    def problems(**depth: object) -> list[str]:
+        keys = "".join(f"\n    {k}: {v}" for k, v in depth.items())
+        recipe.write_text(f"name: r\noutput: {tmp_path / 'run'}\nstages:\n"
+                          f"  - stage: simulate\n    duration_s: 1\n"
+                          f"  - stage: depth\n    backend: onnx{keys}\n")
+        return missing_inputs(load_recipe(recipe))
+
+    # Depth Anything / MiDaS exports carry no depth_kind: the field to set is named.
+    found = problems(model=dyn)
+    assert len(found) == 1 and "no 'depth_kind' metadata" in found[0], found
+    assert "depth stage's 'output' setting" in found[0] and str(dyn) in found[0]
+    for keys, why in (
+            ({"output_index": 2}, r"output_index 2, but the model has 1 output.*set "
+                                  "output_index"),
+            ({"model": fixed, "resize": "keep_aspect"}, "keep_aspect needs a model exported "
+                                                        "with dynamic height/width"),
+            ({"model": fixed, "input_size": 56}, "fixed 42x28 input but input_size asks for "
+                                                 "56x56; drop input_size")):
+        found = problems(**{"model": dyn, "output": "relative_disparity", **keys})
+        assert len(found) == 1 and re.search(why, found[0]), (keys, found)
+    # keep_aspect takes one side: refused with the recipe, no model needed.
+    with pytest.raises(RecipeError, match=r"keep_aspect takes one input_size.*not \[28, 42\]"):
+        problems(model=dyn, output="relative_disparity", resize="keep_aspect",
+                 input_size=[28, 42])
+    # Settings the backend takes pass, the shipped model's too.
+    assert problems(model=dyn, output="relative_disparity", resize="keep_aspect",
+                    input_size=28) == []
+    assert problems(model=fixed, output="relative_depth", input_size=[28, 42]) == []
+    shipped = Path(__file__).resolve().parents[1] / "datasets/models/small-depth.onnx"
+    assert problems(model=shipped) == []
+    # run stops before its first stage: the simulator does not run.
+    problems(model=dyn)
+    with pytest.raises(RecipeError, match="no 'depth_kind' metadata"):
+        run_recipe(load_recipe(recipe))
+    assert not (tmp_path / "run" / "simulate").exists()
 
 
 def test_depth_threads_keep_an_interrupted_runs_frames(tmp_path: Path,
