@@ -943,6 +943,57 @@ def test_depth_settings_the_model_refuses_are_found_before_the_run(tmp_path: Pat
     assert not (tmp_path / "run" / "simulate").exists()
 
 
+def test_onnx_image_input_must_take_one_rgb_image(tmp_path: Path, rgb: np.ndarray) -> None:
+    """A grayscale or RGB-D network was loaded, then failed at its first frame with advice
+    about multiple_of; now refused at load (and by validate), and the size advice is given
+    only where a size can be what onnxruntime refused."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    from toolkit.depth import onnx_backend
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    for shape, layout, why in (([1, 1, "h", "w"], "nchw", r"takes 1 channel\(s\)"),
+                               ([1, 4, "h", "w"], "nchw", r"takes 4 channel\(s\)"),
+                               ([1, "h", "w", 1], "nhwc", r"takes 1 channel\(s\)"),
+                               ([2, 3, "h", "w"], "nchw", "a batch of 2 images")):
+        path = _graph_model(tmp_path / "m.onnx", shape, TensorProto.FLOAT, layout == "nhwc")
+        config = C(model=path, kind="relative_depth", layout=layout)
+        with pytest.raises(ValueError, match=why):
+            OnnxDepthBackend(config)
+        assert re.search(why, onnx_backend.model_problem(config) or ""), shape
+    # onnxruntime's own refusals, as the run would meet them
+    gray = _graph_model(tmp_path / "gray.onnx", [1, 1, "h", "w"], TensorProto.FLOAT, False)
+    fixed = _graph_model(tmp_path / "fixed.onnx", [1, 3, 28, 42], TensorProto.FLOAT, False)
+
+    def refusal(path: Path, x: np.ndarray) -> str:
+        with pytest.raises(Exception) as e:  # noqa: PT011 - onnxruntime's own type
+            ort.InferenceSession(str(path)).run(None, {"image": x})
+        return str(e.value)
+
+    dyn = _graph_model(tmp_path / "dyn.onnx", [1, 3, "h", "w"], TensorProto.FLOAT, False)
+    be = OnnxDepthBackend(C(model=dyn, kind="relative_depth", threads=1))
+    channels = be._failure_hint(refusal(gray, np.zeros((1, 3, 8, 8), np.float32)))
+    assert "multiple_of" not in channels and "axes [1]" in channels
+    width = be._failure_hint(refusal(fixed, np.zeros((1, 3, 28, 28), np.float32)))
+    assert "set multiple_of (now 14)" in width
+    # A size the graph cannot take fails inside it, where onnxruntime names no axis: the
+    # size advice stays (MiDaS at a size that is no multiple of 32).
+    c = helper.make_tensor("c", TensorProto.FLOAT, [1, 3, 28, 42], [0.0] * 28 * 42 * 3)
+    add = save_graph(tmp_path / "add.onnx", [
+        helper.make_node("Constant", [], ["c"], value=c),
+        helper.make_node("Add", ["image", "c"], ["s"]),
+        helper.make_node("ReduceMean", ["s"], ["m"], axes=[1], keepdims=1),
+        helper.make_node("Softplus", ["m"], ["depth"])],
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])])
+    with pytest.raises(ValueError, match=r"failed on a 28x28 input.*set multiple_of \(now 1\)"):
+        OnnxDepthBackend(C(model=add, kind="relative_depth", input_size=28, multiple_of=1,
+                           threads=1)).predict(rgb)
+    assert OnnxDepthBackend(C(model=add, kind="relative_depth", input_size=(28, 42),
+                              threads=1)).predict(rgb).values.shape == rgb.shape[:2]
+
+
 def test_depth_threads_keep_an_interrupted_runs_frames(tmp_path: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """threads / device / prefetch change how fast the stage runs, not what it writes: an

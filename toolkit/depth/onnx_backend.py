@@ -12,6 +12,7 @@ Weights are never downloaded: a missing file is an error that says where to put 
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,6 +33,11 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 # Custom metadata keys read from the ONNX file (``onnx.helper.set_model_props``).
 METADATA_KEYS = ("depth_kind", "input_height", "input_width", "mean", "std", "channel_order",
                  "multiple_of")
+
+# onnxruntime's refusal of an input's fixed axes: "Got invalid dimensions for input: image
+# for the following indices\n index: 1 Got: 3 Expected: 1".
+_BAD_DIMS = re.compile(r"invalid dimensions for input: (\S+) for the following indices"
+                       r"((?:\s*index: \d+ Got: \d+ Expected: \d+)+)")
 
 _INTERP = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "area": cv2.INTER_AREA,
            "nearest": cv2.INTER_NEAREST}
@@ -328,7 +334,8 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
 
 
 def _check_image_input(path: Path, name: str, shape: list[Any], layout: str) -> None:
-    """An image input of rank 4 whose channel axis is where ``layout`` says."""
+    """One RGB image of rank 4 with its channel axis where ``layout`` says: fixed axes
+    that disagree are refused when the model is loaded, not at its first frame."""
     if len(shape) != 4:
         raise ValueError(f"{path}: input shape {shape}: expected an image batch "
                          "[1, 3, H, W] (layout: nchw) or [1, H, W, 3] (layout: nhwc)")
@@ -339,6 +346,18 @@ def _check_image_input(path: Path, name: str, shape: list[Any], layout: str) -> 
     if layout == "nhwc" and c_last != 3 and c_first == 3:
         raise ValueError(f"{path}: input shape {shape} has its 3 channels first; set "
                          "layout: nchw in the depth stage")
+    channels = c_first if layout == "nchw" else c_last
+    if isinstance(channels, int) and channels != 3:
+        # A grayscale or RGB-D network: onnxruntime refused the first frame, with advice
+        # about input sizes.
+        raise ValueError(f"{path}: input {name!r} {shape} takes {channels} channel(s); this "
+                         "backend feeds RGB images (3 channels), so a grayscale or RGB-D "
+                         "network cannot run on it: use a model that takes a 3-channel image "
+                         f"(layout: {layout})")
+    if isinstance(shape[0], int) and shape[0] != 1:
+        raise ValueError(f"{path}: input {name!r} {shape} takes a batch of {shape[0]} images; "
+                         "this backend feeds one: re-export with batch 1 or a dynamic batch "
+                         "axis")
 
 
 def _fixed_input_hw(shape: list[Any], layout: str) -> tuple[int, int] | None:
@@ -629,9 +648,7 @@ class OnnxDepthBackend:
         except Exception as e:  # onnxruntime's own exception types, from its C++ core
             raise ValueError(
                 f"{self.config.model}: onnxruntime failed on a {hw[1]}x{hw[0]} input: "
-                f"{str(e).strip()[:400]}. If the network takes only sizes that are multiples "
-                f"of 32 (MiDaS, ZoeDepth) or 16 (DPT-BEiT), set multiple_of (now "
-                f"{self.multiple_of}) or an input_size it takes") from e
+                f"{str(e).strip()[:400]}. {self._failure_hint(str(e))}") from e
         t2 = time.perf_counter()
         values = self.postprocess(raws[0], rgb.shape[:2])
         extra: dict[str, Any] = {}
@@ -652,6 +669,22 @@ class OnnxDepthBackend:
                             "postprocess_s": t3 - t2}
         return DepthPrediction(values, self.kind, latency_s=t2 - t1,
                                extra={"input_hw": hw, **self.last_timing, **extra})
+
+    def _failure_hint(self, error: str) -> str:
+        """What to change after onnxruntime refused an input: its size (``multiple_of``),
+        unless onnxruntime says that axes of the image other than height and width were
+        refused, where a size would not help."""
+        m = _BAD_DIMS.search(error)
+        if m and m.group(1) == self.input_name:
+            axes = {int(a) for a in re.findall(r"index: (\d+)", m.group(2))}
+            spatial = {2, 3} if self.config.layout == "nchw" else {1, 2}
+            if axes and not axes <= spatial:
+                return (f"It refused axes {sorted(axes)} of input {self.input_name!r}, not only "
+                        f"its height and width (layout: {self.config.layout}): the model "
+                        "must take one RGB image")
+        return ("If the network takes only sizes that are multiples of 32 (MiDaS, ZoeDepth) "
+                f"or 16 (DPT-BEiT), set multiple_of (now {self.multiple_of}) or an "
+                "input_size it takes")
 
     def describe(self) -> dict[str, Any]:
         """Settings actually used (for the report and the depth index)."""
