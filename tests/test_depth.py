@@ -936,6 +936,17 @@ def test_depth_settings_the_model_refuses_are_found_before_the_run(tmp_path: Pat
     assert problems(model=fixed, output="relative_depth", input_size=[28, 42]) == []
     shipped = Path(__file__).resolve().parents[1] / "datasets/models/small-depth.onnx"
     assert problems(model=shipped) == []
+    # An op with no CPU kernel (bfloat16 Relu) may run on the GPU: not refused, and no
+    # traceback out of validate (the check's session is a CPU one).
+    from onnx import helper
+
+    bf16 = save_graph(tmp_path / "bf16.onnx", [
+        helper.make_node("Cast", ["image"], ["b"], to=TensorProto.BFLOAT16),
+        helper.make_node("Relu", ["b"], ["r"]),
+        helper.make_node("Cast", ["r"], ["f"], to=TensorProto.FLOAT),
+        helper.make_node("ReduceMean", ["f"], ["depth"], axes=[1], keepdims=1)],
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])])
+    assert problems(model=bf16, output="relative_depth") == []
     # run stops before its first stage: the simulator does not run.
     problems(model=dyn)
     with pytest.raises(RecipeError, match="no 'depth_kind' metadata"):

@@ -412,10 +412,19 @@ def model_problem(config: OnnxDepthConfig) -> str | None:
     """Why the backend would refuse ``config`` when it loads its model (the file, its
     inputs, outputs and metadata against the settings), found without running the model:
     what the depth stage says before the stages before it run; None: nothing."""
+    from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
+
+    # onnxruntime's own error types beyond those that say the file is no loadable model
+    # (a ValueError here): an op with no CPU kernel (NOT_IMPLEMENTED) may have one on the
+    # GPU the stage runs on, where the backend finds what is wrong when it loads.
+    unknown = tuple(c for c in vars(ort_state).values()
+                    if isinstance(c, type) and issubclass(c, Exception))
     try:
         plan_model(config, *read_signature(Path(config.model)))
     except (FileNotFoundError, ValueError) as e:
         return str(e)
+    except unknown:
+        return None
     return None
 
 
