@@ -1,6 +1,7 @@
 """Depth backends: onnx preprocessing/output handling exact on a tiny model; simulated
 predictions follow their documented error model; the depth folder round-trips."""
 
+import re
 from pathlib import Path
 
 import cv2
@@ -890,6 +891,118 @@ def test_onnx_models_of_other_shapes_are_named_before_they_run(tmp_path: Path,
         OnnxDepthBackend(C(model=bad, kind="relative_depth"))
     with pytest.raises(ValueError, match=r"depth stage's 'output' setting"):
         OnnxDepthBackend(C(model=dyn))
+
+
+def test_depth_settings_the_model_refuses_are_found_before_the_run(tmp_path: Path) -> None:
+    """validate and the start of run read the model's inputs, outputs and metadata: what
+    the backend refuses when it loads the model stopped the run only after the stages
+    before depth (a missing depth_kind after the simulator had run)."""
+    from onnx import TensorProto
+
+    from toolkit.recipe.runner import missing_inputs, run_recipe
+    from toolkit.recipe.schema import RecipeError, load_recipe
+
+    dyn = _graph_model(tmp_path / "dyn.onnx", [1, 3, "h", "w"], TensorProto.FLOAT, False)
+    fixed = _graph_model(tmp_path / "fixed.onnx", [1, 3, 28, 42], TensorProto.FLOAT, False)
+    recipe = tmp_path / "r.yaml"
+
+    def problems(**depth: object) -> list[str]:
+        keys = "".join(f"\n    {k}: {v}" for k, v in depth.items())
+        recipe.write_text(f"name: r\noutput: {tmp_path / 'run'}\nstages:\n"
+                          f"  - stage: simulate\n    duration_s: 1\n"
+                          f"  - stage: depth\n    backend: onnx{keys}\n")
+        return missing_inputs(load_recipe(recipe))
+
+    # Depth Anything / MiDaS exports carry no depth_kind: the field to set is named.
+    found = problems(model=dyn)
+    assert len(found) == 1 and "no 'depth_kind' metadata" in found[0], found
+    assert "depth stage's 'output' setting" in found[0] and str(dyn) in found[0]
+    for keys, why in (
+            ({"output_index": 2}, r"output_index 2, but the model has 1 output.*set "
+                                  "output_index"),
+            ({"model": fixed, "resize": "keep_aspect"}, "keep_aspect needs a model exported "
+                                                        "with dynamic height/width"),
+            ({"model": fixed, "input_size": 56}, "fixed 42x28 input but input_size asks for "
+                                                 "56x56; drop input_size")):
+        found = problems(**{"model": dyn, "output": "relative_disparity", **keys})
+        assert len(found) == 1 and re.search(why, found[0]), (keys, found)
+    # keep_aspect takes one side: refused with the recipe, no model needed.
+    with pytest.raises(RecipeError, match=r"keep_aspect takes one input_size.*not \[28, 42\]"):
+        problems(model=dyn, output="relative_disparity", resize="keep_aspect",
+                 input_size=[28, 42])
+    # Settings the backend takes pass, the shipped model's too.
+    assert problems(model=dyn, output="relative_disparity", resize="keep_aspect",
+                    input_size=28) == []
+    assert problems(model=fixed, output="relative_depth", input_size=[28, 42]) == []
+    shipped = Path(__file__).resolve().parents[1] / "datasets/models/small-depth.onnx"
+    assert problems(model=shipped) == []
+    # An op with no CPU kernel (bfloat16 Relu) may run on the GPU: not refused, and no
+    # traceback out of validate (the check's session is a CPU one).
+    from onnx import helper
+
+    bf16 = save_graph(tmp_path / "bf16.onnx", [
+        helper.make_node("Cast", ["image"], ["b"], to=TensorProto.BFLOAT16),
+        helper.make_node("Relu", ["b"], ["r"]),
+        helper.make_node("Cast", ["r"], ["f"], to=TensorProto.FLOAT),
+        helper.make_node("ReduceMean", ["f"], ["depth"], axes=[1], keepdims=1)],
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])])
+    assert problems(model=bf16, output="relative_depth") == []
+    # run stops before its first stage: the simulator does not run.
+    problems(model=dyn)
+    with pytest.raises(RecipeError, match="no 'depth_kind' metadata"):
+        run_recipe(load_recipe(recipe))
+    assert not (tmp_path / "run" / "simulate").exists()
+
+
+def test_onnx_image_input_must_take_one_rgb_image(tmp_path: Path, rgb: np.ndarray) -> None:
+    """A grayscale or RGB-D network was loaded, then failed at its first frame with advice
+    about multiple_of; now refused at load (and by validate), and the size advice is given
+    only where a size can be what onnxruntime refused."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    from toolkit.depth import onnx_backend
+    from toolkit.depth.onnx_backend import OnnxDepthBackend
+    from toolkit.depth.onnx_backend import OnnxDepthConfig as C
+
+    for shape, layout, why in (([1, 1, "h", "w"], "nchw", r"takes 1 channel\(s\)"),
+                               ([1, 4, "h", "w"], "nchw", r"takes 4 channel\(s\)"),
+                               ([1, "h", "w", 1], "nhwc", r"takes 1 channel\(s\)"),
+                               ([2, 3, "h", "w"], "nchw", "a batch of 2 images")):
+        path = _graph_model(tmp_path / "m.onnx", shape, TensorProto.FLOAT, layout == "nhwc")
+        config = C(model=path, kind="relative_depth", layout=layout)
+        with pytest.raises(ValueError, match=why):
+            OnnxDepthBackend(config)
+        assert re.search(why, onnx_backend.model_problem(config) or ""), shape
+    # onnxruntime's own refusals, as the run would meet them
+    gray = _graph_model(tmp_path / "gray.onnx", [1, 1, "h", "w"], TensorProto.FLOAT, False)
+    fixed = _graph_model(tmp_path / "fixed.onnx", [1, 3, 28, 42], TensorProto.FLOAT, False)
+
+    def refusal(path: Path, x: np.ndarray) -> str:
+        with pytest.raises(Exception) as e:  # noqa: PT011 - onnxruntime's own type
+            ort.InferenceSession(str(path)).run(None, {"image": x})
+        return str(e.value)
+
+    dyn = _graph_model(tmp_path / "dyn.onnx", [1, 3, "h", "w"], TensorProto.FLOAT, False)
+    be = OnnxDepthBackend(C(model=dyn, kind="relative_depth", threads=1))
+    channels = be._failure_hint(refusal(gray, np.zeros((1, 3, 8, 8), np.float32)))
+    assert "multiple_of" not in channels and "axes [1]" in channels
+    width = be._failure_hint(refusal(fixed, np.zeros((1, 3, 28, 28), np.float32)))
+    assert "set multiple_of (now 14)" in width
+    # A size the graph cannot take fails inside it, where onnxruntime names no axis: the
+    # size advice stays (MiDaS at a size that is no multiple of 32).
+    c = helper.make_tensor("c", TensorProto.FLOAT, [1, 3, 28, 42], [0.0] * 28 * 42 * 3)
+    add = save_graph(tmp_path / "add.onnx", [
+        helper.make_node("Constant", [], ["c"], value=c),
+        helper.make_node("Add", ["image", "c"], ["s"]),
+        helper.make_node("ReduceMean", ["s"], ["m"], axes=[1], keepdims=1),
+        helper.make_node("Softplus", ["m"], ["depth"])],
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])])
+    with pytest.raises(ValueError, match=r"failed on a 28x28 input.*set multiple_of \(now 1\)"):
+        OnnxDepthBackend(C(model=add, kind="relative_depth", input_size=28, multiple_of=1,
+                           threads=1)).predict(rgb)
+    assert OnnxDepthBackend(C(model=add, kind="relative_depth", input_size=(28, 42),
+                              threads=1)).predict(rgb).values.shape == rgb.shape[:2]
 
 
 def test_depth_threads_keep_an_interrupted_runs_frames(tmp_path: Path,

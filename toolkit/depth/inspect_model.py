@@ -177,21 +177,11 @@ def suggest(inputs: list[TensorInfo], outputs: list[TensorInfo],
 
 def read_model(path: Path) -> tuple[list[TensorInfo], list[TensorInfo], dict[str, str]]:
     """Inputs, outputs and metadata of an ONNX file, as onnxruntime sees them."""
-    import onnxruntime as ort
+    from toolkit.depth.onnx_backend import read_signature
 
-    from toolkit.depth.onnx_backend import missing_model_message, model_file_problem
-
-    if not path.is_file():
-        raise FileNotFoundError(missing_model_message(path))
-    problem = model_file_problem(path)
-    if problem:
-        raise ValueError(problem)
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    ins = [TensorInfo(i.name, list(i.shape), i.type) for i in sess.get_inputs()]
-    outs = [TensorInfo(o.name, list(o.shape), o.type) for o in sess.get_outputs()]
-    return ins, outs, dict(sess.get_modelmeta().custom_metadata_map)
+    ins, outs, meta = read_signature(path)
+    return ([TensorInfo(i.name, list(i.shape), i.type) for i in ins],
+            [TensorInfo(o.name, list(o.shape), o.type) for o in outs], meta)
 
 
 def stage_yaml(model: Path, sug: Suggestion) -> str:

@@ -12,7 +12,10 @@ Weights are never downloaded: a missing file is an error that says where to put 
 from __future__ import annotations
 
 import logging
+import re
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,6 +33,11 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 # Custom metadata keys read from the ONNX file (``onnx.helper.set_model_props``).
 METADATA_KEYS = ("depth_kind", "input_height", "input_width", "mean", "std", "channel_order",
                  "multiple_of")
+
+# onnxruntime's refusal of an input's fixed axes: "Got invalid dimensions for input: image
+# for the following indices\n index: 1 Got: 3 Expected: 1".
+_BAD_DIMS = re.compile(r"invalid dimensions for input: (\S+) for the following indices"
+                       r"((?:\s*index: \d+ Got: \d+ Expected: \d+)+)")
 
 _INTERP = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "area": cv2.INTER_AREA,
            "nearest": cv2.INTER_NEAREST}
@@ -102,7 +110,8 @@ class OnnxDepthConfig(BaseModel):
     @model_validator(mode="after")
     def _consistent(self) -> OnnxDepthConfig:
         problem = settings_problem(self.kind, self.canonical_focal, self.min_confidence,
-                                   self.confidence_index)
+                                   self.confidence_index) or resize_problem(self.resize,
+                                                                            self.input_size)
         if problem:
             raise ValueError(problem)
         return self
@@ -178,6 +187,247 @@ def missing_model_message(path: Path) -> str:
     )
 
 
+def resize_problem(resize: str, input_size: tuple[int, int] | int | None) -> str | None:
+    """What is wrong with ``resize`` and ``input_size`` together (no model needed: the
+    depth stage refuses it with the recipe); None: nothing."""
+    if resize == "keep_aspect" and isinstance(input_size, tuple | list):
+        return (f"resize: keep_aspect takes one input_size (the height; the width follows "
+                f"the image's aspect), not {list(input_size)}: give input_size: "
+                f"{input_size[0]}, or resize: stretch for a {input_size[0]}x{input_size[1]} "
+                "(HxW) input")
+    return None
+
+
+@dataclass(frozen=True)
+class ModelPlan:
+    """How the backend feeds a model and reads it, decided from the model's signature and
+    metadata with the settings, before anything runs."""
+
+    input_name: str
+    input_dtype: type
+    intrinsics: _IntrinsicsInput | None
+    output_name: str
+    outputs_text: str  # every output with its shape, for error messages
+    confidence_name: str | None
+    fixed_hw: tuple[int, int] | None  # the image input's fixed (height, width), if fixed
+    meta_hw: tuple[int | None, int | None]
+    kind: DepthKind
+    multiple_of: int
+    channel_order: str
+    mean: np.ndarray  # [3]
+    std: np.ndarray  # [3]
+    warning: str | None
+
+
+def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence[Any],
+               metadata: dict[str, str]) -> ModelPlan:
+    """Check ``config`` against a model's ``inputs`` and ``outputs`` (onnxruntime's
+    ``NodeArg``s: name, shape, type) and ``metadata``; a ``ValueError`` naming the file, the
+    setting and the fix for what would fail. The backend runs it when it loads the model,
+    and the depth stage before any stage of a recipe runs (``read_signature``)."""
+    path = Path(config.model)
+    listed = ", ".join(f"{i.name!r} {i.shape}" for i in inputs)
+    intrinsics = None
+    images = list(inputs)
+    if config.intrinsics_input is not None:
+        named = [i for i in inputs if i.name == config.intrinsics_input]
+        if not named:
+            raise ValueError(f"{path}: intrinsics_input {config.intrinsics_input!r} is not an "
+                             f"input of the model; its inputs are {listed}")
+        intrinsics = _IntrinsicsInput.of(path, named[0])
+        images = [i for i in inputs if i.name != config.intrinsics_input]
+    if len(images) != 1:
+        raise ValueError(
+            f"{path}: the model takes {len(inputs)} inputs ({listed}); this backend feeds one "
+            "image, and the camera intrinsics where intrinsics_input names their input. "
+            "Re-export it with any other input fixed inside the graph")
+    inp = images[0]
+    _check_image_input(path, inp.name, list(inp.shape), config.layout)
+    # A half-precision export takes float16: the image is cast, not refused.
+    input_dtype = {"tensor(float)": np.float32, "tensor(float16)": np.float16}.get(inp.type)
+    if input_dtype is None:
+        raise ValueError(f"{path}: input {inp.name!r} is {inp.type}; expected a float or "
+                         "float16 image tensor")
+    outputs_text = ", ".join(f"{i}: {o.name!r} {o.shape}" for i, o in enumerate(outputs))
+    if not 0 <= config.output_index < len(outputs):
+        raise ValueError(f"{path}: output_index {config.output_index}, but the model has "
+                         f"{len(outputs)} output(s): {outputs_text}; set output_index to the "
+                         "depth map's")
+    output_name = outputs[config.output_index].name
+    shape = outputs[config.output_index].shape
+    if _fixed_non_map(shape):
+        raise ValueError(not_depth_message(path, config.output_index, output_name, shape,
+                                           outputs_text))
+    confidence_name = None
+    if config.confidence_index is not None:
+        ci = config.confidence_index
+        if not 0 <= ci < len(outputs) or ci == config.output_index:
+            raise ValueError(f"{path}: confidence_index {ci} is not another output of the "
+                             f"model; its outputs are {outputs_text}")
+        if _fixed_non_map(outputs[ci].shape):
+            raise ValueError(f"{path}: output {ci} ({outputs[ci].name!r}) has shape "
+                             f"{list(outputs[ci].shape)}, not one confidence image; the "
+                             f"model's outputs are {outputs_text}")
+        confidence_name = outputs[ci].name
+    kind = config.kind or metadata.get("depth_kind")
+    if kind is None:
+        raise ValueError(
+            f"{path}: the model has no 'depth_kind' metadata; say what the network outputs "
+            f"with the depth stage's 'output' setting (OnnxDepthConfig.kind from Python), one "
+            f"of {DEPTH_KINDS} (Depth Anything's and MiDaS's relative models: "
+            "relative_disparity)")
+    if kind not in DEPTH_KINDS:
+        raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
+    problem = settings_problem(kind, config.canonical_focal, config.min_confidence,
+                               config.confidence_index)
+    if problem:  # the kind may come from the model's metadata
+        raise ValueError(f"{path}: {problem}")
+    multiple = config.multiple_of  # >= 1, as the metadata's
+    if multiple is None:
+        multiple = _meta_int(path, metadata, "multiple_of")
+    order = str(config.channel_order or metadata.get("channel_order", "rgb")).lower()
+    if order not in ("rgb", "bgr"):
+        raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
+    # mean / std are per network input channel, in its order; ImageNet's defaults are
+    # written R, G, B, so a BGR network takes them reversed.
+    flip = slice(None, None, -1 if order == "bgr" else 1)
+    mean = np.asarray(config.mean or _floats(path, metadata, "mean") or IMAGENET_MEAN[flip],
+                      dtype=np.float32)  # [3]
+    std = np.asarray(config.std or _floats(path, metadata, "std") or IMAGENET_STD[flip],
+                     dtype=np.float32)  # [3]
+    if mean.max() > 1.0 or std.max() > 1.0:
+        # mmcv/Metric3D configs give 123.675, 58.395...: the image here is in [0, 1].
+        raise ValueError(f"{path}: mean {mean.tolist()} / std {std.tolist()} are in 0-255 "
+                         "units; give them divided by 255 (the image is scaled to [0, 1] "
+                         "first)")
+    if ("input_height" in metadata) != ("input_width" in metadata):
+        raise ValueError(f"{path}: metadata names one of input_height / input_width without "
+                         "the other; give input_size in the recipe")
+    meta_hw = (_meta_int(path, metadata, "input_height"),
+               _meta_int(path, metadata, "input_width"))
+    fixed = _fixed_input_hw(list(inp.shape), config.layout)
+    problem = resize_problem(config.resize, config.input_size)
+    if problem:
+        raise ValueError(f"{path}: {problem}")
+    if fixed is not None:
+        if config.resize == "keep_aspect":
+            raise ValueError(f"{path}: resize: keep_aspect needs a model exported with "
+                             f"dynamic height/width; this one takes a fixed input "
+                             f"{inp.shape}: use resize: stretch (or letterbox to keep the "
+                             "image's aspect)")
+        size = config.input_size
+        hw = (size, size) if isinstance(size, int) else size
+        if hw is not None and tuple(hw) != fixed:
+            raise ValueError(f"{path}: the model takes a fixed {fixed[1]}x{fixed[0]} "
+                             f"input but input_size asks for {hw[1]}x{hw[0]}; drop "
+                             "input_size or re-export with dynamic height/width")
+    # A timing stand-in (``bench_latency --export``) runs like a real network; its depth
+    # is noise, which the backend says loudly.
+    warning = metadata.get("warning") or (
+        "random weights: depth is meaningless" if metadata.get("weights") == "random" else None)
+    return ModelPlan(
+        input_name=inp.name, input_dtype=input_dtype, intrinsics=intrinsics,
+        output_name=output_name, outputs_text=outputs_text, confidence_name=confidence_name,
+        fixed_hw=fixed, meta_hw=meta_hw, kind=kind,  # type: ignore[arg-type]
+        multiple_of=int(multiple if multiple is not None else 14), channel_order=order,
+        mean=mean, std=std, warning=warning)
+
+
+def _check_image_input(path: Path, name: str, shape: list[Any], layout: str) -> None:
+    """One RGB image of rank 4 with its channel axis where ``layout`` says: fixed axes
+    that disagree are refused when the model is loaded, not at its first frame."""
+    if len(shape) != 4:
+        raise ValueError(f"{path}: input shape {shape}: expected an image batch "
+                         "[1, 3, H, W] (layout: nchw) or [1, H, W, 3] (layout: nhwc)")
+    c_first, c_last = shape[1], shape[3]
+    if layout == "nchw" and c_first != 3 and c_last == 3:
+        raise ValueError(f"{path}: input shape {shape} has its 3 channels last; set "
+                         "layout: nhwc in the depth stage")
+    if layout == "nhwc" and c_last != 3 and c_first == 3:
+        raise ValueError(f"{path}: input shape {shape} has its 3 channels first; set "
+                         "layout: nchw in the depth stage")
+    channels = c_first if layout == "nchw" else c_last
+    if isinstance(channels, int) and channels != 3:
+        # A grayscale or RGB-D network: onnxruntime refused the first frame, with advice
+        # about input sizes.
+        raise ValueError(f"{path}: input {name!r} {shape} takes {channels} channel(s); this "
+                         "backend feeds RGB images (3 channels), so a grayscale or RGB-D "
+                         "network cannot run on it: use a model that takes a 3-channel image "
+                         f"(layout: {layout})")
+    if isinstance(shape[0], int) and shape[0] != 1:
+        raise ValueError(f"{path}: input {name!r} {shape} takes a batch of {shape[0]} images; "
+                         "this backend feeds one: re-export with batch 1 or a dynamic batch "
+                         "axis")
+
+
+def _fixed_input_hw(shape: list[Any], layout: str) -> tuple[int, int] | None:
+    """The image input's (height, width) when both are fixed."""
+    dims = shape[2:4] if layout == "nchw" else shape[1:3]
+    return (int(dims[0]), int(dims[1])) if all(isinstance(d, int) for d in dims) else None
+
+
+def not_depth_message(path: Path, index: int, name: str, shape: Any, outputs_text: str) -> str:
+    return (f"{path}: output {index} ({name!r}) has shape {list(shape)}, not one depth "
+            f"image; the model's outputs are {outputs_text}. Set output_index to the depth "
+            "map's")
+
+
+def _open_session(path: Path, opts: Any, providers: list[str]) -> Any:
+    """An onnxruntime session of the model at ``path``; a ``ValueError`` saying to
+    re-export it when onnxruntime cannot load it."""
+    import onnxruntime as ort
+
+    problem = model_file_problem(path)
+    if problem:
+        raise ValueError(problem)
+    try:
+        return ort.InferenceSession(str(path), opts, providers=providers)
+    except (RuntimeError, ort.capi.onnxruntime_pybind11_state.Fail,
+            ort.capi.onnxruntime_pybind11_state.InvalidProtobuf,
+            ort.capi.onnxruntime_pybind11_state.InvalidGraph) as e:
+        raise ValueError(f"{path}: onnxruntime cannot load the model ({e}); re-export it "
+                         "(torch.onnx.export, opset 17 or newer)") from None
+
+
+def read_signature(path: Path) -> tuple[list[Any], list[Any], dict[str, str]]:
+    """A model's inputs and outputs (onnxruntime's ``NodeArg``s, shapes as the backend
+    sees them after onnxruntime's shape inference) and metadata, without running it: a
+    CPU session with graph optimisations off (5-19 ms for the shipped 4.4 MB model, 1.4-2 s
+    for 400 MB of weights, which it reads)."""
+    import onnxruntime as ort
+
+    if path.is_dir():
+        raise FileNotFoundError(folder_model_message(path))
+    if not path.is_file():
+        raise FileNotFoundError(missing_model_message(path))
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    sess = _open_session(path, opts, ["CPUExecutionProvider"])
+    return (list(sess.get_inputs()), list(sess.get_outputs()),
+            dict(sess.get_modelmeta().custom_metadata_map))
+
+
+def model_problem(config: OnnxDepthConfig) -> str | None:
+    """Why the backend would refuse ``config`` when it loads its model (the file, its
+    inputs, outputs and metadata against the settings), found without running the model:
+    what the depth stage says before the stages before it run; None: nothing."""
+    from onnxruntime.capi import onnxruntime_pybind11_state as ort_state
+
+    # onnxruntime's own error types beyond those that say the file is no loadable model
+    # (a ValueError here): an op with no CPU kernel (NOT_IMPLEMENTED) may have one on the
+    # GPU the stage runs on, where the backend finds what is wrong when it loads.
+    unknown = tuple(c for c in vars(ort_state).values()
+                    if isinstance(c, type) and issubclass(c, Exception))
+    try:
+        plan_model(config, *read_signature(Path(config.model)))
+    except (FileNotFoundError, ValueError) as e:
+        return str(e)
+    except unknown:
+        return None
+    return None
+
+
 class OnnxDepthBackend:
     """``DepthBackend`` over an onnxruntime session."""
 
@@ -197,119 +447,27 @@ class OnnxDepthBackend:
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.add_session_config_entry("session.intra_op.allow_spinning",
                                       "1" if config.spin else "0")
-        problem = model_file_problem(path)
-        if problem:
-            raise ValueError(problem)
-        try:
-            self.session = ort.InferenceSession(
-                str(path), opts,
-                providers=execution_providers(config.device, ort.get_available_providers()))
-        except (RuntimeError, ort.capi.onnxruntime_pybind11_state.Fail,
-                ort.capi.onnxruntime_pybind11_state.InvalidProtobuf,
-                ort.capi.onnxruntime_pybind11_state.InvalidGraph) as e:
-            raise ValueError(f"{path}: onnxruntime cannot load the model ({e}); re-export "
-                             "it (torch.onnx.export, opset 17 or newer)") from None
+        self.session = _open_session(
+            path, opts, execution_providers(config.device, ort.get_available_providers()))
         # What onnxruntime actually uses (it falls back to the CPU when CUDA cannot start).
         self.providers: list[str] = list(self.session.get_providers())
         self.metadata: dict[str, str] = dict(self.session.get_modelmeta().custom_metadata_map)
-        inputs = self.session.get_inputs()
-        listed = ", ".join(f"{i.name!r} {i.shape}" for i in inputs)
-        self.intrinsics: _IntrinsicsInput | None = None
-        if config.intrinsics_input is not None:
-            named = [i for i in inputs if i.name == config.intrinsics_input]
-            if not named:
-                raise ValueError(f"{path}: intrinsics_input {config.intrinsics_input!r} is "
-                                 f"not an input of the model; its inputs are {listed}")
-            self.intrinsics = _IntrinsicsInput.of(path, named[0])
-            inputs = [i for i in inputs if i.name != config.intrinsics_input]
-        if len(inputs) != 1:
-            raise ValueError(
-                f"{path}: the model takes {len(self.session.get_inputs())} inputs ({listed}); "
-                "this backend feeds one image, and the camera intrinsics where "
-                "intrinsics_input names their input. Re-export it with any other input "
-                "fixed inside the graph")
-        inp = inputs[0]
-        self.input_name = inp.name
-        self._check_input(path, inp.shape, config.layout)
-        # A half-precision export takes float16: the image is cast, not refused.
-        self.input_dtype = {"tensor(float)": np.float32, "tensor(float16)": np.float16}.get(
-            inp.type)
-        if self.input_dtype is None:
-            raise ValueError(f"{path}: input {inp.name!r} is {inp.type}; expected a float or "
-                             "float16 image tensor")
-        outputs = self.session.get_outputs()
-        if not 0 <= config.output_index < len(outputs):
-            raise ValueError(f"{path}: output_index {config.output_index}, but the model has "
-                             f"{len(outputs)} output(s): {[o.name for o in outputs]}")
-        self.output_name = outputs[config.output_index].name
-        self._outputs_text = ", ".join(f"{i}: {o.name!r} {o.shape}"
-                                       for i, o in enumerate(outputs))
-        shape = outputs[config.output_index].shape
-        if _fixed_non_map(shape):
-            raise ValueError(self._not_depth_message(shape))
-        self.confidence_name: str | None = None
-        if config.confidence_index is not None:
-            ci = config.confidence_index
-            if not 0 <= ci < len(outputs) or ci == config.output_index:
-                raise ValueError(f"{path}: confidence_index {ci} is not another output of "
-                                 f"the model; its outputs are {self._outputs_text}")
-            cshape = outputs[ci].shape
-            if _fixed_non_map(cshape):
-                raise ValueError(f"{path}: output {ci} ({outputs[ci].name!r}) has shape "
-                                 f"{list(cshape)}, not one confidence image; the model's "
-                                 f"outputs are {self._outputs_text}")
-            self.confidence_name = outputs[ci].name
+        plan = plan_model(config, self.session.get_inputs(), self.session.get_outputs(),
+                          self.metadata)
+        self.input_name = plan.input_name
+        self.input_dtype = plan.input_dtype
+        self.intrinsics = plan.intrinsics
+        self.output_name = plan.output_name
+        self._outputs_text = plan.outputs_text
+        self.confidence_name = plan.confidence_name
+        self._fixed_hw = plan.fixed_hw
+        self._meta_hw = plan.meta_hw
+        self.kind: DepthKind = plan.kind
+        self.multiple_of = plan.multiple_of
+        self.channel_order = plan.channel_order
+        self.mean, self.std = plan.mean, plan.std
+        self.warning = plan.warning
         self.last_confident_fraction: float | None = None
-        self._fixed_hw = self._fixed_input_hw(inp.shape)
-        self._image_shape = list(inp.shape)  # the image's, wherever the intrinsics input is
-        kind = config.kind or self.metadata.get("depth_kind")
-        if kind is None:
-            raise ValueError(
-                f"{path}: the model has no 'depth_kind' metadata; say what the network "
-                f"outputs with the depth stage's 'output' setting (OnnxDepthConfig.kind from "
-                f"Python), one of {DEPTH_KINDS}")
-        if kind not in DEPTH_KINDS:
-            raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
-        self.kind: DepthKind = kind  # type: ignore[assignment]
-        problem = settings_problem(kind, config.canonical_focal, config.min_confidence,
-                                   config.confidence_index)
-        if problem:  # the kind may come from the model's metadata
-            raise ValueError(f"{path}: {problem}")
-        multiple = config.multiple_of  # >= 1, as the metadata's
-        if multiple is None:
-            multiple = _meta_int(path, self.metadata, "multiple_of")
-        self.multiple_of = int(multiple if multiple is not None else 14)
-        order = str(config.channel_order or self.metadata.get("channel_order", "rgb")).lower()
-        if order not in ("rgb", "bgr"):
-            raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
-        # mean / std are per network input channel, in its order; ImageNet's defaults are
-        # written R, G, B, so a BGR network takes them reversed.
-        flip = slice(None, None, -1 if order == "bgr" else 1)
-        self.mean = np.asarray(config.mean or _floats(path, self.metadata, "mean")
-                               or IMAGENET_MEAN[flip], dtype=np.float32)
-        self.std = np.asarray(config.std or _floats(path, self.metadata, "std")
-                              or IMAGENET_STD[flip], dtype=np.float32)
-        if self.mean.max() > 1.0 or self.std.max() > 1.0:
-            # mmcv/Metric3D configs give 123.675, 58.395...: the image here is in [0, 1].
-            raise ValueError(f"{path}: mean {self.mean.tolist()} / std {self.std.tolist()} are "
-                             "in 0-255 units; give them divided by 255 (the image is scaled "
-                             "to [0, 1] first)")
-        self.channel_order = order
-        if ("input_height" in self.metadata) != ("input_width" in self.metadata):
-            raise ValueError(f"{path}: metadata names one of input_height / input_width "
-                             "without the other; give input_size in the recipe")
-        self._meta_hw = (_meta_int(path, self.metadata, "input_height"),
-                         _meta_int(path, self.metadata, "input_width"))
-        if config.resize == "keep_aspect":
-            if self._fixed_hw is not None and config.layout == "nchw" or (
-                    config.layout == "nhwc" and all(isinstance(d, int) for d in inp.shape[1:3])):
-                raise ValueError(f"{path}: resize: keep_aspect needs a model exported with "
-                                 f"dynamic height/width; this one takes a fixed input "
-                                 f"{inp.shape}: use resize: stretch")
-            if isinstance(config.input_size, tuple | list):
-                raise ValueError(f"{path}: resize: keep_aspect takes one input_size (the "
-                                 f"height; the width follows the image), not "
-                                 f"{list(config.input_size)}")
         self.last_input_hw: tuple[int, int] | None = None
         # Where the image lies in the last input (top, left, height, width): all of it,
         # except in a letterbox.
@@ -317,47 +475,16 @@ class OnnxDepthBackend:
         self.last_focal_factor: float | None = None
         self._warned_round: tuple[int, int] | None = None  # the rounding said in the log
         self.last_timing: dict[str, float] = {}
-        # A timing stand-in (``bench_latency --export``) runs like a real network; say
-        # loudly that its depth is noise, in the log and in ``describe()``.
-        self.warning: str | None = self.metadata.get("warning") or (
-            "random weights: depth is meaningless" if self.metadata.get("weights") == "random"
-            else None)
         if self.warning:
             _log.warning("%s: %s", path, self.warning)
 
     # ------------------------------------------------------------------ sizes
-    @staticmethod
-    def _check_input(path: Path, shape: list[Any], layout: str) -> None:
-        """An image input of rank 4 whose channel axis is where ``layout`` says."""
-        if len(shape) != 4:
-            raise ValueError(f"{path}: input shape {shape}: expected an image batch "
-                             "[1, 3, H, W] (layout: nchw) or [1, H, W, 3] (layout: nhwc)")
-        c_first, c_last = shape[1], shape[3]
-        if layout == "nchw" and c_first != 3 and c_last == 3:
-            raise ValueError(f"{path}: input shape {shape} has its 3 channels last; set "
-                             "layout: nhwc in the depth stage")
-        if layout == "nhwc" and c_last != 3 and c_first == 3:
-            raise ValueError(f"{path}: input shape {shape} has its 3 channels first; set "
-                             "layout: nchw in the depth stage")
-
-    @staticmethod
-    def _fixed_input_hw(shape: list[Any]) -> tuple[int, int] | None:
-        if len(shape) != 4:
-            return None
-        dims = shape[2:4]  # nchw; nhwc is handled in input_hw
-        return (int(dims[0]), int(dims[1])) if all(isinstance(d, int) for d in dims) else None
-
     def input_hw(self, image_hw: tuple[int, int]) -> tuple[int, int]:
         """Network input (height, width) for an image of ``image_hw``."""
         cfg = self.config
-        fixed = self._fixed_hw
-        if cfg.layout == "nhwc":
-            shape = self._image_shape
-            fixed = (int(shape[1]), int(shape[2])) if all(
-                isinstance(d, int) for d in shape[1:3]) else None
+        if self._fixed_hw is not None:
+            return self._fixed_hw  # an input_size other than it was refused at load
         size = cfg.input_size
-        if size is None and fixed is not None:
-            return fixed
         if size is None and self._meta_hw[0] is not None:
             size = self._meta_hw  # type: ignore[assignment]
         if size is None:
@@ -367,7 +494,7 @@ class OnnxDepthBackend:
         if cfg.resize == "keep_aspect":
             h = max(m, int(round(h / m)) * m)
             w = max(m, int(round(h * image_hw[1] / image_hw[0] / m)) * m)
-        elif fixed is None and (h % m or w % m):
+        elif h % m or w % m:
             # A ViT/14 sees only whole patches: the rest of a 480x640 input would be cut off
             # and its output stretched back over the whole image (edges moved by pixels).
             # Said in the log: a network of 16 or 32 px patches needs multiple_of set.
@@ -377,10 +504,6 @@ class OnnxDepthBackend:
                              w, h, rw, rh, m)
                 self._warned_round = (rh, rw)
             h, w = rh, rw
-        if fixed is not None and (h, w) != fixed:
-            raise ValueError(f"{cfg.model}: the model takes a fixed {fixed[1]}x{fixed[0]} input "
-                             f"but the config asks for {w}x{h}; drop 'input_size' or re-export "
-                             "with dynamic height/width")
         return h, w
 
     def placement(self, image_hw: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -457,17 +580,13 @@ class OnnxDepthBackend:
             x = x.transpose(2, 0, 1)
         return np.ascontiguousarray(x[None], dtype=self.input_dtype)
 
-    def _not_depth_message(self, shape: Any) -> str:
-        return (f"{self.config.model}: output {self.config.output_index} "
-                f"({self.output_name!r}) has shape {list(shape)}, not one depth image; the "
-                f"model's outputs are {self._outputs_text}. Set output_index to the depth "
-                "map's")
-
     def postprocess(self, raw: np.ndarray, image_hw: tuple[int, int]) -> np.ndarray:
         """Network output ([1, 1, h, w], [1, h, w] or [h, w]) -> [H, W] float32, NaN invalid."""
         out = _squeezed(raw)
         if not _image_shaped(out.shape, self.last_input_hw):
-            raise ValueError(self._not_depth_message(np.shape(raw)))
+            raise ValueError(not_depth_message(self.config.model, self.config.output_index,
+                                               self.output_name, np.shape(raw),
+                                               self._outputs_text))
         out = out * np.float32(self.config.output_scale)
         return self._to_image(out, self._invalid(out), image_hw)
 
@@ -538,9 +657,7 @@ class OnnxDepthBackend:
         except Exception as e:  # onnxruntime's own exception types, from its C++ core
             raise ValueError(
                 f"{self.config.model}: onnxruntime failed on a {hw[1]}x{hw[0]} input: "
-                f"{str(e).strip()[:400]}. If the network takes only sizes that are multiples "
-                f"of 32 (MiDaS, ZoeDepth) or 16 (DPT-BEiT), set multiple_of (now "
-                f"{self.multiple_of}) or an input_size it takes") from e
+                f"{str(e).strip()[:400]}. {self._failure_hint(str(e))}") from e
         t2 = time.perf_counter()
         values = self.postprocess(raws[0], rgb.shape[:2])
         extra: dict[str, Any] = {}
@@ -561,6 +678,22 @@ class OnnxDepthBackend:
                             "postprocess_s": t3 - t2}
         return DepthPrediction(values, self.kind, latency_s=t2 - t1,
                                extra={"input_hw": hw, **self.last_timing, **extra})
+
+    def _failure_hint(self, error: str) -> str:
+        """What to change after onnxruntime refused an input: its size (``multiple_of``),
+        unless onnxruntime says that axes of the image other than height and width were
+        refused, where a size would not help."""
+        m = _BAD_DIMS.search(error)
+        if m and m.group(1) == self.input_name:
+            axes = {int(a) for a in re.findall(r"index: (\d+)", m.group(2))}
+            spatial = {2, 3} if self.config.layout == "nchw" else {1, 2}
+            if axes and not axes <= spatial:
+                return (f"It refused axes {sorted(axes)} of input {self.input_name!r}, not only "
+                        f"its height and width (layout: {self.config.layout}): the model "
+                        "must take one RGB image")
+        return ("If the network takes only sizes that are multiples of 32 (MiDaS, ZoeDepth) "
+                f"or 16 (DPT-BEiT), set multiple_of (now {self.multiple_of}) or an "
+                "input_size it takes")
 
     def describe(self) -> dict[str, Any]:
         """Settings actually used (for the report and the depth index)."""

@@ -11,9 +11,9 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from toolkit.depth.onnx_backend import (
     OnnxDepthBackend,
     OnnxDepthConfig,
-    folder_model_message,
-    model_file_problem,
+    model_problem,
     positive_input_size,
+    resize_problem,
     settings_problem,
 )
 from toolkit.depth.protocol import DepthKind
@@ -104,6 +104,10 @@ class DepthConfig(StageConfig):
                                    self.confidence_index)
         if problem:
             raise ValueError(problem)
+        problem = None if self.backend == "simulated" else resize_problem(self.resize,
+                                                                          self.input_size)
+        if problem:
+            raise ValueError(problem)
         if self.backend == "dav2s_random":
             try:
                 _input_hw(self.input_size)
@@ -149,17 +153,22 @@ def make_backend(cfg: DepthConfig) -> Any:
         if cfg.output is not None:
             params.setdefault("kind", cfg.output)
         return SimulatedDepthBackend(SimulatedDepthParams(**params))
+    return OnnxDepthBackend(onnx_config(cfg))
+
+
+def onnx_config(cfg: DepthConfig) -> OnnxDepthConfig:
+    """The onnx backend's settings of a depth stage (``backend: onnx``)."""
     if cfg.model is None:
         raise StageError("depth: backend 'onnx' needs 'model' (path to an .onnx file), e.g. "
                          "datasets/models/small-depth.onnx")
-    return OnnxDepthBackend(OnnxDepthConfig(
+    return OnnxDepthConfig(
         model=cfg.model, kind=cfg.output, input_size=cfg.input_size, resize=cfg.resize,
         multiple_of=cfg.multiple_of, interpolation=cfg.interpolation, mean=cfg.mean,
         std=cfg.std, channel_order=cfg.channel_order, layout=cfg.layout,
         output_index=cfg.output_index, output_scale=cfg.output_scale, threads=cfg.threads,
         device=cfg.device, canonical_focal=cfg.canonical_focal, fill=cfg.fill,
         intrinsics_input=cfg.intrinsics_input, confidence_index=cfg.confidence_index,
-        min_confidence=cfg.min_confidence))
+        min_confidence=cfg.min_confidence)
 
 
 class DepthStage(Stage):
@@ -188,13 +197,15 @@ class DepthStage(Stage):
         return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
 
     def input_problems(self) -> list[str]:
-        out = []
-        for p in self.external_inputs():
-            why = folder_model_message(p) if p.is_dir() else (
-                model_file_problem(p) if p.is_file() else None)
-            if why:
-                out.append(why)
-        return out
+        # The model's inputs, outputs and metadata against the settings, as the backend
+        # checks them when it loads the model: a missing depth_kind, an output_index past
+        # the outputs or keep_aspect on a fixed input stopped the run only once the stages
+        # before depth had run.
+        cfg: DepthConfig = self.config  # type: ignore[assignment]
+        if cfg.backend != "onnx" or cfg.model is None:
+            return []
+        problem = model_problem(onnx_config(cfg))
+        return [problem] if problem else []
 
     @staticmethod
     def _random_model(cfg: DepthConfig, ctx: StageContext) -> DepthConfig:
