@@ -27,6 +27,7 @@ from toolkit.io.rosbag import (
     MissingTransformError,
     RosbagOptions,
     camera_info_to_camera,
+    compressed_to_rgb,
     image_to_rgb,
     read_rosbag,
 )
@@ -176,7 +177,8 @@ ODOM_T = "nav_msgs/msg/Odometry"
 
 
 def standard_messages(b: BagBuilder, c: BagContent, *, image="raw", depth=True, tf=True,
-                      info=True, odom=True, encoding="rgb8"):
+                      info=True, odom=True, encoding="rgb8",
+                      compressed_format="rgb8; png compressed bgr8"):
     """(topic, type, bag time, message) of a bag with everything the reader handles."""
     out = []
     if tf:
@@ -194,10 +196,12 @@ def standard_messages(b: BagBuilder, c: BagContent, *, image="raw", depth=True, 
             out.append(("/camera/color/image_raw", IMAGE_T, t + 0.03,
                         b.image(t, np.ascontiguousarray(px), encoding)))
         else:
-            ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            # The payload's channel order is the format's word after 'compressed'.
+            payload = rgb if compressed_format.endswith("rgb8") else rgb[..., ::-1]
+            ok, buf = cv2.imencode(".png", np.ascontiguousarray(payload))
             assert ok
             out.append(("/camera/color/image_raw/compressed", COMP_T, t + 0.03,
-                        b.compressed(t, buf.tobytes(), "rgb8; png compressed bgr8")))
+                        b.compressed(t, buf.tobytes(), compressed_format)))
         if info:
             out.append(("/camera/color/camera_info", INFO_T, t + 0.031, b.camera_info(t)))
     if depth:
@@ -288,9 +292,11 @@ def test_bag_converts_exactly(tmp_path, fmt):
     assert result.plan.dropped == {"no_scan": 0, "no_depth": 0}
 
 
-@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
-def test_compressed_images_and_summary(tmp_path, fmt, caplog):
-    bag, c = make_bag(tmp_path, fmt, image="compressed", depth=False)
+@pytest.mark.parametrize("fmt, compressed_format", [("ros1", "rgb8; png compressed bgr8"),
+                                                    ("mcap", "rgb8; png compressed rgb8")])
+def test_compressed_images_and_summary(tmp_path, fmt, compressed_format, caplog):
+    bag, c = make_bag(tmp_path, fmt, image="compressed", depth=False,
+                      compressed_format=compressed_format)
     with caplog.at_level(logging.INFO, logger="toolkit"):
         rec = read_rosbag(bag)
     table = caplog.text
@@ -301,6 +307,26 @@ def test_compressed_images_and_summary(tmp_path, fmt, caplog):
     for f, rgb in zip(seq.frames, c.images, strict=True):
         assert np.array_equal(f.image, rgb)  # png is lossless
     assert seq.groundtruth is None or seq.groundtruth.depth_paths is None
+
+
+@pytest.mark.parametrize("fmt, payload", [
+    ("rgb8; png compressed bgr8", "bgr"), ("bgr8; png compressed bgr8", "bgr"),
+    ("png", "bgr"), ("rgb8; jpeg compressed rgb8", "rgb"), ("bgr8; png compressed rgb8", "rgb"),
+    ("rgba8; png compressed rgba8", "rgba"), ("bgra8; png compressed bgra8", "bgra")])
+def test_compressed_channel_order_follows_the_format(fmt, payload):
+    """image_transport names the payload's channel order after 'compressed': an 'rgb8'
+    payload was read as BGR, so every frame was stored with red and blue swapped."""
+    rgb = np.zeros((H, W, 3), np.uint8)  # [H, W, 3]
+    rgb[:, : W // 2] = (200, 30, 10)
+    rgb[:, W // 2:] = (10, 60, 220)
+    alpha = np.full((H, W, 1), 255, np.uint8)
+    px = {"rgb": rgb, "bgr": rgb[..., ::-1], "rgba": np.concatenate([rgb, alpha], axis=2),
+          "bgra": np.concatenate([rgb[..., ::-1], alpha], axis=2)}[payload]
+    # PNG whatever the name says: lossless, so the comparison is exact
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(px))
+    assert ok
+    got = compressed_to_rgb(BagBuilder(ros1=False).compressed(0.0, buf.tobytes(), fmt))
+    assert np.array_equal(got, rgb)
 
 
 @pytest.mark.parametrize("encoding", ["bgr8", "mono8"])

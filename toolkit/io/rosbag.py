@@ -414,10 +414,28 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
                        "colour images must be 8-bit")
     if img.ndim == 2:
         return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    # image_transport's subscriber swaps channels only for a payload labelled 'compressed
+    # bgr*'; one labelled 'compressed rgb*' (compressed_publisher's color_space: rgb in
+    # Autoware's image_transport_plugins, jsk's coral_usb) holds RGB and was stored with red
+    # and blue swapped. Unlabelled ('jpeg', 'png' of old publishers): BGR, as OpenCV writes.
+    rgb_order = compressed_format(fmt)[1].startswith("rgb")
     if img.shape[2] == 4:
-        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    # OpenCV decodes to BGR, and image_transport compresses rgb8 images as bgr8.
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return np.ascontiguousarray(img[..., :3]) if rgb_order else \
+            cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    return np.ascontiguousarray(img) if rgb_order else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def compressed_format(fmt: str) -> tuple[str, str]:
+    """(encoding of the image before compression, channel order of the payload) of a
+    ``sensor_msgs/CompressedImage`` format written by image_transport's compressed codec:
+    ``'<encoding>; <codec> compressed <order>'`` ('rgb8; jpeg compressed bgr8'). A mono or
+    Bayer image has no order ('bayer_rggb8; jpeg compressed '); old publishers wrote just
+    'jpeg' or 'png': ('', '')."""
+    enc, sep, rest = fmt.partition(";")
+    if not sep:
+        return "", ""
+    _, word, order = rest.partition("compressed")
+    return enc.strip(), order.strip().lower() if word else ""
 
 
 _PNG = b"\x89PNG\r\n\x1a\n"
