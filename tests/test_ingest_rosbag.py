@@ -309,6 +309,29 @@ def test_compressed_images_and_summary(tmp_path, fmt, compressed_format, caplog)
     assert seq.groundtruth is None or seq.groundtruth.depth_paths is None
 
 
+def _two_colours() -> np.ndarray:
+    """[H, W, 3] RGB: one colour on the left half, another on the right."""
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:, : W // 2] = (200, 30, 10)
+    rgb[:, W // 2:] = (10, 60, 220)
+    return rgb
+
+
+def _mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
+    """[H, W] Bayer mosaic of ``rgb``; ``pattern`` names the 2x2 block row by row, as ROS."""
+    m = np.zeros(rgb.shape[:2], np.uint8)
+    for k, (dy, dx) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1)]):
+        m[dy::2, dx::2] = rgb[dy::2, dx::2, "rgb".index(pattern[k])]
+    return m
+
+
+# Bilinear demosaicing is exact inside a patch of one colour, 2 pixels from its edges.
+INNER = np.ones((H, W), bool)
+INNER[:2] = INNER[-2:] = False
+INNER[:, :2] = INNER[:, -2:] = False
+INNER[:, W // 2 - 2: W // 2 + 2] = False
+
+
 @pytest.mark.parametrize("fmt, payload", [
     ("rgb8; png compressed bgr8", "bgr"), ("bgr8; png compressed bgr8", "bgr"),
     ("png", "bgr"), ("rgb8; jpeg compressed rgb8", "rgb"), ("bgr8; png compressed rgb8", "rgb"),
@@ -316,9 +339,7 @@ def test_compressed_images_and_summary(tmp_path, fmt, compressed_format, caplog)
 def test_compressed_channel_order_follows_the_format(fmt, payload):
     """image_transport names the payload's channel order after 'compressed': an 'rgb8'
     payload was read as BGR, so every frame was stored with red and blue swapped."""
-    rgb = np.zeros((H, W, 3), np.uint8)  # [H, W, 3]
-    rgb[:, : W // 2] = (200, 30, 10)
-    rgb[:, W // 2:] = (10, 60, 220)
+    rgb = _two_colours()
     alpha = np.full((H, W, 1), 255, np.uint8)
     px = {"rgb": rgb, "bgr": rgb[..., ::-1], "rgba": np.concatenate([rgb, alpha], axis=2),
           "bgra": np.concatenate([rgb[..., ::-1], alpha], axis=2)}[payload]
@@ -327,6 +348,63 @@ def test_compressed_channel_order_follows_the_format(fmt, payload):
     assert ok
     got = compressed_to_rgb(BagBuilder(ros1=False).compressed(0.0, buf.tobytes(), fmt))
     assert np.array_equal(got, rgb)
+
+
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_bayer_images_are_demosaiced(pattern):
+    """A raw Bayer image was refused; its image_transport republication ('bayer_rggb8; jpeg
+    compressed ') was stored as a grey copy of the mosaic. OpenCV names the patterns
+    differently from ROS: each is checked against known colours."""
+    rgb = _two_colours()
+    mosaic = _mosaic(rgb, pattern)
+    b = BagBuilder(ros1=True)
+    ok, buf = cv2.imencode(".png", mosaic)
+    assert ok
+    raw = image_to_rgb(b.image(0.0, mosaic, f"bayer_{pattern}8"))
+    packed = compressed_to_rgb(b.compressed(0.0, buf.tobytes(),
+                                            f"bayer_{pattern}8; png compressed "))
+    for got in (raw, packed):
+        assert got.shape == (H, W, 3)
+        assert np.array_equal(got[INNER], rgb[INNER])
+
+
+@pytest.mark.parametrize("streams", ["raw+compressed", "compressed", "raw+colour"])
+def test_a_bayer_camera_bag(tmp_path, streams, caplog):
+    """A Bayer camera's image_raw is demosaiced (lossless, it beats its /compressed), its
+    /compressed alone too; a demosaiced stream beside them (image_proc's image_color) wins."""
+    c = make_content(n_images=3)
+    b = BagBuilder(ros1=True)
+    rgb = _two_colours()
+    mosaic = _mosaic(rgb, "rggb")
+    ok, buf = cv2.imencode(".png", mosaic)
+    assert ok
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/camera/color/image_raw"]
+    for t, colour in zip(c.image_t, c.images, strict=True):
+        if "raw" in streams:
+            msgs.append(("/camera/color/image_raw", IMAGE_T, t + 0.03,
+                         b.image(t, mosaic, "bayer_rggb8")))
+        msgs.append(("/camera/color/image_raw/compressed", COMP_T, t + 0.03,
+                     b.compressed(t, buf.tobytes(), "bayer_rggb8; png compressed ")))
+        if "colour" in streams:
+            msgs.append(("/camera/color/image_color", IMAGE_T, t + 0.03,
+                         b.image(t, colour, "rgb8")))
+    bag = write_bag(tmp_path / "bayer", "ros1", sorted(msgs, key=lambda m: m[2]))
+    with caplog.at_level(logging.INFO, logger="toolkit"):
+        rec = read_rosbag(bag)
+    convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert len(seq.frames) == 3
+    if streams == "raw+colour":
+        assert seq.meta["topics"]["image"] == "/camera/color/image_color"
+        assert "Bayer mosaic topics (/camera/color/image_raw, /camera/color/image_raw/" \
+            "compressed) are passed over" in caplog.text
+        for f, colour in zip(seq.frames, c.images, strict=True):
+            assert np.array_equal(f.image, colour)
+        return
+    topic = "/camera/color/image_raw" + ("" if "raw" in streams else "/compressed")
+    assert seq.meta["topics"]["image"] == topic
+    for f in seq.frames:
+        assert np.array_equal(f.image[INNER], rgb[INNER])
 
 
 @pytest.mark.parametrize("encoding", ["bgr8", "mono8"])

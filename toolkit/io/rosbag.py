@@ -1,7 +1,7 @@
 """ROS 1 bags and ROS 2 bags (sqlite3 or mcap) through ``rosbags``, without ROS.
 
 Reads ``sensor_msgs/LaserScan``, ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8,
-and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
+8-bit Bayer, and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
 ``compressedDepth``), ``sensor_msgs/CameraInfo`` (plumb_bob distortion),
 ``nav_msgs/Odometry`` and ``tf`` / ``tf_static`` into a ``Recording``
 (``toolkit.ingest.recording``) that the ``ingest`` stage streams into a sequence folder.
@@ -64,9 +64,15 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 
-# Encoding -> (bytes per pixel, channels). cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8.
+# Encoding -> channels. cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8.
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1,
-                   "8UC1": 1}
+                   "8UC1": 1, "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1,
+                   "bayer_grbg8": 1}
+# A Bayer mosaic's ROS encoding -> OpenCV's demosaic (bilinear, as cv_bridge converts).
+# ROS names the first 2x2 block row by row; OpenCV names a pattern by the second row's
+# second and third pixels, so ROS rggb is OpenCV's BG (cv_bridge maps them the same way).
+BAYER_TO_RGB = {"bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
+                "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB}
 DEPTH_ENCODINGS = {"16UC1": 2, "32FC1": 4}  # millimetres / metres (REP 118)
 
 
@@ -350,6 +356,8 @@ def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
         raise BagError(f"{where}: field 'encoding' is {enc!r}, which this reader does not "
                        f"decode (colour: {', '.join(COLOR_ENCODINGS)}); {hint}")
     a = _pixels(msg, np.dtype(np.uint8), COLOR_ENCODINGS[enc], where)  # [H, W, C]
+    if enc in BAYER_TO_RGB:
+        return _demosaic(a[..., 0], enc, where)
     if enc in ("rgb8",):
         return np.ascontiguousarray(a)
     if enc in ("bgr8", "8UC3"):
@@ -359,6 +367,14 @@ def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     if enc == "bgra8":
         return np.ascontiguousarray(a[..., 2::-1])
     return np.ascontiguousarray(np.repeat(a, 3, axis=2))  # mono8 / 8UC1
+
+
+def _demosaic(mosaic: np.ndarray, enc: str, where: str) -> np.ndarray:
+    """[H, W, 3] RGB of a [H, W] Bayer mosaic in ROS encoding ``enc``."""
+    if min(mosaic.shape) < 2:
+        raise BagError(f"{where}: a {mosaic.shape[1]}x{mosaic.shape[0]} {enc} image is "
+                       "smaller than one 2x2 Bayer block; the message is corrupt")
+    return cv2.cvtColor(np.ascontiguousarray(mosaic), BAYER_TO_RGB[enc])
 
 
 def image_to_depth(msg: Any, where: str = "depth") -> np.ndarray:
@@ -412,13 +428,18 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     if img.dtype != np.uint8:
         raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
                        "colour images must be 8-bit")
+    enc, order = compressed_format(fmt)
+    if img.ndim == 2 and enc in BAYER_TO_RGB:
+        # image_transport compresses a Bayer camera's mosaic as it is: stored as grey, it
+        # was the raw checkerboard of R, G and B samples.
+        return _demosaic(img, enc, where)
     if img.ndim == 2:
         return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
     # image_transport's subscriber swaps channels only for a payload labelled 'compressed
     # bgr*'; one labelled 'compressed rgb*' (compressed_publisher's color_space: rgb in
     # Autoware's image_transport_plugins, jsk's coral_usb) holds RGB and was stored with red
     # and blue swapped. Unlabelled ('jpeg', 'png' of old publishers): BGR, as OpenCV writes.
-    rgb_order = compressed_format(fmt)[1].startswith("rgb")
+    rgb_order = order.startswith("rgb")
     if img.shape[2] == 4:
         return np.ascontiguousarray(img[..., :3]) if rgb_order else \
             cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
@@ -847,6 +868,7 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     # Sort image topics into colour and depth by their first message.
     peek: dict[str, Any] = {}
     color: list[str] = []
+    bayer: list[str] = []  # mosaics, demosaiced here
     depth: list[str] = []
     other: list[str] = []
     for t in bag.of_type(IMAGE, COMPRESSED):
@@ -855,14 +877,24 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
             continue
         peek[t] = msg
         if bag.topics[t].msgtype == IMAGE:
-            (color if msg.encoding in COLOR_ENCODINGS else depth if msg.encoding in
-             DEPTH_ENCODINGS else other).append(t)
+            enc = str(msg.encoding)
+            (bayer if enc in BAYER_TO_RGB else color if enc in COLOR_ENCODINGS else depth
+             if enc in DEPTH_ENCODINGS else other).append(t)
+        elif "compresseddepth" in str(msg.format).lower():
+            depth.append(t)
         else:
-            (depth if "compresseddepth" in str(msg.format).lower() else color).append(t)
+            (bayer if compressed_format(str(msg.format))[0] in BAYER_TO_RGB
+             else color).append(t)
 
     given, ch.image = _override(bag, "image", topics.image, (IMAGE, COMPRESSED))
     if not given:
-        cands = color or other  # an image in an unknown encoding errors when decoded
+        # A camera driver's (or image_proc's) demosaiced stream beats its own Bayer
+        # mosaic; an image in an unknown encoding errors when decoded.
+        cands = color or bayer or other
+        if color and bayer:
+            ch.notes.append(f"Bayer mosaic topics ({', '.join(bayer)}) are passed over for "
+                            "the colour ones; name one with rosbag.topics.image to "
+                            "demosaic it here")
         raw = {t for t in cands if bag.topics[t].msgtype == IMAGE}
         # image_transport republishes /x as /x/compressed: the raw one is lossless.
         cands = [t for t in cands if not (t.endswith("/compressed") and
