@@ -1102,3 +1102,25 @@ def test_camera_info_is_read_as_a_stream(tmp_path, change, caplog):
         assert np.array_equal(rec.rig.camera.K, K)
         assert f"{len(at) // 2} CameraInfo messages with K all zero (not yet calibrated)" \
             in caplog.text
+
+
+def test_zero_stamped_camera_info_is_no_error(tmp_path):
+    """A static or hand-published camera_info stamps zero. Its stamp only names where the
+    intrinsics change, yet it refused the conversion (even with the intrinsics from a
+    calibration YAML), and the fix offered, 'stamps: bag', re-timed every scan and image."""
+    b = BagBuilder(False)
+    c = make_content()
+    msgs = [m if m[1] != INFO_T else
+            (m[0], m[1], m[2], dataclasses.replace(m[3], header=b.header(0.0, "camera_optical")))
+            for m in standard_messages(b, c, depth=False)]
+    rec = read_rosbag(write_bag(tmp_path / "zero", "sqlite3", msgs))
+    assert np.array_equal(rec.rig.camera.K, K)
+    assert [s.stamp for s in rec.scans] == [ns(t) / 1e9 for t in c.scan_t]  # header stamps
+    assert np.array_equal(rec.frame_stamps, [ns(t) / 1e9 for t in c.image_t])
+    # a change of intrinsics is named by its recording time
+    at = [i for i, m in enumerate(msgs) if m[1] == INFO_T][4]
+    info = msgs[at][3]
+    msgs[at] = (*msgs[at][:3], dataclasses.replace(info, k=np.array(info.k) * 0.5))
+    with pytest.raises(BagError, match=r"field 'K' changes at recording time "
+                       rf"{msgs[at][2]:.6f} s"):
+        read_rosbag(write_bag(tmp_path / "zero_changed", "sqlite3", msgs))

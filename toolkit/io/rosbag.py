@@ -1060,8 +1060,8 @@ class _Index:
     odom_frames: tuple[str, str] = ("odom", "base_link")
     info: Any = None  # the first calibrated CameraInfo (else the first one)
     info_uncalibrated: int = 0  # CameraInfo messages with K all zero before a calibrated one
-    # (stamp ns, field) where a later CameraInfo first differs from ``info``
-    info_changed: tuple[int, str] | None = None
+    # (when, field) where a later CameraInfo first differs from ``info``: "stamp 12.3 s"
+    info_changed: tuple[str, str] | None = None
     tf: TfTree = field(default_factory=TfTree)
     seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
     intensities_dropped: int = 0  # scans whose intensities did not match their ranges
@@ -1075,11 +1075,11 @@ def _camera_info_fields(msg: Any) -> dict[str, np.ndarray]:
             "R": np.asarray(_field(msg, "r", "R"), np.float64)}
 
 
-def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int) -> None:
+def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int, clock: str = "stamp") -> None:
     """Keep the first calibrated CameraInfo; note where a later one differs from it. Only
     the first one was read: a camera calibrated while recording took the uncalibrated
     first message's all-zero K (refused as uncalibrated), and intrinsics changed mid-bag
-    were applied to every frame without a word."""
+    were applied to every frame without a word. ``clock`` names what ``stamp_ns`` is."""
     calibrated = bool(np.any(_field(msg, "k", "K")))
     if idx.info is None or not np.any(_field(idx.info, "k", "K")):  # none calibrated yet
         idx.info_uncalibrated += not calibrated
@@ -1092,7 +1092,7 @@ def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int) -> None:
     for name, value in now.items():
         if value.shape != first[name].shape or not np.allclose(value, first[name],
                                                                rtol=1e-9, atol=1e-9):
-            idx.info_changed = (stamp_ns, name)
+            idx.info_changed = (f"{clock} {stamp_ns / 1e9:.6f} s", name)
             return
 
 
@@ -1119,8 +1119,10 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
         where = f"{bag.name}: topic {topic}"
         # Rates come from the stamps that will be used (recording time for tf).
         t = ns if topic in ch.tf or opts.stamps == "bag" else header_ns(msg)
-        n, first, last = idx.seen.get(topic, (0, t, t))
-        idx.seen[topic] = (n + 1, min(first, t), max(last, t))
+        # A zero CameraInfo stamp is no error (below); its rate is the recording's.
+        rate_t = ns if t == 0 and topic == ch.camera_info else t
+        n, first, last = idx.seen.get(topic, (0, rate_t, rate_t))
+        idx.seen[topic] = (n + 1, min(first, rate_t), max(last, rate_t))
         if topic == ch.scan:
             stamp = _stamp(msg, ns, opts, where)
             # (A default-constructed message, no ranges, holds zeros there: a dropout.)
@@ -1156,7 +1158,13 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             compressed = ch.image_compressed if topic == ch.image else ch.depth_compressed
             s.sizes.append((-1, -1) if compressed else (int(msg.width), int(msg.height)))
         elif topic == ch.camera_info:
-            _note_camera_info(idx, msg, _stamp(msg, ns, opts, where))
+            # Its stamp only names where the intrinsics change: a zero one (a static or
+            # hand-published camera_info) stopped the conversion, even with the intrinsics
+            # from a calibration YAML, and 'stamps: bag' re-timed every scan and image.
+            if t == 0:
+                _note_camera_info(idx, msg, ns, "recording time")
+            else:
+                _note_camera_info(idx, msg, t)
         elif topic == ch.odometry:
             try:
                 T = transform_to_matrix(msg.pose.pose)
@@ -1311,10 +1319,10 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         camera = cal.camera
     elif idx.info is not None:
         if idx.info_changed is not None:
-            t, what = idx.info_changed
+            when, what = idx.info_changed
             raise BagError(
-                f"{bag_name}: topic {ch.camera_info}: field '{what}' changes at stamp "
-                f"{t / 1e9:.6f} s (the camera was calibrated again while recording): one set "
+                f"{bag_name}: topic {ch.camera_info}: field '{what}' changes at {when} "
+                "(the camera was calibrated again while recording): one set "
                 "of intrinsics would be applied to every frame. Fix: give the intrinsics "
                 "that hold for the images in a calibration YAML ('camera: {width, height, "
                 "fx, fy, cx, cy, distortion}', rosbag.calibration), or convert the parts "
