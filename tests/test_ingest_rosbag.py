@@ -1124,3 +1124,51 @@ def test_zero_stamped_camera_info_is_no_error(tmp_path):
     with pytest.raises(BagError, match=r"field 'K' changes at recording time "
                        rf"{msgs[at][2]:.6f} s"):
         read_rosbag(write_bag(tmp_path / "zero_changed", "sqlite3", msgs))
+
+
+def _with_roi(b: BagBuilder, info, x0: int, y0: int, w: int, h: int):
+    roi = b.T["sensor_msgs/msg/RegionOfInterest"](x_offset=x0, y_offset=y0, width=w, height=h,
+                                                  do_rectify=False)
+    return dataclasses.replace(info, roi=roi)
+
+
+def test_region_of_interest_camera(tmp_path):
+    """REP 104: CameraInfo's width, height, K and P are the full sensor's, its roi the window
+    the images hold. The roi was ignored: images of a 16x12 window were refused as being of
+    another camera than their own CameraInfo."""
+    b = BagBuilder(True)
+    info = _with_roi(b, b.camera_info(0.0), 8, 6, 16, 12)
+    cam = camera_info_to_camera(info)
+    full = camera_info_to_camera(b.camera_info(0.0))
+    assert cam.size == (16, 12) and (cam.cx, cam.cy) == (K[0, 2] - 8, K[1, 2] - 6)
+    assert (cam.fx, cam.fy) == (K[0, 0], K[1, 1]) and np.array_equal(cam.dist, D)
+    # a point seen at sensor pixel (u, v) is at (u - 8, v - 6) in the window
+    pts = np.array([[0.1, -0.05, 2.0], [-0.2, 0.1, 3.0]])  # [N, 3]
+    np.testing.assert_allclose(cam.project(pts)[0], full.project(pts)[0] - [8, 6], atol=1e-12)
+    rect = camera_info_to_camera(info, rectified=True)
+    assert rect.size == (16, 12) and (rect.cx, rect.cy) == (K[0, 2] - 8, K[1, 2] - 6)
+    with pytest.raises(BagError, match=r"field 'roi' \(x_offset 20, .* 32x24 sensor"):
+        camera_info_to_camera(_with_roi(b, b.camera_info(0.0), 20, 6, 16, 12))
+
+    # end to end: the window's images, the stream's CameraInfo
+    c = make_content(n_images=3)
+    for i, rgb in enumerate(c.images):
+        c.images[i] = np.ascontiguousarray(rgb[6:18, 8:24])
+    msgs = [m if m[1] != INFO_T else (*m[:3], _with_roi(b, m[3], 8, 6, 16, 12))
+            for m in standard_messages(b, c, depth=False)]
+    convert(read_rosbag(write_bag(tmp_path / "roi", "ros1", msgs)), tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert seq.rig.camera == cam
+    for f, rgb in zip(seq.frames, c.images, strict=True):
+        assert np.array_equal(f.image, rgb)
+    # the window moving while recording changes the intrinsics
+    at = [i for i, m in enumerate(msgs) if m[1] == INFO_T][1]
+    msgs[at] = (*msgs[at][:3], _with_roi(b, msgs[at][3], 9, 6, 16, 12))
+    with pytest.raises(BagError, match="field 'roi' changes at stamp"):
+        read_rosbag(write_bag(tmp_path / "roi_moved", "ros1", msgs))
+    # full-sensor images under a ROI CameraInfo: the size check names the roi
+    msgs = [m if m[1] != INFO_T else (*m[:3], _with_roi(b, m[3], 8, 6, 16, 12))
+            for m in standard_messages(b, make_content(n_images=2), depth=False)]
+    with pytest.raises(BagError, match=r"is 32x24 but the CameraInfo .* says 16x12 \(fields "
+                       r"roi.width/roi.height\)"):
+        read_rosbag(write_bag(tmp_path / "roi_full", "ros1", msgs))

@@ -83,7 +83,8 @@ class IngestStage(Stage):
     # 4: a sequence's exposure gains and house.json kept; TUM beams beyond range_max +inf;
     #    frames kept without a scan counted; a dropped CARMEN line counted once
     # 5: a CompressedImage labelled 'compressed rgb8' keeps its channel order (red and blue
-    #    were swapped); Bayer mosaics demosaiced (a compressed one was stored grey)
+    #    were swapped); Bayer mosaics demosaiced (a compressed one was stored grey);
+    #    a CameraInfo roi gives the window's intrinsics
     version = 5
 
     config: IngestConfig

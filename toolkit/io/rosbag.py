@@ -498,12 +498,26 @@ def _field(msg: Any, *names: str) -> Any:
     raise AttributeError(names[0])
 
 
+def _roi(msg: Any) -> tuple[int, int, int, int]:
+    """(x_offset, y_offset, width, height) of a CameraInfo's ``roi``; all zero: none."""
+    r = msg.roi
+    return int(r.x_offset), int(r.y_offset), int(r.width), int(r.height)
+
+
+def camera_info_size(msg: Any) -> tuple[int, int]:
+    """(width, height) of the images a CameraInfo describes: its ROI's where one is set."""
+    _, _, rw, rh = _roi(msg)
+    return (rw, rh) if rw > 0 and rh > 0 else (int(msg.width), int(msg.height))
+
+
 def camera_info_to_camera(msg: Any, where: str = "camera_info",
                           rectified: bool = False) -> PinholeCamera:
     """A ``PinholeCamera`` from ``sensor_msgs/CameraInfo`` (plumb_bob or 5-term rational).
 
     ``rectified``: the images are already undistorted (``image_rect``), so the projection
-    matrix P holds their intrinsics and there is no distortion.
+    matrix P holds their intrinsics and there is no distortion. A region of interest
+    (``roi``, REP 104: width, height, K and P stay the full sensor's) gives the window's
+    size and moves the principal point by its offsets, as image_geometry does.
     """
     w, h = int(msg.width), int(msg.height)
     K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
@@ -517,6 +531,20 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
     if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
         raise BagError(f"{where}: fields 'binning_x'/'binning_y' are {msg.binning_x}/"
                        f"{msg.binning_y}; binned images are not supported: {fix}")
+    x0, y0, rw, rh = _roi(msg)
+    if (x0, y0, rw, rh) != (0, 0, 0, 0):
+        if rw <= 0 or rh <= 0 or x0 + rw > w or y0 + rh > h:
+            raise BagError(f"{where}: field 'roi' (x_offset {x0}, y_offset {y0}, width "
+                           f"{rw}, height {rh}) is no window of the {w}x{h} sensor "
+                           f"(fields 'width'/'height'); {fix}")
+        # The window's pixel (0, 0) is the sensor's (x0, y0).
+        w, h = rw, rh
+        K = K.copy()
+        P = P.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        P[0, 2] -= x0
+        P[1, 2] -= y0
     if rectified:
         if not np.any(P[:, :3]):
             raise BagError(f"{where}: field 'P' is all zero, but the images are rectified "
@@ -952,13 +980,14 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
         frames = {t: bag.first(t) for t in infos} if not same_ns else {}
         same_cam = [t for t, m in frames.items() if m is not None
                     and _frame(str(m.header.frame_id)) == ch.image_frame
-                    and (int(m.width), int(m.height)) == ch.image_size]
+                    and camera_info_size(m) == ch.image_size]
         ch.camera_info = same_ns[0] if same_ns else (same_cam[0] if len(same_cam) == 1
                                                       else None)
         if ch.camera_info is None and infos:
             ch.notes.append(
                 "CameraInfo topics in the bag: " + ", ".join(
-                    f"{t} (frame {_frame(str(m.header.frame_id))!r}, {m.width}x{m.height})"
+                    f"{t} (frame {_frame(str(m.header.frame_id))!r}, "
+                    f"{'x'.join(map(str, camera_info_size(m)))})"
                     for t, m in frames.items() if m is not None)
                 + f"; none is in the namespace of {ch.image} or of its frame "
                 f"{ch.image_frame!r} and size {ch.image_size}, so none is used. If one "
@@ -1072,7 +1101,8 @@ def _camera_info_fields(msg: Any) -> dict[str, np.ndarray]:
             "K": np.asarray(_field(msg, "k", "K"), np.float64),
             "D": np.asarray(_field(msg, "d", "D"), np.float64),
             "P": np.asarray(_field(msg, "p", "P"), np.float64),
-            "R": np.asarray(_field(msg, "r", "R"), np.float64)}
+            "R": np.asarray(_field(msg, "r", "R"), np.float64),
+            "roi": np.array(_roi(msg), np.float64)}
 
 
 def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int, clock: str = "stamp") -> None:
@@ -1345,13 +1375,16 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         w, h = camera.size
         src = f"calibration file {cal.path}" if cal is not None and cal.camera is not None \
             else f"CameraInfo topic {ch.camera_info}"
+        from_info = cal is None or cal.camera is None
+        fields = "roi.width/roi.height" if from_info and idx.info is not None and \
+            any(_roi(idx.info)) else "width/height"
         # Raw images: every size is known from the index; compressed: the first one.
         for i, size in enumerate([ch.image_size or (w, h), *idx.image.sizes]):
             if size != (-1, -1) and size != (w, h):
                 raise BagError(
                     f"{bag_name}: topic {ch.image}: image {max(i - 1, 0)}"
                     f" is {size[0]}x{size[1]} but the {src} says {w}x{h} (fields "
-                    "width/height). Fix: use the CameraInfo of this image stream "
+                    f"{fields}). Fix: use the CameraInfo of this image stream "
                     "(rosbag.topics.camera_info), or give intrinsics for this image size in "
                     "the calibration YAML ('camera:')")
 
