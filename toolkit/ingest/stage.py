@@ -84,7 +84,8 @@ class IngestStage(Stage):
     #    frames kept without a scan counted; a dropped CARMEN line counted once
     # 5: a CompressedImage labelled 'compressed rgb8' keeps its channel order (red and blue
     #    were swapped); Bayer mosaics demosaiced (a compressed one was stored grey);
-    #    a CameraInfo roi gives the window's intrinsics
+    #    a CameraInfo roi gives the window's intrinsics; scans of the common beam count
+    #    keep their own bearings (they were resampled onto the first one's)
     version = 5
 
     config: IngestConfig
