@@ -27,6 +27,7 @@ from toolkit.io.rosbag import (
     MissingTransformError,
     RosbagOptions,
     camera_info_to_camera,
+    compressed_to_rgb,
     image_to_rgb,
     read_rosbag,
 )
@@ -176,7 +177,8 @@ ODOM_T = "nav_msgs/msg/Odometry"
 
 
 def standard_messages(b: BagBuilder, c: BagContent, *, image="raw", depth=True, tf=True,
-                      info=True, odom=True, encoding="rgb8"):
+                      info=True, odom=True, encoding="rgb8",
+                      compressed_format="rgb8; png compressed bgr8"):
     """(topic, type, bag time, message) of a bag with everything the reader handles."""
     out = []
     if tf:
@@ -194,10 +196,12 @@ def standard_messages(b: BagBuilder, c: BagContent, *, image="raw", depth=True, 
             out.append(("/camera/color/image_raw", IMAGE_T, t + 0.03,
                         b.image(t, np.ascontiguousarray(px), encoding)))
         else:
-            ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            # The payload's channel order is the format's word after 'compressed'.
+            payload = rgb if compressed_format.endswith("rgb8") else rgb[..., ::-1]
+            ok, buf = cv2.imencode(".png", np.ascontiguousarray(payload))
             assert ok
             out.append(("/camera/color/image_raw/compressed", COMP_T, t + 0.03,
-                        b.compressed(t, buf.tobytes(), "rgb8; png compressed bgr8")))
+                        b.compressed(t, buf.tobytes(), compressed_format)))
         if info:
             out.append(("/camera/color/camera_info", INFO_T, t + 0.031, b.camera_info(t)))
     if depth:
@@ -288,9 +292,11 @@ def test_bag_converts_exactly(tmp_path, fmt):
     assert result.plan.dropped == {"no_scan": 0, "no_depth": 0}
 
 
-@pytest.mark.parametrize("fmt", ["ros1", "mcap"])
-def test_compressed_images_and_summary(tmp_path, fmt, caplog):
-    bag, c = make_bag(tmp_path, fmt, image="compressed", depth=False)
+@pytest.mark.parametrize("fmt, compressed_format", [("ros1", "rgb8; png compressed bgr8"),
+                                                    ("mcap", "rgb8; png compressed rgb8")])
+def test_compressed_images_and_summary(tmp_path, fmt, compressed_format, caplog):
+    bag, c = make_bag(tmp_path, fmt, image="compressed", depth=False,
+                      compressed_format=compressed_format)
     with caplog.at_level(logging.INFO, logger="toolkit"):
         rec = read_rosbag(bag)
     table = caplog.text
@@ -301,6 +307,104 @@ def test_compressed_images_and_summary(tmp_path, fmt, caplog):
     for f, rgb in zip(seq.frames, c.images, strict=True):
         assert np.array_equal(f.image, rgb)  # png is lossless
     assert seq.groundtruth is None or seq.groundtruth.depth_paths is None
+
+
+def _two_colours() -> np.ndarray:
+    """[H, W, 3] RGB: one colour on the left half, another on the right."""
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:, : W // 2] = (200, 30, 10)
+    rgb[:, W // 2:] = (10, 60, 220)
+    return rgb
+
+
+def _mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
+    """[H, W] Bayer mosaic of ``rgb``; ``pattern`` names the 2x2 block row by row, as ROS."""
+    m = np.zeros(rgb.shape[:2], np.uint8)
+    for k, (dy, dx) in enumerate([(0, 0), (0, 1), (1, 0), (1, 1)]):
+        m[dy::2, dx::2] = rgb[dy::2, dx::2, "rgb".index(pattern[k])]
+    return m
+
+
+# Bilinear demosaicing is exact inside a patch of one colour, 2 pixels from its edges.
+INNER = np.ones((H, W), bool)
+INNER[:2] = INNER[-2:] = False
+INNER[:, :2] = INNER[:, -2:] = False
+INNER[:, W // 2 - 2: W // 2 + 2] = False
+
+
+@pytest.mark.parametrize("fmt, payload", [
+    ("rgb8; png compressed bgr8", "bgr"), ("bgr8; png compressed bgr8", "bgr"),
+    ("png", "bgr"), ("rgb8; jpeg compressed rgb8", "rgb"), ("bgr8; png compressed rgb8", "rgb"),
+    ("rgba8; png compressed rgba8", "rgba"), ("bgra8; png compressed bgra8", "bgra")])
+def test_compressed_channel_order_follows_the_format(fmt, payload):
+    """image_transport names the payload's channel order after 'compressed': an 'rgb8'
+    payload was read as BGR, so every frame was stored with red and blue swapped."""
+    rgb = _two_colours()
+    alpha = np.full((H, W, 1), 255, np.uint8)
+    px = {"rgb": rgb, "bgr": rgb[..., ::-1], "rgba": np.concatenate([rgb, alpha], axis=2),
+          "bgra": np.concatenate([rgb[..., ::-1], alpha], axis=2)}[payload]
+    # PNG whatever the name says: lossless, so the comparison is exact
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(px))
+    assert ok
+    got = compressed_to_rgb(BagBuilder(ros1=False).compressed(0.0, buf.tobytes(), fmt))
+    assert np.array_equal(got, rgb)
+
+
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_bayer_images_are_demosaiced(pattern):
+    """A raw Bayer image was refused; its image_transport republication ('bayer_rggb8; jpeg
+    compressed ') was stored as a grey copy of the mosaic. OpenCV names the patterns
+    differently from ROS: each is checked against known colours."""
+    rgb = _two_colours()
+    mosaic = _mosaic(rgb, pattern)
+    b = BagBuilder(ros1=True)
+    ok, buf = cv2.imencode(".png", mosaic)
+    assert ok
+    raw = image_to_rgb(b.image(0.0, mosaic, f"bayer_{pattern}8"))
+    packed = compressed_to_rgb(b.compressed(0.0, buf.tobytes(),
+                                            f"bayer_{pattern}8; png compressed "))
+    for got in (raw, packed):
+        assert got.shape == (H, W, 3)
+        assert np.array_equal(got[INNER], rgb[INNER])
+
+
+@pytest.mark.parametrize("streams", ["raw+compressed", "compressed", "raw+colour"])
+def test_a_bayer_camera_bag(tmp_path, streams, caplog):
+    """A Bayer camera's image_raw is demosaiced (lossless, it beats its /compressed), its
+    /compressed alone too; a demosaiced stream beside them (image_proc's image_color) wins."""
+    c = make_content(n_images=3)
+    b = BagBuilder(ros1=True)
+    rgb = _two_colours()
+    mosaic = _mosaic(rgb, "rggb")
+    ok, buf = cv2.imencode(".png", mosaic)
+    assert ok
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/camera/color/image_raw"]
+    for t, colour in zip(c.image_t, c.images, strict=True):
+        if "raw" in streams:
+            msgs.append(("/camera/color/image_raw", IMAGE_T, t + 0.03,
+                         b.image(t, mosaic, "bayer_rggb8")))
+        msgs.append(("/camera/color/image_raw/compressed", COMP_T, t + 0.03,
+                     b.compressed(t, buf.tobytes(), "bayer_rggb8; png compressed ")))
+        if "colour" in streams:
+            msgs.append(("/camera/color/image_color", IMAGE_T, t + 0.03,
+                         b.image(t, colour, "rgb8")))
+    bag = write_bag(tmp_path / "bayer", "ros1", sorted(msgs, key=lambda m: m[2]))
+    with caplog.at_level(logging.INFO, logger="toolkit"):
+        rec = read_rosbag(bag)
+    convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert len(seq.frames) == 3
+    if streams == "raw+colour":
+        assert seq.meta["topics"]["image"] == "/camera/color/image_color"
+        assert "Bayer mosaic topics (/camera/color/image_raw, /camera/color/image_raw/" \
+            "compressed) are passed over" in caplog.text
+        for f, colour in zip(seq.frames, c.images, strict=True):
+            assert np.array_equal(f.image, colour)
+        return
+    topic = "/camera/color/image_raw" + ("" if "raw" in streams else "/compressed")
+    assert seq.meta["topics"]["image"] == topic
+    for f in seq.frames:
+        assert np.array_equal(f.image[INNER], rgb[INNER])
 
 
 @pytest.mark.parametrize("encoding", ["bgr8", "mono8"])
@@ -998,3 +1102,73 @@ def test_camera_info_is_read_as_a_stream(tmp_path, change, caplog):
         assert np.array_equal(rec.rig.camera.K, K)
         assert f"{len(at) // 2} CameraInfo messages with K all zero (not yet calibrated)" \
             in caplog.text
+
+
+def test_zero_stamped_camera_info_is_no_error(tmp_path):
+    """A static or hand-published camera_info stamps zero. Its stamp only names where the
+    intrinsics change, yet it refused the conversion (even with the intrinsics from a
+    calibration YAML), and the fix offered, 'stamps: bag', re-timed every scan and image."""
+    b = BagBuilder(False)
+    c = make_content()
+    msgs = [m if m[1] != INFO_T else
+            (m[0], m[1], m[2], dataclasses.replace(m[3], header=b.header(0.0, "camera_optical")))
+            for m in standard_messages(b, c, depth=False)]
+    rec = read_rosbag(write_bag(tmp_path / "zero", "sqlite3", msgs))
+    assert np.array_equal(rec.rig.camera.K, K)
+    assert [s.stamp for s in rec.scans] == [ns(t) / 1e9 for t in c.scan_t]  # header stamps
+    assert np.array_equal(rec.frame_stamps, [ns(t) / 1e9 for t in c.image_t])
+    # a change of intrinsics is named by its recording time
+    at = [i for i, m in enumerate(msgs) if m[1] == INFO_T][4]
+    info = msgs[at][3]
+    msgs[at] = (*msgs[at][:3], dataclasses.replace(info, k=np.array(info.k) * 0.5))
+    with pytest.raises(BagError, match=r"field 'K' changes at recording time "
+                       rf"{msgs[at][2]:.6f} s"):
+        read_rosbag(write_bag(tmp_path / "zero_changed", "sqlite3", msgs))
+
+
+def _with_roi(b: BagBuilder, info, x0: int, y0: int, w: int, h: int):
+    roi = b.T["sensor_msgs/msg/RegionOfInterest"](x_offset=x0, y_offset=y0, width=w, height=h,
+                                                  do_rectify=False)
+    return dataclasses.replace(info, roi=roi)
+
+
+def test_region_of_interest_camera(tmp_path):
+    """REP 104: CameraInfo's width, height, K and P are the full sensor's, its roi the window
+    the images hold. The roi was ignored: images of a 16x12 window were refused as being of
+    another camera than their own CameraInfo."""
+    b = BagBuilder(True)
+    info = _with_roi(b, b.camera_info(0.0), 8, 6, 16, 12)
+    cam = camera_info_to_camera(info)
+    full = camera_info_to_camera(b.camera_info(0.0))
+    assert cam.size == (16, 12) and (cam.cx, cam.cy) == (K[0, 2] - 8, K[1, 2] - 6)
+    assert (cam.fx, cam.fy) == (K[0, 0], K[1, 1]) and np.array_equal(cam.dist, D)
+    # a point seen at sensor pixel (u, v) is at (u - 8, v - 6) in the window
+    pts = np.array([[0.1, -0.05, 2.0], [-0.2, 0.1, 3.0]])  # [N, 3]
+    np.testing.assert_allclose(cam.project(pts)[0], full.project(pts)[0] - [8, 6], atol=1e-12)
+    rect = camera_info_to_camera(info, rectified=True)
+    assert rect.size == (16, 12) and (rect.cx, rect.cy) == (K[0, 2] - 8, K[1, 2] - 6)
+    with pytest.raises(BagError, match=r"field 'roi' \(x_offset 20, .* 32x24 sensor"):
+        camera_info_to_camera(_with_roi(b, b.camera_info(0.0), 20, 6, 16, 12))
+
+    # end to end: the window's images, the stream's CameraInfo
+    c = make_content(n_images=3)
+    for i, rgb in enumerate(c.images):
+        c.images[i] = np.ascontiguousarray(rgb[6:18, 8:24])
+    msgs = [m if m[1] != INFO_T else (*m[:3], _with_roi(b, m[3], 8, 6, 16, 12))
+            for m in standard_messages(b, c, depth=False)]
+    convert(read_rosbag(write_bag(tmp_path / "roi", "ros1", msgs)), tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert seq.rig.camera == cam
+    for f, rgb in zip(seq.frames, c.images, strict=True):
+        assert np.array_equal(f.image, rgb)
+    # the window moving while recording changes the intrinsics
+    at = [i for i, m in enumerate(msgs) if m[1] == INFO_T][1]
+    msgs[at] = (*msgs[at][:3], _with_roi(b, msgs[at][3], 9, 6, 16, 12))
+    with pytest.raises(BagError, match="field 'roi' changes at stamp"):
+        read_rosbag(write_bag(tmp_path / "roi_moved", "ros1", msgs))
+    # full-sensor images under a ROI CameraInfo: the size check names the roi
+    msgs = [m if m[1] != INFO_T else (*m[:3], _with_roi(b, m[3], 8, 6, 16, 12))
+            for m in standard_messages(b, make_content(n_images=2), depth=False)]
+    with pytest.raises(BagError, match=r"is 32x24 but the CameraInfo .* says 16x12 \(fields "
+                       r"roi.width/roi.height\)"):
+        read_rosbag(write_bag(tmp_path / "roi_full", "ros1", msgs))

@@ -132,7 +132,7 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     start = time.perf_counter()
     scans, resampled = uniform_scans(recording.scans)
     if resampled:
-        log.warning("%d of %d scans had another beam layout and were resampled by nearest "
+        log.warning("%d of %d scans had another beam count and were resampled by nearest "
                     "angle to %d beams", resampled, len(scans), len(scans[0]))
     scan_stamps = np.array([s.stamp for s in scans], dtype=np.float64)
     if len(scan_stamps) > 1 and np.any(np.diff(scan_stamps) <= 0):

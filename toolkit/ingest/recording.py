@@ -89,30 +89,31 @@ def optical_mount(t: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
 
 
 def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
-    """Give every scan the beam count and angles of the most common layout.
+    """Give every scan the most common beam count.
 
-    The sequence format stores scans as one [S, B] array, but cheap lidars (RPLidar and
-    the like) vary the count from turn to turn. Scans of another layout are resampled by
-    nearest angle onto the common one, which never invents a range between two surfaces
+    The sequence format stores scans as one [S, B] array, with each scan's own angle_min,
+    angle_increment and time_increment, but cheap lidars (RPLidar and the like) vary the
+    count from turn to turn. Scans of the common count are kept as they are, whatever
+    their start bearing and step; scans of another count are resampled by nearest bearing
+    onto the first common one's beams, which never invents a range between two surfaces
     (interpolation would). Returns the scans and how many were resampled.
     """
     if not scans:
         return scans, 0
-    def layout(s: LaserScan) -> tuple[int, float, float]:
-        return len(s), round(s.angle_min, 9), round(s.angle_increment, 12)
-
     # A message without beams (drivers send them on start-up and dropouts) becomes a scan
-    # without returns: it must not set the layout, nor be indexed.
-    layouts = Counter(layout(s) for s in scans if len(s))
-    if not layouts:
+    # without returns: it must not set the count, nor be indexed.
+    counts = Counter(len(s) for s in scans if len(s))
+    if not counts:
         raise IngestError(f"all {len(scans)} scans have no beams ('ranges' is empty)")
-    common = layouts.most_common(1)[0][0]
-    ref = next(s for s in scans if layout(s) == common)
+    common = counts.most_common(1)[0][0]
+    ref = next(s for s in scans if len(s) == common)
     target = ref.angles()  # [B]
     out: list[LaserScan] = []
     changed = 0
     for s in scans:
-        if layout(s) == common:  # the format keeps per-scan angles: float noise is fine
+        if len(s) == common:
+            # Resampled onto the reference's bearings, a turn starting 0.45 beam later
+            # was stored rotated by 0.45 beam, and one starting 10 deg later lost 10 deg.
             out.append(s)
             continue
         changed += 1
@@ -121,11 +122,15 @@ def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
                                  ref.angle_min, ref.angle_increment, ref.range_min,
                                  ref.range_max))
             continue
-        src = s.angles()
-        # Nearest source beam of each target angle; beyond the scan's own span: no return.
-        j = np.clip(np.round((target - s.angle_min) / s.angle_increment).astype(np.int64), 0,
-                    len(s) - 1)
-        inside = np.abs(src[j] - target) <= abs(s.angle_increment) / 2 + 1e-9
+        u = (target - s.angle_min) / s.angle_increment  # [B] fractional source beam
+        if abs(s.angle_increment) * len(s) >= 2 * np.pi - 1e-6:
+            # A full turn: bearings before its first beam are its last ones (a turn that
+            # started 10 deg later lost those 10 deg as "outside").
+            u = np.mod(u + 0.5, 2 * np.pi / abs(s.angle_increment)) - 0.5
+        j = np.clip(np.rint(u).astype(np.int64), 0, len(s) - 1)
+        # Nearest source beam of each target bearing; none within half a beam: no return.
+        off = np.angle(np.exp(1j * (s.angles()[j] - target)))  # [B] wrapped to +-pi
+        inside = np.abs(off) <= abs(s.angle_increment) / 2 + 1e-9
         r = np.where(inside, s.ranges[j], np.nan).astype(np.float32)
         inten = None
         if s.intensities is not None:

@@ -82,7 +82,11 @@ class IngestStage(Stage):
     #    images against the rig; a 90-degree one failed the size check)
     # 4: a sequence's exposure gains and house.json kept; TUM beams beyond range_max +inf;
     #    frames kept without a scan counted; a dropped CARMEN line counted once
-    version = 4
+    # 5: a CompressedImage labelled 'compressed rgb8' keeps its channel order (red and blue
+    #    were swapped); Bayer mosaics demosaiced (a compressed one was stored grey);
+    #    a CameraInfo roi gives the window's intrinsics; scans of the common beam count
+    #    keep their own bearings (they were resampled onto the first one's)
+    version = 5
 
     config: IngestConfig
 

@@ -1,7 +1,7 @@
 """ROS 1 bags and ROS 2 bags (sqlite3 or mcap) through ``rosbags``, without ROS.
 
 Reads ``sensor_msgs/LaserScan``, ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8,
-and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
+8-bit Bayer, and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
 ``compressedDepth``), ``sensor_msgs/CameraInfo`` (plumb_bob distortion),
 ``nav_msgs/Odometry`` and ``tf`` / ``tf_static`` into a ``Recording``
 (``toolkit.ingest.recording``) that the ``ingest`` stage streams into a sequence folder.
@@ -64,9 +64,15 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 
-# Encoding -> (bytes per pixel, channels). cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8.
+# Encoding -> channels. cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8.
 COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1,
-                   "8UC1": 1}
+                   "8UC1": 1, "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1,
+                   "bayer_grbg8": 1}
+# A Bayer mosaic's ROS encoding -> OpenCV's demosaic (bilinear, as cv_bridge converts).
+# ROS names the first 2x2 block row by row; OpenCV names a pattern by the second row's
+# second and third pixels, so ROS rggb is OpenCV's BG (cv_bridge maps them the same way).
+BAYER_TO_RGB = {"bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
+                "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB}
 DEPTH_ENCODINGS = {"16UC1": 2, "32FC1": 4}  # millimetres / metres (REP 118)
 
 
@@ -350,6 +356,8 @@ def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
         raise BagError(f"{where}: field 'encoding' is {enc!r}, which this reader does not "
                        f"decode (colour: {', '.join(COLOR_ENCODINGS)}); {hint}")
     a = _pixels(msg, np.dtype(np.uint8), COLOR_ENCODINGS[enc], where)  # [H, W, C]
+    if enc in BAYER_TO_RGB:
+        return _demosaic(a[..., 0], enc, where)
     if enc in ("rgb8",):
         return np.ascontiguousarray(a)
     if enc in ("bgr8", "8UC3"):
@@ -359,6 +367,14 @@ def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     if enc == "bgra8":
         return np.ascontiguousarray(a[..., 2::-1])
     return np.ascontiguousarray(np.repeat(a, 3, axis=2))  # mono8 / 8UC1
+
+
+def _demosaic(mosaic: np.ndarray, enc: str, where: str) -> np.ndarray:
+    """[H, W, 3] RGB of a [H, W] Bayer mosaic in ROS encoding ``enc``."""
+    if min(mosaic.shape) < 2:
+        raise BagError(f"{where}: a {mosaic.shape[1]}x{mosaic.shape[0]} {enc} image is "
+                       "smaller than one 2x2 Bayer block; the message is corrupt")
+    return cv2.cvtColor(np.ascontiguousarray(mosaic), BAYER_TO_RGB[enc])
 
 
 def image_to_depth(msg: Any, where: str = "depth") -> np.ndarray:
@@ -412,12 +428,35 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     if img.dtype != np.uint8:
         raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
                        "colour images must be 8-bit")
+    enc, order = compressed_format(fmt)
+    if img.ndim == 2 and enc in BAYER_TO_RGB:
+        # image_transport compresses a Bayer camera's mosaic as it is: stored as grey, it
+        # was the raw checkerboard of R, G and B samples.
+        return _demosaic(img, enc, where)
     if img.ndim == 2:
         return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    # image_transport's subscriber swaps channels only for a payload labelled 'compressed
+    # bgr*'; one labelled 'compressed rgb*' (compressed_publisher's color_space: rgb in
+    # Autoware's image_transport_plugins, jsk's coral_usb) holds RGB and was stored with red
+    # and blue swapped. Unlabelled ('jpeg', 'png' of old publishers): BGR, as OpenCV writes.
+    rgb_order = order.startswith("rgb")
     if img.shape[2] == 4:
-        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    # OpenCV decodes to BGR, and image_transport compresses rgb8 images as bgr8.
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return np.ascontiguousarray(img[..., :3]) if rgb_order else \
+            cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    return np.ascontiguousarray(img) if rgb_order else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def compressed_format(fmt: str) -> tuple[str, str]:
+    """(encoding of the image before compression, channel order of the payload) of a
+    ``sensor_msgs/CompressedImage`` format written by image_transport's compressed codec:
+    ``'<encoding>; <codec> compressed <order>'`` ('rgb8; jpeg compressed bgr8'). A mono or
+    Bayer image has no order ('bayer_rggb8; jpeg compressed '); old publishers wrote just
+    'jpeg' or 'png': ('', '')."""
+    enc, sep, rest = fmt.partition(";")
+    if not sep:
+        return "", ""
+    _, word, order = rest.partition("compressed")
+    return enc.strip(), order.strip().lower() if word else ""
 
 
 _PNG = b"\x89PNG\r\n\x1a\n"
@@ -459,12 +498,26 @@ def _field(msg: Any, *names: str) -> Any:
     raise AttributeError(names[0])
 
 
+def _roi(msg: Any) -> tuple[int, int, int, int]:
+    """(x_offset, y_offset, width, height) of a CameraInfo's ``roi``; all zero: none."""
+    r = msg.roi
+    return int(r.x_offset), int(r.y_offset), int(r.width), int(r.height)
+
+
+def camera_info_size(msg: Any) -> tuple[int, int]:
+    """(width, height) of the images a CameraInfo describes: its ROI's where one is set."""
+    _, _, rw, rh = _roi(msg)
+    return (rw, rh) if rw > 0 and rh > 0 else (int(msg.width), int(msg.height))
+
+
 def camera_info_to_camera(msg: Any, where: str = "camera_info",
                           rectified: bool = False) -> PinholeCamera:
     """A ``PinholeCamera`` from ``sensor_msgs/CameraInfo`` (plumb_bob or 5-term rational).
 
     ``rectified``: the images are already undistorted (``image_rect``), so the projection
-    matrix P holds their intrinsics and there is no distortion.
+    matrix P holds their intrinsics and there is no distortion. A region of interest
+    (``roi``, REP 104: width, height, K and P stay the full sensor's) gives the window's
+    size and moves the principal point by its offsets, as image_geometry does.
     """
     w, h = int(msg.width), int(msg.height)
     K = np.asarray(_field(msg, "k", "K"), dtype=np.float64).reshape(3, 3)
@@ -478,6 +531,20 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
     if int(msg.binning_x) > 1 or int(msg.binning_y) > 1:
         raise BagError(f"{where}: fields 'binning_x'/'binning_y' are {msg.binning_x}/"
                        f"{msg.binning_y}; binned images are not supported: {fix}")
+    x0, y0, rw, rh = _roi(msg)
+    if (x0, y0, rw, rh) != (0, 0, 0, 0):
+        if rw <= 0 or rh <= 0 or x0 + rw > w or y0 + rh > h:
+            raise BagError(f"{where}: field 'roi' (x_offset {x0}, y_offset {y0}, width "
+                           f"{rw}, height {rh}) is no window of the {w}x{h} sensor "
+                           f"(fields 'width'/'height'); {fix}")
+        # The window's pixel (0, 0) is the sensor's (x0, y0).
+        w, h = rw, rh
+        K = K.copy()
+        P = P.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        P[0, 2] -= x0
+        P[1, 2] -= y0
     if rectified:
         if not np.any(P[:, :3]):
             raise BagError(f"{where}: field 'P' is all zero, but the images are rectified "
@@ -829,6 +896,7 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     # Sort image topics into colour and depth by their first message.
     peek: dict[str, Any] = {}
     color: list[str] = []
+    bayer: list[str] = []  # mosaics, demosaiced here
     depth: list[str] = []
     other: list[str] = []
     for t in bag.of_type(IMAGE, COMPRESSED):
@@ -837,14 +905,24 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
             continue
         peek[t] = msg
         if bag.topics[t].msgtype == IMAGE:
-            (color if msg.encoding in COLOR_ENCODINGS else depth if msg.encoding in
-             DEPTH_ENCODINGS else other).append(t)
+            enc = str(msg.encoding)
+            (bayer if enc in BAYER_TO_RGB else color if enc in COLOR_ENCODINGS else depth
+             if enc in DEPTH_ENCODINGS else other).append(t)
+        elif "compresseddepth" in str(msg.format).lower():
+            depth.append(t)
         else:
-            (depth if "compresseddepth" in str(msg.format).lower() else color).append(t)
+            (bayer if compressed_format(str(msg.format))[0] in BAYER_TO_RGB
+             else color).append(t)
 
     given, ch.image = _override(bag, "image", topics.image, (IMAGE, COMPRESSED))
     if not given:
-        cands = color or other  # an image in an unknown encoding errors when decoded
+        # A camera driver's (or image_proc's) demosaiced stream beats its own Bayer
+        # mosaic; an image in an unknown encoding errors when decoded.
+        cands = color or bayer or other
+        if color and bayer:
+            ch.notes.append(f"Bayer mosaic topics ({', '.join(bayer)}) are passed over for "
+                            "the colour ones; name one with rosbag.topics.image to "
+                            "demosaic it here")
         raw = {t for t in cands if bag.topics[t].msgtype == IMAGE}
         # image_transport republishes /x as /x/compressed: the raw one is lossless.
         cands = [t for t in cands if not (t.endswith("/compressed") and
@@ -902,13 +980,14 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
         frames = {t: bag.first(t) for t in infos} if not same_ns else {}
         same_cam = [t for t, m in frames.items() if m is not None
                     and _frame(str(m.header.frame_id)) == ch.image_frame
-                    and (int(m.width), int(m.height)) == ch.image_size]
+                    and camera_info_size(m) == ch.image_size]
         ch.camera_info = same_ns[0] if same_ns else (same_cam[0] if len(same_cam) == 1
                                                       else None)
         if ch.camera_info is None and infos:
             ch.notes.append(
                 "CameraInfo topics in the bag: " + ", ".join(
-                    f"{t} (frame {_frame(str(m.header.frame_id))!r}, {m.width}x{m.height})"
+                    f"{t} (frame {_frame(str(m.header.frame_id))!r}, "
+                    f"{'x'.join(map(str, camera_info_size(m)))})"
                     for t, m in frames.items() if m is not None)
                 + f"; none is in the namespace of {ch.image} or of its frame "
                 f"{ch.image_frame!r} and size {ch.image_size}, so none is used. If one "
@@ -1010,8 +1089,8 @@ class _Index:
     odom_frames: tuple[str, str] = ("odom", "base_link")
     info: Any = None  # the first calibrated CameraInfo (else the first one)
     info_uncalibrated: int = 0  # CameraInfo messages with K all zero before a calibrated one
-    # (stamp ns, field) where a later CameraInfo first differs from ``info``
-    info_changed: tuple[int, str] | None = None
+    # (when, field) where a later CameraInfo first differs from ``info``: "stamp 12.3 s"
+    info_changed: tuple[str, str] | None = None
     tf: TfTree = field(default_factory=TfTree)
     seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
     intensities_dropped: int = 0  # scans whose intensities did not match their ranges
@@ -1022,14 +1101,15 @@ def _camera_info_fields(msg: Any) -> dict[str, np.ndarray]:
             "K": np.asarray(_field(msg, "k", "K"), np.float64),
             "D": np.asarray(_field(msg, "d", "D"), np.float64),
             "P": np.asarray(_field(msg, "p", "P"), np.float64),
-            "R": np.asarray(_field(msg, "r", "R"), np.float64)}
+            "R": np.asarray(_field(msg, "r", "R"), np.float64),
+            "roi": np.array(_roi(msg), np.float64)}
 
 
-def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int) -> None:
+def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int, clock: str = "stamp") -> None:
     """Keep the first calibrated CameraInfo; note where a later one differs from it. Only
     the first one was read: a camera calibrated while recording took the uncalibrated
     first message's all-zero K (refused as uncalibrated), and intrinsics changed mid-bag
-    were applied to every frame without a word."""
+    were applied to every frame without a word. ``clock`` names what ``stamp_ns`` is."""
     calibrated = bool(np.any(_field(msg, "k", "K")))
     if idx.info is None or not np.any(_field(idx.info, "k", "K")):  # none calibrated yet
         idx.info_uncalibrated += not calibrated
@@ -1042,7 +1122,7 @@ def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int) -> None:
     for name, value in now.items():
         if value.shape != first[name].shape or not np.allclose(value, first[name],
                                                                rtol=1e-9, atol=1e-9):
-            idx.info_changed = (stamp_ns, name)
+            idx.info_changed = (f"{clock} {stamp_ns / 1e9:.6f} s", name)
             return
 
 
@@ -1069,8 +1149,10 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
         where = f"{bag.name}: topic {topic}"
         # Rates come from the stamps that will be used (recording time for tf).
         t = ns if topic in ch.tf or opts.stamps == "bag" else header_ns(msg)
-        n, first, last = idx.seen.get(topic, (0, t, t))
-        idx.seen[topic] = (n + 1, min(first, t), max(last, t))
+        # A zero CameraInfo stamp is no error (below); its rate is the recording's.
+        rate_t = ns if t == 0 and topic == ch.camera_info else t
+        n, first, last = idx.seen.get(topic, (0, rate_t, rate_t))
+        idx.seen[topic] = (n + 1, min(first, rate_t), max(last, rate_t))
         if topic == ch.scan:
             stamp = _stamp(msg, ns, opts, where)
             # (A default-constructed message, no ranges, holds zeros there: a dropout.)
@@ -1106,7 +1188,13 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             compressed = ch.image_compressed if topic == ch.image else ch.depth_compressed
             s.sizes.append((-1, -1) if compressed else (int(msg.width), int(msg.height)))
         elif topic == ch.camera_info:
-            _note_camera_info(idx, msg, _stamp(msg, ns, opts, where))
+            # Its stamp only names where the intrinsics change: a zero one (a static or
+            # hand-published camera_info) stopped the conversion, even with the intrinsics
+            # from a calibration YAML, and 'stamps: bag' re-timed every scan and image.
+            if t == 0:
+                _note_camera_info(idx, msg, ns, "recording time")
+            else:
+                _note_camera_info(idx, msg, t)
         elif topic == ch.odometry:
             try:
                 T = transform_to_matrix(msg.pose.pose)
@@ -1261,10 +1349,10 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         camera = cal.camera
     elif idx.info is not None:
         if idx.info_changed is not None:
-            t, what = idx.info_changed
+            when, what = idx.info_changed
             raise BagError(
-                f"{bag_name}: topic {ch.camera_info}: field '{what}' changes at stamp "
-                f"{t / 1e9:.6f} s (the camera was calibrated again while recording): one set "
+                f"{bag_name}: topic {ch.camera_info}: field '{what}' changes at {when} "
+                "(the camera was calibrated again while recording): one set "
                 "of intrinsics would be applied to every frame. Fix: give the intrinsics "
                 "that hold for the images in a calibration YAML ('camera: {width, height, "
                 "fx, fy, cx, cy, distortion}', rosbag.calibration), or convert the parts "
@@ -1287,13 +1375,16 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         w, h = camera.size
         src = f"calibration file {cal.path}" if cal is not None and cal.camera is not None \
             else f"CameraInfo topic {ch.camera_info}"
+        from_info = cal is None or cal.camera is None
+        fields = "roi.width/roi.height" if from_info and idx.info is not None and \
+            any(_roi(idx.info)) else "width/height"
         # Raw images: every size is known from the index; compressed: the first one.
         for i, size in enumerate([ch.image_size or (w, h), *idx.image.sizes]):
             if size != (-1, -1) and size != (w, h):
                 raise BagError(
                     f"{bag_name}: topic {ch.image}: image {max(i - 1, 0)}"
                     f" is {size[0]}x{size[1]} but the {src} says {w}x{h} (fields "
-                    "width/height). Fix: use the CameraInfo of this image stream "
+                    f"{fields}). Fix: use the CameraInfo of this image stream "
                     "(rosbag.topics.camera_info), or give intrinsics for this image size in "
                     "the calibration YAML ('camera:')")
 
