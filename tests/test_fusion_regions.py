@@ -157,3 +157,19 @@ def test_a_wall_across_a_full_scans_seam_is_one_run() -> None:
     assert len(runs) == 1 and len(runs[0]) == 8
     # Beams that do not cross the seam keep their order and spacing.
     np.testing.assert_array_equal(np.diff(seam_free_beams(np.arange(10, 20), 360)), 1)
+
+
+def test_a_passing_person_the_camera_no_longer_sees_leaves_the_wall_alone() -> None:
+    """The lidar hit a person 2.5 m away (11 beams) whom the camera, a few tens of ms
+    later, no longer sees there: it sees the wall 4 m away. The region drawn around those
+    pairs is the wall, and the wall's own pairs agree with its depth: it keeps it (the
+    pass had put the whole wall at 2.5 m)."""
+    wall: Rect = (0, 4.0, (-10.0, 10.0), (0.0, 3.0))
+    truth, which = render([FLOOR, wall])
+    person: Rect = (0, 2.5, (0.10, 0.35), (0.0, 0.9))
+    px, z, pc, sb = lidar([FLOOR, wall, person])
+    assert (z < 3.0).sum() >= RefineOptions().region_min_beams  # a run on the person
+    out, info = refiner().refine(truth, level_camera(), np.eye(4), px, z, pc, sb)
+    assert info.applied and info.regions == 0
+    w = which == 1
+    assert np.max(np.abs(np.log(out[w] / truth[w]))) < 0.01

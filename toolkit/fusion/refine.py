@@ -27,7 +27,9 @@ within ``region_band`` of its depth (log), the correction tapering to nothing at
 A lidar farther than the prediction is believed only through an opening (the region's left
 and right neighbours, each side on its own, nearer than it; a region at the image's border
 is none): a 2D lidar passes under sofas and beds the camera above it sees, and those
-pairs, too, agree with each other.
+pairs, too, agree with each other. A region is left alone, too, when at least as many
+other lidar pairs on it agree with its depth as it is as the run has beams: the run then
+hit something in front of the surface the camera sees there (a person who has moved on).
 """
 
 from __future__ import annotations
@@ -288,6 +290,16 @@ def correct_regions(depth: np.ndarray, px: np.ndarray, z: np.ndarray, points_cam
             continue
         if med > 0 and not through_opening(L, region, level, o.region_opening, reach):
             continue
+        # The region is drawn at the depth as it is, not at the run's: a short run on
+        # something the camera no longer sees there (a passing person's leg, the scan a
+        # few tens of ms off the image) lay on the wall behind it and rescaled all of it
+        # (a person 2.5 m away put a 4 m wall at 2.5 m). The other pairs on the region
+        # outvote the run when as many of them agree with the depth as it is.
+        others = region[rows, cols]  # [N]
+        others[run] = False
+        with np.errstate(invalid="ignore"):
+            if np.count_nonzero(others & (np.abs(rho) < o.gate_final)) >= len(run):
+                continue
         taper = np.clip(1.0 - np.abs(L[region] - level) / o.region_band, 0.0, 1.0)
         out[region] = out[region] * np.exp(med * taper).astype(out.dtype)
         done |= region
