@@ -206,3 +206,43 @@ def test_consensus_measures_the_distance_to_the_surface_not_to_its_nearest_sampl
         for off, dropped in ((0.0, False), (0.025, False), (0.04, True), (0.06, True)):
             got = surface.off_surface(on_wall + off * unit, 0.03)
             assert got.all() if dropped else not got.any(), (voxel, off, got.mean())
+
+
+def test_consensus_keeps_both_faces_of_a_wall_seen_from_both_sides() -> None:
+    """A 10 cm wall (a door, an interior wall) 2 m from ten views on one side and five on
+    the other: each view writes "inside" 24 cm behind the face it sees, across the wall.
+    In one shared volume both faces were dropped whole (the crossings ended up in free
+    space 10 cm before and 14 cm behind them); with a volume per heading both are kept.
+    A view 10 % off among the ten is still dropped."""
+    from toolkit.fusion.consensus import ConsensusSurface
+
+    cam = PinholeCamera.from_fov(320, 240, 70.0)
+    front, back = 2.013, 2.113  # the faces' x, off the 4 cm grid
+
+    def pose(x: float, y: float, z: float, plus_x: bool) -> np.ndarray:
+        T = np.eye(4)  # optical z along +x or -x, image y down (-z)
+        T[:3, :3] = np.stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]] if plus_x else
+                             [[0, 1, 0], [0, 0, -1], [-1, 0, 0]], 1)
+        T[:3, 3] = [x, y, z]
+        return T
+
+    rng = np.random.default_rng(0)
+    yz = rng.uniform([-0.8, 0.2], [0.8, 1.3], (2000, 2))
+    faces = [np.column_stack([np.full(len(yz), x), yz]) for x in (front, back)]
+    for bins, dropped in ((1, 1.0), (4, 0.0)):
+        surface = ConsensusSurface(cam, 0.04, 6.0, 6.0, 2, direction_bins=bins)
+        for k in range(15):
+            plus_x = k < 10
+            x = front - 2.0 - 0.3 * rng.random() if plus_x else back + 2.0 + 0.3 * rng.random()
+            T = pose(x, rng.uniform(-0.3, 0.3), rng.uniform(0.5, 1.0), plus_x)
+            surface.integrate(np.full((240, 320), abs((front if plus_x else back) - x),
+                                      np.float32), T)
+        for f in faces:
+            assert abs(surface.off_surface(f, 0.03).mean() - dropped) < 0.01, (bins, f[0, 0])
+    # The bad view: 10 % too near, among the ten of the front face.
+    x = front - 2.0
+    bad = np.column_stack([np.full(len(yz), x + 0.9 * (front - x)), yz])
+    surface.integrate(np.full((240, 320), 0.9 * (front - x), np.float32),
+                      pose(x, 0.0, 0.75, True))
+    assert surface.off_surface(bad, 0.03).all()
+    assert not surface.off_surface(faces[0], 0.03).any()

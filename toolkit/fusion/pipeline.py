@@ -141,6 +141,9 @@ class FusionConfig(BaseModel):
     consensus_trunc_voxels: float = Field(6.0, gt=0)
     consensus_downsample: int = Field(2, ge=1)
     consensus_every: int = Field(1, ge=1)
+    # One consensus volume per bin of the camera's heading: views of a surface's other
+    # side (a 10 cm wall, a door) vote "inside" on it (consensus.py); 1: one volume
+    consensus_direction_bins: int = Field(4, ge=1)
     outlier_neighbors: int = 20  # statistical outlier removal; 0 disables it
     outlier_std_ratio: float = 2.0
     outlier_voxel_m: float = 0.06  # cells the outlier test runs on (<= voxel size: voxels)
@@ -399,7 +402,8 @@ class Fusion:
         if config.consensus:
             self.consensus = ConsensusSurface(
                 self.camera, config.consensus_voxel_m, config.consensus_trunc_voxels,
-                config.max_depth_m, config.consensus_downsample)
+                config.max_depth_m, config.consensus_downsample,
+                config.consensus_direction_bins)
         self.views = CarveViews(views_dir)  # frame -> strided scaled depth
         self.beam_dynamic: list[np.ndarray] = []
         self._dyn_xy: list[np.ndarray] = []
