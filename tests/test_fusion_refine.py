@@ -246,3 +246,19 @@ def test_consensus_keeps_both_faces_of_a_wall_seen_from_both_sides() -> None:
                       pose(x, 0.0, 0.75, True))
     assert surface.off_surface(bad, 0.03).all()
     assert not surface.off_surface(faces[0], 0.03).any()
+
+
+def test_max_columns_is_a_maximum() -> None:
+    """A wall 4 m ahead hit by 120-400 lidar points: never more columns than 120 (121-239
+    points all had one, 240 half as many), and never fewer than half of them."""
+    T = camera_pose(0.0)
+    refiner = DepthRefiner(CAM, RefineOptions(max_columns=120), floor_height_m=0.0)
+    T_cw = np.linalg.inv(T)
+
+    def anchors(n: int) -> int:
+        pw = np.column_stack([np.full(n, 4.0), np.linspace(-3.0, 3.0, n), np.full(n, 0.25)])
+        return len(refiner.column_anchors(pw @ T_cw[:3, :3].T + T_cw[:3, 3], T, np.eye(4))[1])
+
+    full = anchors(120)  # one column per point, all of the same height here
+    for n in (121, 200, 239, 240, 400):
+        assert full / 2 <= anchors(n) <= full, n

@@ -347,7 +347,9 @@ class DepthRefiner:
         o = self.opts
         if len(points_cam) == 0 or o.column_top_m <= 0:
             return np.zeros((0, 2), np.int64), np.zeros(0)
-        step = max(1, len(points_cam) // o.max_columns)
+        # Rounded up: a maximum (floor division let 121-239 points all have one, twice
+        # the anchors of 240)
+        step = max(1, -(-len(points_cam) // o.max_columns))
         pc = points_cam[::step]  # [C, 3]
         R_cw = T_world_camera[:3, :3].T
         up = R_cw @ T_world_base[:3, 2]  # base z in the camera frame
