@@ -173,3 +173,45 @@ def test_a_passing_person_the_camera_no_longer_sees_leaves_the_wall_alone() -> N
     assert info.applied and info.regions == 0
     w = which == 1
     assert np.max(np.abs(np.log(out[w] / truth[w]))) < 0.01
+
+
+def test_a_far_wall_turned_from_the_camera_is_put_back_whole() -> None:
+    """The doorway scene with the far wall turned 20 / 45 deg about the vertical: its
+    depths span 0.24 / 0.69 in log, more than the band about the run's median. Spanning
+    the run's own depths, the whole wall is put back (it kept 0.18 of its 0.43 log error
+    at 20 deg, and all of it at 45 deg, where no region was rescaled)."""
+    T = level_camera()
+    rays = CAM.pixel_rays().reshape(-1, 3) @ T[:3, :3].T
+    ang = np.radians(np.arange(-50.0, 50.0, 0.5))
+    beams = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+    origin = np.array([0.0, 0.0, LIDAR_HEIGHT_M])
+    T_cw = np.linalg.inv(T)
+    for turn in (20.0, 45.0):
+        n = np.array([np.cos(np.radians(turn)), np.sin(np.radians(turn)), 0.0])
+
+        def hit(o: np.ndarray, d: np.ndarray, n: np.ndarray = n) -> tuple[
+                np.ndarray, np.ndarray, np.ndarray]:
+            """Distances along rays d [N, 3] from o, whether on the far wall [N], and
+            whether on the floor [N]."""
+            t, which = cast(o, d, [FLOOR, *NEAR_WALL])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tf = (5.0 * n[0] - n @ o) / (d @ n)  # the plane through (5, 0, z)
+            far = (tf > 0) & (tf < t) & ((o + tf[:, None] * d)[:, 2] < 3.0)
+            return np.where(far, tf, t), far, (which == 0) & ~far
+
+        t, far, floor = hit(T[:3, 3], rays)
+        truth = t.reshape(CAM.height, CAM.width).astype(np.float32)
+        far = far.reshape(CAM.height, CAM.width)
+        beyond = far | (floor.reshape(far.shape) & (truth > 1.6))  # the far room
+        pred = np.where(beyond, truth * 0.65, truth).astype(np.float32)
+        r, _, _ = hit(origin, beams)
+        ok = np.isfinite(r)
+        pc = (origin + r[ok, None] * beams[ok]) @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv, z = CAM.project(pc)
+        keep = (z > 0) & CAM.in_image(uv)
+        sb = np.stack([np.zeros(keep.sum(), int), np.flatnonzero(ok)[keep]], 1)
+        out, info = refiner().refine(pred, T, np.eye(4), np.rint(uv[keep]).astype(np.int64),
+                                     z[keep], pc[keep], sb)
+        assert info.regions == 1, turn
+        err = np.abs(np.log(out[far] / truth[far]))
+        assert np.median(err) < 0.01 and np.percentile(err, 90) < 0.03, (turn, np.median(err))

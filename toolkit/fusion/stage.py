@@ -358,7 +358,8 @@ class FuseStage(Stage):
     # 10: the shape correction leaves out the pairs on moving obstacles, and a region
     #    whose other pairs agree with its depth is not rescaled (a passing person moved
     #    the wall behind); one consensus volume per camera heading (both faces of a
-    #    10 cm wall seen from both sides were dropped); max_columns a maximum (rounded up)
+    #    10 cm wall seen from both sides were dropped); max_columns a maximum (rounded up);
+    #    a region spans the depths its run covers (a far wall turned away kept its error)
     version = 10
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
