@@ -355,7 +355,9 @@ class FuseStage(Stage):
     #    clustered's refit needs its own inliers to spread (a wall gets the scale alone);
     #    ratio's gate narrows to 3 robust sigmas of each frame's ratios; the map metrics'
     #    alignment fits on the frames the ground truth covers, no end slack
-    version = 9
+    # 10: the lidar carves only cells some scan has hit (static tops just above or below
+    #    the scan plane were removed)
+    version = 10
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
