@@ -356,7 +356,8 @@ class FuseStage(Stage):
     #    ratio's gate narrows to 3 robust sigmas of each frame's ratios; the map metrics'
     #    alignment fits on the frames the ground truth covers, no end slack
     # 10: the lidar carves only cells some scan has hit (static tops just above or below
-    #    the scan plane were removed)
+    #    the scan plane were removed); an exposure cell with a dark or clipped pixel is
+    #    no observation (gains were compressed on bright walls)
     version = 10
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
