@@ -3,7 +3,10 @@
 A point left by a person who walked on is in free space later: a later depth image or
 lidar scan sees *through* it, to the wall behind. ``SeeThroughCounter`` counts, per map
 voxel, the views that see through it and the views that see it where it is; voxels seen
-through often enough are removed. A static voxel occluded by a person is not affected:
+through often enough are removed: by at least ``min_free`` views and ``free_ratio`` of
+those that test it, counted over the whole drive. It is a majority rule, so an object
+present for most of the time its place was seen (a person standing still, then walking
+off; a door opened late) stays. A static voxel occluded by a person is not affected:
 the ray stops *in front* of it, which is occlusion, not free space. The lidar clears only
 what some scan has hit: its beams pass over a chest top or under a table top near the scan
 plane without ever seeing them.
