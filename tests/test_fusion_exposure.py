@@ -167,14 +167,41 @@ def test_edge_medians_match_a_two_key_sort_for_any_difference() -> None:
     assert np.isfinite(e2.diff).all()
 
 
-def test_cells_skip_dark_and_clipped_pixels() -> None:
-    pts = np.array([[0.01, 0.01, 0.01]] * 6 + [[0.51, 0.01, 0.01]] * 3, np.float32)
-    col = np.array([[100, 50, 25]] * 4 + [[255, 50, 25], [3, 50, 25]] + [[80, 80, 80]] * 3,
-                   np.uint8)
+def test_cells_with_a_dark_or_clipped_pixel_are_dropped_whole() -> None:
+    pts = np.array([[0.01, 0.01, 0.01]] * 6 + [[0.51, 0.01, 0.01]] * 4
+                   + [[1.01, 0.01, 0.01]] * 5, np.float32)
+    col = np.array([[100, 50, 25]] * 4 + [[255, 50, 25], [90, 50, 25]]
+                   + [[80, 80, 80]] * 3 + [[80, 3, 80]] + [[60, 70, 80]] * 5, np.uint8)
     keys, log_rgb, count = cell_observations(pts, col, np.array([0.0, -3.0, 1.0]),
                                              ExposureOptions(min_points=4))
-    assert len(keys) == 1 and count.tolist() == [4]  # the second cell has 3 usable pixels
-    assert np.exp(log_rgb[0]) == pytest.approx([100, 50, 25], rel=1e-5)
+    # One clipped and one dark pixel drop their cells; the third is whole.
+    assert len(keys) == 1 and count.tolist() == [5]
+    assert np.exp(log_rgb[0]) == pytest.approx([60, 70, 80], rel=1e-5)
+
+
+def test_gains_are_unbiased_on_mostly_white_walls() -> None:
+    """40 frames at gains 0.7-1.3 all seeing 300 textured cells (+-20 % per pixel), 70 %
+    of them white paint (base 200-225) that clips in the bright frames. With the clipped
+    pixels dropped one by one a cell's mean in a bright frame lost its brightest pixels,
+    compressing the gains: 0.88 % RMS / 2.3 % max off. Whole cells: 0.18 / 0.35 %."""
+    rng = np.random.default_rng(0)
+    opts = ExposureOptions()
+    n_cells, per = 300, 16
+    cx = np.repeat(np.arange(n_cells), per)  # [N] cell of each pixel
+    pts = np.c_[np.full(len(cx), 3.0),
+                (cx % 30) * 0.1 + 0.05 + rng.uniform(-0.04, 0.04, len(cx)),
+                (cx // 30) * 0.1 + 0.05 + rng.uniform(-0.04, 0.04, len(cx))]  # [N, 3]
+    base = np.where(np.arange(n_cells) % 10 < 7, rng.uniform(200, 225, n_cells),
+                    rng.uniform(60, 180, n_cells))
+    albedo = base[cx][:, None] * rng.uniform(0.8, 1.2, (len(cx), 3))  # [N, 3]
+    true = np.exp(np.linspace(np.log(0.7), np.log(1.3), 40))[rng.permutation(40)]
+    obs = ExposureObservations()
+    for f, g in enumerate(true):
+        col = np.clip(np.rint(albedo * g), 0, 255).astype(np.uint8)
+        obs.add(f, *cell_observations(pts, col, np.zeros(3), opts)[:2])
+    sol = solve_gains(gain_edges(*obs.arrays(), opts), len(true), opts)
+    err = gain_error(sol.gains, true)
+    assert err["gain_error_rms_pct"] < 0.25 and err["gain_error_max_pct"] < 0.6
 
 
 def test_the_two_sides_of_a_thin_wall_are_different_cells() -> None:

@@ -516,8 +516,8 @@ def test_lidar_carving_counts_every_voxel_in_reach_and_only_those() -> None:
         free += near & (r < reach - opts.lidar_margin_m)
         hit += ok & (np.abs(r - rb) <= opts.lidar_margin_m)
     assert free.sum() > 300 and hit.sum() > 100
-    np.testing.assert_array_equal(counter.free, free)
-    np.testing.assert_array_equal(counter.hit, hit)
+    np.testing.assert_array_equal(counter.lidar_free, free)
+    np.testing.assert_array_equal(counter.lidar_hit, hit)
 
 
 def test_sampling_values_not_at_the_image_size_is_refused() -> None:
@@ -562,6 +562,52 @@ def test_pair_edges_are_tested_on_depth_for_a_disparity() -> None:
     assert edge_pairs(z.astype(np.float32), lp, 0.06).sum() == 0
 
 
+def test_lidar_carving_keeps_tops_just_off_the_scan_plane() -> None:
+    """A chest top 3 cm below the scan plane and a table top 2 cm above it, nothing moving:
+    the beams pass over / under them to the walls and no scan ever hits them, so every scan
+    'saw through' them and both were carved (all 2 x 323 cells). The lidar clears only
+    cells some scan has hit: a leg there for the first three scans still goes."""
+    from toolkit.fusion.dynamic import SeeThroughCounter
+
+    n = 360
+    angles = -np.pi + np.arange(n) * 2 * np.pi / n
+    directions = np.stack([np.cos(angles), np.sin(angles)], 1)  # [B, 2]
+    z_laser = 0.30
+
+    def cast(x: float, y: float, leg: np.ndarray | None) -> np.ndarray:
+        """Ranges from (x, y) to the walls of a 8 x 8 m room (and a leg's circle)."""
+        t = np.full(n, np.inf)
+        for axis, val in ((0, -4.0), (0, 4.0), (1, -4.0), (1, 4.0)):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tt = (val - (x, y)[axis]) / directions[:, axis]
+            t = np.where((tt > 0) & (tt < t), tt, t)
+        if leg is not None:  # a 10 cm leg: ray / circle
+            oc = np.array([x, y]) - leg
+            bq = directions @ oc
+            disc = bq * bq - (oc @ oc - 0.05 ** 2)
+            tl = -bq - np.sqrt(np.maximum(disc, 0))
+            t = np.where((disc > 0) & (tl > 0) & (tl < t), tl, t)
+        return t.astype(np.float32)
+
+    g = np.arange(0.03, 1.14, 0.06)
+    gx, gy = np.meshgrid(1.0 + g, -0.5 + g[:17])
+    top = np.c_[gx.ravel(), gy.ravel()]  # [323, 2] one 6 cm cell each
+    leg = np.array([-1.5, 1.0])
+    cells = np.concatenate([np.c_[top, np.full(len(top), z_laser - 0.03)],  # chest top
+                            np.c_[top - [0, 2.0], np.full(len(top), z_laser + 0.02)],  # table
+                            [[*leg - [0.05, 0], z_laser]]])  # the leg's near side
+    counter = SeeThroughCounter(cells)
+    for k, x in enumerate(np.linspace(-3.0, 3.0, 13)):
+        y = -1.0 if k % 2 else 1.2
+        T_world_laser = se2_to_se3(x, y, 0.1 * k, z_laser)
+        counter.add_scan(LaserScan(float(k), cast(x, y, leg if k < 3 else None), -np.pi,
+                                   2 * np.pi / n, 0.05, 12.0), inv_se3(T_world_laser))
+    tops = slice(0, 2 * len(top))
+    assert counter.hit[tops].sum() == 0  # never seen by the lidar
+    assert not counter.dynamic_mask()[tops].any()
+    assert counter.hit[-1] >= 2 and counter.dynamic_mask()[-1]
+
+
 def test_lidar_carving_keeps_a_corridor_wall_seen_at_grazing_angles() -> None:
     """Exact scans down a 2 m corridor, nothing moving: far along the walls one beam's
     range differs from its neighbours' by decimetres, and with the nearest beam alone
@@ -603,9 +649,14 @@ def test_scans_from_0_to_270_deg_test_their_bearings_past_180() -> None:
     for bearing in (90.0, 200.0):
         b = np.radians(bearing)
         counter = SeeThroughCounter(np.array([[2 * np.cos(b), 2 * np.sin(b), 0.0]]))
+        # A person there at first (the lidar clears only what it has hit), then gone.
+        there = np.full(n, 4.0, np.float32)
+        there[int(round(bearing)) - 2: int(round(bearing)) + 3] = 2.0
+        counter.add_scan(LaserScan(-1.0, there, 0.0, inc, 0.05, 10.0), np.eye(4))
         for k in range(5):
             counter.add_scan(LaserScan(float(k), np.full(n, 4.0, np.float32), 0.0, inc, 0.05,
                                        10.0), np.eye(4))
+        assert counter.lidar_hit[0] == 1, bearing
         assert counter.free[0] == 5 and counter.dynamic_mask()[0], bearing
     scans = []
     for t in np.arange(0.0, 6.0, 0.1):

@@ -115,18 +115,24 @@ def cell_observations(points: np.ndarray, colors: np.ndarray, origin: np.ndarray
                           np.ndarray, np.ndarray, np.ndarray]:
     """One frame's observations from its points [N, 3] seen from ``origin`` [3] and their
     colours [N, 3] uint8: cell keys [M] int64 (``cell_keys``), log mean colours [M, 3]
-    float32 and pixel counts [M], for the cells with at least ``min_points`` usable pixels
-    (no channel dark or clipped). With ``max_cells``, only that many: those whose keys
-    hash lowest, so that frames seeing the same surface keep the same cells (``plan``)."""
-    c = np.asarray(colors)
-    ok = (c > opts.dark).all(1) & (c < opts.bright).all(1)
-    if not ok.any():
+    float32 and pixel counts [M], for the cells with at least ``min_points`` pixels and
+    none dark or clipped in any channel. With ``max_cells``, only that many: those whose
+    keys hash lowest, so that frames seeing the same surface keep the same cells
+    (``plan``)."""
+    c = np.asarray(colors)  # [N, 3]
+    if len(c) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, np.int32)
-    uk, inv, cnt = np.unique(cell_keys(np.asarray(points)[ok], origin, opts.cell_m),
+    # A cell with a dark or clipped pixel is no observation at all: dropping the pixels
+    # one by one took a bright frame's brightest pixels and a dark frame's darkest out of
+    # the same cell's means, whose ratio then compressed the gains (70 % white-paint cells
+    # at gains 0.7-1.3: 0.88 % RMS / 2.3 % max off, 0.18 / 0.35 % with whole cells).
+    bad = ~((c > opts.dark).all(1) & (c < opts.bright).all(1))  # [N]
+    uk, inv, cnt = np.unique(cell_keys(np.asarray(points), origin, opts.cell_m),
                              return_inverse=True, return_counts=True)
-    cf = c[ok].astype(np.float64)
+    n_bad = np.bincount(inv, bad, len(uk))  # [M']
+    cf = c.astype(np.float64)
     mean = np.stack([np.bincount(inv, cf[:, k], len(uk)) for k in range(3)], 1) / cnt[:, None]
-    keep = np.flatnonzero(cnt >= opts.min_points)
+    keep = np.flatnonzero((cnt >= opts.min_points) & (n_bad == 0))
     if max_cells is not None and len(keep) > max_cells:
         # A multiplicative hash (Fibonacci hashing; uint64 arithmetic wraps).
         h = uk[keep].astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)

@@ -359,7 +359,10 @@ class FuseStage(Stage):
     #    whose other pairs agree with its depth is not rescaled (a passing person moved
     #    the wall behind); one consensus volume per camera heading (both faces of a
     #    10 cm wall seen from both sides were dropped); max_columns a maximum (rounded up);
-    #    a region spans the depths its run covers (a far wall turned away kept its error)
+    #    a region spans the depths its run covers (a far wall turned away kept its error);
+    #    the lidar carves only cells some scan has hit (static tops just above or below
+    #    the scan plane were removed); an exposure cell with a dark or clipped pixel is
+    #    no observation (gains were compressed on bright walls)
     version = 10
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
