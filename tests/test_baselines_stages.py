@@ -388,9 +388,14 @@ def test_camera_only_runs_colmap_itself_without_a_colmap_stage(tmp_path: Path) -
     res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 320, "height": 240},
                           {"stage": "t_depth"},
                           {"stage": "camera_only", "reuse_colmap": False, "overlap": 4,
-                           "max_features": 1024, "geometry": False, "eval_frames": 4}])
+                           "max_features": 1024, "geometry": False, "eval_frames": 4,
+                           # fuse's smoothing keys are the stage's too (unused by the
+                           # network's metres: one global factor, no per-frame scale)
+                           "smoothing": "median", "smoothing_window": 5,
+                           "outlier_tol": 0.25}])
     assert res.ok, res.error
     o = res.metrics["camera_only"]
+    assert o["scale_smoothing"] == "none" and o["frames_flagged"] == 0
     assert not o["colmap_reused"] and not o["database_resumed"]
     assert o["registered_images"] >= 6 and o["scale_source"] == "network"
     assert (tmp_path / "run/camera_only/database.db").exists()

@@ -705,6 +705,13 @@ class CameraOnlyConfig(_ColmapKeys):
     scale_source: Literal["auto", "network", "sfm"] = "auto"
     estimator: Literal["ratio", "clustered", "robust"] = "robust"
     min_points: int = Field(15, ge=2)
+    # Temporal smoothing of the per-frame scales, as fuse's keys of the same names, with
+    # the same agreement test (a frame whose own SfM points back its fit keeps it). auto:
+    # none for relative outputs, whose constant changes from image to image; median for
+    # metric depth.
+    smoothing: Literal["auto", "median", "none"] = "auto"
+    smoothing_window: int = Field(9, ge=1)
+    outlier_tol: float = Field(0.1, gt=0)  # log scale distance from the window median
     pixel_stride: int = Field(2, ge=1)
     voxel_fraction: float = Field(0.008, gt=0)
     eval_frames: int = Field(40, ge=1)  # frames compared with ground-truth depth
@@ -730,7 +737,10 @@ class CameraOnlyStage(Stage):
     # default (repeatable); SfM points collapsed onto their camera left out. 4: the
     # observed reference keeps surface seen at grazing angles
     # 5: scored on the frames the ground truth covers, no end slack
-    version = 5
+    # 6: the scale smoothing's agreement test (a frame's own SfM points back its own fit)
+    # and no smoothing for relative outputs: a per-image constant was overwritten by the
+    # neighbours' (depth AbsRel 0.151 -> 0.0033)
+    version = 6
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
@@ -767,6 +777,9 @@ class CameraOnlyStage(Stage):
             raise StageError(f"{ctx.stage_id}: COLMAP registered {sfm.registered} of "
                              f"{sfm.images} images; the camera alone cannot build a map here")
         settings = CameraOnlySettings(cfg.scale_source, cfg.estimator, cfg.min_points,
+                                      smoothing=cfg.smoothing,
+                                      smoothing_window=cfg.smoothing_window,
+                                      outlier_tol=cfg.outlier_tol,
                                       pixel_stride=cfg.pixel_stride,
                                       voxel_fraction=cfg.voxel_fraction)
         try:
@@ -797,11 +810,17 @@ class CameraOnlyStage(Stage):
             "colmap_reused": reused, "database_resumed": database_kept, "images": sfm.images,
             "registered_images": sfm.registered,
             "frames_fused": int(res.used.sum()), "frames_fitted": res.info["frames_fitted"],
+            "scale_smoothing": res.info["smoothing"],
+            # Frames that took a neighbour's scale instead of their own fit.
+            "frames_flagged": int(sum(f != "ok" for f in res.flags)),
             "map_points": n,
         }
         rows: list[tuple[str, Any]] = [
             ("registered images", f"{sfm.registered} / {sfm.images}"),
-            ("frames fused", int(res.used.sum())), ("map points", n)]
+            ("frames fused", int(res.used.sum())),
+            ("frames with a neighbour's scale (smoothing: "
+             f"{res.info['smoothing']})", metrics["frames_flagged"]),
+            ("map points", n)]
         reuse_note = " (reused from the colmap stage)" if reused else ""
         md = [f"Camera only (no lidar anywhere): COLMAP poses{reuse_note}, "
               f"`{res.info['kind']}` predictions scaled by "
