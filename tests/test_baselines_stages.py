@@ -53,11 +53,15 @@ class RoomSequence(Stage):
         ctx.provide("sequence", root)
 
 
+class DepthConfig(StageConfig):
+    kind: str = "metric_depth"  # or relative_depth: the same values, no unit claimed
+
+
 class FakeDepth(Stage):
     """Ground-truth depth x 1.25 stored as a metric network's predictions (test stage)."""
 
     name = "t_depth"
-    Config = StageConfig
+    Config = DepthConfig
     requires = ("sequence",)
     provides = ("depth",)
 
@@ -67,10 +71,11 @@ class FakeDepth(Stage):
         from toolkit.io.sequence import read_sequence
 
         seq = read_sequence(ctx.artifact("sequence"))
-        w = DepthStoreWriter(ctx.stage_dir / "depth", "metric_depth")
+        kind = self.config.kind  # type: ignore[attr-defined]
+        w = DepthStoreWriter(ctx.stage_dir / "depth", kind)
         for i, f in enumerate(seq.frames):
             d = seq.groundtruth.depth(i) * DEPTH_SCALE_ERROR
-            w.add(i, f.stamp, DepthPrediction(np.where(d > 0, d, np.nan), "metric_depth"))
+            w.add(i, f.stamp, DepthPrediction(np.where(d > 0, d, np.nan), kind))
         ctx.provide("depth", w.close())
 
 
@@ -472,3 +477,22 @@ def test_camera_only_runs_colmap_itself_without_a_colmap_stage(tmp_path: Path) -
     assert o["registered_images"] >= 6 and o["scale_source"] == "network"
     assert (tmp_path / "run/camera_only/database.db").exists()
     assert not (tmp_path / "run/camera_only/database.json").exists()  # not an interrupted run's
+
+
+def test_camera_only_in_colmaps_unit_does_not_report_a_scale_error(tmp_path: Path) -> None:
+    """Scaled by SfM points, the map is in COLMAP's unit, which the mapper sets from the
+    camera path's extent (~10 units): the same room gave 12.4x, 7.9x and 6.9x the truth's
+    size for arcs of 0.84, 1.39 and 1.95 m. The report called that the method's scale
+    error; it now names the unit."""
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 320, "height": 240},
+                          {"stage": "t_depth", "kind": "relative_depth"},
+                          {"stage": "camera_only", "reuse_colmap": False, "overlap": 4,
+                           "max_features": 1024, "geometry": False, "eval_frames": 4}])
+    assert res.ok, res.error
+    o = res.metrics["camera_only"]
+    assert o["scale_source"] == "sfm" and o["own_scale_is"] == "colmap_unit"
+    assert o["scale_smoothing"] == "none" and o["frames_flagged"] == 0
+    # Shape right, whatever the unit.
+    assert o["depth_sim3"]["absrel"] < 0.03
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "**scale error**" not in report and "ATE vs groundtruth, COLMAP's unit" in report

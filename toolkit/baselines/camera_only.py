@@ -10,13 +10,15 @@ keeps it, as a relative network's output constant changes from image to image.
 ``scale_source`` says where the world scale comes from:
 
 - ``sfm``: COLMAP's own units. Every frame's depth is fitted to its sparse points (scale, and
-  shift for disparity models), so depth and poses agree, but the whole map is in an
-  arbitrary unit: the metric error is the scale error a monocular system makes.
+  shift for disparity models), so depth and poses agree, but the whole map is in COLMAP's
+  unit: the mapper normalises the camera path to about 10 units, so the map's size in it
+  follows the drive's extent, not anything the method measured.
 - ``network``: the depth network's metres (``metric_depth`` outputs only). One global
   factor moves COLMAP's model into the network's units; depth is used as predicted.
 
-The evaluation (``evaluate_camera_only``) aligns to ground truth twice: rigidly (SE(3),
-own scale: the scale-error figure) and by similarity (Sim(3): the shape-error figure).
+The evaluation aligns to ground truth twice: rigidly (SE(3), own scale: the network's
+scale error with ``network``, COLMAP's unit with ``sfm``) and by similarity (Sim(3): the
+shape-error figure).
 """
 
 from __future__ import annotations
