@@ -53,11 +53,15 @@ class RoomSequence(Stage):
         ctx.provide("sequence", root)
 
 
+class DepthConfig(StageConfig):
+    kind: str = "metric_depth"  # or relative_depth: the same values, no unit claimed
+
+
 class FakeDepth(Stage):
     """Ground-truth depth x 1.25 stored as a metric network's predictions (test stage)."""
 
     name = "t_depth"
-    Config = StageConfig
+    Config = DepthConfig
     requires = ("sequence",)
     provides = ("depth",)
 
@@ -67,10 +71,11 @@ class FakeDepth(Stage):
         from toolkit.io.sequence import read_sequence
 
         seq = read_sequence(ctx.artifact("sequence"))
-        w = DepthStoreWriter(ctx.stage_dir / "depth", "metric_depth")
+        kind = self.config.kind  # type: ignore[attr-defined]
+        w = DepthStoreWriter(ctx.stage_dir / "depth", kind)
         for i, f in enumerate(seq.frames):
             d = seq.groundtruth.depth(i) * DEPTH_SCALE_ERROR
-            w.add(i, f.stamp, DepthPrediction(np.where(d > 0, d, np.nan), "metric_depth"))
+            w.add(i, f.stamp, DepthPrediction(np.where(d > 0, d, np.nan), kind))
         ctx.provide("depth", w.close())
 
 
@@ -141,12 +146,51 @@ class MapFrameSlam(Stage):
         ctx.provide("trajectory", ctx.stage_dir)
 
 
+class MapConfig(StageConfig):
+    write_poses: bool = True  # camera_poses.tum beside the map, as fuse writes it
+
+
+class FakeFusedMap(Stage):
+    """map.ply = the true surface in the trajectory's map frame, and the poses it was built
+    at (the trajectory's) as camera_poses.tum: what fuse at slam2d's poses writes."""
+
+    name = "t_fused_map"
+    Config = MapConfig
+    requires = ("sequence", "trajectory")
+    provides = ("fused",)
+
+    def run(self, ctx: StageContext) -> None:
+        import shutil
+
+        from toolkit.baselines.tsdf import read_mesh
+        from toolkit.eval.alignment import ground_truth_camera
+        from toolkit.eval.geometry import sample_mesh
+        from toolkit.fusion.voxel_map import MapArrays, write_map_ply
+        from toolkit.geometry import rigid_alignment, se3
+        from toolkit.io.sequence import read_sequence
+        from toolkit.io.tum import read_tum
+
+        seq = read_sequence(ctx.artifact("sequence"))
+        built = read_tum(ctx.artifact("trajectory") / "trajectory_camera.tum")
+        S = se3(*rigid_alignment(ground_truth_camera(seq, built.stamps).poses, built.poses))
+        pts = sample_mesh(read_mesh(seq.groundtruth.mesh_path), 0.05) @ S[:3, :3].T + S[:3, 3]
+        n = len(pts)
+        write_map_ply(ctx.stage_dir / "map.ply", MapArrays(
+            pts, np.full((n, 3), 128, np.uint8), np.ones(n, np.int64), np.ones(n, np.int32),
+            np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.float32)))
+        if self.config.write_poses:  # type: ignore[attr-defined]
+            shutil.copy(ctx.artifact("trajectory") / "trajectory_camera.tum",
+                        ctx.stage_dir / "camera_poses.tum")
+        ctx.provide("fused", ctx.stage_dir)
+
+
 @pytest.fixture(autouse=True)
 def stages() -> Iterator[None]:
     from toolkit.baselines.stage import CameraOnlyStage, ColmapStage, TSDFStage
 
     names = {"t_room": RoomSequence, "t_depth": FakeDepth, "t_fused": FakeFuse,
-             "t_slam": FakeSlam, "t_slam_map": MapFrameSlam, "tsdf": TSDFStage,
+             "t_slam": FakeSlam, "t_slam_map": MapFrameSlam, "t_fused_map": FakeFusedMap,
+             "tsdf": TSDFStage,
              "colmap": ColmapStage,
              "camera_only": CameraOnlyStage}
     for n, cls in names.items():
@@ -323,6 +367,39 @@ def test_colmap_figure_draws_the_lidar_path_aligned_to_ground_truth() -> None:
     assert lidar_curve(Trajectory(stamps + 100.0, lidar.poses), gt) is None
 
 
+def test_colmap_export_puts_the_fused_map_in_the_exported_poses_frame(tmp_path: Path) -> None:
+    """fuse at the SLAM poses builds its map in the SLAM map frame (turned 40 deg, 1.66 m
+    from the world); colmap exporting ground-truth poses wrote that map beside them, where
+    0.9 % of the points lay on the surfaces the cameras see. The export moves the map by the
+    rigid fit of fuse's poses onto the exported ones, or, with nothing to fit, leaves it out."""
+    from toolkit.eval.map_accuracy import MeshDistance
+    from toolkit.io.colmap_text import read_colmap_model
+    from toolkit.io.sequence import read_sequence
+
+    room = {"stage": "t_room", "frames": 6, "width": 160, "height": 120, "small": True}
+    colmap = {"stage": "colmap", "overlap": 3, "max_features": 256, "triangulate": False,
+              "export_images": False, "poses": "groundtruth"}
+    res = _run(tmp_path, [room, {"stage": "t_slam_map"}, {"stage": "t_fused_map"}, colmap])
+    assert res.ok, res.error
+    ex = res.metrics["colmap"]["export"]
+    assert ex["poses"] == "groundtruth" and "moved by their rigid fit" in ex["points_from"]
+    seq = read_sequence(tmp_path / "run" / "t_room" / "seq")
+    model = read_colmap_model(tmp_path / "run" / "colmap" / "export" / "sparse" / "0")
+    d = MeshDistance(seq.groundtruth.mesh_path).distance(model.points)  # [P] metres
+    assert len(d) > 100 and np.max(d) < 1e-3, np.max(d)
+    # Without the poses it was built at, the map's frame is unknown: not exported under
+    # auto, refused when asked for.
+    fuse = {"stage": "t_fused_map", "write_poses": False}
+    res = _run(tmp_path, [room, {"stage": "t_slam_map"}, fuse, colmap])
+    assert res.ok, res.error
+    ex = res.metrics["colmap"]["export"]
+    assert ex["points"] == 0 and "camera_poses.tum is missing" in ex["points_from"]
+    res = _run(tmp_path, [room, {"stage": "t_slam_map"}, fuse,
+                          {**colmap, "export_points": "fused"}])
+    assert not res.ok and "export_points: fused" in res.error and "camera_poses.tum" in (
+        res.error)
+
+
 def test_colmap_without_any_poses_runs_sfm_alone(tmp_path: Path) -> None:
     """A recording with neither slam2d upstream nor ground truth: the defaults (triangulate
     and export at our poses) must not fail the stage after its SfM has run."""
@@ -388,10 +465,34 @@ def test_camera_only_runs_colmap_itself_without_a_colmap_stage(tmp_path: Path) -
     res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 320, "height": 240},
                           {"stage": "t_depth"},
                           {"stage": "camera_only", "reuse_colmap": False, "overlap": 4,
-                           "max_features": 1024, "geometry": False, "eval_frames": 4}])
+                           "max_features": 1024, "geometry": False, "eval_frames": 4,
+                           # fuse's smoothing keys are the stage's too (unused by the
+                           # network's metres: one global factor, no per-frame scale)
+                           "smoothing": "median", "smoothing_window": 5,
+                           "outlier_tol": 0.25}])
     assert res.ok, res.error
     o = res.metrics["camera_only"]
+    assert o["scale_smoothing"] == "none" and o["frames_flagged"] == 0
     assert not o["colmap_reused"] and not o["database_resumed"]
     assert o["registered_images"] >= 6 and o["scale_source"] == "network"
     assert (tmp_path / "run/camera_only/database.db").exists()
     assert not (tmp_path / "run/camera_only/database.json").exists()  # not an interrupted run's
+
+
+def test_camera_only_in_colmaps_unit_does_not_report_a_scale_error(tmp_path: Path) -> None:
+    """Scaled by SfM points, the map is in COLMAP's unit, which the mapper sets from the
+    camera path's extent (~10 units): the same room gave 12.4x, 7.9x and 6.9x the truth's
+    size for arcs of 0.84, 1.39 and 1.95 m. The report called that the method's scale
+    error; it now names the unit."""
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 320, "height": 240},
+                          {"stage": "t_depth", "kind": "relative_depth"},
+                          {"stage": "camera_only", "reuse_colmap": False, "overlap": 4,
+                           "max_features": 1024, "geometry": False, "eval_frames": 4}])
+    assert res.ok, res.error
+    o = res.metrics["camera_only"]
+    assert o["scale_source"] == "sfm" and o["own_scale_is"] == "colmap_unit"
+    assert o["scale_smoothing"] == "none" and o["frames_flagged"] == 0
+    # Shape right, whatever the unit.
+    assert o["depth_sim3"]["absrel"] < 0.03
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "**scale error**" not in report and "ATE vs groundtruth, COLMAP's unit" in report

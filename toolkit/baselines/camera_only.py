@@ -3,18 +3,22 @@
 Poses come from COLMAP on the images (monocular: frame and scale arbitrary), and the depth
 network's predictions get their scale from COLMAP's sparse points instead of the lidar:
 per frame, the SfM points seen in that image play the role the projected lidar points play
-in ``fuse``, with the same estimators and temporal smoothing (``toolkit.fusion.scale``).
+in ``fuse``, with the same estimators, temporal smoothing and agreement test
+(``toolkit.fusion.scale``): a frame off its neighbours whose own SfM points back its own fit
+keeps it, as a relative network's output constant changes from image to image.
 
 ``scale_source`` says where the world scale comes from:
 
 - ``sfm``: COLMAP's own units. Every frame's depth is fitted to its sparse points (scale, and
-  shift for disparity models), so depth and poses agree, but the whole map is in an
-  arbitrary unit: the metric error is the scale error a monocular system makes.
+  shift for disparity models), so depth and poses agree, but the whole map is in COLMAP's
+  unit: the mapper normalises the camera path to about 10 units, so the map's size in it
+  follows the drive's extent, not anything the method measured.
 - ``network``: the depth network's metres (``metric_depth`` outputs only). One global
   factor moves COLMAP's model into the network's units; depth is used as predicted.
 
-The evaluation (``evaluate_camera_only``) aligns to ground truth twice: rigidly (SE(3),
-own scale: the scale-error figure) and by similarity (Sim(3): the shape-error figure).
+The evaluation aligns to ground truth twice: rigidly (SE(3), own scale: the network's
+scale error with ``network``, COLMAP's unit with ``sfm``) and by similarity (Sim(3): the
+shape-error figure).
 """
 
 from __future__ import annotations
@@ -38,8 +42,13 @@ class CameraOnlySettings:
     scale_source: ScaleSource = "auto"  # auto: network for metric_depth, else sfm
     estimator: Literal["ratio", "clustered", "robust"] = "robust"
     min_points: int = 15  # SfM points a frame needs for its own fit
+    # As fuse's keys of the same names; "none" keeps every frame's own fit. auto: none for
+    # relative outputs, whose constant changes from image to image (relative depth in
+    # x/÷1.4 per image: the window median put frames up to 3.6 % off, their own fits 0.4 %),
+    # median for metric depth.
+    smoothing: Literal["auto", "median", "none"] = "auto"
     smoothing_window: int = 9
-    outlier_tol: float = 0.1
+    outlier_tol: float = 0.1  # log scale distance from the window median
     pixel_stride: int = 2
     edge_threshold: float = 0.06  # relative depth jump that marks a flying pixel
     # Unit-free settings, because in COLMAP units metres mean nothing: the voxel is this
@@ -142,6 +151,15 @@ def resolve_scale_source(source: ScaleSource, kind: str) -> str:
     return source
 
 
+def resolve_smoothing(smoothing: str, kind: str) -> Literal["median", "none"]:
+    """The temporal smoothing mode ``auto`` stands for with predictions of ``kind``."""
+    if smoothing in ("median", "none"):
+        return smoothing  # type: ignore[return-value]
+    if smoothing != "auto":
+        raise ValueError(f"smoothing {smoothing!r}: use auto, median or none")
+    return "median" if kind == "metric_depth" else "none"
+
+
 def camera_only_reconstruction(
     sfm: SfMResult,
     frame_of_name: dict[str, int],
@@ -159,7 +177,12 @@ def camera_only_reconstruction(
     one, since predictions are made on the original images.
     """
     from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points
-    from toolkit.fusion.scale import ScaleEstimate, estimate_scale, smooth_scales
+    from toolkit.fusion.scale import (
+        ScaleEstimate,
+        estimate_scale,
+        pair_agreement,
+        smooth_scales,
+    )
     from toolkit.fusion.voxel_map import VoxelMap, statistical_inliers
 
     s = settings or CameraOnlySettings()
@@ -177,12 +200,14 @@ def camera_only_reconstruction(
 
     # Pass 1: sparse SfM depth vs prediction per frame -> per-frame (scale, shift).
     estimates, ratios, sparse_z = [], [], []
+    pairs: list[tuple[np.ndarray, np.ndarray]] = []  # per frame: SfM depth [K], prediction [K]
     min_z = collapsed_depth(sfm)
     for i, name, _ in prog(items):
         pred = read_prediction(i)
         sp = sparse_depth(sfm, name, camera, min_z)
         d = sample_prediction(pred.values, sp.uv)
         sparse_z.append(sp.z)
+        pairs.append((sp.z, d))
         if source == "network":
             ok = np.isfinite(d) & (d > 0)
             if ok.sum() >= s.min_points:
@@ -202,7 +227,18 @@ def camera_only_reconstruction(
         flags = ["ok"] * len(items)
     else:
         factor = 1.0
-        sm = smooth_scales(estimates, s.smoothing_window, s.outlier_tol, "median", "smoothed")
+        # Half the outlier distance, as fuse: scales that far apart cannot both take a
+        # pair. Without this test a relative network's per-image constant (drawn in
+        # x/÷1.4) was overwritten by the neighbours' in 8 of 12 frames: depth AbsRel 0.151
+        # where each frame's own fit gave 0.0033.
+        tol = s.outlier_tol / 2
+
+        def agreement(k: int, scale_k: float, shift_k: float) -> float:
+            # The agreeing SfM points must span depths (1.25x): one object backs any scale.
+            return pair_agreement(pairs[k][0], pairs[k][1], disparity, scale_k, shift_k, tol,
+                                  min_spread=1.25)
+        sm = smooth_scales(estimates, s.smoothing_window, s.outlier_tol,
+                           resolve_smoothing(s.smoothing, kind), "smoothed", agreement)
         scale, shift, used, flags = sm.scale, sm.shift, sm.used, list(sm.flag)
     all_z = np.concatenate(sparse_z) * factor if sparse_z else np.zeros(0)
     median_depth = float(np.median(all_z)) if len(all_z) else 1.0
@@ -231,6 +267,7 @@ def camera_only_reconstruction(
         used=np.asarray(used, bool), flags=flags, points=m.points[keep], colors=m.colors[keep],
         voxel_size=voxel, global_factor=factor,
         info={"kind": kind, "median_sparse_depth": median_depth,
+              "smoothing": "none" if source == "network" else resolve_smoothing(s.smoothing, kind),
               "frames_fitted": int(sum(e.ok for e in estimates))},
     )
 
