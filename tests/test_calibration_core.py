@@ -39,6 +39,7 @@ from calibration.scans import (
     stamp_from_name,
 )
 from calibration.synthetic import SyntheticCapture, make_capture, render_board, write_pcd
+from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat, se3
 
 
@@ -697,3 +698,25 @@ def test_board_edges_across_the_lasers_back() -> None:
     R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     e1, _ = board_edge_points(v.scan_points @ R.T, idx)
     assert len(e0) == 2 and np.allclose(e1, e0 @ R.T, atol=1e-9)
+
+
+def test_focal_length_off_keeps_the_far_views_and_names_the_scale() -> None:
+    """A focal length 3.5 % long (the ACFR camera YAML was 2.5 % off) scales the boards'
+    distances, which puts the far boards 2-3 cm off at scale 1 with a 2 mm lidar. They were
+    left out as "board moved", the near ones absorbed the error (0.88 deg / 34.6 mm off)
+    and the scale of the views kept read 1.00: marked reliable, no warning. One distance
+    scale makes every view agree, so none is left out and the scale marks it."""
+    cap = make_capture(10, seed=0, lidar_noise=0.002)
+    c = cap.camera
+    long_f = PinholeCamera(c.width, c.height, c.fx * 1.035, c.fy * 1.035, c.cx, c.cy, c.dist)
+    views = [make_view(v.name, v.corners, cap.board, long_f, v.scan_points[v.on_board])
+             for v in cap.views]
+    res = calibrate_extrinsic(views, camera=long_f)
+    assert res.views_rejected == {}
+    assert not res.reliable
+    assert any("distance scale 0.96" in u and "focal length" in u and "none was left out" in u
+               for u in res.unreliable)  # 0.962 over all 10 views
+    assert not any("kept, since" in w for w in res.warnings)  # the views are not blamed
+    # With the focal length right, no scale and no view left out.
+    clean = calibrate_extrinsic(_views(cap), camera=c)
+    assert clean.views_rejected == {} and clean.reliable and not clean.warnings
