@@ -720,3 +720,45 @@ def test_focal_length_off_keeps_the_far_views_and_names_the_scale() -> None:
     # With the focal length right, no scale and no view left out.
     clean = calibrate_extrinsic(_views(cap), camera=c)
     assert clean.views_rejected == {} and clean.reliable and not clean.warnings
+
+
+def test_tf_frames_are_told_by_their_names() -> None:
+    """Camera and laser frames were recognised only by five exact names each: a reversed
+    T_camera_laser entry to RealSense's, ZED's or Kalibr's camera frame was read inverted
+    without a word (114.8 deg / 251 mm off), and the bare tf layout refused cam0 -> laser
+    and camera_optical_frame -> hokuyo_link as "need a camera optical frame"."""
+    T = se3(Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix(),
+            [0.0, -0.1, -0.05])  # T_camera_laser, the forward mount
+
+    def tf(T_pc: np.ndarray, parent: str, child: str) -> dict:
+        xyz, q = pose_to_xyz_quat(T_pc)
+        return {"parent": parent, "child": child, "translation": xyz.tolist(),
+                "rotation": q.tolist()}
+
+    for camera in ("camera_color_optical_frame", "zed_left_camera_optical_frame", "cam0"):
+        for laser in ("laser", "hokuyo_link", "rplidar_link", "base_laser", "velodyne"):
+            # The bare layout: either direction, told from the names.
+            assert np.allclose(extrinsic_from_mapping(tf(T, camera, laser), "f.yaml"), T)
+            assert np.allclose(extrinsic_from_mapping(tf(inv_se3(T), laser, camera), "f.yaml"),
+                               T)
+            # Under a key, a reversed entry is refused, naming both ends and their roles.
+            with pytest.raises(CalibrationFileError) as e:
+                extrinsic_from_mapping({"T_camera_laser": tf(inv_se3(T), laser, camera)},
+                                       "f.yaml")
+            msg = str(e.value)
+            assert (f"f.yaml: field 'T_camera_laser' has parent '{laser}' (a laser frame) and "
+                    f"child '{camera}' (a camera frame)") in msg and "reversed" in msg
+    # One recognisable end is enough.
+    with pytest.raises(CalibrationFileError, match="parent 'hokuyo_link' .*reversed"):
+        extrinsic_from_mapping({"T_camera_laser": tf(inv_se3(T), "hokuyo_link", "sensor2")},
+                               "f.yaml")
+    with pytest.raises(CalibrationFileError, match="parent 'cam0' .*reversed"):
+        extrinsic_from_mapping({"T_base_camera": tf(T, "cam0", "mount"),
+                                "T_base_laser": tf(np.eye(4), "base_link", "laser")}, "f.yaml")
+    assert np.allclose(extrinsic_from_mapping(tf(T, "sensor2", "hokuyo_link"), "f.yaml"), T)
+    # A transform between other frames names what it got.
+    with pytest.raises(CalibrationFileError, match=r"tf from 'map' \(its role not told by its "
+                                                   r"name\) to 'base_link' \(a base frame\)"):
+        extrinsic_from_mapping(tf(T, "map", "base_link"), "f.yaml")
+    with pytest.raises(CalibrationFileError, match="'camera_link' is a camera body frame"):
+        extrinsic_from_mapping(tf(T, "camera_link", "laser"), "f.yaml")
