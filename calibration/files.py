@@ -10,6 +10,7 @@ mappings, so a result from another tool can be checked with ``python -m calibrat
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -187,28 +188,59 @@ def _tf(d: dict[str, Any], source: str) -> np.ndarray:
     return pose_from_xyz_quat(xyz_a, q / np.linalg.norm(q))
 
 
-_CAMERA_NAMES = {"camera", "camera_optical", "camera_optical_frame", "cam", "camera_link_optical"}
-_LASER_NAMES = {"laser", "lidar", "laser_frame", "scan", "base_scan", "lidar_link", "laser_link"}
+# Frame roles are told by what the names say, not by a list of exact names: with lists
+# of five names each, a T_camera_laser entry written from the laser to RealSense's
+# camera_color_optical_frame, ZED's zed_left_camera_optical_frame or cam0 was read
+# inverted without a word (114.8 deg / 251 mm off), and the bare tf layout refused
+# cam0 -> laser and camera_optical_frame -> hokuyo_link as "need a camera optical frame".
+_CAMERA_RE = re.compile(r"optical|cam|zed|realsense|kinect|xtion")
+_LASER_RE = re.compile(r"laser|lidar|scan|hokuyo|sick|velodyne|ouster|livox|(^|[^a-z])"
+                       r"(urg|lms\d*|vlp\d*|os[0-2]|rslidar|hesai|pandar)(\d|[^a-z]|$)")
+_BASE_RE = re.compile(r"^(base|base_link|base_footprint|body|chassis)$")
 
 
-_BASE_NAMES = {"base_link", "base", "base_footprint"}
-_ROLE_NAMES = {"camera": _CAMERA_NAMES, "laser": _LASER_NAMES, "base": _BASE_NAMES}
+def frame_role(name: str) -> str | None:
+    """'camera', 'laser' or 'base' as a frame's name says (``camera_color_optical_frame``,
+    ``cam0``, ``zed_left_camera_optical_frame``; ``hokuyo_link``, ``base_scan``,
+    ``rplidar_link``, ``velodyne``; ``base_link``), or None when it says nothing or both
+    a camera and a laser. A laser's name wins over ``base`` (``base_laser``,
+    ``base_scan``)."""
+    n = name.lower().strip("/").rsplit("/", 1)[-1]
+    camera, laser = bool(_CAMERA_RE.search(n)), bool(_LASER_RE.search(n))
+    if camera != laser:
+        return "camera" if camera else "laser"
+    if not camera and _BASE_RE.match(n):
+        return "base"
+    return None
+
+
+def _role_text(name: str) -> str:
+    role = frame_role(name)
+    return f"{name!r} ({f'a {role} frame' if role else 'its role not told by its name'})"
 
 
 def _check_tf_direction(value: dict[str, Any], source: str, field: str) -> None:
-    """A tf-style ``T_a_b`` whose parent / child name b's and a's frames: the key fixes the
-    direction, so the transform would be used inverted (bag ingest refuses it too)."""
+    """A tf-style ``T_a_b`` whose parent or child names a frame of another role than the
+    key's: a parent that is the laser under ``T_camera_laser`` is enough. The key fixes the
+    direction, so a reversed entry would be used inverted (bag ingest refuses it too), and
+    one between other frames (``base_link`` under ``T_camera_laser``) is another
+    transform."""
     roles = field.split("_")[1:]
-    parent = _frame_name(value, "parent", "frame_id")
-    child = _frame_name(value, "child", "child_frame_id")
-    if len(roles) != 2 or not all(r in _ROLE_NAMES for r in roles):
+    if len(roles) != 2 or not all(r in ("camera", "laser", "base") for r in roles):
         return
     a, b = roles
-    if parent in _ROLE_NAMES[b] and child in _ROLE_NAMES[a]:
-        raise CalibrationFileError(
-            f"{source}: field '{field}' has parent {parent!r} and child {child!r}, which is "
-            f"reversed: {field} maps {b} points into the {a} frame, so parent: {a} frame and "
-            f"child: {b} frame (swap them, or invert the transform)")
+    parent = _frame_name(value, "parent", "frame_id")
+    child = _frame_name(value, "child", "child_frame_id")
+    rp, rc = frame_role(parent), frame_role(child)
+    if rp in (a, None) and rc in (b, None):
+        return
+    reversed_ = rp in (b, None) and rc in (a, None)
+    raise CalibrationFileError(
+        f"{source}: field '{field}' has parent {_role_text(parent)} and child "
+        f"{_role_text(child)}: {field} maps {b} points into the {a} frame, so its parent "
+        f"must be the {a} frame and its child the {b} frame. "
+        + ("It is reversed: swap parent and child, or invert the transform."
+           if reversed_ else "Name the frames of the transform this entry holds."))
 
 
 # How to get from a body frame to the optical one: what the errors below suggest.
@@ -228,8 +260,7 @@ def _is_body_frame(name: str) -> bool:
     ``camera_color_frame``, ZED's ``zed_left_camera_frame``), not an optical one's. Other
     names (``cam0``) say nothing and pass."""
     n = name.lower().rsplit("/", 1)[-1]
-    return (n not in _CAMERA_NAMES and "optical" not in n
-            and (n.endswith("link") or n.endswith("_frame")))
+    return "optical" not in n and (n.endswith("link") or n.endswith("_frame"))
 
 
 def _check_camera_frame(value: dict[str, Any], source: str, field: str) -> None:
@@ -264,14 +295,25 @@ def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
         parent = str(tf.get("parent", tf.get("frame_id", ""))).strip("/")
         child = str(tf.get("child", tf.get("child_frame_id", ""))).strip("/")
         T = _tf(tf, source)  # T_parent_child
-        if parent in _CAMERA_NAMES and child in _LASER_NAMES:
-            return T
-        if parent in _LASER_NAMES and child in _CAMERA_NAMES:
-            return inv_se3(T)
+        # The direction from whichever end tells its role (hokuyo_link, cam0, ...).
+        rp, rc = frame_role(parent), frame_role(child)
+        # An end of another role (base_link) makes it some other transform.
+        forward = (rp == "camera" or rc == "laser") and {rp, rc} <= {"camera", "laser", None}
+        backward = (rp == "laser" or rc == "camera") and {rp, rc} <= {"camera", "laser", None}
+        if forward != backward:
+            camera = parent if forward else child
+            if _is_body_frame(camera):
+                raise CalibrationFileError(
+                    f"{source}: tf from {parent!r} to {child!r}: {camera!r} is a camera body "
+                    f"frame, but the extrinsic needs the camera's optical frame. "
+                    f"{_OPTICAL_HINT}.")
+            return T if forward else inv_se3(T)
         raise CalibrationFileError(
-            f"{source}: tf from {parent!r} to {child!r}: need a camera optical frame "
-            f"({sorted(_CAMERA_NAMES)}) and a laser frame ({sorted(_LASER_NAMES)}). "
-            f"{_OPTICAL_HINT}.")
+            f"{source}: tf from {_role_text(parent)} to {_role_text(child)}: need a camera "
+            "optical frame at one end and a laser frame at the other, told by their names "
+            "(camera: *optical*, cam*, *camera*, zed*, realsense*; laser: *laser*, *lidar*, "
+            "*scan*, hokuyo*, sick*, velodyne*, ouster*, livox*). Rename the frames, or give "
+            f"'T_camera_laser' (4x4, {DIRECTION}). {_OPTICAL_HINT}.")
     raise CalibrationFileError(
         f"{source}: no extrinsic found: give 'T_camera_laser' (4x4, {DIRECTION}), "
         "'T_laser_camera', a rig (T_base_camera + T_base_laser) or a tf mapping "

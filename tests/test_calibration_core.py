@@ -39,6 +39,7 @@ from calibration.scans import (
     stamp_from_name,
 )
 from calibration.synthetic import SyntheticCapture, make_capture, render_board, write_pcd
+from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3, pose_from_xyz_quat, pose_to_xyz_quat, se3
 
 
@@ -64,6 +65,17 @@ def test_board_spec_parse_and_object_points() -> None:
         BoardSpec.parse("11-8-1", 0.02)
     with pytest.raises(BoardError, match="smaller than its printed pattern"):
         BoardSpec(11, 8, 0.05, (0.3, 0.3))
+
+
+def test_board_size_with_unequal_sides_on_a_square_grid_is_refused() -> None:
+    """OpenCV returns a square corner grid turned 90 degrees in about half the views, so
+    the outline was checked with width and height swapped: --board-size 0.5 0.8 on a 7x7
+    grid made the result worse (0.30-0.62 deg against 0.05-0.32 without), marked reliable."""
+    with pytest.raises(BoardError, match=r"board 7x7 with board size 0\.5 x 0\.8 m "
+                                         r"\(--board-size.*Leave --board-size out.*8x7"):
+        BoardSpec.parse("7x7", 0.05, (0.5, 0.8))
+    assert BoardSpec.parse("7x7", 0.05, (0.6, 0.6)).outline() is not None  # a square board
+    assert BoardSpec.parse("8x7", 0.05, (0.5, 0.8)).outline() is not None
 
 
 def test_detect_corners_subpixel_on_rendered_board() -> None:
@@ -697,3 +709,67 @@ def test_board_edges_across_the_lasers_back() -> None:
     R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     e1, _ = board_edge_points(v.scan_points @ R.T, idx)
     assert len(e0) == 2 and np.allclose(e1, e0 @ R.T, atol=1e-9)
+
+
+def test_focal_length_off_keeps_the_far_views_and_names_the_scale() -> None:
+    """A focal length 3.5 % long (the ACFR camera YAML was 2.5 % off) scales the boards'
+    distances, which puts the far boards 2-3 cm off at scale 1 with a 2 mm lidar. They were
+    left out as "board moved", the near ones absorbed the error (0.88 deg / 34.6 mm off)
+    and the scale of the views kept read 1.00: marked reliable, no warning. One distance
+    scale makes every view agree, so none is left out and the scale marks it."""
+    cap = make_capture(10, seed=0, lidar_noise=0.002)
+    c = cap.camera
+    long_f = PinholeCamera(c.width, c.height, c.fx * 1.035, c.fy * 1.035, c.cx, c.cy, c.dist)
+    views = [make_view(v.name, v.corners, cap.board, long_f, v.scan_points[v.on_board])
+             for v in cap.views]
+    res = calibrate_extrinsic(views, camera=long_f)
+    assert res.views_rejected == {}
+    assert not res.reliable
+    assert any("distance scale 0.96" in u and "focal length" in u and "none was left out" in u
+               for u in res.unreliable)  # 0.962 over all 10 views
+    assert not any("kept, since" in w for w in res.warnings)  # the views are not blamed
+    # With the focal length right, no scale and no view left out.
+    clean = calibrate_extrinsic(_views(cap), camera=c)
+    assert clean.views_rejected == {} and clean.reliable and not clean.warnings
+
+
+def test_tf_frames_are_told_by_their_names() -> None:
+    """Camera and laser frames were recognised only by five exact names each: a reversed
+    T_camera_laser entry to RealSense's, ZED's or Kalibr's camera frame was read inverted
+    without a word (114.8 deg / 251 mm off), and the bare tf layout refused cam0 -> laser
+    and camera_optical_frame -> hokuyo_link as "need a camera optical frame"."""
+    T = se3(Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix(),
+            [0.0, -0.1, -0.05])  # T_camera_laser, the forward mount
+
+    def tf(T_pc: np.ndarray, parent: str, child: str) -> dict:
+        xyz, q = pose_to_xyz_quat(T_pc)
+        return {"parent": parent, "child": child, "translation": xyz.tolist(),
+                "rotation": q.tolist()}
+
+    for camera in ("camera_color_optical_frame", "zed_left_camera_optical_frame", "cam0"):
+        for laser in ("laser", "hokuyo_link", "rplidar_link", "base_laser", "velodyne"):
+            # The bare layout: either direction, told from the names.
+            assert np.allclose(extrinsic_from_mapping(tf(T, camera, laser), "f.yaml"), T)
+            assert np.allclose(extrinsic_from_mapping(tf(inv_se3(T), laser, camera), "f.yaml"),
+                               T)
+            # Under a key, a reversed entry is refused, naming both ends and their roles.
+            with pytest.raises(CalibrationFileError) as e:
+                extrinsic_from_mapping({"T_camera_laser": tf(inv_se3(T), laser, camera)},
+                                       "f.yaml")
+            msg = str(e.value)
+            assert (f"f.yaml: field 'T_camera_laser' has parent '{laser}' (a laser frame) and "
+                    f"child '{camera}' (a camera frame)") in msg and "reversed" in msg
+    # One recognisable end is enough.
+    with pytest.raises(CalibrationFileError, match="parent 'hokuyo_link' .*reversed"):
+        extrinsic_from_mapping({"T_camera_laser": tf(inv_se3(T), "hokuyo_link", "sensor2")},
+                               "f.yaml")
+    with pytest.raises(CalibrationFileError, match="parent 'cam0' .*reversed"):
+        extrinsic_from_mapping({"T_base_camera": tf(T, "cam0", "mount"),
+                                "T_base_laser": tf(np.eye(4), "base_link", "laser")}, "f.yaml")
+    assert np.allclose(extrinsic_from_mapping(tf(T, "sensor2", "hokuyo_link"), "f.yaml"), T)
+    # A transform between other frames names what it got.
+    with pytest.raises(CalibrationFileError, match=r"tf from 'map' \(its role not told by its "
+                                                   r"name\) to 'base_link' \(a base frame\)"):
+        extrinsic_from_mapping(tf(T, "map", "base_link"), "f.yaml")
+    with pytest.raises(CalibrationFileError, match="'camera_link' is a camera body frame"):
+        extrinsic_from_mapping(tf(T, "camera_link", "laser"), "f.yaml")
