@@ -160,13 +160,15 @@ def _stack(views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
     return P, N, D, ids
 
 
-def point_to_plane(views: list[View], T_camera_laser: np.ndarray) -> list[np.ndarray]:
-    """Signed distances (metres) of each view's laser points to its board plane."""
+def point_to_plane(views: list[View], T_camera_laser: np.ndarray,
+                   scale: float = 1.0) -> list[np.ndarray]:
+    """Signed distances (metres) of each view's laser points to its board plane (the
+    plane's distance times ``scale``: a board distance scale fitted to the views)."""
     R, t = T_camera_laser[:3, :3], T_camera_laser[:3, 3]
     out = []
     for v in views:
         q = np.c_[v.points, np.zeros(len(v.points))] @ R.T + t  # [K, 3]
-        out.append(q @ v.plane.normal - v.plane.distance)
+        out.append(q @ v.plane.normal - scale * v.plane.distance)
     return out
 
 
@@ -451,9 +453,9 @@ def _line_scatter(views: list[View]) -> float:
     return float(np.sqrt(sq / n)) if n else 0.0
 
 
-def _view_rms(views: list[View], T: np.ndarray) -> np.ndarray:
-    """[V] point-to-plane RMS of each view, metres."""
-    return np.array([np.sqrt(np.mean(r**2)) for r in point_to_plane(views, T)])
+def _view_rms(views: list[View], T: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """[V] point-to-plane RMS of each view, metres (``point_to_plane``)."""
+    return np.array([np.sqrt(np.mean(r**2)) for r in point_to_plane(views, T, scale)])
 
 
 def normal_spread(views: list[View]) -> tuple[float, np.ndarray]:
@@ -824,7 +826,8 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
     # near ones absorbed the error (0.88 deg / 34.6 mm off) and the scale of the views kept
     # read 1.00, so it was marked reliable with no warning. When one scale makes every
     # view agree, no view is left out and ``_scale_verdict`` below names it.
-    scaled = _scale_explains(used, T, opts, _prior(opts, init))
+    prior = _prior(opts, init)
+    scaled = _scale_explains(used, T, opts, prior)
     found_c = (_consensus(used, opts, init, T)
                if len(used) >= CONSENSUS_MIN_VIEWS and len(used) > opts.min_views
                and not scaled else None)
@@ -862,7 +865,7 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
                                      / 2.0)), 0.02)
         sigma_m = max(float(np.sqrt(np.mean(r**2))), sigma_line, 1e-3)
         T, _, info = _joint_refine(used, T, camera, opts.loss, opts.f_scale_m / sigma_m,
-                                   sigma_px, sigma_m, _prior(opts, init), outline)
+                                   sigma_px, sigma_m, prior, outline)
         n_edges = sum(len(v.edges) for v in used if v.edges is not None) if outline else 0
         refine = "joint (corners + point-to-plane" + (
             f" + {n_edges} board-edge points)" if n_edges else ")")
@@ -896,7 +899,6 @@ def calibrate_extrinsic(views: list[View], init: np.ndarray | None = None,
     if unconstrained:
         open_reasons.append("the views leave " + "; ".join(unconstrained) + " without any "
                             "constraint: the value there is the prior's or arbitrary.")
-    prior = _prior(opts, init)
     held = _held_by_prior(used, info, prior, opts.weak_std) if open_reasons else None
     # Where the prior holds what the views leave open, the scale is judged with it too.
     scale_warning, scale_unreliable = _scale_verdict(used, T, prior if held else None)
@@ -1017,11 +1019,7 @@ def _scale_explains(views: list[View], T: np.ndarray, opts: SolverOptions,
     s, sd, T_s = _distance_scale_fit(views, T, prior)
     if _scale_text(s, sd) is None:
         return False
-    R, t = T_s[:3, :3], T_s[:3, 3]
-    rms = np.array([np.sqrt(np.mean(((np.c_[v.points, np.zeros(len(v.points))] @ R.T + t)
-                                     @ v.plane.normal - s * v.plane.distance) ** 2))
-                    for v in views])  # [V] metres
-    return bool(np.all(rms <= limit))
+    return bool(np.all(_view_rms(views, T_s, s) <= limit))
 
 
 def _scale_verdict(views: list[View], T: np.ndarray,

@@ -297,9 +297,10 @@ def extrinsic_from_mapping(d: Any, source: str) -> np.ndarray:
         T = _tf(tf, source)  # T_parent_child
         # The direction from whichever end tells its role (hokuyo_link, cam0, ...).
         rp, rc = frame_role(parent), frame_role(child)
-        # An end of another role (base_link) makes it some other transform.
-        forward = (rp == "camera" or rc == "laser") and {rp, rc} <= {"camera", "laser", None}
-        backward = (rp == "laser" or rc == "camera") and {rp, rc} <= {"camera", "laser", None}
+        # An end of another role (base_link) makes it some other transform; two ends of
+        # no known role, either way.
+        forward = rp in ("camera", None) and rc in ("laser", None)
+        backward = rp in ("laser", None) and rc in ("camera", None)
         if forward != backward:
             camera = parent if forward else child
             if _is_body_frame(camera):

@@ -199,14 +199,13 @@ def camera_only_reconstruction(
     disparity = kind == "relative_disparity"
 
     # Pass 1: sparse SfM depth vs prediction per frame -> per-frame (scale, shift).
-    estimates, ratios, sparse_z = [], [], []
+    estimates, ratios = [], []
     pairs: list[tuple[np.ndarray, np.ndarray]] = []  # per frame: SfM depth [K], prediction [K]
     min_z = collapsed_depth(sfm)
     for i, name, _ in prog(items):
         pred = read_prediction(i)
         sp = sparse_depth(sfm, name, camera, min_z)
         d = sample_prediction(pred.values, sp.uv)
-        sparse_z.append(sp.z)
         pairs.append((sp.z, d))
         if source == "network":
             ok = np.isfinite(d) & (d > 0)
@@ -216,6 +215,7 @@ def camera_only_reconstruction(
         else:
             estimates.append(estimate_scale(s.estimator, sp.z, d, disparity,
                                             min_pairs=s.min_points))
+    smoothing = "none" if source == "network" else resolve_smoothing(s.smoothing, kind)
     if source == "network":
         if not ratios:
             raise ValueError("no frame has enough SfM points to relate COLMAP's units to the "
@@ -237,10 +237,10 @@ def camera_only_reconstruction(
             # The agreeing SfM points must span depths (1.25x): one object backs any scale.
             return pair_agreement(pairs[k][0], pairs[k][1], disparity, scale_k, shift_k, tol,
                                   min_spread=1.25)
-        sm = smooth_scales(estimates, s.smoothing_window, s.outlier_tol,
-                           resolve_smoothing(s.smoothing, kind), "smoothed", agreement)
+        sm = smooth_scales(estimates, s.smoothing_window, s.outlier_tol, smoothing,
+                           "smoothed", agreement)
         scale, shift, used, flags = sm.scale, sm.shift, sm.used, list(sm.flag)
-    all_z = np.concatenate(sparse_z) * factor if sparse_z else np.zeros(0)
+    all_z = np.concatenate([z for z, _ in pairs]) * factor if pairs else np.zeros(0)
     median_depth = float(np.median(all_z)) if len(all_z) else 1.0
     voxel = s.voxel_fraction * median_depth
     poses = np.stack([T for _, _, T in items]).copy()
@@ -267,7 +267,7 @@ def camera_only_reconstruction(
         used=np.asarray(used, bool), flags=flags, points=m.points[keep], colors=m.colors[keep],
         voxel_size=voxel, global_factor=factor,
         info={"kind": kind, "median_sparse_depth": median_depth,
-              "smoothing": "none" if source == "network" else resolve_smoothing(s.smoothing, kind),
+              "smoothing": smoothing,
               "frames_fitted": int(sum(e.ok for e in estimates))},
     )
 

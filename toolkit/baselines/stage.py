@@ -313,12 +313,14 @@ class TSDFStage(Stage):
         ref = _mesh_reference(seq, vis_poses, cfg.depth_max_m, cfg.eval_spacing_m) if (
             cfg.geometry) else None
         S = None
-        if ref is not None and fp.source != "groundtruth":
+        aligned = fp.source == "groundtruth"  # in the world frame already
+        if ref is not None and not aligned:
             from toolkit.eval.alignment import map_to_world
 
             # SLAM poses live in the map frame, the ground truth in the world: align first.
             S = map_to_world(seq, seq.frame_stamps[indices], poses)
-        if ref is not None and S is None and fp.source != "groundtruth":
+            aligned = S is not None
+        if ref is not None and not aligned:
             # A ground-truth mesh without ground-truth poses: nothing ties the map frame to
             # the mesh's (a perfect mesh scored 1.50 m accuracy, F@5cm 0.043).
             ctx.log.warning("%s: geometry not scored: the mesh is in the %s poses' map frame "
@@ -655,6 +657,7 @@ class ColmapStage(Stage):
         note = ""
         want = cfg.export_points
         if want in ("auto", "fused") and ctx.has_artifact("fused"):
+            from toolkit.eval.alignment import apply
             from toolkit.fusion.voxel_map import read_map_ply
 
             ply = ctx.artifact("fused") / "map.ply"
@@ -674,7 +677,7 @@ class ColmapStage(Stage):
                                     "the exported poses instead", ctx.stage_id, note)
                 else:
                     points, colors = read_map_ply(ply)
-                    points = points @ S[:3, :3].T + S[:3, 3]
+                    points = apply(S, points)
                     source = "the fused map" + (f" ({note})" if note else "")
         elif want == "fused":
             raise StageError(f"{ctx.stage_id}: export_points: fused needs a fuse stage upstream")
@@ -726,7 +729,9 @@ def fused_map_to_poses(fused_poses: Path, stamps: np.ndarray, poses: np.ndarray,
     one rigid motion (a SLAM map frame against ground truth; at most ``max_rms_m`` RMS
     left); None when nothing ties the two frames together.
     """
-    from toolkit.geometry import rigid_alignment, se3
+    from toolkit.eval.alignment import apply
+    from toolkit.geometry import rigid_alignment, rotation_angle, se3
+    from toolkit.ingest.sync import match_nearest
     from toolkit.io.tum import read_tum
 
     if not fused_poses.exists():
@@ -734,10 +739,8 @@ def fused_map_to_poses(fused_poses: Path, stamps: np.ndarray, poses: np.ndarray,
     built = read_tum(fused_poses)
     stamps = np.asarray(stamps, np.float64)
     # Both are frame stamps; TUM text keeps them to the microsecond or better.
-    j = np.searchsorted(built.stamps, stamps).clip(0, len(built.stamps) - 1)  # [N]
-    prev = (j - 1).clip(0)
-    j = np.where(np.abs(built.stamps[prev] - stamps) < np.abs(built.stamps[j] - stamps), prev, j)
-    common = np.abs(built.stamps[j] - stamps) < 1e-3  # [N]
+    j = match_nearest(stamps, built.stamps, 1e-3)  # [N]
+    common = j >= 0  # [N]
     if common.sum() < 3:
         return None, (f"the map was built at other frames' poses ({fused_poses}: "
                       f"{int(common.sum())} frames in common with the export)")
@@ -746,12 +749,12 @@ def fused_map_to_poses(fused_poses: Path, stamps: np.ndarray, poses: np.ndarray,
         return np.eye(4), ""
     R, t = rigid_alignment(src, dst)
     S = se3(R, t)
-    moved = src[:, :3, 3] @ R.T + t  # [C, 3]
+    moved = apply(S, src[:, :3, 3])  # [C, 3]
     rms = float(np.sqrt(np.mean(np.sum((moved - dst[:, :3, 3]) ** 2, axis=1))))
     if rms > max_rms_m:
         return None, (f"the map was built at other poses ({fused_poses}) that no rigid "
                       f"motion puts on the exported ones ({rms:.3f} m RMS left)")
-    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    angle = float(np.degrees(rotation_angle(R)))
     return S, (f"built at other poses, moved by their rigid fit onto the exported ones: "
                f"{np.linalg.norm(t):.2f} m, {angle:.1f} deg, {rms * 1000:.1f} mm RMS left")
 

@@ -306,9 +306,6 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
     meta_hw = (_meta_int(path, metadata, "input_height"),
                _meta_int(path, metadata, "input_width"))
     fixed = _fixed_input_hw(list(inp.shape), config.layout)
-    problem = resize_problem(config.resize, config.input_size)
-    if problem:
-        raise ValueError(f"{path}: {problem}")
     if fixed is not None:
         if config.resize == "keep_aspect":
             raise ValueError(f"{path}: resize: keep_aspect needs a model exported with "
@@ -373,10 +370,15 @@ def not_depth_message(path: Path, index: int, name: str, shape: Any, outputs_tex
 
 
 def _open_session(path: Path, opts: Any, providers: list[str]) -> Any:
-    """An onnxruntime session of the model at ``path``; a ``ValueError`` saying to
-    re-export it when onnxruntime cannot load it."""
+    """An onnxruntime session of the model at ``path``; ``FileNotFoundError`` for a
+    folder or a missing file, a ``ValueError`` saying to re-export it when onnxruntime
+    cannot load it."""
     import onnxruntime as ort
 
+    if path.is_dir():
+        raise FileNotFoundError(folder_model_message(path))
+    if not path.is_file():
+        raise FileNotFoundError(missing_model_message(path))
     problem = model_file_problem(path)
     if problem:
         raise ValueError(problem)
@@ -396,10 +398,6 @@ def read_signature(path: Path) -> tuple[list[Any], list[Any], dict[str, str]]:
     for 400 MB of weights, which it reads)."""
     import onnxruntime as ort
 
-    if path.is_dir():
-        raise FileNotFoundError(folder_model_message(path))
-    if not path.is_file():
-        raise FileNotFoundError(missing_model_message(path))
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
@@ -436,10 +434,6 @@ class OnnxDepthBackend:
 
         self.config = config
         path = Path(config.model)
-        if path.is_dir():
-            raise FileNotFoundError(folder_model_message(path))
-        if not path.is_file():
-            raise FileNotFoundError(missing_model_message(path))
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = int(config.threads)
         opts.inter_op_num_threads = 1

@@ -499,10 +499,14 @@ class Fusion:
 
     def pairs_on_moving(self, lidar: LidarPixels) -> np.ndarray:
         """[N] bool: lidar pixels from beams flagged as hitting a moving obstacle."""
+        out = np.zeros(len(lidar), bool)  # [N]
         if not self.beam_dynamic or not len(lidar):
-            return np.zeros(len(lidar), bool)
-        return np.array([bool(self.beam_dynamic[k][b]) for k, b in
-                         zip(lidar.scan, lidar.beam, strict=True)], bool)
+            return out
+        # By scan (a frame's pairs come from a few): refine asks this of every frame.
+        for k in np.unique(lidar.scan):
+            sel = lidar.scan == k
+            out[sel] = self.beam_dynamic[k][lidar.beam[sel]]
+        return out
 
     def moving_pixels(self, index: int, depth: np.ndarray) -> np.ndarray | None:
         """[H, W] bool: pixels of frame ``index``'s scaled ``depth`` within the space of a

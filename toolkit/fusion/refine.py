@@ -29,7 +29,7 @@ A lidar farther than the prediction is believed only through an opening (the reg
 and right neighbours, each side on its own, nearer than it; a region at the image's border
 is none): a 2D lidar passes under sofas and beds the camera above it sees, and those
 pairs, too, agree with each other. A region is left alone, too, when at least as many
-other lidar pairs on it agree with its depth as it is as the run has beams: the run then
+other lidar pairs on it agree with its current depth as the run has pairs: the run then
 hit something in front of the surface the camera sees there (a person who has moved on).
 """
 

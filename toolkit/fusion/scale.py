@@ -431,17 +431,28 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     logs = np.where(good, np.log(np.where(good, raw, 1.0)), np.nan)
     half = max(0, window // 2)
 
-    def nearest_frames(mask: np.ndarray, i: int, k: int) -> np.ndarray:
-        """The k frames of ``mask`` [F] nearest frame i (ties to the earlier one) [<= k]."""
-        idx = np.flatnonzero(mask)
-        return idx[np.argsort(np.abs(idx - i), kind="stable")[:k]]
+    def nearest_frames(idx: np.ndarray, i: int, k: int) -> np.ndarray:
+        """The k of the sorted frame indices ``idx`` nearest frame i, nearest first (ties
+        to the earlier one) [<= k]: a run of ``idx`` grown from i, so a frame costs k steps,
+        not a sort of the whole drive."""
+        hi = int(np.searchsorted(idx, i))
+        lo = hi - 1
+        out: list[int] = []
+        while len(out) < k and (lo >= 0 or hi < len(idx)):
+            if hi >= len(idx) or (lo >= 0 and i - idx[lo] <= idx[hi] - i):
+                out.append(int(idx[lo]))
+                lo -= 1
+            else:
+                out.append(int(idx[hi]))
+                hi += 1
+        return np.array(out, dtype=np.int64)
 
     def window_median(values: np.ndarray, mask: np.ndarray, i: int) -> float:
         lo, hi = max(0, i - half), min(n, i + half + 1)
         m = mask[lo:hi]
         if not m.any():
             # Widen until some good frame is found: a long gap takes its nearest neighbours.
-            near = nearest_frames(mask, i, max(1, half))
+            near = nearest_frames(np.flatnonzero(mask), i, max(1, half))
             if len(near) == 0:
                 return float("nan")
             return float(np.median(values[near]))
@@ -462,7 +473,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
         lo, hi = max(0, i - half), min(n, i + half + 1)
         idx = np.arange(lo, hi)[mask[lo:hi]]
         if not len(idx):  # the widened window of window_median: its nearest good frames
-            idx = nearest_frames(mask, i, max(1, half))
+            idx = nearest_frames(np.flatnonzero(mask), i, max(1, half))
         return int(idx[np.argmin(np.abs(values[idx] - target))])
 
     # In a sequence of (scale, shift) fits, a frame fitted with the scale alone (a wall
@@ -474,6 +485,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
     backed = np.zeros(n, bool)  # [F] off the neighbours, backed by its own pairs
     affine = bool(fitted_shift[good].any())
     comparable = good & fitted_shift if affine else good  # [F]
+    comparable_idx = np.flatnonzero(comparable)
     for i in range(n):
         if not comparable[i]:
             if good[i] and affine and agreement is not None and comparable.any():
@@ -491,7 +503,7 @@ def smooth_scales(estimates: list[ScaleEstimate], window: int = 9,
         # 5 frames at the first one, and a run of 3 wrong frames at the start (someone in
         # front of the robot as the recording starts) made the median: frame 0 kept a
         # scale 50 % off, in both modes; so did the first frame after a gap.
-        near = nearest_frames(comparable, i, 2 * half + 1)  # [<= window]
+        near = nearest_frames(comparable_idx, i, 2 * half + 1)  # [<= window]
         # With two frames in the window, the median is their mean: both would be flagged
         # when they differ, and neither is known to be the wrong one.
         if len(near) < 3:

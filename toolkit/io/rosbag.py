@@ -1191,10 +1191,7 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             # Its stamp only names where the intrinsics change: a zero one (a static or
             # hand-published camera_info) stopped the conversion, even with the intrinsics
             # from a calibration YAML, and 'stamps: bag' re-timed every scan and image.
-            if t == 0:
-                _note_camera_info(idx, msg, ns, "recording time")
-            else:
-                _note_camera_info(idx, msg, t)
+            _note_camera_info(idx, msg, rate_t, "recording time" if t == 0 else "stamp")
         elif topic == ch.odometry:
             try:
                 T = transform_to_matrix(msg.pose.pose)
@@ -1373,11 +1370,11 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
             "and set rosbag.calibration")
     if has_camera:
         w, h = camera.size
-        src = f"calibration file {cal.path}" if cal is not None and cal.camera is not None \
-            else f"CameraInfo topic {ch.camera_info}"
         from_info = cal is None or cal.camera is None
-        fields = "roi.width/roi.height" if from_info and idx.info is not None and \
-            any(_roi(idx.info)) else "width/height"
+        src = f"CameraInfo topic {ch.camera_info}" if from_info else \
+            f"calibration file {cal.path}"  # type: ignore[union-attr]
+        fields = "roi.width/roi.height" if from_info and any(_roi(idx.info)) else \
+            "width/height"
         # Raw images: every size is known from the index; compressed: the first one.
         for i, size in enumerate([ch.image_size or (w, h), *idx.image.sizes]):
             if size != (-1, -1) and size != (w, h):

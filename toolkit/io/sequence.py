@@ -518,24 +518,32 @@ def image_header(path: Path, max_bytes: int = 1 << 17) -> tuple[int, int, int] |
             return int(w), int(h), int(data[24])
         if data[:2] != b"\xff\xd8":
             return None
-        data += fh.read(max_bytes - len(data))  # a JPEG's frame header follows its tables
-    i = 2
-    while i + 4 <= len(data):
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0x01, *range(0xD0, 0xDA)):  # standalone markers carry no length
-            i += 2
-            continue
-        (length,) = struct.unpack(">H", data[i + 2:i + 4])
-        if marker in _JPEG_SOF and i + 9 <= len(data):
-            bits = data[i + 4]
-            h, w = struct.unpack(">HH", data[i + 5:i + 9])
-            return int(w), int(h), int(bits)
-        i += 2 + length
+        # A JPEG's frame header follows its tables: walk the segments' lengths, reading
+        # only their markers (the whole first 128 KiB was most frames' every byte, read
+        # on every read_sequence).
+        i = 2
+        while i + 4 <= max_bytes:
+            fh.seek(i)
+            head = fh.read(4)
+            if len(head) < 2 or head[0] != 0xFF:
+                return None
+            marker = head[1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            if marker in (0x01, *range(0xD0, 0xDA)):  # standalone markers carry no length
+                i += 2
+                continue
+            if len(head) < 4:
+                return None
+            (length,) = struct.unpack(">H", head[2:4])
+            if marker in _JPEG_SOF and i + 9 <= max_bytes:
+                sof = fh.read(5)
+                if len(sof) < 5:
+                    return None
+                h, w = struct.unpack(">HH", sof[1:5])
+                return int(w), int(h), int(sof[0])
+            i += 2 + length
     return None
 
 

@@ -477,11 +477,12 @@ class SplatStage(Stage):
                                          budget, cfg.random_depth_m, sh_degree=cfg.sh_degree,
                                          init_opacity=cfg.init_opacity, seed=cfg.seed)
         n_init = len(model)
-        gpu_wanted = cfg.device != "cpu" and cfg.backend in ("auto", "gsplat")
-        if gpu_wanted and torch.cuda.is_available():
+        gpu_seen = (cfg.device != "cpu" and cfg.backend in ("auto", "gsplat")
+                    and torch.cuda.is_available())
+        if gpu_seen:
             ctx.log.info("splat: loading gsplat's CUDA kernels (built on first use: minutes)")
         device = choose_device(cfg.device, cfg.backend)
-        if gpu_wanted and device.type == "cpu" and torch.cuda.is_available():
+        if gpu_seen and device.type == "cpu":
             from toolkit.splat.rasterize import gsplat_backend
 
             ctx.log.warning("splat: device auto: a CUDA GPU is present but %s; training on "
