@@ -691,3 +691,39 @@ def test_the_oracle_scale_is_ground_truths_median_depth_over_prediction(
         g, pred = seq.groundtruth.depth(i), store.read(i).values
         ok = (g > 0) & np.isfinite(pred) & (pred > 0)
         assert float(r[-1]) == pytest.approx(float(np.median(g[ok] / pred[ok])), rel=1e-5)
+
+
+def test_frames_between_scan_poses_follow_the_odometry() -> None:
+    """A robot that starts turning in place at 1 rad/s at t = 1.05 s, between two 10 Hz
+    scan poses; its wheel odometry (100 Hz, in its own frame) is exact. A camera frame
+    41 ms before the 1.1 s scan is placed at the true yaw with the odometry; a straight
+    line between the scan poses put it 1.2 deg off, as without odometry."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from toolkit.geometry import Trajectory, se3
+
+    def poses(t: np.ndarray, T_left: np.ndarray = np.eye(4)) -> np.ndarray:
+        yaw = np.maximum(np.asarray(t) - 1.05, 0.0)
+        return np.stack([T_left @ se3(Rotation.from_euler("z", a).as_matrix(), np.zeros(3))
+                         for a in yaw])
+
+    scans = np.round(np.arange(0.5, 1.61, 0.1), 6)
+    frames = scans[1:] - 0.041
+    odom_t = np.round(np.arange(0.4, 1.7, 0.01), 6)
+    T_odom_world = se3(Rotation.from_euler("z", 0.7).as_matrix(), [2.0, 1.0, 0.0])
+    seq = SimpleNamespace(frame_stamps=frames, scan_stamps=scans, odometry=Trajectory(
+        odom_t, poses(odom_t, T_odom_world), "odom", "base_link"))
+    traj = Trajectory(scans, poses(scans), "world", "base_link")
+
+    def yaw_err_deg(P: np.ndarray) -> float:
+        truth = np.maximum(frames - 1.05, 0.0)
+        got = Rotation.from_matrix(P[:, :3, :3]).as_euler("zyx")[:, 0]
+        return float(np.degrees(np.abs(got - truth)).max())
+
+    fp, sp, inside = pose_arrays(seq, traj)  # type: ignore[arg-type]
+    assert inside.all() and yaw_err_deg(fp) < 1e-6
+    assert np.allclose(sp, traj.poses, atol=1e-12)
+    fp_line, _, _ = pose_arrays(seq, traj, use_odometry=False)  # type: ignore[arg-type]
+    assert yaw_err_deg(fp_line) > 1.0

@@ -149,3 +149,69 @@ def test_a_weaving_drive_is_aligned_by_its_positions_not_its_orientations() -> N
     est = M @ np.stack([g.se3(B @ r, p) for r, p in zip(rot, pos, strict=True)])
     R, t, _ = g.pose_alignment(est, gt)
     np.testing.assert_allclose(g.se3(R, t) @ M, np.eye(4), atol=1e-9)
+
+
+def _turn_onset_drive(stamps: np.ndarray) -> np.ndarray:
+    """[N, 4, 4] base poses of a robot driving 0.3 m/s straight that starts turning at
+    1 rad/s at t = 1.05 s (between two 10 Hz samples): the yaw's kink is where a straight
+    line between scan poses goes wrong."""
+    fine = np.arange(0.0, stamps.max() + 1e-3, 1e-3)
+    w = np.where(fine > 1.05, 1.0, 0.0)
+    yaw = np.r_[0.0, np.cumsum(w[1:] * 1e-3)]
+    x = np.r_[0.0, np.cumsum(0.3 * np.cos(yaw[1:]) * 1e-3)]
+    y = np.r_[0.0, np.cumsum(0.3 * np.sin(yaw[1:]) * 1e-3)]
+    out = []
+    for t in stamps:
+        k = int(round(t / 1e-3))
+        out.append(g.se3(Rotation.from_euler("z", yaw[k]).as_matrix(), [x[k], y[k], 0.0]))
+    return np.stack(out)
+
+
+def test_odometry_carries_poses_between_samples_through_a_turn_onset() -> None:
+    """Scan poses at 10 Hz, exact; wheel odometry at 50 Hz, exact motion but in its own
+    frame (an odom origin 3 m and 40 deg away): camera stamps 41 ms before each scan get
+    the true pose with the odometry, but for the odometry's own 20 ms interpolation across
+    the kink (0.03 deg), where a straight line between scans is 1.2 deg off at the turn's
+    start; at the samples themselves both are exact."""
+    from toolkit.geometry import Trajectory
+
+    scan_t = np.round(np.arange(0.1, 2.01, 0.1), 6)
+    odom_t = np.round(np.arange(0.0, 2.05, 0.02), 6)
+    T_world_odom = g.se3(Rotation.from_euler("z", 40, degrees=True).as_matrix(), [3.0, -1, 0])
+    traj = Trajectory(scan_t, _turn_onset_drive(scan_t))
+    odom = Trajectory(odom_t, g.inv_se3(T_world_odom) @ _turn_onset_drive(odom_t), "odom")
+    q = scan_t[1:] - 0.041  # a camera stamp 41 ms before each scan
+    truth = _turn_onset_drive(q)
+
+    def yaw_err_deg(P: np.ndarray) -> np.ndarray:
+        R = np.swapaxes(truth[:, :3, :3], 1, 2) @ P[:, :3, :3]
+        return np.degrees(np.abs(Rotation.from_matrix(R).as_rotvec()[:, 2]))
+
+    plain = traj.interpolate(q).poses
+    with_odom = traj.interpolate_with_odometry(odom, q).poses
+    assert yaw_err_deg(plain).max() > 1.0  # the turn's start between 1.0 and 1.1 s
+    assert yaw_err_deg(with_odom).max() < 0.05
+    assert np.abs(with_odom[:, :3, 3] - truth[:, :3, 3]).max() < 1e-4
+    assert np.allclose(traj.interpolate_with_odometry(odom, scan_t).poses, traj.poses,
+                       atol=1e-12)
+
+
+def test_odometry_interpolation_falls_back_to_a_straight_line() -> None:
+    """No odometry, odometry that never moves, and queries the odometry does not cover
+    all give the plain interpolation."""
+    from toolkit.geometry import Trajectory
+
+    scan_t = np.round(np.arange(0.1, 2.01, 0.1), 6)
+    traj = Trajectory(scan_t, _turn_onset_drive(scan_t))
+    q = np.linspace(0.1, 2.0, 77)
+    plain = traj.interpolate(q).poses
+    still = Trajectory(np.arange(0.0, 2.1, 0.02), np.tile(np.eye(4), (105, 1, 1)), "odom")
+    assert np.allclose(traj.interpolate_with_odometry(None, q).poses, plain, atol=1e-12)
+    assert np.allclose(traj.interpolate_with_odometry(still, q).poses, plain, atol=1e-12)
+    odom_t = np.round(np.arange(0.0, 1.0, 0.02), 6)  # ends at 0.98 s
+    odom = Trajectory(odom_t, _turn_onset_drive(odom_t), "odom")
+    late = q > 0.9  # the sample after 0.9 s has no odometry: a straight line there
+    got = traj.interpolate_with_odometry(odom, q).poses
+    assert np.allclose(got[late], plain[late], atol=1e-12)
+    camera = Trajectory(odom_t, _turn_onset_drive(odom_t), "odom", "camera")  # another child
+    assert np.allclose(traj.interpolate_with_odometry(camera, q).poses, plain, atol=1e-12)

@@ -172,3 +172,46 @@ def test_the_report_shows_zero_camera_poses_and_plots_a_late_reference() -> None
     # Within the 0.5 ms of motion (1 m/s) between the stamps: the SLAM path is interpolated
     # at the ground truth's stamps, as ate_se2 scores it.
     assert ref is not None and np.allclose(ref, poses[:, :2, 3], atol=1e-3)
+
+
+def test_camera_poses_between_scans_follow_the_odometry(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch):
+    """With wheel odometry, a camera frame between two scans gets the odometry's motion
+    since the scan (here 5 cm sideways of the straight line between the scan poses), not
+    the straight line; with use_odometry false, the straight line."""
+    from toolkit.geometry import se3
+
+    truth = _drive(24)[:12]
+    stamps = np.arange(len(truth), dtype=float)
+    T_base_laser = se2_to_se3(0.1, 0.0, 0.0)
+    laser = se2_compose(truth, np.array([0.1, 0.0, 0.0]))
+    scans = [make_scan(p, t) for p, t in zip(laser, stamps, strict=True)]
+    T_odom_world = se2_to_se3(3.0, -2.0, 0.6)
+    base = np.stack([se2_to_se3(*p) for p in truth])
+    odom_t = np.arange(0.0, len(truth) - 1 + 1e-9, 0.5)
+    line = Trajectory(stamps, base).interpolate(odom_t).poses
+    wiggle = np.where((np.arange(len(odom_t)) % 2 == 1), 0.05, 0.0)  # off the line mid-way
+    odom_poses = np.stack([T_odom_world @ P @ se3(np.eye(3), [0.0, w, 0.0])
+                           for P, w in zip(line, wiggle, strict=True)])
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    frames = [CameraFrame.from_array(t, np.zeros((48, 64, 3), np.uint8), i)
+              for i, t in enumerate([2.5, 3.5, 5.0])]
+    seq = Sequence(Rig(cam, np.eye(4), T_base_laser), frames, scans,
+                   odometry=Trajectory(odom_t, odom_poses, "odom", "base_link"),
+                   name="synthetic")
+    monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
+
+    def camera_poses(use_odometry: bool) -> tuple[Trajectory, Trajectory]:
+        ctx = _Ctx(tmp_path / str(use_odometry))
+        Slam2DStage(Slam2DStage.Config(stage="slam2d", use_odometry=use_odometry)).run(ctx)
+        return (read_tum(ctx.stage_dir / "trajectory_base.tum"),
+                read_tum(ctx.stage_dir / "trajectory_camera.tum"))
+
+    slam, camt = camera_poses(True)
+    want = slam.interpolate_with_odometry(seq.odometry, camt.stamps).poses
+    assert np.allclose(camt.poses, want, atol=1e-9)
+    plain = slam.interpolate(camt.stamps).poses
+    off = np.linalg.norm(camt.poses[:, :3, 3] - plain[:, :3, 3], axis=1)
+    assert np.allclose(off[:2], 0.05, atol=0.01) and off[2] < 1e-6  # 5.0: a scan stamp
+    slam0, camt0 = camera_poses(False)
+    assert np.allclose(camt0.poses, slam0.interpolate(camt0.stamps).poses, atol=1e-9)

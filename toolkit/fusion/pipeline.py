@@ -296,11 +296,13 @@ def _first_of_block(last: int | None, index: int, every: int) -> bool:
     return last is None or last // every != index // every
 
 
-def pose_arrays(seq: Sequence, T_world_base: Trajectory) -> tuple[np.ndarray, np.ndarray,
-                                                                   np.ndarray]:
+def pose_arrays(seq: Sequence, T_world_base: Trajectory, use_odometry: bool = True) -> tuple[
+        np.ndarray, np.ndarray, np.ndarray]:
     """``T_world_base`` at every frame [F, 4, 4] and scan [S, 4, 4] stamp, plus [F] bool of
     frames inside the trajectory's time span and not in a gap of it (others have no
-    trustworthy pose: ``Trajectory.covers``).
+    trustworthy pose: ``Trajectory.covers``). Between the trajectory's poses the robot
+    moves as the sequence's odometry says, when it has one and ``use_odometry``
+    (``Trajectory.interpolate_with_odometry``).
 
     The trajectory must hold the robot base's poses (``child`` "base_link", as the slam2d
     stage's ``trajectory_base.tum`` and a sequence's ground truth), not the camera's."""
@@ -318,9 +320,16 @@ def pose_arrays(seq: Sequence, T_world_base: Trajectory) -> tuple[np.ndarray, np
     t0, t1 = traj.stamps[0], traj.stamps[-1]
     fs = seq.frame_stamps
     inside = traj.covers(fs, slack_s=Trajectory.END_SLACK_S)
-    frame_poses = traj.interpolate(np.clip(fs, t0, t1)).poses if len(fs) else np.zeros((0, 4, 4))
-    ss = seq.scan_stamps
-    scan_poses = traj.interpolate(np.clip(ss, t0, t1)).poses if len(ss) else np.zeros((0, 4, 4))
+    odom = seq.odometry if use_odometry else None
+    slack = Trajectory.END_SLACK_S  # as slam2d's camera poses: the odometry carries them there
+
+    def at(stamps: np.ndarray) -> np.ndarray:
+        if not len(stamps):
+            return np.zeros((0, 4, 4))
+        return traj.interpolate_with_odometry(odom, np.clip(stamps, t0 - slack, t1 + slack),
+                                              extrapolate_s=slack).poses
+
+    frame_poses, scan_poses = at(fs), at(seq.scan_stamps)
     return frame_poses, scan_poses, inside
 
 

@@ -48,7 +48,8 @@ class Slam2DStage(Stage):
     # where they did before 3 (ending them in their cell broke ACES: ATE 8.4 cm -> 21.9 m).
     # 5: far loop-closure matches as good as one near the estimate are rejected
     # 6: the ATE against ground truth interpolates it at the scans' stamps
-    version = 6
+    # 7: camera poses between the scans' follow the wheel odometry (use_odometry)
+    version = 7
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
@@ -95,14 +96,15 @@ class Slam2DStage(Stage):
         write_tum(out / "trajectory_base.tum", traj,
                   header="slam2d: T_world_base at the scan stamps")
 
-        # Camera poses: base poses interpolated at the camera stamps, times the mount; none
-        # outside the scans' span (but for END_SLACK_S: the end pose, as fuse takes them)
-        # or across a gap in it (Trajectory.covers).
+        # Camera poses: base poses interpolated at the camera stamps (the motion between
+        # two scans the odometry's, when it is used), times the mount; none outside the
+        # scans' span (but for END_SLACK_S, as fuse takes them) or across a gap in it
+        # (Trajectory.covers).
         fs = seq.frame_stamps
         slack = traj.END_SLACK_S
         span = (fs >= traj.stamps[0] - slack) & (fs <= traj.stamps[-1] + slack)
         inside = traj.covers(fs, slack_s=slack)
-        cam = traj.interpolate(fs[inside], extrapolate_s=slack).transform(
+        cam = traj.interpolate_with_odometry(odom, fs[inside], extrapolate_s=slack).transform(
             T_right=seq.rig.T_base_camera)
         cam.child = "camera"
         write_tum(out / "trajectory_camera.tum", cam,
