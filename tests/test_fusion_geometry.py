@@ -28,6 +28,7 @@ from toolkit.fusion.projection import (
 )
 from toolkit.fusion.synthetic import R_BASE_OPTICAL
 from toolkit.fusion.voxel_map import (
+    KeyTable,
     VoxelMap,
     key_centres,
     read_map_ply,
@@ -480,6 +481,53 @@ def test_voxel_map_matches_a_one_shot_reduction_and_pickles_mid_way() -> None:
     seen = np.zeros((len(keys), len(frames)), bool)
     seen[inv, fr] = True
     np.testing.assert_array_equal(m.frames, seen.sum(1))
+
+
+def test_key_table_gives_np_unique_of_the_packed_keys() -> None:
+    """A frame's sorted unique keys and inverse as np.unique gives them, from the table over
+    its box (reused frame after frame: the cells marked by one must not show in the next)
+    or, for a box too large for the table, by sorting; an empty frame has none."""
+    rng = np.random.default_rng(5)
+    table = KeyTable(max_cells=1 << 16, cells_per_point=64)
+    bits = [20, 20, 20, 2]
+    cases = [[rng.integers(500, 540, 3000), rng.integers(7, 30, 3000),
+              rng.integers(0, 9, 3000), rng.integers(0, 4, 3000)],  # dense: 33 k cells
+             [rng.integers(100, 120, 500), rng.integers(0, 20, 500),
+              rng.integers(40, 45, 500), rng.integers(0, 4, 500)],  # dense, another box
+             [rng.integers(0, 1 << 20, 800), rng.integers(0, 1 << 20, 800),
+              rng.integers(0, 1 << 20, 800), rng.integers(0, 4, 800)],  # sorted
+             [np.zeros(0, np.int64)] * 4]
+    for cols in cases:
+        cols = [c.astype(np.int64) for c in cols]
+        keys = (cols[0] << 42) | (cols[1] << 22) | (cols[2] << 2) | cols[3]
+        want, want_inv = np.unique(keys, return_inverse=True)
+        got, inv = table.unique(cols, bits)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(inv, want_inv)
+    assert not table._seen.any()
+
+
+def test_voxel_map_from_a_checkpoint_without_a_key_table_carries_on() -> None:
+    """A map pickled before it kept a key table (an older run's checkpoint) resumes."""
+    import pickle
+
+    rng = np.random.default_rng(6)
+    pts = [rng.uniform(-1, 1, (200, 3)) for _ in range(4)]
+    col = np.full((200, 3), 90, np.uint8)
+    vm = VoxelMap(0.1)
+    for f in range(2):
+        vm.integrate(pts[f], col, f)
+    old = pickle.loads(pickle.dumps(vm))
+    del old.__dict__["_table"]
+    vm = VoxelMap.__new__(VoxelMap)
+    vm.__setstate__(pickle.loads(pickle.dumps(old.__dict__)))
+    ref = VoxelMap(0.1)
+    for f in range(4):
+        if f >= 2:
+            vm.integrate(pts[f], col, f)
+        ref.integrate(pts[f], col, f)
+    np.testing.assert_array_equal(vm.arrays().points, ref.arrays().points)
 
 
 def test_lidar_carving_counts_every_voxel_in_reach_and_only_those() -> None:

@@ -34,6 +34,80 @@ def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return (q[:, 0] << (2 * _BITS)) | (q[:, 1] << _BITS) | q[:, 2]
 
 
+def voxel_index_columns(points: np.ndarray, voxel_size: float) -> list[np.ndarray]:
+    """The voxel indices x, y, z ([N] int64 each, offset to be non-negative) that
+    ``voxel_keys`` packs, column by column (contiguous, for ``KeyTable``)."""
+    pts = np.asarray(points)
+    cols = [np.floor(pts[:, k].astype(np.float64) / voxel_size).astype(np.int64) + _OFFSET
+            for k in range(3)]
+    if len(pts) and (min(int(c.min()) for c in cols) < 0
+                     or max(int(c.max()) for c in cols) > _MASK):
+        raise ValueError(f"points beyond +-{_OFFSET * voxel_size:.0f} m cannot be keyed")
+    return cols
+
+
+class KeyTable:
+    """Sorted unique keys of a frame's points and each point's index among them, as
+    ``np.unique(keys, return_inverse=True)`` gives them, without sorting the points: a table
+    over the points' bounding box marks the occupied cells, and reading it in order gives
+    the keys sorted. A frame's box is small (at 2 cm a median 2 M voxels for 52 k points);
+    its 56 k keys took 2.7 ms to sort, the table 0.4 ms. Boxes larger than ``max_cells``,
+    or than ``cells_per_point`` cells a point, are sorted as before.
+
+    The arrays stay allocated between frames: fresh ones cost more in page faults than the
+    work on them."""
+
+    def __init__(self, max_cells: int = 1 << 23, cells_per_point: int = 256) -> None:
+        self.max_cells = max_cells
+        self.cells_per_point = cells_per_point
+        self._seen = np.zeros(0, bool)  # all False between calls
+        self._slot = np.zeros(0, np.int32)  # scratch: read only where just written
+
+    def __getstate__(self) -> dict[str, object]:
+        # Scratch space: a pickle (a checkpoint) holds the settings alone.
+        return {"max_cells": self.max_cells, "cells_per_point": self.cells_per_point}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__init__(**state)  # type: ignore[misc]
+
+    def unique(self, cols: list[np.ndarray], bits: list[int]) -> tuple[np.ndarray,
+                                                                         np.ndarray]:
+        """(sorted unique keys [M] int64, inverse [N] int) of the keys that pack the
+        non-negative integer columns ``cols`` (each [N] int64, the first the most
+        significant), column k taking ``bits[k]`` bits."""
+        n = len(cols[0])
+        shifts = np.cumsum([0] + bits[:0:-1])[::-1]  # [K] bits below each column
+        lo = [int(c.min()) for c in cols] if n else []
+        span = [int(c.max()) - a + 1 for c, a in zip(cols, lo, strict=False)]
+        cells = float(np.prod(span, dtype=np.float64))
+        if not n or cells > min(self.max_cells, self.cells_per_point * n):
+            keys = cols[0] << int(shifts[0])
+            for c, sh in zip(cols[1:], shifts[1:], strict=True):
+                keys = keys | (c << int(sh))
+            uk, inv = np.unique(keys, return_inverse=True)
+            return uk, inv
+        # Mixed-radix cell index in the box, in the keys' order (the first column slowest).
+        at = cols[0] - lo[0]
+        for c, a, sp in zip(cols[1:], lo[1:], span[1:], strict=True):
+            at = at * sp + (c - a)
+        size = int(cells)
+        if len(self._seen) < size:
+            self._seen = np.zeros(max(size, len(self._seen) * 3 // 2), bool)
+            self._slot = np.empty(len(self._seen), np.int32)
+        self._seen[at] = True
+        occupied = np.flatnonzero(self._seen[:size])  # [M] sorted
+        self._seen[occupied] = False
+        self._slot[occupied] = np.arange(len(occupied), dtype=np.int32)
+        inv = self._slot[at]
+        # The occupied cells' keys, unpacked from the box index, last column first.
+        uk = np.zeros(len(occupied), np.int64)
+        rest = occupied
+        for k in range(len(cols) - 1, -1, -1):
+            rest, digit = np.divmod(rest, span[k])
+            uk |= (digit + lo[k]) << int(shifts[k])
+        return uk, inv
+
+
 def key_centres(keys: np.ndarray, voxel_size: float) -> np.ndarray:
     """[N, 3] centres of voxels with ``keys`` [N]."""
     q = np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], -1)
@@ -85,6 +159,7 @@ class VoxelMap:
         self._pending: list[tuple[np.ndarray, ...]] = []
         self._pending_n = 0
         self.frames_integrated = 0
+        self._table = KeyTable()  # each frame's voxels
 
     def integrate(self, points: np.ndarray, colors: np.ndarray, frame: int,
                   labels: np.ndarray | None = None, depths: np.ndarray | None = None,
@@ -99,8 +174,8 @@ class VoxelMap:
         if len(points) == 0:
             self.frames_integrated += 1
             return
-        keys = voxel_keys(points, self.voxel_size)
-        uk, inv = np.unique(keys, return_inverse=True)
+        uk, inv = self._table.unique(voxel_index_columns(points, self.voxel_size),
+                                     [_BITS] * 3)
         m = len(uk)
         # Sums stored column by column ([7, m], x y z r g b label): the batch merge adds them
         # with one bincount per column instead of permuting an [n, 7] array.
@@ -210,6 +285,11 @@ class VoxelMap:
         for name in self._VALUES:
             state[name] = state[name][..., : self._n]  # pickle writes only the view's data
         return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        if "_table" not in state:  # a checkpoint from before the table
+            self._table = KeyTable()
 
     def __len__(self) -> int:
         self._merge()
