@@ -49,6 +49,7 @@ from toolkit.fusion.scale import (
 )
 from toolkit.fusion.voxel_map import (
     KEY_RANGE_VOXELS,
+    KeyTable,
     MapArrays,
     VoxelMap,
     statistical_inliers,
@@ -385,6 +386,7 @@ class Fusion:
         self.rays = RayCache(self.camera, config.stride)
         self._full_rays: RayCache | None = None  # every pixel's ray (moving_pixels)
         self._exposure_rays: RayCache | None = None  # exposure_observations' stride
+        self._exposure_table = KeyTable()  # its cells
         self.cloud_opts = config.cloud_options(self.camera.fx)
         # One beam spacing for the occlusion test of the pairs (scanners of one sequence
         # share it; the finest one is the strictest test)
@@ -595,7 +597,7 @@ class Fusion:
         if moving is not None:
             pts, col = pts[~moving], col[~moving]
         keys, log_rgb, _ = cell_observations(pts, col, self.T_world_camera(index)[:3, 3], opts,
-                                             max_cells)
+                                             max_cells, self._exposure_table)
         return keys, log_rgb
 
     # ------------------------------------------------------------------ map
