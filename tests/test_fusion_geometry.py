@@ -508,26 +508,30 @@ def test_key_table_gives_np_unique_of_the_packed_keys() -> None:
     assert not table._seen.any()
 
 
-def test_voxel_map_from_a_checkpoint_without_a_key_table_carries_on() -> None:
-    """A map pickled before it kept a key table (an older run's checkpoint) resumes."""
-    import pickle
-
+def test_voxel_map_from_an_older_checkpoint_carries_on() -> None:
+    """A map pickled before it kept a key table and its pending frames in arrays (a list of
+    per-frame tuples then: an older run's checkpoint) resumes to the same map."""
     rng = np.random.default_rng(6)
     pts = [rng.uniform(-1, 1, (200, 3)) for _ in range(4)]
     col = np.full((200, 3), 90, np.uint8)
-    vm = VoxelMap(0.1)
-    for f in range(2):
-        vm.integrate(pts[f], col, f)
-    old = pickle.loads(pickle.dumps(vm))
-    del old.__dict__["_table"]
-    vm = VoxelMap.__new__(VoxelMap)
-    vm.__setstate__(pickle.loads(pickle.dumps(old.__dict__)))
     ref = VoxelMap(0.1)
-    for f in range(4):
-        if f >= 2:
-            vm.integrate(pts[f], col, f)
-        ref.integrate(pts[f], col, f)
-    np.testing.assert_array_equal(vm.arrays().points, ref.arrays().points)
+    for f in range(2):
+        ref.integrate(pts[f], col, f, depths=np.full(200, 1.0 + f))
+    state = ref.__getstate__()
+    n = state["_pending_n"]
+    assert n > 0
+    legacy = {k: v for k, v in state.items() if not k.startswith("_p_") and k != "_table"}
+    legacy["_pending"] = [(state["_p_keys"], state["_p_sums"], state["_p_count"],
+                           np.ones(n, np.int32), state["_p_frame"], state["_p_frame"],
+                           state["_p_near"])]
+    vm = VoxelMap.__new__(VoxelMap)
+    vm.__setstate__(legacy)
+    for f in range(2, 4):
+        vm.integrate(pts[f], col, f, depths=np.full(200, 1.0 + f))
+        ref.integrate(pts[f], col, f, depths=np.full(200, 1.0 + f))
+    got, want = vm.arrays(), ref.arrays()
+    for name in ("points", "colors", "count", "frames", "first", "last", "near"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
 
 
 def test_lidar_carving_counts_every_voxel_in_reach_and_only_those() -> None:
