@@ -238,7 +238,8 @@ def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
     # a < b: observations are in frame order within a cell
     pid = a.astype(np.int64) * n_frames + b
     del a, b
-    upid, inv, cnt = np.unique(pid, return_inverse=True, return_counts=True)
+    upid, inv = KeyTable().unique([pid], [63])  # np.unique's, without sorting the pairs
+    cnt = np.bincount(inv, minlength=len(upid))
     start = np.r_[0, np.cumsum(cnt)[:-1]]
     # The median of each pair's differences: sort by (pair, value) and take the middle.
     lo, hi = start + (cnt - 1) // 2, start + cnt // 2

@@ -53,7 +53,7 @@ from toolkit.fusion.voxel_map import (
     MapArrays,
     VoxelMap,
     statistical_inliers,
-    voxel_keys,
+    unique_voxels,
 )
 from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
@@ -678,8 +678,7 @@ class Fusion:
             # Carving tests coarse cells (centroids of the map voxels in each): a person is
             # many cells wide, and it is 10x fewer points to project into every view.
             cell_size = max(c.carve_voxel_m, c.voxel_size_m)
-            keys = voxel_keys(raw.points, cell_size)
-            _, inv = np.unique(keys, return_inverse=True)
+            _, inv = unique_voxels(raw.points, cell_size)
             cell_inv = inv
             n_cells = int(inv.max()) + 1
             cells = np.stack([np.bincount(inv, raw.points[:, k], n_cells) for k in range(3)], 1)
@@ -728,9 +727,9 @@ class Fusion:
                 if cell_inv is not None and cell_size == c.outlier_voxel_m:
                     # The carving's cells, without the removed voxels: no second keying
                     # and sort of the whole map.
-                    _, inv = np.unique(cell_inv[idx], return_inverse=True)
+                    _, inv = KeyTable().unique([cell_inv[idx]], [63])
                 else:
-                    _, inv = np.unique(voxel_keys(pts, c.outlier_voxel_m), return_inverse=True)
+                    _, inv = unique_voxels(pts, c.outlier_voxel_m)
                 n = int(inv.max()) + 1
                 cells = np.stack([np.bincount(inv, pts[:, k], n) for k in range(3)], 1)
                 cells /= np.bincount(inv, minlength=n)[:, None]

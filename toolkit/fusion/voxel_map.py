@@ -108,6 +108,13 @@ class KeyTable:
         return uk, inv
 
 
+def unique_voxels(points: np.ndarray, voxel_size: float,
+                  table: KeyTable | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(voxel_keys(points, voxel_size), return_inverse=True)`` of points [N, 3]
+    (sorted keys [M] and inverse [N]), through ``table`` (None: a fresh one)."""
+    return (table or KeyTable()).unique(voxel_index_columns(points, voxel_size), [_BITS] * 3)
+
+
 def key_centres(keys: np.ndarray, voxel_size: float) -> np.ndarray:
     """[N, 3] centres of voxels with ``keys`` [N]."""
     q = np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], -1)
@@ -177,8 +184,7 @@ class VoxelMap:
         if len(points) == 0:
             self.frames_integrated += 1
             return
-        uk, inv = self._table.unique(voxel_index_columns(points, self.voxel_size),
-                                     [_BITS] * 3)
+        uk, inv = unique_voxels(points, self.voxel_size, self._table)
         m = len(uk)
         a, b = self._pending_n, self._pending_n + m
         self._grow(self._PENDING, a, b)
