@@ -254,6 +254,28 @@ def test_ramp_mask_finds_gentle_ramps_the_range_test_misses() -> None:
     np.testing.assert_array_equal(ok, ~(edge | ramp))
 
 
+def test_strided_pixel_masks_are_the_full_masks_strided() -> None:
+    """valid_pixels, edge_mask and ramp_mask at a stride (the exposure's sparse points)
+    are the full-resolution masks at those pixels, with invalid pixels, edges and ramps
+    about; the caller's depth keeps its NaN and inf."""
+    rng = np.random.default_rng(9)
+    yy, xx = np.mgrid[0:61, 0:83]
+    d = (1.0 / (0.5 + 0.002 * xx + 0.001 * yy)).astype(np.float32)  # a plane, 1.2-2 m
+    d[10:30, 20:40] *= 0.8  # a box in front of it: edges
+    d[35:50, 50:70] = cv2.GaussianBlur(d, (9, 9), 4.0)[35:50, 50:70] * 1.02  # ramps
+    d[rng.random(d.shape) < 0.01] = np.nan
+    d[5, 7], d[40, 50], d[0, 0] = np.inf, -1.0, 0.0
+    before = d.copy()
+    opts = CloudOptions(ramp_threshold=0.003)
+    for s in (2, 3, 4):
+        np.testing.assert_array_equal(edge_mask(d, 0.06, 5, s), edge_mask(d, 0.06, 5)[::s, ::s])
+        np.testing.assert_array_equal(ramp_mask(d, 0.003, s), ramp_mask(d, 0.003)[::s, ::s])
+        np.testing.assert_array_equal(valid_pixels(d, opts, s), valid_pixels(d, opts)[::s, ::s])
+    full = valid_pixels(d, opts)
+    assert 0.3 < full.mean() < 0.95
+    np.testing.assert_array_equal(d, before)
+
+
 def test_depth_to_points_transform_colour_and_range() -> None:
     cam = PinholeCamera(40, 30, 30.0, 30.0, 19.5, 14.5)
     rays = RayCache(cam, stride=1)
