@@ -30,7 +30,12 @@ from toolkit.fusion.dynamic import (
     dynamic_beams,
     grow_dynamic,
 )
-from toolkit.fusion.exposure import CELL_RANGE, ExposureOptions, cell_observations
+from toolkit.fusion.exposure import (
+    CELL_RANGE,
+    ExposureOptions,
+    cell_observations,
+    corrected_image,
+)
 from toolkit.fusion.projection import (
     LidarPixels,
     LidarProjector,
@@ -603,16 +608,21 @@ class Fusion:
     # ------------------------------------------------------------------ map
     def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,
                   labels: np.ndarray | None = None, drop: np.ndarray | None = None,
-                  valid: np.ndarray | None = None) -> int:
+                  valid: np.ndarray | None = None, gain: np.ndarray | None = None) -> int:
         """Add one frame's scaled depth [H, W] to the map; returns the number of points.
 
         ``labels`` [H, W] (e.g. ground-truth dynamic pixels) only ride along for
         evaluation; ``drop`` [H, W] bool removes pixels before integration; ``valid`` is
-        ``valid_pixels(depth, self.cloud_opts)`` when the caller already has it.
+        ``valid_pixels(depth, self.cloud_opts)`` when the caller already has it. ``gain``
+        [3]: the frame's exposure gain (``exposure_observations``, ``solve_exposure``),
+        divided out of the colours the map takes, as ``corrected_image`` divides it out
+        of the image, on the pixels taken only (a sixth of them at stride 2).
         """
         ok = valid_pixels(depth, self.cloud_opts) if valid is None else valid
         pts, col, idx = depth_to_points(depth, rgb, self.rays, self.T_world_camera(index),
                                         self.cloud_opts, drop, ok)
+        if gain is not None:
+            col = corrected_image(col.reshape(-1, 1, 3), gain).reshape(-1, 3)
         moving = self._near_moving(index, pts)
         if moving is not None:
             self.points_masked_dynamic += int(moving.sum())
