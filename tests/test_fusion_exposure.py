@@ -219,6 +219,32 @@ def test_the_two_sides_of_a_thin_wall_are_different_cells() -> None:
         cell_keys(np.array([[1e6, 0.0, 0.0]]), np.zeros(3), 0.1)
 
 
+def test_cell_observations_reusing_a_key_table_match_a_sort_of_the_keys() -> None:
+    """Frames grouped through one key table kept from frame to frame give the cells, means
+    and counts that sorting each frame's cell_keys gives (a dark pixel spoils its cell)."""
+    from toolkit.fusion.voxel_map import KeyTable
+
+    rng = np.random.default_rng(8)
+    opts = ExposureOptions(min_points=2)
+    table = KeyTable()
+    for f in range(3):
+        pts = rng.uniform(-2, 2, (4000, 3)).astype(np.float32) + f
+        col = rng.integers(0, 256, (4000, 3)).astype(np.uint8)
+        col[rng.random(4000) < 0.9] |= 16  # most pixels off the dark end
+        origin = np.array([0.3 * f, -1.0, 0.5])
+        keys, log_rgb, count = cell_observations(pts, col, origin, opts, table=table)
+        uk, inv, cnt = np.unique(cell_keys(pts, origin, opts.cell_m), return_inverse=True,
+                                 return_counts=True)
+        ok = ((col > opts.dark) & (col < opts.bright)).all(1)
+        good = (cnt >= opts.min_points) & (np.bincount(inv, ~ok, len(uk)) == 0)
+        mean = np.stack([np.bincount(inv, col[:, k].astype(float), len(uk)) for k in range(3)],
+                        1) / cnt[:, None]
+        assert 0 < good.sum() < len(uk)
+        np.testing.assert_array_equal(keys, uk[good])
+        np.testing.assert_array_equal(count, cnt[good])
+        np.testing.assert_array_equal(log_rgb, np.log(mean[good]).astype(np.float32))
+
+
 def test_corrected_image_divides_each_channel() -> None:
     rgb = np.array([[[100, 200, 50], [255, 0, 10]]], np.uint8)
     out = corrected_image(rgb, np.array([2.0, 0.5, 1.0]))

@@ -28,6 +28,7 @@ from toolkit.fusion.projection import (
 )
 from toolkit.fusion.synthetic import R_BASE_OPTICAL
 from toolkit.fusion.voxel_map import (
+    KeyTable,
     VoxelMap,
     key_centres,
     read_map_ply,
@@ -251,6 +252,28 @@ def test_ramp_mask_finds_gentle_ramps_the_range_test_misses() -> None:
     assert not ramp[:, :32].any() and not ramp[:, 48:].any()
     ok = valid_pixels(d, CloudOptions(ramp_threshold=0.003))
     np.testing.assert_array_equal(ok, ~(edge | ramp))
+
+
+def test_strided_pixel_masks_are_the_full_masks_strided() -> None:
+    """valid_pixels, edge_mask and ramp_mask at a stride (the exposure's sparse points)
+    are the full-resolution masks at those pixels, with invalid pixels, edges and ramps
+    about; the caller's depth keeps its NaN and inf."""
+    rng = np.random.default_rng(9)
+    yy, xx = np.mgrid[0:61, 0:83]
+    d = (1.0 / (0.5 + 0.002 * xx + 0.001 * yy)).astype(np.float32)  # a plane, 1.2-2 m
+    d[10:30, 20:40] *= 0.8  # a box in front of it: edges
+    d[35:50, 50:70] = cv2.GaussianBlur(d, (9, 9), 4.0)[35:50, 50:70] * 1.02  # ramps
+    d[rng.random(d.shape) < 0.01] = np.nan
+    d[5, 7], d[40, 50], d[0, 0] = np.inf, -1.0, 0.0
+    before = d.copy()
+    opts = CloudOptions(ramp_threshold=0.003)
+    for s in (2, 3, 4):
+        np.testing.assert_array_equal(edge_mask(d, 0.06, 5, s), edge_mask(d, 0.06, 5)[::s, ::s])
+        np.testing.assert_array_equal(ramp_mask(d, 0.003, s), ramp_mask(d, 0.003)[::s, ::s])
+        np.testing.assert_array_equal(valid_pixels(d, opts, s), valid_pixels(d, opts)[::s, ::s])
+    full = valid_pixels(d, opts)
+    assert 0.3 < full.mean() < 0.95
+    np.testing.assert_array_equal(d, before)
 
 
 def test_depth_to_points_transform_colour_and_range() -> None:
@@ -480,6 +503,57 @@ def test_voxel_map_matches_a_one_shot_reduction_and_pickles_mid_way() -> None:
     seen = np.zeros((len(keys), len(frames)), bool)
     seen[inv, fr] = True
     np.testing.assert_array_equal(m.frames, seen.sum(1))
+
+
+def test_key_table_gives_np_unique_of_the_packed_keys() -> None:
+    """A frame's sorted unique keys and inverse as np.unique gives them, from the table over
+    its box (reused frame after frame: the cells marked by one must not show in the next)
+    or, for a box too large for the table, by sorting; an empty frame has none."""
+    rng = np.random.default_rng(5)
+    table = KeyTable(max_cells=1 << 16, cells_per_point=64)
+    bits = [20, 20, 20, 2]
+    cases = [[rng.integers(500, 540, 3000), rng.integers(7, 30, 3000),
+              rng.integers(0, 9, 3000), rng.integers(0, 4, 3000)],  # dense: 33 k cells
+             [rng.integers(100, 120, 500), rng.integers(0, 20, 500),
+              rng.integers(40, 45, 500), rng.integers(0, 4, 500)],  # dense, another box
+             [rng.integers(0, 1 << 20, 800), rng.integers(0, 1 << 20, 800),
+              rng.integers(0, 1 << 20, 800), rng.integers(0, 4, 800)],  # sorted
+             [np.zeros(0, np.int64)] * 4]
+    for cols in cases:
+        cols = [c.astype(np.int64) for c in cols]
+        keys = (cols[0] << 42) | (cols[1] << 22) | (cols[2] << 2) | cols[3]
+        want, want_inv = np.unique(keys, return_inverse=True)
+        got, inv = table.unique(cols, bits)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(inv, want_inv)
+    assert not table._seen.any()
+
+
+def test_voxel_map_from_an_older_checkpoint_carries_on() -> None:
+    """A map pickled before it kept a key table and its pending frames in arrays (a list of
+    per-frame tuples then: an older run's checkpoint) resumes to the same map."""
+    rng = np.random.default_rng(6)
+    pts = [rng.uniform(-1, 1, (200, 3)) for _ in range(4)]
+    col = np.full((200, 3), 90, np.uint8)
+    ref = VoxelMap(0.1)
+    for f in range(2):
+        ref.integrate(pts[f], col, f, depths=np.full(200, 1.0 + f))
+    state = ref.__getstate__()
+    n = state["_pending_n"]
+    assert n > 0
+    legacy = {k: v for k, v in state.items() if not k.startswith("_p_") and k != "_table"}
+    legacy["_pending"] = [(state["_p_keys"], state["_p_sums"], state["_p_count"],
+                           np.ones(n, np.int32), state["_p_frame"], state["_p_frame"],
+                           state["_p_near"])]
+    vm = VoxelMap.__new__(VoxelMap)
+    vm.__setstate__(legacy)
+    for f in range(2, 4):
+        vm.integrate(pts[f], col, f, depths=np.full(200, 1.0 + f))
+        ref.integrate(pts[f], col, f, depths=np.full(200, 1.0 + f))
+    got, want = vm.arrays(), ref.arrays()
+    for name in ("points", "colors", "count", "frames", "first", "last", "near"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
 
 
 def test_lidar_carving_counts_every_voxel_in_reach_and_only_those() -> None:

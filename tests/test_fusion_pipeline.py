@@ -569,6 +569,35 @@ def test_a_subset_of_frames_still_gets_carving_views(box_room: Path) -> None:
     assert fu.consensus is not None and fu.consensus.frames == 4
 
 
+def test_a_frame_gain_given_to_integrate_is_the_corrected_image_fused(box_room: Path) -> (
+        None):
+    """integrate(..., gain=g) divides the gain out of the colours it takes: the same map,
+    to the bit, as fusing corrected_image(rgb, g)."""
+    from toolkit.fusion.exposure import corrected_image
+
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    rng = np.random.default_rng(10)
+    gains = rng.uniform(0.7, 1.4, (len(seq.frames), 3))
+    maps = []
+    for mode in ("corrected image", "gain", "neither"):
+        fu = Fusion(seq, FusionConfig(scale="none"), fp, sp)
+        for i in range(0, len(seq.frames), 2):
+            d = gt.depth(i)
+            d = np.where(d > 0, d, np.nan)
+            rgb = seq.frames[i].image
+            if mode == "gain":
+                fu.integrate(i, d, rgb, gain=gains[i])
+            else:
+                fu.integrate(i, d, rgb if mode == "neither" else corrected_image(rgb, gains[i]))
+        maps.append(fu.map.arrays())
+    assert len(maps[0]) > 1000
+    np.testing.assert_array_equal(maps[1].colors, maps[0].colors)
+    np.testing.assert_array_equal(maps[1].points, maps[0].points)
+    assert np.abs(maps[2].colors.astype(int) - maps[0].colors).mean() > 5
+
+
 def test_a_broken_ground_truth_mesh_stops_fuse_before_any_frame(box_room: Path,
                                                                 tmp_path: Path) -> None:
     """A groundtruth/mesh.ply that is no mesh was found only when the finished map was

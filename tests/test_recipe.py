@@ -249,6 +249,24 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.parametrize("package, entry", [("toolkit.recipe", "toolkit.recipe.__main__"),
+                                             ("toolkit.fusion", "toolkit.fusion.bench")])
+def test_entry_points_put_idle_openblas_threads_to_sleep(package: str, entry: str) -> None:
+    """``python -m toolkit.recipe`` and the fusion benchmark set OPENBLAS_THREAD_TIMEOUT
+    before numpy loads OpenBLAS, which reads it once: its idle threads' spinning after the
+    evaluation's dot products was 11 of the fuse_net row's 36.5 s of CPU work. ``-m``
+    imports the package first, so that import must not load numpy either."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    env["PYTHONPATH"] = str(REPO)
+    code = (f"import os, sys; import {package}; "
+            "assert 'numpy' not in sys.modules, 'the package import loads numpy'; "
+            f"import {entry}; print(os.environ.get('OPENBLAS_THREAD_TIMEOUT'))")
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "4"
+
+
 # --- validation ---------------------------------------------------------------------------
 
 

@@ -30,12 +30,16 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+# OpenBLAS's idle threads spin ~0.1 s after each product it splits (toolkit.recipe's
+# __main__ says more): as in the fuse stage, before numpy loads it.
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
 
-from toolkit.cli_types import positive_int
-from toolkit.depth.simulated import PRESETS
-from toolkit.fusion.exposure import corrected_image, frames_to_solve, solve_exposure
-from toolkit.fusion.pipeline import FusionConfig
+import numpy as np  # noqa: E402
+
+from toolkit.cli_types import positive_int  # noqa: E402
+from toolkit.depth.simulated import PRESETS  # noqa: E402
+from toolkit.fusion.exposure import frames_to_solve, solve_exposure  # noqa: E402
+from toolkit.fusion.pipeline import FusionConfig  # noqa: E402
 
 
 def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: int = 2,
@@ -117,8 +121,7 @@ def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
     points = 0
     for j, i in used:
         depth, _ = fusion.refine(i, preds[i].as_depth(sm.scale[j], sm.shift[j]), pairs[i])
-        points += fusion.integrate(i, depth, imgs[i] if i not in gains else corrected_image(
-            imgs[i], gains[i]))
+        points += fusion.integrate(i, depth, imgs[i], gain=gains.get(i))
     t2, c2 = time.perf_counter(), time.process_time()
     raw, masks = fusion.finish()
     t3, c3 = time.perf_counter(), time.process_time()

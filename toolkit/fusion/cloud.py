@@ -67,44 +67,54 @@ class RayCache:
         return self._off_grid[near_stride]
 
 
-def edge_mask(depth: np.ndarray, threshold: float, window: int = 5) -> np.ndarray:
-    """[H, W] bool: pixels near a depth discontinuity (flying-pixel candidates)."""
-    d = np.array(depth, np.float32)  # a copy: non-finite pixels become 0 in it
+def edge_mask(depth: np.ndarray, threshold: float, window: int = 5,
+              stride: int = 1) -> np.ndarray:
+    """[H, W] bool: pixels near a depth discontinuity (flying-pixel candidates); with
+    ``stride``, those of every stride-th pixel only ([::stride, ::stride] of it)."""
+    d = np.ascontiguousarray(depth, dtype=np.float32)
     bad = ~np.isfinite(d)
     if bad.any():
+        d = d.copy()  # non-finite pixels become 0 in it, not in the caller's
         d[bad] = 0.0
     kernel = np.ones((window, window), np.uint8)
     hi = cv2.dilate(d, kernel)
     # Invalid pixels (0) must not look like a jump to zero; lift them before the min filter.
     # OpenCV's threshold and add, not np.where: a third of the time on 640x480.
     lift = cv2.threshold(d, 0.0, 1e6, cv2.THRESH_BINARY_INV)[1]
-    hi -= cv2.erode(cv2.add(d, lift), kernel)
-    return hi > threshold * d
+    lo = cv2.erode(cv2.add(d, lift), kernel)
+    s = stride
+    return hi[::s, ::s] - lo[::s, ::s] > threshold * d[::s, ::s]
 
 
-def valid_pixels(depth: np.ndarray, opts: CloudOptions) -> np.ndarray:
-    """[H, W] bool: finite, within the depth range and not on an edge."""
+def valid_pixels(depth: np.ndarray, opts: CloudOptions, stride: int = 1) -> np.ndarray:
+    """[H, W] bool: finite, within the depth range and not on an edge; with ``stride``,
+    the same of every stride-th pixel only ([::stride, ::stride] of it: the filters see
+    every pixel, the tests after them only those)."""
+    d = depth[::stride, ::stride]
     with np.errstate(invalid="ignore"):
-        ok = np.isfinite(depth) & (depth >= opts.min_depth_m) & (depth <= opts.max_depth_m)
+        ok = np.isfinite(d) & (d >= opts.min_depth_m) & (d <= opts.max_depth_m)
     if opts.edge_threshold > 0:
-        ok &= ~edge_mask(depth, opts.edge_threshold, opts.edge_window)
+        ok &= ~edge_mask(depth, opts.edge_threshold, opts.edge_window, stride)
     if opts.ramp_threshold > 0:
-        ok &= ~ramp_mask(depth, opts.ramp_threshold)
+        ok &= ~ramp_mask(depth, opts.ramp_threshold, stride)
     return ok
 
 
-def ramp_mask(depth: np.ndarray, threshold: float) -> np.ndarray:
+def ramp_mask(depth: np.ndarray, threshold: float, stride: int = 1) -> np.ndarray:
     """[H, W] bool: pixels where the inverse depth is not locally planar: its Laplacian
     (OpenCV's 3x3 aperture [[2, 0, 2], [0, -8, 0], [2, 0, 2]], 4x the 5-point one; after a
     1-pixel Gaussian) above ``threshold`` x the inverse depth itself. Pixels within 4 of
-    invalid ones (non-finite or <= 0) count as bent."""
+    invalid ones (non-finite or <= 0) count as bent. With ``stride``, every stride-th
+    pixel's ([::stride, ::stride] of it)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(np.isfinite(depth) & (depth > 0), 1.0 / depth, 0.0).astype(np.float32)
+        # NaN and -inf fail the test, and 1 / +inf is 0 as well.
+        inv = np.where(depth > 0, 1.0 / depth, 0.0).astype(np.float32, copy=False)
     # Continued linearly past the border (odd reflection): a mirrored plane would bend there.
     r = 4  # the Gaussian's 3 pixels and the Laplacian's 1
     padded = np.pad(inv, r, mode="reflect", reflect_type="odd")
     lap = cv2.Laplacian(cv2.GaussianBlur(padded, (7, 7), 1.0), cv2.CV_32F, ksize=3)
-    return np.abs(lap[r:-r, r:-r]) > threshold * inv
+    s = stride
+    return np.abs(lap[r:-r:s, r:-r:s]) > threshold * inv[::s, ::s]
 
 
 def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,
@@ -130,8 +140,7 @@ def depth_to_points(depth: np.ndarray, rgb: np.ndarray, rays: RayCache,
         # An RGBA image read as three channels a pixel gave half the points shifted colours.
         raise ValueError(f"image {list(rgb.shape)}: give an RGB image [H, W, 3] (drop an "
                          "alpha channel, stack a grey one)")
-    ok = valid_pixels(depth, opts) if valid is None else valid
-    ok = ok[::s, ::s]
+    ok = valid_pixels(depth, opts, s) if valid is None else valid[::s, ::s]
     if rays.reachable is not None:
         ok = ok & rays.reachable
     if extra_mask is not None:

@@ -33,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolkit.fusion.voxel_map import KeyTable
 from toolkit.io.atomic import atomic_write_text
 
 
@@ -100,25 +101,47 @@ def cell_keys(points: np.ndarray, origin: np.ndarray, cell_m: float) -> np.ndarr
     a later visit from the other room then compared the rooms' paint, not the exposures
     (on the quickstart's house at stride 2: gains 7 % RMS off without it, 0.16 % with it).
     """
-    p = np.asarray(points, np.float64)
-    q = np.floor(p / cell_m).astype(np.int64) + _CELL_OFFSET
-    if q.size and (q.min() < 0 or q.max() >= 1 << _CELL_BITS):
+    cols = cell_key_columns(points, origin, cell_m)
+    keys = cols[0] << _CELL_SHIFTS[0]
+    for c, shift in zip(cols[1:], _CELL_SHIFTS[1:], strict=True):
+        keys |= c << shift
+    return keys
+
+
+_CELL_KEY_BITS = [_CELL_BITS] * 3 + [2]  # x, y, z cell and the quadrant
+_CELL_SHIFTS = [2 * _CELL_BITS + 2, _CELL_BITS + 2, 2, 0]
+
+
+def cell_key_columns(points: np.ndarray, origin: np.ndarray, cell_m: float) -> list[
+        np.ndarray]:
+    """What ``cell_keys`` packs, column by column: the cell's x, y, z index (offset to be
+    non-negative) and the quadrant, [N] int64 each."""
+    p = np.asarray(points)
+    o = np.asarray(origin, np.float64)
+    cols = []
+    for k in range(3):
+        pk = p[:, k].astype(np.float64)  # [N]
+        cols.append(np.floor(pk / cell_m).astype(np.int64) + _CELL_OFFSET)
+    if len(p) and (min(int(c.min()) for c in cols) < 0
+                   or max(int(c.max()) for c in cols) >= 1 << _CELL_BITS):
         raise ValueError(f"points beyond +-{_CELL_OFFSET * cell_m:.0f} m cannot be keyed")
-    v = p[:, :2] - np.asarray(origin, np.float64)[:2]
-    quadrant = (v[:, 0] >= 0).astype(np.int64) | ((v[:, 1] >= 0).astype(np.int64) << 1)
-    return ((q[:, 0] << (2 * _CELL_BITS + 2)) | (q[:, 1] << (_CELL_BITS + 2))
-            | (q[:, 2] << 2) | quadrant)
+    east = (p[:, 0].astype(np.float64) - o[0]) >= 0
+    north = (p[:, 1].astype(np.float64) - o[1]) >= 0
+    cols.append(east.astype(np.int64) | (north.astype(np.int64) << 1))
+    return cols
 
 
 def cell_observations(points: np.ndarray, colors: np.ndarray, origin: np.ndarray,
-                      opts: ExposureOptions, max_cells: int | None = None) -> tuple[
+                      opts: ExposureOptions, max_cells: int | None = None,
+                      table: KeyTable | None = None) -> tuple[
                           np.ndarray, np.ndarray, np.ndarray]:
     """One frame's observations from its points [N, 3] seen from ``origin`` [3] and their
     colours [N, 3] uint8: cell keys [M] int64 (``cell_keys``), log mean colours [M, 3]
     float32 and pixel counts [M], for the cells with at least ``min_points`` pixels and
     none dark or clipped in any channel. With ``max_cells``, only that many: those whose
     keys hash lowest, so that frames seeing the same surface keep the same cells
-    (``plan``)."""
+    (``plan``). ``table``: one to group the keys with, kept from frame to frame (None: a
+    fresh one)."""
     c = np.asarray(colors)  # [N, 3]
     if len(c) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros(0, np.int32)
@@ -126,12 +149,18 @@ def cell_observations(points: np.ndarray, colors: np.ndarray, origin: np.ndarray
     # one by one took a bright frame's brightest pixels and a dark frame's darkest out of
     # the same cell's means, whose ratio then compressed the gains (70 % white-paint cells
     # at gains 0.7-1.3: 0.88 % RMS / 2.3 % max off, 0.18 / 0.35 % with whole cells).
-    bad = ~((c > opts.dark).all(1) & (c < opts.bright).all(1))  # [N]
-    uk, inv, cnt = np.unique(cell_keys(np.asarray(points), origin, opts.cell_m),
-                             return_inverse=True, return_counts=True)
-    n_bad = np.bincount(inv, bad, len(uk))  # [M']
-    cf = c.astype(np.float64)
-    mean = np.stack([np.bincount(inv, cf[:, k], len(uk)) for k in range(3)], 1) / cnt[:, None]
+    # Channel by channel: reductions along the short axis of [N, 3] are numpy's slow case.
+    ok = c[:, 0] > opts.dark  # [N]
+    for k in range(3):
+        if k:
+            ok &= c[:, k] > opts.dark
+        ok &= c[:, k] < opts.bright
+    uk, inv = (table or KeyTable()).unique(cell_key_columns(points, origin, opts.cell_m),
+                                           _CELL_KEY_BITS)
+    cnt = np.bincount(inv, minlength=len(uk))  # [M']
+    n_bad = np.bincount(inv, ~ok, len(uk))  # [M']
+    mean = np.stack([np.bincount(inv, c[:, k].astype(np.float64), len(uk)) for k in range(3)],
+                    1) / cnt[:, None]
     keep = np.flatnonzero((cnt >= opts.min_points) & (n_bad == 0))
     if max_cells is not None and len(keep) > max_cells:
         # A multiplicative hash (Fibonacci hashing; uint64 arithmetic wraps).
@@ -209,7 +238,8 @@ def gain_edges(frames: np.ndarray, keys: np.ndarray, log_rgb: np.ndarray,
     # a < b: observations are in frame order within a cell
     pid = a.astype(np.int64) * n_frames + b
     del a, b
-    upid, inv, cnt = np.unique(pid, return_inverse=True, return_counts=True)
+    upid, inv = KeyTable().unique([pid], [63])  # np.unique's, without sorting the pairs
+    cnt = np.bincount(inv, minlength=len(upid))
     start = np.r_[0, np.cumsum(cnt)[:-1]]
     # The median of each pair's differences: sort by (pair, value) and take the middle.
     lo, hi = start + (cnt - 1) // 2, start + cnt // 2

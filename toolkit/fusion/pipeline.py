@@ -30,7 +30,12 @@ from toolkit.fusion.dynamic import (
     dynamic_beams,
     grow_dynamic,
 )
-from toolkit.fusion.exposure import CELL_RANGE, ExposureOptions, cell_observations
+from toolkit.fusion.exposure import (
+    CELL_RANGE,
+    ExposureOptions,
+    cell_observations,
+    corrected_image,
+)
 from toolkit.fusion.projection import (
     LidarPixels,
     LidarProjector,
@@ -49,10 +54,11 @@ from toolkit.fusion.scale import (
 )
 from toolkit.fusion.voxel_map import (
     KEY_RANGE_VOXELS,
+    KeyTable,
     MapArrays,
     VoxelMap,
     statistical_inliers,
-    voxel_keys,
+    unique_voxels,
 )
 from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
@@ -394,6 +400,7 @@ class Fusion:
         self.rays = RayCache(self.camera, config.stride)
         self._full_rays: RayCache | None = None  # every pixel's ray (moving_pixels)
         self._exposure_rays: RayCache | None = None  # exposure_observations' stride
+        self._exposure_table = KeyTable()  # its cells
         self.cloud_opts = config.cloud_options(self.camera.fx)
         # One beam spacing for the occlusion test of the pairs (scanners of one sequence
         # share it; the finest one is the strictest test)
@@ -604,22 +611,27 @@ class Fusion:
         if moving is not None:
             pts, col = pts[~moving], col[~moving]
         keys, log_rgb, _ = cell_observations(pts, col, self.T_world_camera(index)[:3, 3], opts,
-                                             max_cells)
+                                             max_cells, self._exposure_table)
         return keys, log_rgb
 
     # ------------------------------------------------------------------ map
     def integrate(self, index: int, depth: np.ndarray, rgb: np.ndarray,
                   labels: np.ndarray | None = None, drop: np.ndarray | None = None,
-                  valid: np.ndarray | None = None) -> int:
+                  valid: np.ndarray | None = None, gain: np.ndarray | None = None) -> int:
         """Add one frame's scaled depth [H, W] to the map; returns the number of points.
 
         ``labels`` [H, W] (e.g. ground-truth dynamic pixels) only ride along for
         evaluation; ``drop`` [H, W] bool removes pixels before integration; ``valid`` is
-        ``valid_pixels(depth, self.cloud_opts)`` when the caller already has it.
+        ``valid_pixels(depth, self.cloud_opts)`` when the caller already has it. ``gain``
+        [3]: the frame's exposure gain (``exposure_observations``, ``solve_exposure``),
+        divided out of the colours the map takes, as ``corrected_image`` divides it out
+        of the image, on the pixels taken only (a sixth of them at stride 2).
         """
         ok = valid_pixels(depth, self.cloud_opts) if valid is None else valid
         pts, col, idx = depth_to_points(depth, rgb, self.rays, self.T_world_camera(index),
                                         self.cloud_opts, drop, ok)
+        if gain is not None:
+            col = corrected_image(col.reshape(-1, 1, 3), gain).reshape(-1, 3)
         moving = self._near_moving(index, pts)
         if moving is not None:
             self.points_masked_dynamic += int(moving.sum())
@@ -685,8 +697,7 @@ class Fusion:
             # Carving tests coarse cells (centroids of the map voxels in each): a person is
             # many cells wide, and it is 10x fewer points to project into every view.
             cell_size = max(c.carve_voxel_m, c.voxel_size_m)
-            keys = voxel_keys(raw.points, cell_size)
-            _, inv = np.unique(keys, return_inverse=True)
+            _, inv = unique_voxels(raw.points, cell_size)
             cell_inv = inv
             n_cells = int(inv.max()) + 1
             cells = np.stack([np.bincount(inv, raw.points[:, k], n_cells) for k in range(3)], 1)
@@ -735,9 +746,9 @@ class Fusion:
                 if cell_inv is not None and cell_size == c.outlier_voxel_m:
                     # The carving's cells, without the removed voxels: no second keying
                     # and sort of the whole map.
-                    _, inv = np.unique(cell_inv[idx], return_inverse=True)
+                    _, inv = KeyTable().unique([cell_inv[idx]], [63])
                 else:
-                    _, inv = np.unique(voxel_keys(pts, c.outlier_voxel_m), return_inverse=True)
+                    _, inv = unique_voxels(pts, c.outlier_voxel_m)
                 n = int(inv.max()) + 1
                 cells = np.stack([np.bincount(inv, pts[:, k], n) for k in range(3)], 1)
                 cells /= np.bincount(inv, minlength=n)[:, None]

@@ -255,6 +255,27 @@ def through_opening(log_depth: np.ndarray, region: np.ndarray, level: float, mar
     return True
 
 
+def _log_depth(depth: np.ndarray) -> np.ndarray:
+    """log of the depth [any shape], NaN where it is not finite and positive."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(depth) & (depth > 0), np.log(depth), np.nan)
+
+
+def _some_run_disagrees(runs: list[np.ndarray], rho: np.ndarray, o: RefineOptions) -> bool:
+    """Whether a run of the lidar pairs passes ``correct_regions``' tests on its own log
+    ratios ``rho`` [N] (enough finite pairs, far enough from the field and agreeing with
+    each other): only such a run's region can be rescaled."""
+    for run in runs:
+        r = rho[run]
+        r = r[np.isfinite(r)]
+        if len(r) < o.region_min_beams:
+            continue
+        med = float(np.median(r))
+        if abs(med) > o.gate_final and np.median(np.abs(r - med)) <= o.region_mad:
+            return True
+    return False
+
+
 def correct_regions(depth: np.ndarray, px: np.ndarray, z: np.ndarray, points_cam: np.ndarray,
                     scan_beam: np.ndarray, opts: RefineOptions) -> tuple[np.ndarray, int]:
     """``depth`` [H, W] with the regions around lidar runs it disagrees with rescaled (the
@@ -266,11 +287,17 @@ def correct_regions(depth: np.ndarray, px: np.ndarray, z: np.ndarray, points_cam
             if len(r) >= o.region_min_beams]
     if not runs:
         return depth, 0
+    cols, rows = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        L = np.where(np.isfinite(depth) & (depth > 0), np.log(depth), np.nan)  # [H, W]
+        rho = np.log(z) - _log_depth(depth[rows, cols])  # [N] log(lidar / depth)
+    if not _some_run_disagrees(runs, rho, o):
+        # The usual frame: its runs fail the tests on their own pairs, and the whole image's
+        # log depth and edges below were most of this function's time (the paper
+        # benchmark's fuse_net: 1.1 s over 644 frames, 0.3 s without; 3 regions rescaled).
+        return depth, 0
+    L = _log_depth(depth)  # [H, W]
     # The map's flying-pixel test over 3 x 3 pixels, its relative jump the log range's
     edges = edge_mask(depth, float(np.expm1(o.region_edge)), window=3) | ~np.isfinite(L)
-    cols, rows = np.clip(px[:, 0], 0, w - 1), np.clip(px[:, 1], 0, h - 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         rho = np.log(z) - L[rows, cols]  # [N] log(lidar / depth)
     out = depth.copy()

@@ -31,7 +31,6 @@ from toolkit.eval.map_accuracy import MeshDistance
 from toolkit.fusion.cloud import valid_pixels
 from toolkit.fusion.exposure import (
     EXPOSURE_FILE,
-    corrected_image,
     frames_to_solve,
     gain_error,
     read_exposure_gains,
@@ -542,8 +541,7 @@ class FuseStage(Stage):
                 scaled, refinement = fusion.refine(i, alpha_scaled, fp)
                 # The map's pixel mask, also the lidar pairs' "on pixels the map uses".
                 valid = valid_pixels(scaled, fusion.cloud_opts)
-                fusion.integrate(i, scaled, rgb if i not in gain_of else corrected_image(
-                    rgb, gain_of[i]), labels=mask, valid=valid)
+                fusion.integrate(i, scaled, rgb, labels=mask, valid=valid, gain=gain_of.get(i))
                 st.t_core += time.perf_counter() - t0
                 st.c_core += time.process_time() - c0
                 st.refinements.append(refinement)

@@ -5,6 +5,13 @@ import os
 # OpenMP threads that spin while waiting steal the cores from each other on a busy
 # 2-core laptop (measured 10x slower splat training); must be set before torch loads.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenBLAS's idle threads spin for 2^28 cycles (~0.1 s) after every operation it splits
+# over the cores; 2^4 puts them to sleep at once. The fuse stage's evaluation takes three
+# dot products of whole images per frame, and their threads' spinning ran on into the
+# fusion's timed work: 11 of the paper benchmark's fuse_net 36.5 s of CPU time (24.9 s
+# with this; the same outputs and metrics, since the same operations are still split).
+# OpenBLAS reads it when numpy loads it: set before anything imports numpy.
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
 
 from toolkit.recipe.cli import main  # noqa: E402
 
