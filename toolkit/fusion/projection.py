@@ -139,7 +139,8 @@ class LidarProjector:
         order = cand[np.argsort(np.abs(stamps[cand] - t), kind="stable")[:n]]
         return [int(k) for k in order if abs(stamps[k] - t) <= self.max_dt]
 
-    def _laser_points(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def laser_points(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scan ``k``'s valid end points [N, 3] in the laser frame and their beams [N]."""
         if k not in self._cache:
             if len(self._cache) > 64:
                 self._cache.clear()
@@ -158,7 +159,7 @@ class LidarProjector:
             T_camera_world = inv_se3(self.frame_poses[index] @ rig.T_base_camera)
         parts = []
         for k in ks:
-            pts, beams = self._laser_points(k)
+            pts, beams = self.laser_points(k)
             if len(pts) == 0:
                 continue
             if T_camera_world is None:
@@ -195,7 +196,8 @@ def sample_depth(values: np.ndarray, lidar: LidarPixels) -> np.ndarray:
 
 def occluded_lidar(lidar: LidarPixels, fx: float, cx: float, angle_increment: float,
                    window_beams: float = 1.5, margin_m: float = 0.05,
-                   margin_rel: float = 0.05) -> np.ndarray:
+                   margin_rel: float = 0.05,
+                   occluders: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """[N] bool: lidar points the camera probably does not see, because a nearer lidar point
     lies within ``window_beams`` beam spacings of them in the image.
 
@@ -207,32 +209,104 @@ def occluded_lidar(lidar: LidarPixels, fx: float, cx: float, angle_increment: fl
     the silhouette ends between two beams is unknown, so the whole gap to the neighbouring
     beam (and a half more) counts. The beam spacing in pixels, fx * dtheta * (1 + x^2) with
     x = (u - cx) / fx, grows towards the image sides.
+
+    ``occluders`` (u [M], z [M]): more points in the same image that may hide the lidar
+    points but are not tested themselves - the neighbouring scans' points on a thin leg
+    that the pair's own scan passed beside (``Fusion.frame_pairs``).
     """
     n = len(lidar)
     out = np.zeros(n, bool)
-    if n < 2 or window_beams <= 0:
+    if n == 0 or window_beams <= 0:
         return out
     u, z = lidar.uv[:, 0], lidar.z
+    uo, zo = u, z
+    if occluders is not None and len(occluders[0]):
+        uo = np.concatenate([u, np.asarray(occluders[0], np.float64)])
+        zo = np.concatenate([z, np.asarray(occluders[1], np.float64)])
+    if len(uo) < 2:
+        return out
     # Columns only: the occluder stands on the floor, and being nearer it projects lower in
     # the image than the far point (by tens of pixels at a 0.2 m camera-lidar height gap)
     # while its body rises through the far point's row.
+    win = occlusion_window(u, fx, cx, angle_increment, window_beams)  # [N] pixels
+    # The nearest occluder in each window (a point is never nearer than itself).
+    nearest = window_extreme(uo, zo, u - win, u + win, np.minimum)  # [N]
+    return nearest < z - (margin_m + margin_rel * z)
+
+
+def occlusion_window(u: np.ndarray, fx: float, cx: float, angle_increment: float,
+                     window_beams: float) -> np.ndarray:
+    """[N] half-width in pixels of ``occluded_lidar``'s window at columns ``u`` [N]:
+    ``window_beams`` beam spacings, fx * dtheta * (1 + x^2) with x = (u - cx) / fx."""
     x = (u - cx) / fx
-    win = window_beams * fx * abs(angle_increment) * (1.0 + x * x)  # [N] pixels
-    order = np.argsort(u, kind="stable")
-    us, zs, ws = u[order], z[order], win[order]
-    # Candidates within the widest window only: O(N k) instead of O(N^2) for many scans.
-    lo = np.searchsorted(us, us - ws.max())
-    hi = np.searchsorted(us, us + ws.max(), side="right")
-    occl = np.zeros(n, bool)
-    for off in range(1, int((hi - lo).max()) + 1):
-        for sgn in (-1, 1):
-            j = np.arange(n) + sgn * off
-            ok = (j >= 0) & (j < n)
-            jj = np.clip(j, 0, n - 1)
-            near = ok & (np.abs(us[jj] - us) <= ws) & (zs[jj] < zs - (margin_m + margin_rel * zs))
-            occl |= near
-    out[order] = occl
+    return window_beams * fx * abs(angle_increment) * (1.0 + x * x)
+
+
+def window_extreme(keys: np.ndarray, values: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                   op: np.ufunc = np.minimum) -> np.ndarray:
+    """[Q] the smallest (``op`` np.minimum; np.maximum: largest) of ``values`` [M] whose
+    ``keys`` [M] lie in [lo, hi] [Q], all windows at once (+inf / -inf where none does)."""
+    empty = np.inf if op is np.minimum else -np.inf
+    if len(keys) == 0:
+        return np.full(len(lo), empty)
+    order = np.argsort(keys, kind="stable")
+    ks = keys[order]
+    vs = np.append(values[order], empty)  # [M + 1]: reduceat may start at the end
+    a = np.searchsorted(ks, lo, side="left")  # [Q] the window is ks[a:b]
+    b = np.searchsorted(ks, hi, side="right")
+    out = op.reduceat(vs, np.stack([a, b], 1).ravel())[::2]
+    return np.where(b > a, out, empty)
+
+
+def jump_near_side(scan: LaserScan, beams: np.ndarray, margin_m: float = 0.05,
+                   margin_rel: float = 0.05) -> np.ndarray:
+    """[N] bool: beams [N] of ``scan`` on the near side of a range jump - a neighbouring beam
+    (+-1) reads farther by ``margin_m + margin_rel * r``.
+
+    ``occluded_lidar`` drops the far side of a jump; this is its complement. The camera
+    and the lidar see an edge from a few centimetres apart, and the image pose is
+    interpolated between scans (up to 1.2 deg, 11 px, off at a turn's start or end on the
+    simulated house): a point at the edge of an object is often paired with the
+    background beside it. A neighbour without a return (+inf, or at ``range_max``, what
+    many drivers write for none) is farther; one that is NaN, zero or below ``range_min``
+    (a dropout, too close) tells nothing. A full-circle scan's last beam neighbours its
+    first."""
+    b = np.asarray(beams, np.int64)
+    out = np.zeros(len(b), bool)
+    n = len(scan.ranges)
+    if len(b) == 0 or n < 2:
+        return out
+    r = scan.ranges.astype(np.float64)  # [B]
+    r0 = r[b]
+    tol = margin_m + margin_rel * r0
+    full = abs(scan.angle_increment) * n >= 2 * np.pi - 1e-6
+    with np.errstate(invalid="ignore"):
+        none = (r == np.inf) | (r >= scan.range_max)  # [B] no return: farther than anything
+        known = np.isfinite(r) & (r > 0) & (r >= scan.range_min)
+    for step in (-1, 1):
+        j = b + step  # [N]
+        inside = np.ones(len(b), bool) if full else (j >= 0) & (j < n)
+        j = j % n  # a full circle wraps; elsewhere the wrapped beam is not `inside`
+        with np.errstate(invalid="ignore"):
+            farther = none[j] | (known[j] & (r[j] - r0 > tol))
+        out |= inside & farther
     return out
+
+
+def rays_pass_near(origin_xy: np.ndarray, ends_xy: np.ndarray, points_xy: np.ndarray,
+                   radius: float) -> np.ndarray:
+    """[N] bool: segments from ``origin_xy`` [2] to ``ends_xy`` [N, 2] that pass within
+    ``radius`` of any of ``points_xy`` [K, 2] (in the floor plane)."""
+    out = np.zeros(len(ends_xy), bool)
+    if len(ends_xy) == 0 or len(points_xy) == 0 or radius <= 0:
+        return out
+    o = np.asarray(origin_xy, np.float64)
+    d = ends_xy - o  # [N, 2]
+    L2 = np.maximum(np.einsum("nd,nd->n", d, d), 1e-12)  # [N]
+    q = points_xy - o  # [K, 2]
+    t = np.clip((d @ q.T) / L2[:, None], 0.0, 1.0)  # [N, K] nearest place along each ray
+    gap = q[None] - t[..., None] * d[:, None]  # [N, K, 2]
+    return (np.einsum("nkd,nkd->nk", gap, gap) < radius * radius).any(1)
 
 
 def edge_pairs(values: np.ndarray, lidar: LidarPixels, threshold: float,
