@@ -187,7 +187,8 @@ class PaperTablesStage(Stage):
     # 2: Table IV's scaled / unscaled ratio against ground truth over whole images, checked
     # 3: Table I scores no frame past the ground truth's ends; line alignment within error
     # 4: the camera-only rows' unaligned scale labelled COLMAP's unit where it is that
-    version = 4
+    # 5: Table IV says how the co-visible pairs are chosen (the fuse stage's version 11)
+    version = 5
 
     @classmethod
     def reads_results(cls, config: StageConfig) -> tuple[str, ...]:
@@ -512,7 +513,11 @@ class PaperTablesStage(Stage):
         md = ["### Table IV: depth, unscaled vs lidar-scaled", "",
               "Against the lidar points projected into the images (the paper's protocol, all "
               "pairs; and only the pairs both sensors see: the camera sits higher than the "
-              "lidar, so behind a chair leg it sees the leg where the lidar sees the wall) and "
+              "lidar, so behind a chair leg it sees the leg where the lidar sees the wall - "
+              "chosen by the sensors alone, the same pairs for every row: none behind a "
+              "nearer point of its own or the two neighbouring scans, on or behind a moving "
+              "obstacle the lidar saw, or beside a range jump, where any depth map is least "
+              "sure) and "
               "against ground-truth depth over whole images (simulator). The ground-truth row "
               "shows the floor that parallax alone puts on the all-pairs figure. The scaled "
               "columns are the per-frame scale alone (the paper's method); where the fusion "
