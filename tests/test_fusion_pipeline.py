@@ -598,6 +598,20 @@ def test_a_frame_gain_given_to_integrate_is_the_corrected_image_fused(box_room: 
     assert np.abs(maps[2].colors.astype(int) - maps[0].colors).mean() > 5
 
 
+def test_a_frame_without_a_usable_pixel_fuses_nothing_with_a_gain(box_room: Path) -> None:
+    """A frame whose depth is all invalid, or all beyond max_depth_m (a hall's far wall),
+    adds no point with an exposure gain as without one (OpenCV's product of no pixels is
+    None: the stage stopped on such a frame, and again on resuming)."""
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    fu = Fusion(seq, FusionConfig(scale="none", max_depth_m=6.0), fp, sp)
+    rgb = seq.frames[0].image
+    for depth in (np.full(rgb.shape[:2], np.nan), np.full(rgb.shape[:2], 7.0)):
+        assert fu.integrate(0, depth, rgb, gain=np.array([0.9, 1.0, 1.1])) == 0
+    assert len(fu.map.arrays()) == 0
+
+
 def test_a_broken_ground_truth_mesh_stops_fuse_before_any_frame(box_room: Path,
                                                                 tmp_path: Path) -> None:
     """A groundtruth/mesh.ply that is no mesh was found only when the finished map was

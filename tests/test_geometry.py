@@ -215,3 +215,34 @@ def test_odometry_interpolation_falls_back_to_a_straight_line() -> None:
     assert np.allclose(got[late], plain[late], atol=1e-12)
     camera = Trajectory(odom_t, _turn_onset_drive(odom_t), "odom", "camera")  # another child
     assert np.allclose(traj.interpolate_with_odometry(camera, q).poses, plain, atol=1e-12)
+
+
+def test_odometry_interpolation_does_not_depend_on_the_odometry_origin() -> None:
+    """The same odometry (15 % too much yaw in a 1 rad/s turn) expressed about an origin
+    at the robot and one 5 km away gives the same poses between exact scan poses (blending
+    the map -> odom corrections moved them 14 cm at 5 km); odometry standing still 100 m
+    from its origin gives the straight line between the scan poses."""
+    from toolkit.geometry import Trajectory
+
+    scan_t = np.round(np.arange(0.0, 2.01, 0.1), 6)
+    odom_t = np.round(np.arange(0.0, 2.01, 0.01), 6)
+
+    def drive(t: np.ndarray, rate: float) -> np.ndarray:
+        yaw = rate * t
+        return np.stack([g.se3(Rotation.from_euler("z", a).as_matrix(),
+                               [0.3 * np.sin(a) / rate, 0.3 * (1 - np.cos(a)) / rate, 0.0])
+                         for a in yaw])
+
+    traj = Trajectory(scan_t, drive(scan_t, 1.0))
+    q = np.linspace(0.0, 2.0, 91)
+    near = Trajectory(odom_t, drive(odom_t, 1.15), "odom")
+    far_origin = g.se3(Rotation.from_euler("z", 0.3).as_matrix(), [5000.0, 0.0, 0.0])
+    far = Trajectory(odom_t, far_origin @ drive(odom_t, 1.15), "odom")
+    a = traj.interpolate_with_odometry(near, q).poses
+    b = traj.interpolate_with_odometry(far, q).poses
+    assert np.abs(a[:, :3, 3] - b[:, :3, 3]).max() < 1e-6
+    assert np.allclose(a[:, :3, :3], b[:, :3, :3], atol=1e-9)
+    still = Trajectory(odom_t, np.tile(g.se3(np.eye(3), [100.0, 0.0, 0.0]), (len(odom_t), 1, 1)),
+                       "odom")
+    assert np.allclose(traj.interpolate_with_odometry(still, q).poses, traj.interpolate(q).poses,
+                       atol=1e-9)

@@ -271,14 +271,19 @@ class Trajectory:
     def interpolate_with_odometry(self, odometry: Trajectory | None, query: np.ndarray,
                                   extrapolate_s: float = 0.0) -> Trajectory:
         """The trajectory at ``query`` stamps, its motion between samples taken from
-        ``odometry`` (``T_odom_<child>``, e.g. wheel odometry): the correction
-        ``pose @ inv(odometry)`` (ROS's map -> odom) is interpolated between the samples and
-        applied to the odometry at the query. A straight line between two 10 Hz scan poses
-        was up to 1.2 deg (11 px) off where a turn starts or stops; the odometry's own
-        motion over the 40 ms to a camera stamp 0.3 deg. Queries the odometry does not
-        cover, or whose neighbouring samples it does not, are interpolated plainly (as
-        ``interpolate``), as is everything without odometry (None, another child, fewer
-        than two poses). Odometry that does not move leaves the plain interpolation."""
+        ``odometry`` (``T_odom_<child>``, e.g. wheel odometry): each of the two samples
+        around a query predicts its pose by the odometry's motion since (or until) it,
+        ``pose_k @ inv(odom(t_k)) @ odom(t)``, and the two predictions are blended by time
+        (slerp, lerp), so the result is exact at the samples and does not depend on where
+        the odometry's origin lies (blending the map -> odom corrections themselves moved
+        poses 14 cm with an odometry origin 5 km away). A straight line between two 10 Hz
+        scan poses was up to 1.2 deg (11 px) off where a turn starts or stops; the
+        odometry's own motion over the 40 ms to a camera stamp 0.3 deg. Queries the
+        odometry does not cover, or whose neighbouring samples it does not, are
+        interpolated plainly (as ``interpolate``), as is everything without odometry (None,
+        another child, fewer than two poses); odometry that does not move gives the plain
+        interpolation. Queries past the ends (``extrapolate_s``) take the end sample's
+        prediction."""
         q = np.atleast_1d(np.asarray(query, dtype=np.float64))
         out = self.interpolate(q, extrapolate_s)
         if (odometry is None or len(odometry) < 2 or odometry.child != self.child
@@ -290,13 +295,21 @@ class Trajectory:
         use = odometry.covers(q) & at_sample[hi - 1] & at_sample[hi]  # [Q]
         if not use.any():
             return out
-        k = np.flatnonzero(at_sample)
-        O_k = odometry.interpolate(st[k]).poses  # [K, 4, 4]
-        C_k = self.poses[k] @ inv_se3(O_k)  # [K, 4, 4] T_<frame>_odom
-        # Adjacent samples stay adjacent in the subset: both neighbours of a used query
-        # are in it, so the correction is interpolated across the same interval.
-        C = interpolate_poses(st[k], C_k, np.clip(q[use], st[k[0]], st[k[-1]]))
-        out.poses[use] = C @ odometry.interpolate(q[use]).poses
+        hi = hi[use]
+        lo = hi - 1
+        O_q = odometry.interpolate(q[use]).poses  # [U, 4, 4]
+        need = np.unique(np.r_[lo, hi])
+        O_s = np.empty((len(st), 4, 4))
+        O_s[need] = odometry.interpolate(st[need]).poses
+        A = self.poses[lo] @ inv_se3(O_s[lo]) @ O_q  # [U, 4, 4] from the sample before
+        B = self.poses[hi] @ inv_se3(O_s[hi]) @ O_q  # [U, 4, 4] from the sample after
+        w = np.clip((q[use] - st[lo]) / (st[hi] - st[lo]), 0.0, 1.0)  # [U]
+        Ra = Rotation.from_matrix(A[:, :3, :3])
+        step = (Ra.inv() * Rotation.from_matrix(B[:, :3, :3])).as_rotvec()  # [U, 3]
+        blend = np.tile(np.eye(4), (len(w), 1, 1))
+        blend[:, :3, :3] = (Ra * Rotation.from_rotvec(step * w[:, None])).as_matrix()
+        blend[:, :3, 3] = (1 - w)[:, None] * A[:, :3, 3] + w[:, None] * B[:, :3, 3]
+        out.poses[use] = blend
         return out
 
     # A frame or scan stamped this close outside a trajectory's ends takes the end pose

@@ -376,6 +376,8 @@ def corrected_image(rgb: np.ndarray, gain: np.ndarray) -> np.ndarray:
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"corrected_image: need an [H, W, 3] uint8 image, got {rgb.dtype} "
                          f"{list(rgb.shape)}")
+    if rgb.size == 0:  # OpenCV returns None for no pixels (a frame with no valid depth)
+        return rgb.copy()
     # OpenCV's per-channel scalar product (double precision), rounded and saturated:
     # 0.8 ms at 640x480 against 5.6 ms in float32 numpy, whose reciprocal and round-half-
     # up differ by one level at or near halves (no byte of 85 M channel values of the house

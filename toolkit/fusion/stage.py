@@ -68,7 +68,9 @@ class FuseConfig(FusionConfig, StageConfig):
     poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
     # Between the trajectory's poses (slam2d's: at the scan stamps) the robot moves as the
     # sequence's wheel odometry says, when it has one; false: a straight line between them
-    # (1.2 deg off at a turn's start on the simulated house). Off for odometry not to trust.
+    # (1.2 deg off at a turn's start on the simulated house). Off for odometry not to trust
+    # (and where slam2d ran with use_odometry: false, whose camera poses the TSDF and splat
+    # stages take).
     odometry: bool = True
     write_depth: Literal["png", "npy", "none"] = "png"
     # Read the next frames and write the scaled depth in a thread: the stage finishes
