@@ -33,7 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from toolkit.fusion.voxel_map import KeyTable
+from toolkit.fusion.voxel_map import KeyTable, pack_key_columns
 from toolkit.io.atomic import atomic_write_text
 
 
@@ -101,15 +101,10 @@ def cell_keys(points: np.ndarray, origin: np.ndarray, cell_m: float) -> np.ndarr
     a later visit from the other room then compared the rooms' paint, not the exposures
     (on the quickstart's house at stride 2: gains 7 % RMS off without it, 0.16 % with it).
     """
-    cols = cell_key_columns(points, origin, cell_m)
-    keys = cols[0] << _CELL_SHIFTS[0]
-    for c, shift in zip(cols[1:], _CELL_SHIFTS[1:], strict=True):
-        keys |= c << shift
-    return keys
+    return pack_key_columns(cell_key_columns(points, origin, cell_m), _CELL_KEY_BITS)
 
 
 _CELL_KEY_BITS = [_CELL_BITS] * 3 + [2]  # x, y, z cell and the quadrant
-_CELL_SHIFTS = [2 * _CELL_BITS + 2, _CELL_BITS + 2, 2, 0]
 
 
 def cell_key_columns(points: np.ndarray, origin: np.ndarray, cell_m: float) -> list[

@@ -264,13 +264,12 @@ def jump_near_side(scan: LaserScan, beams: np.ndarray, margin_m: float = 0.05,
     (+-1) reads farther by ``margin_m + margin_rel * r``.
 
     ``occluded_lidar`` drops the far side of a jump; this is its complement. The camera
-    and the lidar see an edge from a few centimetres apart, and the image pose is
-    interpolated between scans (up to 1.2 deg, 11 px, off at a turn's start or end on the
-    simulated house): a point at the edge of an object is often paired with the
-    background beside it. A neighbour without a return (+inf, or at ``range_max``, what
-    many drivers write for none) is farther; one that is NaN, zero or below ``range_min``
-    (a dropout, too close) tells nothing. A full-circle scan's last beam neighbours its
-    first."""
+    and the lidar see an edge from a few centimetres apart, and the image's pose between
+    two scans is only as good as the odometry (or the straight line) that places it: a
+    point at the edge of an object is often paired with the background beside it. A
+    neighbour without a return (+inf, or at ``range_max``, what many drivers write for
+    none) is farther; one that is NaN, zero or below ``range_min`` (a dropout, too close)
+    tells nothing. A full-circle scan's last beam neighbours its first."""
     b = np.asarray(beams, np.int64)
     out = np.zeros(len(b), bool)
     n = len(scan.ranges)

@@ -178,7 +178,7 @@ def _depth_metrics(cfg: FuseConfig, st: FuseProgress, refined: bool, has_gt_dept
     n_all = _pair_metrics(metrics, st.lid, "lidar_", cap)
     # The same protocol on the pairs both sensors see (FramePairs.covisible: by the sensors
     # alone, the same pairs for every prediction). With ground-truth depth as the
-    # prediction the all-pairs RMSE is 0.206 m on the simulated house against 0.016 m on
+    # prediction the all-pairs RMSE is 0.196 m on the simulated house against 0.011 m on
     # these pairs (0.095 m with the occlusion test alone, before session 24).
     n_vis = _pair_metrics(metrics, st.lid_vis, "lidar_visible_", cap)
     metrics["pairs_visible_fraction"] = n_vis / max(n_all, 1)

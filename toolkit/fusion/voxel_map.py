@@ -28,10 +28,17 @@ KEY_RANGE_VOXELS = _OFFSET  # points within this many voxels of the origin can b
 
 def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """[N] int64 key of the voxel holding each point [N, 3]."""
-    q = np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64) + _OFFSET
-    if q.size and (q.min() < 0 or q.max() > _MASK):
-        raise ValueError(f"points beyond +-{_OFFSET * voxel_size:.0f} m cannot be keyed")
-    return (q[:, 0] << (2 * _BITS)) | (q[:, 1] << _BITS) | q[:, 2]
+    return pack_key_columns(voxel_index_columns(points, voxel_size), [_BITS] * 3)
+
+
+def pack_key_columns(cols: list[np.ndarray], bits: list[int]) -> np.ndarray:
+    """[N] int64 keys packing the non-negative integer columns ``cols`` (each [N] int64,
+    the first the most significant), column k taking ``bits[k]`` bits."""
+    shifts = np.cumsum([0] + bits[:0:-1])[::-1]  # [K] bits below each column
+    keys = cols[0] << int(shifts[0])
+    for c, sh in zip(cols[1:], shifts[1:], strict=True):
+        keys = keys | (c << int(sh))
+    return keys
 
 
 def voxel_index_columns(points: np.ndarray, voxel_size: float) -> list[np.ndarray]:
@@ -76,16 +83,13 @@ class KeyTable:
         non-negative integer columns ``cols`` (each [N] int64, the first the most
         significant), column k taking ``bits[k]`` bits."""
         n = len(cols[0])
-        shifts = np.cumsum([0] + bits[:0:-1])[::-1]  # [K] bits below each column
         lo = [int(c.min()) for c in cols] if n else []
         span = [int(c.max()) - a + 1 for c, a in zip(cols, lo, strict=False)]
         cells = float(np.prod(span, dtype=np.float64))
         if not n or cells > min(self.max_cells, self.cells_per_point * n):
-            keys = cols[0] << int(shifts[0])
-            for c, sh in zip(cols[1:], shifts[1:], strict=True):
-                keys = keys | (c << int(sh))
-            uk, inv = np.unique(keys, return_inverse=True)
+            uk, inv = np.unique(pack_key_columns(cols, bits), return_inverse=True)
             return uk, inv
+        shifts = np.cumsum([0] + bits[:0:-1])[::-1]  # [K] bits below each column
         # Mixed-radix cell index in the box, in the keys' order (the first column slowest).
         at = cols[0] - lo[0]
         for c, a, sp in zip(cols[1:], lo[1:], span[1:], strict=True):
