@@ -120,6 +120,32 @@ def test_checkpoint_resume_reproduces_uninterrupted_run(tmp_path: Path) -> None:
     assert len(straight.model) != 600
 
 
+def test_depth_term_is_the_mean_error_over_pixels_with_depth() -> None:
+    """The depth term is the mean |rendered - lidar-scaled| over the pixels that hold a
+    depth (0 = none), whatever the others render; a view without any adds 0."""
+    views = _views(n=1, width=32, height=24, n_gauss=600)
+    v = views[0]
+    assert v.depth is not None
+    depth = v.depth.clone()
+    depth[: depth.shape[0] // 2] = 0.0  # the top half: no depth
+    depth[depth > 0] += 0.25  # 25 cm off where there is one
+    cfg = _cfg(depth_weight=0.1, densify=StrategyConfig(enabled=False))
+    model = ground_truth_model(600, seed=1)
+    trainer = Trainer(model, [TrainView(v.image, v.camera, v.T_camera_world, depth, "d")], cfg)
+    with torch.no_grad():
+        out = render(model, v.camera, v.T_camera_world, backend=BACKEND)
+    valid = depth > 0
+    expected = float((out.depth - depth).abs()[valid].mean())
+    rec = trainer.train_step()
+    assert expected > 0.1
+    assert rec["depth_l1_m"] == pytest.approx(expected, rel=1e-5)
+    empty = Trainer(ground_truth_model(600, seed=1),
+                    [TrainView(v.image, v.camera, v.T_camera_world, torch.zeros_like(depth),
+                               "none")], cfg)
+    rec = empty.train_step()
+    assert rec["depth_l1_m"] == 0.0 and np.isfinite(rec["loss"])
+
+
 def test_every_tensor_training_makes_names_its_device(tmp_path: Path) -> None:
     """The stage trains on a CUDA GPU too (views stay in CPU memory): a tensor made without
     a device would land on the CPU there and fail, or copy every step. With the default

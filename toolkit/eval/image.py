@@ -107,23 +107,21 @@ def ssim_map(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
         raise ValueError(f"images of {tuple(ta.shape[:2])} are smaller than the SSIM window "
                          f"({window})")
     C = ta.shape[2]
-    x = ta.permute(2, 0, 1)[None]  # [1, C, H, W]
-    y = tb.permute(2, 0, 1)[None]
-    g = _gauss_window(window, sigma, x.dtype, x.device)
-    # Separable filter: a column pass then a row pass, each a depthwise conv.
-    kv = g.reshape(1, 1, window, 1).expand(C, 1, window, 1)
-    kh = g.reshape(1, 1, 1, window).expand(C, 1, 1, window)
-
-    def blur(z: Tensor) -> Tensor:
-        return F.conv2d(F.conv2d(z, kv, groups=C), kh, groups=C)
-
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x**2
-    syy = blur(y * y) - mu_y**2
-    sxy = blur(x * y) - mu_x * mu_y
+    g = _gauss_window(window, sigma, ta.dtype, ta.device)
+    x, y = ta.permute(2, 0, 1), tb.permute(2, 0, 1)  # [C, H, W]
+    # The five local moments blurred together, a column pass then a row pass (depthwise
+    # convolutions): 2 convolutions instead of 10, 2 backward instead of 6 (fewer GPU
+    # launches; on a CPU 18-29 % less time for the SSIM's forward and backward).
+    z = torch.cat([x, y, x * x, y * y, x * y])[None]  # [1, 5C, H, W]
+    kv = g.reshape(1, 1, window, 1).expand(5 * C, 1, window, 1)
+    kh = g.reshape(1, 1, 1, window).expand(5 * C, 1, 1, window)
+    m = F.conv2d(F.conv2d(z, kv, groups=5 * C), kh, groups=5 * C)[0]  # [5C, h, w]
+    mu_x, mu_y, exx, eyy, exy = m.split(C)
+    mxx, myy, mxy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
-    return s[0].permute(1, 2, 0)
+    s = ((2 * mxy + c1) * (2 * (exy - mxy) + c2)) / (
+        (mxx + myy + c1) * ((exx - mxx) + (eyy - myy) + c2))
+    return s.permute(1, 2, 0)
 
 
 def ssim(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
@@ -140,11 +138,17 @@ def ssim(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
     m = _as_mask(mask).to(s.device, s.dtype)
     if m.shape != _as_float(a).shape[:2]:
         raise ValueError(f"mask of {tuple(m.shape)} for images of {tuple(_as_float(a).shape)}")
-    inside = F.avg_pool2d(m[None, None], window, stride=1)[0, 0]  # [h, w] valid share
+    # [h, w] valid share of each window, a column then a row mean (121 -> 22 additions a
+    # pixel: the 11x11 pool took 19 ms at 640x480)
+    inside = F.avg_pool2d(F.avg_pool2d(m[None, None], (window, 1), stride=1), (1, window),
+                          stride=1)[0, 0]
     keep = inside > 1.0 - 1e-6
-    if not bool(keep.any()):
+    n = keep.sum()
+    if not bool(n):
         r = (window - 1) // 2
         keep = m[r:r + s.shape[0], r:r + s.shape[1]] > 0.5
-    if not bool(keep.any()):
-        raise ValueError("the SSIM mask holds no pixel")
-    return _out(s[keep].mean(), a)
+        n = keep.sum()
+        if not bool(n):
+            raise ValueError("the SSIM mask holds no pixel")
+    # A weighted sum, not s[keep]: no index kernels and no scatter in the backward pass.
+    return _out((s * keep[..., None]).sum() / (n * s.shape[2]), a)

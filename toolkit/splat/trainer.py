@@ -410,9 +410,11 @@ class Trainer:
         if cfg.depth_weight > 0 and view.depth is not None:
             target = view.depth.to(out.depth.device)
             valid = target > 0
-            if bool(valid.any()):
-                depth_l1 = (out.depth - target).abs()[valid].mean()
-                loss = loss + cfg.depth_weight * depth_l1
+            # A weighted mean, not a boolean index: no host sync and no scatter in the
+            # backward pass (a view without depth adds 0).
+            err = torch.where(valid, (out.depth - target).abs(), 0.0)  # [H, W]
+            depth_l1 = err.sum() / valid.sum().clamp(min=1)
+            loss = loss + cfg.depth_weight * depth_l1
         with torch.no_grad():
             psnr = psnr_fn(rendered.detach().clamp(0, 1), gt, mask=view.mask_on(gt.device))
         # The step's figures in one read: on a GPU each float() waits for the device.
