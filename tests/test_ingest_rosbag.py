@@ -569,6 +569,44 @@ def test_16_bit_samples_round_to_8_bits_as_cv_bridge_scales_them():
     assert np.array_equal(got[..., 0], got[..., 2])
 
 
+@pytest.mark.parametrize("enc, fmt", [
+    ("bayer_rggb16", "bayer_rggb16; png compressed "),
+    ("bayer_gbrg16", "bayer_gbrg16; png compressed "),
+    ("rgb16", "rgb16; png compressed bgr16"),
+    ("bgra16", "bgra16; png compressed bgr16"),
+    ("mono16", "mono16; png compressed ")])
+def test_16_bit_png_compressed_images(tmp_path, enc, fmt):
+    """image_transport's png codec keeps 16 bits: a Bayer 16 mosaic as it is (demosaiced as
+    the raw one), rgb16 / bgra16 as 16-bit BGR ('compressed bgr16'), mono16 as grey. They
+    were refused as 'colour images must be 8-bit'."""
+    rgb = _smooth_red()
+    px, want, tol = _driver_pixels(enc, rgb)
+    if enc in ("rgb16", "bgra16"):
+        px = _sixteen(rgb[..., ::-1])  # what the publisher's cv_bridge made of it: bgr16
+    images, meta = _images_read_back(tmp_path, [(
+        "/camera/color/image_raw/compressed", COMP_T,
+        lambda b, t: _compressed_png(b, t, px[..., 0] if px.shape[2] == 1 else px, fmt))],
+        "png16")
+    assert meta["topics"]["image"] == "/camera/color/image_raw/compressed"
+    raw = image_to_rgb(_raw_image(BagBuilder(ros1=True), 0.0, _driver_pixels(enc, rgb)[0],
+                                  enc))
+    where = _border(2) if enc.startswith("bayer_") else np.ones((H, W), bool)
+    for got in images:
+        assert np.array_equal(got, raw)  # as the raw topic reads
+        assert np.abs(got.astype(int) - want.astype(int))[where].max() <= tol
+
+
+def test_16_bit_compressed_image_of_another_encoding_is_refused():
+    """A 16-bit payload is read only under a 16-bit colour encoding: 16UC1 through the
+    colour codec is depth, a bare 'png' says nothing of what it holds."""
+    b = BagBuilder(ros1=False)
+    mm = np.full((H, W), 1234, np.uint16)
+    for fmt, says in (("16UC1; png compressed ", "rosbag.topics.depth"), ("png", "mono16")):
+        with pytest.raises(BagError, match="decodes to uint16 pixels") as e:
+            compressed_to_rgb(_compressed_png(b, 0.0, mm, fmt), "topic /cam")
+        assert "/cam" in str(e.value) and "'format'" in str(e.value) and says in str(e.value)
+
+
 def test_yuv422_of_odd_width_is_refused():
     px = np.zeros((H, W - 1, 2), np.uint8)
     with pytest.raises(BagError, match=r"topic /cam: a yuv422_yuy2 image is 31 pixels wide "

@@ -493,10 +493,23 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
         raise BagError(f"{where}: the {fmt!r} data (field 'data', {len(msg.data)} bytes) does "
                        "not decode; the message is corrupt or the format unknown "
                        "(jpeg and png are read)")
-    if img.dtype != np.uint8:
-        raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
-                       "colour images must be 8-bit")
     enc, order = compressed_format(fmt)
+    # image_transport's png codec keeps a 16-bit image's depth (rgb16 as 'compressed
+    # bgr16', a mono16 or Bayer 16 image as it is); its subscriber decodes it unchanged and
+    # cv_bridge scales it when read as rgb8.
+    spec = COLOR_ENCODINGS.get(enc)
+    if img.dtype != np.uint8 and not (img.dtype == np.uint16 and spec and spec.bits == 16):
+        raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
+                       "colour images must be 8-bit, or 16-bit in a 16-bit encoding named "
+                       "before ';' (" + ", ".join(
+                           e for e, c in COLOR_ENCODINGS.items() if c.bits == 16) + ")"
+                       + ("; a depth image: give it as rosbag.topics.depth (raw or "
+                          "compressedDepth)" if enc in DEPTH_ENCODINGS else ""))
+    return _to_8bit(_compressed_rgb(img, enc, order, where))
+
+
+def _compressed_rgb(img: np.ndarray, enc: str, order: str, where: str) -> np.ndarray:
+    """[H, W, 3] RGB (of ``img``'s dtype) of a decoded CompressedImage payload."""
     if img.ndim == 2 and enc in BAYER_TO_RGB:
         # image_transport compresses a Bayer camera's mosaic as it is: stored as grey, it
         # was the raw checkerboard of R, G and B samples.
