@@ -117,12 +117,12 @@ class BagBuilder:
             range_max=10.0, ranges=ranges, intensities=inten)
 
     def image(self, t, pixels: np.ndarray, encoding: str, frame="camera_optical",
-              width=None, height=None, step=None):
+              width=None, height=None, step=None, bigendian=False):
         h, w = pixels.shape[:2]
         row = pixels.reshape(h, -1).shape[1] * pixels.itemsize
         return self.T["sensor_msgs/msg/Image"](
             header=self.header(t, frame), height=height or h, width=width or w,
-            encoding=encoding, is_bigendian=0, step=step or row,
+            encoding=encoding, is_bigendian=int(bigendian), step=step or row,
             data=np.frombuffer(pixels.tobytes(), np.uint8).copy())
 
     def compressed(self, t, data: bytes, fmt: str, frame="camera_optical"):
@@ -429,6 +429,229 @@ def test_image_row_padding_and_camera_info_fields():
     assert not rect.has_distortion and rect.fx == K[0, 0]
 
 
+
+# ---------------------------------------------------------------------------- YUV and 16-bit
+
+
+def _smooth_red() -> np.ndarray:
+    """[H, W, 3] RGB, strongly red (a swapped channel order is off by > 100 levels) and
+    smooth (ramps: 4:2:2 chroma and bilinear demosaicing lose next to nothing)."""
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    return np.round(np.stack([180 + 1.5 * x, 30 + y, 15 + 0.5 * (x + y)], axis=2)).astype(
+        np.uint8)
+
+
+def _yuv422(rgb: np.ndarray, order: str) -> np.ndarray:
+    """[H, W, 2] packed YUV 4:2:2 of ``rgb`` as a camera sends it: BT.601 video range (the
+    inverse of OpenCV's conversion), one U, V pair (the two pixels' mean) per two pixels of
+    a row; ``order`` 'uyvy' (ROS yuv422: U0 Y0 V0 Y1) or 'yuyv' (yuv422_yuy2: Y0 U0 Y1 V0)."""
+    r, g, b = (rgb[..., k].astype(np.float64) for k in range(3))
+    y = 16 + (65.481 * r + 128.553 * g + 24.966 * b) / 255
+    u = 128 + (-37.797 * r - 74.203 * g + 112.0 * b) / 255
+    v = 128 + (112.0 * r - 93.786 * g - 18.214 * b) / 255
+
+    def q(a: np.ndarray) -> np.ndarray:
+        return np.clip(np.round(a), 0, 255).astype(np.uint8)
+
+    y, u, v = q(y), q((u[:, 0::2] + u[:, 1::2]) / 2), q((v[:, 0::2] + v[:, 1::2]) / 2)
+    out = np.empty(rgb.shape[:2] + (2,), np.uint8)
+    luma, chroma = (1, 0) if order == "uyvy" else (0, 1)
+    out[..., luma] = y
+    out[:, 0::2, chroma] = u
+    out[:, 1::2, chroma] = v
+    return out
+
+
+def _sixteen(a: np.ndarray) -> np.ndarray:
+    return a.astype(np.uint16) * np.uint16(257)  # 8-bit v as 16-bit: v * 65535 / 255
+
+
+# Encoding -> (pixels a driver publishes for the RGB image, the RGB expected back, tolerance
+# in levels where it is compared). 16-bit v * 257 comes back as v exactly (cv_bridge's
+# 255 / 65535); YUV within what 4:2:2 chroma and 8-bit rounding lose on a smooth image;
+# Bayer 16 within bilinear demosaicing's error, away from the image's border.
+def _driver_pixels(enc: str, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    alpha = np.full(rgb.shape[:2] + (1,), 255, np.uint8)
+    if enc in ("yuv422", "uyvy"):
+        return _yuv422(rgb, "uyvy"), rgb, 3
+    if enc in ("yuv422_yuy2", "yuyv"):
+        return _yuv422(rgb, "yuyv"), rgb, 3
+    if enc == "mono16":
+        return _sixteen(rgb[..., :1]), np.repeat(rgb[..., :1], 3, axis=2), 0
+    if enc.startswith("bayer_"):
+        return _sixteen(_mosaic(rgb, enc[6:10]))[..., None], rgb, 1
+    order = {"rgb16": rgb, "bgr16": rgb[..., ::-1],
+             "rgba16": np.concatenate([rgb, alpha], axis=2),
+             "bgra16": np.concatenate([rgb[..., ::-1], alpha], axis=2)}[enc]
+    return _sixteen(order), rgb, 0
+
+
+def _raw_image(b: BagBuilder, t: float, px: np.ndarray, enc: str, *, bigendian=False,
+               pad=0):
+    """A sensor_msgs/Image of ``px`` ([H, W, C]) as a driver fills it: 16-bit samples in the
+    byte order it names, each row followed by ``pad`` bytes of padding (step)."""
+    h, w = px.shape[:2]
+    if px.dtype == np.uint16:
+        px = px.astype(">u2" if bigendian else "<u2")
+    rows = np.ascontiguousarray(px).reshape(h, -1).view(np.uint8)  # [H, bytes of a row]
+    data = np.concatenate([rows, np.full((h, pad), 0xAB, np.uint8)], axis=1)
+    return b.image(t, data, enc, width=w, height=h, step=data.shape[1], bigendian=bigendian)
+
+
+def _compressed_png(b: BagBuilder, t: float, px: np.ndarray, fmt: str):
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(px))
+    assert ok
+    return b.compressed(t, buf.tobytes(), fmt)
+
+
+def _border(n: int) -> np.ndarray:
+    """[H, W] mask of the pixels at least ``n`` from the image's border."""
+    m = np.zeros((H, W), bool)
+    m[n:H - n, n:W - n] = True
+    return m
+
+
+def _images_read_back(tmp_path: Path, topic_msgs: list, name: str) -> tuple[list, dict]:
+    """Frames ([H, W, 3] RGB) and meta of a bag whose image topic carries ``topic_msgs``
+    ((topic, type, make(b, t)) per image time), read by the toolkit's reader."""
+    c = make_content(n_images=2)
+    b = BagBuilder(ros1=True)
+    msgs = [m for m in standard_messages(b, c, depth=False)
+            if m[0] != "/camera/color/image_raw"]
+    for t in c.image_t:
+        msgs += [(topic, mtype, t + 0.03, make(b, t)) for topic, mtype, make in topic_msgs]
+    rec = read_rosbag(write_bag(tmp_path / name, "ros1", sorted(msgs, key=lambda m: m[2])))
+    frames = list(rec.load([(i, -1) for i in range(len(rec.frame_stamps))]))
+    assert len(frames) == 2
+    return [f.image for f in frames], rec.meta
+
+
+NEW_ENCODINGS = ["yuv422", "uyvy", "yuv422_yuy2", "yuyv", "rgb16", "bgr16", "rgba16",
+                 "bgra16", "mono16", "bayer_rggb16", "bayer_bggr16", "bayer_gbrg16",
+                 "bayer_grbg16"]
+
+
+@pytest.mark.parametrize("layout", ["plain", "big-endian, padded rows"])
+@pytest.mark.parametrize("enc", NEW_ENCODINGS)
+def test_yuv_and_16_bit_images_are_converted_as_cv_bridge_does(tmp_path, enc, layout):
+    """usb_cam's yuv422 (UYVY) / yuv422_yuy2 (YUYV) and machine-vision cameras' 16-bit
+    images (Bayer 16, mono16, rgb16 ...) were refused as unknown encodings. Each is made
+    from a known RGB image as its driver sends it, through a bag and the reader; padded rows
+    (step) and big-endian 16-bit samples (is_bigendian) as dc1394 cameras send them."""
+    rgb = _smooth_red()
+    px, want, tol = _driver_pixels(enc, rgb)
+    odd = layout != "plain"
+    if odd and px.dtype == np.uint16:
+        # v * 257 has equal bytes and reads the same in either byte order: +-100 still
+        # rounds to v, and makes the two bytes differ.
+        y, x = np.mgrid[0:H, 0:W]
+        step = np.where((x + y) % 2, 100, -100)[..., None]
+        px = np.clip(px.astype(np.int32) + step, 0, 65535).astype(np.uint16)
+    images, meta = _images_read_back(tmp_path, [(
+        "/camera/color/image_raw", IMAGE_T,
+        lambda b, t: _raw_image(b, t, px, enc, bigendian=odd, pad=6 if odd else 0))], "enc")
+    assert meta["topics"]["image"] == "/camera/color/image_raw"
+    where = _border(2) if enc.startswith("bayer_") else np.ones((H, W), bool)
+    for got in images:
+        assert got.shape == (H, W, 3) and got.dtype == np.uint8
+        err = np.abs(got.astype(int) - want.astype(int))[where]
+        assert err.max() <= tol, (enc, err.max())
+    if enc.startswith("bayer_"):  # the border too, as OpenCV's bilinear demosaic fills it
+        assert np.abs(images[0].astype(int) - rgb.astype(int)).max() <= 3
+
+
+def test_16_bit_samples_round_to_8_bits_as_cv_bridge_scales_them():
+    """cv_bridge reads a 16-bit image as rgb8 by convertTo(CV_8U, 255 / 65535): rounded,
+    not the high byte (129 -> 1, 386 -> 2, where v >> 8 gives 0 and 1)."""
+    v = np.array([[0, 128, 129, 385, 386, 32767, 32768, 65535]], np.uint16)
+    got = image_to_rgb(BagBuilder(ros1=False).image(0.0, v, "mono16"))
+    assert got[..., 0].tolist() == [[0, 0, 1, 1, 2, 127, 128, 255]]
+    assert np.array_equal(got[..., 0], got[..., 2])
+
+
+@pytest.mark.parametrize("enc, fmt", [
+    ("bayer_rggb16", "bayer_rggb16; png compressed "),
+    ("bayer_gbrg16", "bayer_gbrg16; png compressed "),
+    ("rgb16", "rgb16; png compressed bgr16"),
+    ("bgra16", "bgra16; png compressed bgr16"),
+    ("mono16", "mono16; png compressed ")])
+def test_16_bit_png_compressed_images(tmp_path, enc, fmt):
+    """image_transport's png codec keeps 16 bits: a Bayer 16 mosaic as it is (demosaiced as
+    the raw one), rgb16 / bgra16 as 16-bit BGR ('compressed bgr16'), mono16 as grey. They
+    were refused as 'colour images must be 8-bit'."""
+    rgb = _smooth_red()
+    px, want, tol = _driver_pixels(enc, rgb)
+    if enc in ("rgb16", "bgra16"):
+        px = _sixteen(rgb[..., ::-1])  # what the publisher's cv_bridge made of it: bgr16
+    images, meta = _images_read_back(tmp_path, [(
+        "/camera/color/image_raw/compressed", COMP_T,
+        lambda b, t: _compressed_png(b, t, px[..., 0] if px.shape[2] == 1 else px, fmt))],
+        "png16")
+    assert meta["topics"]["image"] == "/camera/color/image_raw/compressed"
+    raw = image_to_rgb(_raw_image(BagBuilder(ros1=True), 0.0, _driver_pixels(enc, rgb)[0],
+                                  enc))
+    where = _border(2) if enc.startswith("bayer_") else np.ones((H, W), bool)
+    for got in images:
+        assert np.array_equal(got, raw)  # as the raw topic reads
+        assert np.abs(got.astype(int) - want.astype(int))[where].max() <= tol
+
+
+def test_16_bit_compressed_image_of_another_encoding_is_refused():
+    """A 16-bit payload is read only under a 16-bit colour encoding: 16UC1 through the
+    colour codec is depth, a bare 'png' says nothing of what it holds."""
+    b = BagBuilder(ros1=False)
+    mm = np.full((H, W), 1234, np.uint16)
+    for fmt, says in (("16UC1; png compressed ", "rosbag.topics.depth"), ("png", "mono16")):
+        with pytest.raises(BagError, match="decodes to uint16 pixels") as e:
+            compressed_to_rgb(_compressed_png(b, 0.0, mm, fmt), "topic /cam")
+        assert "/cam" in str(e.value) and "'format'" in str(e.value) and says in str(e.value)
+
+
+def test_yuv422_of_odd_width_is_refused():
+    px = np.zeros((H, W - 1, 2), np.uint8)
+    with pytest.raises(BagError, match=r"topic /cam: a yuv422_yuy2 image is 31 pixels wide "
+                                       r"\(field 'width'\).*even"):
+        image_to_rgb(BagBuilder(ros1=True).image(0.0, px, "yuv422_yuy2"), "topic /cam")
+
+
+@pytest.mark.parametrize("case", ["yuv beside bgr8", "bayer16 beside rgb16",
+                                  "mono16 beside yuyv", "bayer16 and its png"])
+def test_colour_topic_choice_with_yuv_and_16_bit_streams(tmp_path, case, caplog):
+    """8-bit colour (a driver's or image_proc's image_color) beats the YUV / 16-bit stream it
+    was converted from, colour beats a 16-bit Bayer mosaic as it does an 8-bit one, and a
+    mono16 stream (an infrared camera) is passed over; a raw stream beats its /compressed."""
+    rgb = _smooth_red()
+    raw_t = "/camera/color/image_raw"
+
+    def stream(topic: str, enc: str, fmt: str = ""):
+        px = rgb[..., ::-1] if enc == "bgr8" else _driver_pixels(enc, rgb)[0]
+        if fmt:
+            return (topic, COMP_T, lambda b, t: _compressed_png(b, t, px[..., 0], fmt))
+        return (topic, IMAGE_T, lambda b, t: _raw_image(b, t, px, enc))
+
+    streams, want, note = {
+        "yuv beside bgr8": ([stream(raw_t, "yuv422"),
+                             stream("/camera/color/image_color", "bgr8")],
+                            "/camera/color/image_color",
+                            f"YUV / 16-bit colour topics ({raw_t}) are passed over"),
+        "bayer16 beside rgb16": ([stream(raw_t, "bayer_rggb16"),
+                                  stream("/camera/color/image_color", "rgb16")],
+                                 "/camera/color/image_color",
+                                 f"Bayer mosaic topics ({raw_t}) are passed over"),
+        "mono16 beside yuyv": ([stream(raw_t, "yuyv"),
+                                stream("/camera/infra1/image_rect_raw", "mono16")], raw_t,
+                               "mono16 topics (/camera/infra1/image_rect_raw) are passed over"),
+        "bayer16 and its png": ([stream(raw_t, "bayer_rggb16"),
+                                 stream(raw_t + "/compressed", "bayer_rggb16",
+                                        "bayer_rggb16; png compressed ")], raw_t, ""),
+    }[case]
+    with caplog.at_level(logging.INFO, logger="toolkit"):
+        images, meta = _images_read_back(tmp_path, streams, "choice")
+    assert meta["topics"]["image"] == want
+    assert note in caplog.text
+    assert np.abs(images[0].astype(int) - rgb.astype(int))[_border(2)].max() <= 3
+
+
 def test_lidar_only_bag(tmp_path):
     c = make_content()
     b = BagBuilder(ros1=True)
@@ -633,13 +856,19 @@ def test_unknown_encoding(tmp_path):
     c = make_content(n_images=2)
     b = BagBuilder(ros1=False)
     msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/camera/color/image_raw"]
+    # NV21 (4:2:0, a Y plane of H rows and an interleaved VU plane of H / 2): cv_bridge
+    # does not read it either.
     msgs += [("/camera/color/image_raw", IMAGE_T, c.image_t[0] + 0.03,
-              b.image(c.image_t[0], np.zeros((H, W * 2), np.uint8), "yuv422"))]
-    bag = write_bag(tmp_path / "yuv", "sqlite3", sorted(msgs, key=lambda m: m[2]))
+              b.image(c.image_t[0], np.zeros((H * 3 // 2, W), np.uint8), "nv21", height=H))]
+    bag = write_bag(tmp_path / "nv21", "sqlite3", sorted(msgs, key=lambda m: m[2]))
     with pytest.raises(BagError) as e:
         read_rosbag(bag)
-    assert "/camera/color/image_raw" in str(e.value) and "'encoding'" in str(e.value)
-    assert "yuv422" in str(e.value) and "rgb8" in str(e.value)
+    msg = str(e.value)
+    assert "/camera/color/image_raw" in msg and "'encoding'" in msg and "'nv21'" in msg
+    for accepted in ("rgb8", "yuv422", "yuv422_yuy2", "rgb16", "mono16",
+                     "bayer_{rggb,bggr,gbrg,grbg}{8,16}", "16UC1"):
+        assert accepted in msg
+    assert "cv_bridge does not convert" in msg and "rosbag.topics.image" in msg
 
 
 @pytest.mark.parametrize("fmt", ["ros1", "sqlite3"])

@@ -86,7 +86,10 @@ class IngestStage(Stage):
     #    were swapped); Bayer mosaics demosaiced (a compressed one was stored grey);
     #    a CameraInfo roi gives the window's intrinsics; scans of the common beam count
     #    keep their own bearings (they were resampled onto the first one's)
-    version = 5
+    # 6: YUV 4:2:2 and 16-bit images are read (they were refused); without an 8-bit colour
+    #    topic a YUV / 16-bit colour one beats a Bayer mosaic, and a mosaic a mono16 one (an
+    #    8-bit mosaic beside a raw YUV / 16-bit stream won; a mono16 jpeg beside one won)
+    version = 6
 
     config: IngestConfig
 

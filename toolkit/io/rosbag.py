@@ -1,7 +1,8 @@
 """ROS 1 bags and ROS 2 bags (sqlite3 or mcap) through ``rosbags``, without ROS.
 
 Reads ``sensor_msgs/LaserScan``, ``sensor_msgs/Image`` (rgb8, bgr8, rgba8, bgra8, mono8,
-8-bit Bayer, and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
+their 16-bit forms, YUV 4:2:2, 8- and 16-bit Bayer - converted to RGB as cv_bridge does -
+and 16UC1 / 32FC1 depth), ``sensor_msgs/CompressedImage`` (jpeg/png, and
 ``compressedDepth``), ``sensor_msgs/CameraInfo`` (plumb_bob distortion),
 ``nav_msgs/Odometry`` and ``tf`` / ``tf_static`` into a ``Recording``
 (``toolkit.ingest.recording``) that the ``ingest`` stage streams into a sequence folder.
@@ -28,7 +29,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -64,15 +65,49 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 
-# Encoding -> channels. cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8.
-COLOR_ENCODINGS = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4, "mono8": 1,
-                   "8UC1": 1, "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1,
-                   "bayer_grbg8": 1}
 # A Bayer mosaic's ROS encoding -> OpenCV's demosaic (bilinear, as cv_bridge converts).
 # ROS names the first 2x2 block row by row; OpenCV names a pattern by the second row's
 # second and third pixels, so ROS rggb is OpenCV's BG (cv_bridge maps them the same way).
-BAYER_TO_RGB = {"bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
-                "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB}
+# The 16-bit mosaics are demosaiced at 16 bits, then scaled (cv_bridge's order).
+BAYER_TO_RGB = {f"bayer_{pattern}{bits}": code
+                for pattern, code in (("rggb", cv2.COLOR_BayerBG2RGB),
+                                      ("bggr", cv2.COLOR_BayerRG2RGB),
+                                      ("gbrg", cv2.COLOR_BayerGR2RGB),
+                                      ("grbg", cv2.COLOR_BayerGB2RGB))
+                for bits in (8, 16)}
+
+
+class ColorEncoding(NamedTuple):
+    """How a ``sensor_msgs/Image`` colour encoding is stored and turned into 8-bit RGB."""
+
+    channels: int  # samples per pixel in a row (2 for packed YUV 4:2:2: Y, then U or V)
+    bits: int  # per sample; 16 is scaled to 8 by 255/65535, as cv_bridge does for rgb8
+    to_rgb: int | None  # OpenCV's conversion (cv_bridge's code for rgb8); None: RGB already
+
+
+_GRAY = cv2.COLOR_GRAY2RGB
+# cv_bridge reads 8UC3 as bgr8 and 8UC1 as mono8. YUV 4:2:2 as sensor_msgs'
+# image_encodings lays it out: yuv422 is UYVY (U0 Y0 V0 Y1), yuv422_yuy2 is YUYV
+# (Y0 U0 Y1 V0); ROS 2 names them uyvy / yuyv too (the old names deprecated). cv_bridge
+# converts them with OpenCV's BT.601 (video range) 4:2:2 codes. nv21 / nv24 are not read:
+# cv_bridge does not convert them either.
+COLOR_ENCODINGS: dict[str, ColorEncoding] = {
+    "rgb8": ColorEncoding(3, 8, None), "bgr8": ColorEncoding(3, 8, cv2.COLOR_BGR2RGB),
+    "8UC3": ColorEncoding(3, 8, cv2.COLOR_BGR2RGB),
+    "rgba8": ColorEncoding(4, 8, cv2.COLOR_RGBA2RGB),
+    "bgra8": ColorEncoding(4, 8, cv2.COLOR_BGRA2RGB),
+    "mono8": ColorEncoding(1, 8, _GRAY), "8UC1": ColorEncoding(1, 8, _GRAY),
+    "rgb16": ColorEncoding(3, 16, None), "bgr16": ColorEncoding(3, 16, cv2.COLOR_BGR2RGB),
+    "rgba16": ColorEncoding(4, 16, cv2.COLOR_RGBA2RGB),
+    "bgra16": ColorEncoding(4, 16, cv2.COLOR_BGRA2RGB),
+    "mono16": ColorEncoding(1, 16, _GRAY),
+    "yuv422": ColorEncoding(2, 8, cv2.COLOR_YUV2RGB_UYVY),
+    "uyvy": ColorEncoding(2, 8, cv2.COLOR_YUV2RGB_UYVY),
+    "yuv422_yuy2": ColorEncoding(2, 8, cv2.COLOR_YUV2RGB_YUY2),
+    "yuyv": ColorEncoding(2, 8, cv2.COLOR_YUV2RGB_YUY2),
+    **{enc: ColorEncoding(1, 16 if enc.endswith("16") else 8, code)
+       for enc, code in BAYER_TO_RGB.items()},
+}
 DEPTH_ENCODINGS = {"16UC1": 2, "32FC1": 4}  # millimetres / metres (REP 118)
 
 
@@ -347,30 +382,56 @@ def header_ns(msg: Any) -> int:
 
 
 def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
-    """[H, W, 3] RGB uint8 of a ``sensor_msgs/Image`` in a colour encoding."""
+    """[H, W, 3] RGB uint8 of a ``sensor_msgs/Image`` in a colour encoding, converted as
+    cv_bridge converts it to rgb8 (``COLOR_ENCODINGS``)."""
     enc = str(msg.encoding)
-    if enc not in COLOR_ENCODINGS:
-        hint = ("it is a depth encoding: give it as rosbag.topics.depth" if enc in
-                DEPTH_ENCODINGS else "republish the images as rgb8 or bgr8 (e.g. with "
-                "image_proc / cv_bridge) or name another topic with rosbag.topics.image")
+    spec = COLOR_ENCODINGS.get(enc)
+    if spec is None:
         raise BagError(f"{where}: field 'encoding' is {enc!r}, which this reader does not "
-                       f"decode (colour: {', '.join(COLOR_ENCODINGS)}); {hint}")
-    a = _pixels(msg, np.dtype(np.uint8), COLOR_ENCODINGS[enc], where)  # [H, W, C]
+                       f"decode (colour: {_accepted_colour()}; depth: "
+                       f"{', '.join(DEPTH_ENCODINGS)}); {_encoding_hint(enc)}")
+    a = _pixels(msg, _sample_dtype(msg, "u1" if spec.bits == 8 else "u2"), spec.channels,
+                where)  # [H, W, C], native byte order
     if enc in BAYER_TO_RGB:
-        return _demosaic(a[..., 0], enc, where)
-    if enc in ("rgb8",):
-        return np.ascontiguousarray(a)
-    if enc in ("bgr8", "8UC3"):
-        return np.ascontiguousarray(a[..., ::-1])
-    if enc == "rgba8":
-        return np.ascontiguousarray(a[..., :3])
-    if enc == "bgra8":
-        return np.ascontiguousarray(a[..., 2::-1])
-    return np.ascontiguousarray(np.repeat(a, 3, axis=2))  # mono8 / 8UC1
+        rgb = _demosaic(a[..., 0], enc, where)
+    elif spec.channels == 2 and a.shape[1] % 2:
+        raise BagError(f"{where}: a {enc} image is {a.shape[1]} pixels wide (field 'width'); "
+                       "YUV 4:2:2 pairs pixels, so the width must be even: the message is "
+                       "corrupt")
+    else:
+        rgb = a if spec.to_rgb is None else cv2.cvtColor(a, spec.to_rgb)  # [H, W, 3]
+    return _to_8bit(rgb)
+
+
+def _accepted_colour() -> str:
+    """The colour encodings read, for error messages (the 16 Bayer names folded)."""
+    plain = [e for e in COLOR_ENCODINGS if e not in BAYER_TO_RGB]
+    return ", ".join(plain) + ", bayer_{rggb,bggr,gbrg,grbg}{8,16}"
+
+
+def _encoding_hint(enc: str) -> str:
+    if enc in DEPTH_ENCODINGS:
+        return "it is a depth encoding: give it as rosbag.topics.depth"
+    if enc in ("nv12", "nv21", "nv24"):
+        # Neither cv_bridge nor image_transport's codecs read these planar YUV layouts.
+        return ("cv_bridge does not convert this planar YUV layout either: have the camera "
+                "driver publish another format (e.g. yuyv, rgb8), or name another topic with "
+                "rosbag.topics.image")
+    return ("republish the images as rgb8 or bgr8 (e.g. with image_proc / cv_bridge) or "
+            "name another topic with rosbag.topics.image")
+
+
+def _to_8bit(img: np.ndarray) -> np.ndarray:
+    """``img`` as contiguous uint8: 16-bit samples become round(v * 255 / 65535), cv_bridge's
+    convertTo when a 16-bit encoding is read as rgb8 (v * 257 comes back as v exactly)."""
+    if img.dtype == np.uint16:
+        return ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
+    return np.ascontiguousarray(img)
 
 
 def _demosaic(mosaic: np.ndarray, enc: str, where: str) -> np.ndarray:
-    """[H, W, 3] RGB of a [H, W] Bayer mosaic in ROS encoding ``enc``."""
+    """[H, W, 3] RGB (of the mosaic's dtype) of a [H, W] Bayer mosaic in ROS encoding
+    ``enc``."""
     if min(mosaic.shape) < 2:
         raise BagError(f"{where}: a {mosaic.shape[1]}x{mosaic.shape[0]} {enc} image is "
                        "smaller than one 2x2 Bayer block; the message is corrupt")
@@ -384,13 +445,18 @@ def image_to_depth(msg: Any, where: str = "depth") -> np.ndarray:
         raise BagError(f"{where}: field 'encoding' is {enc!r}; depth images must be 16UC1 "
                        "(millimetres) or 32FC1 (metres). Name the depth topic with "
                        "rosbag.topics.depth, or 'none' to convert without depth")
-    endian = ">" if msg.is_bigendian else "<"
-    dt = np.dtype(f"{endian}u2") if enc == "16UC1" else np.dtype(f"{endian}f4")
-    a = _pixels(msg, dt, 1, where)[..., 0]  # [H, W]
+    a = _pixels(msg, _sample_dtype(msg, "u2" if enc == "16UC1" else "f4"), 1,
+                where)[..., 0]  # [H, W]
     if enc == "16UC1":
         return (a.astype(np.float32) / np.float32(1000.0)).astype(np.float32)
     d = a.astype(np.float32)
     return np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0)).astype(np.float32)
+
+
+def _sample_dtype(msg: Any, kind: str) -> np.dtype:
+    """numpy dtype of one sample (``kind``: 'u1', 'u2', 'f4') in the message's byte order
+    (``is_bigendian``: dc1394 / machine-vision cameras send big-endian 16-bit data)."""
+    return np.dtype(f"{'>' if msg.is_bigendian else '<'}{kind}")
 
 
 def _pixels(msg: Any, dtype: np.dtype, channels: int, where: str) -> np.ndarray:
@@ -407,7 +473,9 @@ def _pixels(msg: Any, dtype: np.dtype, channels: int, where: str) -> np.ndarray:
     if len(data) < step * h:  # some drivers omit the last row's padding
         data = np.concatenate([data, np.zeros(step * h - len(data), np.uint8)])
     rows = data[: step * h].reshape(h, step)[:, :row]
-    return rows.copy().view(dtype).reshape(h, w, channels)
+    # [H, W, C] in native byte order: OpenCV refuses a byte-swapped array.
+    return rows.copy().view(dtype).reshape(h, w, channels).astype(dtype.newbyteorder("="),
+                                                              copy=False)
 
 
 def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
@@ -425,10 +493,23 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
         raise BagError(f"{where}: the {fmt!r} data (field 'data', {len(msg.data)} bytes) does "
                        "not decode; the message is corrupt or the format unknown "
                        "(jpeg and png are read)")
-    if img.dtype != np.uint8:
-        raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
-                       "colour images must be 8-bit")
     enc, order = compressed_format(fmt)
+    # image_transport's png codec keeps a 16-bit image's depth (rgb16 as 'compressed
+    # bgr16', a mono16 or Bayer 16 image as it is); its subscriber decodes it unchanged and
+    # cv_bridge scales it when read as rgb8.
+    spec = COLOR_ENCODINGS.get(enc)
+    if img.dtype != np.uint8 and not (img.dtype == np.uint16 and spec and spec.bits == 16):
+        raise BagError(f"{where}: field 'format' {fmt!r} decodes to {img.dtype} pixels; "
+                       "colour images must be 8-bit, or 16-bit in a 16-bit encoding named "
+                       "before ';' (" + ", ".join(
+                           e for e, c in COLOR_ENCODINGS.items() if c.bits == 16) + ")"
+                       + ("; a depth image: give it as rosbag.topics.depth (raw or "
+                          "compressedDepth)" if enc in DEPTH_ENCODINGS else ""))
+    return _to_8bit(_compressed_rgb(img, enc, order, where))
+
+
+def _compressed_rgb(img: np.ndarray, enc: str, order: str, where: str) -> np.ndarray:
+    """[H, W, 3] RGB (of ``img``'s dtype) of a decoded CompressedImage payload."""
     if img.ndim == 2 and enc in BAYER_TO_RGB:
         # image_transport compresses a Bayer camera's mosaic as it is: stored as grey, it
         # was the raw checkerboard of R, G and B samples.
@@ -882,6 +963,34 @@ def _base_name(topic: str) -> str:
     return _strip_transport(topic).rsplit("/", 1)[-1]
 
 
+# Image topics by encoding, in the order the colour topic is chosen from: 8-bit colour as it
+# is; YUV 4:2:2 and 16-bit colour, converted here (a camera's raw stream beside its own
+# 8-bit conversion); Bayer mosaics, demosaiced here; mono16, more often an infrared camera
+# (RealSense Y16) or depth labelled so than the colour camera; unknown (an error).
+_IMAGE_PILES = ("color", "converted", "bayer", "gray16", "other")
+_PASSED_OVER = {
+    "converted": "YUV / 16-bit colour topics ({}) are passed over for the 8-bit colour ones; "
+                 "name one with rosbag.topics.image to convert it here",
+    "bayer": "Bayer mosaic topics ({}) are passed over for the colour ones; name one with "
+             "rosbag.topics.image to demosaic it here",
+    "gray16": "mono16 topics ({}) are passed over for the colour ones (an infrared camera's, "
+              "or depth); name one with rosbag.topics.image to read it as grey",
+    "other": "",
+}
+
+
+def _image_pile(enc: str) -> str:
+    """Which of ``_IMAGE_PILES`` (or 'depth') an image of encoding ``enc`` belongs to."""
+    if enc in BAYER_TO_RGB:
+        return "bayer"
+    if enc == "mono16":
+        return "gray16"
+    if enc in COLOR_ENCODINGS:
+        spec = COLOR_ENCODINGS[enc]
+        return "color" if spec.bits == 8 and spec.channels != 2 else "converted"
+    return "depth" if enc in DEPTH_ENCODINGS else "other"
+
+
 def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     """Find the topics by type (see the module docstring), honouring overrides."""
     ch = TopicChoice()
@@ -893,36 +1002,34 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
                        "toolkit needs a 2D lidar. Topics in the bag: "
                        + ", ".join(f"{t.name} ({t.msgtype})" for t in bag.topics.values()))
 
-    # Sort image topics into colour and depth by their first message.
+    # Sort image topics into piles by their first message's encoding.
     peek: dict[str, Any] = {}
-    color: list[str] = []
-    bayer: list[str] = []  # mosaics, demosaiced here
-    depth: list[str] = []
-    other: list[str] = []
+    piles: dict[str, list[str]] = {kind: [] for kind in (*_IMAGE_PILES, "depth")}
     for t in bag.of_type(IMAGE, COMPRESSED):
         msg = bag.first(t)
         if msg is None:
             continue
         peek[t] = msg
         if bag.topics[t].msgtype == IMAGE:
-            enc = str(msg.encoding)
-            (bayer if enc in BAYER_TO_RGB else color if enc in COLOR_ENCODINGS else depth
-             if enc in DEPTH_ENCODINGS else other).append(t)
+            piles[_image_pile(str(msg.encoding))].append(t)
         elif "compresseddepth" in str(msg.format).lower():
-            depth.append(t)
+            piles["depth"].append(t)
         else:
-            (bayer if compressed_format(str(msg.format))[0] in BAYER_TO_RGB
-             else color).append(t)
+            # The payload of a format without a known encoding ('jpeg', 'png') is colour.
+            kind = _image_pile(compressed_format(str(msg.format))[0])
+            piles[kind if kind in _IMAGE_PILES[:-1] else "color"].append(t)
+    depth = piles["depth"]
 
     given, ch.image = _override(bag, "image", topics.image, (IMAGE, COMPRESSED))
     if not given:
-        # A camera driver's (or image_proc's) demosaiced stream beats its own Bayer
-        # mosaic; an image in an unknown encoding errors when decoded.
-        cands = color or bayer or other
-        if color and bayer:
-            ch.notes.append(f"Bayer mosaic topics ({', '.join(bayer)}) are passed over for "
-                            "the colour ones; name one with rosbag.topics.image to "
-                            "demosaic it here")
+        # A camera driver's (or image_proc's) 8-bit colour stream beats the raw stream it
+        # was converted or demosaiced from; an image in an unknown encoding errors when
+        # decoded.
+        first = next((k for k in _IMAGE_PILES if piles[k]), "other")
+        cands = piles[first]
+        for kind in _IMAGE_PILES[_IMAGE_PILES.index(first) + 1:]:
+            if piles[kind] and _PASSED_OVER[kind]:
+                ch.notes.append(_PASSED_OVER[kind].format(", ".join(piles[kind])))
         raw = {t for t in cands if bag.topics[t].msgtype == IMAGE}
         # image_transport republishes /x as /x/compressed: the raw one is lossless.
         cands = [t for t in cands if not (t.endswith("/compressed") and
