@@ -189,11 +189,8 @@ def test_missing_model_says_where_to_put_it(tmp_path: Path) -> None:
     assert str(missing) in str(e.value) and "never downloads" in str(e.value)
 
 
-def test_a_folder_as_model_is_found_before_the_run(tmp_path: Path) -> None:
-    from toolkit.recipe.runner import missing_inputs
-    from toolkit.recipe.schema import load_recipe
-
-    (tmp_path / "models").mkdir()
+def _onnx_recipe(tmp_path: Path, model: Path | str) -> Path:
+    """``tmp_path/r.yaml``: a simulated sequence, then depth by the ONNX network ``model``."""
     recipe = tmp_path / "r.yaml"
     recipe.write_text(f"""name: r
 output: {tmp_path / 'run'}
@@ -202,8 +199,17 @@ stages:
   - stage: depth
     backend: onnx
     output: relative_disparity
-    model: {tmp_path / 'models'}
+    model: {model}
 """)
+    return recipe
+
+
+def test_a_folder_as_model_is_found_before_the_run(tmp_path: Path) -> None:
+    from toolkit.recipe.runner import missing_inputs
+    from toolkit.recipe.schema import load_recipe
+
+    (tmp_path / "models").mkdir()
+    recipe = _onnx_recipe(tmp_path, tmp_path / "models")
     problems = missing_inputs(load_recipe(recipe))
     assert len(problems) == 1 and "is a folder; give the .onnx file in it" in problems[0]
     # A Git LFS pointer or any file that is no ONNX model: found by validate too (it failed
@@ -215,6 +221,36 @@ stages:
         recipe.write_text(recipe.read_text().replace(str(tmp_path / "models"), str(model)))
         problems = missing_inputs(load_recipe(recipe))
         assert len(problems) == 1 and why in problems[0], problems
+
+
+def test_the_depth_key_holds_the_models_content_not_its_path(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same model file in another folder (a moved checkout, a git worktree) keeps the
+    depth stage cached; other weights copied over it, of the same size and with its mtime
+    kept (``cp -p``, ``rsync -a``), rerun it."""
+    import os
+
+    from toolkit.recipe import runner
+    from toolkit.recipe.schema import load_recipe
+
+    def key(model: Path | str) -> str:
+        spec = load_recipe(_onnx_recipe(tmp_path, model)).stages[1]
+        return runner._cache_key(spec, spec.cls(spec.config), {"sequence": "token"})
+
+    weights = bytes(range(256)) * 64
+    here = tmp_path / "main" / "datasets" / "models" / "small-depth.onnx"
+    there = tmp_path / "worktree" / "datasets" / "models" / "small-depth.onnx"
+    for path in (here, there):
+        path.parent.mkdir(parents=True)
+        path.write_bytes(weights)
+    assert key(here) == key(there)
+    monkeypatch.chdir(tmp_path / "worktree")
+    assert key("datasets/models/small-depth.onnx") == key(here)
+    before = here.stat()
+    here.write_bytes(weights[::-1])  # other weights, the same size
+    os.utime(here, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert here.stat().st_size == before.st_size
+    assert key(here) != key(there)
 
 
 # ------------------------------------------------------------------ simulated

@@ -154,6 +154,13 @@ class External(Stage):
         _count(self.config.counter, ctx.stage_id)  # type: ignore[attr-defined]
 
 
+class ContentExternal(External):
+    """Read a file outside the run, keyed by its content (test stage)."""
+
+    name = "t_external_content"
+    external_by_content = True
+
+
 class TableConfig(StageConfig):
     counter: str
     rows: list[str]
@@ -187,6 +194,7 @@ TEST_STAGES: dict[str, type[Stage]] = {
     "t_double": Double,
     "t_sink": Sink,
     "t_external": External,
+    "t_external_content": ContentExternal,
     "t_table": Table,
 }
 
@@ -580,6 +588,45 @@ def test_missing_output_or_external_change_reruns(tmp_path: Path,
     for cwd, name in ((tmp_path, "input.log"), (sub, "../input.log"), (sub, "./../input.log")):
         monkeypatch.chdir(cwd)
         assert _run(ext, f"t_external.source_file={name}").statuses == {"t_external": "cached"}
+
+
+def test_an_input_keyed_by_content_follows_its_bytes_and_is_hashed_once(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stage keying its external files by content stays cached when the file moves (and
+    the recipe names the new place), reruns when other bytes of the same size and mtime
+    replace it, and hashes it again only when it changed (the run folder remembers)."""
+    import toolkit.recipe.runner as runner
+
+    hashed: list[Path] = []
+    hash_bytes = runner._hash_bytes
+
+    def counting(h: Any, path: Path) -> None:
+        hashed.append(path)
+        hash_bytes(h, path)
+
+    monkeypatch.setattr(runner, "_hash_bytes", counting)
+    model = tmp_path / "a" / "model.onnx"
+    model.parent.mkdir()
+    model.write_bytes(b"weights-1")
+    counter = str(tmp_path / "calls.txt")
+    path = _write_recipe(tmp_path, {"name": "c", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "t_external_content", "counter": counter, "source_file": str(model)}]})
+    assert _run(path).statuses == {"t_external_content": "ran"}
+    assert hashed == [model]  # once for the key and the folder key
+    assert _run(path).statuses == {"t_external_content": "cached"}
+    assert hashed == [model]  # remembered in the run folder
+    moved = tmp_path / "b" / "renamed.onnx"
+    moved.parent.mkdir()
+    model.rename(moved)
+    assert _run(path, f"t_external_content.source_file={moved}").statuses == {
+        "t_external_content": "cached"}
+    before = moved.stat()
+    moved.write_bytes(b"weights-2")
+    os.utime(moved, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert _run(path, f"t_external_content.source_file={moved}").statuses == {
+        "t_external_content": "ran"}
+    assert _calls(tmp_path) == {"t_external_content": 2}
+    assert "renamed.onnx" in (tmp_path / "run" / runner.DIGESTS_FILE).read_text()
 
 
 def test_missing_external_input_stops_before_anything_runs(tmp_path: Path) -> None:

@@ -174,11 +174,10 @@ def test_the_report_shows_zero_camera_poses_and_plots_a_late_reference() -> None
     assert ref is not None and np.allclose(ref, poses[:, :2, 3], atol=1e-3)
 
 
-def test_camera_poses_between_scans_follow_the_odometry(tmp_path: Path,
-                                                         monkeypatch: pytest.MonkeyPatch):
-    """With wheel odometry, a camera frame between two scans gets the odometry's motion
-    since the scan (here 5 cm sideways of the straight line between the scan poses), not
-    the straight line; with use_odometry false, the straight line."""
+def _odometry_sequence() -> Sequence:
+    """A drive of 12 scans, 1 s apart, with wheel odometry (in its own frame) 5 cm sideways
+    of the straight line half-way between them, and camera frames at 2.5, 3.5 and 5.0 s
+    (the camera at the base)."""
     from toolkit.geometry import se3
 
     truth = _drive(24)[:12]
@@ -196,9 +195,17 @@ def test_camera_poses_between_scans_follow_the_odometry(tmp_path: Path,
     cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
     frames = [CameraFrame.from_array(t, np.zeros((48, 64, 3), np.uint8), i)
               for i, t in enumerate([2.5, 3.5, 5.0])]
-    seq = Sequence(Rig(cam, np.eye(4), T_base_laser), frames, scans,
-                   odometry=Trajectory(odom_t, odom_poses, "odom", "base_link"),
-                   name="synthetic")
+    return Sequence(Rig(cam, np.eye(4), T_base_laser), frames, scans,
+                    odometry=Trajectory(odom_t, odom_poses, "odom", "base_link"),
+                    name="synthetic")
+
+
+def test_camera_poses_between_scans_follow_the_odometry(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch):
+    """With wheel odometry, a camera frame between two scans gets the odometry's motion
+    since the scan (here 5 cm sideways of the straight line between the scan poses), not
+    the straight line; with use_odometry false, the straight line."""
+    seq = _odometry_sequence()
     monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
 
     def camera_poses(use_odometry: bool) -> tuple[Trajectory, Trajectory]:
@@ -215,3 +222,100 @@ def test_camera_poses_between_scans_follow_the_odometry(tmp_path: Path,
     assert np.allclose(off[:2], 0.05, atol=0.01) and off[2] < 1e-6  # 5.0: a scan stamp
     slam0, camt0 = camera_poses(False)
     assert np.allclose(camt0.poses, slam0.interpolate(camt0.stamps).poses, atol=1e-9)
+
+
+class _FuseCtx(_Ctx):
+    """fuse after a slam2d run: the trajectory artifact is that run's folder."""
+
+    def __init__(self, root: Path, trajectory: Path) -> None:
+        super().__init__(root)
+        self.stage_dir = root / "fuse"
+        self.stage_dir.mkdir()
+        self.trajectory = trajectory
+
+    def artifact(self, name: str) -> Path:
+        return self.trajectory if name == "trajectory" else self.run_dir / name
+
+    def has_artifact(self, name: str) -> bool:
+        return name in ("sequence", "depth", "trajectory")
+
+
+class _Placed(Exception):
+    """Raised where fuse hands its frame poses to the fusion: they are what is tested."""
+
+    def __init__(self, frame_poses: np.ndarray) -> None:
+        super().__init__("frame poses placed")
+        self.frame_poses = frame_poses
+
+
+def test_fuse_places_frames_between_scans_as_slam2d_did(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture):
+    """fuse's odometry: null (the default) follows the slam2d run that made the trajectory:
+    with its use_odometry false the frames lie on the straight line between the scan poses,
+    with true they move as the odometry says; either way where slam2d's camera poses (the
+    TSDF's and splat's) have them. An explicit odometry overrides it; a slam2d folder
+    without the record is placed with the odometry, as before, with a warning; a broken
+    record stops fuse, naming the file and the field."""
+    import json
+
+    from toolkit.fusion import stage as fuse_stage
+    from toolkit.fusion.stage import FuseStage
+    from toolkit.recipe.runner import _content_digest
+    from toolkit.recipe.stage import StageError
+    from toolkit.slam2d.stage import STAGE_RECORD
+
+    seq = _odometry_sequence()
+    monkeypatch.setattr("toolkit.io.sequence.read_sequence", lambda path: seq)
+    monkeypatch.setattr(fuse_stage, "DepthStore", lambda path: None)
+
+    def stop(seq: Sequence, cfg: Any, frame_poses: np.ndarray, *args: Any,
+             **kwargs: Any) -> None:
+        raise _Placed(frame_poses)
+
+    monkeypatch.setattr(fuse_stage, "Fusion", stop)
+
+    def slam(use_odometry: bool) -> Path:
+        ctx = _Ctx(tmp_path / f"slam_{use_odometry}")
+        Slam2DStage(Slam2DStage.Config(stage="slam2d", use_odometry=use_odometry)).run(ctx)
+        # In the artifact: its digest, and so fuse's cache key, follows the setting.
+        assert (ctx.provided["trajectory"] / STAGE_RECORD).is_file()
+        return ctx.provided["trajectory"]
+
+    def fused(trajectory: Path, **settings: Any) -> np.ndarray:
+        ctx = _FuseCtx(tmp_path / f"fuse_{len(list(tmp_path.iterdir()))}", trajectory)
+        with pytest.raises(_Placed) as placed:
+            FuseStage(FuseStage.Config(stage="fuse", **settings)).run(ctx)
+        return placed.value.frame_poses
+
+    with_odometry, without = slam(True), slam(False)
+    assert json.loads((without / STAGE_RECORD).read_text()) == {"use_odometry": False}
+    for folder in (with_odometry, without):
+        camera = read_tum(folder / "trajectory_camera.tum").poses  # T_base_camera: identity
+        np.testing.assert_allclose(fused(folder), camera, atol=1e-9)
+    # Each against its own SLAM's poses (with odometry the world starts at its origin).
+    base = read_tum(without / "trajectory_base.tum")
+    np.testing.assert_allclose(fused(without), base.interpolate(seq.frame_stamps).poses,
+                               atol=1e-9)
+    base_odo = read_tum(with_odometry / "trajectory_base.tum")
+    line_odo = base_odo.interpolate(seq.frame_stamps).poses
+    off = np.linalg.norm(fused(with_odometry)[:, :3, 3] - line_odo[:, :3, 3], axis=1)
+    assert np.allclose(off[:2], 0.05, atol=0.01) and off[2] < 1e-6  # the odometry's 5 cm
+    np.testing.assert_allclose(
+        fused(without, odometry=True),
+        base.interpolate_with_odometry(seq.odometry, seq.frame_stamps).poses, atol=1e-9)
+    np.testing.assert_allclose(fused(with_odometry, odometry=False), line_odo, atol=1e-9)
+
+    # A slam2d folder from before the record: placed with the odometry, as fuse did then.
+    digest = _content_digest(without)
+    (without / STAGE_RECORD).unlink()
+    assert _content_digest(without) != digest
+    with caplog.at_level("WARNING"):
+        np.testing.assert_allclose(
+            fused(without),
+            base.interpolate_with_odometry(seq.odometry, seq.frame_stamps).poses, atol=1e-9)
+    assert "does not record its use_odometry" in caplog.text
+    assert "rerun slam2d (--from slam2d)" in caplog.text
+    (without / STAGE_RECORD).write_text('{"use_odometry": "no"}')
+    with pytest.raises(StageError, match=rf"{STAGE_RECORD}: field 'use_odometry' must be "
+                                         r"true or false \(got 'no'\); rerun slam2d"):
+        FuseStage(FuseStage.Config(stage="fuse")).run(_FuseCtx(tmp_path / "broken", without))

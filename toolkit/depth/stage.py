@@ -191,6 +191,10 @@ class DepthStage(Stage):
     # for its timings).
     speed_settings = frozenset({"threads", "device", "prefetch"})
     outputs_repeat = False  # index.csv holds each frame's latency
+    # The model is keyed by its bytes: the same file in a moved checkout, a git worktree or
+    # a colleague's copy of the run folder keeps an hour of depth cached, and other weights
+    # copied over it (same size, mtime kept) rerun it.
+    external_by_content = True
 
     def external_inputs(self) -> list[Path]:
         cfg: DepthConfig = self.config  # type: ignore[assignment]

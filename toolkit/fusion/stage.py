@@ -18,7 +18,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from pydantic import Field
@@ -68,10 +68,11 @@ class FuseConfig(FusionConfig, StageConfig):
     poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
     # Between the trajectory's poses (slam2d's: at the scan stamps) the robot moves as the
     # sequence's wheel odometry says, when it has one; false: a straight line between them
-    # (1.2 deg off at a turn's start on the simulated house). Off for odometry not to trust
-    # (and where slam2d ran with use_odometry: false, whose camera poses the TSDF and splat
-    # stages take).
-    odometry: bool = True
+    # (1.2 deg off at a turn's start on the simulated house). null: as the slam2d stage
+    # that made the trajectory placed its camera poses (its use_odometry), so the frames
+    # are fused where the TSDF and splat stages, which take those poses, see them; with
+    # ground-truth poses, or a slam2d folder from before it recorded use_odometry, true.
+    odometry: bool | None = None
     write_depth: Literal["png", "npy", "none"] = "png"
     # Read the next frames and write the scaled depth in a thread: the stage finishes
     # sooner (quickstart 80 -> 61-71 s), but its measured fusion time then includes that
@@ -313,6 +314,36 @@ def load_base_trajectory(path: Path, seq: Sequence) -> Trajectory:
     return traj
 
 
+class OdometryChoice(NamedTuple):
+    """Whether fuse places the frames between the trajectory's poses with the wheel
+    odometry (``use``), why (for the report), and whether that is a guess for a slam2d
+    folder that does not say (``unrecorded``)."""
+
+    use: bool
+    why: str
+    unrecorded: bool = False
+
+
+def odometry_choice(setting: bool | None, trajectory: Path | None) -> OdometryChoice:
+    """``setting`` (the stage's ``odometry``) where given, else as the slam2d run that wrote
+    the ``trajectory`` artifact did (its ``use_odometry``), else true (ground-truth poses;
+    a slam2d folder from before it recorded the setting, placed as it was then)."""
+    from toolkit.slam2d.stage import recorded_use_odometry
+
+    if setting is not None:
+        return OdometryChoice(setting, f"`odometry: {str(setting).lower()}`")
+    if trajectory is None:
+        return OdometryChoice(True, "the default without a slam2d trajectory")
+    try:
+        recorded = recorded_use_odometry(trajectory)
+    except StageError as exc:
+        raise StageError(f"fuse: {exc}") from None
+    if recorded is None:
+        return OdometryChoice(
+            True, f"slam2d's folder {trajectory} does not record its use_odometry", True)
+    return OdometryChoice(recorded, f"as slam2d's `use_odometry: {str(recorded).lower()}`")
+
+
 def metric_scale_warning(kind: str, scale_median: float | None) -> str | None:
     """What to say when a metric network's depth is far from the lidar's (median scale
     outside 2/3..3/2): a setting is off, not the network's accuracy. None otherwise."""
@@ -414,10 +445,18 @@ class FuseStage(Stage):
                              "stage before fuse")
         # Scans swept while moving (time_increment) are placed beam by beam first.
         seq = deskew_sequence(seq, traj)
-        frame_poses, scan_poses, inside = pose_arrays(seq, traj, cfg.odometry)
-        if cfg.odometry and seq.odometry is not None:
+        odometry = odometry_choice(
+            cfg.odometry, ctx.artifact("trajectory") if pose_source == "trajectory" else None)
+        frame_poses, scan_poses, inside = pose_arrays(seq, traj, odometry.use)
+        if seq.odometry is not None:
             pose_note += (" Between its poses the frames move as the wheel odometry says "
-                          "(`odometry: false` for a straight line).")
+                          f"({odometry.why}; `odometry: false` for a straight line)."
+                          if odometry.use else " Between its poses the frames lie on the "
+                          f"straight line ({odometry.why}).")
+            if odometry.unrecorded:
+                ctx.log.warning("fuse: %s: frames placed with the wheel odometry as before; "
+                                "rerun slam2d (--from slam2d) for fuse to follow its "
+                                "use_odometry, or set fuse's odometry", odometry.why)
         views_dir = ctx.stage_dir / "carve_views"  # until the map is finished
         fusion = Fusion(seq, fcfg, frame_poses, scan_poses, views_dir,
                         scan_covered=scans_covered(seq, traj))
@@ -637,6 +676,9 @@ class FuseStage(Stage):
             # The lidar's scale over the frames it was used on (a metric network's: ~1).
             "scale_median": float(np.median(sm.scale[sm.used])),  # type: ignore[attr-defined]
             "poses": pose_source,
+            # Frames between the poses placed with the wheel odometry (false: on the
+            # straight line, or the sequence has none).
+            "poses_follow_odometry": bool(odometry.use and seq.odometry is not None),
             "map_points": len(final), "map_points_raw": len(raw),
             "map_points_removed_dynamic": int(masks["dynamic"].sum()),
             "map_points_removed_outlier": int(masks["outlier"].sum()),

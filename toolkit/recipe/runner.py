@@ -77,6 +77,9 @@ _MARKERS = frozenset({STAGE_FILE, STARTED_FILE})  # the runner's, not a stage's 
 RESOLVED_FILE = "recipe.resolved.yaml"
 LOG_FILE = "run.log"
 LOCK_FILE = ".lock"
+# SHA-256 of the external files stages key by content, by file and its size, times and
+# inode: a 1 GB model is hashed when it changes, not on every run.
+DIGESTS_FILE = ".file_digests.json"
 
 # Log records carrying this go to run.log only (tracebacks, lines already printed nicely).
 _FILE_ONLY = {"console": False}
@@ -247,7 +250,7 @@ def _remove_if_only_bookkeeping(made: list[Path]) -> None:
         return
     run_dir = made[-1]
     names = {p.name for p in run_dir.iterdir()}
-    if not names <= {LOCK_FILE, LOG_FILE}:
+    if not names <= {LOCK_FILE, LOG_FILE, DIGESTS_FILE}:
         return
     for name in names:
         (run_dir / name).unlink()
@@ -284,6 +287,7 @@ class _Run:
         self.interrupted: str | None = None
         self.bar_active = False
         self._resolved_written = False
+        self.digests = FileDigests(run_dir / DIGESTS_FILE)
 
     def write_resolved(self) -> None:
         """``recipe.resolved.yaml``, once something of this run is kept: an option check
@@ -351,9 +355,10 @@ class _Run:
         try:
             stage = spec.cls(spec.config)
             record.key = _cache_key(spec, stage, self.upstream_tokens(spec),
-                                    stage.speed_settings)
+                                    stage.speed_settings, self.digests)
             record.folder_key = _cache_key(spec, stage, self.upstream_tokens(spec),
-                                           stage.resume_settings | stage.speed_settings)
+                                           stage.resume_settings | stage.speed_settings,
+                                           self.digests)
         except Exception as exc:
             if not selected:
                 record.status, record.reason = "not run", f"cannot check its inputs: {exc}"
@@ -405,7 +410,8 @@ class _Run:
                 continue
             try:
                 stage = spec.cls(spec.config)
-                key = _cache_key(spec, stage, self.upstream_tokens(spec), stage.speed_settings)
+                key = _cache_key(spec, stage, self.upstream_tokens(spec), stage.speed_settings,
+                                 self.digests)
             except Exception:  # noqa: BLE001 - it is reported as not run, nothing more
                 continue
             stored, _ = _read_marker(self.run_dir / spec.id, key, spec.cls.provides)
@@ -752,17 +758,29 @@ def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> li
 
 
 def _cache_key(spec: StageSpec, stage: Stage, upstream: Mapping[str, str | None],
-               leave_out: frozenset[str] = frozenset()) -> str:
+               leave_out: frozenset[str] = frozenset(),
+               digests: FileDigests | None = None) -> str:
     external = [Path(p) for p in stage.external_inputs()]
     config = {k: v for k, v in config_data(spec.config).items() if k not in leave_out}
+    # The files a stage reads by the folder-independent path: the same bag named from
+    # another folder (or absolutely) is the same input, not "settings changed". A file
+    # keyed by content is named by its digest alone: its path is no part of the key.
+    named: dict[Path, str] = {}
+    fingerprints: list[dict[str, Any]] = []
+    for p in external:
+        if stage.external_by_content and p.is_file():
+            sha = (digests or FileDigests(None)).sha256(p)
+            named[p] = f"sha256:{sha}"
+            fingerprints.append({"sha256": sha})
+        else:
+            named[p] = os.path.abspath(p)
+            fingerprints.append(_fingerprint(p))
     payload = {
         "stage": spec.type,
         "version": getattr(stage, "version", 1),
-        # The files a stage reads by the folder-independent path: the same bag named from
-        # another folder (or absolutely) is the same input, not "settings changed".
-        "config": _absolute_inputs(config, {p: os.path.abspath(p) for p in external}),
+        "config": _absolute_inputs(config, named),
         "upstream": dict(sorted(upstream.items())),
-        "external": [_fingerprint(p) for p in external],
+        "external": fingerprints,
     }
     text = json.dumps(payload, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
@@ -834,6 +852,50 @@ def _walk_files(root: Path) -> tuple[list[Path], list[tuple[Path, str]]]:
 def _stat(path: Path) -> list[int]:
     st = path.stat()
     return [st.st_size, st.st_mtime_ns]
+
+
+class FileDigests:
+    """SHA-256 of files, remembered in ``path`` (a JSON file; None: for this object's life
+    only) by absolute path with the file's size, mtime, ctime and inode, and hashed again
+    when any of those differ. The ctime and inode are there because size and mtime alone
+    are kept by ``cp -p`` and ``rsync -a``: other weights of the same size copied over a
+    model with their own mtime restored would otherwise keep the old digest."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self.known: dict[str, list[Any]] = {}
+        if path is not None:
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError):  # none yet, or unreadable: hash afresh
+                data = {}
+            if isinstance(data, dict):
+                self.known = {k: v for k, v in data.items()
+                              if isinstance(v, list) and len(v) == 5}
+
+    def sha256(self, file: Path) -> str:
+        """Hex SHA-256 of the bytes of ``file``."""
+        file = Path(os.path.abspath(file))
+        st = file.stat()
+        stamp = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
+        entry = self.known.get(str(file))
+        if entry is not None and entry[:4] == stamp:
+            return str(entry[4])
+        h = hashlib.sha256()
+        _hash_bytes(h, file)
+        digest = h.hexdigest()
+        self.known[str(file)] = [*stamp, digest]
+        if self.path is not None:
+            with contextlib.suppress(OSError):  # a cache: not written, the file is hashed again
+                atomic_write_json(self.path, self.known)
+        return digest
+
+
+def _hash_bytes(h: Any, path: Path) -> None:
+    """Feed the bytes of file ``path`` to hash ``h``, a megabyte at a time."""
+    with path.open("rb") as fh:
+        while chunk := fh.read(1 << 20):
+            h.update(chunk)
 
 
 def _read_marker(
@@ -914,9 +976,7 @@ def _content_digest(path: Path) -> str:
     for f in files:
         rel = f.name if f == path else f.relative_to(path).as_posix()
         h.update(f"{rel}\0{f.stat().st_size}\0".encode())
-        with f.open("rb") as fh:
-            while chunk := fh.read(1 << 20):
-                h.update(chunk)
+        _hash_bytes(h, f)
     return h.hexdigest()
 
 

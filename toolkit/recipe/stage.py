@@ -9,7 +9,8 @@ Artifacts are named paths inside a stage's folder ("sequence", "trajectory",
 "depth", "map", ...). The runner resolves ``ctx.artifact(name)`` to the path the
 nearest earlier stage provided, and caches a stage by hashing its settings together
 with a digest of the content of the artifacts it draws (and the fingerprints of the
-external files it names in ``external_inputs``), so changing one stage reruns exactly
+external files it names in ``external_inputs``, or their content digests with
+``external_by_content``), so changing one stage reruns exactly
 what reads an output that changed. A stage therefore reads of an earlier stage only the
 paths ``ctx.artifact`` gives and what lies under them, never files beside them.
 """
@@ -143,6 +144,12 @@ class Stage(ABC):
     # makes this safe: a stage reads of an earlier stage only the paths it is given
     # (``ctx.artifact``) and what lies under them, never files beside them.
     outputs_repeat: ClassVar[bool] = True
+    # External input files are keyed by their content (SHA-256), not by where they lie and
+    # when they were written: a depth model moved with its checkout (another folder, a git
+    # worktree, a colleague's copy) stays cached, and one replaced in place by other
+    # weights of the same size and time reruns. Folders keep the cheap size-and-time
+    # fingerprint (hashing a recording of gigabytes every run is the cost it avoids).
+    external_by_content: ClassVar[bool] = False
 
     def __init__(self, config: StageConfig) -> None:
         self.config = config

@@ -9,12 +9,15 @@
 
 Writes ``trajectory_base.tum`` (T_world_base at every scan used), ``trajectory_camera.tum``
 (T_world_camera at the camera stamps inside the scan span), ``map.pgm`` + ``map.yaml``
-(map_server) and ``map.png`` (the map with the trajectory), and provides the folder as
+(map_server), ``map.png`` (the map with the trajectory), ``slam2d_config.json`` (the
+SLAM's settings) and ``slam2d_stage.json`` (the stage's settings that later stages follow:
+``use_odometry``, which fuse's ``odometry: null`` takes), and provides the folder as
 artifact ``trajectory``.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +25,31 @@ import numpy as np
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.recipe.timing import work_metrics
 from toolkit.slam2d.config import Slam2DConfig
+
+# In the trajectory artifact: inside it, the record joins the cache key of every stage
+# reading the trajectory (a rerun with another use_odometry reruns them).
+STAGE_RECORD = "slam2d_stage.json"
+
+
+def recorded_use_odometry(trajectory: Path) -> bool | None:
+    """The ``use_odometry`` of the slam2d run that wrote the trajectory folder
+    ``trajectory``: whether its camera poses between the scans follow the wheel odometry.
+    None where the folder has no record (a run of slam2d before it wrote one, or a
+    trajectory file of another source). Raises ``StageError`` for a record that is not
+    one."""
+    path = Path(trajectory) / STAGE_RECORD
+    if not Path(trajectory).is_dir() or not path.exists():
+        return None
+    fix = "rerun slam2d (--from slam2d) to write it again, or set fuse's odometry: true / false"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise StageError(f"{path} cannot be read ({exc}); {fix}") from exc
+    value = data.get("use_odometry") if isinstance(data, dict) else None
+    if not isinstance(value, bool):
+        raise StageError(f"{path}: field 'use_odometry' must be true or false (got "
+                         f"{value!r}); {fix}")
+    return value
 
 
 class Slam2DStageConfig(Slam2DConfig, StageConfig):
@@ -149,6 +177,7 @@ class Slam2DStage(Stage):
                            f"submaps, {metrics['loop_closures']} loop-closure constraints",
                      reference_xy=None if ref_xy is None else _aligned_ref(traj, gt))
         atomic_write_json(out / "slam2d_config.json", cfg.slam_config().model_dump())
+        atomic_write_json(out / STAGE_RECORD, {"use_odometry": cfg.use_odometry})
         ctx.add_metrics(metrics)
         ctx.report(_report(ctx.stage_id, metrics))
         ctx.provide("trajectory", out)
