@@ -253,6 +253,48 @@ def test_the_depth_key_holds_the_models_content_not_its_path(
     assert key(here) != key(there)
 
 
+def test_a_model_with_external_weights_is_keyed_by_them_too(tmp_path: Path) -> None:
+    """A network saved with its weights in a file of its own (``model.onnx.data``, exports
+    over 2 GB) is that file too: other weights copied over it rerun the depth stage, and a
+    missing one is found before the run."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from toolkit.depth.onnx_backend import external_data_files
+    from toolkit.recipe import runner
+    from toolkit.recipe.runner import missing_inputs
+    from toolkit.recipe.schema import load_recipe
+
+    model_path = tmp_path / "models" / "big.onnx"
+    model_path.parent.mkdir()
+    weights = numpy_helper.from_array(np.full((1, 3, 1, 1), 0.5, np.float32), "w")
+    graph = helper.make_graph(
+        [helper.make_node("Mul", ["image", "w"], ["depth"])], "g",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, 28, 28])],
+        [helper.make_tensor_value_info("depth", TensorProto.FLOAT, None)], [weights])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    onnx.save_model(model, str(model_path), save_as_external_data=True,
+                    all_tensors_to_one_file=True, location="big.onnx.data", size_threshold=0)
+    data = tmp_path / "models" / "big.onnx.data"
+    assert external_data_files(model_path) == [data]
+    save_graph(tmp_path / "inside.onnx", [helper.make_node("Identity", ["image"], ["depth"])],
+               [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, 28, 28])])
+    assert external_data_files(tmp_path / "inside.onnx") == []
+    assert external_data_files(tmp_path / "r.yaml") == []  # not a model: no error here
+
+    recipe = load_recipe(_onnx_recipe(tmp_path, model_path))
+    spec = recipe.stages[1]
+
+    def key() -> str:
+        return runner._cache_key(spec, spec.cls(spec.config), {"sequence": "token"})
+
+    before = key()
+    data.write_bytes(data.read_bytes()[::-1])  # other weights, the same graph file
+    assert key() != before
+    data.unlink()
+    assert any("big.onnx.data does not exist" in p for p in missing_inputs(recipe))
+
+
 # ------------------------------------------------------------------ simulated
 
 

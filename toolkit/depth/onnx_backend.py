@@ -177,6 +177,45 @@ def model_file_problem(path: Path) -> str | None:
     return None
 
 
+# A model file this large keeps its weights inside (protobuf's 2 GB limit is why exports
+# move them out, leaving a graph of a few MB): not parsed for external data, which would
+# read the whole file on every run's cache check.
+EXTERNAL_DATA_SCAN_BYTES = 256 * 2**20
+
+
+def external_data_files(path: Path) -> list[Path]:
+    """The files beside the model ``path`` that hold its weights when it was saved with
+    external data (``model.onnx.data``: exports of networks over 2 GB, e.g. Depth Anything
+    V2 Giant), as its tensors name them, in order; [] for a self-contained model, or a file
+    that is none (the depth stage says what is wrong with it)."""
+    import onnx
+    from onnx.external_data_helper import uses_external_data
+
+    path = Path(path)
+    try:
+        if not path.is_file() or path.stat().st_size > EXTERNAL_DATA_SCAN_BYTES:
+            return []
+        model = onnx.load(str(path), load_external_data=False)
+    except Exception:  # noqa: BLE001 - not a model: model_problem reports it
+        return []
+    names: dict[str, None] = {}
+
+    def visit(graph: Any) -> None:
+        tensors = list(graph.initializer)
+        for node in graph.node:
+            for attr in node.attribute:
+                tensors += [attr.t] if attr.HasField("t") else []
+                tensors += list(attr.tensors)
+                for sub in ([attr.g] if attr.HasField("g") else []) + list(attr.graphs):
+                    visit(sub)
+        for t in tensors:
+            if uses_external_data(t):
+                names.update({e.value: None for e in t.external_data if e.key == "location"})
+
+    visit(model.graph)
+    return [path.parent / name for name in names]
+
+
 def missing_model_message(path: Path) -> str:
     return (
         f"ONNX depth model not found at {path}. This toolkit never downloads weights: put the "

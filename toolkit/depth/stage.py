@@ -11,6 +11,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from toolkit.depth.onnx_backend import (
     OnnxDepthBackend,
     OnnxDepthConfig,
+    external_data_files,
     model_problem,
     positive_input_size,
     resize_problem,
@@ -198,7 +199,11 @@ class DepthStage(Stage):
 
     def external_inputs(self) -> list[Path]:
         cfg: DepthConfig = self.config  # type: ignore[assignment]
-        return [Path(cfg.model)] if cfg.backend == "onnx" and cfg.model is not None else []
+        if cfg.backend != "onnx" or cfg.model is None:
+            return []
+        # With the weights in files of their own (external data), those are the network
+        # too: other weights copied over model.onnx.data must rerun the stage.
+        return [Path(cfg.model), *external_data_files(Path(cfg.model))]
 
     def input_problems(self) -> list[str]:
         # The model's inputs, outputs and metadata against the settings, as the backend
