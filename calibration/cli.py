@@ -535,6 +535,12 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("calibration.progress").setLevel(logging.INFO)
     try:
+        if getattr(args, "sequence", None):
+            # Before any of the sequence's files is read, so that a run or stage folder
+            # is answered with the sequence in it, not with "rig.yaml not found".
+            from toolkit.io.sequence import check_sequence_folder
+
+            check_sequence_folder(Path(args.sequence))
         return int(args.func(args))
     except USER_ERRORS as e:
         print(f"error: {e}", file=sys.stderr)

@@ -497,3 +497,18 @@ def test_bench_markdown_says_the_real_result_is_unreliable() -> None:
     text = markdown({"acfr": {"residual_rms_m": 0.0039, "views_used": 5, "weak_directions": [],
                               "reliable": False, "unreliable_because": [why]}})
     assert f"RESULT UNRELIABLE: {why}" in text
+
+
+@pytest.mark.parametrize("command", ["check", "time-offset", "extrinsic"])
+def test_a_run_folder_given_as_sequence_names_the_sequence_in_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str) -> None:
+    # The docs' paths are runs/NAME/simulate/sequence; "runs/NAME" is the usual slip.
+    inner = tmp_path / "run" / "simulate" / "sequence"
+    inner.mkdir(parents=True)
+    (inner / "rig.yaml").write_text("placeholder: the folder check reads no file\n")
+    extra = ["--board", "11x8", "--square", "0.02"] if command == "extrinsic" else []
+    code = main([command, "--sequence", str(tmp_path / "run"), "--out",
+                 str(tmp_path / "out"), *extra])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "not a sequence folder" in err and str(inner) in err

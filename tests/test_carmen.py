@@ -91,6 +91,22 @@ def test_scan_without_beams_is_a_line_error(tmp_path: Path):
         read_carmen(path)
 
 
+@pytest.mark.parametrize("reader", [read_carmen, read_g2o])
+def test_a_truncated_gzip_names_the_file_and_the_fix(tmp_path: Path, reader):
+    path = tmp_path / "cut.log.gz"
+    whole = gzip.compress((FLASER * 400).encode())
+    path.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(CarmenFormatError, match=r"cut.log.gz: .*cut short.*zcat"):
+        reader(path)
+
+
+def test_a_last_line_cut_short_says_the_file_looks_truncated(tmp_path: Path):
+    path = tmp_path / "cut.log"
+    path.write_text(FLASER + FLASER[:20])
+    with pytest.raises(CarmenFormatError, match=r"cut.log:2: .*no end of line.*truncated"):
+        read_carmen(path)
+
+
 def test_read_g2o_odometry_chain(tmp_path: Path):
     lines = [
         "VERTEX_SE2 0 5.0 5.0 1.0",  # corrected poses: must not leak into odometry

@@ -1465,3 +1465,21 @@ def test_validation_messages_point_at_the_fix(tmp_path: Path) -> None:
         "(id: '2024')",
         "stages[1] (simulate): id true is read by YAML as a boolean; an id is text: quote it "
         "(id: 'true')"]
+
+
+def test_cli_errors_about_a_stage_name_the_recipe_file(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # A stage's problem names its place (stages[1] (t_double)); on the command line it
+    # also names the file, as every other recipe error does.
+    from toolkit.recipe import cli
+
+    data = _recipe_data(tmp_path)
+    data["stages"][1]["factr"] = 3
+    path = _write_recipe(tmp_path, data)
+    assert cli.main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {path}: stages[1] (t_double): unknown key 'factr'" in err
+    # --set problems are the command line's, not the file's.
+    assert cli.main(["validate", str(_write_recipe(tmp_path, _recipe_data(tmp_path), "b.yaml")),
+                     "--set", "t_double.factor"]) == 2
+    assert capsys.readouterr().err.startswith("error: --set 't_double.factor'")

@@ -143,6 +143,15 @@ def test_missing_rig_is_named(tmp_path):
         read_sequence(tmp_path / "a")
 
 
+@pytest.mark.parametrize("given", ["run", "run/simulate"])
+def test_a_run_or_stage_folder_points_to_the_sequence_in_it(tmp_path, given):
+    # What a user passes after reading "runs/quickstart/...": the run or the stage folder.
+    write_small(tmp_path / "run" / "simulate" / "sequence")
+    with pytest.raises(SequenceFormatError,
+                       match=r"not a sequence folder.*give .*run/simulate/sequence"):
+        read_sequence(tmp_path / given)
+
+
 def test_rig_missing_field_is_named(tmp_path):
     write_small(tmp_path / "a")
     p = tmp_path / "a" / "rig.yaml"

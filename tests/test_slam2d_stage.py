@@ -319,3 +319,18 @@ def test_fuse_places_frames_between_scans_as_slam2d_did(
     with pytest.raises(StageError, match=rf"{STAGE_RECORD}: field 'use_odometry' must be "
                                          r"true or false \(got 'no'\); rerun slam2d"):
         FuseStage(FuseStage.Config(stage="fuse")).run(_FuseCtx(tmp_path / "broken", without))
+
+
+def test_the_report_calls_a_log_s_slam_made_reference_so_not_ground_truth() -> None:
+    """A CARMEN log's GMapping poses (meta.yaml: 'SLAM-corrected reference ... not
+    surveyed ground truth') were reported as 'position error vs ground truth'."""
+    from toolkit.slam2d.stage import _report
+
+    m = {"scans_used": 10, "nodes": 10, "submaps": 1, "loop_closures": 0,
+         "gt_ate_rmse_m": 0.08, "gt_ate_max_m": 0.3, "gt_ate_poses": 10}
+    said = "SLAM-corrected reference poses stored in the file (not surveyed ground truth)"
+    text = _report("slam2d", m, reference=said)
+    assert "vs ground truth" not in text
+    assert "| position error vs the reference poses (ATE, SE(2)-aligned) | RMSE 8.00 cm" in text
+    assert f"| reference poses | {said} |" in text
+    assert "| position error vs ground truth (ATE, SE(2)-aligned) |" in _report("slam2d", m)

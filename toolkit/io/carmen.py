@@ -22,6 +22,7 @@ import gzip
 import io
 import logging
 import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,7 +41,31 @@ class CarmenFormatError(ValueError):
 
 
 def _open_text(path: Path) -> Iterator[str]:
-    """Lines of a plain, gzip or zip (first .g2o/.log/.clf member) text file."""
+    """Lines of a plain, gzip or zip (first .g2o/.log/.clf member) text file.
+
+    A compressed file cut short (a download or copy that stopped) is a ``CarmenFormatError``
+    naming the file and how to keep its readable part, not a bare ``EOFError``.
+    """
+    try:
+        yield from _read_lines(path)
+    except (EOFError, gzip.BadGzipFile, zipfile.BadZipFile, zlib.error) as e:
+        raise CarmenFormatError(
+            f"{path}: the compressed file is cut short or corrupt ({e}); copy or download "
+            f"it again, or keep its readable part with 'zcat {path} > {path.stem}' (a zip: "
+            "'unzip -p') and give that file, deleting its last line if it was cut off"
+        ) from None
+
+
+def _bad_line(path: Path, lineno: int, line: str, kind: str, e: Exception) -> CarmenFormatError:
+    # A last line without its newline is what a cut-off copy leaves: say so, or the user
+    # hunts for a format problem in a file that is only incomplete.
+    cut = "" if line.endswith("\n") else (
+        "; the line has no end of line: the file looks truncated (copied or downloaded "
+        "only in part): copy it again, or delete this last line")
+    return CarmenFormatError(f"{path}:{lineno}: bad {kind} line: {e}{cut}")
+
+
+def _read_lines(path: Path) -> Iterator[str]:
     with open(path, "rb") as fh:
         magic = fh.read(4)
     if magic[:2] == b"\x1f\x8b":
@@ -197,7 +222,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
             elif f[0] == "PARAM" and len(f) >= 3:
                 params[f[1]] = f[2]
         except (ValueError, IndexError) as e:
-            raise CarmenFormatError(f"{path}:{lineno}: bad {f[0]} line: {e}") from None
+            raise _bad_line(path, lineno, line, f[0], e) from None
     T_base_laser = np.eye(4)
     if laser_offsets:
         T_base_laser = _median_offset(laser_offsets)
@@ -339,7 +364,7 @@ def read_g2o(path: Path | str) -> G2OLog:
                 slaser.append(laser)
                 offsets.append(_laser_offset(laser, robot))
         except (ValueError, IndexError) as e:
-            raise CarmenFormatError(f"{path}:{lineno}: bad {f[0]} line: {e}") from None
+            raise _bad_line(path, lineno, line, f[0], e) from None
     T_base_laser = _median_offset(offsets) if offsets else np.eye(4)
     return G2OLog(
         path=path,

@@ -400,11 +400,31 @@ def _check_overlap(spans: list[tuple[str, np.ndarray]], root: Path) -> None:
                     "the offset between the clocks to one of them)")
 
 
+def _sequences_below(root: Path) -> list[Path]:
+    """Sequence folders one or two levels down: a recipe run folder keeps its sequence in
+    ``<stage>/sequence``, and "runs/NAME" or "runs/NAME/simulate" is what users pass."""
+    found = [root / "sequence"] + sorted(root.glob("*/sequence"))
+    return [p for p in found if (p / "rig.yaml").is_file()]
+
+
+def check_sequence_folder(root: Path) -> None:
+    """Raise ``SequenceFormatError`` naming the sequence inside ``root`` when ``root`` is a
+    run or stage folder holding one rather than a sequence folder itself."""
+    if (root / "rig.yaml").exists():
+        return
+    inner = _sequences_below(root)
+    if inner:
+        raise SequenceFormatError(
+            f"{root}: not a sequence folder (no rig.yaml); give the sequence folder in it: "
+            f"{' or '.join(str(p) for p in inner)}")
+
+
 def read_sequence(root: Path | str) -> Sequence:
     """Load a sequence folder (images stay on disk until used)."""
     root = Path(root)
     if not root.is_dir():
         raise SequenceFormatError(f"{root}: sequence folder not found")
+    check_sequence_folder(root)
     meta: dict[str, Any] = {}
     meta_path = root / "meta.yaml"
     if meta_path.exists():

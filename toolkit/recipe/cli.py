@@ -80,7 +80,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0 if result.ok else 1
     except RecipeError as exc:
         for problem in exc.problems:
-            print(f"error: {problem}", file=sys.stderr)
+            # A stage's problem names its place in the recipe; say which recipe too.
+            where = f"{args.file}: " if problem.startswith("stages[") else ""
+            print(f"error: {where}{problem}", file=sys.stderr)
         return 2
     except OSError as exc:  # the run's own files (report, metrics) could not be written
         print(f"error: {exc}", file=sys.stderr)

@@ -541,7 +541,8 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
         key, sep, text = item.partition("=")
         key = key.strip()
         if not sep or not key:
-            raise RecipeError(f"--set {item!r}: expected KEY=VALUE, e.g. slam2d.window_m=0.5")
+            raise RecipeError(f"--set {item!r}: expected KEY=VALUE, e.g. "
+                              "slam2d.local.linear_window_m=0.5")
         try:
             value = read_yaml_value(text)
         except yaml.YAMLError as exc:

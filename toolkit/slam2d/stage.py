@@ -179,7 +179,8 @@ class Slam2DStage(Stage):
         atomic_write_json(out / "slam2d_config.json", cfg.slam_config().model_dump())
         atomic_write_json(out / STAGE_RECORD, {"use_odometry": cfg.use_odometry})
         ctx.add_metrics(metrics)
-        ctx.report(_report(ctx.stage_id, metrics))
+        said = seq.meta.get("groundtruth")
+        ctx.report(_report(ctx.stage_id, metrics, said if isinstance(said, str) else None))
         ctx.provide("trajectory", out)
 
 
@@ -197,8 +198,12 @@ def _aligned_ref(traj, gt) -> np.ndarray | None:  # noqa: ANN001 - Trajectory pa
     return gt.positions[:, :2] @ R.T + t
 
 
-def _report(stage_id: str, m: dict) -> str:
-    """The map and a table of the figures a reader looks for (all are in metrics.json)."""
+def _report(stage_id: str, m: dict, reference: str | None = None) -> str:
+    """The map and a table of the figures a reader looks for (all are in metrics.json).
+
+    ``reference``: what the sequence's ``meta.yaml`` says its ground-truth poses are, when
+    it says (a CARMEN log's are another SLAM's solution): the error is then against them.
+    """
     n_odom = m.get("scans_with_odometry")
     odom = ("no wheel odometry" if not m.get("odometry_used") else "with wheel odometry"
             if n_odom is None else f"{n_odom} of the input scans with wheel odometry")
@@ -220,9 +225,12 @@ def _report(stage_id: str, m: dict) -> str:
         rows.append(("speed", f"{m['realtime_factor']:.1f}x real time "
                               f"({m['wall_time_s']:.1f} s for {m['log_duration_s']:.1f} s of log)"))
     if m.get("gt_ate_rmse_m") is not None:
-        rows.append(("position error vs ground truth (ATE, SE(2)-aligned)",
+        against = "the reference poses" if reference else "ground truth"
+        rows.append((f"position error vs {against} (ATE, SE(2)-aligned)",
                      f"RMSE {100 * m['gt_ate_rmse_m']:.2f} cm, max "
                      f"{100 * m['gt_ate_max_m']:.2f} cm over {m['gt_ate_poses']} poses"))
+        if reference:
+            rows.append(("reference poses", reference))
     if "camera_poses" in m and (m["camera_poses"] or m.get("camera_frames_outside_scan_span")):
         gaps = m.get("camera_frames_in_scan_gaps", 0)
         rows.append(("camera poses", f"{m['camera_poses']} (camera frames outside the scans' "
