@@ -454,6 +454,28 @@ def test_environment_variables_in_values(tmp_path: Path, monkeypatch: pytest.Mon
         load_recipe(path)
 
 
+def test_a_missing_input_from_a_variables_default_names_the_variable(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recipe's ${NAME:-../shared/data}/x holds only from the folder it was written for:
+    run from another one with NAME unset, the missing input says to set NAME."""
+    from toolkit.recipe.runner import missing_inputs
+
+    recipe = tmp_path / "bench.yaml"
+    recipe.write_text("name: bench\nstages:\n  - stage: ingest\n    source: carmen\n"
+                      "    path: ${T_DATA:-../shared/data}/slam2d/log.gz\n")
+    monkeypatch.delenv("T_DATA", raising=False)
+    monkeypatch.chdir(tmp_path)
+    loaded = load_recipe(recipe)
+    assert loaded.env_defaults == (("T_DATA", "../shared/data"),)
+    (problem,) = missing_inputs(loaded)
+    assert "../shared/data/slam2d/log.gz does not exist" in problem
+    assert "set T_DATA" in problem
+    data = tmp_path / "data"
+    monkeypatch.setenv("T_DATA", str(data))  # set: no default taken, the plain message
+    (problem,) = missing_inputs(load_recipe(recipe))
+    assert "T_DATA" not in problem and f"{data}/slam2d/log.gz does not exist" in problem
+
+
 # --- caching, --set, --force, --only, --from ----------------------------------------------
 
 

@@ -750,8 +750,14 @@ def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> li
         absent = [p for p in paths if not Path(p).exists()]
         for path in absent:
             where = "" if Path(path).is_absolute() else f" (relative to {Path.cwd()})"
-            problems.append(f"{spec.label}: input {path} does not exist{where}; fix the "
-                            f"path, or run from the folder it is relative to")
+            fix = "fix the path, or run from the folder it is relative to"
+            # A path made from an unset variable's default: setting the variable is the fix.
+            for name, default in recipe.env_defaults:
+                if default and str(path).startswith(default.rstrip("/")):
+                    fix = (f"it comes from ${{{name}:-{default}}} with {name} unset: set "
+                           f"{name} to the folder (e.g. export {name}=/path/to/data), or run "
+                           "from the folder the default is relative to")
+            problems.append(f"{spec.label}: input {path} does not exist{where}; {fix}")
         if not absent:
             problems += [f"{spec.label}: {p}" for p in stage.input_problems()]
     return problems

@@ -71,6 +71,10 @@ class Recipe:
     stages: tuple[StageSpec, ...]
     description: str = ""
     source: Path | None = None
+    # ${NAME:-default} whose default the recipe took (NAME unset): name -> default, so that
+    # a missing input from one names the variable (a relative default such as
+    # ../shared/data holds only from the folder the recipe was written for).
+    env_defaults: tuple[tuple[str, str], ...] = ()
 
     def index_of(self, stage_id: str, option: str = "stage") -> int:
         """Position of stage ``stage_id``; a ``RecipeError`` with a suggestion otherwise."""
@@ -275,7 +279,8 @@ def _parse_recipe(data: Any, overrides: Sequence[str], source: str | Path | None
     # ~/ in --set values too (the shell leaves it in KEY=~/x); ${NAME} once, after --set,
     # which may replace a value naming a variable that is not set here.
     unset: list[str] = []
-    data = _unshared(data, environment=True, unset=unset)
+    defaults: dict[str, str] = {}
+    data = _unshared(data, environment=True, unset=unset, defaults=defaults)
     if unset:
         raise RecipeError([f"{where}: {line}" for line in unset])
 
@@ -329,6 +334,7 @@ def _parse_recipe(data: Any, overrides: Sequence[str], source: str | Path | None
         stages=tuple(specs),
         description=description,
         source=Path(source) if source is not None else None,
+        env_defaults=tuple(sorted(defaults.items())),
     )
 
 
@@ -578,11 +584,15 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
 _ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
 
 
-def _expand_env(text: str) -> str:
+def _expand_env(text: str, defaults: dict[str, str] | None = None) -> str:
+    """``text`` with its variables expanded; ``defaults`` collects the ``${NAME:-default}``
+    whose default was taken."""
     def value(m: re.Match[str]) -> str:
         name, default = m.group(1), m.group(2)
         got = os.environ.get(name)
         if default is not None:  # ${NAME:-default}: the default when unset or empty
+            if not got and defaults is not None:
+                defaults[name] = default
             return got or default
         if got is not None:
             return got
@@ -592,21 +602,23 @@ def _expand_env(text: str) -> str:
 
 
 def _unshared(value: Any, environment: bool = True, at: str = "",
-              unset: list[str] | None = None) -> Any:
+              unset: list[str] | None = None, defaults: dict[str, str] | None = None) -> Any:
     """A copy of YAML data with every mapping and list its own, environment variables in
     strings expanded (``${TOOLKIT_SHARED_DATA:-../shared/data}/killian.g2o``: data a
     recipe shares with other checkouts), and paths written from the home folder
     (``~/data/run.bag``) expanded: a string starting with ``~/`` is nothing else in a
     recipe (recorded topic names are absolute). A variable that is not set is a
-    RecipeError, or, given ``unset``, a line there naming its key path (``at``)."""
+    RecipeError, or, given ``unset``, a line there naming its key path (``at``);
+    ``defaults`` collects the variables whose default was taken."""
     if isinstance(value, dict):
-        return {k: _unshared(v, environment, f"{at}.{k}" if at else str(k), unset)
+        return {k: _unshared(v, environment, f"{at}.{k}" if at else str(k), unset, defaults)
                 for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_unshared(v, environment, f"{at}[{i}]", unset) for i, v in enumerate(value)]
+        return [_unshared(v, environment, f"{at}[{i}]", unset, defaults)
+                for i, v in enumerate(value)]
     if environment and isinstance(value, str) and "${" in value:
         try:
-            value = _expand_env(value)
+            value = _expand_env(value, defaults)
         except RecipeError as exc:
             if unset is None:
                 raise
