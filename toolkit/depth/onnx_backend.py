@@ -426,8 +426,11 @@ def _open_session(path: Path, opts: Any, providers: list[str]) -> Any:
     except (RuntimeError, ort.capi.onnxruntime_pybind11_state.Fail,
             ort.capi.onnxruntime_pybind11_state.InvalidProtobuf,
             ort.capi.onnxruntime_pybind11_state.InvalidGraph) as e:
-        raise ValueError(f"{path}: onnxruntime cannot load the model ({e}); re-export it "
-                         "(torch.onnx.export, opset 17 or newer)") from None
+        # A copy cut short reads as an invalid protobuf too: copying again is the cheaper fix.
+        raise ValueError(f"{path}: onnxruntime cannot load the model ({e}); if the file "
+                         f"({path.stat().st_size} bytes) was copied or downloaded, copy it "
+                         "again in full, else re-export it (torch.onnx.export, opset 17 or "
+                         "newer)") from None
 
 
 def read_signature(path: Path) -> tuple[list[Any], list[Any], dict[str, str]]:
