@@ -615,16 +615,24 @@ def test_yuv422_of_odd_width_is_refused():
 
 
 @pytest.mark.parametrize("case", ["yuv beside bgr8", "bayer16 beside rgb16",
-                                  "mono16 beside yuyv", "bayer16 and its png"])
+                                  "mono16 beside yuyv", "mono8 beside yuyv",
+                                  "bayer16 and its png", "depth's /compressed"])
 def test_colour_topic_choice_with_yuv_and_16_bit_streams(tmp_path, case, caplog):
     """8-bit colour (a driver's or image_proc's image_color) beats the YUV / 16-bit stream it
     was converted from, colour beats a 16-bit Bayer mosaic as it does an 8-bit one, and a
-    mono16 stream (an infrared camera) is passed over; a raw stream beats its /compressed."""
+    grey stream (mono8 or mono16: an infrared camera; a RealSense's infra1 is mono8) is
+    passed over; a raw stream beats its /compressed; a depth image through the colour codec
+    ('16UC1; png compressed ') is no colour candidate (it made the choice ambiguous)."""
     rgb = _smooth_red()
     raw_t = "/camera/color/image_raw"
 
     def stream(topic: str, enc: str, fmt: str = ""):
-        px = rgb[..., ::-1] if enc == "bgr8" else _driver_pixels(enc, rgb)[0]
+        if enc == "16UC1":  # depth in millimetres
+            px = np.full(rgb.shape[:2] + (1,), 1500, np.uint16)
+        elif enc == "mono8":
+            px = rgb[..., :1]
+        else:
+            px = rgb[..., ::-1] if enc == "bgr8" else _driver_pixels(enc, rgb)[0]
         if fmt:
             return (topic, COMP_T, lambda b, t: _compressed_png(b, t, px[..., 0], fmt))
         return (topic, IMAGE_T, lambda b, t: _raw_image(b, t, px, enc))
@@ -641,9 +649,15 @@ def test_colour_topic_choice_with_yuv_and_16_bit_streams(tmp_path, case, caplog)
         "mono16 beside yuyv": ([stream(raw_t, "yuyv"),
                                 stream("/camera/infra1/image_rect_raw", "mono16")], raw_t,
                                "mono16 topics (/camera/infra1/image_rect_raw) are passed over"),
+        "mono8 beside yuyv": ([stream(raw_t, "yuyv"),
+                               stream("/camera/infra1/image_rect_raw", "mono8")], raw_t,
+                              "grey topics (/camera/infra1/image_rect_raw) are passed over"),
         "bayer16 and its png": ([stream(raw_t, "bayer_rggb16"),
                                  stream(raw_t + "/compressed", "bayer_rggb16",
                                         "bayer_rggb16; png compressed ")], raw_t, ""),
+        "depth's /compressed": ([stream(raw_t, "yuyv"),
+                                 stream("/camera/depth/image_rect_raw/compressed", "16UC1",
+                                        "16UC1; png compressed ")], raw_t, ""),
     }[case]
     with caplog.at_level(logging.INFO, logger="toolkit"):
         images, meta = _images_read_back(tmp_path, streams, "choice")

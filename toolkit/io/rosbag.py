@@ -965,14 +965,17 @@ def _base_name(topic: str) -> str:
 
 # Image topics by encoding, in the order the colour topic is chosen from: 8-bit colour as it
 # is; YUV 4:2:2 and 16-bit colour, converted here (a camera's raw stream beside its own
-# 8-bit conversion); Bayer mosaics, demosaiced here; mono16, more often an infrared camera
-# (RealSense Y16) or depth labelled so than the colour camera; unknown (an error).
-_IMAGE_PILES = ("color", "converted", "bayer", "gray16", "other")
+# 8-bit conversion); Bayer mosaics, demosaiced here; grey (mono8, mono16), more often an
+# infrared camera (a RealSense's infra1 is mono8, its Y16 mono16) or depth labelled so
+# than the colour camera; unknown (an error).
+_IMAGE_PILES = ("color", "converted", "bayer", "gray8", "gray16", "other")
 _PASSED_OVER = {
     "converted": "YUV / 16-bit colour topics ({}) are passed over for the 8-bit colour ones; "
                  "name one with rosbag.topics.image to convert it here",
     "bayer": "Bayer mosaic topics ({}) are passed over for the colour ones; name one with "
              "rosbag.topics.image to demosaic it here",
+    "gray8": "grey topics ({}) are passed over for the colour ones (an infrared camera's); "
+             "name one with rosbag.topics.image to read it as grey",
     "gray16": "mono16 topics ({}) are passed over for the colour ones (an infrared camera's, "
               "or depth); name one with rosbag.topics.image to read it as grey",
     "other": "",
@@ -987,6 +990,8 @@ def _image_pile(enc: str) -> str:
         return "gray16"
     if enc in COLOR_ENCODINGS:
         spec = COLOR_ENCODINGS[enc]
+        if spec.channels == 1:
+            return "gray8"
         return "color" if spec.bits == 8 and spec.channels != 2 else "converted"
     return "depth" if enc in DEPTH_ENCODINGS else "other"
 
@@ -1015,8 +1020,14 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
         elif "compresseddepth" in str(msg.format).lower():
             piles["depth"].append(t)
         else:
-            # The payload of a format without a known encoding ('jpeg', 'png') is colour.
             kind = _image_pile(compressed_format(str(msg.format))[0])
+            if kind == "depth":
+                # A depth image through the colour codec ('16UC1; png compressed ', what
+                # `rosbag record -a` keeps of a depth camera's /compressed): no colour
+                # candidate (it made a bag with one colour camera ambiguous); depth is read
+                # from raw or compressedDepth topics.
+                continue
+            # The payload of a format without a known encoding ('jpeg', 'png') is colour.
             piles[kind if kind in _IMAGE_PILES[:-1] else "color"].append(t)
     depth = piles["depth"]
 
