@@ -464,12 +464,27 @@ def test_a_missing_input_from_a_variables_default_names_the_variable(
     recipe.write_text("name: bench\nstages:\n  - stage: ingest\n    source: carmen\n"
                       "    path: ${T_DATA:-../shared/data}/slam2d/log.gz\n")
     monkeypatch.delenv("T_DATA", raising=False)
+    monkeypatch.delenv("T_OTHER", raising=False)
     monkeypatch.chdir(tmp_path)
     loaded = load_recipe(recipe)
-    assert loaded.env_defaults == (("T_DATA", "../shared/data"),)
+    assert loaded.env_defaults == (("../shared/data/slam2d/log.gz", "T_DATA",
+                                    "../shared/data"),)
     (problem,) = missing_inputs(loaded)
     assert "../shared/data/slam2d/log.gz does not exist" in problem
     assert "set T_DATA" in problem
+    # The variable that made the path, not one whose default the path merely starts with
+    # (./data is data/ once a path; 'database' starts with 'data').
+    other = tmp_path / "bench2.yaml"
+    other.write_text("name: bench\nstages:\n  - stage: ingest\n    source: carmen\n"
+                     "    path: ${T_DATA:-./data}/log.gz\n"
+                     "  - stage: ingest\n    id: second\n    source: carmen\n"
+                     "    path: database/log.gz\n"
+                     "  - stage: ingest\n    id: third\n    source: carmen\n"
+                     "    path: ${T_OTHER:-data}/other.gz\n")
+    first, second, third = missing_inputs(load_recipe(other))
+    assert "set T_DATA" in first and "T_OTHER" not in first
+    assert "database/log.gz does not exist" in second and "unset" not in second
+    assert "set T_OTHER" in third and "T_DATA" not in third
     data = tmp_path / "data"
     monkeypatch.setenv("T_DATA", str(data))  # set: no default taken, the plain message
     (problem,) = missing_inputs(load_recipe(recipe))

@@ -69,6 +69,10 @@ def test_masked_ssim_scores_the_windows_on_valid_pixels() -> None:
     assert abs(ssim(filled, b, mask=mask) - ssim(a[crop], b[crop])) < 1e-12
     t = ssim(torch.tensor(filled), torch.tensor(b), mask=torch.tensor(mask))
     assert abs(float(t) - ssim(a[crop], b[crop])) < 1e-12
+    # Whatever lies outside the mask, even no number at all, does not count.
+    holed = filled.astype(np.float64)
+    holed[~mask] = np.nan
+    assert abs(ssim(holed, b, mask=mask) - ssim(a[crop], b[crop])) < 1e-12
     with pytest.raises(ValueError, match="no pixel"):
         ssim(a, b, mask=np.zeros(a.shape[:2], bool))
 

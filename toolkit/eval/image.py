@@ -150,5 +150,7 @@ def ssim(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
         n = keep.sum()
         if not bool(n):
             raise ValueError("the SSIM mask holds no pixel")
-    # A weighted sum, not s[keep]: no index kernels and no scatter in the backward pass.
-    return _out((s * keep[..., None]).sum() / (n * s.shape[2]), a)
+    # A select and a sum, not s[keep]: no index kernels and no scatter in the backward
+    # pass; torch.where, not s * keep, so a NaN in a window that does not count (outside
+    # the mask) stays out of the mean.
+    return _out(torch.where(keep[..., None], s, 0.0).sum() / (n * s.shape[2]), a)

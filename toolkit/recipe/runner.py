@@ -752,11 +752,13 @@ def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> li
             where = "" if Path(path).is_absolute() else f" (relative to {Path.cwd()})"
             fix = "fix the path, or run from the folder it is relative to"
             # A path made from an unset variable's default: setting the variable is the fix.
-            for name, default in recipe.env_defaults:
-                if default and str(path).startswith(default.rstrip("/")):
-                    fix = (f"it comes from ${{{name}:-{default}}} with {name} unset: set "
-                           f"{name} to the folder (e.g. export {name}=/path/to/data), or run "
-                           "from the folder the default is relative to")
+            made = [(name, default) for value, name, default in recipe.env_defaults
+                    if os.path.normpath(value) == os.path.normpath(path)]
+            if made:
+                names = " and ".join(dict.fromkeys(name for name, _ in made))
+                fix = (f"it comes from {', '.join(f'${{{n}:-{d}}}' for n, d in made)} with "
+                       f"{names} unset: set {names} (e.g. export {made[0][0]}=/path/to/it), "
+                       "or run from the folder the default is relative to")
             problems.append(f"{spec.label}: input {path} does not exist{where}; {fix}")
         if not absent:
             problems += [f"{spec.label}: {p}" for p in stage.input_problems()]

@@ -71,10 +71,10 @@ class Recipe:
     stages: tuple[StageSpec, ...]
     description: str = ""
     source: Path | None = None
-    # ${NAME:-default} whose default the recipe took (NAME unset): name -> default, so that
-    # a missing input from one names the variable (a relative default such as
-    # ../shared/data holds only from the folder the recipe was written for).
-    env_defaults: tuple[tuple[str, str], ...] = ()
+    # (value, NAME, default) for each ${NAME:-default} whose default made a value (NAME
+    # unset): a missing input that is such a value names the variable (a relative default
+    # such as ../shared/data holds only from the folder the recipe was written for).
+    env_defaults: tuple[tuple[str, str, str], ...] = ()
 
     def index_of(self, stage_id: str, option: str = "stage") -> int:
         """Position of stage ``stage_id``; a ``RecipeError`` with a suggestion otherwise."""
@@ -279,7 +279,7 @@ def _parse_recipe(data: Any, overrides: Sequence[str], source: str | Path | None
     # ~/ in --set values too (the shell leaves it in KEY=~/x); ${NAME} once, after --set,
     # which may replace a value naming a variable that is not set here.
     unset: list[str] = []
-    defaults: dict[str, str] = {}
+    defaults: list[tuple[str, str, str]] = []
     data = _unshared(data, environment=True, unset=unset, defaults=defaults)
     if unset:
         raise RecipeError([f"{where}: {line}" for line in unset])
@@ -334,7 +334,7 @@ def _parse_recipe(data: Any, overrides: Sequence[str], source: str | Path | None
         stages=tuple(specs),
         description=description,
         source=Path(source) if source is not None else None,
-        env_defaults=tuple(sorted(defaults.items())),
+        env_defaults=tuple(defaults),
     )
 
 
@@ -584,25 +584,31 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
 _ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
 
 
-def _expand_env(text: str, defaults: dict[str, str] | None = None) -> str:
-    """``text`` with its variables expanded; ``defaults`` collects the ``${NAME:-default}``
-    whose default was taken."""
+def _expand_env(text: str, defaults: list[tuple[str, str, str]] | None = None) -> str:
+    """``text`` with its variables expanded; ``defaults`` collects (expanded text, NAME,
+    default) for each ``${NAME:-default}`` whose default was taken."""
+    taken: list[tuple[str, str]] = []
+
     def value(m: re.Match[str]) -> str:
         name, default = m.group(1), m.group(2)
         got = os.environ.get(name)
         if default is not None:  # ${NAME:-default}: the default when unset or empty
-            if not got and defaults is not None:
-                defaults[name] = default
+            if not got:
+                taken.append((name, default))
             return got or default
         if got is not None:
             return got
         raise RecipeError(f"{text!r}: environment variable {name} is not set; set it, or "
                           f"give a default: ${{{name}:-...}}")
-    return _ENV_RE.sub(value, text)
+    out = _ENV_RE.sub(value, text)
+    if defaults is not None:
+        defaults += [(out, name, default) for name, default in taken]
+    return out
 
 
 def _unshared(value: Any, environment: bool = True, at: str = "",
-              unset: list[str] | None = None, defaults: dict[str, str] | None = None) -> Any:
+              unset: list[str] | None = None,
+              defaults: list[tuple[str, str, str]] | None = None) -> Any:
     """A copy of YAML data with every mapping and list its own, environment variables in
     strings expanded (``${TOOLKIT_SHARED_DATA:-../shared/data}/killian.g2o``: data a
     recipe shares with other checkouts), and paths written from the home folder
