@@ -454,6 +454,16 @@ def test_environment_variables_in_values(tmp_path: Path, monkeypatch: pytest.Mon
         load_recipe(path)
 
 
+def test_a_yaml_syntax_error_names_the_file_and_line(tmp_path: Path) -> None:
+    """PyYAML's mark said 'in "<unicode string>", line 5' after the file's name."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nstages:\n  - stage: simulate\n    seed: [1,\n")
+    with pytest.raises(RecipeError) as info:
+        load_recipe(bad)
+    text = str(info.value)
+    assert f'in "{bad}", line 5' in text and "<unicode string>" not in text
+
+
 def test_a_missing_input_from_a_variables_default_names_the_variable(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A recipe's ${NAME:-../shared/data}/x holds only from the folder it was written for:

@@ -7,6 +7,7 @@ in the last stage of a long recipe fails in a second instead of after an hour of
 from __future__ import annotations
 
 import difflib
+import io
 import json
 import os
 import re
@@ -245,8 +246,12 @@ def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
     except UnicodeDecodeError as exc:
         raise RecipeError(f"{path}: not UTF-8 text (byte {exc.start}); save the recipe as "
                           f"UTF-8") from None
+    # A named stream: PyYAML's marks then say 'in "recipes/x.yaml", line 5', not
+    # 'in "<unicode string>"'.
+    stream = io.StringIO(text)
+    stream.name = str(path)
     try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
+        data = yaml.load(stream, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
         raise RecipeError(f"{path}: not valid YAML: {exc}") from None
     return parse_recipe(data, overrides, source=path)
