@@ -110,8 +110,8 @@ def ssim_map(a: Array, b: Array, data_range: float = 1.0, window: int = 11,
     g = _gauss_window(window, sigma, ta.dtype, ta.device)
     x, y = ta.permute(2, 0, 1), tb.permute(2, 0, 1)  # [C, H, W]
     # The five local moments blurred together, a column pass then a row pass (depthwise
-    # convolutions): 2 convolutions instead of 10, 2 backward instead of 6 (fewer GPU
-    # launches; on a CPU 18-29 % less time for the SSIM's forward and backward).
+    # convolutions): 2 convolutions instead of 10, 2 backward instead of 6 (a masked SSIM's
+    # forward and backward on one CPU thread: 160x120 9.3 -> 6.3 ms, 640x480 116 -> 96 ms).
     z = torch.cat([x, y, x * x, y * y, x * y])[None]  # [1, 5C, H, W]
     kv = g.reshape(1, 1, window, 1).expand(5 * C, 1, window, 1)
     kh = g.reshape(1, 1, 1, window).expand(5 * C, 1, 1, window)

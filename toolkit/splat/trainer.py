@@ -410,8 +410,8 @@ class Trainer:
         if cfg.depth_weight > 0 and view.depth is not None:
             target = view.depth.to(out.depth.device)
             valid = target > 0
-            # A weighted mean, not a boolean index: no host sync and no scatter in the
-            # backward pass (a view without depth adds 0).
+            # The mean over the valid pixels by a select and a sum, not a boolean index: no
+            # host sync and no scatter in the backward pass (a view without depth adds 0).
             err = torch.where(valid, (out.depth - target).abs(), 0.0)  # [H, W]
             depth_l1 = err.sum() / valid.sum().clamp(min=1)
             loss = loss + cfg.depth_weight * depth_l1
