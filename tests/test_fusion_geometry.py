@@ -775,3 +775,40 @@ def test_a_static_glass_pane_is_not_a_moving_obstacle() -> None:
     # Asked to (open spaces beyond the scanner's reach), the pane goes as before.
     flags = dynamic_beams(scans, np.stack(poses), no_return_is_free=True)
     assert sum(int(f[pane].sum()) for f in flags) > 1000
+
+
+def test_carving_counts_the_views_after_each_voxels_last_frame_apart() -> None:
+    """With ``last_frame`` / ``last_stamp``, the counts of the views taken after each
+    voxel's last fused frame (depth views of later frames, scans stamped later) are those
+    of the whole-drive counts restricted to those views; ``after_last`` removes the voxels
+    those alone see through, the majority rule's verdicts staying as they were."""
+    from toolkit.fusion.dynamic import CarveOptions, SeeThroughCounter
+
+    rng = np.random.default_rng(5)
+    pts = np.c_[rng.uniform(-5, 5, (20_000, 2)), rng.uniform(0.1, 0.3, 20_000)]
+    last = rng.integers(0, 4, len(pts))
+    stamp = last * 1.0 + 0.05
+    counters = [SeeThroughCounter(pts, CarveOptions(min_free=1, after_last=a), last_frame=last,
+                                  last_stamp=stamp) for a in (False, True)]
+    per_scan = []
+    for k in range(4):
+        ranges = rng.uniform(1.0, 6.0, 360).astype(np.float32)
+        scan = LaserScan(k + 0.5, ranges, -np.pi, 2 * np.pi / 360, 0.05, 8.0)
+        T_world_laser = se2_to_se3(rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-3, 3))
+        T_world_laser[2, 3] = 0.2
+        one = SeeThroughCounter(pts)
+        for c in (*counters, one):
+            c.add_scan(scan, inv_se3(T_world_laser))
+        per_scan.append((one.lidar_free.copy(), one.lidar_hit.copy(), stamp < k + 0.5))
+    for c in counters:
+        np.testing.assert_array_equal(c.late["lidar_free"],
+                                      sum(f * late for f, _, late in per_scan))
+        np.testing.assert_array_equal(c.late["lidar_hit"],
+                                      sum(h * late for _, h, late in per_scan))
+        assert c.late["lidar_free"].sum() > 100
+    majority, either = (c.dynamic_mask() for c in counters)
+    lt = counters[1].late
+    free = lt["lidar_free"] * (counters[1].lidar_hit > 0)
+    late_rule = (free >= 1) & (free >= 0.5 * np.maximum(free + lt["lidar_hit"], 1))
+    np.testing.assert_array_equal(either, majority | late_rule)
+    assert (either & ~majority).any()

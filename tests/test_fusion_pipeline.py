@@ -770,3 +770,35 @@ def test_frames_between_scan_poses_follow_the_odometry() -> None:
     assert np.allclose(sp, traj.poses, atol=1e-12)
     fp_line, _, _ = pose_arrays(seq, traj, use_odometry=False)  # type: ignore[arg-type]
     assert yaw_err_deg(fp_line) > 1.0
+
+
+def test_a_box_that_stood_still_and_left_goes_with_carve_after_last(tmp_path: Path) -> None:
+    """A box stands in view for 70 % of the drive, then is gone: the whole-drive majority
+    keeps it (most views of its place saw it there); ``carve_after_last`` also counts the
+    views after each cell was last fused, which all see through it, and removes it (all but
+    the feet-on-floor rim no view sees through by the margin), the static room staying."""
+    seq = read_sequence(write_box_room(tmp_path / "seq", n_frames=30, moving_box=False,
+                                       standing_box=True))
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+
+    def build(**kw: object) -> tuple:
+        cfg = FusionConfig(scale="none", lidar_dynamic=False, carve_every=1,
+                           carve_scans_every=1, **kw)
+        fu = Fusion(seq, cfg, fp, sp)
+        for i in range(len(seq.frames)):
+            d = gt.depth(i)
+            fu.integrate(i, np.where(d > 0, d, np.nan), seq.frames[i].image,
+                         labels=gt.mask(i))
+        return fu.finish()
+
+    raw, masks = build()  # the majority rule alone: the box stays
+    box = raw.label > 0.5
+    assert box.sum() > 1000
+    assert masks["dynamic"][box].mean() < 0.05
+    raw, masks = build(carve_after_last=True)
+    box = raw.label > 0.5
+    above_rim = box & (raw.points[:, 2] > 0.2)
+    assert masks["dynamic"][above_rim].mean() > 0.98
+    assert masks["dynamic"][box].mean() > 0.85
+    assert masks["dynamic"][~box].mean() < 0.01  # static points stay

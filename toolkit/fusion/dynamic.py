@@ -6,7 +6,9 @@ voxel, the views that see through it and the views that see it where it is; voxe
 through often enough are removed: by at least ``min_free`` views and ``free_ratio`` of
 those that test it, counted over the whole drive. It is a majority rule, so an object
 present for most of the time its place was seen (a person standing still, then walking
-off; a door opened late) stays. A static voxel occluded by a person is not affected:
+off; a door opened late) stays, unless ``after_last``: then a voxel also goes when the same
+test passes on the views taken after it was last fused alone (depth views of later frames,
+scans stamped later than that frame). A static voxel occluded by a person is not affected:
 the ray stops *in front* of it, which is occlusion, not free space. The lidar clears only
 what some scan has hit: its beams pass over a chest top or under a table top near the scan
 plane without ever seeing them.
@@ -35,6 +37,9 @@ class CarveOptions:
     lidar_plane_tol_m: float = 0.05  # voxel distance from the scan plane to be tested
     min_free: int = 3  # views that must see through a voxel before it goes
     free_ratio: float = 0.5  # ... and this fraction of the views that tested it
+    # Also remove a voxel that passes the same test on the views taken after it was last
+    # fused alone (``SeeThroughCounter``'s ``last_frame`` / ``last_stamp``).
+    after_last: bool = False
 
 
 def beam_of(bearing: np.ndarray, angle_min: np.ndarray | float,
@@ -52,9 +57,20 @@ class SeeThroughCounter:
     """Per-voxel counts of see-through (free) and consistent (hit) views."""
 
     def __init__(self, points: np.ndarray, options: CarveOptions | None = None,
-                 block_m: float = 1.0) -> None:
+                 block_m: float = 1.0, last_frame: np.ndarray | None = None,
+                 last_stamp: np.ndarray | None = None) -> None:
+        """``last_frame`` / ``last_stamp`` [V]: the frame index and stamp each voxel was last
+        fused at; with both given, the views after them are also counted apart (``late``)."""
         self.points = np.asarray(points, dtype=np.float64)  # [V, 3] world
         self.opts = options or CarveOptions()
+        self.last_frame = self.last_stamp = None
+        self.late: dict[str, np.ndarray] = {}
+        if last_frame is not None and last_stamp is not None:
+            self.last_frame = np.asarray(last_frame, np.int64)  # [V]
+            self.last_stamp = np.asarray(last_stamp, np.float64)  # [V]
+            # The same four counts over the views taken after each voxel was last fused.
+            self.late = {k: np.zeros(len(self.points), np.int32) for k in
+                         ("depth_free", "depth_hit", "lidar_free", "lidar_hit")}
         # Depth and lidar views counted apart: the lidar's see-through only counts for
         # cells some scan has hit (see ``free``).
         self.depth_free = np.zeros(len(self.points), np.int32)  # [V]
@@ -99,9 +115,11 @@ class SeeThroughCounter:
         return self._order[first + np.arange(n.sum())]
 
     def add_depth_view(self, camera: PinholeCamera, T_camera_world: np.ndarray,
-                       depth: np.ndarray, stride: int = 1, max_depth: float = 8.0) -> None:
+                       depth: np.ndarray, stride: int = 1, max_depth: float = 8.0,
+                       index: int | None = None) -> None:
         """One depth image (metres, NaN/0 invalid) seen from ``T_camera_world``; ``depth``
-        may be the full image subsampled by ``stride``."""
+        may be the full image subsampled by ``stride``. ``index``: its frame, for the
+        counts after each voxel's last frame."""
         R = T_camera_world[:3, :3].astype(np.float32)
         t = T_camera_world[:3, 3].astype(np.float32)
         if self._fov_cache is None or self._fov_cache[0] != camera:
@@ -137,8 +155,12 @@ class SeeThroughCounter:
         ok = np.isfinite(d) & (d > 0)
         front, z, d = front[ok], z[ok], d[ok]
         margin = self.opts.depth_margin_m + self.opts.depth_margin_rel * d
-        self.depth_free[front[z < d - margin]] += 1
-        self.depth_hit[front[np.abs(z - d) <= margin]] += 1
+        free, hit = front[z < d - margin], front[np.abs(z - d) <= margin]
+        self.depth_free[free] += 1
+        self.depth_hit[hit] += 1
+        if self.last_frame is not None and index is not None:
+            self.late["depth_free"][free[self.last_frame[free] < index]] += 1
+            self.late["depth_hit"][hit[self.last_frame[hit] < index]] += 1
 
     @property
     def free(self) -> np.ndarray:
@@ -208,6 +230,9 @@ class SeeThroughCounter:
         ranges = np.where(valid_beam, scan.ranges, np.nan)  # [B]
         hit = valid_beam[beam] & (np.abs(r - ranges[beam]) <= o.lidar_margin_m)
         self.lidar_hit[near[hit]] += 1
+        if self.last_stamp is not None:
+            h = near[hit]
+            self.late["lidar_hit"][h[self.last_stamp[h] < scan.stamp]] += 1
         # Seen through: the beam and both its neighbours reach past the voxel (as in
         # dynamic_beams). The nearest beam alone carved a wall seen at a grazing angle,
         # where the neighbours' ranges differ by decimetres, and slipped past cells
@@ -219,6 +244,9 @@ class SeeThroughCounter:
             with np.errstate(invalid="ignore"):
                 free &= inside & (r < ranges[np.clip(bb, 0, n - 1)] - o.lidar_margin_m)
         self.lidar_free[near[free]] += 1
+        if self.last_stamp is not None:
+            f = near[free]
+            self.late["lidar_free"][f[self.last_stamp[f] < scan.stamp]] += 1
 
     def _near_plane(self, T_laser_world: np.ndarray) -> _Blocks:
         """Voxels within the plane tolerance of a scan plane, by block, cached while the
@@ -235,12 +263,20 @@ class SeeThroughCounter:
         self._plane_cache = (n.copy(), float(d), near)
         return near
 
-    def dynamic_mask(self) -> np.ndarray:
-        """[V] bool: voxels to remove."""
-        free = self.free
-        tested = free + self.hit
+    def _passes(self, free: np.ndarray, hit: np.ndarray) -> np.ndarray:
         return (free >= self.opts.min_free) & (
-            free >= self.opts.free_ratio * np.maximum(tested, 1))
+            free >= self.opts.free_ratio * np.maximum(free + hit, 1))
+
+    def dynamic_mask(self) -> np.ndarray:
+        """[V] bool: voxels to remove: the majority over the whole drive, or with
+        ``after_last`` (and the last frames given) over the views after the last frame."""
+        out = self._passes(self.free, self.hit)
+        if self.opts.after_last and self.late:
+            lt = self.late
+            # As in ``free``: the lidar clears only cells some scan has hit (at any time).
+            free = lt["depth_free"] + np.where(self.lidar_hit > 0, lt["lidar_free"], 0)
+            out |= self._passes(free, lt["depth_hit"] + lt["lidar_hit"])
+        return out
 
 
 class _Blocks:

@@ -204,6 +204,10 @@ class FusionConfig(BaseModel):
     lidar_plane_tol_m: float = 0.05
     min_free: int = 3
     free_ratio: float = 0.5
+    # Also carve a cell that min_free / free_ratio hold for over the views after it was last
+    # fused alone (depth views of later frames, later scans): a person who stood still for
+    # most of the drive and then walked off (see docs/depth_fusion.md).
+    carve_after_last: bool = False
     grow_radius_m: float = 0.0  # > 0: also remove touching short-lived voxels (see dynamic)
     grow_slack_frames: int = 2
     grow_iterations: int = 6
@@ -248,7 +252,8 @@ class FusionConfig(BaseModel):
 
     def carve_options(self) -> CarveOptions:
         return CarveOptions(self.depth_margin_m, self.depth_margin_rel, self.lidar_margin_m,
-                            self.lidar_plane_tol_m, self.min_free, self.free_ratio)
+                            self.lidar_plane_tol_m, self.min_free, self.free_ratio,
+                            self.carve_after_last)
 
 
 class CarveViews:
@@ -843,12 +848,19 @@ class Fusion:
             n_cells = int(inv.max()) + 1
             cells = np.stack([np.bincount(inv, raw.points[:, k], n_cells) for k in range(3)], 1)
             cells /= np.bincount(inv, minlength=n_cells)[:, None]
-            counter = SeeThroughCounter(cells, c.carve_options())
+            last = None
+            if c.carve_after_last:
+                # Each cell's last fused frame: the latest of its voxels'.
+                last = np.zeros(n_cells, np.int64)
+                np.maximum.at(last, inv, raw.last.astype(np.int64))
+            counter = SeeThroughCounter(
+                cells, c.carve_options(), last_frame=last,
+                last_stamp=None if last is None else np.asarray(self.seq.frame_stamps)[last])
             if c.carve_with_depth:
                 for index, view in self.views:
                     counter.add_depth_view(self.camera, inv_se3(self.T_world_camera(index)),
                                            view.astype(np.float32), self.rays.stride,
-                                           c.max_depth_m + 1.0)
+                                           c.max_depth_m + 1.0, index)
             if c.carve_with_lidar and len(self.seq.scans):
                 T_bl = self.seq.rig.T_base_laser
                 for k in range(0, len(self.seq.scans), c.carve_scans_every):

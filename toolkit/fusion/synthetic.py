@@ -1,4 +1,5 @@
-"""A tiny raycast box room (with an optional walking "person" box) for tests and benchmarks.
+"""A tiny raycast box room (with an optional walking "person" box, and an optional one that
+stands still and then leaves) for tests and benchmarks.
 
 It writes a regular sequence folder with ground truth (depth, dynamic masks, poses, mesh,
 dynamic lidar beams) so fusion can be checked against known answers without the full
@@ -15,6 +16,8 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory, se2_to_se3, se3
 from toolkit.sensors import LaserScan, Rig
 
+# Where the standing box stands (x, y): in view from the drive's first frames to its last.
+STANDING_BOX_XY = (2.2, 0.6)
 # base_link (x forward, y left, z up) -> camera optical (x right, y down, z forward)
 R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -61,8 +64,11 @@ def _colour(points: np.ndarray, part: np.ndarray, seed: int) -> np.ndarray:
 
 def write_box_room(root: Path | str, n_frames: int = 30, width: int = 160, height: int = 120,
                    hfov_deg: float = 70.0, moving_box: bool = True, frame_rate: float = 5.0,
-                   scan_rate: float = 10.0, seed: int = 0, depth_format: str = "npy") -> Path:
-    """Render the box room to a sequence folder at ``root`` and return it."""
+                   scan_rate: float = 10.0, seed: int = 0, depth_format: str = "npy",
+                   standing_box: bool = False, stand_until: float = 0.7) -> Path:
+    """Render the box room to a sequence folder at ``root`` and return it. ``standing_box``:
+    a second "person" box stands still, in view, for the first ``stand_until`` of the
+    drive and then is gone (seen there by most of the views of its place)."""
     import open3d as o3d
 
     from toolkit.io.sequence import SequenceWriter
@@ -88,6 +94,7 @@ def write_box_room(root: Path | str, n_frames: int = 30, width: int = 160, heigh
         return np.array([0.8, 1.5 - 3.0 * s, 0.8])
 
     person_size = np.array([0.4, 0.4, 1.6])
+    stand_center = np.array(STANDING_BOX_XY + (0.8,))
     static = room_meshes()
     static_mesh = o3d.geometry.TriangleMesh()
     part_of_tri = []
@@ -99,11 +106,14 @@ def write_box_room(root: Path | str, n_frames: int = 30, width: int = 160, heigh
     def scene_at(t: float) -> tuple[o3d.t.geometry.RaycastingScene, int]:
         sc = o3d.t.geometry.RaycastingScene()
         sc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(static_mesh))
-        dyn_id = -1
+        dyn_ids: list[int] = []
         if moving_box:
-            dyn_id = sc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
-                _box_mesh(person_center(t), person_size)))
-        return sc, dyn_id
+            dyn_ids.append(sc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
+                _box_mesh(person_center(t), person_size))))
+        if standing_box and t < stand_until * duration:
+            dyn_ids.append(sc.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(
+                _box_mesh(stand_center, person_size))))
+        return sc, np.array(dyn_ids, np.int64)
 
     writer = SequenceWriter(root, rig, name="box_room", source="toolkit.fusion.synthetic",
                             depth_format=depth_format)
@@ -112,7 +122,7 @@ def write_box_room(root: Path | str, n_frames: int = 30, width: int = 160, heigh
     scan_t = np.arange(int(duration * scan_rate) + 1) / scan_rate
     for t in frame_t:
         T_wc = base_pose([t])[0] @ T_base_camera
-        sc, dyn_id = scene_at(float(t))
+        sc, dyn_ids = scene_at(float(t))
         d = rays_cam @ T_wc[:3, :3].T
         o = np.broadcast_to(T_wc[:3, 3], d.shape)
         ans = sc.cast_rays(o3d.core.Tensor(np.concatenate([o, d], 1).astype(np.float32)))
@@ -121,23 +131,24 @@ def write_box_room(root: Path | str, n_frames: int = 30, width: int = 160, heigh
         pid = ans["primitive_ids"].numpy().astype(np.int64)
         hit = np.isfinite(th)
         pts = o + d * np.where(hit, th, 0)[:, None]
-        part = np.where(gid == dyn_id, 15, part_of_tri[np.clip(pid, 0, len(part_of_tri) - 1)])
+        is_dyn = np.isin(gid, dyn_ids)
+        part = np.where(is_dyn, 15, part_of_tri[np.clip(pid, 0, len(part_of_tri) - 1)])
         img = _colour(pts, part, seed).reshape(height, width, 3)
         depth = np.where(hit, th, 0).reshape(height, width).astype(np.float32)
-        mask = (gid == dyn_id).reshape(height, width) & hit.reshape(height, width)
+        mask = is_dyn.reshape(height, width) & hit.reshape(height, width)
         writer.add_frame(float(t), img, depth, mask)
     n_beams = 360
     angles = -np.pi + np.arange(n_beams) * (2 * np.pi / n_beams)
     for t in scan_t:
         T_wl = base_pose([t])[0] @ T_base_laser
-        sc, dyn_id = scene_at(float(t))
+        sc, dyn_ids = scene_at(float(t))
         d = np.stack([np.cos(angles), np.sin(angles), np.zeros(n_beams)], 1) @ T_wl[:3, :3].T
         o = np.broadcast_to(T_wl[:3, 3], d.shape)
         ans = sc.cast_rays(o3d.core.Tensor(np.concatenate([o, d], 1).astype(np.float32)))
         r = ans["t_hit"].numpy().astype(np.float32)
         r[~np.isfinite(r)] = np.nan
         writer.add_scan(LaserScan(float(t), r, -np.pi, 2 * np.pi / n_beams, 0.05, 12.0),
-                        dynamic=ans["geometry_ids"].numpy() == dyn_id)
+                        dynamic=np.isin(ans["geometry_ids"].numpy(), dyn_ids))
     stamps = np.unique(np.concatenate([frame_t, scan_t]))
     writer.groundtruth_poses = Trajectory(stamps, base_pose(stamps), "world", "base_link")
     o3d.io.write_triangle_mesh(str(writer.mesh_path()), static_mesh)
