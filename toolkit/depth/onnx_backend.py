@@ -11,6 +11,7 @@ Weights are never downloaded: a missing file is an error that says where to put 
 
 from __future__ import annotations
 
+import functools
 import logging
 import re
 import time
@@ -188,16 +189,30 @@ def external_data_files(path: Path) -> list[Path]:
     external data (``model.onnx.data``: exports of networks over 2 GB, e.g. Depth Anything
     V2 Giant), as its tensors name them, in order; [] for a self-contained model, or a file
     that is none (the depth stage says what is wrong with it)."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except OSError:
+        return []
+    if not path.is_file() or st.st_size > EXTERNAL_DATA_SCAN_BYTES:
+        return []
+    # The cache keys, the pre-run check and the stage each ask: the graph is parsed once
+    # per version of the file.
+    return [path.parent / name for name in
+            _external_data_names(str(path), st.st_size, st.st_mtime_ns)]
+
+
+@functools.lru_cache(maxsize=16)
+def _external_data_names(path: str, _size: int, _mtime_ns: int) -> tuple[str, ...]:
+    """The external data locations the model at ``path`` names (size and mtime: the cache
+    key of the file's version)."""
     import onnx
     from onnx.external_data_helper import uses_external_data
 
-    path = Path(path)
     try:
-        if not path.is_file() or path.stat().st_size > EXTERNAL_DATA_SCAN_BYTES:
-            return []
-        model = onnx.load(str(path), load_external_data=False)
+        model = onnx.load(path, load_external_data=False)
     except Exception:  # noqa: BLE001 - not a model: model_problem reports it
-        return []
+        return ()
     names: dict[str, None] = {}
 
     def visit(graph: Any) -> None:
@@ -213,7 +228,7 @@ def external_data_files(path: Path) -> list[Path]:
                 names.update({e.value: None for e in t.external_data if e.key == "location"})
 
     visit(model.graph)
-    return [path.parent / name for name in names]
+    return tuple(names)
 
 
 def missing_model_message(path: Path) -> str:

@@ -28,13 +28,17 @@ from toolkit.camera import PinholeCamera
 from toolkit.geometry import inv_se3
 from toolkit.io.voxel_grid import GridCheckpoint
 
+# The band each view writes around the surface it sees, in voxels (FusionConfig's
+# consensus_trunc_voxels; why 4: there).
+TRUNC_VOXELS = 4.0
+
 
 class ConsensusSurface:
     """The consensus of the fused frames: one ``DirectionVolume`` per heading bin of the
     camera (the module docstring)."""
 
     def __init__(self, camera: PinholeCamera, voxel_size_m: float = 0.04,
-                 trunc_voxels: float = 4.0, depth_max_m: float = 6.0,
+                 trunc_voxels: float = TRUNC_VOXELS, depth_max_m: float = 6.0,
                  downsample: int = 2, direction_bins: int = 4) -> None:
         if int(direction_bins) < 1:
             raise ValueError(f"consensus direction_bins must be at least 1, got "
@@ -103,7 +107,7 @@ class DirectionVolume(GridCheckpoint):
     heading."""
 
     def __init__(self, camera: PinholeCamera, voxel_size_m: float = 0.04,
-                 trunc_voxels: float = 4.0, depth_max_m: float = 6.0,
+                 trunc_voxels: float = TRUNC_VOXELS, depth_max_m: float = 6.0,
                  downsample: int = 2) -> None:
         import open3d as o3d
         import open3d.core as o3c

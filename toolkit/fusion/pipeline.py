@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from toolkit.camera import PinholeCamera
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, valid_pixels
-from toolkit.fusion.consensus import ConsensusSurface
+from toolkit.fusion.consensus import TRUNC_VOXELS, ConsensusSurface
 from toolkit.fusion.dynamic import (
     CarveOptions,
     SeeThroughCounter,
@@ -172,7 +172,7 @@ class FusionConfig(BaseModel):
     # keeps more of the surfaces just behind a nearer one (benchmark F@5cm, 3 / 4 / 5 / 6
     # voxels: simulated row 0.911 / 0.915 / 0.914 / 0.911, network 0.849 / 0.853 / 0.851 /
     # 0.848; a thinner band stops averaging the shell: precision fell at 3).
-    consensus_trunc_voxels: float = Field(4.0, gt=0)
+    consensus_trunc_voxels: float = Field(TRUNC_VOXELS, gt=0)
     consensus_downsample: int = Field(2, ge=1)
     consensus_every: int = Field(1, ge=1)
     # One consensus volume per bin of the camera's heading: views of a surface's other

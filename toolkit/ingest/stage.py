@@ -87,8 +87,9 @@ class IngestStage(Stage):
     #    a CameraInfo roi gives the window's intrinsics; scans of the common beam count
     #    keep their own bearings (they were resampled onto the first one's)
     # 6: YUV 4:2:2 and 16-bit images are read (they were refused); without an 8-bit colour
-    #    topic a YUV / 16-bit colour one beats a Bayer mosaic, and a mosaic a mono16 one (an
-    #    8-bit mosaic beside a raw YUV / 16-bit stream won; a mono16 jpeg beside one won)
+    #    topic a YUV / 16-bit colour one beats a Bayer mosaic, and a mosaic a grey (mono8,
+    #    mono16) one (an 8-bit mosaic beside a raw YUV / 16-bit stream won; a mono8 topic
+    #    beside either won); a depth topic's /compressed is no colour candidate
     version = 6
 
     config: IngestConfig
