@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -270,3 +271,40 @@ def test_a_frame_without_valid_depth_is_skipped_and_counted(room_frames: tuple) 
     resumed = TSDFVolume()
     resumed.restore(vol.state())
     assert resumed.skipped == 2 and resumed.frames == 1
+
+
+def _box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> Any:
+    """An axis-aligned box mesh from corner ``lo`` to corner ``hi``."""
+    b = o3d.geometry.TriangleMesh.create_box(*(np.subtract(hi, lo)))
+    return b.translate(np.asarray(lo, dtype=np.float64))
+
+
+def test_reference_holds_surface_that_only_frames_between_spread_views_saw() -> None:
+    """A wall at y = 1 m with a 2 cm slit at x = 0.09-0.11 m, a back wall at y = 2 m, and a
+    camera sliding 4 cm per frame along x from 0 to 0.24 m, looking along +y. Through the
+    slit each frame sees its own strip of the back wall: from x_c the strip
+    0.18 - x_c .. 0.22 - x_c, so 0.06-0.10 m from the frame at x = 0.12 m alone. The 0.24 m
+    drive is one spread step (0.25 m): the spread views were the first and last frames
+    only, and that strip, which a camera saw, was missing from the reference."""
+    from toolkit.baselines.synthetic import look_at
+
+    scene = (_box((-1.0, 1.0, -1.0), (0.09, 1.05, 1.0))
+             + _box((0.11, 1.0, -1.0), (1.0, 1.05, 1.0))
+             + _box((-1.0, 2.0, -1.0), (1.0, 2.05, 1.0)))
+    cam = PinholeCamera(160, 120, 400.0, 400.0, 79.5, 59.5)
+    xs = np.arange(7) * 0.04
+    poses = np.stack([look_at([x, 0.0, 0.0], [x, 1.0, 0.0]) for x in xs])
+    ref = observed_reference(scene, cam, poses, spacing_m=0.005)
+    back = ref[np.abs(ref[:, 1] - 2.0) < 1e-6]  # the back wall's face towards the camera
+    strip = back[np.abs(back[:, 2]) < 0.1]
+    # Every frame's strip is there, the middle frame's (0.06-0.10 m) included ...
+    for x in xs:
+        lo, hi = 0.18 - x, 0.22 - x
+        inner = strip[(strip[:, 0] > lo + 0.005) & (strip[:, 0] < hi - 0.005)]
+        assert len(inner) > 20, (x, len(inner))
+    # ... and nothing of the back wall that no frame could see through the slit.
+    assert np.all((strip[:, 0] > -0.07) & (strip[:, 0] < 0.23)), strip[:, 0].min()
+    # More poses than max_views: a view every 0.25 m or 15 deg, thinned to max_views.
+    ref2 = observed_reference(scene, cam, poses, spacing_m=0.005, max_views=3)
+    back2 = ref2[np.abs(ref2[:, 1] - 2.0) < 1e-6]
+    assert not np.any((back2[:, 0] > 0.065) & (back2[:, 0] < 0.095) & (np.abs(back2[:, 2]) < 0.1))

@@ -238,18 +238,34 @@ def observed_reference(mesh: Any, camera: PinholeCamera, poses: np.ndarray,
     """[M, 3] samples of ``mesh`` (about one per ``spacing_m``^2) seen from ``poses``.
 
     Visibility uses depth maps ray-cast from the mesh itself, so it is exact and ignores
-    moving obstacles; the views tested are ``spread_views`` (a view every 0.25 m or 15
-    degrees), at most ``max_views``.
+    moving obstacles. Every pose is tested when there are at most ``max_views`` of them;
+    only more are cut to ``spread_views`` (a view every 0.25 m or 15 degrees, thinned
+    evenly to ``max_views``). The spread views alone left surface out that only the frames
+    between them saw: on the paper benchmark's lap (644 frames, 119 spread views) 3.6 % of
+    the seen surface, the part seen briefly and mapped worst (41 % of it within 2 cm of the
+    fused map against 84 % overall), so the map's recall and F-score read too high (F@5cm
+    0.9154 against 0.9111 with every frame). Views are rendered a few at a time, so memory
+    does not grow with their number.
     """
     from toolkit.baselines.tsdf import MeshRenderer
     from toolkit.eval.geometry import sample_mesh
 
     ref = sample_mesh(mesh, spacing_m)
-    sel = spread_views(poses, max_views=max_views)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    sel = (np.arange(len(poses)) if len(poses) <= max_views
+           else spread_views(poses, max_views=max_views))
     renderer = MeshRenderer(mesh)
-    depths = [renderer.cast(camera, poses[k]).depth for k in sel]
-    depths = [np.where(np.isfinite(d), d, 0.0) for d in depths]
-    return ref[observed_mask(ref, camera, poses[sel], depths, tolerance_m, max_depth_m)]
+    seen = np.zeros(len(ref), bool)
+    for start in range(0, len(sel), 16):
+        chunk = sel[start:start + 16]
+        todo = np.flatnonzero(~seen)  # a sample seen once needs no more tests
+        if len(todo) == 0:
+            break
+        depths = [renderer.cast(camera, poses[k]).depth for k in chunk]
+        depths = [np.where(np.isfinite(d), d, 0.0) for d in depths]
+        seen[todo[observed_mask(ref[todo], camera, poses[chunk], depths, tolerance_m,
+                                max_depth_m)]] = True
+    return ref[seen]
 
 
 # ---------------------------------------------------------------------------- figures
