@@ -189,6 +189,8 @@ class FusionConfig(BaseModel):
     dynamic_radius_m: float = 0.5
     dynamic_height_m: float = 2.0
     dynamic_scan_window_s: float = 0.15
+    # Time offsets (s) of the scans each scan is compared with (dynamic_beams)
+    dynamic_offsets_s: tuple[float, ...] = (-4.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 4.0)
     # A beam with no return (+inf, range_max) as free space out to range_max: for open
     # spaces beyond the scanner's reach; off, since glass and black or shiny surfaces
     # return nothing from most angles and would mark what is behind them as moving.
@@ -466,6 +468,7 @@ class Fusion:
             self.beam_dynamic = [np.zeros(len(s.ranges), bool) for s in seq.scans]
             placed = np.flatnonzero(self.scan_covered)
             flagged = dynamic_beams([seq.scans[k] for k in placed], T_wl[placed],
+                                    config.dynamic_offsets_s,
                                     no_return_is_free=config.lidar_no_return_free)
             for k, flags in zip(placed, flagged, strict=True):
                 self.beam_dynamic[k] = flags
