@@ -18,7 +18,14 @@ from __future__ import annotations
 import shutil
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    model_serializer,
+    model_validator,
+)
 
 from toolkit.recipe.stage import Stage, StageConfig, StageContext
 from toolkit.sim.robot import MotionLimits, OdometryNoise
@@ -119,6 +126,16 @@ class SimulateConfig(StageConfig):
     lidar: LidarSettings = LidarSettings()
     odometry: OdometrySettings = OdometrySettings()
     preview_frames: int = Field(4, ge=1)
+
+    @model_serializer(mode="wrap")
+    def _leave_out_unset_stand(self, handler: SerializerFunctionWrapHandler) -> dict:
+        # Left at None, people_stand_s is not part of the settings: the cache keys (and the
+        # resolved recipes) of simulate stages made before it existed stay the same, and a
+        # finished run is not simulated again (its recording would be the same bytes).
+        data = handler(self)
+        if self.people_stand_s is None:
+            data.pop("people_stand_s", None)
+        return data
 
     @model_validator(mode="after")
     def _stand_range(self) -> SimulateConfig:
