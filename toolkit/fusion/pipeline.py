@@ -189,6 +189,15 @@ class FusionConfig(BaseModel):
     dynamic_radius_m: float = 0.5
     dynamic_height_m: float = 2.0
     dynamic_scan_window_s: float = 0.15
+    # Time offsets (s) of the scans each scan is compared with (dynamic_beams)
+    dynamic_offsets_s: tuple[float, ...] = (-4.0, -2.0, -1.0, -0.5, 0.5, 1.0, 2.0, 4.0)
+    # ... and far ones, each sqrt(2) farther, for a person who stood still, then left (see
+    # docs/depth_fusion.md); their votes count on surfaces at least dynamic_far_min_width_m
+    # wide (not chair legs). () is the fusion before version 13.
+    dynamic_far_offsets_s: tuple[float, ...] = (
+        -128.0, -90.0, -64.0, -45.0, -32.0, -22.0, -16.0, -11.0, -8.0, -6.0,
+        6.0, 8.0, 11.0, 16.0, 22.0, 32.0, 45.0, 64.0, 90.0, 128.0)
+    dynamic_far_min_width_m: float = Field(0.1, ge=0)
     # A beam with no return (+inf, range_max) as free space out to range_max: for open
     # spaces beyond the scanner's reach; off, since glass and black or shiny surfaces
     # return nothing from most angles and would mark what is behind them as moving.
@@ -466,7 +475,10 @@ class Fusion:
             self.beam_dynamic = [np.zeros(len(s.ranges), bool) for s in seq.scans]
             placed = np.flatnonzero(self.scan_covered)
             flagged = dynamic_beams([seq.scans[k] for k in placed], T_wl[placed],
-                                    no_return_is_free=config.lidar_no_return_free)
+                                    config.dynamic_offsets_s,
+                                    no_return_is_free=config.lidar_no_return_free,
+                                    far_offsets_s=config.dynamic_far_offsets_s,
+                                    far_min_width_m=config.dynamic_far_min_width_m)
             for k, flags in zip(placed, flagged, strict=True):
                 self.beam_dynamic[k] = flags
             for k, s in enumerate(seq.scans):

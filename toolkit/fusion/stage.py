@@ -407,7 +407,10 @@ class FuseStage(Stage):
     # 12: the consensus band is 4 voxels, not 6 (surfaces just behind a nearer one kept;
     #    F@5cm 0.911 -> 0.915 simulated, 0.848 -> 0.853 network); odometry: null follows
     #    slam2d's use_odometry (the same poses for the shipped recipes)
-    version = 12
+    # 13: dynamic_beams also asks scans 6-128 s away (dynamic_far_offsets_s) on surfaces
+    #    >= 10 cm wide: a person who stood still, then left, is masked in the frames of the
+    #    stay (paper benchmark: people 0.51 -> 0.22 % of the simulated map)
+    version = 13
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:

@@ -3,14 +3,15 @@
 A person is two legs and a torso (vertical capped cylinders) and a head (sphere). They are
 not part of the static mesh: the BVH is built once, and people are intersected in numpy
 and merged with the static hits by the smaller distance. Walkers go back and forth along
-a route (corridor <-> room, or room <-> room); when the robot comes close they make way
-(step back along their route or stand), and plans that still come within
+a route (corridor <-> room, or room <-> room), pausing 0.5-2 s at its ends, or, with
+``stand_s``, standing there for a drawn while (legs still); when the robot comes close they
+make way (step back along their route or stand), and plans that still come within
 ``MIN_ROBOT_DIST`` of the robot are re-drawn, so the camera never ends up inside anyone.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +40,9 @@ class Walker:
     gait: np.ndarray  # [M] metres walked (drives the leg swing)
     colors: np.ndarray  # [3, 3] RGB 0..1 of legs, torso, head
     route: np.ndarray  # [K, 2]
+    # [P, 2] the stops drawn at the route's ends: start time (s) and drawn length (s). The
+    # walker stands for that long, longer when it steps aside for the robot meanwhile.
+    stops: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def state(self, t: float) -> tuple[np.ndarray, float, float]:
         """(xy [2], heading, gait) at time ``t``."""
@@ -137,8 +141,13 @@ def surface_normal(prim: Primitive, p: np.ndarray) -> np.ndarray:
 
 
 def plan_people(routes: list[np.ndarray], robot: RobotPath, n_people: int,
-                rng: np.random.Generator, dt: float = 0.05) -> list[Walker]:
-    """Tracks for ``n_people`` walkers over the robot's drive (fewer if no safe plan)."""
+                rng: np.random.Generator, dt: float = 0.05,
+                stand_s: tuple[float, float] | None = None) -> list[Walker]:
+    """Tracks for ``n_people`` walkers over the robot's drive (fewer if no safe plan).
+
+    ``stand_s`` (low, high): at each end of its route a walker stands for a time drawn
+    uniformly from that range (seconds) instead of the usual 0.5-2 s pause; None keeps the
+    pause (and every track drawn before this option, to the bit)."""
     walkers: list[Walker] = []
     if n_people <= 0 or not routes:
         return walkers
@@ -148,7 +157,7 @@ def plan_people(routes: list[np.ndarray], robot: RobotPath, n_people: int,
     for k in range(n_people):
         for attempt in range(30):
             route = routes[(k + attempt) % len(routes)]
-            w = _walk(route, grid, robot_xy, rng)
+            w = _walk(route, grid, robot_xy, rng, stand_s=stand_s)
             if w is None:
                 continue
             if np.linalg.norm(w.xy - robot_xy, axis=1).min() >= MIN_ROBOT_DIST:
@@ -158,8 +167,10 @@ def plan_people(routes: list[np.ndarray], robot: RobotPath, n_people: int,
 
 
 def _walk(route: np.ndarray, grid: np.ndarray, robot_xy: np.ndarray,
-          rng: np.random.Generator, look_ahead_s: float = 2.5) -> Walker | None:
-    """Walk back and forth, never stepping to within 1 m of where the robot soon is."""
+          rng: np.random.Generator, look_ahead_s: float = 2.5,
+          stand_s: tuple[float, float] | None = None) -> Walker | None:
+    """Walk back and forth, never stepping to within 1 m of where the robot soon is;
+    stopping at the route's ends for 0.5-2 s, or for a time drawn from ``stand_s``."""
     seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(seg)])
     length = float(cum[-1])
@@ -179,6 +190,7 @@ def _walk(route: np.ndarray, grid: np.ndarray, robot_xy: np.ndarray,
     xs = np.empty(len(grid))
     gait = np.empty(len(grid))
     walked = 0.0
+    stops: list[tuple[float, float]] = []
 
     def clearance(si: float, i: int) -> float:
         p = xy_tab[min(int(round(si / ds)), len(s_tab) - 1)]
@@ -210,7 +222,11 @@ def _walk(route: np.ndarray, grid: np.ndarray, robot_xy: np.ndarray,
         if s_new >= length or s_new <= 0:
             s_new = min(max(s_new, 0.0), length)
             direction = -direction
-            pause = rng.uniform(0.5, 2.0)
+            # The default pause is drawn as before the option existed: the same draws from
+            # the people stream keep every older recording's tracks bit for bit.
+            pause = rng.uniform(0.5, 2.0) if stand_s is None else rng.uniform(*stand_s)
+            # The stop begins at the next sample, where the walker arrives at the end.
+            stops.append((float(grid[min(i + 1, len(grid) - 1)]), float(pause)))
         walked += abs(s_new - s)
         s = s_new
     xy = np.stack([np.interp(xs, cum, route[:, 0]), np.interp(xs, cum, route[:, 1])], -1)
@@ -224,4 +240,5 @@ def _walk(route: np.ndarray, grid: np.ndarray, robot_xy: np.ndarray,
     colors = np.array([TROUSERS[int(rng.integers(len(TROUSERS)))],
                        SHIRTS[int(rng.integers(len(SHIRTS)))],
                        SKINS[int(rng.integers(len(SKINS)))]])
-    return Walker(grid.copy(), xy, hd, gait, colors, route)
+    return Walker(grid.copy(), xy, hd, gait, colors, route,
+                  np.array(stops, np.float64).reshape(-1, 2))

@@ -50,6 +50,9 @@ class SimConfig:
     seed: int = 0
     duration_s: float | None = None  # None: one lap of the route (start to start)
     n_people: int = 2
+    # (low, high) seconds: people stand this long (drawn per stop) at their routes' ends;
+    # None: the usual 0.5-2 s pause
+    people_stand_s: tuple[float, float] | None = None
     camera: CameraSpec = field(default_factory=CameraSpec)
     lidar: LidarSpec = field(default_factory=LidarSpec)
     motion: MotionLimits = field(default_factory=MotionLimits)
@@ -94,7 +97,8 @@ def build_world(config: SimConfig) -> SimWorld:
     house = generate_house(config.preset, config.seed)
     scene = Scene.from_boxes(house.boxes, build_texture_bank(config.seed))
     path = plan_path(house.route, house.start_yaw, config.motion, config.duration_s)
-    walkers = plan_people(house.people_routes, path, config.n_people, _rng(config, "people"))
+    walkers = plan_people(house.people_routes, path, config.n_people, _rng(config, "people"),
+                          stand_s=config.people_stand_s)
     if len(walkers) < config.n_people:
         log.warning("placed %d of %d people: the others found no route clear of the robot",
                     len(walkers), config.n_people)
@@ -229,7 +233,7 @@ def simulate(config: SimConfig, out_dir: Path | str,
             "people": len(world.walkers), "start_time": config.start_time,
             "depth": "z-depth in metres (not ray length); masks: 255 = moving person",
             "scans": "NaN = dropout, +inf = beyond range_max or no return, -inf = too close",
-            "config": _plain(asdict(config)),
+            "config": _plain(_settings(config)),
         }
     }
     summary = world.house.summary()
@@ -249,6 +253,15 @@ def simulate(config: SimConfig, out_dir: Path | str,
     return SimResult(writer.root, len(cam_t), len(las_t), seconds,
                      len(cam_t) / max(timings["render_write_s"], 1e-9), loop_closed, world,
                      timings)
+
+
+def _settings(config: SimConfig) -> dict[str, Any]:
+    """The configuration for meta.yaml; options left at None that recordings made before
+    they existed did not have are left out, so those recordings come out byte for byte."""
+    out = asdict(config)
+    if out["people_stand_s"] is None:
+        del out["people_stand_s"]
+    return out
 
 
 def _plain(x: Any) -> Any:

@@ -6,6 +6,7 @@
   seed: 0
   duration_s: 60           # omit for exactly one lap of the route (start to start)
   n_people: 2
+  people_stand_s: [20, 40]   # people stand 20-40 s at their routes' ends (default: walk on)
   camera: {pitch_deg: 5, noise_std: 2.0}
   lidar: {noise_std: 0.01}
   odometry: {scale_bias: 0.01}
@@ -17,7 +18,14 @@ from __future__ import annotations
 import shutil
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    model_serializer,
+    model_validator,
+)
 
 from toolkit.recipe.stage import Stage, StageConfig, StageContext
 from toolkit.sim.robot import MotionLimits, OdometryNoise
@@ -108,6 +116,9 @@ class SimulateConfig(StageConfig):
     seed: int = 0
     duration_s: float | None = Field(None, gt=0)  # None: one lap, start to start
     n_people: int = Field(2, ge=0)
+    # [low, high] seconds: each stop at a route's end lasts a time drawn from this range,
+    # legs still (people who stand a while, then walk off); None: a 0.5-2 s pause
+    people_stand_s: tuple[float, float] | None = None
     speed_m_s: float = Field(0.45, ge=0.3, le=0.6)  # cruise speed when duration_s is None
     n_heldout: int = Field(20, ge=0)
     depth_format: Literal["png", "npy"] = "png"
@@ -116,10 +127,30 @@ class SimulateConfig(StageConfig):
     odometry: OdometrySettings = OdometrySettings()
     preview_frames: int = Field(4, ge=1)
 
+    @model_serializer(mode="wrap")
+    def _leave_out_unset_stand(self, handler: SerializerFunctionWrapHandler) -> dict:
+        # Left at None, people_stand_s is not part of the settings: the cache keys (and the
+        # resolved recipes) of simulate stages made before it existed stay the same, and a
+        # finished run is not simulated again (its recording would be the same bytes).
+        data = handler(self)
+        if self.people_stand_s is None:
+            data.pop("people_stand_s", None)
+        return data
+
+    @model_validator(mode="after")
+    def _stand_range(self) -> SimulateConfig:
+        if self.people_stand_s is not None:
+            lo, hi = self.people_stand_s
+            if not 0 <= lo <= hi:
+                raise ValueError(f"people_stand_s {list(self.people_stand_s)}: give [low, high] "
+                                 "seconds with 0 <= low <= high")
+        return self
+
     def sim_config(self, name: str = "sim") -> SimConfig:
         return SimConfig(
             preset=self.preset, seed=self.seed, duration_s=self.duration_s,
-            n_people=self.n_people, camera=self.camera.spec(), lidar=self.lidar.spec(),
+            n_people=self.n_people, people_stand_s=self.people_stand_s,
+            camera=self.camera.spec(), lidar=self.lidar.spec(),
             motion=MotionLimits(v_max=self.speed_m_s),
             odometry=OdometryNoise(**self.odometry.model_dump()), n_heldout=self.n_heldout,
             depth_format=self.depth_format, name=name,
