@@ -808,6 +808,12 @@ def test_far_partners_flag_a_person_who_stood_still_and_left_not_a_chair_leg() -
     # Without the width rule the far scans do flag the leg.
     loose = dynamic_beams(scans, T, far_offsets_s=far, far_min_width_m=0.0)
     assert any(f[m].any() for f, m in zip(loose, on_leg, strict=True))
+    # Scans are laid out in a ring of the rows a chunk needs: small chunks with partners
+    # 8 s away (a ring of about 180 rows for 300 scans) reuse rows, and flag the same.
+    whole = dynamic_beams(scans, T, far_offsets_s=(-8.0, 8.0), chunk=len(scans))
+    ring = dynamic_beams(scans, T, far_offsets_s=(-8.0, 8.0), chunk=16)
+    assert all(np.array_equal(a, b) for a, b in zip(whole, ring, strict=True))
+    assert sum(int(f.sum()) for f in whole) > 100
 
 
 def test_a_static_glass_pane_is_not_a_moving_obstacle() -> None:

@@ -389,8 +389,9 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
 
     Scans are tested ``chunk`` at a time against all their partners at once: one scan and
     one offset at a time was mostly numpy call overhead (6440 scans: 9.0 s, batched 3.3 s).
-    Without far partners memory stays O(chunk x beams); with them the scans' end points
-    are laid out once for the whole drive (S x B x 26 bytes: 60 MB for 6440 scans).
+    Each scan is laid out once, in a ring of the rows the chunks still need (26 bytes a
+    beam): memory follows the partners' span in time (+-128 s of scans with the far
+    offsets), not the drive's length.
     """
     S = len(scans)
     out = [np.zeros(len(s.ranges), bool) for s in scans]
@@ -404,27 +405,30 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
     n_near = len(partner)
     partner += [match_nearest(stamps + off, stamps, np.inf) for off in far_offsets_s]
     all_offsets = tuple(offsets_s) + tuple(far_offsets_s)
-    # Far partners reach anywhere in the drive: the end points laid out once, not per chunk.
-    whole = _PaddedScans(scans, no_return_is_free, far_min_width_m) if far_offsets_s else None
     votes = [np.zeros(len(s.ranges), np.int32) for s in scans]
-    for k0 in range(0, S, chunk):
-        kk = np.arange(k0, min(k0 + chunk, S))  # [K]
-        js = [j[kk] for j in partner]
-        if whole is None:
-            lo = int(min(kk[0], *(j.min() for j in js)))
-            hi = int(max(kk[-1], *(j.max() for j in js))) + 1
-            beams = _PaddedScans(scans[lo:hi], no_return_is_free)
-        else:
-            lo, beams = 0, whole
-        for p, (off, jj) in enumerate(zip(all_offsets, js, strict=True)):
+    chunks = [np.arange(k0, min(k0 + chunk, S)) for k0 in range(0, S, chunk)]  # [K] each
+    # Rows [lo, hi) each chunk reads: itself and its partners. Far partners reach minutes
+    # away, so the scans are laid out once each, in a ring of the rows the chunks still
+    # need: memory follows the offsets' span, not the drive's length (an hour at 40 Hz
+    # laid out whole was gigabytes), and no scan is laid out twice.
+    spans = [(int(min([kk[0], *(j[kk].min() for j in partner)])),
+              int(max([kk[-1], *(j[kk].max() for j in partner)])) + 1) for kk in chunks]
+    filled = np.maximum.accumulate([hi for _, hi in spans])
+    ring = _PaddedScans(int(max(f - lo for (lo, _), f in zip(spans, filled, strict=True))),
+                        max(len(s.ranges) for s in scans), no_return_is_free,
+                        far_min_width_m if far_offsets_s else 0.0)
+    for kk, (_, hi) in zip(chunks, spans, strict=True):
+        ring.fill_to(scans, hi)
+        for p, (off, jj) in enumerate(zip(all_offsets, (j[kk] for j in partner), strict=True)):
             use = (np.abs(stamps[jj] - stamps[kk]) >= 0.5 * abs(off)) & (jj != kk)
             if not use.any():
                 continue
             k, j = kk[use], jj[use]
-            seen = beams.seen_through(k - lo, j - lo, T_laser_world[j] @ T_world_laser[k],
-                                      margin_m, margin_rel, plane_tol_m)  # [K', Bmax]
+            rk, rj = ring.rows(k), ring.rows(j)
+            seen = ring.seen_through(rk, rj, T_laser_world[j] @ T_world_laser[k],
+                                     margin_m, margin_rel, plane_tol_m)  # [K', Bmax]
             if p >= n_near:
-                seen &= beams.wide[k - lo]  # [K', Bmax]
+                seen &= ring.wide[rk]  # [K', Bmax]
             for row, kv in enumerate(k):
                 votes[kv] += seen[row, : len(votes[kv])]
     for k, s in enumerate(scans):
@@ -440,60 +444,81 @@ def dynamic_beams(scans: list[LaserScan], T_world_laser: np.ndarray,
 
 
 class _PaddedScans:
-    """A run of scans as [S, Bmax] arrays (beams past a scan's own count are invalid)."""
+    """Scans as [W, Bmax] arrays in a ring of W rows: scan g in row g % W once laid out
+    (beams past a scan's own count are invalid)."""
 
-    def __init__(self, scans: list[LaserScan], no_return_is_free: bool = False,
+    def __init__(self, capacity: int, n_beams: int, no_return_is_free: bool = False,
                  min_width_m: float = 0.0) -> None:
-        S, B = len(scans), max(len(s.ranges) for s in scans)
-        self.n = np.array([len(s.ranges) for s in scans])  # [S]
-        self.angle_min = np.array([s.angle_min for s in scans], np.float64)
-        self.angle_inc = np.array([s.angle_increment for s in scans], np.float64)
-        self.range_max = np.array([s.range_max for s in scans], np.float64)
-        self.full = np.abs(self.angle_inc) * self.n >= 2 * np.pi - 1e-6  # [S] wraps around
-        self.valid = np.zeros((S, B), bool)
-        self.x = np.zeros((S, B))  # end points in the scan's own laser frame
-        self.y = np.zeros((S, B))
+        W, B = capacity, n_beams
+        self.no_return_is_free, self.min_width_m = no_return_is_free, min_width_m
+        self.filled = 0  # scans [0, filled) were laid out; the last W of them are held
+        self.n = np.zeros(W, np.int64)  # [W]
+        self.angle_min = np.zeros(W)
+        self.angle_inc = np.ones(W)
+        self.range_max = np.zeros(W)
+        self.full = np.zeros(W, bool)  # [W] wraps around
+        self.valid = np.zeros((W, B), bool)
+        self.x = np.zeros((W, B))  # end points in the scan's own laser frame
+        self.y = np.zeros((W, B))
         # How far each beam saw free space: to its return; NaN and short returns say
         # nothing (-inf), and so does no return (+inf, range_max) unless
         # ``no_return_is_free``: glass, black or shiny surfaces return nothing from most
         # angles, and a static pane seen at last head-on was flagged as moving, with the
         # camera points around it.
-        self.reach = np.full((S, B), -np.inf)
-        for i, s in enumerate(scans):
-            m = len(s.ranges)
-            r = s.ranges.astype(np.float64)
-            v = s.valid_mask()
-            a = s.angles()
-            self.valid[i, :m] = v
-            rv = np.where(v, r, 0.0)
-            self.x[i, :m] = rv * np.cos(a)
-            self.y[i, :m] = rv * np.sin(a)
-            reach = np.where(v, r, -np.inf)
-            if no_return_is_free:
-                with np.errstate(invalid="ignore"):
-                    # Compared as stored (float32): 5.6 is 5.5999999 there.
-                    reach = np.where(np.isposinf(r) | (s.ranges == s.range_max), s.range_max,
-                                     reach)
-            self.reach[i, :m] = reach
-        # [S, B] beams on a surface at least min_width_m wide: a run of neighbouring
-        # returns without a range jump (margins as in seen_through), its chord plus a beam
-        # spacing. Far partners see a place from elsewhere: a chair leg (3-5 cm) slips
-        # between their beams while a person's leg (12-15 cm) cannot.
-        self.wide = np.ones((S, B), bool)
-        if min_width_m > 0:
-            self.wide[:] = False
-            for i, s in enumerate(scans):
-                m = len(s.ranges)
-                v = self.valid[i, :m]
-                r = np.where(v, s.ranges.astype(np.float64), np.nan)
-                jump = ~(np.abs(np.diff(r)) <= 0.1 + 0.03 * np.fmin(r[1:], r[:-1]))  # [m-1]
-                run = np.concatenate([[0], np.cumsum(jump)])  # [m] run id of each beam
-                starts = np.flatnonzero(np.r_[True, run[1:] != run[:-1]])
-                ends = np.r_[starts[1:], m] - 1
-                x, y = self.x[i, :m], self.y[i, :m]
-                chord = np.hypot(x[ends] - x[starts], y[ends] - y[starts])
-                width = chord + np.abs(s.angle_increment) * np.nan_to_num(r[starts])
-                self.wide[i, :m] = v & (width >= min_width_m)[run]
+        self.reach = np.full((W, B), -np.inf)
+        # [W, B] beams on a surface at least min_width_m wide (all, without a width).
+        self.wide = np.ones((W, B), bool)
+
+    def rows(self, g: np.ndarray) -> np.ndarray:
+        """Ring rows of scans ``g`` (laid out, and among the last W)."""
+        return np.asarray(g) % len(self.n)
+
+    def fill_to(self, scans: list[LaserScan], hi: int) -> None:
+        """Lay out scans [filled, hi), each over the row of the scan W before it."""
+        for g in range(self.filled, hi):
+            self._lay(g % len(self.n), scans[g])
+        self.filled = max(self.filled, hi)
+
+    def _lay(self, i: int, s: LaserScan) -> None:
+        m = len(s.ranges)
+        self.n[i] = m
+        self.angle_min[i], self.angle_inc[i] = s.angle_min, s.angle_increment
+        self.range_max[i] = s.range_max
+        self.full[i] = abs(s.angle_increment) * m >= 2 * np.pi - 1e-6
+        self.valid[i] = False
+        self.x[i] = self.y[i] = 0.0
+        self.reach[i] = -np.inf
+        r = s.ranges.astype(np.float64)
+        v = s.valid_mask()
+        a = s.angles()
+        self.valid[i, :m] = v
+        rv = np.where(v, r, 0.0)
+        self.x[i, :m] = rv * np.cos(a)
+        self.y[i, :m] = rv * np.sin(a)
+        reach = np.where(v, r, -np.inf)
+        if self.no_return_is_free:
+            with np.errstate(invalid="ignore"):
+                # Compared as stored (float32): 5.6 is 5.5999999 there.
+                reach = np.where(np.isposinf(r) | (s.ranges == s.range_max), s.range_max,
+                                 reach)
+        self.reach[i, :m] = reach
+        if self.min_width_m <= 0:
+            return
+        # A run of neighbouring returns without a range jump (margins as in seen_through),
+        # its chord plus a beam spacing. Far partners see a place from elsewhere: a chair
+        # leg (3-5 cm) slips between their beams while a person's leg (12-15 cm) cannot.
+        self.wide[i] = False
+        if m == 0:
+            return
+        rn = np.where(v, r, np.nan)
+        jump = ~(np.abs(np.diff(rn)) <= 0.1 + 0.03 * np.fmin(rn[1:], rn[:-1]))  # [m-1]
+        run = np.concatenate([[0], np.cumsum(jump)])  # [m] run id of each beam
+        starts = np.flatnonzero(np.r_[True, run[1:] != run[:-1]])
+        ends = np.r_[starts[1:], m] - 1
+        x, y = self.x[i, :m], self.y[i, :m]
+        chord = np.hypot(x[ends] - x[starts], y[ends] - y[starts])
+        width = chord + np.abs(s.angle_increment) * np.nan_to_num(rn[starts])
+        self.wide[i, :m] = v & (width >= self.min_width_m)[run]
 
     def seen_through(self, k: np.ndarray, j: np.ndarray, T_j_k: np.ndarray, margin_m: float,
                      margin_rel: float, plane_tol_m: float) -> np.ndarray:
