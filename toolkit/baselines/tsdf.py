@@ -259,15 +259,25 @@ class MeshRenderer:
             self._rays_cache = {key: camera.pixel_rays()}  # [H, W, 3], keep only the latest
         return self._rays_cache[key]
 
-    def cast(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> RayHits:
+    def _cast_rays(self, camera: PinholeCamera, T: np.ndarray) -> tuple[np.ndarray, dict]:
         import open3d.core as o3c
 
-        T = np.asarray(T_world_camera, dtype=np.float64)
         dirs = self._camera_rays(camera) @ T[:3, :3].T  # [H, W, 3] world, |z_cam| = 1
         rays = np.empty((*dirs.shape[:2], 6), dtype=np.float32)
         rays[..., :3] = T[:3, 3]
         rays[..., 3:] = dirs
-        ans = self.scene.cast_rays(o3c.Tensor(rays))
+        return dirs, self.scene.cast_rays(o3c.Tensor(rays))
+
+    def depth(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> np.ndarray:
+        """[H, W] float32 z-depth, 0 where nothing was hit: ``cast`` without the hit points,
+        triangles and barycentrics (half its time on a 640x480 view)."""
+        _, ans = self._cast_rays(camera, np.asarray(T_world_camera, dtype=np.float64))
+        t = ans["t_hit"].numpy()
+        return np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+
+    def cast(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> RayHits:
+        T = np.asarray(T_world_camera, dtype=np.float64)
+        dirs, ans = self._cast_rays(camera, T)
         t = ans["t_hit"].numpy()
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t)
