@@ -84,6 +84,7 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
             "lidar_rmse_ratio_scaled_unscaled": 0.08, "gt_scaled_absrel": 0.03,
             "gt_rmse_ratio_scaled_unscaled": 0.12, "dynamic_fraction": 0.004,
             "dynamic_fraction_before_carving": 0.007, "dynamic_fraction_raw": 0.005,
+            "dynamic_points": 40,
             "frame_to_mesh_median_m": 0.012, "frame_to_mesh_median_max_m": 0.02,
             "fusion_fps": 25.0, "fusion_fps_per_frame_only": 35.0}
     geo = {"accuracy_mean_m": 0.02, "completeness_mean_m": 0.03, "chamfer_m": 0.025,
@@ -98,7 +99,8 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
             {"stage": "t_figures", "id": "fuse_a", "figures": fuse},
             {"stage": "t_figures", "id": "eval_a", "figures": {"fused_map": geo}},
             {"stage": "t_figures", "id": "fuse_a_kept",
-             "figures": {"dynamic_fraction": 0.06, "dynamic_removal": False}},
+             "figures": {"dynamic_fraction": 0.06, "dynamic_points": 640,
+                         "dynamic_removal": False}},
             {"stage": "t_figures", "id": "depth_b",
              "figures": {"work_seconds": 30.0, "work_cpu_seconds": 60.0, "work_frames": 100}},
             {"stage": "paper_tables", "slam": "slam", "position_rmse_target_m": 0.02, "rows": [
@@ -133,6 +135,8 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     # Moving obstacles: 0.4 % of the map with the removal, 6 % in the run without it.
     assert by_label["A: map points on moving obstacles <= 1 % (without the removal: 6.00 %)"]
     assert t["table_iv"]["A"]["dynamic_fraction_without_removal"] == pytest.approx(0.06)
+    # ... and as people points kept: 40 of the 640 the map without removal held.
+    assert t["table_iv"]["A"]["dynamic_points_kept_fraction"] == pytest.approx(0.0625)
     # docs/depth_fusion.md's fusion targets: AbsRel and per-frame map-to-mesh distance with
     # simulated depth, the fusion's own frames/s (25 with the end of the run: not met).
     values = {c["target"]: c["value"] for c in t["targets"]}
@@ -151,7 +155,7 @@ def test_tables_from_known_figures(tmp_path: Path, stages) -> None:
     # The share before carving is over the map the same consensus and outlier steps leave
     # (the raw map's, 0.5 %, is before those steps too: it read as if carving added people).
     assert ("| 0.40 % (0.70 % without carving, after the same consensus and outlier steps; "
-            "without removal 6.00 %) |") in report
+            "without removal 6.00 %, 6.2 % of its people points kept) |") in report
     assert (tmp_path / "run" / "paper_tables" / "figure5_trajectories.png").exists()
 
     # A network's depth: its AbsRel and distances are not held to the simulated targets.
