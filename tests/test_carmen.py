@@ -228,6 +228,29 @@ def test_relations_metric_hand_computed():
     assert m["rot_sq_std_deg2"] == pytest.approx(50.0)
 
 
+def test_relations_metric_cartographer_composition():
+    """Cartographer's compute_relations_metrics (Hess et al. 2016's figures) composes
+    delta_est * delta*^-1: a relation 2 m ahead whose estimate ends turned by 0.1 rad has
+    no translational error in the paper's composition and 2 * 2 sin(0.05) in that one."""
+    stamps = np.array([0.0, 1.0, 2.0])
+    poses = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.1], [2.0, 1.0, np.pi / 2]])
+    traj = Trajectory(stamps, np.stack([se2_to_se3(*p) for p in poses]))
+    rel = Relations(np.array([0.0, 1.0]), np.array([1.0, 2.0]),
+                    np.array([[2.0, 0.0, 0.0], [np.sin(0.1), np.cos(0.1), np.pi / 2 - 0.1]]))
+    et, er, used = relation_errors(traj, rel)
+    assert et[0] == pytest.approx(0.0, abs=1e-12) and er[0] == pytest.approx(0.1)
+    etc, erc, usedc = relation_errors(traj, rel, composition="cartographer")
+    assert etc[0] == pytest.approx(4 * np.sin(0.05)) and erc[0] == pytest.approx(0.1)
+    # (1 -> 2): the estimate is the reference exactly, in both compositions
+    assert et[1] == pytest.approx(0.0, abs=1e-12) and etc[1] == pytest.approx(0.0, abs=1e-12)
+    m = relations_metric(traj, rel)
+    assert m["trans_abs_mean_m"] == pytest.approx(0.0, abs=1e-12)
+    assert m["trans_abs_mean_m_cartographer"] == pytest.approx(2 * np.sin(0.05))
+    assert m["trans_abs_std_m_cartographer"] == pytest.approx(2 * np.sin(0.05))
+    with pytest.raises(ValueError, match="composition"):
+        relation_errors(traj, rel, composition="freiburg")
+
+
 def test_a_laser_facing_backwards_keeps_its_heading(tmp_path):
     """ROBOTLASER1 offsets of a laser mounted backwards wrap to +pi-e on some lines and
     -pi+e on others: their per-component median heading was 0 (facing forwards)."""
