@@ -64,6 +64,32 @@ def test_room_renderer_depth_equals_plane_distance() -> None:
     assert depth[24, 32] == pytest.approx(2.2, abs=1e-5)
 
 
+def test_the_seen_surface_is_built_once_for_the_same_mesh_and_poses(
+        room_frames: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A benchmark's evaluate stages score their maps against one ground truth seen from
+    the same poses: the second asks no view again, gets the same samples (a copy), and
+    other poses or another mesh are built afresh."""
+    import toolkit.baselines.common as common
+
+    cam, poses, _ = room_frames
+    monkeypatch.setattr(common, "_REFERENCES", {})  # none from other tests
+    renders = []
+    depth = MeshRenderer.depth
+    monkeypatch.setattr(MeshRenderer, "depth",
+                        lambda self, c, T: renders.append(1) or depth(self, c, T))
+    first = observed_reference(SMALL_ROOM.mesh(), cam, poses[:4], spacing_m=0.03)
+    n = len(renders)
+    assert n == 4 and len(first) > 1000
+    first[:] = 0.0  # the caller's copy: the stored one stays
+    again = observed_reference(SMALL_ROOM.mesh(), cam, poses[:4], spacing_m=0.03)
+    assert len(renders) == n and np.abs(again).sum() > 0
+    other = observed_reference(SMALL_ROOM.mesh(), cam, poses[:3], spacing_m=0.03)
+    assert len(renders) == n + 3 and len(other) <= len(again)
+    moved = SMALL_ROOM.mesh().translate([0.01, 0.0, 0.0])
+    observed_reference(moved, cam, poses[:4], spacing_m=0.03)
+    assert len(renders) == n + 7
+
+
 def test_tsdf_from_exact_depth_matches_the_room(room_frames: tuple) -> None:
     cam, poses, frames = room_frames
     vol = integrate_frames(((d, rgb, T) for (rgb, d), T in zip(frames, poses, strict=True)), cam,
