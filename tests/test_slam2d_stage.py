@@ -136,6 +136,22 @@ def test_report_shows_what_the_slam_did_about_hard_input_only_when_it_happened()
     assert "full window" not in text  # no retries: no row
 
 
+def test_the_report_says_how_many_relations_were_scored_and_cartographers_figure() -> None:
+    """"n=658" read as the whole file (4677 on Killian); Cartographer's published
+    figures compose the error the other way, so that row is there too."""
+    from toolkit.slam2d.stage import _report
+
+    rel = {"relations_used": 658, "relations_total": 4677, "trans_abs_mean_m": 0.03424,
+           "trans_abs_std_m": 0.0285, "rot_abs_mean_deg": 0.3136, "rot_abs_std_deg": 0.2551,
+           "trans_abs_mean_m_cartographer": 0.03536, "trans_abs_std_m_cartographer": 0.0285}
+    text = _report("slam2d", {"scans_used": 10, "nodes": 5, "submaps": 2, "loop_closures": 3,
+                              "relations": rel})
+    assert "| relations (658 of 4677 scored: both stamps scans of this log) | 0.0342 ± " \
+        "0.0285 m, 0.314 ± 0.255 deg |" in text
+    assert "Cartographer's compute_relations_metrics (its published figures) | 0.0354 ± " \
+        "0.0285 m |" in text
+
+
 def test_a_broken_relations_file_stops_the_stage_before_the_slam(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """It was read after the SLAM had run (an hour-long log's work lost to a typo)."""

@@ -241,9 +241,16 @@ def _report(stage_id: str, m: dict, reference: str | None = None) -> str:
     lines += [f"| {k} | {v} |" for k, v in rows]
     rel = m.get("relations")
     if rel and "trans_abs_mean_m" in rel:
-        lines.append(f"| relations (n={rel['relations_used']}) | "
+        # Of all in the file: those whose stamps are not scans of this log are not scored.
+        lines.append(f"| relations ({rel['relations_used']} of {rel['relations_total']} "
+                     "scored: both stamps scans of this log) | "
                      f"{rel['trans_abs_mean_m']:.4f} ± {rel['trans_abs_std_m']:.4f} m, "
                      f"{rel['rot_abs_mean_deg']:.3f} ± {rel['rot_abs_std_deg']:.3f} deg |")
+        if "trans_abs_mean_m_cartographer" in rel:
+            lines.append("| relations, translation composed as Cartographer's "
+                         "compute_relations_metrics (its published figures) | "
+                         f"{rel['trans_abs_mean_m_cartographer']:.4f} ± "
+                         f"{rel['trans_abs_std_m_cartographer']:.4f} m |")
     skipped = {k: v for k, v in m.items() if k.startswith("skipped_")}
     if skipped:
         lines.append(f"| skipped scans | {skipped} |")
