@@ -234,12 +234,11 @@ def test_featureless_corridor_holds_the_odometry_along_it():
     advance = np.hypot(*(truth[-1, :2] - truth[0, :2]))
     assert abs(np.hypot(*(est[-1, :2] - est[0, :2])) - advance) < 0.03 * advance
     assert m["degenerate_matches"] > 0.3 * len(truth)  # those without the end wall in view
-    # Without the hold the matcher slides back onto the walls it has mapped: 3.4 m of the
-    # 22 m advance before returns on unseen cells were left out of local matching
-    # (``local.unseen_approach_cells``), 1.2 m since (with the hold 0.15 m, now 0.02 m).
+    # Without the hold the matcher slides back onto the walls it has mapped (3.4 m of the
+    # 22 m advance; 1.2 m with ``local.unseen_approach_cells: 2``).
     est0, _, m0 = _corridor_run({"local": {"degenerate_drop": 0},
                                  "loop_closure": {"enabled": False}}, back=False)
-    assert np.hypot(*(est0[-1, :2] - est0[0, :2])) < 0.97 * advance
+    assert np.hypot(*(est0[-1, :2] - est0[0, :2])) < 0.9 * advance
     assert m0["degenerate_matches"] == 0
 
 
@@ -747,7 +746,8 @@ def test_forward_lidar_with_exact_odometry_keeps_the_path_length(seed):
     # robot drives on, more of each recess's far wall comes out from behind its corner;
     # those returns fell on cells the submap had not seen, next to the end of the part it
     # had, and the smoothed field pulled them onto it: every match ahead of the truth, the
-    # path 1.3 % (seed 0) / 1.6 % (seed 1) too long. Now within 0.1 %.
+    # path 1.3 % (seed 0) / 1.6 % (seed 1) too long, as it still is by default. Left out of
+    # the match (``local.unseen_approach_cells: 2``, opt-in), within 0.1 %.
     walls = _recessed_corridor(80.0, seed)
     rng = np.random.default_rng(100 + seed)
     xs = np.arange(0.5, 76.0, 0.5)
@@ -762,10 +762,14 @@ def test_forward_lidar_with_exact_odometry_keeps_the_path_length(seed):
                                range_max=30.0))
     odometry = Trajectory(0.1 * np.arange(len(xs)),
                           np.stack([se2_to_se3(*p) for p in truth]), "odom", "base_link")
-    res = run_slam(scans, odometry)
+    res = run_slam(scans, odometry, config=Slam2DConfig.model_validate(
+        {"local": {"unseen_approach_cells": 2}}))
     length = np.hypot(*np.diff(res.poses[:, :2], axis=0).T).sum()
     assert abs(length / (xs[-1] - xs[0]) - 1.0) < 0.001
     assert res.metrics["loop_closures"] <= 5  # the map is straight, not pulled back by closures
+    plain = run_slam(scans, odometry)  # the default: every return counts
+    length = np.hypot(*np.diff(plain.poses[:, :2], axis=0).T).sum()
+    assert length / (xs[-1] - xs[0]) - 1.0 > 0.008
 
 
 def test_grid_observed_cells():
