@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from toolkit.geometry import se2_between, se2_compose, se2_to_se3, se3_to_se2
+from toolkit.geometry import Trajectory, se2_between, se2_compose, se2_to_se3, se3_to_se2
 from toolkit.sensors import LaserScan
 from toolkit.slam2d import LidarSlam2D, Slam2DConfig
 from toolkit.slam2d.config import LoopClosureOptions
@@ -234,7 +234,8 @@ def test_featureless_corridor_holds_the_odometry_along_it():
     advance = np.hypot(*(truth[-1, :2] - truth[0, :2]))
     assert abs(np.hypot(*(est[-1, :2] - est[0, :2])) - advance) < 0.03 * advance
     assert m["degenerate_matches"] > 0.3 * len(truth)  # those without the end wall in view
-    # Without the hold the matcher slides back onto the walls it has mapped.
+    # Without the hold the matcher slides back onto the walls it has mapped (3.4 m of the
+    # 22 m advance; 1.2 m with ``local.unseen_approach_cells: 2``).
     est0, _, m0 = _corridor_run({"local": {"degenerate_drop": 0},
                                  "loop_closure": {"enabled": False}}, back=False)
     assert np.hypot(*(est0[-1, :2] - est0[0, :2])) < 0.9 * advance
@@ -715,3 +716,64 @@ def test_closures_one_door_off_are_rejected_as_ambiguous(spacing):
                                    se3_to_se2(drive.truth.poses))[:, :2]).T)
     assert np.sqrt(np.mean(err**2)) < 0.2
     assert res.metrics["loop_closures_ambiguous"] > 0
+
+
+# ------------------------------------------------------------------ along-track scale
+
+
+def _recessed_corridor(length: float, seed: int) -> np.ndarray:
+    """[S, 4] wall segments of a 3 m wide corridor from x = -2 to ``length`` whose two
+    walls have recesses (0.5-1.5 m long, 0.2-0.6 m deep) every 1-4 m: corners that hide
+    the recesses' far walls until the robot comes near."""
+    rng = np.random.default_rng(seed)
+    walls = [[-2.0, 0.0, -2.0, 3.0], [length, 0.0, length, 3.0]]
+    for y0, sign in ((0.0, -1.0), (3.0, 1.0)):
+        x = -2.0
+        while x < length - 3.0:
+            a = x + rng.uniform(1.0, 4.0)
+            b = a + rng.uniform(0.5, 1.5)
+            y1 = y0 + sign * rng.uniform(0.2, 0.6)
+            walls += [[x, y0, a, y0], [a, y0, a, y1], [a, y1, b, y1], [b, y1, b, y0]]
+            x = b
+        walls.append([x, y0, length, y0])
+    return np.array(walls)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_forward_lidar_with_exact_odometry_keeps_the_path_length(seed):
+    # A forward-looking lidar (180 deg, 1 deg beams, as on Killian) driven straight down a
+    # corridor with recesses, a scan every 0.5 m, exact odometry, 1 cm range noise. As the
+    # robot drives on, more of each recess's far wall comes out from behind its corner;
+    # those returns fell on cells the submap had not seen, next to the end of the part it
+    # had, and the smoothed field pulled them onto it: every match ahead of the truth, the
+    # path 1.3 % (seed 0) / 1.6 % (seed 1) too long, as it still is by default. Left out of
+    # the match (``local.unseen_approach_cells: 2``, opt-in), within 0.1 %.
+    walls = _recessed_corridor(80.0, seed)
+    rng = np.random.default_rng(100 + seed)
+    xs = np.arange(0.5, 76.0, 0.5)
+    truth = np.c_[xs, np.full_like(xs, 1.5), np.zeros_like(xs)]
+    angles = np.radians(np.arange(-90.0, 90.0))
+    scans = []
+    for k, p in enumerate(truth):
+        r = cast_rays(walls, p, angles, 30.0) + rng.normal(0.0, 0.01, len(angles))
+        scans.append(LaserScan(stamp=0.1 * k, ranges=np.where(np.isfinite(r), r, 30.0)
+                               .astype(np.float32), angle_min=float(angles[0]),
+                               angle_increment=float(np.radians(1.0)), range_min=0.05,
+                               range_max=30.0))
+    odometry = Trajectory(0.1 * np.arange(len(xs)),
+                          np.stack([se2_to_se3(*p) for p in truth]), "odom", "base_link")
+    res = run_slam(scans, odometry, config=Slam2DConfig.model_validate(
+        {"local": {"unseen_approach_cells": 2}}))
+    length = np.hypot(*np.diff(res.poses[:, :2], axis=0).T).sum()
+    assert abs(length / (xs[-1] - xs[0]) - 1.0) < 0.001
+    assert res.metrics["loop_closures"] <= 5  # the map is straight, not pulled back by closures
+    plain = run_slam(scans, odometry)  # the default: every return counts
+    length = np.hypot(*np.diff(plain.poses[:, :2], axis=0).T).sum()
+    assert length / (xs[-1] - xs[0]) - 1.0 > 0.008
+
+
+def test_grid_observed_cells():
+    g = ProbabilityGrid(0.05)
+    g.insert(np.zeros(2), np.array([[1.0, 0.0]]))
+    seen = g.observed(np.array([[0.52, 0.01], [1.01, 0.01], [1.3, 0.0], [0.5, 0.5], [99.0, 0]]))
+    assert seen.tolist() == [True, True, False, False, False]

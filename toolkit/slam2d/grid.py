@@ -145,6 +145,16 @@ class ProbabilityGrid:
         """[N, 2] int (ix, iy) cell of metric points [N, 2] (may lie outside the grid)."""
         return np.floor(np.asarray(points) / self.resolution).astype(np.int64) - self._offset
 
+    def observed(self, points: np.ndarray) -> np.ndarray:
+        """[N] bool: whether the cell under each metric point [N, 2] was ever observed (hit
+        or missed); points outside the grid were not."""
+        c = self.cell_of(np.asarray(points, dtype=np.float64).reshape(-1, 2))
+        H, W = self.values.shape
+        inside = (c[:, 0] >= 0) & (c[:, 1] >= 0) & (c[:, 0] < W) & (c[:, 1] < H)
+        out = np.zeros(len(c), bool)
+        out[inside] = self.values[c[inside, 1], c[inside, 0]] > 0
+        return out
+
     def _grow(self, c0: np.ndarray, c1: np.ndarray) -> None:
         """Enlarge so that lattice cells [c0, c1) (ix, iy) fit, with slack so growth is rare."""
         H, W = self.values.shape
