@@ -91,6 +91,8 @@ def test_the_stage_refuses_a_stand_range_the_wrong_way_round() -> None:
     ok = SimulateConfig(stage="simulate", people_stand_s=(20, 40))
     assert ok.sim_config().people_stand_s == (20, 40)
     assert SimulateConfig(stage="simulate").sim_config().people_stand_s is None
+    # Left unset it is not in the settings: simulate stages made before it keep their key.
+    assert "people_stand_s" not in SimulateConfig(stage="simulate").model_dump()
     for bad in ((40, 20), (-1, 5)):
         with pytest.raises(ValidationError, match="people_stand_s"):
             SimulateConfig(stage="simulate", people_stand_s=bad)

@@ -350,3 +350,17 @@ def test_the_report_calls_a_log_s_slam_made_reference_so_not_ground_truth() -> N
     assert "| position error vs the reference poses (ATE, SE(2)-aligned) | RMSE 8.00 cm" in text
     assert f"| reference poses | {said} |" in text
     assert "| position error vs ground truth (ATE, SE(2)-aligned) |" in _report("slam2d", m)
+
+
+def test_an_option_left_off_keeps_the_settings_of_runs_made_before_it() -> None:
+    """local.unseen_approach_cells (session 26) at its default 0 is not written: the stage's
+    cache key and slam2d_config.json (part of the trajectory artifact) stay as they were,
+    so a finished run is not redone, nor its fuse stages (upgrading re-ran them all)."""
+    from toolkit.slam2d.config import Slam2DConfig
+
+    plain = Slam2DStage.Config(stage="slam2d")
+    assert "unseen_approach_cells" not in str(plain.model_dump())
+    assert "unseen_approach_cells" not in str(plain.slam_config().model_dump())
+    on = Slam2DConfig.model_validate({"local": {"unseen_approach_cells": 2}})
+    assert on.model_dump()["local"]["unseen_approach_cells"] == 2
+    assert Slam2DConfig.model_validate(on.model_dump()) == on
