@@ -18,16 +18,10 @@ from __future__ import annotations
 import shutil
 from typing import Literal
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    SerializerFunctionWrapHandler,
-    model_serializer,
-    model_validator,
-)
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from toolkit.recipe.stage import Stage, StageConfig, StageContext
+from toolkit.settings import AddedOptions
 from toolkit.sim.robot import MotionLimits, OdometryNoise
 from toolkit.sim.sensors import CameraSpec, LidarSpec
 from toolkit.sim.simulate import SimConfig, simulate
@@ -109,8 +103,12 @@ class OdometrySettings(_Settings):
     rot_per_m_std: float = Field(0.005, ge=0)
 
 
-class SimulateConfig(StageConfig):
+class SimulateConfig(StageConfig, AddedOptions):
     """Settings of ``simulate``."""
+
+    # Left at None, people_stand_s (session 26) is not part of the settings: simulate stages
+    # made before it keep their cache key and are not simulated again for the same bytes.
+    added_off = {"people_stand_s": None}
 
     preset: Literal["small_house", "large_building"] = "small_house"
     seed: int = 0
@@ -126,16 +124,6 @@ class SimulateConfig(StageConfig):
     lidar: LidarSettings = LidarSettings()
     odometry: OdometrySettings = OdometrySettings()
     preview_frames: int = Field(4, ge=1)
-
-    @model_serializer(mode="wrap")
-    def _leave_out_unset_stand(self, handler: SerializerFunctionWrapHandler) -> dict:
-        # Left at None, people_stand_s is not part of the settings: the cache keys (and the
-        # resolved recipes) of simulate stages made before it existed stay the same, and a
-        # finished run is not simulated again (its recording would be the same bytes).
-        data = handler(self)
-        if self.people_stand_s is None:
-            data.pop("people_stand_s", None)
-        return data
 
     @model_validator(mode="after")
     def _stand_range(self) -> SimulateConfig:

@@ -8,14 +8,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    SerializerFunctionWrapHandler,
-    model_serializer,
-    model_validator,
-)
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from toolkit.settings import AddedOptions
 
 
 class _Options(BaseModel):
@@ -59,7 +54,11 @@ class MotionFilterOptions(_Options):
     max_angle_deg: float = Field(1.0, ge=0)
 
 
-class LocalMatchingOptions(_Options):
+class LocalMatchingOptions(_Options, AddedOptions):
+    # Left at 0, unseen_approach_cells (session 26) is not written: the slam2d stage's cache
+    # key and slam2d_config.json (part of the trajectory artifact) stay those of runs made
+    # before it, so they are neither redone nor make fuse rerun.
+    added_off = {"unseen_approach_cells": 0.0}
     # Correlative search window around the predicted pose. With odometry the prediction is
     # good to centimetres; without it the robot may have moved a metre and turned tens of
     # degrees since the last scan (sparse logs), so the window is wider.
@@ -115,16 +114,6 @@ class LocalMatchingOptions(_Options):
     # the corridor and doors benchmarks gained (0.046 -> 0.020, 0.050 -> 0.036 m);
     # docs/slam2d.md, "Along-track scale".
     unseen_approach_cells: float = Field(0.0, ge=0)
-
-    @model_serializer(mode="wrap")
-    def _leave_out_unset_options(self, handler: SerializerFunctionWrapHandler) -> dict:
-        # Left at 0 (off), unseen_approach_cells is not written: the slam2d stage's cache
-        # key and its slam2d_config.json (part of the trajectory artifact) stay those of
-        # runs made before it existed, so they are neither redone nor make fuse rerun.
-        data = handler(self)
-        if self.unseen_approach_cells == 0:
-            data.pop("unseen_approach_cells", None)
-        return data
     # Without odometry the prediction ("stood still") carries no information about the
     # translation: no translation cost in the search, and the refinement is only held to
     # the search result, weakly, so that it cannot slide along a corridor. A mild rotation
