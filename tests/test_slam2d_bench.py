@@ -48,3 +48,16 @@ def test_corridor_benchmark(tmp_path: Path, angle: float):
     assert f["ate"]["ate_rmse_m"] < 0.06
     assert f["slam"]["loop_closures_degenerate"] > 0
     assert (tmp_path / "corridor_map.png").exists()
+
+
+def test_corridor_seeds(tmp_path: Path):
+    """--seeds drives seeds 0..N-1: seed 0's figures as one run's, the spread beside them
+    (one drive's ATE swings with its odometry noise)."""
+    f = run_benchmark("corridor", tmp_path, seeds=3)
+    spread = f["ate_seeds"]
+    assert spread["seeds"] == 3 and len(spread["ate_rmse_m"]) == 3
+    assert spread["ate_rmse_m"][0] == f["ate"]["ate_rmse_m"]
+    assert len(set(spread["ate_rmse_m"])) == 3  # different drives
+    assert spread["ate_rmse_min_m"] <= spread["ate_rmse_median_m"] <= spread["ate_rmse_max_m"]
+    with pytest.raises(ValueError, match="recording"):
+        run_benchmark("killian", tmp_path, seeds=2)
