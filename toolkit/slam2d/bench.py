@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel
 
 from toolkit.geometry import Trajectory, umeyama_alignment
 from toolkit.io.atomic import atomic_write_json
@@ -67,17 +68,18 @@ def ate_se2(estimate: Trajectory, reference: Trajectory, tol: float = 1e-3) -> d
 
 
 def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
+    """``--set a.b=v`` on the settings. Keys are checked against the models' fields, not
+    the dump: an option left out of the dump while off (``AddedOptions``) is settable."""
     data = config.model_dump()
     for item in sets:
         key, _, value = item.partition("=")
-        node = data
+        node, model = data, config
         parts = key.split(".")
-        for p in parts[:-1]:
-            if not isinstance(node, dict) or p not in node:
+        for depth, p in enumerate(parts):
+            if not isinstance(model, BaseModel) or p not in type(model).model_fields:
                 raise KeyError(f"--set {key}: unknown setting {p!r}")
-            node = node[p]
-        if not isinstance(node, dict) or parts[-1] not in node:
-            raise KeyError(f"--set {key}: unknown setting")
+            if depth < len(parts) - 1:
+                node, model = node[p], getattr(model, p)
         node[parts[-1]] = read_yaml_value(value)  # as a recipe's --set reads it
     return Slam2DConfig.model_validate(data)
 
