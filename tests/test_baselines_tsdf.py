@@ -334,3 +334,42 @@ def test_reference_holds_surface_that_only_frames_between_spread_views_saw() -> 
     ref2 = observed_reference(scene, cam, poses, spacing_m=0.005, max_views=3)
     back2 = ref2[np.abs(ref2[:, 1] - 2.0) < 1e-6]
     assert not np.any((back2[:, 0] > 0.065) & (back2[:, 0] < 0.095) & (np.abs(back2[:, 2]) < 0.1))
+
+
+def test_stage_references_test_every_frame_up_to_reference_views(tmp_path: Path) -> None:
+    """The tsdf and camera_only stages' own ground-truth comparisons measured completeness
+    against spread views once a sequence had more than 400 frames, while evaluate (version
+    6) tests every frame up to its completeness_views (1000). ``reference_views`` now sets
+    it, 1000 by default: on the slit scene above, all 7 frames keep the middle frame's strip
+    of the back wall; 3 spread views lose it. Left at any value with ``geometry: false`` it
+    is not part of the settings a run records (its cache key), as it changes nothing."""
+    from types import SimpleNamespace
+
+    import open3d as o3d
+
+    from toolkit.baselines.stage import CameraOnlyConfig, TSDFConfig, _mesh_reference
+    from toolkit.baselines.synthetic import look_at
+
+    scene = (_box((-1.0, 1.0, -1.0), (0.09, 1.05, 1.0))
+             + _box((0.11, 1.0, -1.0), (1.0, 1.05, 1.0))
+             + _box((-1.0, 2.0, -1.0), (1.0, 2.05, 1.0)))
+    path = tmp_path / "scene.ply"
+    o3d.io.write_triangle_mesh(str(path), scene)
+    cam = PinholeCamera(160, 120, 400.0, 400.0, 79.5, 59.5)
+    seq = SimpleNamespace(groundtruth=SimpleNamespace(mesh_path=path),
+                          rig=SimpleNamespace(camera=cam))
+    poses = np.stack([look_at([x, 0.0, 0.0], [x, 1.0, 0.0]) for x in np.arange(7) * 0.04])
+
+    def middle_strip(max_views: int) -> int:
+        _, ref = _mesh_reference(seq, poses, 6.0, 0.005, max_views)
+        back = ref[np.abs(ref[:, 1] - 2.0) < 1e-6]
+        return int(np.sum((back[:, 0] > 0.065) & (back[:, 0] < 0.095)
+                          & (np.abs(back[:, 2]) < 0.1)))
+
+    assert TSDFConfig(stage="tsdf").reference_views == 1000
+    assert middle_strip(TSDFConfig(stage="tsdf", reference_views=7).reference_views) > 20
+    assert middle_strip(3) == 0
+    for cfg in (TSDFConfig, CameraOnlyConfig):
+        assert "reference_views" in cfg(stage="x").model_dump()
+        assert "reference_views" not in cfg(stage="x", geometry=False,
+                                             reference_views=5).model_dump()

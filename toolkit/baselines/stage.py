@@ -24,6 +24,7 @@ from toolkit.io.atomic import atomic_write_json
 from toolkit.recipe.checkpoint import Checkpoint
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.sensors import Sequence
+from toolkit.settings import AddedOptions
 
 # ---------------------------------------------------------------------------- shared
 
@@ -90,8 +91,9 @@ def _select(indices: np.ndarray, every: int, max_images: int | None) -> np.ndarr
 
 
 def _mesh_reference(seq: Sequence, poses: np.ndarray, max_depth_m: float,
-                    spacing_m: float = 0.01) -> tuple[Any, np.ndarray] | None:
-    """Ground-truth mesh and its samples seen from ``poses`` (None without a mesh)."""
+                    spacing_m: float, max_views: int) -> tuple[Any, np.ndarray] | None:
+    """Ground-truth mesh and its samples seen from ``poses`` (None without a mesh); every
+    pose is tested up to ``max_views`` of them, as evaluate's ``completeness_views``."""
     gt = seq.groundtruth
     if gt is None or gt.mesh_path is None:
         return None
@@ -100,7 +102,7 @@ def _mesh_reference(seq: Sequence, poses: np.ndarray, max_depth_m: float,
 
     mesh = read_mesh(gt.mesh_path)
     ref = observed_reference(mesh, seq.rig.camera.undistorted(), poses, spacing_m,
-                             max_depth_m=max_depth_m)
+                             max_views=max_views, max_depth_m=max_depth_m)
     return mesh, ref
 
 
@@ -126,8 +128,10 @@ def _geometry_rows(prefix: str, g: dict[str, Any]) -> list[tuple[str, Any]]:
 # ---------------------------------------------------------------------------- tsdf
 
 
-class TSDFConfig(StageConfig):
+class TSDFConfig(StageConfig, AddedOptions):
     """Settings of the ``tsdf`` stage."""
+
+    added_unused = {"reference_views": "geometry"}
 
     # scaled: the fuse stage's lidar-scaled depth; groundtruth: the simulator's exact depth
     # (the upper bound any depth network could reach at these poses).
@@ -150,6 +154,9 @@ class TSDFConfig(StageConfig):
     views: int = Field(3, ge=0)  # rendered comparison views in the report
     eval_spacing_m: float = Field(0.01, gt=0)  # sample spacing for the mesh comparison
     geometry: bool = True  # compare with the ground-truth mesh here (off: leave it to evaluate)
+    # Completeness is measured against the surface these many frames saw, every frame up to
+    # it (evaluate's completeness_views): spread views above it miss what turns saw.
+    reference_views: int = Field(1000, ge=1)
     # Save the volume this often (seconds; 0: never) so that a killed run resumes there.
     checkpoint_every_s: float = Field(300.0, ge=0)
 
@@ -310,8 +317,8 @@ class TSDFStage(Stage):
         # Geometry against the ground-truth surface the cameras saw (true poses for visibility).
         gt_traj = groundtruth_camera_trajectory(seq)
         vis_poses = poses_at_frames(gt_traj, seq)[1][:: cfg.every] if gt_traj is not None else poses
-        ref = _mesh_reference(seq, vis_poses, cfg.depth_max_m, cfg.eval_spacing_m) if (
-            cfg.geometry) else None
+        ref = _mesh_reference(seq, vis_poses, cfg.depth_max_m, cfg.eval_spacing_m,
+                              cfg.reference_views) if cfg.geometry else None
         S = None
         aligned = fp.source == "groundtruth"  # in the world frame already
         if ref is not None and not aligned:
@@ -762,8 +769,10 @@ def fused_map_to_poses(fused_poses: Path, stamps: np.ndarray, poses: np.ndarray,
 # ---------------------------------------------------------------------------- camera only
 
 
-class CameraOnlyConfig(_ColmapKeys):
+class CameraOnlyConfig(_ColmapKeys, AddedOptions):
     """Settings of the ``camera_only`` stage."""
+
+    added_unused = {"reference_views": "geometry"}
 
     # Reuse an upstream colmap stage's SfM model (same frames) instead of running COLMAP again.
     reuse_colmap: bool = True
@@ -786,6 +795,7 @@ class CameraOnlyConfig(_ColmapKeys):
     # The two map comparisons (own scale, Sim(3)) take most of this stage's time on a house
     # (~2.5 M points each); off leaves the map to the evaluate stage.
     geometry: bool = True
+    reference_views: int = Field(1000, ge=1)  # as tsdf's
     eval_max_points: int = Field(400_000, ge=1000)  # map points scored (random subset)
     eval_max_depth_m: float = Field(10.0, gt=0)
 
@@ -980,7 +990,7 @@ class CameraOnlyStage(Stage):
             max_depth_m = CameraOnlySettings().max_depth_factor * res.info[
                 "median_sparse_depth"] * s_sim
             mr = _mesh_reference(seq, poses_at_frames(gt_traj, seq)[1], max_depth_m,
-                                 cfg.eval_spacing_m)
+                                 cfg.eval_spacing_m, cfg.reference_views)
             if mr is not None:
                 from toolkit.eval.geometry import geometry_metrics, mesh_distances
 
