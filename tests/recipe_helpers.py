@@ -20,6 +20,7 @@ class SplatInputsConfig(StageConfig):
     depth_folder: str = "scaled_depth"
     exposure_gain: float | None = None  # write this gain for every frame as fuse's would
     exposure_gain_frames: int | None = None  # ... for the first this many frames only
+    exposure_gains: list[float] | None = None  # or each frame's own gain (all channels)
     width: int = 48
     height: int = 36
     gaussians: int = 2500
@@ -40,12 +41,16 @@ class SplatInputs(Stage):
                                             height=cfg.height, n_gaussians=cfg.gaussians,
                                             depth_folder=cfg.depth_folder)
         ctx.provide("sequence", seq)
-        if cfg.exposure_gain is not None:
+        if cfg.exposure_gain is not None or cfg.exposure_gains is not None:
             from toolkit.fusion.exposure import EXPOSURE_FILE, write_exposure_gains
 
-            n = cfg.frames if cfg.exposure_gain_frames is None else cfg.exposure_gain_frames
-            write_exposure_gains(fused / EXPOSURE_FILE, [(i, float(i)) for i in range(n)],
-                                 np.full((n, 3), cfg.exposure_gain))
+            if cfg.exposure_gains is not None:
+                g = np.repeat(np.asarray(cfg.exposure_gains, np.float64)[:, None], 3, 1)
+            else:
+                n = cfg.frames if cfg.exposure_gain_frames is None else cfg.exposure_gain_frames
+                g = np.full((n, 3), cfg.exposure_gain)
+            write_exposure_gains(fused / EXPOSURE_FILE, [(i, float(i)) for i in range(len(g))],
+                                 g)
         if "fused" in self.provides:
             ctx.provide("fused", fused)
 

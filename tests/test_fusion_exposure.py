@@ -18,6 +18,7 @@ from toolkit.fusion.exposure import (
     corrected_image,
     gain_edges,
     gain_error,
+    gains_from_neighbours,
     read_exposure_gains,
     solve_gains,
     spread_gains,
@@ -252,6 +253,24 @@ def test_corrected_image_divides_each_channel() -> None:
     assert out.tolist() == [[[50, 255, 50], [128, 0, 10]]]
     with pytest.raises(ValueError, match="uint8"):
         corrected_image(rgb.astype(np.float32), np.ones(3))
+
+
+def test_gains_from_neighbours_ignore_the_wanted_frames_own_gains() -> None:
+    """Frames 3 and 7 wanted, known 2, 4, 6, 9 (any order): 3 between 2 (1.0) and 4 (4.0)
+    is 2.0 (log-linear), 7 a third of the way from 6 (1.0) to 9 (8.0) is 2.0 in every
+    channel; a frame before the first known one takes its gain; the wanted frames' own
+    entries (99) are never read."""
+    gains = {i: np.full(3, 99.0) for i in range(12)}
+    gains |= {2: np.full(3, 1.0), 4: np.full(3, 4.0), 6: np.array([1.0, 2.0, 0.5]),
+              9: np.array([8.0, 2.0, 0.5])}
+    got = gains_from_neighbours(gains, [9, 2, 6, 4], [3, 7, 0])
+    assert sorted(got) == [0, 3, 7]
+    np.testing.assert_allclose(got[3], [2.0, 2.0, 2.0])
+    np.testing.assert_allclose(got[7], [2.0, 2.0, 0.5])
+    np.testing.assert_allclose(got[0], [1.0, 1.0, 1.0])
+    assert gains_from_neighbours(gains, [2], []) == {}
+    with pytest.raises(ValueError, match="no known frames"):
+        gains_from_neighbours(gains, [], [3])
 
 
 def test_gains_file_round_trip_and_bad_rows(tmp_path: Path) -> None:

@@ -136,6 +136,39 @@ def test_exposure_fused_divides_the_images_by_the_fuse_stages_gains(
     assert not res.ok and "has no gain for 6 of the 12 frames" in str(res.error)
 
 
+def test_heldout_frames_are_not_divided_by_their_own_solved_gains(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fuse stage solves every frame's gain from that frame's own pixels; a held-out
+    frame divided by its own gain had its exposure fitted on the pixels it is scored on.
+    Frames 0, 4 and 8 are held out (holdout_every 4) with own gains of 2.0, which must not
+    be used: frame 4 sits between frames 3 (gain 1.0) and 5 (1.44), so log-linear 1.2;
+    frame 8 between 7 (0.9) and 9 (0.9), so 0.9; frame 0 before the first training frame,
+    so frame 1's 1.1. Training frames keep their own gains."""
+    import hashlib
+
+    import toolkit.splat.stage as splat_stage
+    from toolkit.io.sequence import read_sequence
+
+    own = [2.0, 1.1, 1.0, 1.0, 2.0, 1.44, 1.0, 0.9, 2.0, 0.9, 1.0, 1.0]
+    used: dict[str, list[float]] = {}
+    real = splat_stage.corrected_image
+
+    def recording(img: np.ndarray, gain: np.ndarray) -> np.ndarray:
+        used.setdefault(hashlib.sha1(img.tobytes()).hexdigest(), []).append(
+            float(np.mean(gain)))
+        return real(img, gain)
+
+    monkeypatch.setattr(splat_stage, "corrected_image", recording)
+    res = run_recipe(load_recipe(_recipe(tmp_path, with_traj=True, iterations=2,
+                                         inputs={"exposure_gains": own}, exposure="fused")))
+    assert res.ok, res.error
+    seq = read_sequence(tmp_path / "run" / "t_splat_inputs" / "sequence")
+    expected = {0: 1.1, 4: 1.2, 8: 0.9} | {i: own[i] for i in range(12) if i % 4}
+    for i, g in expected.items():
+        key = hashlib.sha1(np.ascontiguousarray(seq.frames[i].image).tobytes()).hexdigest()
+        assert used[key] == pytest.approx([g], rel=1e-9), f"frame {i}"
+
+
 def test_holdout_counts_the_frames_used_and_the_budget_caps_the_start(tmp_path: Path) -> None:
     """With frame_stride 2 the 12 posed frames give 6 used ones; holdout_every 4 holds out
     the 1st and 5th of those (every 4th of all frames would hold out half of them, and a

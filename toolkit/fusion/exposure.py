@@ -351,6 +351,25 @@ def spread_gains(solved: np.ndarray, at: np.ndarray, n_frames: int) -> np.ndarra
     return np.exp(np.stack([np.interp(x, at, logs[:, c]) for c in range(3)], 1))
 
 
+def gains_from_neighbours(gains: dict[int, np.ndarray], known: Iterable[int],
+                          wanted: Iterable[int]) -> dict[int, np.ndarray]:
+    """Frame index -> gain [3] of the ``wanted`` frames from the ``known`` frames' gains
+    alone, by ``spread_gains``'s rule (log-linear in the frame index between them, the
+    nearest one's beyond the ends): the exposure of a frame whose own pixels must not
+    decide it (a held-out view), predicted from its neighbours."""
+    at = np.unique(np.asarray(list(known), np.int64))
+    if not len(at):
+        raise ValueError("gains_from_neighbours: no known frames")
+    want = np.asarray(list(wanted), np.int64)
+    if not len(want):
+        return {}
+    # spread_gains covers 0..n-1: shift so the smallest index asked for is 0
+    lo = int(min(at.min(), want.min()))
+    full = spread_gains(np.array([gains[int(i)] for i in at], np.float64).reshape(-1, 3),
+                        at - lo, int(max(at.max(), want.max())) - lo + 1)
+    return {int(i): full[int(i) - lo] for i in want}
+
+
 def gain_error(solved: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """Solved gains [F, 3] (or [F]) against true gains [F] (one per frame, all channels),
     up to the common factor neither can know: RMS and max of the log ratio after removing

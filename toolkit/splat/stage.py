@@ -46,7 +46,12 @@ import torch
 from pydantic import Field, model_validator
 
 from toolkit.camera import PinholeCamera
-from toolkit.fusion.exposure import EXPOSURE_FILE, corrected_image, gains_for_frames
+from toolkit.fusion.exposure import (
+    EXPOSURE_FILE,
+    corrected_image,
+    gains_for_frames,
+    gains_from_neighbours,
+)
 from toolkit.geometry import Trajectory, inv_se3, rigid_alignment
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
@@ -350,8 +355,9 @@ class SplatStage(Stage):
     # fuse stage's exposure gains (exposure: auto). 4: the colour L1 over the valid pixels
     # of a masked view (a distorted camera's lens corners). 5: the training's SSIM term
     # over a masked view's valid windows too. 6: the scene scale is at least the initial
-    # cloud's median radius (short drives in large rooms)
-    version = 6
+    # cloud's median radius (short drives in large rooms). 7: the path's held-out images at
+    # gains interpolated from their training neighbours', not at their own solved ones
+    version = 7
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]
@@ -412,8 +418,6 @@ class SplatStage(Stage):
                          "(lens corners); neither fitted nor scored",
                          100.0 * (1 - float(valid.float().mean())))
 
-        gains = self._exposure_gains(cfg, fused, index[used])
-
         def load_view(k: int) -> TrainView:
             fi = int(index[k])
             img = seq.frames[fi].image
@@ -444,6 +448,15 @@ class SplatStage(Stage):
         if not train_k:
             raise StageError("splat: no training views left (check frame_stride / "
                              "holdout_every)")
+        gains = self._exposure_gains(cfg, fused, index[used])
+        if gains and test_k:
+            # A held-out frame's own gain was solved by the fuse stage from that frame's own
+            # pixels: dividing its image by it fitted the target's exposure on the very
+            # pixels it is scored on, which no prediction of an unseen view can know. Its
+            # exposure is predicted from the training frames around it instead.
+            train_fi = [int(index[k]) for k in train_k]
+            gains = {**{fi: gains[fi] for fi in train_fi},
+                     **gains_from_neighbours(gains, train_fi, [int(index[k]) for k in test_k])}
         n_depth = sum(depth_file(depth_dir, int(index[k])) is not None for k in used)
         budget_bytes = int(cfg.view_cache_mb * 2**20)
         train_views = view_set(train_k, budget_bytes)
@@ -744,8 +757,10 @@ class SplatStage(Stage):
                          "not known for a view the splats never saw)"
                          + ("; training fitted that gain to every image too (`exposure: "
                             "gain`)." if cfg.exposure == "gain" else
-                            "; training and the path's held-out images were divided by the "
-                            f"exposure gains the fuse stage solved (`exposure: {cfg.exposure}`)."
+                            "; training images were divided by the exposure gains the fuse "
+                            f"stage solved (`exposure: {cfg.exposure}`), the path's held-out "
+                            "images by the gains interpolated from their training neighbours' "
+                            "(a held-out frame's own gain was solved from its own pixels)."
                             if m.get("exposure_gains_from_fuse") else "."))
             if tsdf:
                 lines.append(
