@@ -1238,7 +1238,7 @@ def test_a_bad_transform_off_the_rigs_path_is_skipped_and_named(tmp_path, caplog
     with caplog.at_level(logging.WARNING):
         rec = read_rosbag(bag)
     assert len(rec.scans) == len(c.scan_t)
-    assert "no rotation were skipped map -> odom (1x)" in caplog.text
+    assert "no rotation or not finite were skipped map -> odom (1x)" in caplog.text
 
 
 def test_driver_faults_name_topic_field_and_fix(tmp_path, caplog):
@@ -1415,3 +1415,54 @@ def test_region_of_interest_camera(tmp_path):
     with pytest.raises(BagError, match=r"is 32x24 but the CameraInfo .* says 16x12 \(fields "
                        r"roi.width/roi.height\)"):
         read_rosbag(write_bag(tmp_path / "roi_full", "ros1", msgs))
+
+
+def test_non_finite_poses_and_intrinsics_are_named_at_ingest(tmp_path, caplog):
+    """NaN where drivers emit it: odometry before its estimator's first fix went into
+    odometry.tum and the next stage refused the finished sequence (naming that file, not
+    the bag); a NaN tf translation on the laser's mount stopped the conversion with a bare
+    "T_base_laser must be a finite 4x4 matrix"; a NaN in CameraInfo K was reported as a
+    recalibration while recording, and a transposed K as a bare ValueError."""
+    c = make_content(n_images=4)
+    b = BagBuilder(False)
+    # odometry: the first three poses NaN
+    c.odom_xy[:3] = [(np.nan, np.nan)] * 3
+    bag = write_bag(tmp_path / "odom", "sqlite3", standard_messages(b, c, depth=False))
+    with pytest.raises(BagError, match=r"topic /odom: message 0 \(stamped .*field "
+                                       r"'pose.pose.position'.*rosbag.topics.odometry: none"):
+        read_rosbag(bag)
+
+    # tf: a NaN translation is skipped like a zero quaternion, and named where needed
+    c = make_content(n_images=4)
+    T_nan = T_BASE_LASER.copy()
+    T_nan[0, 3] = np.nan
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/tf_static"]
+    static = ("/tf_static", TF_T, T0 - 1.0, b.tf([
+        b.transform(T0, "base_link", "camera_link", T_BASE_CAMLINK),
+        b.transform(T0, "camera_link", "camera_optical", T_CAMLINK_OPT),
+        b.transform(T0, "base_link", "laser", T_nan)]))
+    with pytest.raises(MissingTransformError, match=r"'laser'.*not finite.*base_link -> "
+                                                    r"laser \(1x\)"):
+        read_rosbag(write_bag(tmp_path / "tf", "sqlite3", [static, *msgs]))
+    off_path = ("/tf", TF_T, T0 + 0.5, b.tf([b.transform(T0 + 0.5, "map", "odom", T_nan)]))
+    good = standard_messages(b, c, depth=False)
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(write_bag(tmp_path / "tf_off", "sqlite3", [*good, off_path]))
+    np.testing.assert_allclose(rec.rig.T_base_laser, T_BASE_LASER, atol=1e-12)
+    assert "map -> odom (1x)" in caplog.text
+
+    # CameraInfo: a NaN in K in every message is no recalibration; the field is named
+    msgs = standard_messages(b, c, depth=False)
+    K_nan = K.copy()
+    K_nan[0, 2] = np.nan
+    msgs = [m if m[1] != INFO_T else (*m[:3], dataclasses.replace(m[3], k=K_nan.reshape(-1)))
+            for m in msgs]
+    with pytest.raises(BagError, match=r"topic /camera/color/camera_info: field 'K' holds a "
+                                       r"non-finite value.*calibration YAML") as e:
+        read_rosbag(write_bag(tmp_path / "info", "sqlite3", msgs))
+    assert "changes" not in str(e.value)
+    # a transposed K (cx, cy in the bottom row): BagError naming topic and field
+    info = b.camera_info(0.0)
+    bad = dataclasses.replace(info, k=K.T.reshape(-1).copy())
+    with pytest.raises(BagError, match=r"topic /cam/camera_info: field 'K': K must be"):
+        camera_info_to_camera(bad, "topic /cam/camera_info")

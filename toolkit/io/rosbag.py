@@ -626,11 +626,18 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
         K[1, 2] -= y0
         P[0, 2] -= x0
         P[1, 2] -= y0
+    # The fields the camera model is made of must be numbers: a NaN in K or D failed as a
+    # bare ValueError naming neither the bag, the topic nor the field.
+    for name, value in (("P", P[:, :3]),) if rectified else (("K", K), ("D", D[:5])):
+        if not np.all(np.isfinite(value)):
+            raise BagError(f"{where}: field '{name}' holds a non-finite value "
+                           f"({np.round(value, 6).reshape(-1).tolist()}); {fix}")
     if rectified:
         if not np.any(P[:, :3]):
             raise BagError(f"{where}: field 'P' is all zero, but the images are rectified "
                            f"and need it; {fix}")
-        return PinholeCamera(w, h, P[0, 0], P[1, 1], P[0, 2], P[1, 2])
+        return _pinhole(lambda: PinholeCamera(w, h, P[0, 0], P[1, 1], P[0, 2], P[1, 2]),
+                        where, "P", fix)
     if not np.any(K):
         raise BagError(f"{where}: field 'K' is all zero (the camera was not calibrated); {fix}")
     if model in ("plumb_bob", "rational_polynomial", "") or (model == "none" and not D.any()):
@@ -644,10 +651,20 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
         if model == "" and D.any():
             raise BagError(f"{where}: field 'D' has {len(D)} coefficients but "
                            f"'distortion_model' is empty; {fix}")
-        return PinholeCamera.from_K(K, w, h, D[:5])
+        return _pinhole(lambda: PinholeCamera.from_K(K, w, h, D[:5]), where, "K", fix)
     raise BagError(f"{where}: field 'distortion_model' is {model!r}; only plumb_bob (OpenCV "
                    "k1 k2 p1 p2 k3) is supported. Use the rectified image topic (image_rect, "
                    "with rosbag.rectified: true) or " + fix)
+
+
+def _pinhole(make: Callable[[], PinholeCamera], where: str, field_name: str,
+             fix: str) -> PinholeCamera:
+    """``make()``, its refusal (a transposed K, a negative focal length) as a BagError
+    naming the topic and field rather than a bare ValueError."""
+    try:
+        return make()
+    except ValueError as e:
+        raise BagError(f"{where}: field '{field_name}': {e}; {fix}") from None
 
 
 def rectification_rotation(msg: Any, where: str = "camera_info") -> np.ndarray:
@@ -663,15 +680,37 @@ def rectification_rotation(msg: Any, where: str = "camera_info") -> np.ndarray:
     return R
 
 
+class NotATransformError(ValueError):
+    """A ``geometry_msgs`` Transform or Pose that is no rigid motion; ``part`` names the
+    bad half ('translation' / 'rotation' of a Transform, 'position' / 'orientation' of a
+    Pose)."""
+
+    def __init__(self, part: str, message: str) -> None:
+        super().__init__(message)
+        self.part = part
+
+
 def transform_to_matrix(tf: Any) -> np.ndarray:
-    """[4, 4] of a ``geometry_msgs/Transform`` (or Pose: position / orientation)."""
-    t = getattr(tf, "translation", None) or tf.position
-    q = getattr(tf, "rotation", None) or tf.orientation
+    """[4, 4] of a ``geometry_msgs/Transform`` (or Pose: position / orientation).
+
+    Raises ``NotATransformError`` for a zero or non-finite quaternion and for a non-finite
+    translation: a NaN position (an estimator before its first fix or after diverging)
+    went through as a NaN pose, into a rig or trajectory the sequence reader refuses.
+    """
+    pose = getattr(tf, "translation", None) is None
+    t = tf.position if pose else tf.translation
+    q = tf.orientation if pose else tf.rotation
     quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
     n = np.linalg.norm(quat)
     if not np.isfinite(n) or n < 1e-6:
-        raise ValueError(f"quaternion {quat.tolist()} is not a rotation")
-    return pose_from_xyz_quat(np.array([t.x, t.y, t.z], dtype=np.float64), quat / n)
+        raise NotATransformError("orientation" if pose else "rotation",
+                                 f"quaternion {quat.tolist()} is not a rotation")
+    xyz = np.array([t.x, t.y, t.z], dtype=np.float64)
+    if not np.all(np.isfinite(xyz)):
+        raise NotATransformError("position" if pose else "translation",
+                                 f"{'position' if pose else 'translation'} {xyz.tolist()} "
+                                 "is not finite")
+    return pose_from_xyz_quat(xyz, quat / n)
 
 
 # ---------------------------------------------------------------------------- tf
@@ -691,9 +730,9 @@ class TfTree:
         self._static: set[tuple[str, str]] = set()
         self._first: dict[tuple[str, str], np.ndarray] = {}
         self.moving: set[tuple[str, str]] = set()
-        # Transforms that were no rotation (a zero quaternion: a localisation node before
-        # its first fix), skipped: (parent, child) -> count. Fatal only where a lookup
-        # needs that edge.
+        # Transforms that were no rigid motion (a zero quaternion: a localisation node
+        # before its first fix; a NaN translation), skipped: (parent, child) -> count.
+        # Fatal only where a lookup needs that edge.
         self.invalid: dict[tuple[str, str], int] = {}
 
     def add_invalid(self, parent: str, child: str) -> None:
@@ -704,7 +743,8 @@ class TfTree:
         """The skipped transforms, for a message ('' when none)."""
         if not self.invalid:
             return ""
-        return "; skipped as no rotation (quaternion zero or not finite): " + ", ".join(
+        return ("; skipped as no rotation or not finite (quaternion zero or not finite, or "
+                "translation not finite): ") + ", ".join(
             f"{p} -> {c} ({n}x)" for (p, c), n in sorted(self.invalid.items()))
 
     def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str) -> None:
@@ -1238,8 +1278,10 @@ def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int, clock: str = "stamp"
         return
     first, now = _camera_info_fields(idx.info), _camera_info_fields(msg)
     for name, value in now.items():
-        if value.shape != first[name].shape or not np.allclose(value, first[name],
-                                                               rtol=1e-9, atol=1e-9):
+        # NaN equals NaN here: a field that holds one in every message did not change
+        # (it was reported as a recalibration); camera_info_to_camera names it instead.
+        if value.shape != first[name].shape or not np.allclose(
+                value, first[name], rtol=1e-9, atol=1e-9, equal_nan=True):
             idx.info_changed = (f"{clock} {stamp_ns / 1e9:.6f} s", name)
             return
 
@@ -1313,9 +1355,10 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
         elif topic == ch.odometry:
             try:
                 T = transform_to_matrix(msg.pose.pose)
-            except ValueError as e:
-                raise BagError(f"{where}: message {len(idx.odom)}: field "
-                               f"'pose.pose.orientation': {e}. Fix: leave the odometry out "
+            except NotATransformError as e:
+                raise BagError(f"{where}: message {len(idx.odom)} (stamped "
+                               f"{header_ns(msg) / 1e9:.9f} s): field 'pose.pose.{e.part}': "
+                               f"{e}. Fix: leave the odometry out "
                                "(rosbag.topics.odometry: none; the SLAM runs on the scans "
                                "alone) or name another topic") from None
             idx.odom_ns.append(_stamp(msg, ns, opts, where))
@@ -1328,7 +1371,7 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             for tr in msg.transforms:
                 try:
                     T = transform_to_matrix(tr.transform)
-                except ValueError:
+                except NotATransformError:
                     idx.tf.add_invalid(str(tr.header.frame_id), str(tr.child_frame_id))
                     continue
                 idx.tf.add(str(tr.header.frame_id), str(tr.child_frame_id), T, static, topic)
@@ -1429,7 +1472,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     bag_name = ", ".join(str(p) for p in paths)
     _check_clocks(idx, ch, opts, bag_name)
     if idx.tf.invalid:
-        log.warning("%s: tf transforms that are no rotation were skipped%s", bag_name,
+        log.warning("%s: tf transforms that are no rotation or not finite were skipped%s",
+                    bag_name,
                     idx.tf.invalid_note().partition(":")[2])
     if idx.intensities_dropped:
         log.warning("%s: topic %s: %d scans carry intensities of another length than their "
