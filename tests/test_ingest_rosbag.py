@@ -1466,3 +1466,18 @@ def test_non_finite_poses_and_intrinsics_are_named_at_ingest(tmp_path, caplog):
     bad = dataclasses.replace(info, k=K.T.reshape(-1).copy())
     with pytest.raises(BagError, match=r"topic /cam/camera_info: field 'K': K must be"):
         camera_info_to_camera(bad, "topic /cam/camera_info")
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_an_empty_bag_says_so(tmp_path, fmt):
+    """An empty recording was reported as 'Topics in the bag: ' followed by nothing; a bag
+    without scans lists its topics with their message counts."""
+    with pytest.raises(BagError, match=r"holds no messages.*record again"):
+        read_rosbag(write_bag(tmp_path / "empty", fmt, []))
+    b = BagBuilder(fmt == "ros1")
+    c = make_content(n_images=2)
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/scan"]
+    bag = write_bag(tmp_path / "silent", fmt, msgs)
+    with pytest.raises(BagError, match=r"no sensor_msgs/LaserScan topic with messages.*"
+                                       r"/odom \(nav_msgs/msg/Odometry, \d+ messages\)"):
+        read_rosbag(bag)

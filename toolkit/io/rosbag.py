@@ -1043,9 +1043,18 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     if not given:
         ch.scan = _one(bag, "scan", "sensor_msgs/LaserScan", bag.of_type(SCAN), ("/scan",))
     if ch.scan is None:
+        # An empty recording listed nothing after "Topics in the bag:"; with counts, a
+        # topic the recorder subscribed to but never heard from shows as such.
+        if not bag.reader.message_count:
+            raise BagError(f"{bag.name}: the bag holds no messages (an empty recording: "
+                           "the recorder stopped before the drivers published, or a filter "
+                           "kept nothing); this toolkit needs a 2D lidar's "
+                           "sensor_msgs/LaserScan. Fix: record again with the lidar driver "
+                           "running, or convert another bag")
         raise BagError(f"{bag.name}: no sensor_msgs/LaserScan topic with messages; this "
                        "toolkit needs a 2D lidar. Topics in the bag: "
-                       + ", ".join(f"{t.name} ({t.msgtype})" for t in bag.topics.values()))
+                       + ", ".join(f"{t.name} ({t.msgtype}, {t.count} messages)"
+                                   for t in bag.topics.values()))
 
     # Sort image topics into piles by their first message's encoding.
     peek: dict[str, Any] = {}
