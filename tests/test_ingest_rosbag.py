@@ -1481,3 +1481,50 @@ def test_an_empty_bag_says_so(tmp_path, fmt):
     with pytest.raises(BagError, match=r"no sensor_msgs/LaserScan topic with messages.*"
                                        r"/odom \(nav_msgs/msg/Odometry, \d+ messages\)"):
         read_rosbag(bag)
+
+
+def test_conflicting_mounts_in_tf_are_named(tmp_path, caplog):
+    """Two static publishers of one edge (a URDF's base_link -> camera_link beside a
+    calibration launch's), or a /tf value beside a static one: the latest static value was
+    used for every frame without a word."""
+    c = make_content(n_images=4)
+    b = BagBuilder(True)
+    T_other = pose_from_xyz_quat(np.array([0.25, 0.05, 0.4]), np.array([0, 0, 0, 1.0]))
+    T_laser_tf = T_BASE_LASER.copy()
+    T_laser_tf[2, 3] += 0.03
+    msgs = standard_messages(b, c, depth=False)  # tf_static: the rig at T0 - 1
+    extra = [
+        # the same static set again (a latched republish): no conflict
+        ("/tf_static", TF_T, T0 - 0.5, b.tf([
+            b.transform(T0, "base_link", "camera_link", T_BASE_CAMLINK),
+            b.transform(T0, "camera_link", "camera_optical", T_CAMLINK_OPT)])),
+        # /tf gives the laser's mount 3 cm higher than tf_static
+        ("/tf", TF_T, T0 + 0.2, b.tf([b.transform(T0 + 0.2, "base_link", "laser",
+                                                  T_laser_tf)]))]
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(write_bag(tmp_path / "laser", "ros1", [*msgs, *extra]))
+    np.testing.assert_allclose(rec.rig.T_base_laser, T_BASE_LASER, atol=1e-12)  # static
+    assert "laser mount's edge base_link -> laser (on /tf, /tf_static" in caplog.text
+    assert "camera mount" not in caplog.text
+
+    # a second static publisher of base_link -> camera_link, later in the bag: used, named
+    caplog.clear()
+    later = ("/tf_static", TF_T, T0 + 0.3, b.tf([
+        b.transform(T0, "base_link", "camera_link", T_other)]))
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(write_bag(tmp_path / "camera", "ros1", [*msgs, later]))
+    np.testing.assert_allclose(rec.rig.T_base_camera, T_other @ T_CAMLINK_OPT, atol=1e-12)
+    assert "camera mount's edge base_link -> camera_link (on /tf_static; used: xyz " \
+        "[0.25, 0.05, 0.4]" in caplog.text and "T_base_camera in a calibration" in caplog.text
+    assert "laser mount" not in caplog.text
+
+    # a calibration file's transform overrides the bag's: no conflict
+    caplog.clear()
+    calib = tmp_path / "calib.yaml"
+    calib.write_text(yaml.safe_dump({"transforms": [{
+        "parent": "base_link", "child": "laser", "xyz": [0.0, 0.0, 0.3],
+        "quat_xyzw": [0.0, 0.0, 0.0, 1.0]}]}))
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(write_bag(tmp_path / "calibrated", "ros1", msgs),
+                          RosbagOptions(calibration=str(calib)))
+    assert rec.rig.T_base_laser[2, 3] == 0.3 and "mount's edge" not in caplog.text

@@ -734,6 +734,11 @@ class TfTree:
         # before its first fix; a NaN translation), skipped: (parent, child) -> count.
         # Fatal only where a lookup needs that edge.
         self.invalid: dict[tuple[str, str], int] = {}
+        # Edges the bag gives different mounts for (two static publishers of one edge, a
+        # URDF's and a calibration's; a /tf value beside a static one): (parent, child) ->
+        # the sources that disagreed. The latest static value is used; a lookup through
+        # such an edge says so rather than pick one without a word.
+        self.conflicts: dict[tuple[str, str], set[str]] = {}
 
     def add_invalid(self, parent: str, child: str) -> None:
         key = (_frame(parent), _frame(child))
@@ -747,8 +752,16 @@ class TfTree:
                 "translation not finite): ") + ", ".join(
             f"{p} -> {c} ({n}x)" for (p, c), n in sorted(self.invalid.items()))
 
-    def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str) -> None:
+    def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str,
+            override: bool = False) -> None:
+        """Add one transform T_parent_child. ``override``: it replaces what the bag says
+        (a calibration file's), which is no conflict."""
         key = (_frame(parent), _frame(child))
+        if not override:
+            before = self.fixed.get(key, self._first.get(key))
+            if key in self.moving or (before is not None and _differs(before, T)):
+                if static or key in self._static:
+                    self.conflicts.setdefault(key, {self.source.get(key, source)}).add(source)
         if static:  # the latest static transform wins, over /tf too
             self.fixed[key] = T
             self.source[key] = source
@@ -771,6 +784,20 @@ class TfTree:
 
     def frames(self) -> set[str]:
         return {f for k in (*self.fixed, *self.moving) for f in k}
+
+    def conflicts_on(self, path: Sequence[str]) -> list[str]:
+        """The edges along ``path`` (frames, as ``lookup`` returns them) the bag gave
+        different values for, as 'parent -> child (sources)' with the value used."""
+        out = []
+        for a, b in zip(path[:-1], path[1:], strict=True):
+            for key in ((a, b), (b, a)):
+                if key in self.conflicts:
+                    T = self.fixed[key]
+                    out.append(f"{key[0]} -> {key[1]} (on {', '.join(sorted(self.conflicts[key]))}"
+                               f"; used: xyz {np.round(T[:3, 3], 4).tolist()}, rpy deg "
+                               f"{np.round(np.degrees(_rpy(T)), 2).tolist()} from "
+                               f"{self.source[key]})")
+        return out
 
     def lookup(self, target: str, source: str, include_moving: bool = False) -> (
         tuple[np.ndarray, list[str]] | None
@@ -798,6 +825,20 @@ class TfTree:
                     best[nxt] = (T_tf @ T_f_n, [*path, nxt])
                     queue.append(nxt)
         return best.get(source)
+
+
+def _differs(A: np.ndarray, B: np.ndarray) -> bool:
+    """Two mounts that are not the same (beyond float noise: 1 um, 1 urad)."""
+    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) > 1e-6
+                or float(rotation_angle(A[:3, :3].T @ B[:3, :3])) > 1e-6)
+
+
+def _rpy(T: np.ndarray) -> np.ndarray:
+    """[3] roll, pitch, yaw (radians) of T's rotation, as tf's static_transform_publisher
+    takes them (extrinsic x-y-z)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(T[:3, :3]).as_euler("xyz")
 
 
 # ---------------------------------------------------------------------------- calibration
@@ -1505,7 +1546,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     tree = idx.tf
     if cal is not None:
         for parent, child, T in cal.transforms:
-            tree.add(parent, child, T, True, str(cal.path))
+            tree.add(parent, child, T, True, str(cal.path), override=True)
     has_camera = ch.image is not None
     # image_rect / image_rect_color / image_mono_rect carry undistorted pixels (image_proc's
     # names): "rect" as a word of the name, not inside one (image_color_corrected is raw).
@@ -1570,7 +1611,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
             if not cam_frame:
                 raise BagError(f"{bag_name}: topic {ch.image}: field 'header.frame_id' is "
                                "empty; name the camera frame with rosbag.frames.camera")
-            T_base_camera = _lookup(tree, base, cam_frame, "camera", bag_name, ch, laser_frame)
+            T_base_camera = _lookup(tree, base, cam_frame, "camera", bag_name, ch, laser_frame,
+                                    log)
             if opts.frames.camera_convention == "body":
                 T_base_camera = T_base_camera @ optical_mount()
             sources["T_base_camera"] = f"tf {base} <- {cam_frame}"
@@ -1599,7 +1641,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         if not laser_frame:
             raise BagError(f"{bag_name}: topic {ch.scan}: field 'header.frame_id' is empty; "
                            "name the laser frame with rosbag.frames.laser")
-        T_base_laser = _lookup(tree, base, laser_frame, "laser", bag_name, ch, cam_frame)
+        T_base_laser = _lookup(tree, base, laser_frame, "laser", bag_name, ch, cam_frame, log)
         sources["T_base_laser"] = f"tf {base} <- {laser_frame}"
     rig = Rig(camera, T_base_camera, T_base_laser)
 
@@ -1673,9 +1715,17 @@ def _filtered(s: _Stream, where: str, policy: Literal["error", "drop"],
 
 
 def _lookup(tree: TfTree, base: str, frame: str, role: str, bag_name: str, ch: TopicChoice,
-            other: str) -> np.ndarray:
+            other: str, log: logging.Logger) -> np.ndarray:
     found = tree.lookup(base, frame)
     if found is not None:
+        clash = tree.conflicts_on(found[1])
+        if clash:
+            key = "T_base_camera" if role == "camera" else "T_base_laser"
+            log.warning("%s: the bag's tf gives different values for the %s mount's edge %s; "
+                        "the latest static one is used for every frame. If another is the "
+                        "mount (a URDF's beside a calibration's, a mount corrected while "
+                        "recording), give %s in a calibration YAML (rosbag.calibration)",
+                        bag_name, role, "; ".join(clash), key)
         return found[0]
     moving = tree.lookup(base, frame, include_moving=True)
     key = "T_base_camera" if role == "camera" else "T_base_laser"
