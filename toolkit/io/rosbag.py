@@ -34,6 +34,7 @@ from typing import Any, Literal, NamedTuple
 import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import (
@@ -836,8 +837,6 @@ def _differs(A: np.ndarray, B: np.ndarray) -> bool:
 def _rpy(T: np.ndarray) -> np.ndarray:
     """[3] roll, pitch, yaw (radians) of T's rotation, as tf's static_transform_publisher
     takes them (extrinsic x-y-z)."""
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(T[:3, :3]).as_euler("xyz")
 
 
