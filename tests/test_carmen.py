@@ -91,6 +91,27 @@ def test_scan_without_beams_is_a_line_error(tmp_path: Path):
         read_carmen(path)
 
 
+def test_a_non_finite_pose_is_a_line_error(tmp_path: Path):
+    """Python reads 'nan' as a number: a log's NaN odometry went into odometry.tum, and the
+    converted sequence was refused by the next stage, naming that file, not the log line."""
+    path = tmp_path / "nan.log"
+    path.write_text(FLASER + FLASER.replace("0.11 0.21 0.31", "nan 0.21 0.31"))
+    with pytest.raises(CarmenFormatError, match=r"nan.log:2: bad FLASER line: odometry pose "
+                                                r".*\[nan, 0.21, 0.31\] is not finite"):
+        read_carmen(path)
+    path.write_text(ODOM.replace("-0.5", "inf"))
+    with pytest.raises(CarmenFormatError, match=r"nan.log:1: bad ODOM line: odometry pose"):
+        read_carmen(path)
+    path = tmp_path / "nan.g2o"
+    path.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 nan 0 0\n")
+    with pytest.raises(CarmenFormatError, match=r"nan.g2o:2: bad VERTEX_SE2 line: vertex pose"):
+        read_g2o(path)
+    # NaN ranges stay what they were: invalid beams
+    path = tmp_path / "ok.log"
+    path.write_text(ROBOTLASER)
+    assert np.isnan(read_carmen(path).scans[0].ranges).any()
+
+
 @pytest.mark.parametrize("reader", [read_carmen, read_g2o])
 def test_a_truncated_gzip_names_the_file_and_the_fix(tmp_path: Path, reader):
     path = tmp_path / "cut.log.gz"

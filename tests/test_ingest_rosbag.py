@@ -1238,7 +1238,7 @@ def test_a_bad_transform_off_the_rigs_path_is_skipped_and_named(tmp_path, caplog
     with caplog.at_level(logging.WARNING):
         rec = read_rosbag(bag)
     assert len(rec.scans) == len(c.scan_t)
-    assert "no rotation were skipped map -> odom (1x)" in caplog.text
+    assert "no rotation or not finite were skipped map -> odom (1x)" in caplog.text
 
 
 def test_driver_faults_name_topic_field_and_fix(tmp_path, caplog):
@@ -1415,3 +1415,116 @@ def test_region_of_interest_camera(tmp_path):
     with pytest.raises(BagError, match=r"is 32x24 but the CameraInfo .* says 16x12 \(fields "
                        r"roi.width/roi.height\)"):
         read_rosbag(write_bag(tmp_path / "roi_full", "ros1", msgs))
+
+
+def test_non_finite_poses_and_intrinsics_are_named_at_ingest(tmp_path, caplog):
+    """NaN where drivers emit it: odometry before its estimator's first fix went into
+    odometry.tum and the next stage refused the finished sequence (naming that file, not
+    the bag); a NaN tf translation on the laser's mount stopped the conversion with a bare
+    "T_base_laser must be a finite 4x4 matrix"; a NaN in CameraInfo K was reported as a
+    recalibration while recording, and a transposed K as a bare ValueError."""
+    c = make_content(n_images=4)
+    b = BagBuilder(False)
+    # odometry: the first three poses NaN
+    c.odom_xy[:3] = [(np.nan, np.nan)] * 3
+    bag = write_bag(tmp_path / "odom", "sqlite3", standard_messages(b, c, depth=False))
+    with pytest.raises(BagError, match=r"topic /odom: message 0 \(stamped .*field "
+                                       r"'pose.pose.position'.*rosbag.topics.odometry: none"):
+        read_rosbag(bag)
+
+    # tf: a NaN translation is skipped like a zero quaternion, and named where needed
+    c = make_content(n_images=4)
+    T_nan = T_BASE_LASER.copy()
+    T_nan[0, 3] = np.nan
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/tf_static"]
+    static = ("/tf_static", TF_T, T0 - 1.0, b.tf([
+        b.transform(T0, "base_link", "camera_link", T_BASE_CAMLINK),
+        b.transform(T0, "camera_link", "camera_optical", T_CAMLINK_OPT),
+        b.transform(T0, "base_link", "laser", T_nan)]))
+    with pytest.raises(MissingTransformError, match=r"'laser'.*not finite.*base_link -> "
+                                                    r"laser \(1x\)"):
+        read_rosbag(write_bag(tmp_path / "tf", "sqlite3", [static, *msgs]))
+    off_path = ("/tf", TF_T, T0 + 0.5, b.tf([b.transform(T0 + 0.5, "map", "odom", T_nan)]))
+    good = standard_messages(b, c, depth=False)
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(write_bag(tmp_path / "tf_off", "sqlite3", [*good, off_path]))
+    np.testing.assert_allclose(rec.rig.T_base_laser, T_BASE_LASER, atol=1e-12)
+    assert "map -> odom (1x)" in caplog.text
+
+    # CameraInfo: a NaN in K in every message is no recalibration; the field is named
+    msgs = standard_messages(b, c, depth=False)
+    K_nan = K.copy()
+    K_nan[0, 2] = np.nan
+    msgs = [m if m[1] != INFO_T else (*m[:3], dataclasses.replace(m[3], k=K_nan.reshape(-1)))
+            for m in msgs]
+    with pytest.raises(BagError, match=r"topic /camera/color/camera_info: field 'K' holds a "
+                                       r"non-finite value.*calibration YAML") as e:
+        read_rosbag(write_bag(tmp_path / "info", "sqlite3", msgs))
+    assert "changes" not in str(e.value)
+    # a transposed K (cx, cy in the bottom row): BagError naming topic and field
+    info = b.camera_info(0.0)
+    bad = dataclasses.replace(info, k=K.T.reshape(-1).copy())
+    with pytest.raises(BagError, match=r"topic /cam/camera_info: field 'K': K must be"):
+        camera_info_to_camera(bad, "topic /cam/camera_info")
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_an_empty_bag_says_so(tmp_path, fmt):
+    """An empty recording was reported as 'Topics in the bag: ' followed by nothing; a bag
+    without scans lists its topics with their message counts."""
+    with pytest.raises(BagError, match=r"holds no messages.*record again"):
+        read_rosbag(write_bag(tmp_path / "empty", fmt, []))
+    b = BagBuilder(fmt == "ros1")
+    c = make_content(n_images=2)
+    msgs = [m for m in standard_messages(b, c, depth=False) if m[0] != "/scan"]
+    bag = write_bag(tmp_path / "silent", fmt, msgs)
+    with pytest.raises(BagError, match=r"no sensor_msgs/LaserScan topic with messages.*"
+                                       r"/odom \(nav_msgs/msg/Odometry, \d+ messages\)"):
+        read_rosbag(bag)
+
+
+def test_conflicting_mounts_in_tf_are_named(tmp_path, caplog):
+    """Two static publishers of one edge (a URDF's base_link -> camera_link beside a
+    calibration launch's), or a /tf value beside a static one: the latest static value was
+    used for every frame without a word."""
+    c = make_content(n_images=4)
+    b = BagBuilder(True)
+    T_other = pose_from_xyz_quat(np.array([0.25, 0.05, 0.4]), np.array([0, 0, 0, 1.0]))
+    T_laser_tf = T_BASE_LASER.copy()
+    T_laser_tf[2, 3] += 0.03
+    msgs = standard_messages(b, c, depth=False)  # tf_static: the rig at T0 - 1
+    extra = [
+        # the same static set again (a latched republish): no conflict
+        ("/tf_static", TF_T, T0 - 0.5, b.tf([
+            b.transform(T0, "base_link", "camera_link", T_BASE_CAMLINK),
+            b.transform(T0, "camera_link", "camera_optical", T_CAMLINK_OPT)])),
+        # /tf gives the laser's mount 3 cm higher than tf_static
+        ("/tf", TF_T, T0 + 0.2, b.tf([b.transform(T0 + 0.2, "base_link", "laser",
+                                                  T_laser_tf)]))]
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(write_bag(tmp_path / "laser", "ros1", [*msgs, *extra]))
+    np.testing.assert_allclose(rec.rig.T_base_laser, T_BASE_LASER, atol=1e-12)  # static
+    assert "laser mount's edge base_link -> laser (on /tf, /tf_static" in caplog.text
+    assert "camera mount" not in caplog.text
+
+    # a second static publisher of base_link -> camera_link, later in the bag: used, named
+    caplog.clear()
+    later = ("/tf_static", TF_T, T0 + 0.3, b.tf([
+        b.transform(T0, "base_link", "camera_link", T_other)]))
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(write_bag(tmp_path / "camera", "ros1", [*msgs, later]))
+    np.testing.assert_allclose(rec.rig.T_base_camera, T_other @ T_CAMLINK_OPT, atol=1e-12)
+    assert "camera mount's edge base_link -> camera_link (on /tf_static; used: xyz " \
+        "[0.25, 0.05, 0.4]" in caplog.text and "T_base_camera in a calibration" in caplog.text
+    assert "laser mount" not in caplog.text
+
+    # a calibration file's transform overrides the bag's: no conflict
+    caplog.clear()
+    calib = tmp_path / "calib.yaml"
+    calib.write_text(yaml.safe_dump({"transforms": [{
+        "parent": "base_link", "child": "laser", "xyz": [0.0, 0.0, 0.3],
+        "quat_xyzw": [0.0, 0.0, 0.0, 1.0]}]}))
+    with caplog.at_level(logging.WARNING, logger="toolkit"):
+        rec = read_rosbag(write_bag(tmp_path / "calibrated", "ros1", msgs),
+                          RosbagOptions(calibration=str(calib)))
+    assert rec.rig.T_base_laser[2, 3] == 0.3 and "mount's edge" not in caplog.text

@@ -89,6 +89,18 @@ def _read_lines(path: Path) -> Iterator[str]:
             yield from fh
 
 
+def _pose(values: list[str], what: str) -> np.ndarray:
+    """[3] x, y, theta of a line's pose fields. Python reads 'nan' and 'inf' as numbers: a
+    non-finite pose went into odometry.tum or the reference poses, and the converted
+    sequence was refused by the next stage, naming that file instead of this line."""
+    p = np.array([float(v) for v in values], dtype=np.float64)
+    if len(p) != 3:
+        raise ValueError(f"{what}: {len(p)} numbers, expected x y theta")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{what} {p.tolist()} is not finite")
+    return p
+
+
 def _ranges(values: list[str], max_range: float) -> np.ndarray:
     r = np.array(values, dtype=np.float32)
     # CARMEN has no invalid marker but zero/negative readings; the project's LaserScan
@@ -155,8 +167,8 @@ def _parse_robotlaser1(f: list[str]) -> tuple[LaserScan, np.ndarray, np.ndarray]
     k = 9 + n
     n_rem = int(f[k])
     k += 1 + n_rem
-    laser = np.array([float(v) for v in f[k : k + 3]])
-    robot = np.array([float(v) for v in f[k + 3 : k + 6]])
+    laser = _pose(f[k : k + 3], "laser pose (laser_x laser_y laser_theta)")
+    robot = _pose(f[k + 3 : k + 6], "robot pose (x y theta)")
     stamp = float(f[k + 11])
     if len(ranges) != n:
         raise ValueError(f"{len(ranges)} ranges, expected {n}")
@@ -208,8 +220,8 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                 scans.append(LaserScan(stamp=float(rest[6]), ranges=ranges, angle_min=amin,
                                        angle_increment=inc, range_min=0.0,
                                        range_max=max_range))
-                poses.append(np.array([float(v) for v in rest[0:3]]))
-                odoms.append(np.array([float(v) for v in rest[3:6]]))
+                poses.append(_pose(rest[0:3], "laser pose (x y theta)"))
+                odoms.append(_pose(rest[3:6], "odometry pose (odom_x odom_y odom_theta)"))
             elif f[0] == "ROBOTLASER1":
                 scan, laser, robot = _parse_robotlaser1(f)
                 scans.append(scan)
@@ -217,7 +229,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                 odoms.append(robot)
                 laser_offsets.append(_laser_offset(laser, robot))
             elif f[0] == "ODOM":
-                o_p.append([float(v) for v in f[1:4]])
+                o_p.append(_pose(f[1:4], "odometry pose (x y theta)").tolist())
                 o_t.append(float(f[7]))
             elif f[0] == "PARAM" and len(f) >= 3:
                 params[f[1]] = f[2]
@@ -350,10 +362,10 @@ def read_g2o(path: Path | str) -> G2OLog:
         try:
             if f[0] == "VERTEX_SE2":
                 vids.append(int(f[1]))
-                vposes.append([float(v) for v in f[2:5]])
+                vposes.append(_pose(f[2:5], "vertex pose (x y theta)").tolist())
             elif f[0] == "EDGE_SE2":
                 eij.append((int(f[1]), int(f[2])))
-                ez.append([float(v) for v in f[3:6]])
+                ez.append(_pose(f[3:6], "edge measurement (dx dy dtheta)").tolist())
                 einfo.append([float(v) for v in f[6:12]])
             elif f[0] == "ROBOTLASER1":
                 if not vids:

@@ -34,6 +34,7 @@ from typing import Any, Literal, NamedTuple
 import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import (
@@ -626,11 +627,18 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
         K[1, 2] -= y0
         P[0, 2] -= x0
         P[1, 2] -= y0
+    # The fields the camera model is made of must be numbers: a NaN in K or D failed as a
+    # bare ValueError naming neither the bag, the topic nor the field.
+    for name, value in (("P", P[:, :3]),) if rectified else (("K", K), ("D", D[:5])):
+        if not np.all(np.isfinite(value)):
+            raise BagError(f"{where}: field '{name}' holds a non-finite value "
+                           f"({np.round(value, 6).reshape(-1).tolist()}); {fix}")
     if rectified:
         if not np.any(P[:, :3]):
             raise BagError(f"{where}: field 'P' is all zero, but the images are rectified "
                            f"and need it; {fix}")
-        return PinholeCamera(w, h, P[0, 0], P[1, 1], P[0, 2], P[1, 2])
+        return _pinhole(lambda: PinholeCamera(w, h, P[0, 0], P[1, 1], P[0, 2], P[1, 2]),
+                        where, "P", fix)
     if not np.any(K):
         raise BagError(f"{where}: field 'K' is all zero (the camera was not calibrated); {fix}")
     if model in ("plumb_bob", "rational_polynomial", "") or (model == "none" and not D.any()):
@@ -644,10 +652,20 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
         if model == "" and D.any():
             raise BagError(f"{where}: field 'D' has {len(D)} coefficients but "
                            f"'distortion_model' is empty; {fix}")
-        return PinholeCamera.from_K(K, w, h, D[:5])
+        return _pinhole(lambda: PinholeCamera.from_K(K, w, h, D[:5]), where, "K", fix)
     raise BagError(f"{where}: field 'distortion_model' is {model!r}; only plumb_bob (OpenCV "
                    "k1 k2 p1 p2 k3) is supported. Use the rectified image topic (image_rect, "
                    "with rosbag.rectified: true) or " + fix)
+
+
+def _pinhole(make: Callable[[], PinholeCamera], where: str, field_name: str,
+             fix: str) -> PinholeCamera:
+    """``make()``, its refusal (a transposed K, a negative focal length) as a BagError
+    naming the topic and field rather than a bare ValueError."""
+    try:
+        return make()
+    except ValueError as e:
+        raise BagError(f"{where}: field '{field_name}': {e}; {fix}") from None
 
 
 def rectification_rotation(msg: Any, where: str = "camera_info") -> np.ndarray:
@@ -663,15 +681,37 @@ def rectification_rotation(msg: Any, where: str = "camera_info") -> np.ndarray:
     return R
 
 
+class NotATransformError(ValueError):
+    """A ``geometry_msgs`` Transform or Pose that is no rigid motion; ``part`` names the
+    bad half ('translation' / 'rotation' of a Transform, 'position' / 'orientation' of a
+    Pose)."""
+
+    def __init__(self, part: str, message: str) -> None:
+        super().__init__(message)
+        self.part = part
+
+
 def transform_to_matrix(tf: Any) -> np.ndarray:
-    """[4, 4] of a ``geometry_msgs/Transform`` (or Pose: position / orientation)."""
-    t = getattr(tf, "translation", None) or tf.position
-    q = getattr(tf, "rotation", None) or tf.orientation
+    """[4, 4] of a ``geometry_msgs/Transform`` (or Pose: position / orientation).
+
+    Raises ``NotATransformError`` for a zero or non-finite quaternion and for a non-finite
+    translation: a NaN position (an estimator before its first fix or after diverging)
+    went through as a NaN pose, into a rig or trajectory the sequence reader refuses.
+    """
+    pose = getattr(tf, "translation", None) is None
+    t = tf.position if pose else tf.translation
+    q = tf.orientation if pose else tf.rotation
     quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
     n = np.linalg.norm(quat)
     if not np.isfinite(n) or n < 1e-6:
-        raise ValueError(f"quaternion {quat.tolist()} is not a rotation")
-    return pose_from_xyz_quat(np.array([t.x, t.y, t.z], dtype=np.float64), quat / n)
+        raise NotATransformError("orientation" if pose else "rotation",
+                                 f"quaternion {quat.tolist()} is not a rotation")
+    xyz = np.array([t.x, t.y, t.z], dtype=np.float64)
+    if not np.all(np.isfinite(xyz)):
+        raise NotATransformError("position" if pose else "translation",
+                                 f"{'position' if pose else 'translation'} {xyz.tolist()} "
+                                 "is not finite")
+    return pose_from_xyz_quat(xyz, quat / n)
 
 
 # ---------------------------------------------------------------------------- tf
@@ -691,10 +731,15 @@ class TfTree:
         self._static: set[tuple[str, str]] = set()
         self._first: dict[tuple[str, str], np.ndarray] = {}
         self.moving: set[tuple[str, str]] = set()
-        # Transforms that were no rotation (a zero quaternion: a localisation node before
-        # its first fix), skipped: (parent, child) -> count. Fatal only where a lookup
-        # needs that edge.
+        # Transforms that were no rigid motion (a zero quaternion: a localisation node
+        # before its first fix; a NaN translation), skipped: (parent, child) -> count.
+        # Fatal only where a lookup needs that edge.
         self.invalid: dict[tuple[str, str], int] = {}
+        # Edges the bag gives different mounts for (two static publishers of one edge, a
+        # URDF's and a calibration's; a /tf value beside a static one): (parent, child) ->
+        # the sources that disagreed. The latest static value is used; a lookup through
+        # such an edge says so rather than pick one without a word.
+        self.conflicts: dict[tuple[str, str], set[str]] = {}
 
     def add_invalid(self, parent: str, child: str) -> None:
         key = (_frame(parent), _frame(child))
@@ -704,11 +749,20 @@ class TfTree:
         """The skipped transforms, for a message ('' when none)."""
         if not self.invalid:
             return ""
-        return "; skipped as no rotation (quaternion zero or not finite): " + ", ".join(
+        return ("; skipped as no rotation or not finite (quaternion zero or not finite, or "
+                "translation not finite): ") + ", ".join(
             f"{p} -> {c} ({n}x)" for (p, c), n in sorted(self.invalid.items()))
 
-    def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str) -> None:
+    def add(self, parent: str, child: str, T: np.ndarray, static: bool, source: str,
+            override: bool = False) -> None:
+        """Add one transform T_parent_child. ``override``: it replaces what the bag says
+        (a calibration file's), which is no conflict."""
         key = (_frame(parent), _frame(child))
+        if not override:
+            before = self.fixed.get(key, self._first.get(key))
+            if key in self.moving or (before is not None and _differs(before, T)):
+                if static or key in self._static:
+                    self.conflicts.setdefault(key, {self.source.get(key, source)}).add(source)
         if static:  # the latest static transform wins, over /tf too
             self.fixed[key] = T
             self.source[key] = source
@@ -731,6 +785,20 @@ class TfTree:
 
     def frames(self) -> set[str]:
         return {f for k in (*self.fixed, *self.moving) for f in k}
+
+    def conflicts_on(self, path: Sequence[str]) -> list[str]:
+        """The edges along ``path`` (frames, as ``lookup`` returns them) the bag gave
+        different values for, as 'parent -> child (sources)' with the value used."""
+        out = []
+        for a, b in zip(path[:-1], path[1:], strict=True):
+            for key in ((a, b), (b, a)):
+                if key in self.conflicts:
+                    T = self.fixed[key]
+                    out.append(f"{key[0]} -> {key[1]} (on {', '.join(sorted(self.conflicts[key]))}"
+                               f"; used: xyz {np.round(T[:3, 3], 4).tolist()}, rpy deg "
+                               f"{np.round(np.degrees(_rpy(T)), 2).tolist()} from "
+                               f"{self.source[key]})")
+        return out
 
     def lookup(self, target: str, source: str, include_moving: bool = False) -> (
         tuple[np.ndarray, list[str]] | None
@@ -758,6 +826,18 @@ class TfTree:
                     best[nxt] = (T_tf @ T_f_n, [*path, nxt])
                     queue.append(nxt)
         return best.get(source)
+
+
+def _differs(A: np.ndarray, B: np.ndarray) -> bool:
+    """Two mounts that are not the same (beyond float noise: 1 um, 1 urad)."""
+    return bool(np.linalg.norm(A[:3, 3] - B[:3, 3]) > 1e-6
+                or float(rotation_angle(A[:3, :3].T @ B[:3, :3])) > 1e-6)
+
+
+def _rpy(T: np.ndarray) -> np.ndarray:
+    """[3] roll, pitch, yaw (radians) of T's rotation, as tf's static_transform_publisher
+    takes them (extrinsic x-y-z)."""
+    return Rotation.from_matrix(T[:3, :3]).as_euler("xyz")
 
 
 # ---------------------------------------------------------------------------- calibration
@@ -1003,9 +1083,18 @@ def choose_topics(bag: Bag, topics: RosbagTopics) -> TopicChoice:
     if not given:
         ch.scan = _one(bag, "scan", "sensor_msgs/LaserScan", bag.of_type(SCAN), ("/scan",))
     if ch.scan is None:
+        # An empty recording listed nothing after "Topics in the bag:"; with counts, a
+        # topic the recorder subscribed to but never heard from shows as such.
+        if not bag.reader.message_count:
+            raise BagError(f"{bag.name}: the bag holds no messages (an empty recording: "
+                           "the recorder stopped before the drivers published, or a filter "
+                           "kept nothing); this toolkit needs a 2D lidar's "
+                           "sensor_msgs/LaserScan. Fix: record again with the lidar driver "
+                           "running, or convert another bag")
         raise BagError(f"{bag.name}: no sensor_msgs/LaserScan topic with messages; this "
                        "toolkit needs a 2D lidar. Topics in the bag: "
-                       + ", ".join(f"{t.name} ({t.msgtype})" for t in bag.topics.values()))
+                       + ", ".join(f"{t.name} ({t.msgtype}, {t.count} messages)"
+                                   for t in bag.topics.values()))
 
     # Sort image topics into piles by their first message's encoding.
     peek: dict[str, Any] = {}
@@ -1238,8 +1327,10 @@ def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int, clock: str = "stamp"
         return
     first, now = _camera_info_fields(idx.info), _camera_info_fields(msg)
     for name, value in now.items():
-        if value.shape != first[name].shape or not np.allclose(value, first[name],
-                                                               rtol=1e-9, atol=1e-9):
+        # NaN equals NaN here: a field that holds one in every message did not change
+        # (it was reported as a recalibration); camera_info_to_camera names it instead.
+        if value.shape != first[name].shape or not np.allclose(
+                value, first[name], rtol=1e-9, atol=1e-9, equal_nan=True):
             idx.info_changed = (f"{clock} {stamp_ns / 1e9:.6f} s", name)
             return
 
@@ -1313,9 +1404,10 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
         elif topic == ch.odometry:
             try:
                 T = transform_to_matrix(msg.pose.pose)
-            except ValueError as e:
-                raise BagError(f"{where}: message {len(idx.odom)}: field "
-                               f"'pose.pose.orientation': {e}. Fix: leave the odometry out "
+            except NotATransformError as e:
+                raise BagError(f"{where}: message {len(idx.odom)} (stamped "
+                               f"{header_ns(msg) / 1e9:.9f} s): field 'pose.pose.{e.part}': "
+                               f"{e}. Fix: leave the odometry out "
                                "(rosbag.topics.odometry: none; the SLAM runs on the scans "
                                "alone) or name another topic") from None
             idx.odom_ns.append(_stamp(msg, ns, opts, where))
@@ -1328,7 +1420,7 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             for tr in msg.transforms:
                 try:
                     T = transform_to_matrix(tr.transform)
-                except ValueError:
+                except NotATransformError:
                     idx.tf.add_invalid(str(tr.header.frame_id), str(tr.child_frame_id))
                     continue
                 idx.tf.add(str(tr.header.frame_id), str(tr.child_frame_id), T, static, topic)
@@ -1429,7 +1521,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     bag_name = ", ".join(str(p) for p in paths)
     _check_clocks(idx, ch, opts, bag_name)
     if idx.tf.invalid:
-        log.warning("%s: tf transforms that are no rotation were skipped%s", bag_name,
+        log.warning("%s: tf transforms that are no rotation or not finite were skipped%s",
+                    bag_name,
                     idx.tf.invalid_note().partition(":")[2])
     if idx.intensities_dropped:
         log.warning("%s: topic %s: %d scans carry intensities of another length than their "
@@ -1452,7 +1545,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
     tree = idx.tf
     if cal is not None:
         for parent, child, T in cal.transforms:
-            tree.add(parent, child, T, True, str(cal.path))
+            tree.add(parent, child, T, True, str(cal.path), override=True)
     has_camera = ch.image is not None
     # image_rect / image_rect_color / image_mono_rect carry undistorted pixels (image_proc's
     # names): "rect" as a word of the name, not inside one (image_color_corrected is raw).
@@ -1517,7 +1610,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
             if not cam_frame:
                 raise BagError(f"{bag_name}: topic {ch.image}: field 'header.frame_id' is "
                                "empty; name the camera frame with rosbag.frames.camera")
-            T_base_camera = _lookup(tree, base, cam_frame, "camera", bag_name, ch, laser_frame)
+            T_base_camera = _lookup(tree, base, cam_frame, "camera", bag_name, ch, laser_frame,
+                                    log)
             if opts.frames.camera_convention == "body":
                 T_base_camera = T_base_camera @ optical_mount()
             sources["T_base_camera"] = f"tf {base} <- {cam_frame}"
@@ -1546,7 +1640,7 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         if not laser_frame:
             raise BagError(f"{bag_name}: topic {ch.scan}: field 'header.frame_id' is empty; "
                            "name the laser frame with rosbag.frames.laser")
-        T_base_laser = _lookup(tree, base, laser_frame, "laser", bag_name, ch, cam_frame)
+        T_base_laser = _lookup(tree, base, laser_frame, "laser", bag_name, ch, cam_frame, log)
         sources["T_base_laser"] = f"tf {base} <- {laser_frame}"
     rig = Rig(camera, T_base_camera, T_base_laser)
 
@@ -1620,9 +1714,17 @@ def _filtered(s: _Stream, where: str, policy: Literal["error", "drop"],
 
 
 def _lookup(tree: TfTree, base: str, frame: str, role: str, bag_name: str, ch: TopicChoice,
-            other: str) -> np.ndarray:
+            other: str, log: logging.Logger) -> np.ndarray:
     found = tree.lookup(base, frame)
     if found is not None:
+        clash = tree.conflicts_on(found[1])
+        if clash:
+            key = "T_base_camera" if role == "camera" else "T_base_laser"
+            log.warning("%s: the bag's tf gives different values for the %s mount's edge %s; "
+                        "the latest static one is used for every frame. If another is the "
+                        "mount (a URDF's beside a calibration's, a mount corrected while "
+                        "recording), give %s in a calibration YAML (rosbag.calibration)",
+                        bag_name, role, "; ".join(clash), key)
         return found[0]
     moving = tree.lookup(base, frame, include_moving=True)
     key = "T_base_camera" if role == "camera" else "T_base_laser"
