@@ -777,3 +777,21 @@ def test_grid_observed_cells():
     g.insert(np.zeros(2), np.array([[1.0, 0.0]]))
     seen = g.observed(np.array([[0.52, 0.01], [1.01, 0.01], [1.3, 0.0], [0.5, 0.5], [99.0, 0]]))
     assert seen.tolist() == [True, True, False, False, False]
+
+
+@pytest.mark.parametrize("angle", [35.0, -20.0])
+def test_corridor_lies_at_the_asked_angle_to_the_slams_grid(angle: float) -> None:
+    """The SLAM's grid axes follow its first pose (the local frame starts at it). The
+    corridor drive turned the whole world, the first pose with it, so "35 deg to the grid"
+    drove along the grid (the benchmark's Cartographer rows came out the same to 1e-14 at
+    0 and 35 deg). Now the robot starts at heading 0 and turns onto the corridor."""
+    drive = corridor_drive(length=26.0, back=False, angle_deg=angle)
+    poses = se3_to_se2(drive.truth.poses)
+    w = drive.walls  # [S, 4]: x0, y0, x1, y1
+    walls = w[np.hypot(w[:, 2] - w[:, 0], w[:, 3] - w[:, 1]) > 10.0]  # the long ones
+    assert len(walls) >= 2
+    wall_deg = np.degrees(np.arctan2(walls[:, 3] - walls[:, 1], walls[:, 2] - walls[:, 0]))
+    relative = (wall_deg - np.degrees(poses[0, 2]) + 90.0) % 180.0 - 90.0
+    assert np.allclose(relative, angle, atol=1e-6)
+    # Driving along the corridor once turned onto it.
+    assert abs(np.degrees(poses[-1, 2]) - angle) < 1e-6

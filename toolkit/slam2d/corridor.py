@@ -73,15 +73,20 @@ def corridor_drive(length: float = 40.0, width: float = 2.0, max_range: float = 
     no sideways error on the straight parts), plus ``heading_noise`` rad N(0, 1) of
     heading. Beams without a return read ``max_range``
     (the ROS convention for "nothing within range"). ``angle_deg`` turns the whole world
-    (corridor, path, odometry) about the origin: the SLAM's grid axes follow the first
-    pose, so this sets the corridor's angle to the grid. ``door_spacing``: door niches
-    along one wall (``corridor_walls``).
+    (corridor, path, odometry) about the origin, and the robot starts turned back by it
+    (heading 0 in the world) and turns onto the corridor's axis on the spot (10 deg per
+    scan) before it drives: the SLAM's grid axes follow its first pose, so the corridor
+    lies at ``angle_deg`` to the grid. (Turning the world alone turned the first pose with
+    it, and the corridor lay along the grid whatever the angle.) ``door_spacing``: door
+    niches along one wall (``corridor_walls``).
     """
     rng = np.random.default_rng(seed)
     walls = corridor_walls(length, width, door_spacing)
     end = length - 3.5
     y = width / 2
-    out = [np.array([x, y, 0.0]) for x in np.arange(0.5, end + 1e-9, step)]
+    back_by = np.sign(angle_deg) * np.arange(abs(angle_deg), 0.0, -10.0)  # deg, to 0
+    out = [np.array([0.5, y, -a]) for a in np.radians(back_by)]
+    out += [np.array([x, y, 0.0]) for x in np.arange(0.5, end + 1e-9, step)]
     if back:
         out += [np.array([end, y, a]) for a in np.linspace(0.0, np.pi, 19)[1:]]
         out += [np.array([x, y, np.pi]) for x in np.arange(end - step, 0.5 - 1e-9, -step)]
