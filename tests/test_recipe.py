@@ -904,16 +904,29 @@ def test_markers_without_a_token_stay_cached(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
 
 
-def test_rerun_removes_old_marker_first(tmp_path: Path) -> None:
+def test_a_failed_rerun_puts_the_finished_output_back(tmp_path: Path) -> None:
+    """A rerun under other settings emptied the stage's folder first: when it failed (a
+    bad input, a mistyped setting) the last finished output was gone as well. It is moved
+    aside instead and put back on failure, its marker naming its own settings, so the
+    failing settings still rerun and the old ones are still cached; the failed attempt is
+    kept beside it for its logs. A rerun that finishes deletes the old one."""
     marker = tmp_path / "failed_once"
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     _run(path)
-    stage_file = tmp_path / "run" / "t_sink" / ".stage.json"
-    assert stage_file.exists()
-    # A forced rerun that crashes must not leave the old, complete-looking marker behind.
+    run_dir = tmp_path / "run"
+    stage_file = run_dir / "t_sink" / ".stage.json"
+    before = {p.name: p.read_bytes() for p in (run_dir / "t_sink").iterdir()}
     result = _run(path, f"t_sink.fail_marker={marker}", only="t_sink")
     assert result.statuses["t_sink"] == "failed"
-    assert not stage_file.exists()
+    assert {p.name: p.read_bytes() for p in (run_dir / "t_sink").iterdir()} == before
+    assert (run_dir / ".failed" / "t_sink" / ".stage.started.json").exists()
+    assert not (run_dir / ".previous" / "t_sink").exists()
+    assert _run(path).statuses["t_sink"] == "cached"  # the old settings' output
+    # The failing settings rerun (the restored marker is the old settings'), and once
+    # that finishes the old output is gone.
+    assert _run(path, f"t_sink.fail_marker={marker}").statuses["t_sink"] == "ran"
+    assert stage_file.exists() and not (run_dir / ".previous" / "t_sink").exists()
+    assert _run(path, f"t_sink.fail_marker={marker}").statuses["t_sink"] == "cached"
 
 
 # --- outputs ------------------------------------------------------------------------------
@@ -1345,29 +1358,38 @@ class ExtrasStage(Source):
             atomic_write_text(ctx.stage_dir / f"extra_{i}.txt", "x")
 
 
-def test_an_interrupted_emptying_is_no_finished_stage(tmp_path: Path,
-                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """--force empties a finished stage's folder; a Ctrl-C halfway left its finished
-    marker (removed last), and the next run took the half-emptied folder as finished."""
+def test_an_interrupted_rerun_is_no_finished_stage(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """--force reruns a finished stage: a Ctrl-C halfway must not leave a folder the next
+    run takes as finished (once a half-emptied one, its finished marker removed last). The
+    finished folder waits aside until the rerun finishes, then goes."""
+    import sys
+
     registry.register("t_extras", ExtrasStage)
     try:
         path = _write_recipe(tmp_path, {"name": "x", "output": str(tmp_path / "run"), "stages": [
             {"stage": "t_extras", "counter": str(tmp_path / "calls.txt")}]})
         _run(path)
-        stage_dir = tmp_path / "run" / "t_extras"
-        real_unlink = Path.unlink
+        run_dir = tmp_path / "run"
+        stage_dir = run_dir / "t_extras"
+        module = sys.modules[__name__]
+        real_write = module.atomic_write_text
 
-        def interrupted(self: Path, missing_ok: bool = False) -> None:
-            real_unlink(self, missing_ok=missing_ok)
-            if self.parent == stage_dir and self.name.startswith("extra_"):
-                raise KeyboardInterrupt  # after the first file nothing declares
+        def interrupted(target: Path, text: str, **kw: Any) -> None:
+            real_write(target, text, **kw)
+            if target.name == "extra_4.txt":
+                raise KeyboardInterrupt
 
-        monkeypatch.setattr(Path, "unlink", interrupted)
+        monkeypatch.setattr(module, "atomic_write_text", interrupted)
         with pytest.raises(KeyboardInterrupt):
             _run(path, force=True)
-        monkeypatch.setattr(Path, "unlink", real_unlink)
+        monkeypatch.setattr(module, "atomic_write_text", real_write)
+        assert not (stage_dir / ".stage.json").exists()
+        assert len(list(stage_dir.glob("extra_*.txt"))) == 5
+        assert (run_dir / ".previous" / "t_extras" / ".stage.json").exists()
         assert _run(path).statuses["t_extras"] == "ran"
         assert len(list(stage_dir.glob("extra_*.txt"))) == 12
+        assert not (run_dir / ".previous" / "t_extras").exists()
     finally:
         registry.unregister("t_extras")
 

@@ -80,6 +80,11 @@ LOCK_FILE = ".lock"
 # SHA-256 of the external files stages key by content, by file and its size, times and
 # inode: a 1 GB model is hashed when it changes, not on every run.
 DIGESTS_FILE = ".file_digests.json"
+# run_dir/.previous/<id>: a finished stage's folder, kept while the stage reruns from
+# scratch; back in place when the rerun fails, deleted when it finishes. run_dir/.failed/<id>:
+# the failed rerun's folder, for its logs and partial files.
+PREVIOUS_DIR = ".previous"
+FAILED_DIR = ".failed"
 
 # Log records carrying this go to run.log only (tracebacks, lines already printed nicely).
 _FILE_ONLY = {"console": False}
@@ -127,6 +132,8 @@ class _Record:
     metrics: dict[str, Any] = field(default_factory=dict)
     report: list[str] = field(default_factory=list)
     provides: dict[str, Path] = field(default_factory=dict)
+    # The stage's finished folder, moved aside while it reruns (PREVIOUS_DIR).
+    previous: Path | None = None
 
     @property
     def finished(self) -> bool:
@@ -214,6 +221,14 @@ def _not_a_run_folder(run_dir: Path, recipe: Recipe) -> list[str]:
         if (d / STAGE_FILE).exists() or (d / STARTED_FILE).exists():
             return []
     return names
+
+
+def _remove_tree(path: Path) -> None:
+    """Delete a folder (or a link or file in its place) if it is there."""
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.is_dir():
+        shutil.rmtree(path)
 
 
 def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
@@ -458,6 +473,16 @@ class _Run:
         # --from, --only, other settings, a lost output).
         if not self.force and not done and started == record.folder_key:
             return
+        if done:
+            # A finished output is moved aside, not deleted: a rerun that fails (a bad
+            # input, a mistyped setting) puts it back, so what was written is not lost
+            # for nothing; one rename, no copy.
+            keep = self.run_dir / PREVIOUS_DIR / record.spec.id
+            _remove_tree(keep)
+            keep.parent.mkdir(exist_ok=True)
+            os.replace(stage_dir, keep)
+            record.previous = keep
+            return
         # A started marker no run resumes from goes in first, then the finished one: a run
         # interrupted while this empties the folder leaves it recognisably the runner's and
         # unfinished, to be emptied again (with the finished marker kept to the end, a
@@ -524,6 +549,7 @@ class _Run:
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
         except Exception as exc:
             self.fail(record, exc, start)
+            self.restore_previous(record)
             return False
         except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
             self.fail(record, KeyboardInterrupt("interrupted"), start)
@@ -538,6 +564,7 @@ class _Run:
         self.log.info("stage %s finished in %.2f s", spec.id, record.seconds, extra=_FILE_ONLY)
         try:
             (stage_dir / STARTED_FILE).unlink(missing_ok=True)
+            _remove_tree(self.run_dir / PREVIOUS_DIR / spec.id)
             self.digest_outputs(record, marker)
         except Exception as exc:  # an unreadable output, a disk error: only the digest lost
             self.log.warning("stage %s finished, but its outputs could not be digested: %s",
@@ -552,6 +579,32 @@ class _Run:
                 raise StoppedAfterStage(spec.id) from None
             raise
         return True
+
+    def restore_previous(self, record: _Record) -> None:
+        """Put the finished folder a failed rerun had moved aside back in place; the failed
+        attempt goes to FAILED_DIR. (An interrupted rerun keeps its folder to resume, and
+        the finished one stays aside until the rerun finishes.)"""
+        keep, record.previous = record.previous, None
+        if keep is None or not keep.is_dir():
+            return
+        stage_dir = self.run_dir / record.spec.id
+        try:
+            if stage_dir.exists():
+                failed = self.run_dir / FAILED_DIR / record.spec.id
+                _remove_tree(failed)
+                failed.parent.mkdir(exist_ok=True)
+                os.replace(stage_dir, failed)
+            os.replace(keep, stage_dir)
+        except OSError as exc:
+            self.log.warning("stage %s: its previous output could not be put back from %s "
+                             "(%s); it is still there", record.spec.id, keep, exc)
+            return
+        where = (f"; the failed attempt is in {self.run_dir / FAILED_DIR / record.spec.id}"
+                 if (self.run_dir / FAILED_DIR / record.spec.id).exists() else "")
+        self.console.print(f"[yellow]{record.spec.id}[/]: its previous output (the last "
+                           f"finished run's) is back in {stage_dir}{escape(where)}")
+        self.log.info("stage %s: previous output restored%s", record.spec.id, where,
+                      extra=_FILE_ONLY)
 
     def digest_outputs(self, record: _Record, marker: dict[str, Any]) -> None:
         """Record the content digest of a finished stage's outputs, for early cutoff.
