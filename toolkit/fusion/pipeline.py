@@ -67,6 +67,7 @@ from toolkit.fusion.voxel_map import (
 )
 from toolkit.geometry import Trajectory, inv_se3, transform_points
 from toolkit.io.atomic import atomic_path
+from toolkit.io.depth import file_complete
 from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence
 
 log = logging.getLogger(__name__)
@@ -309,10 +310,12 @@ class CarveViews:
         if self.folder is None:
             self._arrays = dict(state["arrays"] or {})  # type: ignore[call-overload]
             return
-        missing = [i for i in self.indices if not self._path(i).exists()]
+        # A view cut short (power loss, a hand) is as gone as a deleted one: loaded at the
+        # end of the map pass it failed with numpy's EOF error, naming no file.
+        missing = [i for i in self.indices if not file_complete(self._path(i))]
         if missing:
             raise FileNotFoundError(f"{self.folder}: carving views of frames {missing[:5]} are "
-                                    "gone; run the stage again with --force")
+                                    "gone or cut short; run the stage again with --force")
 
 
 @dataclass
