@@ -544,6 +544,31 @@ def test_force_reruns_everything(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {"t_source": 2, "t_double": 2, "t_sink": 2}
 
 
+def test_a_stage_folder_that_cannot_be_emptied_is_named(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun that cannot empty the stage's folder (a read-only subfolder) said only
+    "PermissionError: [Errno 13] Permission denied: 'x.png'", shutil.rmtree naming the
+    file without its folder; the message names the stage's folder and the fix."""
+    from toolkit.recipe import runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    stage_dir = tmp_path / "run" / "t_double"
+    (stage_dir / "renders").mkdir()
+
+    def refused(p: Path, *a: object, **kw: object) -> None:
+        raise PermissionError(13, "Permission denied", "x.png")
+
+    monkeypatch.setattr(runner.shutil, "rmtree", refused)
+    result = _run(path, force=True)
+    assert result.failed_stage == "t_double"
+    assert result.error == (
+        f"stage 't_double' failed: cannot prepare its folder {stage_dir} (PermissionError: "
+        "[Errno 13] Permission denied: 'x.png'); make the folder writable or free space, "
+        "then run again (the stage did not start)")
+    assert _calls(tmp_path) == {"t_source": 2, "t_double": 1, "t_sink": 1}
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):

@@ -487,7 +487,12 @@ class _Run:
         except RecipeError:
             raise
         except OSError as exc:  # a full disk, a read-only folder: before any work
-            self.fail(record, exc, start)
+            # Named with the stage's folder: shutil.rmtree's errors name a file alone
+            # ("Permission denied: 'path_020.png'"), not where it is.
+            self.fail(record, StageError(
+                f"cannot prepare its folder {stage_dir} ({type(exc).__name__}: {exc}); make "
+                "the folder writable or free space, then run again (the stage did not start)"),
+                start)
             return False
         record.metrics, record.report, record.provides = {}, [], {}
         self.console.print(f"[bold]{spec.id}[/] running ({escape(record.reason)})")
