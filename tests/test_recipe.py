@@ -569,6 +569,21 @@ def test_a_stage_folder_that_cannot_be_emptied_is_named(
     assert _calls(tmp_path) == {"t_source": 2, "t_double": 1, "t_sink": 1}
 
 
+@pytest.mark.parametrize("stage", ["fuse", "tsdf"])
+def test_a_voxel_size_in_other_units_than_metres_is_refused(stage: str) -> None:
+    """voxel_size_m: 15 (meant as mm) fused the quickstart's room into 5 points and
+    finished; a tsdf of 20 m voxels failed blaming the depth. Over a metre is refused."""
+    from toolkit.recipe.schema import parse_recipe
+
+    data = {"name": "u", "output": "runs/u", "stages": [{"stage": stage, "voxel_size_m": 15}]}
+    with pytest.raises(RecipeError, match=rf"stages\[0\] \({stage}\): voxel_size_m: Input "
+                       r"should be less than or equal to 1 \(got 15\)"):
+        parse_recipe(data)
+    data["stages"][0]["voxel_size_m"] = 0.05
+    with pytest.raises(RecipeError, match="requires artifact"):  # the voxel size passes
+        parse_recipe(data)
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):

@@ -159,7 +159,9 @@ class FusionConfig(BaseModel):
     # cloud.ramp_mask) stay out of the map: a smooth network's ramps across depth edges
     # (0: off).
     ramp_threshold: float = Field(0.0, ge=0)
-    voxel_size_m: float = Field(0.02, gt=0)
+    # Metres: 15 (meant as mm or cm) fused a room into 5 points without a word; no map
+    # of a robot's rooms is made of voxels over a metre.
+    voxel_size_m: float = Field(0.02, gt=0, le=1.0)
     min_voxel_frames: int = Field(1, ge=1)
     # Multi-view consensus: the same depth also goes into a coarse TSDF (Open3D), whose
     # surface is the weighted average of every view along the rays; map voxels farther
