@@ -584,6 +584,27 @@ def test_a_voxel_size_in_other_units_than_metres_is_refused(stage: str) -> None:
         parse_recipe(data)
 
 
+def test_another_recipes_run_folder_is_left_alone(tmp_path: Path) -> None:
+    """A recipe whose 'output:' (copied, mistyped) is another recipe's run folder replaced
+    that run's stages wherever the settings differed, without a word: it is refused."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    data = dict(_recipe_data(tmp_path), name="mine")
+    data["stages"][0]["value"] = 4
+    other = _write_recipe(tmp_path, data, "mine.yaml")
+    with pytest.raises(RecipeError, match=f"output: {run_dir} holds a run of recipe 'chain' "
+                       r"\(recipe.resolved.yaml\), not of 'mine'"):
+        _run(other)
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
+    # The recipe renamed, said so by deleting the old name's record: it runs there.
+    (run_dir / "recipe.resolved.yaml").unlink()
+    assert set(_run(other).statuses.values()) == {"ran"}
+    assert "name: mine" in (run_dir / "recipe.resolved.yaml").read_text()
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):

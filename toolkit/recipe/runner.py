@@ -35,6 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from rich.console import Console
 from rich.logging import RichHandler
 from rich.markup import escape
@@ -55,7 +56,14 @@ from toolkit.io.atomic import (
     to_jsonable,
 )
 from toolkit.recipe import registry, report
-from toolkit.recipe.schema import Recipe, RecipeError, StageSpec, config_data, dump_recipe_data
+from toolkit.recipe.schema import (
+    Recipe,
+    RecipeError,
+    StageSpec,
+    config_data,
+    dump_recipe_data,
+    read_yaml_value,
+)
 from toolkit.recipe.stage import Stage, StageContext, StageError, StageResult
 
 try:
@@ -186,6 +194,13 @@ def run_recipe(
             f"{', ...' if len(others) > 5 else ''}): a run writes report.md, metrics.json and "
             "run.log there, replacing files of those names. Set 'output' to a new or empty "
             "folder (nothing was changed)")
+    owner = _other_recipes_run(run_dir, recipe)
+    if owner is not None:
+        raise RecipeError(
+            f"output: {run_dir} holds a run of recipe {owner!r} ({RESOLVED_FILE}), not of "
+            f"{recipe.name!r}: a run would replace that run's results wherever the settings "
+            "differ. Set 'output' to another folder; if this recipe is that one renamed, "
+            f"delete {run_dir / RESOLVED_FILE} first (nothing was changed)")
     with _exclusive(run_dir):
         try:
             foreign = foreign_stage_folders(recipe, run_dir)
@@ -214,6 +229,19 @@ def _not_a_run_folder(run_dir: Path, recipe: Recipe) -> list[str]:
         if (d / STAGE_FILE).exists() or (d / STARTED_FILE).exists():
             return []
     return names
+
+
+def _other_recipes_run(run_dir: Path, recipe: Recipe) -> str | None:
+    """The name of the recipe whose run ``run_dir`` holds, when it is not ``recipe``'s: an
+    ``output:`` copied with a recipe, or mistyped, into another run's folder replaced that
+    run's stages wherever the settings differed (every stage, for another recipe). None
+    for a run of this recipe, or a folder without a readable resolved recipe."""
+    try:
+        data = read_yaml_value((run_dir / RESOLVED_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError, yaml.YAMLError):  # none (a new folder), or unreadable
+        return None
+    name = data.get("name") if isinstance(data, dict) else None
+    return str(name) if name is not None and str(name) != recipe.name else None
 
 
 def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
