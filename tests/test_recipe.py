@@ -605,6 +605,24 @@ def test_another_recipes_run_folder_is_left_alone(tmp_path: Path) -> None:
     assert "name: mine" in (run_dir / "recipe.resolved.yaml").read_text()
 
 
+def test_a_problem_of_a_set_value_names_the_set_item(tmp_path: Path) -> None:
+    """A typo typed in --set was reported as the recipe file's ("chain.yaml: stages[2]
+    (t_sink): unknown key 'fail_markr'"), and the file was searched for it in vain."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError) as err:
+        load_recipe(path, ["t_sink.fail_markr=x", "t_source.value=1", "output="])
+    assert err.value.problems == [
+        f"{path}: 'output' must be a folder path (got None) (from --set output=)",
+        "stages[2] (t_sink): unknown key 'fail_markr' (did you mean 'fail_marker'?); allowed "
+        "keys: id, inputs, counter, fail_marker, kill_marker, stage_error "
+        "(from --set t_sink.fail_markr=x)"]
+    data = _recipe_data(tmp_path)
+    data["stages"][2]["fail_markr"] = "x"  # in the file: no --set named
+    with pytest.raises(RecipeError) as err:
+        load_recipe(_write_recipe(tmp_path, data, "typo.yaml"), ["t_sink.counter=c"])
+    assert err.value.problems[0].endswith("stage_error")
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):
@@ -1562,7 +1580,8 @@ def test_validation_messages_point_at_the_fix(tmp_path: Path) -> None:
         load_recipe(sim, ["simulate.duration_s=-1"])
     assert err.value.problems == [
         "stages[0] (simulate): camera.distortion: expects 5 values, got 2 ([0.1, 0.01])",
-        "stages[0] (simulate): duration_s: Input should be greater than 0 (got -1)"]
+        "stages[0] (simulate): duration_s: Input should be greater than 0 (got -1) "
+        "(from --set simulate.duration_s=-1)"]
 
     sim.write_text(f"name: t\noutput: {tmp_path / 'out'}\nstages:\n  - stage: simulate\n"
                    "    id: 2024\n  - stage: simulate\n    id: true\n")
