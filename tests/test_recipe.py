@@ -623,6 +623,16 @@ def test_a_problem_of_a_set_value_names_the_set_item(tmp_path: Path) -> None:
     assert err.value.problems[0].endswith("stage_error")
 
 
+def test_a_tab_in_a_recipe_says_to_indent_with_spaces(tmp_path: Path) -> None:
+    """PyYAML's "found character '\\t' that cannot start any token" was all a recipe
+    indented with a tab got: the fix is said."""
+    path = tmp_path / "tab.yaml"
+    path.write_text("name: t\nstages:\n  - stage: t_source\n\tvalue: 3\n")
+    with pytest.raises(RecipeError, match=r"(?s)line 4, column 1.*YAML indents with spaces "
+                       "only: replace the tab"):
+        load_recipe(path)
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):

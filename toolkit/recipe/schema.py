@@ -253,7 +253,10 @@ def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
     try:
         data = yaml.load(stream, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        raise RecipeError(f"{path}: not valid YAML: {exc}") from None
+        # PyYAML says only "found character '\t' that cannot start any token".
+        fix = ("\nYAML indents with spaces only: replace the tab(s) with spaces"
+               if "'\\t'" in str(exc) else "")
+        raise RecipeError(f"{path}: not valid YAML: {exc}{fix}") from None
     return parse_recipe(data, overrides, source=path)
 
 
