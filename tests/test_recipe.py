@@ -633,6 +633,31 @@ def test_a_tab_in_a_recipe_says_to_indent_with_spaces(tmp_path: Path) -> None:
         load_recipe(path)
 
 
+def test_a_run_folder_that_cannot_be_written_is_named_with_the_fix(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A read-only run folder stopped the CLI with "error: [Errno 13] Permission denied:
+    '.../.lock'" (found with chmod a-w as a user without root's override)."""
+    import builtins
+
+    from toolkit.recipe import runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    real_open = builtins.open
+
+    def read_only(file: Any, *a: Any, **kw: Any) -> Any:
+        if str(file).endswith(runner.LOCK_FILE):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *a, **kw)
+
+    monkeypatch.setattr(builtins, "open", read_only)
+    run_dir = tmp_path / "run"
+    with pytest.raises(RecipeError, match=re.escape(
+            f"output: cannot write in the run folder {run_dir} ([Errno 13] Permission denied: "
+            f"'{run_dir / '.lock'}'); make it writable, or set 'output' to another folder")):
+        _run(path)
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):

@@ -1063,7 +1063,13 @@ def _exclusive(run_dir: Path) -> Iterator[None]:
     if fcntl is None:
         yield
         return
-    with open(run_dir / LOCK_FILE, "a") as handle:
+    try:
+        handle = open(run_dir / LOCK_FILE, "a")  # closed by the with below
+    except OSError as exc:  # a read-only run folder (or lock file): say so, not just errno
+        raise RecipeError(f"output: cannot write in the run folder {run_dir} ({exc}); make "
+                          "it writable, or set 'output' to another folder (nothing was "
+                          "changed)") from None
+    with handle:
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
