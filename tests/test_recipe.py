@@ -571,7 +571,7 @@ def test_a_stage_folder_that_cannot_be_emptied_is_named(
 
 @pytest.mark.parametrize("stage", ["fuse", "tsdf"])
 def test_a_voxel_size_in_other_units_than_metres_is_refused(stage: str) -> None:
-    """voxel_size_m: 15 (meant as mm) fused the quickstart's room into 5 points and
+    """voxel_size_m: 15 (meant as mm) fused a 240-frame simulated run into 5 points and
     finished; a tsdf of 20 m voxels failed blaming the depth. Over a metre is refused."""
     from toolkit.recipe.schema import parse_recipe
 
