@@ -79,6 +79,8 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     from calibration.intrinsics import calibrate_intrinsics, detect_folder
 
     board = _board(args)
+    # As extrinsic does: a folder in the way of --out failed only after the calibration.
+    _file_outputs(args.out)
     dets, missed = detect_folder(Path(args.images), board)
     res = calibrate_intrinsics(dets, board, args.model, args.max_image_rms)
     # The intrinsics do not depend on the square size, but the file keeps it for the

@@ -529,6 +529,9 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
     from toolkit.io.depth import read_depth
     from toolkit.io.sequence import read_sequence
 
+    # As check_frames_from_pairs: a mistyped --depth said "no depth map for frame 0".
+    if depth_dir is not None and not Path(depth_dir).is_dir():
+        raise FileNotFoundError(f"{depth_dir}: depth folder (--depth) not found")
     seq = read_sequence(root)
     if not seq.frames or not seq.scans:
         raise FileNotFoundError(f"{root}: check needs camera frames and scans")
@@ -614,7 +617,9 @@ def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any
     that is no depth map is a ``CalibrationFileError`` saying what one is."""
     from toolkit.io.depth import PNG_DEPTH_SCALE
 
-    stems = [f"{index:06d}"] + ([image_path.stem] if image_path is not None else [])
+    # A sequence's images are named by index: each name once in the message.
+    stems = list(dict.fromkeys(
+        [f"{index:06d}"] + ([image_path.stem] if image_path is not None else [])))
     for stem in stems:
         for ext in (".npy", ".png"):
             p = Path(depth_dir) / f"{stem}{ext}"

@@ -262,6 +262,24 @@ def test_check_on_a_sequence_refuses_a_rig_or_depth_of_another_size(scene, tmp_p
                  str(depth), "--out", str(tmp_path / "d")]) == 2
 
 
+def test_check_on_a_sequence_names_a_missing_depth_folder(scene, tmp_path, capsys) -> None:  # noqa: ANN001
+    """check --sequence --depth with a mistyped folder said "no depth map for frame 0
+    (looked for 000000.npy|.png, 000000.npy|.png)"; as with --images: the folder is named,
+    and a frame's missing map names each file looked for once."""
+    from calibration.cli import main
+
+    _write_sequence(scene, tmp_path / "seq")
+    args = ["check", "--sequence", str(tmp_path / "seq"), "--frames", "3", "--out",
+            str(tmp_path / "d"), "--depth"]
+    assert main([*args, str(tmp_path / "nope")]) == 2
+    assert capsys.readouterr().err == (
+        f"error: {tmp_path / 'nope'}: depth folder (--depth) not found\n")
+    (tmp_path / "empty").mkdir()
+    assert main([*args, str(tmp_path / "empty")]) == 2
+    assert capsys.readouterr().err == (f"error: {tmp_path / 'empty'}: no depth map for frame 0 "
+                                       "(looked for 000000.npy|.png)\n")
+
+
 def _write_swept_sequence(root, odometry: bool = True):  # noqa: ANN001, ANN202
     """The boxes room seen by a robot turning on the spot at 1 rad/s under a 10 Hz spinning
     lidar: beam i measured at the scan's stamp + i * time_increment (as a ROS LaserScan

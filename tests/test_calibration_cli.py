@@ -309,6 +309,21 @@ def test_wrong_paths_stop_before_any_output(capture: tuple[Path, object], tmp_pa
     assert e.value.code == 2
 
 
+def test_intrinsics_refuses_a_folder_as_out_before_calibrating(
+        capture: tuple[Path, object], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """intrinsics --out <folder> calibrated every image, printed the result, and then
+    failed on the atomic rename ('[Errno 21] Is a directory'); extrinsic checked first."""
+    cap_dir, _ = capture
+    (tmp_path / "cam").mkdir()
+    rc = main(["intrinsics", "--images", str(cap_dir / "images"), "--board", "11x8",
+               "--square", "0.05", "--out", str(tmp_path / "cam")])
+    out = capsys.readouterr()
+    assert rc == 2 and out.err == f"error: {tmp_path / 'cam'}: is a folder; give a file name " \
+        "to write\n"
+    assert "RMS reprojection" not in out.out
+
+
 def test_bench_without_anything_to_measure_fails() -> None:
     from calibration.bench import main as bench_main
 

@@ -428,6 +428,27 @@ def test_depth_store_keeps_an_interrupted_writers_frames_under_the_same_key(
     assert w.resumed == 0 and not list((root / "frames").glob("*.npy"))
 
 
+def test_depth_store_predicts_again_a_journaled_frame_cut_short(tmp_path: Path) -> None:
+    """A frame file truncated after it was journaled (power loss, a hand) is not kept on
+    resume: it used to be, the stage finished, and fuse failed on it naming no file."""
+    vals = np.arange(12, dtype=np.float32).reshape(3, 4)
+    root = tmp_path / "d"
+    w = DepthStoreWriter(root, "metric_depth", resume_key="k1")
+    for i in range(4):
+        w.add(i, float(i), DepthPrediction(vals + i, "metric_depth", 0.01))
+    del w  # killed before close()
+    frame = root / "frames" / "000002.npy"
+    frame.write_bytes(frame.read_bytes()[:100])  # the header and a few values
+    (root / "frames" / "000003.npy").write_bytes(b"")  # a file that never got its data
+    w = DepthStoreWriter(root, "metric_depth", resume_key="k1")
+    assert w.done == {0, 1} and w.resumed == 2
+    assert not frame.exists()
+    for i in (2, 3):
+        w.add(i, float(i), DepthPrediction(vals + i, "metric_depth", 0.01))
+    w.close()
+    np.testing.assert_array_equal(DepthStore(root).read(2).values, vals + 2)
+
+
 def test_depth_stage_records_the_network_input_it_used(tmp_path: Path) -> None:
     """meta.json's input_hw is the input after rounding to whole patches (it was null)."""
     import json

@@ -505,6 +505,47 @@ def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
     assert "Resumed an interrupted run" in (tmp_path / "cut/run/report.md").read_text()
 
 
+def test_fuse_resume_starts_afresh_when_a_promised_scaled_depth_file_is_damaged(
+        box_room: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The checkpoint promises the scaled depth of the frames it fused: one deleted and one
+    cut short after the kill were kept (the stage finished without the first, its
+    index.csv listing it, and splat failed on the second). They make the rerun start
+    afresh, writing what an uninterrupted run writes."""
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.stage import FuseStage
+
+    stages = [{"stage": "t_sequence", "path": str(box_room)},
+              {"stage": "depth", "backend": "simulated", "simulated": {"seed": 1}},
+              {"stage": "fuse", "scale": "clustered", "checkpoint_every_s": 1e-9}]
+    register = {"t_sequence": SequenceFolder, "depth": DepthStage, "fuse": FuseStage}
+    for d in ("full", "cut"):
+        (tmp_path / d).mkdir()
+    full = run_stages(tmp_path / "full", stages, register)
+    assert full.ok, full.error
+    real = Fusion.integrate
+    killed: list[int] = []
+
+    def dies_at_frame_12(self: Fusion, index: int, *a: object, **kw: object) -> object:
+        if index == 12 and not killed:
+            killed.append(index)
+            raise RuntimeError("killed")
+        return real(self, index, *a, **kw)
+
+    monkeypatch.setattr(Fusion, "integrate", dies_at_frame_12)
+    assert not run_stages(tmp_path / "cut", stages, register).ok
+    depth = tmp_path / "cut/run/fuse/scaled_depth"
+    (depth / "000003.png").unlink()
+    png = depth / "000005.png"
+    png.write_bytes(png.read_bytes()[:200])
+    again = run_stages(tmp_path / "cut", stages, register)
+    assert again.ok, again.error
+    assert again.metrics["fuse"]["frames_resumed_map"] == 0
+    a, b = tmp_path / "full/run/fuse", tmp_path / "cut/run/fuse"
+    for name in ("map.ply", "scaled_depth/index.csv", "scaled_depth/000003.png",
+                 "scaled_depth/000005.png"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+
+
 def test_carve_views_on_disk_match_memory_and_restore(tmp_path: Path) -> None:
     from toolkit.fusion.pipeline import CarveViews
 
@@ -522,6 +563,12 @@ def test_carve_views_on_disk_match_memory_and_restore(tmp_path: Path) -> None:
     back = CarveViews(tmp_path / "v")
     back.restore(state)
     assert [i for i, _ in back] == [0, 5, 10]
+    # A view cut short after the kill is named as one deleted is, not met as numpy's EOF
+    # error (naming no file) when the map pass ends.
+    view = tmp_path / "v/000010.npy"
+    view.write_bytes(view.read_bytes()[:-10])
+    with pytest.raises(FileNotFoundError, match=r"frames \[10\] are gone or cut short"):
+        CarveViews(tmp_path / "v").restore(state)
     (tmp_path / "v/000005.npy").unlink()
     with pytest.raises(FileNotFoundError, match="--force"):
         CarveViews(tmp_path / "v").restore(state)

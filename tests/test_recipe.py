@@ -544,6 +544,124 @@ def test_force_reruns_everything(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {"t_source": 2, "t_double": 2, "t_sink": 2}
 
 
+def test_a_stage_folder_that_cannot_be_emptied_is_named(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun that cannot empty the stage's folder (a read-only subfolder) said only
+    "PermissionError: [Errno 13] Permission denied: 'x.png'", shutil.rmtree naming the
+    file without its folder; the message names the stage's folder and the fix. (A
+    finished folder is moved aside, not emptied: this is an interrupted run's, of other
+    settings.)"""
+    from toolkit.recipe import runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    stage_dir = tmp_path / "run" / "t_double"
+    (stage_dir / "renders").mkdir()
+    (stage_dir / ".stage.json").unlink()
+    (stage_dir / ".stage.started.json").write_text('{"key": "k", "folder_key": "other"}')
+
+    def refused(p: Path, *a: object, **kw: object) -> None:
+        raise PermissionError(13, "Permission denied", "x.png")
+
+    monkeypatch.setattr(runner.shutil, "rmtree", refused)
+    result = _run(path)
+    assert result.failed_stage == "t_double"
+    assert result.error == (
+        f"stage 't_double' failed: cannot prepare its folder {stage_dir} (PermissionError: "
+        "[Errno 13] Permission denied: 'x.png'); make the folder writable or free space, "
+        "then run again (the stage did not start)")
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
+
+
+@pytest.mark.parametrize("stage", ["fuse", "tsdf"])
+def test_a_voxel_size_in_other_units_than_metres_is_refused(stage: str) -> None:
+    """voxel_size_m: 15 (meant as mm) fused a 240-frame simulated run into 5 points and
+    finished; a tsdf of 20 m voxels failed blaming the depth. Over a metre is refused."""
+    from toolkit.recipe.schema import parse_recipe
+
+    data = {"name": "u", "output": "runs/u", "stages": [{"stage": stage, "voxel_size_m": 15}]}
+    with pytest.raises(RecipeError, match=rf"stages\[0\] \({stage}\): voxel_size_m: Input "
+                       r"should be less than or equal to 1 \(got 15\)"):
+        parse_recipe(data)
+    data["stages"][0]["voxel_size_m"] = 0.05
+    with pytest.raises(RecipeError, match="requires artifact"):  # the voxel size passes
+        parse_recipe(data)
+
+
+def test_another_recipes_run_folder_is_left_alone(tmp_path: Path) -> None:
+    """A recipe whose 'output:' (copied, mistyped) is another recipe's run folder replaced
+    that run's stages wherever the settings differed, without a word: it is refused."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    before = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+    data = dict(_recipe_data(tmp_path), name="mine")
+    data["stages"][0]["value"] = 4
+    other = _write_recipe(tmp_path, data, "mine.yaml")
+    with pytest.raises(RecipeError, match=f"output: {run_dir} holds a run of recipe 'chain' "
+                       r"\(recipe.resolved.yaml\), not of 'mine'"):
+        _run(other)
+    assert {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()} == before
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
+    # The recipe renamed, said so by deleting the old name's record: it runs there.
+    (run_dir / "recipe.resolved.yaml").unlink()
+    assert set(_run(other).statuses.values()) == {"ran"}
+    assert "name: mine" in (run_dir / "recipe.resolved.yaml").read_text()
+
+
+def test_a_problem_of_a_set_value_names_the_set_item(tmp_path: Path) -> None:
+    """A typo typed in --set was reported as the recipe file's ("chain.yaml: stages[2]
+    (t_sink): unknown key 'fail_markr'"), and the file was searched for it in vain."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    with pytest.raises(RecipeError) as err:
+        load_recipe(path, ["t_sink.fail_markr=x", "t_source.value=1", "output="])
+    assert err.value.problems == [
+        f"{path}: 'output' must be a folder path (got None) (from --set output=)",
+        "stages[2] (t_sink): unknown key 'fail_markr' (did you mean 'fail_marker'?); allowed "
+        "keys: id, inputs, counter, fail_marker, kill_marker, stage_error "
+        "(from --set t_sink.fail_markr=x)"]
+    data = _recipe_data(tmp_path)
+    data["stages"][2]["fail_markr"] = "x"  # in the file: no --set named
+    with pytest.raises(RecipeError) as err:
+        load_recipe(_write_recipe(tmp_path, data, "typo.yaml"), ["t_sink.counter=c"])
+    assert err.value.problems[0].endswith("stage_error")
+
+
+def test_a_tab_in_a_recipe_says_to_indent_with_spaces(tmp_path: Path) -> None:
+    """PyYAML's "found character '\\t' that cannot start any token" was all a recipe
+    indented with a tab got: the fix is said."""
+    path = tmp_path / "tab.yaml"
+    path.write_text("name: t\nstages:\n  - stage: t_source\n\tvalue: 3\n")
+    with pytest.raises(RecipeError, match=r"(?s)line 4, column 1.*YAML indents with spaces "
+                       "only: replace the tab"):
+        load_recipe(path)
+
+
+def test_a_run_folder_that_cannot_be_written_is_named_with_the_fix(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A read-only run folder stopped the CLI with "error: [Errno 13] Permission denied:
+    '.../.lock'" (found with chmod a-w as a user without root's override)."""
+    import builtins
+
+    from toolkit.recipe import runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    real_open = builtins.open
+
+    def read_only(file: Any, *a: Any, **kw: Any) -> Any:
+        if str(file).endswith(runner.LOCK_FILE):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *a, **kw)
+
+    monkeypatch.setattr(builtins, "open", read_only)
+    run_dir = tmp_path / "run"
+    with pytest.raises(RecipeError, match=re.escape(
+            f"output: cannot write in the run folder {run_dir} ([Errno 13] Permission denied: "
+            f"'{run_dir / '.lock'}'); make it writable, or set 'output' to another folder")):
+        _run(path)
+
+
 def test_only_runs_one_stage(tmp_path: Path) -> None:
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     with pytest.raises(RecipeError, match="needs the output of stage 't_source'.*never ran"):
@@ -1523,7 +1641,8 @@ def test_validation_messages_point_at_the_fix(tmp_path: Path) -> None:
         load_recipe(sim, ["simulate.duration_s=-1"])
     assert err.value.problems == [
         "stages[0] (simulate): camera.distortion: expects 5 values, got 2 ([0.1, 0.01])",
-        "stages[0] (simulate): duration_s: Input should be greater than 0 (got -1)"]
+        "stages[0] (simulate): duration_s: Input should be greater than 0 (got -1) "
+        "(from --set simulate.duration_s=-1)"]
 
     sim.write_text(f"name: t\noutput: {tmp_path / 'out'}\nstages:\n  - stage: simulate\n"
                    "    id: 2024\n  - stage: simulate\n    id: true\n")

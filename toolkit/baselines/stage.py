@@ -141,7 +141,9 @@ class TSDFConfig(StageConfig, AddedOptions):
     # does so for ground-truth depth only (the upper bound), never for scaled depth, whose
     # row must cope with people as the method does, without ground truth.
     mask_dynamic: Literal["auto", "groundtruth", "none"] = "auto"
-    voxel_size_m: float = Field(0.02, gt=0)
+    # Metres, as fuse's (over a metre is a unit mistake: 20 gave an empty mesh blamed on
+    # the depth).
+    voxel_size_m: float = Field(0.02, gt=0, le=1.0)
     trunc_voxels: float = Field(4.0, gt=0)
     depth_max_m: float = Field(6.0, gt=0)  # as fuse's max_depth_m: far mono depth is guesswork
     # Frames that must see a voxel. None: 1 for ground-truth depth, 2 for scaled depth,

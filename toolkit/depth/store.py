@@ -24,6 +24,7 @@ import numpy as np
 
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
 from toolkit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from toolkit.io.depth import file_complete
 
 JOURNAL = "journal.jsonl"
 
@@ -65,7 +66,8 @@ class DepthStoreWriter:
         self._journal = self._journal_path.open("a", encoding="utf-8")
 
     def _journaled(self, head: dict[str, Any]) -> list[dict[str, str]]:
-        """Rows of an earlier writer's journal with the same head whose files exist."""
+        """Rows of an earlier writer's journal with the same head whose files are whole
+        (a frame cut short after it was journaled is predicted again, not kept)."""
         path = self.root / JOURNAL
         if not path.exists():
             return []
@@ -78,7 +80,7 @@ class DepthStoreWriter:
             if n == 0:
                 if item != head:
                     return []
-            elif (self.root / item["file"]).exists():
+            elif file_complete(self.root / item["file"]):
                 rows.append(item)
         return rows
 

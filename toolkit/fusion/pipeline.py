@@ -67,6 +67,7 @@ from toolkit.fusion.voxel_map import (
 )
 from toolkit.geometry import Trajectory, inv_se3, transform_points
 from toolkit.io.atomic import atomic_path
+from toolkit.io.depth import file_complete
 from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence
 
 log = logging.getLogger(__name__)
@@ -158,7 +159,9 @@ class FusionConfig(BaseModel):
     # cloud.ramp_mask) stay out of the map: a smooth network's ramps across depth edges
     # (0: off).
     ramp_threshold: float = Field(0.0, ge=0)
-    voxel_size_m: float = Field(0.02, gt=0)
+    # Metres: 15 (meant as mm or cm) fused a room into 5 points without a word; no map
+    # of a robot's rooms is made of voxels over a metre.
+    voxel_size_m: float = Field(0.02, gt=0, le=1.0)
     min_voxel_frames: int = Field(1, ge=1)
     # Multi-view consensus: the same depth also goes into a coarse TSDF (Open3D), whose
     # surface is the weighted average of every view along the rays; map voxels farther
@@ -309,10 +312,12 @@ class CarveViews:
         if self.folder is None:
             self._arrays = dict(state["arrays"] or {})  # type: ignore[call-overload]
             return
-        missing = [i for i in self.indices if not self._path(i).exists()]
+        # A view cut short (power loss, a hand) is as gone as a deleted one: loaded at the
+        # end of the map pass it failed with numpy's EOF error, naming no file.
+        missing = [i for i in self.indices if not file_complete(self._path(i))]
         if missing:
             raise FileNotFoundError(f"{self.folder}: carving views of frames {missing[:5]} are "
-                                    "gone; run the stage again with --force")
+                                    "gone or cut short; run the stage again with --force")
 
 
 @dataclass

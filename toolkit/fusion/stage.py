@@ -488,6 +488,19 @@ class FuseStage(Stage):
                           cfg.checkpoint_every_s, ctx.log)
         st: FuseProgress | None = ckpt.load(lambda x: isinstance(x, FuseProgress) and all(
             hasattr(x, f.name) for f in fields(FuseProgress)) and len(x.oracle) == len(frames))
+        from toolkit.io.depth import file_complete
+
+        # The checkpoint promises the scaled depth of the frames it fused: one of them gone
+        # or cut short since (by hand, power loss) was kept, and the stage finished with a
+        # frame its index.csv lists missing. Their map is in the checkpoint, so start afresh.
+        broken = [] if st is None else [
+            name for name in (row.split(",")[2] for row in st.depth_rows)
+            if not file_complete(ctx.stage_dir / "scaled_depth" / name)]
+        if broken:
+            ctx.log.warning("fuse: %d scaled depth file(s) of the checkpoint are missing or "
+                            "cut short (%s); starting afresh", len(broken),
+                            ", ".join(broken[:3]) + (", ..." if len(broken) > 3 else ""))
+            st = None
         if st is not None:
             if st.fusion is not None:
                 fusion.restore(st.fusion)

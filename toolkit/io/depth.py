@@ -17,6 +17,8 @@ PNG_DEPTH_SCALE = 5000.0
 
 
 PNG_DEPTH_MAX_M = 65535 / PNG_DEPTH_SCALE  # 13.107 m
+# A PNG's last 8 bytes: the IEND chunk's type and its CRC, the same in every PNG.
+_PNG_END = b"IEND\xaeB`\x82"
 
 
 def write_depth(path: Path | str, depth: np.ndarray) -> int:
@@ -42,6 +44,34 @@ def write_depth(path: Path | str, depth: np.ndarray) -> int:
         else:
             raise ValueError(f"{path}: depth files must end in .npy or .png")
     return 0
+
+
+def file_complete(path: Path | str) -> bool:
+    """Whether a ``.npy`` or ``.png`` file is whole: a ``.npy``'s size is what its header's
+    shape and dtype make it, a PNG ends with its IEND chunk.
+
+    For resuming a killed stage, whose files written before the kill are kept: writes are
+    atomic, but a file cut short afterwards (power loss before the data reached the disk,
+    a hand, a full copy) must not be kept as finished, and the check must cost a header
+    read, not a decode, on an hour's frames. Other suffixes: whether the file exists.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if path.suffix == ".npy":
+            with path.open("rb") as fh:
+                version = np.lib.format.read_magic(fh)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, _, dtype = read_header(fh)
+                return size == fh.tell() + int(np.prod(shape)) * dtype.itemsize
+        if path.suffix == ".png":
+            with path.open("rb") as fh:
+                fh.seek(max(0, size - len(_PNG_END)))
+                return size > len(_PNG_END) and fh.read() == _PNG_END
+        return path.is_file()
+    except (OSError, ValueError):  # missing, unreadable, or not a .npy header at all
+        return False
 
 
 def read_depth(path: Path | str) -> np.ndarray:

@@ -35,6 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from rich.console import Console
 from rich.logging import RichHandler
 from rich.markup import escape
@@ -55,7 +56,14 @@ from toolkit.io.atomic import (
     to_jsonable,
 )
 from toolkit.recipe import registry, report
-from toolkit.recipe.schema import Recipe, RecipeError, StageSpec, config_data, dump_recipe_data
+from toolkit.recipe.schema import (
+    Recipe,
+    RecipeError,
+    StageSpec,
+    config_data,
+    dump_recipe_data,
+    read_yaml_value,
+)
 from toolkit.recipe.stage import Stage, StageContext, StageError, StageResult
 
 try:
@@ -193,6 +201,13 @@ def run_recipe(
             f"{', ...' if len(others) > 5 else ''}): a run writes report.md, metrics.json and "
             "run.log there, replacing files of those names. Set 'output' to a new or empty "
             "folder (nothing was changed)")
+    owner = _other_recipes_run(run_dir, recipe)
+    if owner is not None:
+        raise RecipeError(
+            f"output: {run_dir} holds a run of recipe {owner!r} ({RESOLVED_FILE}), not of "
+            f"{recipe.name!r}: a run would replace that run's results wherever the settings "
+            "differ. Set 'output' to another folder; if this recipe is that one renamed, "
+            f"delete {run_dir / RESOLVED_FILE} first (nothing was changed)")
     with _exclusive(run_dir):
         try:
             foreign = foreign_stage_folders(recipe, run_dir)
@@ -229,6 +244,19 @@ def _remove_tree(path: Path) -> None:
         path.unlink()
     elif path.is_dir():
         shutil.rmtree(path)
+
+
+def _other_recipes_run(run_dir: Path, recipe: Recipe) -> str | None:
+    """The name of the recipe whose run ``run_dir`` holds, when it is not ``recipe``'s: an
+    ``output:`` copied with a recipe, or mistyped, into another run's folder replaced that
+    run's stages wherever the settings differed (every stage, for another recipe). None
+    for a run of this recipe, or a folder without a readable resolved recipe."""
+    try:
+        data = read_yaml_value((run_dir / RESOLVED_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError, yaml.YAMLError):  # none (a new folder), or unreadable
+        return None
+    name = data.get("name") if isinstance(data, dict) else None
+    return str(name) if name is not None and str(name) != recipe.name else None
 
 
 def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
@@ -512,7 +540,13 @@ class _Run:
         except RecipeError:
             raise
         except OSError as exc:  # a full disk, a read-only folder: before any work
-            self.fail(record, exc, start)
+            # Named with the stage's folder: shutil.rmtree's errors name a file alone
+            # ("Permission denied: 'path_020.png'"), not where it is.
+            self.fail(record, StageError(
+                f"cannot prepare its folder {stage_dir} ({type(exc).__name__}: {exc}); make "
+                "the folder writable or free space, then run again (the stage did not start)"),
+                start)
+            self.restore_previous(record)
             return False
         record.metrics, record.report, record.provides = {}, [], {}
         self.console.print(f"[bold]{spec.id}[/] running ({escape(record.reason)})")
@@ -1083,7 +1117,13 @@ def _exclusive(run_dir: Path) -> Iterator[None]:
     if fcntl is None:
         yield
         return
-    with open(run_dir / LOCK_FILE, "a") as handle:
+    try:
+        handle = open(run_dir / LOCK_FILE, "a")  # closed by the with below
+    except OSError as exc:  # a read-only run folder (or lock file): say so, not just errno
+        raise RecipeError(f"output: cannot write in the run folder {run_dir} ({exc}); make "
+                          "it writable, or set 'output' to another folder (nothing was "
+                          "changed)") from None
+    with handle:
         try:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:

@@ -253,7 +253,10 @@ def load_recipe(path: str | Path, overrides: Sequence[str] = ()) -> Recipe:
     try:
         data = yaml.load(stream, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        raise RecipeError(f"{path}: not valid YAML: {exc}") from None
+        # PyYAML says only "found character '\t' that cannot start any token".
+        fix = ("\nYAML indents with spaces only: replace the tab(s) with spaces"
+               if "'\\t'" in str(exc) else "")
+        raise RecipeError(f"{path}: not valid YAML: {exc}{fix}") from None
     return parse_recipe(data, overrides, source=path)
 
 
@@ -264,10 +267,29 @@ def parse_recipe(
     try:
         return _parse_recipe(data, overrides, source)
     except RecipeError as exc:
-        hint = _quoting_hint(data, overrides, source, len(exc.problems)) if overrides else None
-        if hint is None:
+        if not overrides:
             raise
-        raise RecipeError([*exc.problems, hint]) from None
+        problems = [_set_by(p, overrides, source) for p in exc.problems]
+        hint = _quoting_hint(data, overrides, source, len(exc.problems))
+        raise RecipeError([*problems, hint] if hint else problems) from None
+
+
+def _set_by(problem: str, overrides: Sequence[str], source: str | Path | None) -> str:
+    """``problem`` with the ``--set`` item that gave the value it is about, if one did: a
+    problem of a value typed on the command line read as the file's ("tiny.yaml: stages[0]
+    (simulate): unknown key 'camera.widht'"), and the file was searched for it in vain."""
+    where = re.escape(str(source) if source is not None else "recipe")
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        stage_id, _, path = key.partition(".")
+        if path:
+            about = (rf"stages\[\d+\] \({re.escape(stage_id)}\): "
+                     rf"(?:unknown key '{re.escape(path)}'|{re.escape(path)}: )")
+        else:
+            about = rf"{where}: '{re.escape(key)}' "
+        if re.match(about, problem):
+            return f"{problem} (from --set {item})"
+    return problem
 
 
 def _parse_recipe(data: Any, overrides: Sequence[str], source: str | Path | None) -> Recipe:
