@@ -844,6 +844,28 @@ def test_resume_after_exception(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 2}
     # the stage folder was not wiped: its own partial files survive
     assert (run_dir / "t_sink" / "checkpoint.txt").exists()
+    assert "t_sink (t_sink) started: did not finish last time: resumes" in (
+        run_dir / "run.log").read_text()
+
+
+def test_the_reason_says_whether_an_interrupted_stage_resumes(tmp_path: Path) -> None:
+    """An interrupted stage rerun with --force, or under other settings, starts afresh,
+    yet the runner said only "did not finish last time", as it does when it resumes."""
+    for case in ("force", "other settings"):
+        folder = tmp_path / case.replace(" ", "_")
+        folder.mkdir()
+        marker = folder / "failed_once"
+        path = _write_recipe(folder, _recipe_data(folder, fail_marker=str(marker)))
+        assert not _run(path).ok
+        if case == "force":
+            assert _run(path, force=True).ok
+            said = "did not finish last time; --force starts it afresh"
+        else:
+            other = folder / "other_marker"
+            other.touch()
+            assert _run(path, f"t_sink.fail_marker={other}").ok
+            said = "did not finish last time, under other settings: starts afresh"
+        assert f"t_sink (t_sink) started: {said}" in (folder / "run" / "run.log").read_text()
 
 
 def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(

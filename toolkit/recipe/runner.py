@@ -425,6 +425,16 @@ class _Run:
             return True
         if stored is not None:
             record.reason = self.option() or "--force"
+        elif record.reason == "did not finish last time":
+            # Say whether it resumes (prepare_stage_dir's rule): an interrupted run of other
+            # settings, or any under --force, starts afresh.
+            started = _started_folder_key(self.run_dir / spec.id / STARTED_FILE)
+            if self.force:
+                record.reason += "; --force starts it afresh"
+            elif started != record.folder_key:
+                record.reason += ", under other settings: starts afresh"
+            else:
+                record.reason += ": resumes"
         ok = self.run_stage(record, stage)
         self.write_outputs()
         return ok
