@@ -1693,3 +1693,17 @@ def test_cli_errors_about_a_stage_name_the_recipe_file(
     assert cli.main(["validate", str(_write_recipe(tmp_path, _recipe_data(tmp_path), "b.yaml")),
                      "--set", "t_double.factor"]) == 2
     assert capsys.readouterr().err.startswith("error: --set 't_double.factor'")
+
+
+def test_a_number_written_with_its_unit_is_told_the_unit() -> None:
+    """duration_s: 8s said only "Input should be a valid number"; the key's suffix names
+    the unit the plain number is in."""
+    from toolkit.recipe.schema import parse_recipe
+
+    for stage, key, value, unit in (("simulate", "duration_s", "8s", "in seconds (the key's _s)"),
+                                    ("fuse", "voxel_size_m", "5 cm", "in metres (the key's _m)")):
+        with pytest.raises(RecipeError, match=re.escape(
+                f"{key}: Input should be a valid number, unable to parse string as a number "
+                f"(got '{value}'); write a plain number, {unit}")):
+            parse_recipe({"name": "u", "output": "runs/u", "stages": [{"stage": stage,
+                                                                      key: value}]})

@@ -709,13 +709,34 @@ def format_validation_error(
             path, _ = _resolve_loc(model, loc)
             where = f"{label}: {_fmt_loc(path)}" if path else label
             got = _short(repr(item.get("input")))
-            merged.setdefault(f"{where}: ", []).append(f"{item['msg']} (got {got})")
+            merged.setdefault(f"{where}: ", []).append(
+                f"{item['msg']} (got {got}){_unit_hint(path, kind, item.get('input'))}")
     for where, (expected, given) in short.items():
         lines.append(f"{where}: expects {expected} values, got {len(given)} "
                      f"({_short(repr(list(given)))})")
     for where, messages in merged.items():
         lines.append(where + "; or ".join(dict.fromkeys(messages)))
     return list(dict.fromkeys(lines))
+
+
+# Key suffix -> the unit its number is in (longest suffix first).
+_UNITS = (("_m_s", "metres per second"), ("_deg_s", "degrees per second"),
+          ("_ms", "milliseconds"), ("_mb", "megabytes"), ("_deg", "degrees"),
+          ("_rad", "radians"), ("_hz", "hertz"), ("_px", "pixels"), ("_db", "decibels"),
+          ("_s", "seconds"), ("_m", "metres"))
+
+
+def _unit_hint(path: tuple[Any, ...], kind: str, given: Any) -> str:
+    """'; a plain number, in seconds (the key's _s)' for a number given as text with a unit
+    ('8s', '15 cm'): the message said only that it was no valid number."""
+    if not (path and isinstance(path[-1], str) and isinstance(given, str)
+            and kind in ("float_parsing", "int_parsing", "float_type", "int_type")):
+        return ""
+    key = path[-1].lower()
+    for suffix, unit in _UNITS:
+        if key.endswith(suffix):
+            return f"; write a plain number, in {unit} (the key's {suffix})"
+    return ""
 
 
 def _resolve_loc(model: type[BaseModel], loc: tuple[Any, ...]) -> tuple[tuple[Any, ...], Any]:
