@@ -52,16 +52,22 @@ from toolkit.fusion.refine import Refinement
 from toolkit.fusion.scale import SmoothedScale, depth_order_agreement
 from toolkit.fusion.voxel_map import MapArrays
 from toolkit.geometry import Trajectory
+from toolkit.heldout import heldout_frames
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.prefetch import WriteBehind, prefetched
 from toolkit.recipe.checkpoint import Checkpoint
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.recipe.timing import work_metrics
 from toolkit.sensors import Sequence
+from toolkit.settings import AddedOptions
 
 
-class FuseConfig(FusionConfig, StageConfig):
+class FuseConfig(FusionConfig, StageConfig, AddedOptions):
     """Settings of the ``fuse`` stage: the fusion's own (``FusionConfig``) plus these."""
+
+    # Left at their defaults, the hold-out settings (session 27) are not part of the
+    # settings: fuse stages made before them keep their cache key.
+    added_off = {"holdout_every": 0, "holdout_frame_stride": 1}
 
     # Where T_world_base comes from: the upstream 'trajectory' artifact (slam2d), the
     # sequence's ground truth, or the first of those that exists (auto).
@@ -87,6 +93,14 @@ class FuseConfig(FusionConfig, StageConfig):
     # where it was instead of fusing every frame again. A save writes the whole voxel map
     # (about 0.1 KB per voxel: 0.3 GB for the quickstart's).
     checkpoint_every_s: float = Field(300.0, ge=0)
+    # Leave out of the map (its points, colours, consensus and carving views, and the
+    # exposure solve) the frames a splat stage with holdout_every / frame_stride of these
+    # values holds out, at the same poses: the splats then start from a cloud that never
+    # saw the images they are scored on. Their lidar still scales and smooths their
+    # neighbours' depth (no image of theirs is in that). 0: every frame is fused.
+    holdout_every: int = Field(0, ge=0, description="leave out the frames a splat stage "
+                               "with this holdout_every holds out (0: none)")
+    holdout_frame_stride: int = Field(1, ge=1, description="that splat stage's frame_stride")
 
 
 def oracle_scale(gt_depth: np.ndarray, values: np.ndarray) -> float:
@@ -566,6 +580,20 @@ class FuseStage(Stage):
                 f"{cfg.min_pairs}). Check T_base_laser / T_base_camera (does the lidar land in "
                 "the image?), the scan stamps, or use scale: none for a metric network")
         used = [(j, i) for j, i in enumerate(frames) if sm.used[j]]
+        # The splat stage's held-out frames stay out of everything that reaches the map
+        # (exposure solve and map pass below), after the scales: their lidar pairs were
+        # fair evidence for their neighbours' scale, their images are the test.
+        held_out = set(heldout_frames(
+            seq, ctx.artifact("trajectory") if pose_source == "trajectory" else None,
+            cfg.poses, cfg.holdout_frame_stride, cfg.holdout_every))
+        n_before = len(used)
+        if held_out:
+            used = [(j, i) for j, i in used if i not in held_out]
+            ctx.log.info("fuse: %d frame(s) held out of the map for the splat stage "
+                         "(holdout_every %d, frame_stride %d)", len(held_out),
+                         cfg.holdout_every, cfg.holdout_frame_stride)
+            if not used:
+                raise StageError("fuse: holdout_every leaves no frame to fuse")
         # ---------------------------------------------------------------- exposure
         if cfg.exposure == "gain" and st.gains is None:
             st.gains, st.gains_solved, st.exposure = self._solve_exposure(
@@ -640,8 +668,10 @@ class FuseStage(Stage):
                 if ckpt.due():
                     writes.flush()  # the checkpoint promises these frames' files
                     save_checkpoint()
-        if oracle_gt:  # the frames the map pass skipped
-            for j in np.flatnonzero(~sm.used & np.isnan(st.oracle)):
+        if oracle_gt:  # the frames the map pass skipped (flagged or held out)
+            mapped = np.zeros(len(frames), bool)
+            mapped[[j for j, _ in used]] = True
+            for j in np.flatnonzero(~mapped & np.isnan(st.oracle)):
                 i = frames[j]
                 st.oracle[j] = oracle_scale(gt.depth(i), store.read(i).values)  # type: ignore[union-attr]
         t0, c0 = time.perf_counter(), time.process_time()
@@ -678,9 +708,9 @@ class FuseStage(Stage):
                                  spread_gains(st.gains, fused_at, len(seq.frames)), solved)
         ctx.provide("fused", ctx.stage_dir)
         # ---------------------------------------------------------------- metrics
-        used = int(sm.used.sum())
+        n_used = len(used)  # the frames the map pass fused
         metrics: dict[str, object] = {
-            "frames": len(frames), "frames_fused": used,
+            "frames": len(frames), "frames_fused": n_used,
             "frames_flagged": int(sum(f != "ok" for f in sm.flag)),
             "frames_few_pairs": int(sum(f == "few_pairs" for f in sm.flag)),
             "frames_outlier": int(sum(f == "outlier_frame" for f in sm.flag)),
@@ -702,10 +732,10 @@ class FuseStage(Stage):
             "map_points_removed_dynamic": int(masks["dynamic"].sum()),
             "map_points_removed_outlier": int(masks["outlier"].sum()),
             "map_points_removed_consensus": int(masks["consensus"].sum()),
-            "fusion_fps": used / max(st.t_core + t_finish, 1e-9),
-            "fusion_fps_per_frame_only": used / max(st.t_core, 1e-9),
-            "fusion_fps_cpu": used / max(st.c_core + c_finish, 1e-9),
-            "fusion_fps_per_frame_only_cpu": used / max(st.c_core, 1e-9),
+            "fusion_fps": n_used / max(st.t_core + t_finish, 1e-9),
+            "fusion_fps_per_frame_only": n_used / max(st.t_core, 1e-9),
+            "fusion_fps_cpu": n_used / max(st.c_core + c_finish, 1e-9),
+            "fusion_fps_per_frame_only_cpu": n_used / max(st.c_core, 1e-9),
             "finish_seconds": t_finish,
             "lidar_dynamic_beams": int(sum(int(b.sum()) for b in fusion.beam_dynamic)),
             "points_masked_dynamic": fusion.points_masked_dynamic,
@@ -713,8 +743,12 @@ class FuseStage(Stage):
             # Frames an interrupted run had done, taken from its checkpoint.
             "frames_resumed_scales": resumed[0], "frames_resumed_map": resumed[1],
             "checkpoints_saved": ckpt.saves, "checkpoint_seconds": ckpt.seconds,
-            **work_metrics(st.t_core + t_finish, st.c_core + c_finish, used),
+            **work_metrics(st.t_core + t_finish, st.c_core + c_finish, n_used),
         }
+        if held_out:
+            # Those the map pass would have fused otherwise (a flagged one was out anyway).
+            metrics["frames_held_out"] = n_before - n_used
+            metrics["frames_held_out_indices"] = sorted(held_out)
         metrics.update(_depth_metrics(cfg, st, fusion.refiner is not None, has_gt_depth,
                                       disparity, sm, oracle))
         metrics.update(st.exposure)
@@ -831,6 +865,11 @@ class FuseStage(Stage):
                      if 0 < m["frames_outlier"] <= 10 else "") + "); median "
                   f"{m['pairs_per_frame_median']:.0f} lidar pairs per frame "
                   f"({m['pairs_visible_per_frame_median']:.0f} seen by both sensors).")
+        if "frames_held_out" in m:
+            md.append(f"{m['frames_held_out']} frames held out of the map (`holdout_every: "
+                      f"{cfg.holdout_every}`, `holdout_frame_stride: "
+                      f"{cfg.holdout_frame_stride}`): those a splat stage with these settings "
+                      "scores its held-out PSNR on; their lidar still took part in the scales.")
         rows = [("vs lidar (paper's protocol), all pairs", "lidar_unscaled_", "lidar_scaled_"),
                 ("vs lidar, pairs both sensors see (not occluded, moving or beside a jump)",
                  "lidar_visible_unscaled_", "lidar_visible_scaled_"),

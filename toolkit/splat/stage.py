@@ -53,6 +53,7 @@ from toolkit.fusion.exposure import (
     gains_from_neighbours,
 )
 from toolkit.geometry import Trajectory, inv_se3, rigid_alignment
+from toolkit.heldout import camera_trajectory, heldout_split
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
 from toolkit.sensors import Sequence, load_rgb
@@ -158,40 +159,10 @@ def choose_threads(setting: int | str) -> int:
 
 # ------------------------------------------------------------------------ inputs
 def camera_poses(seq: Sequence, ctx: StageContext, cfg: SplatConfig) -> tuple[Trajectory, str]:
-    """T_world_camera at the frame stamps, and where it came from."""
-    from toolkit.io.tum import read_tum
-
-    stamps = seq.frame_stamps
-    if cfg.poses in ("auto", "trajectory") and ctx.has_artifact("trajectory"):
-        path = Path(ctx.artifact("trajectory"))
-        if path.is_dir():
-            names = ["trajectory_camera.tum", "camera_poses.tum", "trajectory.tum",
-                     "poses_base.tum"]
-            cands = [path / n for n in names if (path / n).exists()] or sorted(path.glob("*.tum"))
-            if not cands:
-                raise StageError(f"splat: trajectory artifact {path} holds no .tum file")
-            path = cands[0]
-        traj = read_tum(path)
-        with path.open() as fh:
-            has_header = any(line.startswith("# T_") for line in fh.readlines()[:5])
-        if not has_header and "camera" in path.name:
-            traj.child = "camera"  # no header: the file name is the only word on it
-        if traj.child in ("base_link", "base"):
-            traj = traj.transform(T_right=seq.rig.T_base_camera)
-        elif traj.child == "laser":
-            traj = traj.transform(T_right=inv_se3(seq.rig.T_base_laser) @ seq.rig.T_base_camera)
-        traj.child = "camera"
-        return _at(traj, stamps), "trajectory"
-    if cfg.poses == "trajectory":
-        raise StageError("splat: poses: trajectory, but no stage upstream provides one "
-                         "(add slam2d before splat)")
-    gt = seq.groundtruth
-    if gt is None or gt.poses_base is None:
-        raise StageError("splat: no poses - run slam2d before splat, or use a sequence with "
-                         "ground-truth poses")
-    traj = gt.poses_base.transform(T_right=seq.rig.T_base_camera)
-    traj.child = "camera"
-    return _at(traj, stamps), "groundtruth"
+    """T_world_camera at the frame stamps, and where it came from (``camera_trajectory``,
+    which the fuse stage's ``holdout_every`` asks too)."""
+    trajectory = Path(ctx.artifact("trajectory")) if ctx.has_artifact("trajectory") else None
+    return camera_trajectory(seq, trajectory, cfg.poses)
 
 
 def groundtruth_to_trajectory_frame(seq: Sequence, poses: Trajectory) -> (
@@ -221,16 +192,6 @@ def groundtruth_to_trajectory_frame(seq: Sequence, poses: Trajectory) -> (
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T, rmse
-
-
-def _at(traj: Trajectory, stamps: np.ndarray) -> Trajectory:
-    """Interpolated at ``stamps`` the trajectory covers (others dropped): inside its span
-    and not across a gap in it (``Trajectory.covers``: slam2d gives frames in a gap
-    between scans no pose, and a straight line across one is metres off)."""
-    inside = traj.covers(stamps, slack_s=1e-6)
-    out = traj.interpolate(stamps[inside], extrapolate_s=1e-6)
-    out.extra["frame_index"] = np.nonzero(inside)[0]
-    return out
 
 
 def find_depth_dir(fused: Path) -> Path | None:
@@ -400,7 +361,7 @@ class SplatStage(Stage):
             raise StageError(f"splat: no camera frame has a pose ({pose_source} poses; frames "
                              f"{fs[0]:.3f}..{fs[-1]:.3f} s): the trajectory covers none of "
                              "them - another clock, or frames in gaps between scans")
-        used = np.arange(0, len(index), cfg.frame_stride)
+        used = np.arange(0, len(index), cfg.frame_stride)  # the frames trained or scored
         cam_full = seq.rig.camera
         w, h = cam_full.width // cfg.downscale, cam_full.height // cfg.downscale
         if min(w, h) < 11:
@@ -440,11 +401,9 @@ class SplatStage(Stage):
                            lambda it, total, desc: ctx.progress(it, total=total,
                                                                 description=desc))
 
-        # Every holdout_every-th of the frames used (not of all posed frames: with a
-        # frame_stride that would hold out too many, or all).
-        held = [cfg.holdout_every > 0 and j % cfg.holdout_every == 0 for j in range(len(used))]
-        train_k = [int(k) for k, hd in zip(used, held, strict=True) if not hd]
-        test_k = [int(k) for k, hd in zip(used, held, strict=True) if hd]
+        # Every holdout_every-th of the frames used; the rule the fuse stage's holdout_every
+        # leaves the same frames out of the map by.
+        train_k, test_k = heldout_split(len(index), cfg.frame_stride, cfg.holdout_every)
         if not train_k:
             raise StageError("splat: no training views left (check frame_stride / "
                              "holdout_every)")
@@ -609,6 +568,12 @@ class SplatStage(Stage):
             metrics["heldout_psnr_db"] = ev["psnr_db"]
             metrics["heldout_psnr_exposure_matched_db"] = ev["psnr_exposure_matched_db"]
             metrics["heldout_ssim"] = ev["ssim"]
+            if fused is not None and cfg.init == "fused":
+                # The initial cloud's leak in one figure: held-out frames the fuse stage
+                # fused into the map (all of them, unless its holdout_every matches).
+                n_in = _frames_in_map(fused, seq.frame_stamps[[int(index[k]) for k in test_k]])
+                if n_in is not None:
+                    metrics["heldout_frames_in_fused_map"] = n_in
             for key in ("depth_mae_m", "depth_rmse_m"):
                 if key in ev:
                     metrics[f"heldout_{key}"] = ev[key]
@@ -780,6 +745,22 @@ class SplatStage(Stage):
                          "Each row: real image | splats | TSDF mesh, same views as above.")
         lines.append(f"\nSplats: [{sid}/splats.ply]({sid}/splats.ply) (standard 3DGS PLY).")
         return "\n".join(lines)
+
+
+def _frames_in_map(fused: Path, stamps: np.ndarray) -> int | None:
+    """How many of the frames at ``stamps`` the fuse stage fused into its map (its
+    ``camera_poses.tum`` lists every fused frame); None when it wrote no such file."""
+    from toolkit.io.tum import read_tum
+
+    path = fused / "camera_poses.tum"
+    if not path.exists():
+        return None
+    fused_st = read_tum(path).stamps
+    if not len(fused_st) or not len(stamps):
+        return 0
+    near = np.abs(np.asarray(stamps, np.float64)[:, None] - fused_st[None, :]).min(1)
+    # Stamps round-trip the TUM text; frames lie 10s of ms apart.
+    return int((near < 1e-4).sum())
 
 
 def _data_key(map_ply: Path | None, init: list[object], names: list[str], poses: np.ndarray,
