@@ -1707,3 +1707,18 @@ def test_a_number_written_with_its_unit_is_told_the_unit() -> None:
                 f"(got '{value}'); write a plain number, {unit}")):
             parse_recipe({"name": "u", "output": "runs/u", "stages": [{"stage": stage,
                                                                       key: value}]})
+
+
+def test_a_folder_where_a_file_is_to_be_written_is_named_with_the_fix(tmp_path: Path) -> None:
+    """A stage's output file replaced by a folder (a resumed stage's frame, a user's copy)
+    failed with "[Errno 21] Is a directory" naming the temporary beside it; the message
+    names the path and says to move or delete the folder. Nothing else is left behind."""
+    target = tmp_path / "000012.png"
+    target.mkdir()
+    (target / "inside.txt").write_text("kept")
+    with pytest.raises(IsADirectoryError, match=re.escape(
+            f"a folder is where the file {target} is to be written: move or delete that "
+            "folder, then run again")):
+        atomic_write_text(target, "x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["000012.png"]
+    assert (target / "inside.txt").read_text() == "kept"

@@ -7,6 +7,7 @@ target share a filesystem - hence the same directory, never ``/tmp``.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -79,6 +80,11 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         os.replace(tmp, target)
     except OSError as e:
         _remove(tmp)
+        if target.is_dir() and not target.is_symlink():
+            # "[Errno 21] Is a directory" named the temporary beside it and no way out.
+            raise IsADirectoryError(errno.EISDIR, f"a folder is where the file {target} is to "
+                                    "be written: move or delete that folder, then run again",
+                                    str(target)) from e
         if e.filename is None and e.errno is not None:
             # A failed write() names no file (a full disk: "[Errno 28] No space left on
             # device"): say which one, so the message is worth reading.
