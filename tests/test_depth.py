@@ -189,6 +189,22 @@ def test_missing_model_says_where_to_put_it(tmp_path: Path) -> None:
     assert str(missing) in str(e.value) and "never downloads" in str(e.value)
 
 
+def test_missing_relative_model_names_the_absolute_place(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recipe's relative 'model' is read from the working directory: the error says
+    which folder that is, so a run started outside the repository is told where the file
+    must go (it named only 'datasets/models/small-depth.onnx', which exists in the repo)."""
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig, model_problem
+
+    monkeypatch.chdir(tmp_path)
+    cfg = OnnxDepthConfig(model=Path("datasets/models/small-depth.onnx"))
+    place = str(tmp_path / "datasets" / "models" / "small-depth.onnx")
+    with pytest.raises(FileNotFoundError) as e:
+        OnnxDepthBackend(cfg)
+    assert place in str(e.value) and "working directory" in str(e.value)
+    assert place in (model_problem(cfg) or "")  # the depth stage's check before the run
+
+
 def _onnx_recipe(tmp_path: Path, model: Path | str) -> Path:
     """``tmp_path/r.yaml``: a simulated sequence, then depth by the ONNX network ``model``."""
     recipe = tmp_path / "r.yaml"
