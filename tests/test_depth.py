@@ -700,6 +700,10 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
                 "images": 300, "validation": {"absrel": 0.04, "rmse_m": 0.2, "delta1": 0.98}})
     card = " ".join((tmp_path / "card.md").read_text().split())
     assert "(160x120 in the first run)" in card
+    # The card says its commands do not replay the runs (the iterations and the schedule
+    # follow the wall clock), and that the evaluation house is also where runs are chosen.
+    assert "do not replay the runs" in card and "training seed 0" in card
+    assert "compared and chosen on it" in card
     bad = tmp_path / "m.train.json"
     bad.write_text("{}")
     with pytest.raises(ValueError, match="not an ONNX model"):
