@@ -189,6 +189,22 @@ def test_missing_model_says_where_to_put_it(tmp_path: Path) -> None:
     assert str(missing) in str(e.value) and "never downloads" in str(e.value)
 
 
+def test_missing_relative_model_names_the_absolute_place(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recipe's relative 'model' is read from the working directory: the error says
+    which folder that is, so a run started outside the repository is told where the file
+    must go (it named only 'datasets/models/small-depth.onnx', which exists in the repo)."""
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig, model_problem
+
+    monkeypatch.chdir(tmp_path)
+    cfg = OnnxDepthConfig(model=Path("datasets/models/small-depth.onnx"))
+    place = str(tmp_path / "datasets" / "models" / "small-depth.onnx")
+    with pytest.raises(FileNotFoundError) as e:
+        OnnxDepthBackend(cfg)
+    assert place in str(e.value) and "working directory" in str(e.value)
+    assert place in (model_problem(cfg) or "")  # the depth stage's check before the run
+
+
 def _onnx_recipe(tmp_path: Path, model: Path | str) -> Path:
     """``tmp_path/r.yaml``: a simulated sequence, then depth by the ONNX network ``model``."""
     recipe = tmp_path / "r.yaml"
@@ -684,6 +700,10 @@ def test_fine_tuning_starts_from_an_exported_model(tmp_path: Path) -> None:
                 "images": 300, "validation": {"absrel": 0.04, "rmse_m": 0.2, "delta1": 0.98}})
     card = " ".join((tmp_path / "card.md").read_text().split())
     assert "(160x120 in the first run)" in card
+    # The card says its commands do not replay the runs (the iterations and the schedule
+    # follow the wall clock), and that the evaluation house is also where runs are chosen.
+    assert "do not replay the runs" in card and "training seed 0" in card
+    assert "compared and chosen on it" in card
     bad = tmp_path / "m.train.json"
     bad.write_text("{}")
     with pytest.raises(ValueError, match="not an ONNX model"):

@@ -232,8 +232,15 @@ def _external_data_names(path: str, _size: int, _mtime_ns: int) -> tuple[str, ..
 
 
 def missing_model_message(path: Path) -> str:
+    """What to do about a model file that is not there: where to put it (a relative path is
+    read from the working directory, which a run started elsewhere does not make obvious:
+    the absolute path is named too), what the project ships, how to make one."""
+    path = Path(path)
+    where = str(path) if path.is_absolute() else (
+        f"{path} ({Path.cwd() / path}: a relative 'model' is read from the working "
+        "directory)")
     return (
-        f"ONNX depth model not found at {path}. This toolkit never downloads weights: put the "
+        f"ONNX depth model not found at {where}. This toolkit never downloads weights: put the "
         f"exported .onnx file there (or point the recipe's 'model' at it). The project's small "
         f"model is datasets/models/small-depth.onnx (rebuild it with "
         f"`python -m toolkit.depth.train_small`); for Depth Anything V2 or MiDaS export the "

@@ -782,10 +782,16 @@ flips, per-channel gain 0.92-1.08, exposure 0.8-1.2.
 Loss: scale-invariant log loss (lambda = 1) + {cfg.grad_weight} x gradient matching of the
 log-depth residual at 4 scales. AdamW (weight decay 1e-4), {cfg.warmup_iters} warm-up
 iterations, cosine decay over the time budget, batch {cfg.batch}.
+**Reproducing it.** The iteration counts and the learning-rate schedule follow the wall
+clock (`--minutes`), so these commands do not replay the runs: on another machine or load
+they train other weights. The renders and the batches drawn are the same for the same
+seeds (training seed {cfg.seed}); the file and its `.train.json` are the record.
 
 **Measured accuracy** on {cfg.val_images} renders of house seed {cfg.val_seed} (the
-evaluation house, never trained on), each scaled by its median ratio to the truth (oracle
-scale): AbsRel {v['absrel']:.3f}, RMSE {v['rmse_m']:.3f} m, delta<1.25 {v['delta1']:.3f}.
+evaluation house, never trained on, though runs and settings are compared and chosen on
+it, so it is no untouched test house), each scaled by its median ratio to the truth (oracle
+scale): AbsRel {v['absrel']:.3f}, RMSE {v['rmse_m']:.3f} m, delta<1.25
+{v['delta1']:.3f}.
 {seq_text}
 **Limits.** Trained on one kind of synthetic house only: expect poor results on real
 images. Relative depth only: no metric scale without the lidar.
