@@ -1060,12 +1060,13 @@ def test_a_failed_rerun_puts_the_finished_output_back(tmp_path: Path) -> None:
     assert result.statuses["t_sink"] == "failed"
     assert {p.name: p.read_bytes() for p in (run_dir / "t_sink").iterdir()} == before
     assert (run_dir / ".failed" / "t_sink" / ".stage.started.json").exists()
-    assert not (run_dir / ".previous" / "t_sink").exists()
+    assert not (run_dir / ".previous").exists()
     assert _run(path).statuses["t_sink"] == "cached"  # the old settings' output
     # The failing settings rerun (the restored marker is the old settings'), and once
     # that finishes the old output is gone.
     assert _run(path, f"t_sink.fail_marker={marker}").statuses["t_sink"] == "ran"
-    assert stage_file.exists() and not (run_dir / ".previous" / "t_sink").exists()
+    assert stage_file.exists() and not (run_dir / ".previous").exists()
+    assert not (run_dir / ".failed").exists()  # the stage finished: its failure is history
     assert _run(path, f"t_sink.fail_marker={marker}").statuses["t_sink"] == "cached"
 
 

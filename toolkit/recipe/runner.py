@@ -238,12 +238,16 @@ def _not_a_run_folder(run_dir: Path, recipe: Recipe) -> list[str]:
     return names
 
 
-def _remove_tree(path: Path) -> None:
-    """Delete a folder (or a link or file in its place) if it is there."""
+def _remove_tree(path: Path, drop_empty_parent: bool = False) -> None:
+    """Delete a folder (or a link or file in its place) if it is there; with
+    ``drop_empty_parent`` its parent too when nothing else is left in it."""
     if path.is_symlink() or path.is_file():
         path.unlink()
     elif path.is_dir():
         shutil.rmtree(path)
+    if drop_empty_parent:
+        with contextlib.suppress(OSError):  # not empty, or not there
+            path.parent.rmdir()
 
 
 def _other_recipes_run(run_dir: Path, recipe: Recipe) -> str | None:
@@ -608,7 +612,8 @@ class _Run:
         self.log.info("stage %s finished in %.2f s", spec.id, record.seconds, extra=_FILE_ONLY)
         try:
             (stage_dir / STARTED_FILE).unlink(missing_ok=True)
-            _remove_tree(self.run_dir / PREVIOUS_DIR / spec.id)
+            for aside in (PREVIOUS_DIR, FAILED_DIR):  # the old output, a failed attempt
+                _remove_tree(self.run_dir / aside / spec.id, drop_empty_parent=True)
             self.digest_outputs(record, marker)
         except Exception as exc:  # an unreadable output, a disk error: only the digest lost
             self.log.warning("stage %s finished, but its outputs could not be digested: %s",
@@ -639,6 +644,8 @@ class _Run:
                 failed.parent.mkdir(exist_ok=True)
                 os.replace(stage_dir, failed)
             os.replace(keep, stage_dir)
+            with contextlib.suppress(OSError):  # others' may still be there
+                keep.parent.rmdir()
         except OSError as exc:
             self.log.warning("stage %s: its previous output could not be put back from %s "
                              "(%s); it is still there", record.spec.id, keep, exc)
