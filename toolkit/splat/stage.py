@@ -317,8 +317,9 @@ class SplatStage(Stage):
     # of a masked view (a distorted camera's lens corners). 5: the training's SSIM term
     # over a masked view's valid windows too. 6: the scene scale is at least the initial
     # cloud's median radius (short drives in large rooms). 7: the path's held-out images at
-    # gains interpolated from their training neighbours', not at their own solved ones
-    version = 7
+    # gains interpolated from their training neighbours', not at their own solved ones. 8:
+    # the depth MAE's coverage (the share of ground-truth pixels the render covers)
+    version = 8
 
     def run(self, ctx: StageContext) -> None:
         cfg: SplatConfig = self.config  # type: ignore[assignment]
@@ -574,7 +575,7 @@ class SplatStage(Stage):
                 n_in = _frames_in_map(fused, seq.frame_stamps[[int(index[k]) for k in test_k]])
                 if n_in is not None:
                     metrics["heldout_frames_in_fused_map"] = n_in
-            for key in ("depth_mae_m", "depth_rmse_m"):
+            for key in ("depth_mae_m", "depth_rmse_m", "depth_coverage"):
                 if key in ev:
                     metrics[f"heldout_{key}"] = ev[key]
         if sim_views:
@@ -586,7 +587,7 @@ class SplatStage(Stage):
             metrics["sim_heldout_psnr_db"] = ev["psnr_db"]
             metrics["sim_heldout_psnr_exposure_matched_db"] = ev["psnr_exposure_matched_db"]
             metrics["sim_heldout_ssim"] = ev["ssim"]
-            for key in ("depth_mae_m", "depth_rmse_m"):
+            for key in ("depth_mae_m", "depth_rmse_m", "depth_coverage"):
                 if key in ev:
                     metrics[f"sim_heldout_{key}"] = ev[key]
         for prefix, comp in comparisons.items():
@@ -701,7 +702,7 @@ class SplatStage(Stage):
 
         if rows:
             head = ("| held-out set | PSNR (dB) | PSNR, exposure matched (dB) | SSIM | "
-                    "depth MAE (m) |")
+                    "depth MAE (m), over the covered share of pixels |")
             if tsdf:
                 head += (" TSDF mesh PSNR (dB) | TSDF SSIM | gain (dB) | TSDF coverage | "
                          "covered px: TSDF / splats PSNR (dB) |")
@@ -709,7 +710,8 @@ class SplatStage(Stage):
             for name, p in rows:
                 row = (f"| {name} | {f(f'{p}_psnr_db', '.2f')} | "
                        f"{f(f'{p}_psnr_exposure_matched_db', '.2f')} | "
-                       f"{f(f'{p}_ssim', '.3f')} | {f(f'{p}_depth_mae_m', '.3f')} |")
+                       f"{f(f'{p}_ssim', '.3f')} | {f(f'{p}_depth_mae_m', '.3f')} "
+                       f"({f(f'{p}_depth_coverage', '.1%')}) |")
                 if tsdf:
                     row += (f" {f(f'tsdf_{p}_psnr_db', '.2f')} | {f(f'tsdf_{p}_ssim', '.3f')} | "
                             f"{f(f'{p}_psnr_gain_over_tsdf_db', '+.2f')} | "

@@ -670,7 +670,7 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
     ``on_render(i, view, output)`` sees every render (to save pictures without rendering
     twice).
     """
-    ps, pm, ss, d_abs, d_sq, d_n = [], [], [], 0.0, 0.0, 0
+    ps, pm, ss, d_abs, d_sq, d_n, d_valid = [], [], [], 0.0, 0.0, 0, 0
     for i, v in enumerate(views):
         out = render_view(model, v.camera, v.T_camera_world, background, backend)
         if on_render is not None:
@@ -688,6 +688,7 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
         if gd is not None:
             gdt = _tensor(gd, dev).to(torch.float32)
             m = (gdt > 0) & (out.alpha > 0.5)
+            d_valid += int((gdt > 0).sum())
             if bool(m.any()):
                 e = (out.depth - gdt)[m]
                 d_abs += float(e.abs().sum())
@@ -704,5 +705,9 @@ def evaluate_views(model: GaussianModel, views: Sequence[TrainView], backend: st
         res["depth_mae_m"] = d_abs / d_n
         res["depth_rmse_m"] = math.sqrt(d_sq / d_n)
         res["depth_pixels"] = d_n
+    if d_valid:
+        # The MAE is over the pixels the render covers (alpha > 0.5): the share of the
+        # ground truth's pixels that is says what it leaves out (the empty ones).
+        res["depth_coverage"] = d_n / d_valid
     return res
 
