@@ -1723,3 +1723,26 @@ def test_a_folder_where_a_file_is_to_be_written_is_named_with_the_fix(tmp_path: 
         atomic_write_text(target, "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["000012.png"]
     assert (target / "inside.txt").read_text() == "kept"
+
+
+def test_a_rerun_that_fills_the_disk_says_the_kept_output_holds_space(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The finished output is kept until its rerun finishes; when the rerun then runs out of
+    disk, the old output is what took the space (emptied first, it would not have): the
+    message says to delete it."""
+    import errno
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    capsys.readouterr()
+
+    def full(self: Any, ctx: StageContext) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Sink, "run", full)
+    assert _run(path, force=True).failed_stage == "t_sink"
+    out = capsys.readouterr().out  # printed unwrapped: a long path stays whole
+    stage_dir = tmp_path / "run" / "t_sink"
+    assert f"the disk filled while that previous output was kept: delete {stage_dir}" in out
+    assert (stage_dir / ".stage.json").exists()

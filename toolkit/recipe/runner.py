@@ -597,7 +597,7 @@ class _Run:
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
         except Exception as exc:
             self.fail(record, exc, start)
-            self.restore_previous(record)
+            self.restore_previous(record, exc)
             return False
         except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
             self.fail(record, KeyboardInterrupt("interrupted"), start)
@@ -629,10 +629,10 @@ class _Run:
             raise
         return True
 
-    def restore_previous(self, record: _Record) -> None:
+    def restore_previous(self, record: _Record, exc: BaseException | None = None) -> None:
         """Put the finished folder a failed rerun had moved aside back in place; the failed
         attempt goes to FAILED_DIR. (An interrupted rerun keeps its folder to resume, and
-        the finished one stays aside until the rerun finishes.)"""
+        the finished one stays aside until the rerun finishes.) ``exc``: why it failed."""
         keep, record.previous = record.previous, None
         if keep is None or not keep.is_dir():
             return
@@ -653,7 +653,16 @@ class _Run:
         where = (f"; the failed attempt is in {self.run_dir / FAILED_DIR / record.spec.id}"
                  if (self.run_dir / FAILED_DIR / record.spec.id).exists() else "")
         self.console.print(f"[yellow]{record.spec.id}[/]: its previous output (the last "
-                           f"finished run's) is back in {stage_dir}{escape(where)}")
+                           f"finished run's) is back in {stage_dir}{escape(where)}",
+                           soft_wrap=True)
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            # Kept until the rerun finished, the old output held space the rerun needed
+            # (deleted first, it would not have).
+            self.console.print(
+                f"[yellow]{record.spec.id}[/]: the disk filled while that previous output "
+                f"was kept: delete {escape(str(stage_dir))} (and "
+                f"{escape(str(self.run_dir / FAILED_DIR))}) to give the rerun its space",
+                soft_wrap=True)
         self.log.info("stage %s: previous output restored%s", record.spec.id, where,
                       extra=_FILE_ONLY)
 
