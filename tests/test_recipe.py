@@ -551,7 +551,7 @@ def test_a_stage_folder_that_cannot_be_emptied_is_named(
     file without its folder; the message names the stage's folder and the fix. (A
     finished folder is moved aside, not emptied: this is an interrupted run's, of other
     settings.)"""
-    from toolkit.recipe import runner
+    import shutil
 
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
     _run(path)
@@ -563,7 +563,7 @@ def test_a_stage_folder_that_cannot_be_emptied_is_named(
     def refused(p: Path, *a: object, **kw: object) -> None:
         raise PermissionError(13, "Permission denied", "x.png")
 
-    monkeypatch.setattr(runner.shutil, "rmtree", refused)
+    monkeypatch.setattr(shutil, "rmtree", refused)
     result = _run(path)
     assert result.failed_stage == "t_double"
     assert result.error == (

@@ -7,6 +7,7 @@ target share a filesystem - hence the same directory, never ``/tmp``.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import math
@@ -79,7 +80,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
             raise FileNotFoundError(f"nothing was written for {target} (temporary path {tmp})")
         os.replace(tmp, target)
     except OSError as e:
-        _remove(tmp)
+        remove_path(tmp, ignore_errors=True)
         if target.is_dir() and not target.is_symlink():
             # "[Errno 21] Is a directory" named the temporary beside it and no way out.
             raise IsADirectoryError(errno.EISDIR, f"a folder is where the file {target} is to "
@@ -91,13 +92,18 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
             raise OSError(e.errno, f"{e.strerror} (writing {target})", str(target)) from e
         raise
     except BaseException:
-        _remove(tmp)
+        remove_path(tmp, ignore_errors=True)
         raise
 
 
-def _remove(path: Path) -> None:
+def remove_path(path: Path, ignore_errors: bool = False) -> None:
+    """Delete a folder tree, or a file or link in its place, if it is there (a link is
+    removed, never followed into)."""
     if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
+        shutil.rmtree(path, ignore_errors=ignore_errors)
+    elif ignore_errors:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)
     else:
         path.unlink(missing_ok=True)
 

@@ -26,7 +26,6 @@ import logging
 import math
 import os
 import re
-import shutil
 import time
 import uuid
 from collections.abc import Iterable, Iterator, Mapping
@@ -52,6 +51,7 @@ from toolkit.io.atomic import (
     atomic_write_json,
     atomic_write_text,
     remove_leftover_temps,
+    remove_path,
     remove_temps_under,
     to_jsonable,
 )
@@ -93,6 +93,9 @@ DIGESTS_FILE = ".file_digests.json"
 # the failed rerun's folder, for its logs and partial files.
 PREVIOUS_DIR = ".previous"
 FAILED_DIR = ".failed"
+
+# Why a stage with a folder but no finished marker runs (the reason line says more).
+_UNFINISHED = "did not finish last time"
 
 # Log records carrying this go to run.log only (tracebacks, lines already printed nicely).
 _FILE_ONLY = {"console": False}
@@ -238,16 +241,10 @@ def _not_a_run_folder(run_dir: Path, recipe: Recipe) -> list[str]:
     return names
 
 
-def _remove_tree(path: Path, drop_empty_parent: bool = False) -> None:
-    """Delete a folder (or a link or file in its place) if it is there; with
-    ``drop_empty_parent`` its parent too when nothing else is left in it."""
-    if path.is_symlink() or path.is_file():
-        path.unlink()
-    elif path.is_dir():
-        shutil.rmtree(path)
-    if drop_empty_parent:
-        with contextlib.suppress(OSError):  # not empty, or not there
-            path.parent.rmdir()
+def _drop_if_empty(folder: Path) -> None:
+    """Remove ``folder`` when nothing is left in it (PREVIOUS_DIR, FAILED_DIR)."""
+    with contextlib.suppress(OSError):  # not empty, or not there
+        folder.rmdir()
 
 
 def _other_recipes_run(run_dir: Path, recipe: Recipe) -> str | None:
@@ -429,7 +426,7 @@ class _Run:
             return True
         if stored is not None:
             record.reason = self.option() or "--force"
-        elif record.reason == "did not finish last time":
+        elif record.reason == _UNFINISHED:
             # Say whether it resumes (prepare_stage_dir's rule): an interrupted run of other
             # settings, or any under --force, starts afresh.
             started = _started_folder_key(self.run_dir / spec.id / STARTED_FILE)
@@ -520,7 +517,7 @@ class _Run:
             # input, a mistyped setting) puts it back, so what was written is not lost
             # for nothing; one rename, no copy.
             keep = self.run_dir / PREVIOUS_DIR / record.spec.id
-            _remove_tree(keep)
+            remove_path(keep)
             keep.parent.mkdir(exist_ok=True)
             os.replace(stage_dir, keep)
             record.previous = keep
@@ -533,10 +530,7 @@ class _Run:
                           fsync=True)
         (stage_dir / STAGE_FILE).unlink(missing_ok=True)
         for child in sorted(stage_dir.iterdir(), key=lambda p: p.name == STARTED_FILE):
-            if child.is_dir() and not child.is_symlink():
-                shutil.rmtree(child)
-            else:
-                child.unlink()
+            remove_path(child)
 
     def run_stage(self, record: _Record, stage: Stage) -> bool:
         spec = record.spec
@@ -613,7 +607,8 @@ class _Run:
         try:
             (stage_dir / STARTED_FILE).unlink(missing_ok=True)
             for aside in (PREVIOUS_DIR, FAILED_DIR):  # the old output, a failed attempt
-                _remove_tree(self.run_dir / aside / spec.id, drop_empty_parent=True)
+                remove_path(self.run_dir / aside / spec.id)
+                _drop_if_empty(self.run_dir / aside)
             self.digest_outputs(record, marker)
         except Exception as exc:  # an unreadable output, a disk error: only the digest lost
             self.log.warning("stage %s finished, but its outputs could not be digested: %s",
@@ -637,21 +632,20 @@ class _Run:
         if keep is None or not keep.is_dir():
             return
         stage_dir = self.run_dir / record.spec.id
+        failed = self.run_dir / FAILED_DIR / record.spec.id
+        where = ""
         try:
             if stage_dir.exists():
-                failed = self.run_dir / FAILED_DIR / record.spec.id
-                _remove_tree(failed)
+                remove_path(failed)
                 failed.parent.mkdir(exist_ok=True)
                 os.replace(stage_dir, failed)
+                where = f"; the failed attempt is in {failed}"
             os.replace(keep, stage_dir)
-            with contextlib.suppress(OSError):  # others' may still be there
-                keep.parent.rmdir()
+            _drop_if_empty(keep.parent)
         except OSError as exc:
             self.log.warning("stage %s: its previous output could not be put back from %s "
                              "(%s); it is still there", record.spec.id, keep, exc)
             return
-        where = (f"; the failed attempt is in {self.run_dir / FAILED_DIR / record.spec.id}"
-                 if (self.run_dir / FAILED_DIR / record.spec.id).exists() else "")
         self.console.print(f"[yellow]{record.spec.id}[/]: its previous output (the last "
                            f"finished run's) is back in {stage_dir}{escape(where)}",
                            soft_wrap=True)
@@ -1025,7 +1019,7 @@ def _read_marker(
     """The stored ``.stage.json`` if it proves the stage complete, else None; and why."""
     marker = stage_dir / STAGE_FILE
     if not marker.exists():
-        return None, "did not finish last time" if stage_dir.exists() else "never ran"
+        return None, _UNFINISHED if stage_dir.exists() else "never ran"
     try:
         data = json.loads(marker.read_text(encoding="utf-8"))
     except (OSError, ValueError):

@@ -25,6 +25,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel
@@ -37,6 +38,9 @@ from toolkit.recipe.schema import read_yaml_value
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
 from toolkit.slam2d.plot import save_map_png
+
+if TYPE_CHECKING:
+    from toolkit.slam2d.corridor import CorridorDrive
 
 LOGS = ("killian", "intel", "aces", "corridor", "doors")
 
@@ -94,9 +98,8 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
     from toolkit.eval.relations import read_relations, relations_metric, select_relations
     from toolkit.io.carmen import read_carmen, read_g2o
 
-    if seeds < 1 or (seeds > 1 and name not in ("corridor", "doors")):
-        raise ValueError(f"seeds={seeds}: the corridor and doors drives take 1 or more seeds; "
-                         f"{name!r} is a recording, run it once (seeds=1)")
+    if problem := _seeds_problem(name, seeds):
+        raise ValueError(problem)
     data = data_dir or shared_data_dir()
     config = config or Slam2DConfig()
     out.mkdir(parents=True, exist_ok=True)
@@ -113,10 +116,8 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
         reference = log.reference()
         figures["input"] = "scans only (the log's GMapping poses are the reference)"
     elif name in ("corridor", "doors"):
-        from toolkit.slam2d.corridor import corridor_drive
-
         spacing = door_spacing_m if name == "doors" else 0.0
-        drive = corridor_drive(angle_deg=corridor_angle_deg, door_spacing=spacing, seed=0)
+        drive = _drive(name, 0, corridor_angle_deg, door_spacing_m)
         scans, odom, T_bl, reference = drive.scans, drive.odometry, None, drive.truth
         what = (f"identical door niches every {spacing:g} m" if spacing
                 else "without features")
@@ -164,14 +165,28 @@ def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
     return figures
 
 
+def _seeds_problem(name: str, seeds: int) -> str | None:
+    """Why ``seeds`` drives of ``name`` cannot be run (None: they can)."""
+    if seeds < 1 or (seeds > 1 and name not in ("corridor", "doors")):
+        return (f"seeds={seeds}: the corridor and doors drives take 1 or more seeds; "
+                f"{name!r} is a recording, run it once (seeds=1)")
+    return None
+
+
+def _drive(name: str, seed: int, angle_deg: float,
+           door_spacing_m: float) -> CorridorDrive:
+    """The simulated drive of benchmark ``name`` (corridor, doors) with noise ``seed``."""
+    from toolkit.slam2d.corridor import corridor_drive
+
+    return corridor_drive(angle_deg=angle_deg, seed=seed,
+                          door_spacing=door_spacing_m if name == "doors" else 0.0)
+
+
 def _corridor_ate(name: str, seed: int, config: Slam2DConfig, angle_deg: float,
                   door_spacing_m: float) -> dict:
     from rich.progress import track
 
-    from toolkit.slam2d.corridor import corridor_drive
-
-    drive = corridor_drive(angle_deg=angle_deg, seed=seed,
-                           door_spacing=door_spacing_m if name == "doors" else 0.0)
+    drive = _drive(name, seed, angle_deg, door_spacing_m)
     result = run_slam(drive.scans, drive.odometry, None, config,
                       progress=lambda it: track(it, total=len(drive.scans),
                                                 description=f"{name} seed {seed}",
@@ -220,9 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --door-spacing must be > 0 m, got {args.door_spacing:g}",
               file=sys.stderr)
         return 2
-    if args.seeds < 1 or (args.seeds > 1 and args.log not in ("corridor", "doors")):
-        print(f"error: --seeds {args.seeds}: corridor and doors take 1 or more; "
-              f"{args.log} is a recording, run once", file=sys.stderr)
+    if problem := _seeds_problem(args.log, args.seeds):
+        print(f"error: --{problem}", file=sys.stderr)
         return 2
     figures = run_benchmark(args.log, args.out, config, corridor_angle_deg=args.corridor_angle,
                             door_spacing_m=args.door_spacing, seeds=args.seeds)
