@@ -757,11 +757,14 @@ def _frames_in_map(fused: Path, stamps: np.ndarray) -> int | None:
     path = fused / "camera_poses.tum"
     if not path.exists():
         return None
-    fused_st = read_tum(path).stamps
+    fused_st = np.sort(read_tum(path).stamps)  # [M]
+    stamps = np.asarray(stamps, np.float64)  # [N]
     if not len(fused_st) or not len(stamps):
         return 0
-    near = np.abs(np.asarray(stamps, np.float64)[:, None] - fused_st[None, :]).min(1)
-    # Stamps round-trip the TUM text; frames lie 10s of ms apart.
+    # The nearest fused stamp by bisection ([N, M] distances would be gigabytes for an
+    # hour's frames). Stamps round-trip the TUM text; frames lie 10s of ms apart.
+    i = np.clip(np.searchsorted(fused_st, stamps), 1, len(fused_st) - 1)  # one stamp: 0
+    near = np.minimum(np.abs(stamps - fused_st[i - 1]), np.abs(stamps - fused_st[i]))
     return int((near < 1e-4).sum())
 
 
