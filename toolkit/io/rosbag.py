@@ -758,11 +758,11 @@ class TfTree:
         """Add one transform T_parent_child. ``override``: it replaces what the bag says
         (a calibration file's), which is no conflict."""
         key = (_frame(parent), _frame(child))
-        if not override:
+        # Only a static value can conflict: checked there, not on every /tf message.
+        if not override and (static or key in self._static):
             before = self.fixed.get(key, self._first.get(key))
             if key in self.moving or (before is not None and _differs(before, T)):
-                if static or key in self._static:
-                    self.conflicts.setdefault(key, {self.source.get(key, source)}).add(source)
+                self.conflicts.setdefault(key, {self.source.get(key, source)}).add(source)
         if static:  # the latest static transform wins, over /tf too
             self.fixed[key] = T
             self.source[key] = source
@@ -774,9 +774,7 @@ class TfTree:
         first = self._first.setdefault(key, T)
         if key in self.moving:
             return
-        dt = np.linalg.norm(T[:3, 3] - first[:3, 3])
-        dr = float(rotation_angle(first[:3, :3].T @ T[:3, :3]))
-        if dt > 1e-6 or dr > 1e-6:
+        if _differs(first, T):
             self.moving.add(key)
             self.fixed.pop(key, None)
         else:
