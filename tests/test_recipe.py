@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -273,6 +274,30 @@ def test_entry_points_put_idle_openblas_threads_to_sleep(package: str, entry: st
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "4"
+
+
+def test_a_second_ctrl_c_while_threads_wind_down_ends_the_process_at_once() -> None:
+    """After an interrupted run has saved its state and returned 130, Python joins the
+    threads still winding down at exit; a second Ctrl-C there printed an "Exception
+    ignored in atexit callback" traceback and the wait went on. Here an exit hook that
+    would wait 30 s stands for those threads, and the second SIGINT comes 0.5 s in."""
+    code = (
+        "import atexit, os, runpy, signal, threading, time\n"
+        "import toolkit.recipe.cli as cli\n"
+        "def interrupted_run():\n"
+        "    atexit.register(time.sleep, 30)\n"
+        "    threading.Thread(target=lambda: (time.sleep(0.5), "
+        "os.kill(os.getpid(), signal.SIGINT)), daemon=True).start()\n"
+        "    return cli.INTERRUPTED if hasattr(cli, 'INTERRUPTED') else 130\n"
+        "cli.main = interrupted_run\n"
+        "runpy.run_module('toolkit.recipe', run_name='__main__')\n")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    t = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert time.monotonic() - t < 20
+    assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stderr)
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
 
 
 # --- validation ---------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """``python -m toolkit.recipe run|validate|list``."""
 
 import os
+import signal
 
 # OpenMP threads that spin while waiting steal the cores from each other on a busy
 # 2-core laptop (measured 10x slower splat training); must be set before torch loads.
@@ -13,7 +14,14 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # OpenBLAS reads it when numpy loads it: set before anything imports numpy.
 os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
 
-from toolkit.recipe.cli import main  # noqa: E402
+from toolkit.recipe.cli import INTERRUPTED, main  # noqa: E402
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    code = main()
+    if code == INTERRUPTED:
+        # The run's state is saved by now. Python then joins the worker threads still
+        # winding down (prefetch, onnxruntime); a second Ctrl-C there printed an
+        # "Exception ignored in atexit callback" traceback and waited on: with the default
+        # action it ends the process at once, as users expect of a second Ctrl-C.
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+    raise SystemExit(code)

@@ -18,6 +18,8 @@ from toolkit.recipe import registry
 from toolkit.recipe.runner import StoppedAfterStage, missing_inputs, run_recipe
 from toolkit.recipe.schema import Recipe, RecipeError, load_recipe
 
+INTERRUPTED = 130  # the exit status of a run stopped by Ctrl-C or SIGTERM (128 + SIGINT)
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser (exposed for docs and tests)."""
@@ -89,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt as exc:
         print(f"interrupted; {_resume_advice(args, exc)}", file=sys.stderr)
-        return 130
+        return INTERRUPTED
 
 
 def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:
