@@ -308,6 +308,43 @@ def test_points_collapsed_onto_their_camera_are_not_taken_as_depth(
     assert runs[1].used[k] and runs[1].scale[k] == pytest.approx(runs[0].scale[k], rel=0.02)
 
 
+def test_points_triangulated_next_to_their_camera_do_not_set_its_scale(
+        scene: dict, sfm: SfMResult, tmp_path: Path) -> None:
+    """Turning on the spot, COLMAP put most of a frame's points at 1-4 % of their depth
+    (sub-pixel reprojection errors, far above the 1e-8 collapse); they backed a depth fit
+    1/80 of the neighbours', and the frame kept it."""
+    pytest.importorskip("sklearn")
+    from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
+    from toolkit.baselines.colmap import cam_from_world_matrix
+    from toolkit.depth.protocol import DepthPrediction
+
+    frame_of = {n: i for i, n in enumerate(scene["names"])}
+    save_sfm(sfm, tmp_path / "m", frame_of, {n: float(i) for n, i in frame_of.items()},
+             scene["names"])
+    bad, _, _ = load_sfm(tmp_path / "m")
+    rec = bad.reconstruction
+    name = bad.names[len(bad.names) // 2]
+    im = rec.find_image_with_name(name)
+    T = cam_from_world_matrix(im)
+    centre = -T[:3, :3].T @ T[:3, 3]
+    ids = [o.point3D_id for o in im.get_observation_points2D()]
+    for pid in ids[: int(0.8 * len(ids))]:  # most of them, as the house's frame 72
+        pt = rec.points3D[pid]
+        pt.xyz = centre + 0.02 * (np.array(pt.xyz) - centre)
+
+    def prediction(i: int) -> DepthPrediction:
+        d = scene["depths"][i]
+        return DepthPrediction(np.where(d > 0, 2.0 * d, np.nan).astype(np.float32),
+                               "relative_depth")
+
+    runs = [camera_only_reconstruction(m, frame_of, scene["cam"], prediction,
+                                       lambda i: scene["images"][i], set(range(N_IMAGES)),
+                                       CameraOnlySettings(smoothing_window=1))
+            for m in (sfm, bad)]
+    k = runs[1].frame_indices.index(frame_of[name])
+    assert runs[1].used[k] and runs[1].scale[k] == pytest.approx(runs[0].scale[k], rel=0.02)
+
+
 def test_sparse_depth_pairs_each_point_with_the_pixel_it_was_seen_at() -> None:
     """Reprojected with our camera, a model reconstructed with a focal 15 % off (COLMAP's
     own, intrinsics: unknown / refine) put each SfM depth up to 20 px from its feature."""

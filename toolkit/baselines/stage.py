@@ -818,7 +818,9 @@ class CameraOnlyStage(Stage):
     # and no smoothing for relative outputs: a per-image constant was overwritten by the
     # neighbours' (depth AbsRel 0.151 -> 0.0033); sfm mode's own-scale rows labelled as
     # COLMAP's unit, not a scale error
-    version = 6
+    # 7: SfM points nearer than 5 % of the model's median depth are not depth observations
+    # (points triangulated while turning on the spot gave one frame 1 % of the true depth)
+    version = 7
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
