@@ -496,3 +496,27 @@ def test_camera_only_in_colmaps_unit_does_not_report_a_scale_error(tmp_path: Pat
     assert o["depth_sim3"]["absrel"] < 0.03
     report = (tmp_path / "run" / "report.md").read_text()
     assert "**scale error**" not in report and "ATE vs groundtruth, COLMAP's unit" in report
+
+
+def test_camera_only_says_which_colmap_keys_a_reused_model_ignores(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """With the colmap stage's model reused, ``every`` or ``max_images`` set on camera_only
+    changed nothing and nobody said so (the paper benchmark's ``every: 1`` ran on the
+    colmap stage's every 4th frame)."""
+    import logging
+    from types import SimpleNamespace
+
+    from toolkit.baselines.stage import CameraOnlyConfig, _warn_colmap_keys_unused
+
+    ctx = SimpleNamespace(stage_id="camera_only", log=logging.getLogger("toolkit.test"))
+    with caplog.at_level(logging.WARNING, logger="toolkit.test"):
+        _warn_colmap_keys_unused(ctx, CameraOnlyConfig(stage="camera_only", every=2,
+                                                       max_images=50, min_points=20))
+    assert len(caplog.records) == 1
+    text = caplog.records[0].getMessage()
+    assert "'every', 'max_images' not used" in text and "min_points" not in text
+    assert "reuse_colmap: false" in text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="toolkit.test"):
+        _warn_colmap_keys_unused(ctx, CameraOnlyConfig(stage="camera_only", min_points=20))
+    assert not caplog.records

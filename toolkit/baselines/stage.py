@@ -802,6 +802,18 @@ class CameraOnlyConfig(_ColmapKeys, AddedOptions):
     eval_max_depth_m: float = Field(10.0, gt=0)
 
 
+def _warn_colmap_keys_unused(ctx: StageContext, cfg: CameraOnlyConfig) -> None:
+    """Say which COLMAP keys set on a ``camera_only`` stage go unused: with the colmap
+    stage's model reused, its frames (``every``, ``max_images``) and matching are the
+    ones that count, and a user setting them here saw no effect and no word."""
+    unused = sorted(set(_ColmapKeys.__annotations__) & cfg.model_fields_set)  # its own keys
+    if unused:
+        ctx.log.warning("%s: %s not used: the colmap stage's model is reused (its own "
+                        "settings apply); set them there, or 'reuse_colmap: false' to run "
+                        "COLMAP here with them", ctx.stage_id,
+                        ", ".join(f"'{k}'" for k in unused))
+
+
 class CameraOnlyStage(Stage):
     """The 'without lidar' rows: COLMAP poses and SfM-scaled depth, no lidar anywhere."""
 
@@ -841,6 +853,7 @@ class CameraOnlyStage(Stage):
             if (sfm_dir / "frames.csv").exists():
                 sfm, frame_of, stamp_of = load_sfm(sfm_dir)
                 reused = True
+                _warn_colmap_keys_unused(ctx, cfg)
         if sfm is None:
             sel = _select(np.arange(len(seq.frames)), cfg.every, cfg.max_images)
             image_dir, names, cam = image_folder(seq, sel, ctx.stage_dir)
