@@ -190,6 +190,31 @@ def test_voxel_map_weights_and_nearest_depth() -> None:
     assert m.select(np.array([True])).near[0] == pytest.approx(1.0)
 
 
+def test_voxel_map_release_frees_its_arrays_and_keeps_what_was_taken() -> None:
+    """``release`` (Fusion.finish, once the map's arrays are taken) drops the voxel map's
+    own arrays, which at the end of a long fusion are the largest thing it holds; what
+    ``arrays`` returned stays intact, and the map refuses further use by name."""
+    def held(vm: VoxelMap) -> int:
+        return sum(v.nbytes for v in vars(vm).values() if isinstance(v, np.ndarray))
+
+    rng = np.random.default_rng(1)
+    vm = VoxelMap(0.02)
+    for f in range(3):
+        pts = rng.uniform(-2, 2, (50_000, 3))  # [N, 3] mostly new voxels each frame
+        vm.integrate(pts, rng.integers(0, 256, (50_000, 3)).astype(np.uint8), f)
+    m = vm.arrays()
+    points, count = m.points.copy(), m.count.copy()
+    assert held(vm) > 10 * 2**20
+    vm.release()
+    assert held(vm) < 2**16
+    np.testing.assert_array_equal(m.points, points)
+    np.testing.assert_array_equal(m.count, count)
+    for use in (vm.arrays, lambda: len(vm),
+                lambda: vm.integrate(points[:1], np.zeros((1, 3), np.uint8), 3)):
+        with pytest.raises(RuntimeError, match="released"):
+            use()
+
+
 def test_map_ply_reads_back_what_was_written(tmp_path: Path) -> None:
     """Written by Open3D, read by plyfile (the splat stage's reader): same points, same
     colours; a file that is no PLY is refused by name."""
