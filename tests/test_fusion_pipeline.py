@@ -645,6 +645,22 @@ def test_a_frame_gain_given_to_integrate_is_the_corrected_image_fused(box_room: 
     assert np.abs(maps[2].colors.astype(int) - maps[0].colors).mean() > 5
 
 
+def test_finish_releases_the_voxel_map(box_room: Path) -> None:
+    """finish copies the map out and frees the voxel map before carving, consensus and
+    outliers add their own memory; it ends the fusion (a second call says so)."""
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    fu = Fusion(seq, FusionConfig(scale="none"), fp, sp)
+    for i in range(0, len(seq.frames), 2):
+        d = gt.depth(i)
+        fu.integrate(i, np.where(d > 0, d, np.nan), seq.frames[i].image)
+    raw, masks = fu.finish()
+    assert len(raw) > 1000 and masks["keep"].any()
+    with pytest.raises(RuntimeError, match="released"):
+        fu.finish()
+
+
 def test_a_frame_without_a_usable_pixel_fuses_nothing_with_a_gain(box_room: Path) -> None:
     """A frame whose depth is all invalid, or all beyond max_depth_m (a hall's far wall),
     adds no point with an exposure gain as without one (OpenCV's product of no pixels is

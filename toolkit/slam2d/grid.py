@@ -229,10 +229,16 @@ class ProbabilityGrid:
         idx = np.minimum(d * _LUT_STEPS, len(lut) - 1).astype(np.int32)
         return lut[idx], origin
 
-    def occupancy(self) -> np.ndarray:
-        """[H, W] float32 occupancy probability with NaN for never-observed cells."""
-        p = self._prob_of_value[self.values].astype(np.float32)
-        p[self.values == 0] = np.nan
+    def occupancy(self, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> (
+            np.ndarray):
+        """[h, w] float32 occupancy probability with NaN for never-observed cells, of the
+        cells ``lo`` to ``hi`` (ix, iy; hi exclusive; default the whole grid)."""
+        H, W = self.values.shape
+        lo = np.zeros(2, int) if lo is None else np.clip(np.asarray(lo), 0, [W, H])
+        hi = np.array([W, H]) if hi is None else np.clip(np.asarray(hi), lo, [W, H])
+        v = self.values[lo[1] : hi[1], lo[0] : hi[0]]
+        p = self._prob_of_value[v].astype(np.float32, copy=False)  # a new array either way
+        p[v == 0] = np.nan
         return p
 
     def known_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:

@@ -28,12 +28,13 @@ def save_map_png(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    img = grid.trinary().astype(np.float32)  # [H, W] map order
-    shade = np.full(img.shape, 0.75, np.float32)
+    img = grid.trinary()  # [H, W] uint8 map order
+    shade = np.full(img.shape, 0.75, np.float32)  # [H, W] grey level
     shade[img == FREE] = 1.0
     shade[img == OCCUPIED] = 0.0
     shade[img == UNKNOWN] = 0.75
     H, W = img.shape
+    del img
     x0, y0 = grid.origin[0], grid.origin[1]
     extent = (x0, x0 + W * grid.resolution, y0, y0 + H * grid.resolution)
     aspect = H / max(W, 1)
@@ -41,8 +42,11 @@ def save_map_png(
     if max(W, H) * 1.0 > max_pixels:
         size_in = max_pixels / dpi
     fig, ax = plt.subplots(figsize=(size_in, max(3.0, size_in * aspect)))
+    # Resampled as grey values, coloured after: the same pixels with nearest-neighbour
+    # sampling, but matplotlib's default for a map larger than the figure colours every
+    # cell first, as float64 RGBA (32 bytes a cell: Killian's 23 M-cell map took 2.2 GB).
     ax.imshow(shade, cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent,
-              interpolation="nearest")
+              interpolation="nearest", interpolation_stage="data")
     if reference_xy is not None and len(reference_xy):
         ax.plot(reference_xy[:, 0], reference_xy[:, 1], "-", color="tab:green", lw=0.6,
                 label="ground truth (aligned)")
