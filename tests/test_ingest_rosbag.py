@@ -1574,3 +1574,23 @@ def test_index_pass_builds_no_matrix_per_moving_tf_or_odometry_message(tmp_path,
     np.testing.assert_allclose(rec.odometry.stamps, np.array(c.odom_t), rtol=0, atol=1e-6)
     assert "were skipped odom -> base_link (1x)" in caplog.text
 
+
+def test_index_pass_compares_repeated_camera_info_cheaply(tmp_path, monkeypatch):
+    """Every CameraInfo (15-30 Hz for the whole recording) remade the first one's fields
+    and ran six np.allclose against it: 0.25 ms a message, half the rest of the index
+    pass. Identical messages are now told apart by exact comparison; a changed one is still
+    found (test_camera_info_is_read_as_a_stream)."""
+    import toolkit.io.rosbag as rosbag_module
+
+    bag, c = make_bag(tmp_path, "sqlite3", make_content(n_images=20), depth=False)
+    calls = []
+    real = rosbag_module.np.allclose
+
+    def counting(*a, **kw):
+        calls.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(rosbag_module.np, "allclose", counting)
+    read_rosbag(bag)
+    assert len(c.image_t) == 20
+    assert len(calls) < 5, len(calls)  # it was 6 for each CameraInfo after the first: 114
