@@ -1528,3 +1528,69 @@ def test_conflicting_mounts_in_tf_are_named(tmp_path, caplog):
         rec = read_rosbag(write_bag(tmp_path / "calibrated", "ros1", msgs),
                           RosbagOptions(calibration=str(calib)))
     assert rec.rig.T_base_laser[2, 3] == 0.3 and "mount's edge" not in caplog.text
+
+
+# ---------------------------------------------------------------------------- long recordings
+
+
+def test_index_pass_builds_no_matrix_per_moving_tf_or_odometry_message(tmp_path, monkeypatch,
+                                                                         caplog):
+    """A long bag's /tf (odom -> base_link at 50-100 Hz) and odometry built a 4x4 matrix
+    per message through scipy - most of the index pass (2.3 of 5 min's 2.5 s, on every run
+    and every resume) - and kept each odometry pose as its own [4, 4] array (~340 bytes a
+    message). A moving edge keeps its first value only, so later values are now checked,
+    not built, and the odometry is made into matrices at once. An invalid value on the
+    moving edge is still counted."""
+    import toolkit.io.rosbag as rosbag_module
+
+    c = make_content(n_scans=30, n_images=4)
+    b = BagBuilder(False)
+    zero = b.tf([b.T["geometry_msgs/msg/TransformStamped"](
+        header=b.header(T0 + 2.02, "odom"), child_frame_id="base_link",
+        transform=b.T["geometry_msgs/msg/Transform"](
+            translation=b.T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+            rotation=b.T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0)))])
+    msgs = sorted([*standard_messages(b, c, depth=False), ("/tf", TF_T, T0 + 2.02, zero)],
+                  key=lambda m: m[2])
+    bag = write_bag(tmp_path / "run", "sqlite3", msgs)
+    n_moving = sum(m[0] == "/tf" for m in msgs)
+    assert n_moving == len(c.odom_t) + 1 == 61
+
+    built = []
+    real = rosbag_module.pose_from_xyz_quat
+
+    def counting(xyz, quat):
+        built.append(np.shape(xyz))
+        return real(xyz, quat)
+
+    monkeypatch.setattr(rosbag_module, "pose_from_xyz_quat", counting)
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(bag)
+    # 3 static mounts, the /tf edge's first value and the one that shows it moves, one
+    # batch of odometry (it was 3 + 61 + 60)
+    assert len(built) == 6, built
+    assert (len(c.odom_t), 3) in built
+    np.testing.assert_array_equal(rec.odometry.poses[:, :2, 3], np.array(c.odom_xy))
+    np.testing.assert_allclose(rec.odometry.stamps, np.array(c.odom_t), rtol=0, atol=1e-6)
+    assert "were skipped odom -> base_link (1x)" in caplog.text
+
+
+def test_index_pass_compares_repeated_camera_info_cheaply(tmp_path, monkeypatch):
+    """Every CameraInfo (15-30 Hz for the whole recording) remade the first one's fields
+    and ran six np.allclose against it: 0.25 ms a message, half the rest of the index
+    pass. Identical messages are now told apart by exact comparison; a changed one is still
+    found (test_camera_info_is_read_as_a_stream)."""
+    import toolkit.io.rosbag as rosbag_module
+
+    bag, c = make_bag(tmp_path, "sqlite3", make_content(n_images=20), depth=False)
+    calls = []
+    real = rosbag_module.np.allclose
+
+    def counting(*a, **kw):
+        calls.append(1)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(rosbag_module.np, "allclose", counting)
+    read_rosbag(bag)
+    assert len(c.image_t) == 20
+    assert len(calls) < 5, len(calls)  # it was 6 for each CameraInfo after the first: 114

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from array import array
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -698,6 +699,14 @@ def transform_to_matrix(tf: Any) -> np.ndarray:
     translation: a NaN position (an estimator before its first fix or after diverging)
     went through as a NaN pose, into a rig or trajectory the sequence reader refuses.
     """
+    xyz, quat = checked_xyz_quat(tf)
+    return pose_from_xyz_quat(xyz, quat)
+
+
+def checked_xyz_quat(tf: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(translation [3], unit xyzw quaternion [4]) of a ``geometry_msgs/Transform`` (or
+    Pose), refused as ``transform_to_matrix`` refuses it - without building the matrix,
+    which costs most of the index pass for 50-100 Hz /tf and odometry."""
     pose = getattr(tf, "translation", None) is None
     t = tf.position if pose else tf.translation
     q = tf.orientation if pose else tf.rotation
@@ -711,7 +720,7 @@ def transform_to_matrix(tf: Any) -> np.ndarray:
         raise NotATransformError("position" if pose else "translation",
                                  f"{'position' if pose else 'translation'} {xyz.tolist()} "
                                  "is not finite")
-    return pose_from_xyz_quat(xyz, quat / n)
+    return xyz, quat / n
 
 
 # ---------------------------------------------------------------------------- tf
@@ -780,6 +789,11 @@ class TfTree:
         else:
             self.fixed[key] = first
             self.source[key] = source
+
+    def is_moving(self, parent: str, child: str) -> bool:
+        """The /tf edge parent -> child is known to move: a further /tf value of it
+        changes nothing (``add`` keeps its first value only)."""
+        return (_frame(parent), _frame(child)) in self.moving
 
     def frames(self) -> set[str]:
         return {f for k in (*self.fixed, *self.moving) for f in k}
@@ -1290,12 +1304,17 @@ class _Index:
     depth: _Stream = field(default_factory=_Stream)
     odom_ns: list[int] = field(default_factory=list)
     odom_bag_ns: list[int] = field(default_factory=list)
-    odom: list[np.ndarray] = field(default_factory=list)
+    # Odometry poses as flat float64 runs, [N * 3] positions and [N * 4] unit xyzw
+    # quaternions (array('d'): 56 bytes a message, where a [4, 4] array each took ~340 and
+    # 50 Hz for an hour is 180 000 of them); made into matrices at once in _build.
+    odom_xyz: array = field(default_factory=lambda: array("d"))
+    odom_quat: array = field(default_factory=lambda: array("d"))
     odom_frames: tuple[str, str] = ("odom", "base_link")
     info: Any = None  # the first calibrated CameraInfo (else the first one)
     info_uncalibrated: int = 0  # CameraInfo messages with K all zero before a calibrated one
     # (when, field) where a later CameraInfo first differs from ``info``: "stamp 12.3 s"
     info_changed: tuple[str, str] | None = None
+    info_fields: dict[str, np.ndarray] | None = None  # ``info``'s, once it is calibrated
     tf: TfTree = field(default_factory=TfTree)
     seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
     intensities_dropped: int = 0  # scans whose intensities did not match their ranges
@@ -1323,8 +1342,15 @@ def _note_camera_info(idx: _Index, msg: Any, stamp_ns: int, clock: str = "stamp"
         return
     if idx.info_changed is not None or not calibrated:
         return
-    first, now = _camera_info_fields(idx.info), _camera_info_fields(msg)
+    # The first one's fields are made once, and equal fields skip allclose: remade and
+    # compared for every message (15-30 Hz for the whole recording) they took 1.15 s of a
+    # 5-min bag's index pass under cProfile (0.25 ms a message).
+    if idx.info_fields is None:
+        idx.info_fields = _camera_info_fields(idx.info)
+    first, now = idx.info_fields, _camera_info_fields(msg)
     for name, value in now.items():
+        if np.array_equal(value, first[name]):
+            continue  # the usual case, decided without allclose's cost
         # NaN equals NaN here: a field that holds one in every message did not change
         # (it was reported as a recalibration); camera_info_to_camera names it instead.
         if value.shape != first[name].shape or not np.allclose(
@@ -1401,27 +1427,34 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             _note_camera_info(idx, msg, rate_t, "recording time" if t == 0 else "stamp")
         elif topic == ch.odometry:
             try:
-                T = transform_to_matrix(msg.pose.pose)
+                xyz, quat = checked_xyz_quat(msg.pose.pose)
             except NotATransformError as e:
-                raise BagError(f"{where}: message {len(idx.odom)} (stamped "
+                raise BagError(f"{where}: message {len(idx.odom_ns)} (stamped "
                                f"{header_ns(msg) / 1e9:.9f} s): field 'pose.pose.{e.part}': "
                                f"{e}. Fix: leave the odometry out "
                                "(rosbag.topics.odometry: none; the SLAM runs on the scans "
                                "alone) or name another topic") from None
             idx.odom_ns.append(_stamp(msg, ns, opts, where))
             idx.odom_bag_ns.append(ns)
-            idx.odom.append(T)
+            idx.odom_xyz.extend(xyz)
+            idx.odom_quat.extend(quat)
             idx.odom_frames = (_frame(str(msg.header.frame_id)) or "odom",
                                _frame(str(msg.child_frame_id)) or opts.frames.base)
         else:  # tf
             static = "static" in topic
             for tr in msg.transforms:
+                parent, child = str(tr.header.frame_id), str(tr.child_frame_id)
                 try:
+                    if not static and idx.tf.is_moving(parent, child):
+                        # odom -> base_link at 50-100 Hz: only counted when invalid, as
+                        # before, but no matrix is built that add() would drop.
+                        checked_xyz_quat(tr.transform)
+                        continue
                     T = transform_to_matrix(tr.transform)
                 except NotATransformError:
-                    idx.tf.add_invalid(str(tr.header.frame_id), str(tr.child_frame_id))
+                    idx.tf.add_invalid(parent, child)
                     continue
-                idx.tf.add(str(tr.header.frame_id), str(tr.child_frame_id), T, static, topic)
+                idx.tf.add(parent, child, T, static, topic)
     return idx
 
 
@@ -1644,11 +1677,12 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
 
     # --- odometry
     odometry = None
-    if ch.odometry and idx.odom:
+    if ch.odometry and idx.odom_ns:
         ko = _keep(idx.odom_ns, f"{bag_name}: topic {ch.odometry}", policy, dropped,
                    ch.odometry)
         st = np.asarray(idx.odom_ns, dtype=np.int64)[ko] / 1e9
-        P = np.stack(idx.odom)[ko]
+        P = pose_from_xyz_quat(np.frombuffer(idx.odom_xyz).reshape(-1, 3)[ko],
+                               np.frombuffer(idx.odom_quat).reshape(-1, 4)[ko])  # [N, 4, 4]
         child = idx.odom_frames[1]
         if child != base:
             found = tree.lookup(child, base)
