@@ -330,7 +330,7 @@ def test_formats_round_trip_what_they_hold(tmp_path: Path) -> None:
     with pytest.raises(SequenceFormatError, match=r"scan_dynamic.npz: 'dynamic' is \[6, 7\] for "
                                                   r"6 scans of 90 beams"):
         read_sequence(tmp_path / "a")
-    # JPEG frames are decoded and stored as PNG.
+    # JPEG frames are read (and stored as they are: test_jpeg_frames_are_kept_as_they_are).
     jpg = tmp_path / "f.jpg"
     cv2.imwrite(str(jpg), np.full((H, W, 3), 128, np.uint8))
     w = SequenceWriter(tmp_path / "d", make_rig(), name="d")
@@ -447,6 +447,44 @@ def test_exif_orientation_is_not_applied_to_frames(tmp_path: Path, orientation: 
     frame = read_sequence(root).frames[0].image
     assert frame.shape == (H, W, 3)
     assert np.allclose(np.argwhere(frame[..., 0] > 200).mean(0), [1.5, 1.5], atol=0.5)
+
+
+def test_jpeg_frames_are_kept_as_they_are(tmp_path: Path) -> None:
+    """A JPEG frame was decoded and re-encoded as a lossless PNG (a camera's 73 KB became
+    590 KB). Kept as it is where every reader decodes it to the same pixels; one with a
+    turning EXIF tag (another program would turn it) or pixels other than the file's
+    still becomes a PNG of the stored pixels."""
+    import cv2
+    from PIL import Image
+
+    from toolkit.io.sequence import jpeg_as_is
+    from toolkit.sensors import load_rgb
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (H, W, 3), dtype=np.uint8), (5, 5), 0)
+    plain, turned = tmp_path / "plain.jpg", tmp_path / "turned.jpg"
+    Image.fromarray(img).save(plain, quality=90)
+    exif = Image.Exif()
+    exif[0x0112] = 3  # rotate 180
+    Image.fromarray(img).save(turned, exif=exif.tobytes(), quality=90)
+    pixels = load_rgb(plain)
+    assert jpeg_as_is(plain.read_bytes(), pixels)
+    assert not jpeg_as_is(turned.read_bytes(), load_rgb(turned))
+    assert not jpeg_as_is(plain.read_bytes(), pixels[..., ::-1])  # not these pixels
+    ok, png = cv2.imencode(".png", pixels[..., ::-1])
+    assert ok and not jpeg_as_is(png.tobytes(), pixels)
+    w = SequenceWriter(tmp_path / "seq", make_rig(), name="jpeg")
+    w.add_frame(0.0, None, image_path=plain)  # type: ignore[arg-type]
+    w.add_frame(0.1, None, image_path=turned)  # type: ignore[arg-type]
+    w.add_frame(0.2, pixels, image_jpeg=plain.read_bytes())
+    w.add_frame(0.3, pixels[..., ::-1].copy(), image_jpeg=plain.read_bytes())
+    w.close()
+    frames = read_sequence(tmp_path / "seq").frames
+    assert [f.path.suffix for f in frames] == [".jpg", ".png", ".jpg", ".png"]
+    assert frames[0].path.read_bytes() == plain.read_bytes() == frames[2].path.read_bytes()
+    for f, want in zip(frames, [pixels, load_rgb(turned), pixels, pixels[..., ::-1]],
+                       strict=True):
+        assert np.array_equal(f.image, want)
 
 
 def test_writer_refuses_stamps_its_reader_would_refuse(tmp_path: Path) -> None:

@@ -231,7 +231,8 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             if stamp != expected:
                 raise IngestError(f"{recording.source}: loader returned frame at {fd.stamp!r} "
                                   f"where {expected + shift!r} was planned")
-            writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path)
+            writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path,
+                             image_jpeg=fd.image_jpeg)
         if writer.num_frames != len(pairs):
             raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "
                               "planned frames could be read (the input ended early: "

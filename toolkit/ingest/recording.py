@@ -34,6 +34,7 @@ class FrameData:
     stamp: float
     image: np.ndarray | None = None  # [H, W, 3] RGB uint8
     image_path: Path | None = None  # a PNG copied verbatim instead of ``image``
+    image_jpeg: bytes | None = None  # the JPEG ``image`` came from, kept where exact
     depth: np.ndarray | None = None  # [H, W] float32 metres, 0 = invalid
     mask: np.ndarray | None = None  # [H, W] bool, dynamic pixels
 

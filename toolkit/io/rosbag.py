@@ -1849,7 +1849,10 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
                             f"{rgb.shape[0]} but the camera model is {w}x{h}; the stream "
                             "changed size. Fix: give intrinsics matching these images in the "
                             "calibration YAML ('camera:') or convert a part of constant size")
-                    slots.setdefault(k, [None, None, pairs[k][1] >= 0])[0] = rgb
+                    slot = slots.setdefault(k, [None, None, pairs[k][1] >= 0, None])
+                    slot[0] = rgb
+                    if ch.image_compressed:  # stored as it is where that is exact
+                        slot[3] = np.asarray(msg.data, dtype=np.uint8).tobytes()
                 elif topic == ch.depth and (stamp, ns) in want_dep:
                     d = compressed_to_depth(msg, where) if ch.depth_compressed else \
                         image_to_depth(msg, where)
@@ -1857,11 +1860,12 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
                         raise BagError(f"{where}: depth at {stamp / 1e9:.9f} s is "
                                        f"{d.shape[1]}x{d.shape[0]}, the images {w}x{h}")
                     for k in want_dep.pop((stamp, ns)):
-                        slots.setdefault(k, [None, None, True])[1] = d
+                        slots.setdefault(k, [None, None, True, None])[1] = d
                 while nxt in slots and slots[nxt][0] is not None and (
                         slots[nxt][1] is not None or not slots[nxt][2]):
-                    rgb, d, _ = slots.pop(nxt)
-                    yield FrameData(stamp=img.stamps[pairs[nxt][0]] / 1e9, image=rgb, depth=d)
+                    rgb, d, _, jpeg = slots.pop(nxt)
+                    yield FrameData(stamp=img.stamps[pairs[nxt][0]] / 1e9, image=rgb, depth=d,
+                                    image_jpeg=jpeg)
                     nxt += 1
                 if nxt == len(pairs):
                     return

@@ -718,8 +718,13 @@ class SequenceWriter:
         return float(self._rows[-1]["stamp"]) if self._rows else None
 
     def add_frame(self, stamp: float, image: np.ndarray, gt_depth: np.ndarray | None = None,
-                  gt_mask: np.ndarray | None = None, image_path: Path | None = None) -> int:
-        """Write one RGB image [H, W, 3] (or copy ``image_path``) with optional ground truth."""
+                  gt_mask: np.ndarray | None = None, image_path: Path | None = None,
+                  image_jpeg: bytes | None = None) -> int:
+        """Write one RGB image [H, W, 3] (or copy ``image_path``) with optional ground truth.
+
+        ``image_jpeg``: the JPEG ``image`` was decoded from (a CompressedImage's payload).
+        It is stored as it is, as is a JPEG ``image_path``, where every reader decodes it to
+        the same pixels (``jpeg_as_is``); otherwise the pixels go into a PNG."""
         i = len(self._rows)
         # Checked here, not by the reader only: a NaN passed 'stamp <= previous' (and
         # disabled it for the next frame), and the folder was refused after the whole
@@ -734,7 +739,20 @@ class SequenceWriter:
         dst = self.root / "camera" / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
         w, h = self.rig.camera.size
-        if image_path is not None and Path(image_path).suffix.lower() == ".png":
+        if image_jpeg is None and image is None and image_path is not None and (
+                Path(image_path).suffix.lower() in (".jpg", ".jpeg")):
+            image_jpeg = Path(image_path).read_bytes()
+            image = load_rgb(Path(image_path))
+            if image.shape[:2] != (h, w):
+                raise ValueError(f"{image_path}: frame {i} is {image.shape[1]}x"
+                                 f"{image.shape[0]}, the camera {w}x{h}")
+        if image_jpeg is not None and image is not None and jpeg_as_is(image_jpeg, image):
+            if np.shape(image)[:2] != (h, w):
+                raise ValueError(f"frame {i}: image of {np.shape(image)[1]}x"
+                                 f"{np.shape(image)[0]}, the camera {w}x{h}")
+            rel = f"images/{i:06d}.jpg"
+            atomic_write_bytes(self.root / "camera" / rel, image_jpeg)
+        elif image_path is not None and Path(image_path).suffix.lower() == ".png":
             # Decoded once here: a truncated or foreign file copied unread failed stages
             # later, naming this copy (which a rerun then overwrote with the bad source).
             data = Path(image_path).read_bytes()
@@ -892,6 +910,28 @@ def _remove_unlisted_frames(root: Path, n: int) -> None:
             m = _INDEXED.match(p.name)
             if m and int(m.group(1)) >= n:
                 p.unlink()
+
+
+def jpeg_as_is(data: bytes, image: np.ndarray) -> bool:
+    """Whether JPEG bytes ``data`` can be stored as they are for the RGB pixels ``image``
+    [H, W, 3]: a JPEG whose decoding, with its EXIF orientation ignored (``load_rgb``, the
+    toolkit's reader) and applied (other programs' readers, e.g. COLMAP's), gives exactly
+    those pixels. A 73 KB camera JPEG re-encoded as a lossless PNG took 590 KB and 14 ms
+    (a long bag's conversion was mostly that); the decoded pixels are the same either way.
+    A CMYK or 12-bit JPEG, or one with a turning orientation tag, goes into a PNG."""
+    if len(data) < 4 or data[:2] != b"\xff\xd8":
+        return False
+    buf = np.frombuffer(data, np.uint8)
+    img = np.asarray(image)
+    for flags in (cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION, cv2.IMREAD_COLOR):
+        try:
+            bgr = cv2.imdecode(buf, flags)
+        except cv2.error:
+            return False
+        if bgr is None or bgr.shape != img.shape or not np.array_equal(
+                cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), img):
+            return False
+    return True
 
 
 def _write_rgb(path: Path, image: np.ndarray) -> None:
