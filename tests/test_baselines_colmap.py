@@ -261,19 +261,11 @@ def test_frames_in_a_gap_of_the_trajectory_get_no_pose(tmp_path: Path) -> None:
     assert holed.covers(seq.frame_stamps[idx], slack_s=0.05).all()
 
 
-def test_points_collapsed_onto_their_camera_are_not_taken_as_depth(
-        scene: dict, sfm: SfMResult, tmp_path: Path) -> None:
-    """COLMAP's mapper sometimes leaves points ~1e-8 units from the camera that sees them,
-    on the right ray (sub-pixel reprojection error): they must not set that frame's scale."""
-    pytest.importorskip("sklearn")
-    from toolkit.baselines.camera_only import (
-        CameraOnlySettings,
-        camera_only_reconstruction,
-        collapsed_depth,
-        sparse_depth,
-    )
+def _points_pulled_to_their_camera(scene: dict, sfm: SfMResult, tmp_path: Path,
+                                   fraction: float) -> tuple[SfMResult, str]:
+    """A copy of ``sfm`` whose middle frame has 80 % of its points moved towards its camera
+    to ``fraction`` of their distance, and that frame's name."""
     from toolkit.baselines.colmap import cam_from_world_matrix
-    from toolkit.depth.protocol import DepthPrediction
 
     frame_of = {n: i for i, n in enumerate(scene["names"])}
     save_sfm(sfm, tmp_path / "m", frame_of, {n: float(i) for n, i in frame_of.items()},
@@ -287,25 +279,46 @@ def test_points_collapsed_onto_their_camera_are_not_taken_as_depth(
     ids = [o.point3D_id for o in im.get_observation_points2D()]
     for pid in ids[: int(0.8 * len(ids))]:
         pt = rec.points3D[pid]
-        pt.xyz = centre + 1e-8 * (np.array(pt.xyz) - centre)
-    assert np.median(sparse_depth(bad, name, scene["cam"]).z) < 1e-6  # the damage took
-    floor = collapsed_depth(bad)
-    assert 0 < floor < 1e-3
-    kept = sparse_depth(bad, name, scene["cam"], floor)
-    assert len(kept.z) > 0 and kept.z.min() > 0.01
+        pt.xyz = centre + fraction * (np.array(pt.xyz) - centre)
+    return bad, name
+
+
+def _assert_frame_keeps_its_sound_scale(scene: dict, sfm: SfMResult, bad: SfMResult,
+                                        name: str) -> None:
+    """Camera only on ``sfm`` and on its damaged copy ``bad``: frame ``name`` keeps the
+    scale it has on the sound model (fitted to a relative prediction twice the depth)."""
+    from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
+    from toolkit.depth.protocol import DepthPrediction
 
     def prediction(i: int) -> DepthPrediction:
         d = scene["depths"][i]
         return DepthPrediction(np.where(d > 0, 2.0 * d, np.nan).astype(np.float32),
                                "relative_depth")
 
+    frame_of = {n: i for i, n in enumerate(scene["names"])}
     runs = [camera_only_reconstruction(m, frame_of, scene["cam"], prediction,
                                        lambda i: scene["images"][i], set(range(N_IMAGES)),
                                        CameraOnlySettings(smoothing_window=1))
             for m in (sfm, bad)]
-    # The damaged frame keeps the scale its sound points give (collapsed: ~1e-8 of it).
     k = runs[1].frame_indices.index(frame_of[name])
     assert runs[1].used[k] and runs[1].scale[k] == pytest.approx(runs[0].scale[k], rel=0.02)
+
+
+def test_points_collapsed_onto_their_camera_are_not_taken_as_depth(
+        scene: dict, sfm: SfMResult, tmp_path: Path) -> None:
+    """COLMAP's mapper sometimes leaves points ~1e-8 units from the camera that sees them,
+    on the right ray (sub-pixel reprojection error): they must not set that frame's scale."""
+    pytest.importorskip("sklearn")
+    from toolkit.baselines.camera_only import collapsed_depth, sparse_depth
+
+    bad, name = _points_pulled_to_their_camera(scene, sfm, tmp_path, 1e-8)
+    assert np.median(sparse_depth(bad, name, scene["cam"]).z) < 1e-6  # the damage took
+    floor = collapsed_depth(bad)
+    assert 0 < floor < 1e-3
+    kept = sparse_depth(bad, name, scene["cam"], floor)
+    assert len(kept.z) > 0 and kept.z.min() > 0.01
+    # The damaged frame keeps the scale its sound points give (collapsed: ~1e-8 of it).
+    _assert_frame_keeps_its_sound_scale(scene, sfm, bad, name)
 
 
 def test_points_triangulated_next_to_their_camera_do_not_set_its_scale(
@@ -314,35 +327,9 @@ def test_points_triangulated_next_to_their_camera_do_not_set_its_scale(
     (sub-pixel reprojection errors, far above the 1e-8 collapse); they backed a depth fit
     1/80 of the neighbours', and the frame kept it."""
     pytest.importorskip("sklearn")
-    from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction
-    from toolkit.baselines.colmap import cam_from_world_matrix
-    from toolkit.depth.protocol import DepthPrediction
-
-    frame_of = {n: i for i, n in enumerate(scene["names"])}
-    save_sfm(sfm, tmp_path / "m", frame_of, {n: float(i) for n, i in frame_of.items()},
-             scene["names"])
-    bad, _, _ = load_sfm(tmp_path / "m")
-    rec = bad.reconstruction
-    name = bad.names[len(bad.names) // 2]
-    im = rec.find_image_with_name(name)
-    T = cam_from_world_matrix(im)
-    centre = -T[:3, :3].T @ T[:3, 3]
-    ids = [o.point3D_id for o in im.get_observation_points2D()]
-    for pid in ids[: int(0.8 * len(ids))]:  # most of them, as the house's frame 72
-        pt = rec.points3D[pid]
-        pt.xyz = centre + 0.02 * (np.array(pt.xyz) - centre)
-
-    def prediction(i: int) -> DepthPrediction:
-        d = scene["depths"][i]
-        return DepthPrediction(np.where(d > 0, 2.0 * d, np.nan).astype(np.float32),
-                               "relative_depth")
-
-    runs = [camera_only_reconstruction(m, frame_of, scene["cam"], prediction,
-                                       lambda i: scene["images"][i], set(range(N_IMAGES)),
-                                       CameraOnlySettings(smoothing_window=1))
-            for m in (sfm, bad)]
-    k = runs[1].frame_indices.index(frame_of[name])
-    assert runs[1].used[k] and runs[1].scale[k] == pytest.approx(runs[0].scale[k], rel=0.02)
+    # Most of its points at 2 % of their depth, as the house's frame 72.
+    bad, name = _points_pulled_to_their_camera(scene, sfm, tmp_path, 0.02)
+    _assert_frame_keeps_its_sound_scale(scene, sfm, bad, name)
 
 
 def test_sparse_depth_pairs_each_point_with_the_pixel_it_was_seen_at() -> None:

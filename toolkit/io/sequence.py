@@ -739,23 +739,28 @@ class SequenceWriter:
         dst = self.root / "camera" / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
         w, h = self.rig.camera.size
-        if image_jpeg is None and image is None and image_path is not None and (
-                Path(image_path).suffix.lower() in (".jpg", ".jpeg")):
-            image_jpeg = Path(image_path).read_bytes()
+        suffix = Path(image_path).suffix.lower() if image_path is not None else ""
+        if image is None and image_path is not None and suffix != ".png":
+            # Another format (a JPEG sequence): decoded; a JPEG kept as it is where exact.
+            if image_header(Path(image_path)) is None:  # TIFF, JPEG 2000, ...
+                # The colour read keeps the top 8 of 16 bits: 12-bit data went dark.
+                raw = cv2.imread(str(image_path),
+                                 cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+                if raw is not None:
+                    _check_8bit(Path(image_path), raw)
             image = load_rgb(Path(image_path))
             if image.shape[:2] != (h, w):
                 raise ValueError(f"{image_path}: frame {i} is {image.shape[1]}x"
                                  f"{image.shape[0]}, the camera {w}x{h}")
+            if image_jpeg is None and suffix in (".jpg", ".jpeg"):
+                image_jpeg = Path(image_path).read_bytes()
         if image_jpeg is not None and image is not None and jpeg_as_is(image_jpeg, image):
-            if np.shape(image)[:2] != (h, w):
-                raise ValueError(f"frame {i}: image of {np.shape(image)[1]}x"
-                                 f"{np.shape(image)[0]}, the camera {w}x{h}")
             rel = f"images/{i:06d}.jpg"
             atomic_write_bytes(self.root / "camera" / rel, image_jpeg)
-        elif image_path is not None and Path(image_path).suffix.lower() == ".png":
+        elif suffix == ".png":
             # Decoded once here: a truncated or foreign file copied unread failed stages
             # later, naming this copy (which a rerun then overwrote with the bad source).
-            data = Path(image_path).read_bytes()
+            data = Path(image_path).read_bytes()  # type: ignore[arg-type]
             pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
             if pixels is None:
                 raise ValueError(f"{image_path}: frame {i} is not a readable PNG image "
@@ -763,21 +768,9 @@ class SequenceWriter:
             if pixels.shape[:2] != (h, w):
                 raise ValueError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
                                  f"{pixels.shape[0]}, the camera {w}x{h}")
-            _check_8bit(Path(image_path), pixels)
+            _check_8bit(Path(image_path), pixels)  # type: ignore[arg-type]
             atomic_write_bytes(dst, data)
         else:
-            if image is None and image_path is not None:
-                # Another format (a JPEG sequence): decoded, stored as PNG like any frame.
-                if image_header(Path(image_path)) is None:  # TIFF, JPEG 2000, ...
-                    # The colour read keeps the top 8 of 16 bits: 12-bit data went dark.
-                    raw = cv2.imread(str(image_path),
-                                     cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
-                    if raw is not None:
-                        _check_8bit(Path(image_path), raw)
-                image = load_rgb(Path(image_path))
-                if image.shape[:2] != (h, w):
-                    raise ValueError(f"{image_path}: frame {i} is {image.shape[1]}x"
-                                     f"{image.shape[0]}, the camera {w}x{h}")
             if image is None:
                 raise ValueError(f"frame {i}: neither pixels nor an image path")
             _write_rgb(dst, image)
