@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -259,6 +260,31 @@ def test_device_cuda_without_a_usable_gpu_says_what_to_do(monkeypatch: pytest.Mo
     assert choose_device("auto", "cpp").type == "cpu"
 
 
+def test_device_cuda_on_a_gpu_without_the_cuda_toolkit_names_the_toolkit(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """What an H100 machine with its CUDA toolkit moved away showed (session 29): gsplat
+    imports, prints "No CUDA toolkit found" and leaves its kernels None. The fix is the
+    toolkit torch was built with, not the cuda extra or a GPU (both were there)."""
+    import types
+
+    from toolkit.recipe.stage import StageError
+    from toolkit.splat.rasterize import gsplat_backend
+    from toolkit.splat.stage import choose_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.version, "cuda", "13.0")
+    for name in ("gsplat", "gsplat.cuda"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))
+    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", types.SimpleNamespace(_C=None))
+    assert choose_device("auto").type == "cpu"
+    assert "no CUDA toolkit" in (gsplat_backend.unavailable_reason() or "")
+    with pytest.raises(StageError) as err:
+        choose_device("cuda")
+    message = str(err.value)
+    assert "CUDA toolkit 13.0" in message and "CUDA_HOME" in message
+    assert "cuda extra" not in message and "splat.device: cpu" in message
+
+
 def test_groundtruth_alignment_on_a_straight_drive() -> None:
     """Camera positions along a line leave the turn about it free: 1 mm of noise turned a
     position-only fit 180 deg (2 mm residual); the orientations pin it."""
@@ -381,6 +407,29 @@ def test_stage_bench_writes_each_devices_figures(tmp_path: Path) -> None:
     assert cpu["train_views"] == 7 and cpu["train_iters_per_s"] > 0  # frame 0 held out
     assert res["scene"] == {"frames": 8, "width": 32, "height": 24, "gaussians": 400,
                             "iterations": 12}
+    assert "settings" not in res
+
+
+def test_stage_bench_sets_a_splat_setting_on_each_run(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """``--set KEY=VALUE`` reaches the stage (views read from disk, exposure gains); a key
+    the stage does not have, and the bench's own keys, are refused with the reason."""
+    from toolkit.splat.stage_bench import main
+
+    small = ["--frames", "8", "--width", "32", "--height", "24", "-n", "400",
+             "--iterations", "6"]
+    out = tmp_path / "b.json"
+    assert main([*small, "--set", "view_cache_mb=0.001", "--set", "exposure=gain",
+                 "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["settings"] == {"view_cache_mb": 0.001, "exposure": "gain"}
+    assert res["devices"]["cpu"]["ok"] and res["devices"]["cpu"]["iterations"] == 6
+    with pytest.raises(SystemExit):
+        main([*small, "--set", "view_cache=1", "--out", str(out)])
+    assert "did you mean 'view_cache_mb'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*small, "--set", "iterations=3", "--out", str(out)])
+    assert "the bench sets these itself" in capsys.readouterr().err
 
 
 def test_heldout_depth_error_says_what_share_of_pixels_it_covers() -> None:

@@ -136,9 +136,8 @@ def choose_device(setting: str, backend: str = "auto") -> torch.device:
         return torch.device("cuda")
     if setting == "cuda" or backend == "gsplat":
         raise StageError(f"splat: device {setting}, backend {backend}: "
-                         f"{gsplat_backend.unavailable_reason()} "
-                         "(install the cuda extra, pip install -e '.[cuda]', on a machine "
-                         "with an NVIDIA GPU), or set splat.device: cpu"
+                         f"{gsplat_backend.unavailable_reason()}: "
+                         f"{gsplat_backend.unavailable_fix()}; or set splat.device: cpu"
                          + (" and splat.backend: auto" if backend == "gsplat" else ""))
     return torch.device("cpu")
 

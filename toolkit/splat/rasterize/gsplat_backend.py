@@ -18,14 +18,31 @@ from toolkit.splat.model import Gaussians
 from toolkit.splat.rasterize.common import CameraTensors
 
 _reason: str | None = None
+# What to do about ``_reason``: the fix differs by cause (on a GPU machine without nvcc,
+# "install the cuda extra on a machine with an NVIDIA GPU" named two things already there).
+_fix: str | None = None
+_FIX_NO_GPU = ("run it on a machine with an NVIDIA GPU that torch sees "
+               "(torch.cuda.is_available(); torch's CPU build sees none)")
+_FIX_INSTALL = "install the cuda extra: pip install -e '.[cuda]'"
+
+
+def _toolkit_fix() -> str:
+    cuda = torch.version.cuda
+    return (f"install the CUDA toolkit {cuda + ' ' if cuda else ''}(the version torch was "
+            "built with; nvcc) and point CUDA_HOME at it")
+
+
+def _unusable(reason: str, fix: str) -> bool:
+    global _reason, _fix
+    _reason, _fix = reason, fix
+    return False
 
 
 def _import() -> Any:
-    global _reason
     try:
         import gsplat  # type: ignore[import-not-found]
     except Exception as exc:  # noqa: BLE001 - gsplat's import may fail in many ways (CUDA JIT)
-        _reason = f"cannot import gsplat: {exc}"
+        _unusable(f"cannot import gsplat: {exc}", _FIX_INSTALL)
         return None
     return gsplat
 
@@ -33,10 +50,8 @@ def _import() -> Any:
 def available() -> bool:
     """gsplat imports, its CUDA kernels load (built on first use: minutes) and a CUDA
     device is present."""
-    global _reason
     if not torch.cuda.is_available():
-        _reason = "no CUDA device"
-        return False
+        return _unusable("no CUDA device", _FIX_NO_GPU)
     if _import() is None:
         return False
     # gsplat imports without its kernels and builds them at the first render; build (or
@@ -44,17 +59,23 @@ def available() -> bool:
     try:
         from gsplat.cuda._backend import _C  # type: ignore[import-not-found]
     except Exception as exc:  # noqa: BLE001 - a failed nvcc / ninja build raises many kinds
-        _reason = f"gsplat could not build its CUDA kernels: {type(exc).__name__}: {exc}"
-        return False
+        return _unusable(f"gsplat could not build its CUDA kernels: {type(exc).__name__}: "
+                         f"{exc}", f"{_toolkit_fix()}, with a C++ compiler and ninja")
     if _C is None:
-        _reason = ("gsplat found no CUDA toolkit to build its kernels with (nvcc; set "
-                   "CUDA_HOME)")
-        return False
+        # Seen on an H100 machine with the toolkit moved away (session 29): gsplat prints
+        # "No CUDA toolkit found" and imports with _C None.
+        return _unusable("gsplat found no CUDA toolkit to build its kernels with (no nvcc, "
+                         "CUDA_HOME unset)", _toolkit_fix())
     return True
 
 
 def unavailable_reason() -> str | None:
     return _reason
+
+
+def unavailable_fix() -> str | None:
+    """What to do about ``unavailable_reason()``."""
+    return _fix
 
 
 def render(g: Gaussians, cam: CameraTensors, background: Tensor, sh_degree: int, near: float,
