@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1453,12 +1454,15 @@ def test_non_finite_poses_and_intrinsics_are_named_at_ingest(tmp_path, caplog):
     recalibration while recording, and a transposed K as a bare ValueError."""
     c = make_content(n_images=4)
     b = BagBuilder(False)
-    # odometry: the first three poses NaN
+    # odometry: the first three poses NaN - left out, named (they refused the whole
+    # topic until too few poses remain: test_odometry_with_too_few_poses_is_refused...)
     c.odom_xy[:3] = [(np.nan, np.nan)] * 3
     bag = write_bag(tmp_path / "odom", "sqlite3", standard_messages(b, c, depth=False))
-    with pytest.raises(BagError, match=r"topic /odom: message 0 \(stamped .*field "
-                                       r"'pose.pose.position'.*rosbag.topics.odometry: none"):
-        read_rosbag(bag)
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(bag)
+    assert len(rec.odometry) == 37 and np.isfinite(rec.odometry.poses).all()
+    assert re.search(r"topic /odom: 3 of 40 messages left out as no pose \(message 0 of the "
+                     r"topic: field 'pose.pose.position'", caplog.text)
 
     # tf: a NaN translation is skipped like a zero quaternion, and named where needed
     c = make_content(n_images=4)
@@ -1622,3 +1626,102 @@ def test_index_pass_compares_repeated_camera_info_cheaply(tmp_path, monkeypatch)
     read_rosbag(bag)
     assert len(c.image_t) == 20
     assert len(calls) < 5, len(calls)  # it was 6 for each CameraInfo after the first: 114
+
+
+# ---------------------------------------------------------------------------- bad odometry
+
+
+def _odometry_with_bad(b: BagBuilder, c: BagContent, bad: set[int], how: str) -> list:
+    """``standard_messages`` with odometry messages ``bad`` (indices) made no pose: a zero
+    quaternion (a driver before its first fix) or a NaN position (a glitch)."""
+    msgs, k = [], 0
+    for m in standard_messages(b, c, depth=False):
+        if m[0] == "/odom":
+            if k in bad:
+                msg = m[3]
+                if how == "zero_quaternion":
+                    msg.pose.pose.orientation = b.T["geometry_msgs/msg/Quaternion"](
+                        x=0.0, y=0.0, z=0.0, w=0.0)
+                else:
+                    msg.pose.pose.position = b.T["geometry_msgs/msg/Point"](
+                        x=np.nan, y=0.0, z=0.0)
+            k += 1
+        msgs.append(m)
+    return msgs
+
+
+@pytest.mark.parametrize("how", ["zero_quaternion", "nan_position"])
+def test_one_bad_odometry_message_is_left_out_not_the_topic(tmp_path, caplog, how):
+    """One message of 50 that is no pose refused the whole odometry topic (and so the
+    bag); it is left out, counted, and its stamp named."""
+    c = make_content(n_scans=25, n_images=2)  # 50 odometry messages at 20 Hz
+    b = BagBuilder(False)
+    bag = write_bag(tmp_path / "odom", "sqlite3", _odometry_with_bad(b, c, {17}, how))
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(bag)
+    assert len(rec.odometry) == 49
+    expected_t = np.delete(np.asarray(c.odom_t), 17)
+    np.testing.assert_allclose(rec.odometry.stamps, expected_t, atol=1e-9)
+    np.testing.assert_allclose(rec.odometry.poses[:, 0, 3],
+                               np.delete(np.asarray(c.odom_xy)[:, 0], 17), atol=1e-12)
+    assert rec.skipped["/odom"]["count"] == 1 and rec.skipped["/odom"]["of"] == 50
+    assert rec.skipped["/odom"]["first_stamps_s"] == [round(c.odom_t[17], 6)]
+    assert rec.skipped["/odom"]["gaps_not_interpolated"] == 0
+    assert rec.skipped["/odom"]["longest_gap_s"] == pytest.approx(0.1, abs=1e-6)
+    field = "orientation" if how == "zero_quaternion" else "position"
+    assert (f"topic /odom: 1 of 50 messages left out as no pose (message 17 of the topic: "
+            f"field 'pose.pose.{field}'") in caplog.text
+    assert f"{c.odom_t[17]:.6f}" in caplog.text and "is interpolated across" in caplog.text
+    # the count reaches the conversion's metrics, summary and meta.yaml
+    res = convert(rec, tmp_path / "seq")
+    assert res.metrics()["messages_skipped_invalid"] == 1
+    assert "odometry messages left out as no pose on /odom: 1 of 50" in res.summary()
+    meta = yaml.safe_load((tmp_path / "seq" / "meta.yaml").read_text())
+    assert meta["ingest"]["skipped_invalid"]["/odom"]["count"] == 1
+    assert len(read_sequence(tmp_path / "seq").odometry) == 49
+
+
+def test_odometry_with_too_few_poses_is_refused_naming_topic_count_and_fix(tmp_path):
+    c = make_content(n_scans=25, n_images=2)
+    b = BagBuilder(False)
+    bag = write_bag(tmp_path / "all", "sqlite3",
+                    _odometry_with_bad(b, c, set(range(50)), "zero_quaternion"))
+    with pytest.raises(IngestError, match=r"topic /odom: 50 of 50 messages are no pose "
+                                          r"\(message 0 of the topic: field "
+                                          r"'pose.pose.orientation'.*only 0 remain.*Fix: "
+                                          r"leave the odometry out \(rosbag.topics.odometry: "
+                                          r"none"):
+        read_rosbag(bag)
+    # under half left: refused too; half left: kept
+    bag = write_bag(tmp_path / "most", "sqlite3",
+                    _odometry_with_bad(b, c, set(range(26)), "nan_position"))
+    with pytest.raises(IngestError, match=r"26 of 50 messages are no pose.*only 24 remain"):
+        read_rosbag(bag)
+    bag = write_bag(tmp_path / "half", "sqlite3",
+                    _odometry_with_bad(b, c, set(range(25)), "nan_position"))
+    rec = read_rosbag(bag)
+    assert len(rec.odometry) == 25 and rec.skipped["/odom"]["count"] == 25
+    # the driver's first 25 messages: nothing to interpolate across, the span is shorter
+    assert rec.skipped["/odom"]["longest_gap_s"] == 0.0
+
+
+def test_a_long_run_of_bad_odometry_is_not_interpolated_across(tmp_path, caplog):
+    """Skipped messages leave a gap: the SLAM's odometry prior must not draw a straight
+    line across a long one (Trajectory.covers) - and the ingest says which it is."""
+    from toolkit.slam2d.pipeline import odometry_at
+
+    c = make_content(n_scans=40, n_images=2)  # 80 odometry messages, 0.05 s apart
+    b = BagBuilder(False)
+    bad = set(range(30, 55))  # 25 messages: a 1.3 s gap, over the 1 s bridged
+    bag = write_bag(tmp_path / "gap", "sqlite3", _odometry_with_bad(b, c, bad, "nan_position"))
+    with caplog.at_level(logging.WARNING):
+        rec = read_rosbag(bag)
+    r = rec.skipped["/odom"]
+    assert r["count"] == 25 and r["gaps_not_interpolated"] == 1
+    assert r["longest_gap_s"] == pytest.approx(c.odom_t[55] - c.odom_t[29], abs=1e-6)
+    assert "1 gaps longer than the 1.00 s the odometry is interpolated across" in caplog.text
+    assert "matched without odometry" in caplog.text
+    # downstream: no odometry pose inside the gap, poses either side of it
+    t = np.array([c.odom_t[29] - 0.01, c.odom_t[40], c.odom_t[55] + 0.01])
+    at = odometry_at(rec.odometry, t)
+    assert at[0] is not None and at[1] is None and at[2] is not None

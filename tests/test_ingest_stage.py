@@ -434,3 +434,52 @@ def test_a_dropped_carmen_line_is_one_dropped_message(tmp_path):
     assert res.metrics()["messages_dropped_non_monotonic"] == 1
     seq = read_sequence(tmp_path / "seq")
     assert len(seq.scans) == 7 and len(seq.groundtruth.poses_base) == 7
+
+
+def _flaser_log_with_bad_odometry(path: Path, n: int, bad: set[int]) -> list[float]:
+    """A raw CARMEN log of ``n`` FLASER lines (and ODOM lines), 0.2 s apart, whose
+    odometry fields are NaN on lines ``bad``; returns the stamps."""
+    lines, stamps = [], []
+    ranges = " ".join(["2.0"] * 181)
+    for i in range(n):
+        t = 1000.0 + 0.2 * i
+        stamps.append(t)
+        odom = "nan 0 0" if i in bad else f"{0.1 * i:g} 0 0"
+        lines.append(f"ODOM {odom} 0 0 0 {t - 0.05!r} host {t - 0.05!r}")
+        lines.append(f"FLASER 181 {ranges} {0.1 * i + 0.1:g} 0 0 {odom} {t!r} host {t!r}")
+    path.write_text("\n".join(lines) + "\n")
+    return stamps
+
+
+def test_a_carmen_log_with_one_bad_odometry_reading_is_kept(tmp_path, caplog):
+    """A NaN odometry pose on one line of 50 refused the whole log (a line error); the
+    reading is left out and counted, the scan kept, as a bag's odometry message is."""
+    log = tmp_path / "intel.log"
+    stamps = _flaser_log_with_bad_odometry(log, 50, {20})
+    with caplog.at_level("WARNING"):
+        rec = read_carmen_recording(log)
+    assert len(rec.scans) == 50 and len(rec.odometry) == 49
+    assert rec.skipped["scan lines' odometry"]["count"] == 1
+    assert rec.skipped["scan lines' odometry"]["first_stamps_s"] == [stamps[20]]
+    assert "scan lines' odometry: 1 of 50 messages left out as no pose" in caplog.text
+    rec = read_carmen_recording(log, CarmenOptions(odometry="odom_lines"))
+    assert len(rec.odometry) == 49 and rec.skipped["ODOM lines"]["of"] == 50
+    # all bad: refused, naming the fix
+    log = tmp_path / "broken.log"
+    _flaser_log_with_bad_odometry(log, 50, set(range(50)))
+    with pytest.raises(IngestError, match=r"scan lines' odometry: 50 of 50 messages are no "
+                                          r"pose.*only 0 remain.*carmen.odometry: none"):
+        read_carmen_recording(log)
+    assert read_carmen_recording(log, CarmenOptions(odometry="none")).odometry is None
+
+
+def test_skipped_odometry_reaches_the_stage_metrics_and_report(tmp_path):
+    log = tmp_path / "intel.log"
+    _flaser_log_with_bad_odometry(log, 50, {20, 21})
+    res = run_recipe(load_recipe(recipe(tmp_path, source="carmen", path=str(log))))
+    assert res.ok, res.error
+    assert res.metrics["ingest"]["messages_skipped_invalid"] == 2
+    report = (res.run_dir / "report.md").read_text()
+    assert "| odometry messages left out as no pose | scan lines' odometry: 2 of 50 (first " \
+           "stamps 1004.000, 1004.200 s; longest gap 0.60 s, 0 not interpolated across) |" \
+        in report

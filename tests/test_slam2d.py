@@ -855,3 +855,68 @@ def test_occupancy_map_is_cropped_before_it_is_converted():
     assert occ.occupancy.shape == want.shape
     np.testing.assert_array_equal(occ.occupancy, want)  # NaN where unknown, alike
     assert occ.origin[:2] == pytest.approx(tuple(g.origin + lo * g.resolution))
+
+
+def test_map_pooling_keeps_one_cell_walls_and_unknown():
+    """f x f blocks: occupied if any cell is, else free if any is, else unknown - by hand."""
+    from toolkit.io.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+    from toolkit.slam2d import plot
+
+    nan = np.nan
+    occ = np.array([[0.0, 0.0, nan, nan, 0.0],
+                    [0.0, 0.9, nan, nan, nan],
+                    [nan, nan, nan, 0.5, 0.0],
+                    [nan, 0.1, nan, nan, 0.9]], np.float32)  # [4, 5]
+    codes = plot.pooled_map(OccupancyMap(occ, 0.05, (0.0, 0.0, 0.0)), 2)
+    assert codes.tolist() == [[OCCUPIED, UNKNOWN, FREE], [FREE, UNKNOWN, OCCUPIED]]
+    # strips: the same pooling a few rows at a time (a one-cell wall on a strip's edge)
+    rng = np.random.default_rng(1)
+    big = rng.choice(np.array([0.05, 0.9, np.nan], np.float32), size=(301, 203),
+                     p=[0.9, 0.001, 0.099])
+    big[97, :] = 0.9  # a wall in the last row of a block
+    whole = plot.pooled_map(OccupancyMap(big, 0.05, (0.0, 0.0, 0.0)), 7)
+    old = plot._STRIP_CELLS
+    try:
+        plot._STRIP_CELLS = 7 * 7 * 29 * 3  # three block rows a strip
+        strips = plot.pooled_map(OccupancyMap(big, 0.05, (0.0, 0.0, 0.0)), 7)
+    finally:
+        plot._STRIP_CELLS = old
+    assert whole.shape == (43, 29) and np.array_equal(whole, strips)
+    assert (whole[97 // 7] == OCCUPIED).all()
+
+
+def test_map_png_of_a_map_larger_than_the_plot_keeps_its_walls(tmp_path, monkeypatch):
+    """A map of more cells than the plot has pixels was drawn whole (its memory grew with
+    the area: 6.2 GB for 20000 x 20000 cells) and sampled at the nearest cell, which
+    dropped walls one cell thick; it is pooled to the plot's pixels first."""
+    import cv2
+    import matplotlib.image as mimage
+
+    from toolkit.io.occupancy import OccupancyMap
+    from toolkit.slam2d.plot import save_map_png
+
+    drawn: list[tuple[int, ...]] = []
+    set_data = mimage.AxesImage.set_data
+
+    def recording(self, A):  # the arrays matplotlib is given to draw
+        drawn.append(np.shape(A))
+        return set_data(self, A)
+
+    monkeypatch.setattr(mimage.AxesImage, "set_data", recording)
+    n = 3000  # [n, n] cells, the figure 1800 x 1800 pixels at 150 dpi
+    occ = np.full((n, n), 0.05, np.float32)
+    walls = [301 + 400 * k for k in range(7)]  # one cell thick
+    occ[walls, 50:-50] = 0.9
+    occ[50:-50, walls] = 0.9
+    save_map_png(tmp_path / "map.png", OccupancyMap(occ, 0.05, (0.0, 0.0, 0.0)),
+                 np.array([[1.0, 1.0], [140.0, 140.0]]))
+    # pooled to at most the figure's pixels (and the plot's, which are fewer), not drawn
+    # whole: [1500, 1500] here
+    assert all(max(s) <= 1800 for s in drawn) and max(drawn[-1]) < n
+    img = cv2.imread(str(tmp_path / "map.png"), cv2.IMREAD_GRAYSCALE)
+    black = img == 0
+    # every wall a black line across the map: 7 rows and 7 columns, each mostly black
+    long_rows = np.flatnonzero(black.sum(1) > 0.8 * black.sum(1).max())
+    long_cols = np.flatnonzero(black.sum(0) > 0.8 * black.sum(0).max())
+    runs = lambda idx: 1 + int((np.diff(idx) > 1).sum()) if len(idx) else 0  # noqa: E731
+    assert runs(long_rows) == 7 and runs(long_cols) == 7

@@ -57,6 +57,7 @@ class ConvertResult:
     has_odometry: bool
     has_groundtruth: bool
     dropped_indexing: dict[str, int] = field(default_factory=dict)
+    skipped_invalid: dict[str, dict[str, Any]] = field(default_factory=dict)  # Recording.skipped
     depth_pixels_beyond_format: int = 0  # written as invalid (a PNG holds up to 13.107 m)
 
     def metrics(self) -> dict[str, Any]:
@@ -72,6 +73,7 @@ class ConvertResult:
             "scans": self.scans,
             "scans_resampled": self.scans_resampled,
             "messages_dropped_non_monotonic": sum(self.dropped_indexing.values()),
+            "messages_skipped_invalid": sum(r["count"] for r in self.skipped_invalid.values()),
             "depth_pixels_beyond_format": self.depth_pixels_beyond_format,
             "convert_s": round(self.seconds, 3),
         }
@@ -107,6 +109,10 @@ class ConvertResult:
         for what, n in self.dropped_indexing.items():
             if n:
                 lines.append(f"  messages dropped for non-monotonic stamps on {what}: {n}")
+        for what, r in self.skipped_invalid.items():
+            lines.append(f"  odometry messages left out as no pose on {what}: {r['count']} of "
+                         f"{r['of']} (first stamps {r['first_stamps_s']} s; gaps not "
+                         f"interpolated across: {r['gaps_not_interpolated']})")
         lines.append(f"  odometry: {'yes' if self.has_odometry else 'no'}, ground truth: "
                      f"{'yes' if self.has_groundtruth else 'no'}, depth: "
                      f"{'yes' if self.has_depth else 'no'}")
@@ -262,6 +268,7 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "decimate": decimate.model_dump(),
             "scans_resampled": resampled,
             "dropped_non_monotonic": dict(recording.dropped),
+            "skipped_invalid": dict(recording.skipped),
             "depth_pixels_beyond_format": writer.depth_pixels_beyond_format,
         },
     })
@@ -273,4 +280,5 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         has_odometry=recording.odometry is not None,
         has_groundtruth=recording.groundtruth is not None,
         dropped_indexing=dict(recording.dropped),
+        skipped_invalid=dict(recording.skipped),
         depth_pixels_beyond_format=writer.depth_pixels_beyond_format)

@@ -10,6 +10,7 @@ resumed conversion reads only what is still missing.
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -59,6 +60,9 @@ class Recording:
     has_camera: bool = True
     meta: dict[str, Any] = field(default_factory=dict)  # goes into meta.yaml
     dropped: dict[str, int] = field(default_factory=dict)  # messages dropped while indexing
+    # Odometry messages left out as no pose (non-finite, zero quaternion): source (topic,
+    # "ODOM lines") -> ``skipped_record``'s dict, for meta.yaml, metrics and the report.
+    skipped: dict[str, dict[str, Any]] = field(default_factory=dict)
     scan_dynamic: np.ndarray | None = None  # [S, B] bool (sequence folders only)
     # The scans are made from the depth images (TUM RGB-D's virtual lidar): the depth
     # stream is then the lidar's clock and keeps its stamps when the camera's delay
@@ -69,6 +73,78 @@ class Recording:
     camera_delay_applied_s: float = 0.0
     # Extra writes on the SequenceWriter, given the source frames kept [F] (in order).
     finish: Callable[[Any, np.ndarray], None] | None = None
+
+
+# Odometry is refused when fewer than this share of its messages are poses. A driver's
+# few bad messages (before its first fix, a glitch) are left out; one that fails more
+# often than it works is broken, and the poses between its failures are no prior to
+# trust - nor should a mostly empty odometry be reported as "odometry: yes".
+MIN_VALID_ODOMETRY = 0.5
+STAMPS_SHOWN = 5  # skipped messages' stamps named in the warning and the record
+
+
+def skipped_record(where: str, total: int, bad_stamps_s: Sequence[float], reason: str,
+                   fix: str) -> dict[str, Any] | None:
+    """The record of ``len(bad_stamps_s)`` of ``total`` odometry messages that are no
+    pose (None when there are none); ``IngestError`` when fewer than
+    ``MIN_VALID_ODOMETRY`` of them are poses. ``reason``: what was wrong with the first
+    one (field and value); ``fix``: how to go on without this odometry."""
+    n = len(bad_stamps_s)
+    if n == 0:
+        return None
+    shown = ", ".join(f"{t:.6f}" for t in bad_stamps_s[:STAMPS_SHOWN]) + (
+        ", ..." if n > STAMPS_SHOWN else "")
+    good = total - n
+    if good < MIN_VALID_ODOMETRY * total:
+        raise IngestError(
+            f"{where}: {n} of {total} messages are no pose ({reason}; stamps {shown} s): "
+            f"only {good} remain, under the {MIN_VALID_ODOMETRY:.0%} an odometry must keep "
+            f"to be used (its driver fails more often than it works). Fix: {fix}")
+    return {"count": n, "of": total, "first_stamps_s": [round(float(t), 6)
+                                                        for t in bad_stamps_s[:STAMPS_SHOWN]],
+            "first_reason": reason}
+
+
+def note_skipped_gaps(record: dict[str, Any], odometry: Trajectory, valid_t: np.ndarray,
+                      kept: np.ndarray, before: np.ndarray, where: str,
+                      log: logging.Logger) -> None:
+    """Add to ``record`` the gaps the skipped messages leave in ``odometry`` and warn.
+
+    ``valid_t`` [V]: stamps of the valid messages in message order; ``kept`` [V] bool: those
+    in ``odometry`` (others were dropped for their stamps); ``before`` [B]: for each skipped
+    message, how many valid messages came before it. A gap is the time between the kept
+    messages either side of a run of skipped ones; the SLAM interpolates the odometry only
+    across gaps up to ``Trajectory.gap_limit_s`` (``odometry_at`` uses ``covers``) and
+    matches the scans in a longer one without it - which the warning says, so a dead
+    odometry for minutes is not taken for a smooth one."""
+    K = np.flatnonzero(kept)  # [N] indices into valid_t of the poses kept
+    pos = np.searchsorted(K, np.asarray(before, dtype=np.int64))  # [B]
+    inner = (pos > 0) & (pos < len(K))  # skipped runs with a kept pose on both sides
+    pairs = np.unique(np.stack([K[pos[inner] - 1], K[pos[inner]]], axis=1), axis=0) \
+        if inner.any() else np.zeros((0, 2), np.int64)  # [G, 2]
+    gaps = valid_t[pairs[:, 1]] - valid_t[pairs[:, 0]] if len(pairs) else np.zeros(0)  # [G]
+    limit = odometry.gap_limit_s()
+    long = gaps > limit
+    record["longest_gap_s"] = round(float(gaps.max()), 6) if len(gaps) else 0.0
+    record["gaps_not_interpolated"] = int(long.sum())
+    n, total = record["count"], record["of"]
+    shown = ", ".join(f"{t:.6f}" for t in record["first_stamps_s"]) + (
+        ", ..." if n > len(record["first_stamps_s"]) else "")
+    if long.any():
+        i = int(np.argmax(gaps))
+        gap = (f"they leave {int(long.sum())} gaps longer than the {limit:.2f} s the odometry "
+               f"is interpolated across (the longest {gaps[i]:.2f} s, from "
+               f"{valid_t[pairs[i, 0]]:.3f} s): the scans in them are matched without "
+               "odometry")
+    elif len(gaps):
+        gap = (f"the longest gap they leave, {gaps.max():.3f} s, is interpolated across "
+               f"(up to {limit:.2f} s is)")
+    else:
+        gap = ("they come before the first or after the last pose kept: the odometry "
+               "starts later or ends sooner")
+    log.warning("%s: %d of %d messages left out as no pose (%s; stamps %s s); the odometry "
+                "keeps %d poses; %s", where, n, total, record["first_reason"], shown,
+                len(odometry), gap)
 
 
 def placeholder_camera() -> PinholeCamera:

@@ -211,6 +211,12 @@ def _report(cfg: IngestConfig, rec: Recording, res: ConvertResult) -> str:
     if res.dropped_indexing:
         rows.append(("non-monotonic messages dropped", ", ".join(
             f"{k}: {v}" for k, v in res.dropped_indexing.items())))
+    if res.skipped_invalid:
+        rows.append(("odometry messages left out as no pose", "; ".join(
+            f"{k}: {r['count']} of {r['of']} (first stamps "
+            f"{', '.join(f'{t:.3f}' for t in r['first_stamps_s'])} s; longest gap "
+            f"{r['longest_gap_s']:.2f} s, {r['gaps_not_interpolated']} not interpolated "
+            "across)" for k, r in res.skipped_invalid.items())))
     span = [s.stamp for s in rec.scans]
     if span:
         rows.append(("time span", f"{float(np.ptp(span)):.1f} s"))

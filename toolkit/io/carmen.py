@@ -89,14 +89,16 @@ def _read_lines(path: Path) -> Iterator[str]:
             yield from fh
 
 
-def _pose(values: list[str], what: str) -> np.ndarray:
+def _pose(values: list[str], what: str, finite: bool = True) -> np.ndarray:
     """[3] x, y, theta of a line's pose fields. Python reads 'nan' and 'inf' as numbers: a
     non-finite pose went into odometry.tum or the reference poses, and the converted
-    sequence was refused by the next stage, naming that file instead of this line."""
+    sequence was refused by the next stage, naming that file instead of this line.
+    ``finite=False`` (odometry fields): returned as read, for the ingest to leave out and
+    count - one glitched odometry reading refused the whole log."""
     p = np.array([float(v) for v in values], dtype=np.float64)
     if len(p) != 3:
         raise ValueError(f"{what}: {len(p)} numbers, expected x y theta")
-    if not np.all(np.isfinite(p)):
+    if finite and not np.all(np.isfinite(p)):
         raise ValueError(f"{what} {p.tolist()} is not finite")
     return p
 
@@ -136,9 +138,11 @@ class CarmenLog:
     path: Path
     scans: list[LaserScan]
     scan_poses: np.ndarray  # [S, 3] pose stored with each scan (laser pose; may be corrected)
-    scan_odometry: np.ndarray  # [S, 3] odometry (robot) pose stored with each scan
+    # [S, 3] odometry (robot) pose stored with each scan; a FLASER line's may be non-finite
+    # (a glitch), left for the ingest to skip and count
+    scan_odometry: np.ndarray
     odom_stamps: np.ndarray  # [K] ODOM line stamps
-    odom_poses: np.ndarray  # [K, 3] ODOM line poses
+    odom_poses: np.ndarray  # [K, 3] ODOM line poses, non-finite where the line's are
     T_base_laser: np.ndarray  # [4, 4]
     params: dict[str, str] = field(default_factory=dict)
 
@@ -221,7 +225,8 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                                        angle_increment=inc, range_min=0.0,
                                        range_max=max_range))
                 poses.append(_pose(rest[0:3], "laser pose (x y theta)"))
-                odoms.append(_pose(rest[3:6], "odometry pose (odom_x odom_y odom_theta)"))
+                odoms.append(_pose(rest[3:6], "odometry pose (odom_x odom_y odom_theta)",
+                                   finite=False))
             elif f[0] == "ROBOTLASER1":
                 scan, laser, robot = _parse_robotlaser1(f)
                 scans.append(scan)
@@ -229,7 +234,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                 odoms.append(robot)
                 laser_offsets.append(_laser_offset(laser, robot))
             elif f[0] == "ODOM":
-                o_p.append(_pose(f[1:4], "odometry pose (x y theta)").tolist())
+                o_p.append(_pose(f[1:4], "odometry pose (x y theta)", finite=False).tolist())
                 o_t.append(float(f[7]))
             elif f[0] == "PARAM" and len(f) >= 3:
                 params[f[1]] = f[2]

@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -29,8 +29,10 @@ from toolkit.ingest.recording import (
     FrameData,
     IngestError,
     Recording,
+    note_skipped_gaps,
     optical_mount,
     placeholder_camera,
+    skipped_record,
 )
 from toolkit.ingest.sync import stamps_keep
 from toolkit.io.carmen import CarmenFormatError, read_carmen, read_g2o
@@ -58,11 +60,27 @@ def _is_g2o(path: Path, fmt: str) -> bool:
     return ".g2o" in path.name.lower()
 
 
-def _trajectory(stamps: np.ndarray, xyt: np.ndarray, frame: str, where: str,
-                policy: Literal["error", "drop"]) -> tuple[Trajectory, int]:
-    keep = stamps_keep(stamps, where, policy)
-    P = np.stack([se2_to_se3(*p) for p in xyt[keep]]) if keep.any() else np.zeros((0, 4, 4))
-    return Trajectory(stamps[keep], P, frame, "base_link"), int((~keep).sum())
+def _odometry(stamps: np.ndarray, xyt: np.ndarray, where: str, fields: str,
+              policy: Literal["error", "drop"], log: logging.Logger,
+              skipped: dict[str, dict[str, Any]]) -> tuple[Trajectory, int]:
+    """The odometry of ``stamps`` [N] / ``xyt`` [N, 3] with its non-finite readings left
+    out, counted in ``skipped`` and warned about, as a bag's odometry messages are
+    (``skipped_record``: refused when fewer than half are poses)."""
+    ok = np.isfinite(xyt).all(axis=1)  # [N]
+    bad = np.flatnonzero(~ok)
+    first = f"{fields} {xyt[bad[0]].tolist()} is not finite" if len(bad) else ""
+    record = skipped_record(where, len(xyt), stamps[bad].tolist(), first,
+                            "set 'carmen.odometry: none' to map from the scans alone")
+    kept = stamps_keep(stamps[ok], where, policy)  # [V] of the valid readings
+    P = np.stack([se2_to_se3(*p) for p in xyt[ok][kept]]) if kept.any() else \
+        np.zeros((0, 4, 4))
+    odometry = Trajectory(stamps[ok][kept], P, "odom", "base_link")
+    n = int((~kept).sum())
+    if record is not None:
+        before = np.cumsum(ok)[bad]  # [B] valid readings before each skipped one
+        note_skipped_gaps(record, odometry, stamps[ok], kept, before, where, log)
+        skipped[where.split(": ", 1)[-1]] = record
+    return odometry, n
 
 
 def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None,
@@ -100,6 +118,7 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
                      "they are not used as odometry (set carmen.odometry to override)",
                      path.name)
     odometry: Trajectory | None = None
+    skipped: dict[str, dict[str, Any]] = {}
     if mode == "edges":
         if not g2o:
             raise IngestError(f"{path}: carmen.odometry: edges needs a g2o file")
@@ -112,15 +131,16 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
         if g2o:
             raise IngestError(f"{path}: carmen.odometry: scans - a g2o file's ROBOTLASER1 "
                               "poses are corrected ones; use edges (the raw odometry chain)")
-        odometry, n = _trajectory(stamps[keep], data.scan_odometry[keep], "odom", where,
-                                  "drop")
+        odometry, n = _odometry(stamps[keep], data.scan_odometry[keep],
+                                f"{path}: scan lines' odometry", "odometry pose (odom_x odom_y "
+                                "odom_theta)", "drop", log, skipped)
         dropped["odometry"] = n
     elif mode == "odom_lines":
         if g2o or len(data.odom_stamps) == 0:
             raise IngestError(f"{path}: carmen.odometry: odom_lines but the file has no ODOM "
                               "lines")
-        odometry, n = _trajectory(data.odom_stamps, data.odom_poses, "odom",
-                                  f"{path}: ODOM lines", on_non_monotonic)
+        odometry, n = _odometry(data.odom_stamps, data.odom_poses, f"{path}: ODOM lines",
+                                "odometry pose (x y theta)", on_non_monotonic, log, skipped)
         dropped["odom_lines"] = n
     if odometry is not None:
         odometry.frame = "odom"
@@ -156,4 +176,4 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
         name=name or path.name.split(".")[0], source=f"{'g2o' if g2o else 'carmen'} {path}",
         rig=rig, scans=scans, frame_stamps=np.zeros(0), load=load,
         odometry=odometry, groundtruth=groundtruth, has_camera=False, meta=meta,
-        dropped={k: v for k, v in dropped.items() if v})
+        dropped={k: v for k, v in dropped.items() if v}, skipped=skipped)

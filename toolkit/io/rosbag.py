@@ -49,8 +49,10 @@ from toolkit.ingest.recording import (
     FrameData,
     IngestError,
     Recording,
+    note_skipped_gaps,
     optical_mount,
     placeholder_camera,
+    skipped_record,
 )
 from toolkit.ingest.sync import stamps_keep
 from toolkit.io.sequence import warn_if_unreliable
@@ -1310,6 +1312,12 @@ class _Index:
     odom_xyz: array = field(default_factory=lambda: array("d"))
     odom_quat: array = field(default_factory=lambda: array("d"))
     odom_frames: tuple[str, str] = ("odom", "base_link")
+    # Odometry messages that are no pose, left out: their stamps (the header's, the
+    # recording time where that is zero), how many valid ones came before each, and
+    # what was wrong with the first one.
+    odom_bad_s: list[float] = field(default_factory=list)
+    odom_bad_before: list[int] = field(default_factory=list)
+    odom_bad_reason: str | None = None
     info: Any = None  # the first calibrated CameraInfo (else the first one)
     info_uncalibrated: int = 0  # CameraInfo messages with K all zero before a calibrated one
     # (when, field) where a later CameraInfo first differs from ``info``: "stamp 12.3 s"
@@ -1318,6 +1326,10 @@ class _Index:
     tf: TfTree = field(default_factory=TfTree)
     seen: dict[str, tuple[int, int, int]] = field(default_factory=dict)  # count, first, last
     intensities_dropped: int = 0  # scans whose intensities did not match their ranges
+
+    def odom_messages(self) -> int:
+        """Index of the next odometry message in the topic (valid or not)."""
+        return len(self.odom_ns) + len(self.odom_bad_s)
 
 
 def _camera_info_fields(msg: Any) -> dict[str, np.ndarray]:
@@ -1429,11 +1441,16 @@ def _index_pass(bag: Bag, ch: TopicChoice, opts: RosbagOptions,
             try:
                 xyz, quat = checked_xyz_quat(msg.pose.pose)
             except NotATransformError as e:
-                raise BagError(f"{where}: message {len(idx.odom_ns)} (stamped "
-                               f"{header_ns(msg) / 1e9:.9f} s): field 'pose.pose.{e.part}': "
-                               f"{e}. Fix: leave the odometry out "
-                               "(rosbag.topics.odometry: none; the SLAM runs on the scans "
-                               "alone) or name another topic") from None
+                # A driver's message before its first fix, or a glitch: left out and
+                # counted (as /tf's are), the topic refused in _build only when few
+                # poses remain. Its stamp may be zero too (a default-constructed message).
+                if idx.odom_bad_reason is None:
+                    idx.odom_bad_reason = (f"message {idx.odom_messages()} of the topic: "
+                                           f"field 'pose.pose.{e.part}': {e}")
+                h = header_ns(msg) if opts.stamps == "header" else 0
+                idx.odom_bad_s.append((h or ns) / 1e9)
+                idx.odom_bad_before.append(len(idx.odom_ns))
+                continue
             idx.odom_ns.append(_stamp(msg, ns, opts, where))
             idx.odom_bag_ns.append(ns)
             idx.odom_xyz.extend(xyz)
@@ -1677,6 +1694,11 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
 
     # --- odometry
     odometry = None
+    skipped: dict[str, dict[str, Any]] = {}
+    bad = skipped_record(
+        f"{bag_name}: topic {ch.odometry}", idx.odom_messages(), idx.odom_bad_s,
+        idx.odom_bad_reason or "", "leave the odometry out (rosbag.topics.odometry: none; the "
+        "SLAM runs on the scans alone) or name another topic") if ch.odometry else None
     if ch.odometry and idx.odom_ns:
         ko = _keep(idx.odom_ns, f"{bag_name}: topic {ch.odometry}", policy, dropped,
                    ch.odometry)
@@ -1692,6 +1714,11 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
                 log.warning("odometry on %s is for frame %r, which tf does not connect to %r; "
                             "using it as the base pose", ch.odometry, child, base)
         odometry = Trajectory(st, P, "odom", "base_link")
+        if bad is not None:
+            note_skipped_gaps(bad, odometry, np.asarray(idx.odom_ns, dtype=np.int64) / 1e9, ko,
+                              np.asarray(idx.odom_bad_before, dtype=np.int64),
+                              f"{bag_name}: topic {ch.odometry}", log)
+            skipped[ch.odometry] = bad
         scan_t = np.array([sc.stamp for sc in scans])
         covered = float(odometry.covers(scan_t, slack_s=0.1).mean())
         if covered == 0.0:
@@ -1726,7 +1753,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         name=name or paths[0].stem, source=f"rosbag {bag_name}", rig=rig, scans=scans,
         frame_stamps=frame_stamps, load=loader,
         depth_stamps=np.asarray(dep.stamps, dtype=np.int64) / 1e9 if dep else None,
-        odometry=odometry, has_camera=has_camera, meta=meta, dropped=dropped)
+        odometry=odometry, has_camera=has_camera, meta=meta, dropped=dropped,
+        skipped=skipped)
 
 
 def _no_frames(pairs: Sequence[tuple[int, int]]) -> Iterator[FrameData]:
