@@ -356,7 +356,7 @@ def test_colmap_stage_mapper_setting_reaches_pycolmap(
     assert res.ok, res.error
     # Which views it registers is test_baselines_colmap's (this room's 6 small views give
     # neither mapper a model); here: the stage ran that mapper, and says so.
-    assert calls == ["global"]
+    assert calls == ["global"] and res.metrics["colmap"]["mapper"] == "global"
     assert "global mapping on 6 images" in (tmp_path / "run/report.md").read_text()
     for cls, name in ((ColmapConfig, "colmap"), (CameraOnlyConfig, "camera_only")):
         assert "mapper" not in cls(stage=name).model_dump()

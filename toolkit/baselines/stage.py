@@ -528,7 +528,8 @@ class ColmapStage(Stage):
         sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", settings, database=db)
         sfm.seconds.update(seconds)
         save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
-        metrics: dict[str, Any] = {"sfm": sfm.summary(), "database_resumed": database_kept}
+        metrics: dict[str, Any] = {"sfm": sfm.summary(), "mapper": cfg.mapper,
+                                   "database_resumed": database_kept}
         rows: list[tuple[str, Any]] = [
             ("images / registered", f"{sfm.images} / {sfm.registered}"),
             ("separate models", sfm.models), ("sparse points", sfm.points),
