@@ -1,10 +1,10 @@
 """COLMAP baseline through pycolmap (CPU): structure from motion on the images alone, and
 triangulation at our poses as a cross-check of poses and intrinsics.
 
-- ``run_sfm``: SIFT extraction, sequential or exhaustive matching, incremental mapping. The
-  model's frame and scale are arbitrary (monocular); ``evaluate_sfm_trajectory`` aligns it
-  to a reference by Sim(3) and reports the ATE both after that alignment (shape) and after a
-  rigid SE(3) one that keeps COLMAP's own scale (what a monocular system gets wrong).
+- ``run_sfm``: SIFT extraction, sequential or exhaustive matching, incremental (or global)
+  mapping. The model's frame and scale are arbitrary (monocular); ``evaluate_sfm_trajectory``
+  aligns it to a reference by Sim(3) and reports the ATE both after that alignment (shape)
+  and after a rigid SE(3) one that keeps COLMAP's own scale (what a monocular system gets wrong).
 - ``triangulate_known_poses``: the same features and matches, but the poses are ours and
   fixed (``pycolmap.triangulate_points``): if our poses or intrinsics are off, the tracks do
   not close and the reprojection error grows, without any ground truth.
