@@ -3,6 +3,7 @@ at fixed poses, and the saved model's round trip."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +116,50 @@ def test_triangulation_at_fixed_poses_checks_poses_and_intrinsics(scene: dict) -
     wrong = PinholeCamera(cam.width, cam.height, cam.fx * 1.02, cam.fy * 1.02, cam.cx, cam.cy)
     err_f, dist_f = triangulate(wrong, poses, "tri_focal")
     assert err_f < 0.5 and dist_f > 5 * dist, (err_f, dist_f, dist)
+
+
+def test_global_mapper_registers_the_views_and_recovers_the_path(
+        scene: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """mapper: global runs pycolmap.global_mapping on the same database, with our K held
+    fixed, one thread and our seed, and gets the orbit's shape as incremental mapping does."""
+    calls: list[Any] = []
+    real = pycolmap.global_mapping
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        calls.append(kwargs["options"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "global_mapping", spy)
+    monkeypatch.setattr(pycolmap, "incremental_mapping",
+                        lambda *a, **kw: pytest.fail("incremental mapping ran"))
+    sfm = run_sfm(scene["root"] / "images", scene["names"], scene["cam"],
+                  scene["root"] / "sfm_global", replace(SETTINGS, mapper="global"),
+                  database=scene["db"])
+    assert len(calls) == 1
+    opts = calls[0]
+    ba = opts.mapper.bundle_adjustment
+    assert not ba.refine_focal_length and not ba.refine_extra_params
+    assert opts.mapper.num_threads == 1 and opts.mapper.random_seed == SETTINGS.seed
+    assert sfm.registered == N_IMAGES and sfm.models == 1 and sfm.points > 500
+    assert sfm.reprojection_error_px < 0.5
+    assert sfm.camera == scene["cam"]  # K held fixed through its bundle adjustments
+    stamps = {n: 10.0 + i for i, n in enumerate(scene["names"])}
+    ref = Trajectory(10.0 + np.arange(N_IMAGES), scene["poses"], "world", "camera")
+    e = evaluate_sfm_trajectory(sfm.trajectory(stamps), ref)
+    assert e["ate_sim3_rmse_m"] < 0.01 and e["are_sim3_rmse_deg"] < 1.5, e
+
+
+def test_global_mapper_refines_intrinsics_only_when_asked(tmp_path: Path) -> None:
+    from toolkit.baselines.colmap import _global_options
+
+    for intrinsics, refined in (("known", False), ("refine", True), ("unknown", True)):
+        ba = _global_options(ColmapSettings(intrinsics=intrinsics)).mapper.bundle_adjustment
+        assert (ba.refine_focal_length, ba.refine_extra_params) == (refined, refined)
+        assert not ba.refine_principal_point
+    with pytest.raises(ValueError, match="mapper"):
+        run_sfm(tmp_path, ["a.png"], None, tmp_path / "w",
+                ColmapSettings(mapper="hierarchical"))  # type: ignore[arg-type]
+    assert not (tmp_path / "w").exists()  # refused before any work
 
 
 def test_sfm_without_matches_reports_nothing_registered(tmp_path: Path) -> None:

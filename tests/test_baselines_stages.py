@@ -336,6 +336,35 @@ def test_colmap_stage_keeps_the_database_of_a_killed_run(
     assert extractions == [1] and not res.metrics["colmap"]["database_resumed"]
 
 
+def test_colmap_stage_mapper_setting_reaches_pycolmap(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """mapper: global reaches pycolmap.global_mapping through the stage (and camera_only's
+    own COLMAP settings); left at incremental it is no part of the settings, so stages run
+    before the key existed keep their cache key."""
+    import pycolmap
+
+    from toolkit.baselines.stage import CameraOnlyConfig, ColmapConfig
+
+    calls: list[str] = []
+    real = pycolmap.global_mapping
+    monkeypatch.setattr(pycolmap, "global_mapping",
+                        lambda *a, **kw: calls.append("global") or real(*a, **kw))
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 6, "width": 320, "height": 240,
+                           "small": True},
+                          {"stage": "colmap", "overlap": 3, "max_features": 512,
+                           "triangulate": False, "export": False, "mapper": "global"}])
+    assert res.ok, res.error
+    # Which views it registers is test_baselines_colmap's (this room's 6 small views give
+    # neither mapper a model); here: the stage ran that mapper, and says so.
+    assert calls == ["global"] and res.metrics["colmap"]["mapper"] == "global"
+    assert "global mapping on 6 images" in (tmp_path / "run/report.md").read_text()
+    for cls, name in ((ColmapConfig, "colmap"), (CameraOnlyConfig, "camera_only")):
+        assert "mapper" not in cls(stage=name).model_dump()
+        on = cls(stage=name, mapper="global")
+        assert on.model_dump()["mapper"] == "global"
+        assert on.colmap_settings().mapper == "global"
+
+
 def test_colmap_figure_draws_the_lidar_path_aligned_to_ground_truth() -> None:
     """A SLAM map frame starts at the robot's first pose, so the lidar curve is stored a
     rigid motion away from ground truth; trajectories.png must draw it on the ground truth,

@@ -207,3 +207,14 @@ def test_table_ii_heading_says_what_the_stages_ran_on() -> None:
         "by 1 of 4 stages; depth of 'R1' on cuda)")
     assert heading([None, None, None], ["cpu"]) == (
         "### Table II: runtime (CPU cores not recorded; no GPU used)")
+
+
+def test_colmap_line_names_a_global_mapper() -> None:
+    from toolkit.eval.paper_tables import _colmap_lines
+
+    sfm = {"sfm": {"registered_images": 159, "images": 161, "models": 1,
+                   "reprojection_error_px": 0.48}}
+    assert _colmap_lines({**sfm, "mapper": "global"})[0].startswith(
+        "COLMAP SfM (global mapping) on the images alone: 159 of 161")
+    for m in (sfm, {**sfm, "mapper": "incremental"}):  # runs from before the key: incremental
+        assert _colmap_lines(m)[0].startswith("COLMAP SfM on the images alone")

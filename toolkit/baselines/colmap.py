@@ -1,10 +1,10 @@
 """COLMAP baseline through pycolmap (CPU): structure from motion on the images alone, and
 triangulation at our poses as a cross-check of poses and intrinsics.
 
-- ``run_sfm``: SIFT extraction, sequential or exhaustive matching, incremental mapping. The
-  model's frame and scale are arbitrary (monocular); ``evaluate_sfm_trajectory`` aligns it
-  to a reference by Sim(3) and reports the ATE both after that alignment (shape) and after a
-  rigid SE(3) one that keeps COLMAP's own scale (what a monocular system gets wrong).
+- ``run_sfm``: SIFT extraction, sequential or exhaustive matching, incremental (or global)
+  mapping. The model's frame and scale are arbitrary (monocular); ``evaluate_sfm_trajectory``
+  aligns it to a reference by Sim(3) and reports the ATE both after that alignment (shape)
+  and after a rigid SE(3) one that keeps COLMAP's own scale (what a monocular system gets wrong).
 - ``triangulate_known_poses``: the same features and matches, but the poses are ours and
   fixed (``pycolmap.triangulate_points``): if our poses or intrinsics are off, the tracks do
   not close and the reprojection error grows, without any ground truth.
@@ -35,6 +35,7 @@ from toolkit.io.colmap_text import (
 
 Matching = Literal["sequential", "exhaustive"]
 Intrinsics = Literal["known", "refine", "unknown"]
+Mapper = Literal["incremental", "global"]
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,15 @@ class ColmapSettings:
     num_threads: int = 1
     seed: int = 0
     quiet: bool = True
+    # incremental: pycolmap.incremental_mapping (image by image from a seed pair); global:
+    # pycolmap.global_mapping (COLMAP 4's GLOMAP: rotation averaging, then all positions at
+    # once), on the same features and matches.
+    mapper: Mapper = "incremental"
 
 
 @dataclass
 class SfMResult:
-    """The largest model of incremental mapping and its summary figures."""
+    """The largest model of the mapping and its summary figures."""
 
     reconstruction: Any | None  # pycolmap.Reconstruction
     names: list[str]  # registered image names, in input order
@@ -224,6 +229,29 @@ def _mapper_options(settings: ColmapSettings) -> Any:
     return opts
 
 
+def _global_options(settings: ColmapSettings) -> Any:
+    pycolmap = _pycolmap()
+    opts = pycolmap.GlobalPipelineOptions()
+    m = opts.mapper
+    opts.num_threads = m.num_threads = settings.num_threads
+    # Its default seed (-1) is the clock: another model from run to run.
+    opts.random_seed = m.random_seed = settings.seed
+    m.rotation_averaging.random_seed = settings.seed
+    m.global_positioning.random_seed = settings.seed
+    m.retriangulation.random_seed = settings.seed
+    # CPU only, as the rest of this module (a CUDA build would otherwise pick the GPU
+    # solvers above their image counts, and another solver is another model).
+    m.global_positioning.use_gpu = False
+    m.bundle_adjustment.ceres.use_gpu = False
+    # Its bundle adjustment refines focal length and distortion by default; "known" holds
+    # our K fixed, as the incremental mapper's options do.
+    fixed = settings.intrinsics == "known"
+    m.bundle_adjustment.refine_focal_length = not fixed
+    m.bundle_adjustment.refine_principal_point = False
+    m.bundle_adjustment.refine_extra_params = not fixed
+    return opts
+
+
 def _stats(rec: Any) -> tuple[int, float, float]:
     n = int(rec.num_points3D())
     if n == 0:
@@ -242,7 +270,8 @@ def run_sfm(
     settings: ColmapSettings | None = None,
     database: Path | None = None,
 ) -> SfMResult:
-    """Incremental SfM on ``names`` (paths relative to ``image_dir``), CPU only.
+    """SfM on ``names`` (paths relative to ``image_dir``), CPU only, with the mapper
+    ``settings.mapper`` names (incremental or global).
 
     ``camera`` must be distortion-free when ``intrinsics`` is "known" (undistort the images
     first); with "unknown" it is ignored. Pass ``database`` to reuse features and matches
@@ -251,6 +280,9 @@ def run_sfm(
     """
     pycolmap = _pycolmap()
     settings = settings or ColmapSettings()
+    if settings.mapper not in ("incremental", "global"):
+        # Before any work: minutes of feature extraction, then a typo.
+        raise ValueError(f"mapper must be incremental or global, got {settings.mapper!r}")
     _quiet(settings.quiet)
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -266,8 +298,12 @@ def run_sfm(
         shutil.rmtree(out)
     out.mkdir(parents=True)
     t0 = time.perf_counter()
-    models = pycolmap.incremental_mapping(database, Path(image_dir), out,
-                                          options=_mapper_options(settings))
+    if settings.mapper == "incremental":
+        models = pycolmap.incremental_mapping(database, Path(image_dir), out,
+                                              options=_mapper_options(settings))
+    else:
+        models = pycolmap.global_mapping(database, Path(image_dir), out,
+                                         options=_global_options(settings))
     seconds["mapping"] = time.perf_counter() - t0
     if not models:
         return SfMResult(None, [], np.zeros((0, 4, 4)), None, len(names), 0, 0, float("nan"),

@@ -440,8 +440,12 @@ def _database_done(ctx: StageContext) -> None:
     (ctx.stage_dir / "database.json").unlink(missing_ok=True)
 
 
-class _ColmapKeys(StageConfig):
+class _ColmapKeys(StageConfig, AddedOptions):
     """COLMAP keys shared by ``colmap`` and ``camera_only``."""
+
+    # mapper (session 29) left at incremental is not part of the settings: stages made
+    # before it keep their cache key.
+    added_off = {"mapper": "incremental"}
 
     matching: Literal["sequential", "exhaustive"] = "sequential"
     overlap: int = Field(10, ge=1)
@@ -452,12 +456,16 @@ class _ColmapKeys(StageConfig):
     # More than one thread gives another model from run to run (ColmapSettings).
     threads: int = Field(1, ge=1)
     seed: int = 0
+    # incremental (pycolmap.incremental_mapping) or global (pycolmap.global_mapping, COLMAP
+    # 4's GLOMAP) on the same features and matches; docs/baselines.md compares them.
+    mapper: Literal["incremental", "global"] = "incremental"
 
     def colmap_settings(self) -> Any:
         from toolkit.baselines.colmap import ColmapSettings
 
-        return ColmapSettings(self.matching, self.overlap, self.max_features, self.intrinsics,
-                              self.threads, self.seed)
+        return ColmapSettings(matching=self.matching, overlap=self.overlap,
+                              max_features=self.max_features, intrinsics=self.intrinsics,
+                              num_threads=self.threads, seed=self.seed, mapper=self.mapper)
 
 
 class ColmapConfig(_ColmapKeys):
@@ -520,7 +528,8 @@ class ColmapStage(Stage):
         sfm = run_sfm(image_dir, names, cam, ctx.stage_dir / "work", settings, database=db)
         sfm.seconds.update(seconds)
         save_sfm(sfm, ctx.stage_dir / "sfm", frame_of, stamp_of, names)
-        metrics: dict[str, Any] = {"sfm": sfm.summary(), "database_resumed": database_kept}
+        metrics: dict[str, Any] = {"sfm": sfm.summary(), "mapper": cfg.mapper,
+                                   "database_resumed": database_kept}
         rows: list[tuple[str, Any]] = [
             ("images / registered", f"{sfm.images} / {sfm.registered}"),
             ("separate models", sfm.models), ("sparse points", sfm.points),
@@ -582,7 +591,7 @@ class ColmapStage(Stage):
         else:
             ctx.log.warning("colmap: only %d images registered; no trajectory comparison",
                             sfm.registered)
-        md = [f"COLMAP {cfg.matching} matching, incremental mapping on {len(names)} images "
+        md = [f"COLMAP {cfg.matching} matching, {cfg.mapper} mapping on {len(names)} images "
               f"(intrinsics: {cfg.intrinsics})."
               + (" Features and matches from an interrupted run of the same settings."
                  if database_kept else "")]
