@@ -689,11 +689,12 @@ class _Run:
         repeat = spec.cls.outputs_repeat
         t = time.perf_counter()
         tokens: dict[str, str] = {}
-        digests: dict[str, list[list[Any]]] = {}
+        manifest: dict[str, list[list[Any]]] = {}
+        digests: dict[str, dict[str, list[Any]]] = {}
         for n, p in record.provides.items():
-            tokens[n], digests[n] = _digest_output(p, token=repeat)
-        new = {**marker, "manifest": {n: [e[:2] for e in d] for n, d in digests.items()},
-               "manifest_digests": {n: [e[2:] for e in d] for n, d in digests.items()}}
+            tokens[n], manifest[n], digests[n] = _digest_output(p, token=repeat)
+        # The manifest again, from the same listing: its entries and the digests align.
+        new = {**marker, "manifest": manifest, "manifest_digests": digests}
         if repeat and all(tokens.values()):
             new["output_tokens"] = tokens
         atomic_write_json(self.run_dir / spec.id / STAGE_FILE, new, fsync=True)
@@ -1070,7 +1071,7 @@ def _read_marker(
         if changed:
             return None, f"output {name!r}: {changed}"
         if refreshed is not None:
-            digests[name], moved = refreshed, True
+            digests[name], moved = {**digests[name], "mtime_ns": refreshed}, True
     # The stage's own files its report links to (figures outside its artifacts, such as
     # simulate/preview.png): a lost one reruns the stage, not a report with a dead link.
     for target in _REPORT_LINK_RE.findall(str(data.get("report") or "")):
@@ -1120,11 +1121,14 @@ def _content_digest(path: Path) -> str:
     return _digest_output(path)[0]
 
 
-def _digest_output(path: Path, token: bool = True) -> tuple[str, list[list[Any]]]:
-    """An output's content digest (``_content_digest``'s; "" when ``token`` is False) and
-    its files' ``[relative path, size, mtime_ns, SHA-256]`` (those ``_manifest`` lists),
-    from one read of each file, a megabyte at a time: an hour's depth maps are read once
-    and never held whole."""
+def _digest_output(
+    path: Path, token: bool = True
+) -> tuple[str, list[list[Any]], dict[str, list[Any]]]:
+    """An output's content digest (``_content_digest``'s; "" when ``token`` is False), its
+    manifest (``_manifest``'s) and, aligned with it, each file's mtime and SHA-256
+    (``{"mtime_ns": [...], "sha256": [...]}``: two flat lists, not a list per file, keep
+    an hour's marker small to hold and to write), from one read of each file, a megabyte
+    at a time: an hour's depth maps are read once and never held whole."""
     whole = hashlib.sha256()
     if path.is_file():
         files = [path]
@@ -1133,7 +1137,9 @@ def _digest_output(path: Path, token: bool = True) -> tuple[str, list[list[Any]]
         if any(p.is_symlink() for p in entries):
             token = False
         files = [p for p in entries if p.is_file() and p.name not in _MARKERS]
-    listed: list[list[Any]] = []
+    manifest: list[list[Any]] = []
+    mtimes: list[int] = []
+    shas: list[str] = []
     for f in files:
         rel = "." if f == path else f.relative_to(path).as_posix()
         # The manifest's files: hidden ones are temporaries or the stage's bookkeeping.
@@ -1150,8 +1156,11 @@ def _digest_output(path: Path, token: bool = True) -> tuple[str, list[list[Any]]
                 if token:
                     whole.update(chunk)
         if in_manifest:
-            listed.append([rel, st.st_size, st.st_mtime_ns, own.hexdigest()])
-    return (whole.hexdigest() if token else ""), listed
+            manifest.append([rel, st.st_size])
+            mtimes.append(st.st_mtime_ns)
+            shas.append(own.hexdigest())
+    return ((whole.hexdigest() if token else ""), manifest,
+            {"mtime_ns": mtimes, "sha256": shas})
 
 
 def _file_sha256(path: Path) -> str:
@@ -1175,17 +1184,21 @@ def _digest_failure(exc: Exception) -> str:
 
 def _manifest_changes(
     path: Path, files: list[list[Any]], digests: Any = None
-) -> tuple[str | None, list[list[Any]] | None]:
+) -> tuple[str | None, list[int] | None]:
     """What differs from a stored manifest: the first missing, resized or edited file;
-    and, when nothing did but files had new mtimes, ``digests`` with those mtimes.
+    and, when nothing did but files had new mtimes, the mtimes to store.
 
-    ``digests``: ``[mtime_ns, SHA-256]`` per manifest entry, in its order (None: a marker
-    from before them, checked by size alone). A file of the same size and mtime is
-    trusted unread, as ``make`` does; one whose mtime moved is hashed (``cp -r``, a
+    ``digests``: ``{"mtime_ns": [...], "sha256": [...]}`` aligned with ``files`` (None: a
+    marker from before them, checked by size alone). A file of the same size and mtime
+    is trusted unread, as ``make`` does; one whose mtime moved is hashed (``cp -r``, a
     checkout and ``touch`` move it without changing a byte)."""
-    if not isinstance(digests, list) or len(digests) != len(files):
-        digests = None
-    fresh: list[list[Any]] | None = None
+    mtimes = shas = None
+    if isinstance(digests, dict):
+        mtimes, shas = digests.get("mtime_ns"), digests.get("sha256")
+    if not (isinstance(mtimes, list) and isinstance(shas, list)
+            and len(mtimes) == len(shas) == len(files)):
+        mtimes = shas = None
+    fresh: list[int] | None = None
     for i, (rel, size, *_) in enumerate(files):
         f = path if rel == "." else path / rel
         try:
@@ -1194,17 +1207,17 @@ def _manifest_changes(
             return f"{f} is missing", None
         if st.st_size != size:
             return f"{f} changed size ({size} -> {st.st_size} bytes)", None
-        if digests is None or st.st_mtime_ns == digests[i][0]:
+        if mtimes is None or shas is None or st.st_mtime_ns == mtimes[i]:
             continue
         try:
-            same = _file_sha256(f) == digests[i][1]
+            same = _file_sha256(f) == shas[i]
         except OSError as exc:
             return f"{f} could not be read ({exc.strerror or exc})", None
         if not same:
             return f"{f} {_CHANGED}", None
         if fresh is None:
-            fresh = [list(d) for d in digests]
-        fresh[i][0] = st.st_mtime_ns
+            fresh = list(mtimes)
+        fresh[i] = st.st_mtime_ns
     return None, fresh
 
 
