@@ -2003,3 +2003,33 @@ def test_a_folder_of_many_files_edited_in_place_or_touched(
         assert _calls(tmp_path) == {"t_many": 3}
     finally:
         registry.unregister("t_many")
+
+
+def test_per_file_digests_leave_the_output_token_as_it_was(tmp_path: Path) -> None:
+    """The one read that digests an output for early cutoff also gives each file's SHA-256:
+    the token must stay the digest it was (name, size and bytes of each file in name
+    order), or every run folder's readers would rerun once."""
+    import hashlib
+
+    from toolkit.recipe.runner import _content_digest, _digest_output
+
+    out = tmp_path / "out"
+    files = {"a.txt": b"1", "sub/b.bin": bytes(range(256)) * 5000, ".scale": b"2"}
+    for rel, data in files.items():
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(data)
+    (out / ".stage.json").write_text("{}")
+    whole = hashlib.sha256()
+    for rel in sorted(files):  # as Path sorts them: ".scale", "a.txt", "sub/b.bin"
+        whole.update(f"{rel}\0{len(files[rel])}\0".encode() + files[rel])
+    token, manifest, digests = _digest_output(out)
+    assert token == _content_digest(out) == whole.hexdigest()
+    # The manifest leaves hidden files out, as the size check always did.
+    assert manifest == [["a.txt", 1], ["sub/b.bin", 1280000]]
+    assert digests["sha256"] == [hashlib.sha256(files[r]).hexdigest()
+                                 for r in ("a.txt", "sub/b.bin")]
+    assert digests["mtime_ns"] == [(out / r).stat().st_mtime_ns for r in ("a.txt", "sub/b.bin")]
+    assert _digest_output(out, token=False)[0] == ""
+    single = out / "sub" / "b.bin"
+    one = hashlib.sha256(f"b.bin\0{1280000}\0".encode() + files["sub/b.bin"]).hexdigest()
+    assert _digest_output(single)[:2] == (one, [[".", 1280000]])
