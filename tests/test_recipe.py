@@ -902,15 +902,15 @@ def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(
     import toolkit.recipe.runner as runner
 
     path = _write_recipe(tmp_path, _recipe_data(tmp_path))
-    real_digest = runner._content_digest
+    real_digest = runner._digest_output
     doubled = tmp_path / "run" / "t_double" / "doubled.txt"
 
-    def interrupted(p: Path) -> str:
+    def interrupted(p: Path, token: bool = True) -> Any:
         if p == doubled:
             raise KeyboardInterrupt
-        return real_digest(p)
+        return real_digest(p, token)
 
-    monkeypatch.setattr(runner, "_content_digest", interrupted)
+    monkeypatch.setattr(runner, "_digest_output", interrupted)
     with pytest.raises(runner.StoppedAfterStage):
         _run(path)
     run_dir = tmp_path / "run"
@@ -921,16 +921,16 @@ def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(
     assert "| t_double | ran |" in text and "| t_sink | not run |" in text
     assert "Doubled: **6**." in text and "**Failed:**" not in text
     assert "**Stopped:** interrupted after stage 't_double' finished" in text
-    monkeypatch.setattr(runner, "_content_digest", real_digest)
+    monkeypatch.setattr(runner, "_digest_output", real_digest)
     assert _run(path).statuses == {"t_source": "cached", "t_double": "cached", "t_sink": "ran"}
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
 
-    def unreadable(p: Path) -> str:
+    def unreadable(p: Path, token: bool = True) -> Any:
         if p == doubled:
             raise PermissionError(13, "Permission denied", str(p))
-        return real_digest(p)
+        return real_digest(p, token)
 
-    monkeypatch.setattr(runner, "_content_digest", unreadable)
+    monkeypatch.setattr(runner, "_digest_output", unreadable)
     caplog.clear()
     result = _run(path, "t_double.factor=5")
     assert result.ok and result.statuses == {
@@ -940,7 +940,7 @@ def test_a_stage_interrupted_while_its_outputs_are_digested_stays_finished(
     assert len(warning) == 1 and warning[0].startswith(
         f"stage t_double finished, but its outputs could not be digested: {doubled}: "
         "Permission denied; the stage stays finished")
-    monkeypatch.setattr(runner, "_content_digest", real_digest)
+    monkeypatch.setattr(runner, "_digest_output", real_digest)
     assert set(_run(path, "t_double.factor=5").statuses.values()) == {"cached"}
 
 
@@ -1771,3 +1771,265 @@ def test_a_rerun_that_fills_the_disk_says_the_kept_output_holds_space(
     stage_dir = tmp_path / "run" / "t_sink"
     assert f"the disk filled while that previous output was kept: delete {stage_dir}" in out
     assert (stage_dir / ".stage.json").exists()
+
+
+# --- outputs edited in place (same size) ------------------------------------------------
+
+
+class TimedSource(Source):
+    """Source whose outputs never repeat, as depth's (test stage): readers take its run
+    token."""
+
+    name = "t_timed_source"
+    outputs_repeat = False
+
+
+class ManyConfig(StageConfig):
+    counter: str
+    files: int = 300
+
+
+class ManyStage(Stage):
+    """Provide a folder of many small files, as a depth or ingest folder (test stage)."""
+
+    name = "t_many"
+    Config = ManyConfig
+    provides = ("frames",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        out = ctx.stage_dir / "frames"
+        for i in range(cfg.files):
+            atomic_write_text(out / f"{i // 100:02d}" / f"{i:06d}.txt", f"frame {i:06d}")
+        ctx.provide("frames", out)
+
+
+def _edit_in_place(f: Path, text: str) -> None:
+    """Other bytes of the same size, written where the file is (an editor's save), its
+    mtime moved past the one the stage left even on a coarse clock."""
+    old = f.read_bytes()
+    assert len(text.encode()) == len(old) and text.encode() != old
+    st = f.stat()
+    with open(f, "r+b") as fh:
+        fh.write(text.encode())
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 5_000_000_000))
+
+
+def _touch_all(folder: Path) -> None:
+    """New mtimes, same bytes (``touch``, a checkout)."""
+    for f in folder.rglob("*"):
+        if f.is_file():
+            st = f.stat()
+            os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 7_000_000_000))
+
+
+def _count_hashes(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """The files the runner hashes while checking markers, in order."""
+    from toolkit.recipe import runner
+
+    hashed: list[Path] = []
+    real = getattr(runner, "_file_sha256", None)  # None: a runner from before it
+
+    def counting(path: Path) -> str:
+        hashed.append(path)
+        assert real is not None
+        return real(path)
+
+    monkeypatch.setattr(runner, "_file_sha256", counting, raising=False)
+    return hashed
+
+
+def test_an_output_edited_in_place_reruns_its_stage_and_then_its_readers(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An output file edited to the same size (a digit fixed in a trajectory or a
+    calibration YAML) kept its stage cached, and its readers kept results computed from
+    the old bytes: only sizes were compared."""
+    hashed = _count_hashes(monkeypatch)
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    run_dir = tmp_path / "run"
+    assert _run(path).ok
+    number = run_dir / "t_source" / "number.txt"
+    marker = json.loads((run_dir / "t_source" / ".stage.json").read_text())
+    _edit_in_place(number, "7")
+    result = _run(path)
+    # t_source wrote 3 again, the bytes t_double read: early cutoff keeps it cached.
+    assert result.statuses == {"t_source": "ran", "t_double": "cached", "t_sink": "cached"}
+    assert number.read_text() == "3"
+    log = (run_dir / "run.log").read_text()
+    assert (f"t_source (t_source) started: output 'number': {number} changed since the "
+            f"stage wrote it; the folder as it is waits in {run_dir / '.previous' / 't_source'}"
+            " until the rerun finishes") in log
+    # The token is the output's content digest, as before: equal to the first run's.
+    again = json.loads((run_dir / "t_source" / ".stage.json").read_text())
+    assert again["output_tokens"] == marker["output_tokens"]
+    assert hashed == [number]
+    # A reader's own output edited: it reruns, and what reads it follows its bytes.
+    _edit_in_place(run_dir / "t_double" / "doubled.txt", "9")
+    assert _run(path).statuses == {"t_source": "cached", "t_double": "ran",
+                                   "t_sink": "cached"}
+    assert _calls(tmp_path) == {"t_source": 2, "t_double": 2, "t_sink": 1}
+    assert json.loads((run_dir / "t_sink" / "result.json").read_text()) == {"sum": 9}
+
+    # A stage whose outputs never repeat (depth's timings) is checked alike, and its readers
+    # follow its rerun (its token is the run's).
+    data = _recipe_data(tmp_path)
+    data["output"] = str(tmp_path / "timed")
+    data["stages"][0]["stage"] = "t_timed_source"
+    registry.register("t_timed_source", TimedSource)
+    try:
+        timed = _write_recipe(tmp_path, data, "timed.yaml")
+        assert _run(timed).ok
+        _edit_in_place(tmp_path / "timed" / "t_timed_source" / "number.txt", "8")
+        assert _run(timed).statuses == {"t_timed_source": "ran", "t_double": "ran",
+                                        "t_sink": "ran"}
+        assert json.loads((tmp_path / "timed" / "t_sink" / "result.json").read_text()) == {
+            "sum": 9}
+        assert set(_run(timed).statuses.values()) == {"cached"}
+    finally:
+        registry.unregister("t_timed_source")
+
+
+def test_an_edited_output_waits_in_previous_until_the_rerun_finishes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rerun an edit causes replaces the edited file: until it finishes the folder as
+    the user left it is in .previous/<id>, and a rerun that fails puts it back."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    run_dir = tmp_path / "run"
+    assert _run(path).ok
+    doubled = run_dir / "t_double" / "doubled.txt"
+    _edit_in_place(doubled, "5")
+    seen: list[str] = []
+
+    def failing(self: Any, ctx: StageContext) -> None:
+        seen.append((run_dir / ".previous" / "t_double" / "doubled.txt").read_text())
+        raise StageError("asked to fail")
+
+    with monkeypatch.context() as m:
+        m.setattr(Double, "run", failing)
+        assert _run(path).failed_stage == "t_double"
+    assert seen == ["5"] and doubled.read_text() == "5"  # the user's edit, back in place
+    assert _run(path).statuses == {"t_source": "cached", "t_double": "ran", "t_sink": "cached"}
+    assert doubled.read_text() == "6" and not (run_dir / ".previous").exists()
+
+
+def test_copied_or_touched_outputs_stay_cached_and_are_hashed_once(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A copy of a run folder (cp -r without -p, a checkout) and touch move every mtime,
+    not a byte: nothing reruns, each file is hashed once and its new mtime stored."""
+    import shutil
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    copy = tmp_path / "copy"
+    shutil.copytree(tmp_path / "run", copy, copy_function=shutil.copyfile)  # no mtimes
+    markers = {s: json.loads((copy / s / ".stage.json").read_text())
+               for s in ("t_source", "t_double", "t_sink")}
+    hashed = _count_hashes(monkeypatch)
+    assert set(_run(path, f"output={copy}").statuses.values()) == {"cached"}
+    assert sorted(hashed) == sorted([copy / "t_source" / "number.txt",
+                                     copy / "t_double" / "doubled.txt",
+                                     copy / "t_sink" / "result.json"])
+    for s, before in markers.items():
+        after = json.loads((copy / s / ".stage.json").read_text())
+        # Only the stored mtimes changed: no key, token or output token.
+        assert {k: v for k, v in after.items() if k != "manifest_digests"} == {
+            k: v for k, v in before.items() if k != "manifest_digests"}
+        for name, d in after["manifest_digests"].items():
+            assert d["sha256"] == before["manifest_digests"][name]["sha256"]
+            assert d["mtime_ns"] != before["manifest_digests"][name]["mtime_ns"]
+    hashed.clear()
+    assert set(_run(path, f"output={copy}").statuses.values()) == {"cached"}
+    assert hashed == []  # the second run reads nothing
+    _touch_all(tmp_path / "run")
+    assert set(_run(path).statuses.values()) == {"cached"}
+    assert len(hashed) == 3
+    assert set(_run(path).statuses.values()) == {"cached"} and len(hashed) == 3
+    assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
+
+
+def test_a_marker_from_before_file_digests_is_checked_by_size(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run folder made before per-file digests: its markers stay trusted as they were
+    (size checks), no forced rerun and nothing hashed."""
+    hashed = _count_hashes(monkeypatch)
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    for s in ("t_source", "t_double", "t_sink"):
+        f = tmp_path / "run" / s / ".stage.json"
+        data = json.loads(f.read_text())
+        data.pop("manifest_digests", None)
+        f.write_text(json.dumps(data))
+    _touch_all(tmp_path / "run")
+    assert set(_run(path).statuses.values()) == {"cached"}
+    _edit_in_place(tmp_path / "run" / "t_source" / "number.txt", "7")  # unseen, as before
+    assert set(_run(path).statuses.values()) == {"cached"}
+    assert hashed == []
+    (tmp_path / "run" / "t_source" / "number.txt").write_text("17")  # a size still counts
+    assert _run(path).statuses["t_source"] == "ran"
+
+
+def test_a_folder_of_many_files_edited_in_place_or_touched(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """One file of a 300-file output folder edited to the same size reruns the stage and
+    the reason names it; all of them touched keeps it cached, each hashed once; a deleted
+    one is still 'missing'."""
+    counter = str(tmp_path / "calls.txt")
+    registry.register("t_many", ManyStage)
+    try:
+        path = _write_recipe(tmp_path, {"name": "m", "output": str(tmp_path / "run"),
+                                        "stages": [{"stage": "t_many", "counter": counter}]})
+        assert _run(path).ok
+        frames = tmp_path / "run" / "t_many" / "frames"
+        marker = json.loads((frames.parent / ".stage.json").read_text())
+        assert len(marker["manifest"]["frames"]) == len(
+            marker["manifest_digests"]["frames"]["sha256"]) == 300
+        hashed = _count_hashes(monkeypatch)
+        _touch_all(frames)
+        assert _run(path).statuses == {"t_many": "cached"}
+        assert len(hashed) == len(set(hashed)) == 300
+        hashed.clear()
+        assert _run(path).statuses == {"t_many": "cached"} and hashed == []
+        edited = frames / "01" / "000150.txt"
+        _edit_in_place(edited, "frame 000999")
+        assert _run(path).statuses == {"t_many": "ran"}
+        assert f"output 'frames': {edited} changed since the stage wrote it" in (
+            tmp_path / "run" / "run.log").read_text()
+        assert edited.read_text() == "frame 000150"
+        (frames / "02" / "000299.txt").unlink()
+        assert _run(path).statuses == {"t_many": "ran"}
+        assert f"output 'frames': {frames / '02' / '000299.txt'} is missing" in (
+            tmp_path / "run" / "run.log").read_text()
+        assert _calls(tmp_path) == {"t_many": 3}
+    finally:
+        registry.unregister("t_many")
+
+
+def test_per_file_digests_leave_the_output_token_as_it_was(tmp_path: Path) -> None:
+    """The one read that digests an output for early cutoff also gives each file's SHA-256:
+    the token must stay the digest it was (name, size and bytes of each file in name
+    order), or every run folder's readers would rerun once."""
+    import hashlib
+
+    from toolkit.recipe.runner import _content_digest, _digest_output
+
+    out = tmp_path / "out"
+    files = {"a.txt": b"1", "sub/b.bin": bytes(range(256)) * 5000, ".scale": b"2"}
+    for rel, data in files.items():
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(data)
+    (out / ".stage.json").write_text("{}")
+    whole = hashlib.sha256()
+    for rel in sorted(files):  # as Path sorts them: ".scale", "a.txt", "sub/b.bin"
+        whole.update(f"{rel}\0{len(files[rel])}\0".encode() + files[rel])
+    token, manifest, digests = _digest_output(out)
+    assert token == _content_digest(out) == whole.hexdigest()
+    # The manifest leaves hidden files out, as the size check always did.
+    assert manifest == [["a.txt", 1], ["sub/b.bin", 1280000]]
+    assert digests["sha256"] == [hashlib.sha256(files[r]).hexdigest()
+                                 for r in ("a.txt", "sub/b.bin")]
+    assert digests["mtime_ns"] == [(out / r).stat().st_mtime_ns for r in ("a.txt", "sub/b.bin")]
+    assert _digest_output(out, token=False)[0] == ""
+    single = out / "sub" / "b.bin"
+    one = hashlib.sha256(f"b.bin\0{1280000}\0".encode() + files["sub/b.bin"]).hexdigest()
+    assert _digest_output(single)[:2] == (one, [[".", 1280000]])

@@ -14,6 +14,14 @@ files (the "early cutoff" of build systems). Results read from an earlier stage
 (``reads``: its metrics, which hold timings) take a token drawn each time it runs: those
 readers always follow a rerun. Markers written before output digests existed lend their
 run token to every output, which is what later keys were made of then.
+
+A finished stage's outputs are checked file by file before it is taken as cached: a file
+missing or of another size reruns it. So does one edited in place to the same size (a
+digit fixed in a YAML, an image rewritten at its shape): the marker keeps each file's
+mtime and SHA-256 (``manifest_digests``, taken in the read that digests the outputs), and
+a file whose mtime moved is hashed and compared. Same bytes (a copy of the run folder,
+``touch``) keep the stage cached and the new mtimes are stored, so the next run reads
+nothing; these per-file digests are no part of any cache key or token.
 """
 
 from __future__ import annotations
@@ -82,6 +90,8 @@ STAGE_FILE = ".stage.json"
 # interrupted run's files belong to (resumed only under that key).
 STARTED_FILE = ".stage.started.json"
 _MARKERS = frozenset({STAGE_FILE, STARTED_FILE})  # the runner's, not a stage's output
+# Why a finished stage reruns when a file of its output was edited in place.
+_CHANGED = "changed since the stage wrote it"
 RESOLVED_FILE = "recipe.resolved.yaml"
 LOG_FILE = "run.log"
 LOCK_FILE = ".lock"
@@ -436,6 +446,12 @@ class _Run:
                 record.reason += ", under other settings: starts afresh"
             else:
                 record.reason += ": resumes"
+        elif record.reason.endswith(_CHANGED):
+            # The rerun replaces the edited file: say where it waits meanwhile (the whole
+            # folder, moved aside; deleted when the rerun finishes).
+            record.reason += (f"; the folder as it is waits in "
+                              f"{self.run_dir / PREVIOUS_DIR / spec.id} until the rerun "
+                              "finishes")
         ok = self.run_stage(record, stage)
         self.write_outputs()
         return ok
@@ -661,18 +677,28 @@ class _Run:
                       extra=_FILE_ONLY)
 
     def digest_outputs(self, record: _Record, marker: dict[str, Any]) -> None:
-        """Record the content digest of a finished stage's outputs, for early cutoff.
+        """Record the content digest of a finished stage's outputs, for early cutoff, and
+        each output file's mtime and SHA-256, for the check of a later run; one read.
 
         Taken once the stage stands finished (an hour's outputs take a minute or more to
-        read): a marker left without them keys the stage's readers by its run token."""
+        read): a marker left without them keys the stage's readers by its run token and
+        checks its files by size alone. A stage whose outputs never repeat (timings in
+        them) gets no token, but its files are digested all the same: an edited depth
+        map is as wrong downstream as an edited trajectory."""
         spec = record.spec
-        if not spec.cls.outputs_repeat:
-            return
+        repeat = spec.cls.outputs_repeat
         t = time.perf_counter()
-        tokens = {n: _content_digest(p) for n, p in record.provides.items()}
-        if all(tokens.values()):
-            atomic_write_json(self.run_dir / spec.id / STAGE_FILE,
-                              {**marker, "output_tokens": tokens}, fsync=True)
+        tokens: dict[str, str] = {}
+        manifest: dict[str, list[list[Any]]] = {}
+        digests: dict[str, dict[str, list[Any]]] = {}
+        for n, p in record.provides.items():
+            tokens[n], manifest[n], digests[n] = _digest_output(p, token=repeat)
+        # The manifest again, from the same listing: its entries and the digests align.
+        new = {**marker, "manifest": manifest, "manifest_digests": digests}
+        if repeat and all(tokens.values()):
+            new["output_tokens"] = tokens
+        atomic_write_json(self.run_dir / spec.id / STAGE_FILE, new, fsync=True)
+        if repeat and all(tokens.values()):
             record.output_tokens = tokens
         self.log.info("stage %s: outputs digested in %.1f s", spec.id,
                       time.perf_counter() - t, extra=_FILE_ONLY)
@@ -1032,18 +1058,30 @@ def _read_marker(
     missing = [name for name, rel in stored.items() if not (stage_dir / rel).exists()]
     if missing:
         return None, f"output {missing[0]!r} is missing"
-    # Markers written before manifests existed are trusted by the paths alone.
+    # Markers written before manifests existed are trusted by the paths alone, those
+    # before per-file digests by the sizes alone.
+    digests = data.get("manifest_digests")
+    digests = digests if isinstance(digests, dict) else {}
+    moved = False
     for name, files in (data.get("manifest") or {}).items():
         if name not in stored:
             continue
-        changed = _manifest_changes(stage_dir / stored[name], files)
+        changed, refreshed = _manifest_changes(stage_dir / stored[name], files,
+                                               digests.get(name))
         if changed:
             return None, f"output {name!r}: {changed}"
+        if refreshed is not None:
+            digests[name], moved = {**digests[name], "mtime_ns": refreshed}, True
     # The stage's own files its report links to (figures outside its artifacts, such as
     # simulate/preview.png): a lost one reruns the stage, not a report with a dead link.
     for target in _REPORT_LINK_RE.findall(str(data.get("report") or "")):
         if target.startswith(f"{stage_dir.name}/") and not (stage_dir.parent / target).exists():
             return None, f"report file {target!r} is missing"
+    if moved:
+        # Same bytes under new mtimes (a copied run folder): stored, so the next run does
+        # not hash them again. A cache: a folder that cannot be written hashes next time.
+        with contextlib.suppress(OSError):
+            atomic_write_json(marker, {**data, "manifest_digests": digests}, fsync=True)
     return data, "up to date"
 
 
@@ -1080,25 +1118,63 @@ def _content_digest(path: Path) -> str:
     sizes and bytes, in name order; the runner's markers left out). Empty where a folder
     holds a symbolic link: what it points to may change without the link changing, so such
     an output keeps its run token."""
-    h = hashlib.sha256()
+    return _digest_output(path)[0]
+
+
+def _digest_output(
+    path: Path, token: bool = True
+) -> tuple[str, list[list[Any]], dict[str, list[Any]]]:
+    """An output's content digest (``_content_digest``'s; "" when ``token`` is False), its
+    manifest (``_manifest``'s) and, aligned with it, each file's mtime and SHA-256
+    (``{"mtime_ns": [...], "sha256": [...]}``: two flat lists, not a list per file, keep
+    an hour's marker small to hold and to write), from one read of each file, a megabyte
+    at a time: an hour's depth maps are read once and never held whole."""
+    whole = hashlib.sha256()
     if path.is_file():
         files = [path]
     else:
         entries = sorted(path.rglob("*"))
         if any(p.is_symlink() for p in entries):
-            return ""
+            token = False
         files = [p for p in entries if p.is_file() and p.name not in _MARKERS]
+    manifest: list[list[Any]] = []
+    mtimes: list[int] = []
+    shas: list[str] = []
     for f in files:
-        rel = f.name if f == path else f.relative_to(path).as_posix()
-        h.update(f"{rel}\0{f.stat().st_size}\0".encode())
-        _hash_bytes(h, f)
+        rel = "." if f == path else f.relative_to(path).as_posix()
+        # The manifest's files: hidden ones are temporaries or the stage's bookkeeping.
+        in_manifest = rel == "." or not any(part.startswith(".") for part in rel.split("/"))
+        if not (token or in_manifest):
+            continue
+        own = hashlib.sha256()
+        with f.open("rb") as fh:
+            st = os.fstat(fh.fileno())
+            if token:
+                whole.update(f"{f.name if rel == '.' else rel}\0{st.st_size}\0".encode())
+            while chunk := fh.read(1 << 20):
+                own.update(chunk)
+                if token:
+                    whole.update(chunk)
+        if in_manifest:
+            manifest.append([rel, st.st_size])
+            mtimes.append(st.st_mtime_ns)
+            shas.append(own.hexdigest())
+    return ((whole.hexdigest() if token else ""), manifest,
+            {"mtime_ns": mtimes, "sha256": shas})
+
+
+def _file_sha256(path: Path) -> str:
+    """Hex SHA-256 of the bytes of ``path``."""
+    h = hashlib.sha256()
+    _hash_bytes(h, path)
     return h.hexdigest()
 
 
 def _digest_failure(exc: Exception) -> str:
     """What went wrong digesting a finished stage's outputs, what it costs and the fix."""
-    cost = ("the stage stays finished, and the stages reading its outputs rerun after any "
-            "rerun of it, even one that writes the same bytes")
+    cost = ("the stage stays finished, its files are checked by size alone (not for an "
+            "edit in place), and the stages reading its outputs rerun after any rerun of it, "
+            "even one that writes the same bytes")
     if isinstance(exc, OSError) and exc.filename:
         return (f"{exc.filename}: {exc.strerror or exc}; {cost}. Check that file (its "
                 f"permissions, the disk) before the stage's next rerun")
@@ -1106,17 +1182,43 @@ def _digest_failure(exc: Exception) -> str:
     return f"{type(exc).__name__}: {lines[0] if lines else ''}; {cost}"
 
 
-def _manifest_changes(path: Path, files: list[list[Any]]) -> str | None:
-    """What differs from a stored manifest: the first missing or resized file."""
-    for rel, size in files:
+def _manifest_changes(
+    path: Path, files: list[list[Any]], digests: Any = None
+) -> tuple[str | None, list[int] | None]:
+    """What differs from a stored manifest: the first missing, resized or edited file;
+    and, when nothing did but files had new mtimes, the mtimes to store.
+
+    ``digests``: ``{"mtime_ns": [...], "sha256": [...]}`` aligned with ``files`` (None: a
+    marker from before them, checked by size alone). A file of the same size and mtime
+    is trusted unread, as ``make`` does; one whose mtime moved is hashed (``cp -r``, a
+    checkout and ``touch`` move it without changing a byte)."""
+    mtimes = shas = None
+    if isinstance(digests, dict):
+        mtimes, shas = digests.get("mtime_ns"), digests.get("sha256")
+    if not (isinstance(mtimes, list) and isinstance(shas, list)
+            and len(mtimes) == len(shas) == len(files)):
+        mtimes = shas = None
+    fresh: list[int] | None = None
+    for i, (rel, size, *_) in enumerate(files):
         f = path if rel == "." else path / rel
         try:
-            now = f.stat().st_size
+            st = f.stat()
         except OSError:
-            return f"{f} is missing"
-        if now != size:
-            return f"{f} changed size ({size} -> {now} bytes)"
-    return None
+            return f"{f} is missing", None
+        if st.st_size != size:
+            return f"{f} changed size ({size} -> {st.st_size} bytes)", None
+        if mtimes is None or shas is None or st.st_mtime_ns == mtimes[i]:
+            continue
+        try:
+            same = _file_sha256(f) == shas[i]
+        except OSError as exc:
+            return f"{f} could not be read ({exc.strerror or exc})", None
+        if not same:
+            return f"{f} {_CHANGED}", None
+        if fresh is None:
+            fresh = list(mtimes)
+        fresh[i] = st.st_mtime_ns
+    return None, fresh
 
 
 def _relative(path: Path, stage_dir: Path) -> str:

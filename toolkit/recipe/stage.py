@@ -140,7 +140,8 @@ class Stage(ABC):
     # A rerun under the same settings and inputs writes the same bytes: a later stage
     # reading an output whose digest did not change stays cached. False for a stage whose
     # outputs hold timings (depth's per-frame latencies, colmap's step times): they take a
-    # token of the run instead, and no time goes into digesting them. The contract that
+    # token of the run instead (their files are still digested one by one, for the check
+    # of an edit in place; runner.digest_outputs). The contract that
     # makes this safe: a stage reads of an earlier stage only the paths it is given
     # (``ctx.artifact``) and what lies under them, never files beside them.
     outputs_repeat: ClassVar[bool] = True
