@@ -1,4 +1,4 @@
-"""The fast CPU path: tile compositing in a C++/OpenMP extension built on first use.
+"""The fast CPU path: projection and tile compositing in a C++/OpenMP extension built on first use.
 
 ``torch.utils.cpp_extension.load`` compiles ``csrc/composite.cpp`` with gcc (``-O3
 -fopenmp -ffast-math -march=native``) into a per-user cache folder; later processes load the
@@ -8,8 +8,12 @@ sharing a home folder gets its own build. Where no compiler is present or the bu
 fails, ``load_extension`` returns None, the reason is logged once, and ``render`` falls back
 to the PyTorch reference.
 
-Projection and SH colours stay in PyTorch (autograd); only compositing and its backward
-(and the tile binning, a counting sort) run here.
+What runs here: the EWA projection and culling (``project_cpp``: what ``common.project``
+computes, forward and backward, the camera pose's gradient included), the tile binning (a
+counting sort) and the compositing forward and backward. The SH colours of the visible
+Gaussians stay in PyTorch (autograd). Every kernel is one OpenMP loop whose results do not
+depend on the thread count (sums over Gaussians run over fixed blocks in a fixed order),
+so CPU training stays bit-identical run to run.
 """
 
 from __future__ import annotations

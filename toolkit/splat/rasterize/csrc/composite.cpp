@@ -1,8 +1,10 @@
-// Tile compositing of projected Gaussians on the CPU: forward and backward.
+// Projection (EWA splatting) and tile compositing of Gaussians on the CPU: forward and
+// backward.
 //
 // Built at run time by toolkit/splat/rasterize/cpp_ext.py (torch.utils.cpp_extension.load,
-// -O3 -fopenmp -ffast-math -march=native). Projection stays in PyTorch; this file does the
-// per-pixel work, which is where a pure-PyTorch rasteriser spends its time and memory.
+// -O3 -fopenmp -ffast-math -march=native). SH colours stay in PyTorch; this file does the
+// per-Gaussian projection (at the end of the file) and the per-pixel work, which is where
+// a pure-PyTorch rasteriser spends its time and memory.
 //
 // Rules (same as gsplat's classic rasteriser and toolkit/splat/rasterize/torch_ref.py):
 //   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,   dx = mean_x - px,  dy = mean_y - py
