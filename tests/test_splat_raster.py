@@ -164,8 +164,10 @@ def test_cpp_matches_reference(cpp: None) -> None:
     for tile in (8, 16, 32):
         img, grad = _render_and_grads(g, cam, T, "cpp", tile)
         color, alpha, depth_acc = (a - b for a, b in zip(img, ref_img, strict=True))
-        assert float(color.abs().max()) <= 1e-6, tile
-        assert float(alpha.abs().max()) <= 1e-6, tile
+        # 3e-6, not 1e-6: the projection runs in C++ too (another float32 rounding order;
+        # 1.04e-6 seen, 2026-11-28)
+        assert float(color.abs().max()) <= 3e-6, tile
+        assert float(alpha.abs().max()) <= 3e-6, tile
         # accumulated depth is in metres (up to ~6 m): 1e-6 relative
         assert float(depth_acc.abs().max()) <= 1e-6 * float(ref_img[2].abs().max()), tile
         for a, b in zip(grad, ref_grad, strict=True):

@@ -2,7 +2,8 @@
 
 Backends (same inputs, same outputs, same image up to float rounding):
 
-- ``cpp``: PyTorch projection + C++/OpenMP compositing (``cpp_ext``), the CPU default;
+- ``cpp``: C++/OpenMP projection and compositing (``cpp_ext``; SH colours in PyTorch), the
+  CPU default;
 - ``torch``: everything in PyTorch (``torch_ref``), the reference and the fallback when the
   C++ extension cannot be built;
 - ``gsplat``: ``gsplat.rasterization`` on a CUDA device (optional extra ``cuda``).
@@ -125,8 +126,9 @@ def render(
 
         return gsplat_backend.render(g, cam, bg, degree, near, far, eps2d)
 
-    proj = project(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, degree,
-                   near, far, eps2d, g.sh_rest)
+    project_fn = cpp_ext.project_cpp if name == "cpp" else project
+    proj = project_fn(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh, cam, degree,
+                      near, far, eps2d, g.sh_rest)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()  # densification reads the screen-space gradient
     ts = tile_size or DEFAULT_TILE[name]

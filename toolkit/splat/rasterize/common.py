@@ -85,6 +85,27 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ).reshape(-1, 3, 3)
 
 
+def survivor_colors(
+    means: Tensor,  # [N, 3]
+    sh: Tensor,  # [N, K, 3]
+    sh_rest: Tensor | None,  # [N, K2, 3] further bands appended to ``sh``
+    gids: Tensor,  # [M] int64 visible Gaussians
+    viewmat: Tensor,  # [4, 4]
+    sh_degree: int,
+) -> Tensor:
+    """[M, 3] view-dependent RGB of the visible Gaussians (differentiable, viewmat too)."""
+    # Colours only for the survivors: SH evaluation is the costliest per-Gaussian step.
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    cam_pos = -R.T @ t  # [3]
+    dirs = torch.index_select(means, 0, gids) - cam_pos
+    k = (sh_degree + 1) ** 2  # bands in use; the rest are not even gathered
+    coeffs = torch.index_select(sh[:, :k], 0, gids)
+    if sh_rest is not None and coeffs.shape[1] < k:
+        rest = torch.index_select(sh_rest[:, : k - coeffs.shape[1]], 0, gids)
+        coeffs = torch.cat([coeffs, rest], 1)
+    return eval_sh(coeffs, dirs, sh_degree)
+
+
 def project(
     means: Tensor,  # [N, 3]
     quats: Tensor,  # [N, 4] wxyz
@@ -181,15 +202,7 @@ def project(
     det = a * c - b * b
     conics = torch.stack([c / det, -b / det, a / det], -1)
     gids = ids[sel]
-    # Colours only for the survivors: SH evaluation is the costliest per-Gaussian step.
-    cam_pos = -R.T @ t  # [3]
-    dirs = torch.index_select(means, 0, gids) - cam_pos
-    k = (sh_degree + 1) ** 2  # bands in use; the rest are not even gathered
-    coeffs = torch.index_select(sh[:, :k], 0, gids)
-    if sh_rest is not None and coeffs.shape[1] < k:
-        rest = torch.index_select(sh_rest[:, : k - coeffs.shape[1]], 0, gids)
-        coeffs = torch.cat([coeffs, rest], 1)
-    colors = eval_sh(coeffs, dirs, sh_degree)
+    colors = survivor_colors(means, sh, sh_rest, gids, W, sh_degree)
     return Projected(gids, torch.stack([mx, my], -1), conics, z, colors, torch.sigmoid(opac_logit),
                      radii)
 

@@ -1,4 +1,4 @@
-"""The fast CPU path: tile compositing in a C++/OpenMP extension built on first use.
+"""The fast CPU path: projection and tile compositing in a C++/OpenMP extension built on first use.
 
 ``torch.utils.cpp_extension.load`` compiles ``csrc/composite.cpp`` with gcc (``-O3
 -fopenmp -ffast-math -march=native``) into a per-user cache folder; later processes load the
@@ -8,8 +8,12 @@ sharing a home folder gets its own build. Where no compiler is present or the bu
 fails, ``load_extension`` returns None, the reason is logged once, and ``render`` falls back
 to the PyTorch reference.
 
-Projection and SH colours stay in PyTorch (autograd); only compositing and its backward
-(and the tile binning, a counting sort) run here.
+What runs here: the EWA projection and culling (``project_cpp``: what ``common.project``
+computes, forward and backward, the camera pose's gradient included), the tile binning (a
+counting sort) and the compositing forward and backward. The SH colours of the visible
+Gaussians stay in PyTorch (autograd). Every kernel is one OpenMP loop whose results do not
+depend on the thread count (sums over Gaussians run over fixed blocks in a fixed order),
+so CPU training stays bit-identical run to run.
 """
 
 from __future__ import annotations
@@ -28,7 +32,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from toolkit.splat.rasterize.common import Projected, TileBins, pixel_rects
+from toolkit.splat.rasterize.common import (
+    CameraTensors,
+    Projected,
+    TileBins,
+    pixel_rects,
+    survivor_colors,
+)
 
 log = logging.getLogger(__name__)
 
@@ -204,3 +214,78 @@ def composite(proj: Projected, bins: TileBins, width: int, height: int) -> tuple
     feats = torch.cat([proj.colors, proj.depths[:, None]], -1)  # [M, 4]
     return _Composite.apply(proj.means2d, proj.conics, feats, proj.opacities, bins.rects,
                             bins.offsets, bins.ids, width, height, bins.tile_size)
+
+
+class _Project(torch.autograd.Function):
+    """Differentiable EWA projection and culling, what ``common.project`` computes but SH.
+
+    Outputs (packed, visible Gaussians only): ids [M] int64, means2d [M, 2], conics [M, 3],
+    depths [M], opacities [M], radii [M, 2] int32. The backward recomputes the per-Gaussian
+    intermediates instead of saving them.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        means: Tensor,  # [N, 3]
+        quats: Tensor,  # [N, 4] wxyz, unnormalised
+        log_scales: Tensor,  # [N, 3]
+        opacity_logits: Tensor,  # [N]
+        viewmat: Tensor,  # [4, 4]
+        intrinsics: tuple[float, float, float, float, int, int],  # fx, fy, cx, cy, W, H
+        near: float,
+        far: float,
+        eps2d: float,
+    ) -> tuple[Tensor, ...]:
+        ext = load_extension()
+        assert ext is not None
+        args = [x.contiguous() for x in (means, quats, log_scales, opacity_logits, viewmat)]
+        threads = get_threads()
+        gids, means2d, conics, depths, opac, radii = ext.project_forward(
+            *args, *intrinsics, near, far, eps2d, threads)
+        ctx.save_for_backward(*args, gids)
+        ctx.consts = (intrinsics, near, far, eps2d, threads)
+        ctx.mark_non_differentiable(gids, radii)
+        return gids, means2d, conics, depths, opac, radii
+
+    @staticmethod
+    def backward(  # type: ignore[override]
+        ctx: Any, _g_ids: Tensor | None, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor,
+        g_opac: Tensor, _g_radii: Tensor | None,
+    ) -> tuple[Tensor | None, ...]:
+        ext = load_extension()
+        assert ext is not None
+        means, quats, log_scales, logits, viewmat, gids = ctx.saved_tensors
+        intrinsics, near, far, eps2d, threads = ctx.consts
+        need_view = bool(ctx.needs_input_grad[4])
+        g_m, g_q, g_s, g_o, g_v = ext.project_backward(
+            means, quats, log_scales, logits, viewmat, gids, *intrinsics, near, far, eps2d,
+            g_means2d, g_conics, g_depths, g_opac, need_view, threads)
+        return g_m, g_q, g_s, g_o, (g_v if need_view else None), None, None, None, None
+
+
+def project_cpp(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    log_scales: Tensor,  # [N, 3]
+    opacity_logits: Tensor,  # [N]
+    sh: Tensor,  # [N, K, 3]
+    cam: CameraTensors,
+    sh_degree: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    sh_rest: Tensor | None = None,  # [N, K2, 3] further bands appended to ``sh``
+) -> Projected:
+    """``common.project`` with the projection and culling (and their backward) in C++.
+
+    Same survivors and outputs up to float rounding; SH colours of the survivors stay in
+    PyTorch. Differentiable in every input tensor, ``cam.viewmat`` included.
+    """
+    intr = (float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), int(cam.width),
+            int(cam.height))
+    gids, means2d, conics, depths, opac, radii = _Project.apply(
+        means, quats, log_scales, opacity_logits, cam.viewmat, intr, float(near), float(far),
+        float(eps2d))
+    colors = survivor_colors(means, sh, sh_rest, gids, cam.viewmat, sh_degree)
+    return Projected(gids, means2d, conics, depths, colors, opac, radii)

@@ -1,8 +1,10 @@
-// Tile compositing of projected Gaussians on the CPU: forward and backward.
+// Projection (EWA splatting) and tile compositing of Gaussians on the CPU: forward and
+// backward.
 //
 // Built at run time by toolkit/splat/rasterize/cpp_ext.py (torch.utils.cpp_extension.load,
-// -O3 -fopenmp -ffast-math -march=native). Projection stays in PyTorch; this file does the
-// per-pixel work, which is where a pure-PyTorch rasteriser spends its time and memory.
+// -O3 -fopenmp -ffast-math -march=native). SH colours stay in PyTorch; this file does the
+// per-Gaussian projection (at the end of the file) and the per-pixel work, which is where
+// a pure-PyTorch rasteriser spends its time and memory.
 //
 // Rules (same as gsplat's classic rasteriser and toolkit/splat/rasterize/torch_ref.py):
 //   sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,   dx = mean_x - px,  dy = mean_y - py
@@ -25,11 +27,13 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <vector>
 
 namespace {
 
 constexpr int kLanes = 8;  // pixels per inner loop: one AVX2 register of floats
+constexpr double kMaxExtend = 3.33;  // footprint cap in standard deviations (gsplat's)
 constexpr int kGradWidth = 6;  // mean x, mean y, conic a, b, c, opacity (+ C feature grads)
 
 struct Tiling {
@@ -478,6 +482,462 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor rects, torch::Tensor order, i
   return {offsets, ids};
 }
 
+
+// ---------------------------------------------------------------------------------------
+// EWA projection, forward and backward: the maths of common.py:project fused per Gaussian
+// (PyTorch runs it as ~60 elementwise passes over [M] tensors, and as many again in its
+// backward, which cost more than the compositing at training sizes).
+//
+// -ffast-math lets gcc assume no inf/NaN, so the visibility tests that must reject them
+// (huge scales overflow exp, as in the PyTorch version) look at the float's exponent bits.
+
+inline bool finite_bits(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, sizeof u);
+  return (u & 0x7f800000u) != 0x7f800000u;
+}
+
+inline bool finite_bits(double v) {
+  uint64_t u;
+  std::memcpy(&u, &v, sizeof u);
+  return (u & 0x7ff0000000000000ull) != 0x7ff0000000000000ull;
+}
+
+template <typename S>
+struct ProjCam {
+  S R[9], t[3];  // world-to-camera rotation (row-major) and translation
+  S fx, fy, cx, cy, cxg, cyg;  // cxg, cyg: gsplat's principal point (pixel centres at +0.5)
+  S lim_xp, lim_xn, lim_yp, lim_yn;  // Jacobian clamp (tangent limits of the frustum + 30%)
+  S jx_c, jy_c;  // step 1's bound on the Jacobian's growth towards the clamp
+  S near, far, eps2d;
+  S width, height;
+};
+
+template <typename S>
+ProjCam<S> make_proj_cam(const torch::Tensor& viewmat, double fx, double fy, double cx,
+                         double cy, int64_t width, int64_t height, double near, double far,
+                         double eps2d) {
+  TORCH_CHECK(viewmat.dim() == 2 && viewmat.size(0) == 4 && viewmat.size(1) == 4 &&
+                  viewmat.is_contiguous(),
+              "viewmat must be contiguous [4, 4]");
+  const S* v = viewmat.data_ptr<S>();
+  ProjCam<S> c;
+  for (int r = 0; r < 3; ++r) {
+    for (int k = 0; k < 3; ++k) c.R[3 * r + k] = v[4 * r + k];
+    c.t[r] = v[4 * r + 3];
+  }
+  // Constants in double, as the Python version computes them, then rounded once.
+  const double tan_x = 0.5 * double(width) / fx, tan_y = 0.5 * double(height) / fy;
+  const double cxg = cx + 0.5, cyg = cy + 0.5;
+  const double lxp = (double(width) - cxg) / fx + 0.3 * tan_x, lxn = cxg / fx + 0.3 * tan_x;
+  const double lyp = (double(height) - cyg) / fy + 0.3 * tan_y, lyn = cyg / fy + 0.3 * tan_y;
+  c.fx = S(fx);
+  c.fy = S(fy);
+  c.cx = S(cx);
+  c.cy = S(cy);
+  c.cxg = S(cxg);
+  c.cyg = S(cyg);
+  c.lim_xp = S(lxp);
+  c.lim_xn = S(lxn);
+  c.lim_yp = S(lyp);
+  c.lim_yn = S(lyn);
+  c.jx_c = S(std::sqrt(1.0 + std::max(lxp, lxn) * std::max(lxp, lxn)));
+  c.jy_c = S(std::sqrt(1.0 + std::max(lyp, lyn) * std::max(lyp, lyn)));
+  c.near = S(near);
+  c.far = S(far);
+  c.eps2d = S(eps2d);
+  c.width = S(width);
+  c.height = S(height);
+  return c;
+}
+
+// Everything the backward needs of one Gaussian's forward (recomputed there, not stored:
+// cheaper than writing and reading ~60 values per Gaussian).
+template <typename S>
+struct Ewa {
+  S x, y, z, rz, rz2, ux, uy, tx, ty;
+  bool inx, iny;  // the Jacobian clamp is inactive (the gradient passes through it)
+  S A0[3], A1[3];  // rows of J W_R
+  S q[4], qn;  // normalised quaternion (wxyz) and the (clamped) norm it was divided by
+  bool qclamp;
+  S Rq[9], s[3], M0[3], M1[3], T0[3], T1[3];  // T = (J W_R R_q) S, rows 0 and 1
+  S a, b, c;  // 2D covariance [[a, b], [b, c]] with the eps2d dilation
+};
+
+template <typename S>
+inline void cam_point(const ProjCam<S>& cm, const S* m, S& x, S& y, S& z) {
+  x = cm.R[0] * m[0] + cm.R[1] * m[1] + cm.R[2] * m[2] + cm.t[0];
+  y = cm.R[3] * m[0] + cm.R[4] * m[1] + cm.R[5] * m[2] + cm.t[1];
+  z = cm.R[6] * m[0] + cm.R[7] * m[1] + cm.R[8] * m[2] + cm.t[2];
+}
+
+template <typename S>
+inline void ewa(const ProjCam<S>& cm, const S* m, const S* q4, const S* ls, Ewa<S>& f) {
+  const S* R = cm.R;
+  cam_point(cm, m, f.x, f.y, f.z);
+  f.rz = S(1) / f.z;
+  const S u = f.x * f.rz, v = f.y * f.rz;
+  f.inx = u >= -cm.lim_xn && u <= cm.lim_xp;
+  f.iny = v >= -cm.lim_yn && v <= cm.lim_yp;
+  f.ux = std::min(std::max(u, -cm.lim_xn), cm.lim_xp);
+  f.uy = std::min(std::max(v, -cm.lim_yn), cm.lim_yp);
+  f.tx = f.z * f.ux;
+  f.ty = f.z * f.uy;
+  f.rz2 = f.rz * f.rz;
+  for (int k = 0; k < 3; ++k) {
+    f.A0[k] = cm.fx * f.rz * R[k] - cm.fx * f.tx * f.rz2 * R[6 + k];
+    f.A1[k] = cm.fy * f.rz * R[3 + k] - cm.fy * f.ty * f.rz2 * R[6 + k];
+  }
+  const S n = std::sqrt(q4[0] * q4[0] + q4[1] * q4[1] + q4[2] * q4[2] + q4[3] * q4[3]);
+  f.qclamp = n < S(1e-12);
+  f.qn = f.qclamp ? S(1e-12) : n;
+  for (int k = 0; k < 4; ++k) f.q[k] = q4[k] / f.qn;
+  const S w = f.q[0], x = f.q[1], y = f.q[2], z = f.q[3];
+  S* Q = f.Rq;
+  Q[0] = 1 - 2 * (y * y + z * z);
+  Q[1] = 2 * (x * y - w * z);
+  Q[2] = 2 * (x * z + w * y);
+  Q[3] = 2 * (x * y + w * z);
+  Q[4] = 1 - 2 * (x * x + z * z);
+  Q[5] = 2 * (y * z - w * x);
+  Q[6] = 2 * (x * z - w * y);
+  Q[7] = 2 * (y * z + w * x);
+  Q[8] = 1 - 2 * (x * x + y * y);
+  for (int j = 0; j < 3; ++j) {
+    f.s[j] = std::exp(ls[j]);
+    f.M0[j] = f.A0[0] * Q[j] + f.A0[1] * Q[3 + j] + f.A0[2] * Q[6 + j];
+    f.M1[j] = f.A1[0] * Q[j] + f.A1[1] * Q[3 + j] + f.A1[2] * Q[6 + j];
+    f.T0[j] = f.M0[j] * f.s[j];
+    f.T1[j] = f.M1[j] * f.s[j];
+  }
+  f.a = f.T0[0] * f.T0[0] + f.T0[1] * f.T0[1] + f.T0[2] * f.T0[2] + cm.eps2d;
+  f.b = f.T0[0] * f.T1[0] + f.T0[1] * f.T1[1] + f.T0[2] * f.T1[2];
+  f.c = f.T1[0] * f.T1[0] + f.T1[1] * f.T1[1] + f.T1[2] * f.T1[2] + cm.eps2d;
+}
+
+// Step 1 of common.py:project: a cheap conservative cull (depth range, footprint bound from
+// the largest scale) before the EWA maths.
+template <typename S>
+inline bool maybe_visible(const ProjCam<S>& cm, const S* m, const S* ls) {
+  S x, y, z;
+  cam_point(cm, m, x, y, z);
+  if (!(finite_bits(x) && finite_bits(y) && finite_bits(z))) return false;
+  if (!(z > cm.near && z < cm.far)) return false;
+  const S smax = std::exp(std::max(ls[0], std::max(ls[1], ls[2])));
+  const S jx = cm.fx / z * cm.jx_c, jy = cm.fy / z * cm.jy_c;
+  const S rxb = S(kMaxExtend) * std::sqrt((jx * smax) * (jx * smax) + cm.eps2d) + S(1);
+  const S ryb = S(kMaxExtend) * std::sqrt((jy * smax) * (jy * smax) + cm.eps2d) + S(1);
+  const S u = cm.fx * x / z + cm.cxg, v = cm.fy * y / z + cm.cyg;
+  return u + rxb > 0 && u - rxb < cm.width && v + ryb > 0 && v - ryb < cm.height;
+}
+
+template <typename S>
+struct ProjOut {
+  S mx, my, con[3], z, op;
+  int32_t rx, ry;
+};
+
+// Steps 2 and 3: EWA projection, then gsplat's exact visibility rules and footprint box.
+template <typename S>
+inline bool project_one(const ProjCam<S>& cm, const S* m, const S* q4, const S* ls, S logit,
+                        ProjOut<S>& o) {
+  if (!maybe_visible(cm, m, ls)) return false;
+  Ewa<S> f;
+  ewa(cm, m, q4, ls, f);
+  const S amin = S(1.0 / 255.0);
+  const S op = S(1) / (S(1) + std::exp(-logit));
+  const S mx = cm.fx * f.x * f.rz + cm.cx, my = cm.fy * f.y * f.rz + cm.cy;
+  if (!(finite_bits(f.a) && finite_bits(f.b) && finite_bits(f.c) && finite_bits(mx) &&
+        finite_bits(my) && finite_bits(op)))
+    return false;
+  const S det = f.a * f.c - f.b * f.b;
+  if (!(det > 0) || !(op >= amin)) return false;
+  const S extend = std::min(std::sqrt(S(2) * std::log(std::max(op, amin) / amin)), S(kMaxExtend));
+  const S rx = std::ceil(extend * std::sqrt(std::max(f.a, S(0))));
+  const S ry = std::ceil(extend * std::sqrt(std::max(f.c, S(0))));
+  if (!(rx > 0 || ry > 0)) return false;
+  const S mxd = mx + S(0.5), myd = my + S(0.5);
+  if (!(mxd + rx > 0 && mxd - rx < cm.width && myd + ry > 0 && myd - ry < cm.height))
+    return false;
+  o.mx = mx;
+  o.my = my;
+  o.con[0] = f.c / det;
+  o.con[1] = -f.b / det;
+  o.con[2] = f.a / det;
+  o.z = f.z;
+  o.op = op;
+  o.rx = int32_t(rx);
+  o.ry = int32_t(ry);
+  return true;
+}
+
+void check_gaussians(const torch::Tensor& means, const torch::Tensor& quats,
+                     const torch::Tensor& log_scales, const torch::Tensor& logits,
+                     const torch::Tensor& viewmat) {
+  const auto N = means.size(0);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be [N, 3]");
+  TORCH_CHECK(quats.dim() == 2 && quats.size(0) == N && quats.size(1) == 4,
+              "quats must be [N, 4]");
+  TORCH_CHECK(log_scales.dim() == 2 && log_scales.size(0) == N && log_scales.size(1) == 3,
+              "log_scales must be [N, 3]");
+  TORCH_CHECK(logits.dim() == 1 && logits.size(0) == N, "opacity logits must be [N]");
+  for (const auto* x : {&means, &quats, &log_scales, &logits, &viewmat}) {
+    TORCH_CHECK(x->device().is_cpu() && x->is_contiguous(), "inputs must be contiguous CPU");
+    TORCH_CHECK(x->scalar_type() == means.scalar_type(), "float inputs must share one dtype");
+  }
+}
+
+template <typename S>
+std::vector<torch::Tensor> project_forward_impl(const torch::Tensor& means,
+                                                const torch::Tensor& quats,
+                                                const torch::Tensor& log_scales,
+                                                const torch::Tensor& logits,
+                                                const ProjCam<S>& cm, int nt) {
+  const int64_t N = means.size(0);
+  {
+    const S* pm = means.data_ptr<S>();
+    const S* pq = quats.data_ptr<S>();
+    const S* pl = log_scales.data_ptr<S>();
+    const S* po = logits.data_ptr<S>();
+    // Unpacked results, then a compaction in model order (what torch.nonzero gives).
+    std::vector<ProjOut<S>> all(N);
+    std::vector<uint8_t> keep(N);
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (int64_t i = 0; i < N; ++i)
+      keep[i] = project_one(cm, pm + 3 * i, pq + 4 * i, pl + 3 * i, po[i], all[i]);
+    std::vector<int64_t> dst(N);
+    int64_t M = 0;
+    for (int64_t i = 0; i < N; ++i) {
+      dst[i] = M;
+      M += keep[i];
+    }
+    auto fopt = means.options();
+    auto gids = torch::empty({M}, fopt.dtype(torch::kInt64));
+    auto means2d = torch::empty({M, 2}, fopt);
+    auto conics = torch::empty({M, 3}, fopt);
+    auto depths = torch::empty({M}, fopt);
+    auto opac = torch::empty({M}, fopt);
+    auto radii = torch::empty({M, 2}, fopt.dtype(torch::kInt32));
+    int64_t* pg = gids.data_ptr<int64_t>();
+    S* p2 = means2d.data_ptr<S>();
+    S* pc = conics.data_ptr<S>();
+    S* pz = depths.data_ptr<S>();
+    S* pop = opac.data_ptr<S>();
+    int32_t* pr = radii.data_ptr<int32_t>();
+#pragma omp parallel for schedule(static) num_threads(nt)
+    for (int64_t i = 0; i < N; ++i) {
+      if (!keep[i]) continue;
+      const int64_t k = dst[i];
+      const ProjOut<S>& o = all[i];
+      pg[k] = i;
+      p2[2 * k] = o.mx;
+      p2[2 * k + 1] = o.my;
+      for (int j = 0; j < 3; ++j) pc[3 * k + j] = o.con[j];
+      pz[k] = o.z;
+      pop[k] = o.op;
+      pr[2 * k] = o.rx;
+      pr[2 * k + 1] = o.ry;
+    }
+    return {gids, means2d, conics, depths, opac, radii};
+  }
+}
+
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats,
+                                           torch::Tensor log_scales, torch::Tensor logits,
+                                           torch::Tensor viewmat, double fx, double fy,
+                                           double cx, double cy, int64_t width, int64_t height,
+                                           double near, double far, double eps2d,
+                                           int64_t threads) {
+  check_gaussians(means, quats, log_scales, logits, viewmat);
+  const int nt = threads > 0 ? int(threads) : at::get_num_threads();
+  std::vector<torch::Tensor> result;
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
+    const auto cm = make_proj_cam<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near,
+                                            far, eps2d);
+    result = project_forward_impl<scalar_t>(means, quats, log_scales, logits, cm, nt);
+  });
+  return result;
+}
+
+// The viewmat gradient is a sum over Gaussians: partial sums over fixed blocks of survivors
+// (independent of the thread count), added in block order, so it is identical run to run.
+constexpr int64_t kViewBlock = 512;
+
+template <typename S>
+void project_backward_impl(const torch::Tensor& means, const torch::Tensor& quats,
+                           const torch::Tensor& log_scales, const torch::Tensor& logits,
+                           const torch::Tensor& gids, const ProjCam<S>& cm,
+                           const torch::Tensor& g_means2d, const torch::Tensor& g_conics,
+                           const torch::Tensor& g_depths, const torch::Tensor& g_opac,
+                           bool need_viewmat, int nt, torch::Tensor& g_means,
+                           torch::Tensor& g_quats, torch::Tensor& g_ls,
+                           torch::Tensor& g_logits, torch::Tensor& g_view) {
+  const int64_t M = gids.size(0);
+  {
+    const S* pm = means.data_ptr<S>();
+    const S* pq = quats.data_ptr<S>();
+    const S* pl = log_scales.data_ptr<S>();
+    const S* po = logits.data_ptr<S>();
+    const int64_t* pid = gids.data_ptr<int64_t>();
+    const S* gm2 = g_means2d.data_ptr<S>();
+    const S* gcn = g_conics.data_ptr<S>();
+    const S* gdp = g_depths.data_ptr<S>();
+    const S* gop = g_opac.data_ptr<S>();
+    S* om = g_means.data_ptr<S>();
+    S* oq = g_quats.data_ptr<S>();
+    S* ol = g_ls.data_ptr<S>();
+    S* oo = g_logits.data_ptr<S>();
+    const int64_t n_blocks = (M + kViewBlock - 1) / kViewBlock;
+    // [blocks, 12]: dL/dR (row-major) then dL/dt, in double: a sum over up to millions
+    std::vector<double> partial(need_viewmat ? n_blocks * 12 : 0, 0.0);
+    const S* R = cm.R;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nt)
+    for (int64_t blk = 0; blk < n_blocks; ++blk) {
+      double acc[12] = {0};
+      const int64_t k1 = std::min(M, (blk + 1) * kViewBlock);
+      for (int64_t k = blk * kViewBlock; k < k1; ++k) {
+        const int64_t i = pid[k];
+        const S* m = pm + 3 * i;
+        Ewa<S> f;
+        ewa(cm, m, pq + 4 * i, pl + 3 * i, f);
+        const S a = f.a, b = f.b, c = f.c;
+        const S det = a * c - b * b;
+        const S id2 = S(1) / (det * det);
+        const S g0 = gcn[3 * k], g1 = gcn[3 * k + 1], g2 = gcn[3 * k + 2];
+        // conic = (c, -b, a) / det
+        const S ga = (-c * c * g0 + b * c * g1 - b * b * g2) * id2;
+        const S gb = (S(2) * b * c * g0 - (det + S(2) * b * b) * g1 + S(2) * a * b * g2) * id2;
+        const S gc = (-b * b * g0 + a * b * g1 - a * a * g2) * id2;
+        S gM0[3], gM1[3];
+        S* gls = ol + 3 * i;
+        for (int j = 0; j < 3; ++j) {
+          const S gT0 = S(2) * ga * f.T0[j] + gb * f.T1[j];
+          const S gT1 = gb * f.T0[j] + S(2) * gc * f.T1[j];
+          gls[j] = (gT0 * f.M0[j] + gT1 * f.M1[j]) * f.s[j];
+          gM0[j] = gT0 * f.s[j];
+          gM1[j] = gT1 * f.s[j];
+        }
+        const S* Q = f.Rq;
+        S gA0[3], gA1[3], gQ[9];
+        for (int k2 = 0; k2 < 3; ++k2) {
+          gA0[k2] = gM0[0] * Q[3 * k2] + gM0[1] * Q[3 * k2 + 1] + gM0[2] * Q[3 * k2 + 2];
+          gA1[k2] = gM1[0] * Q[3 * k2] + gM1[1] * Q[3 * k2 + 1] + gM1[2] * Q[3 * k2 + 2];
+          for (int j = 0; j < 3; ++j) gQ[3 * k2 + j] = f.A0[k2] * gM0[j] + f.A1[k2] * gM1[j];
+        }
+        // rotation matrix of the normalised quaternion, backward
+        const S w = f.q[0], x = f.q[1], y = f.q[2], z = f.q[3];
+        S gq[4];
+        gq[0] = 2 * (-z * gQ[1] + y * gQ[2] + z * gQ[3] - x * gQ[5] - y * gQ[6] + x * gQ[7]);
+        gq[1] = 2 * (y * gQ[1] + z * gQ[2] + y * gQ[3] - 2 * x * gQ[4] - w * gQ[5] +
+                     z * gQ[6] + w * gQ[7] - 2 * x * gQ[8]);
+        gq[2] = 2 * (-2 * y * gQ[0] + x * gQ[1] + w * gQ[2] + x * gQ[3] + z * gQ[5] -
+                     w * gQ[6] + z * gQ[7] - 2 * y * gQ[8]);
+        gq[3] = 2 * (-2 * z * gQ[0] - w * gQ[1] + x * gQ[2] + w * gQ[3] - 2 * z * gQ[4] +
+                     y * gQ[5] + x * gQ[6] + y * gQ[7]);
+        S* gqo = oq + 4 * i;
+        if (f.qclamp) {  // the clamped norm is a constant
+          for (int j = 0; j < 4; ++j) gqo[j] = gq[j] / f.qn;
+        } else {
+          const S d = f.q[0] * gq[0] + f.q[1] * gq[1] + f.q[2] * gq[2] + f.q[3] * gq[3];
+          for (int j = 0; j < 4; ++j) gqo[j] = (gq[j] - f.q[j] * d) / f.qn;
+        }
+        // A0 = fx rz R0 - fx tx rz^2 R2,  A1 = fy rz R1 - fy ty rz^2 R2
+        const S e0 = gA0[0] * R[0] + gA0[1] * R[1] + gA0[2] * R[2];
+        const S e1 = gA1[0] * R[3] + gA1[1] * R[4] + gA1[2] * R[5];
+        const S h0 = gA0[0] * R[6] + gA0[1] * R[7] + gA0[2] * R[8];
+        const S h1 = gA1[0] * R[6] + gA1[1] * R[7] + gA1[2] * R[8];
+        S g_rz = cm.fx * e0 + cm.fy * e1;
+        const S g_rz2 = -cm.fx * f.tx * h0 - cm.fy * f.ty * h1;
+        const S g_tx = -cm.fx * f.rz2 * h0, g_ty = -cm.fy * f.rz2 * h1;
+        g_rz += S(2) * f.rz * g_rz2;
+        S gx = 0, gy = 0, gz = 0;
+        gz += f.ux * g_tx + f.uy * g_ty;  // t = z * clamp(x / z)
+        if (f.inx) {
+          const S gu = f.z * g_tx;
+          gx += f.rz * gu;
+          g_rz += f.x * gu;
+        }
+        if (f.iny) {
+          const S gv = f.z * g_ty;
+          gy += f.rz * gv;
+          g_rz += f.y * gv;
+        }
+        const S gmx = gm2[2 * k], gmy = gm2[2 * k + 1];
+        gx += cm.fx * f.rz * gmx;
+        g_rz += cm.fx * f.x * gmx;
+        gy += cm.fy * f.rz * gmy;
+        g_rz += cm.fy * f.y * gmy;
+        gz += gdp[k] - f.rz * f.rz * g_rz;
+        S* gmo = om + 3 * i;
+        for (int j = 0; j < 3; ++j) gmo[j] = R[j] * gx + R[3 + j] * gy + R[6 + j] * gz;
+        const S op = S(1) / (S(1) + std::exp(-po[i]));
+        oo[i] = gop[k] * op * (S(1) - op);
+        if (need_viewmat) {
+          const S gp[3] = {gx, gy, gz};
+          for (int r = 0; r < 3; ++r) {
+            for (int j = 0; j < 3; ++j) acc[3 * r + j] += double(gp[r] * m[j]);
+            acc[9 + r] += double(gp[r]);
+          }
+          const S fr = cm.fx * f.rz, fyr = cm.fy * f.rz;
+          const S w0 = -cm.fx * f.tx * f.rz2, w1 = -cm.fy * f.ty * f.rz2;
+          for (int j = 0; j < 3; ++j) {
+            acc[j] += double(fr * gA0[j]);
+            acc[3 + j] += double(fyr * gA1[j]);
+            acc[6 + j] += double(w0 * gA0[j] + w1 * gA1[j]);
+          }
+        }
+      }
+      if (need_viewmat)
+        for (int r = 0; r < 12; ++r) partial[12 * blk + r] = acc[r];
+    }
+    if (need_viewmat) {
+      double tot[12] = {0};
+      for (int64_t blk = 0; blk < n_blocks; ++blk)
+        for (int r = 0; r < 12; ++r) tot[r] += partial[12 * blk + r];
+      S* gv = g_view.data_ptr<S>();
+      for (int r = 0; r < 3; ++r) {
+        for (int j = 0; j < 3; ++j) gv[4 * r + j] = S(tot[3 * r + j]);
+        gv[4 * r + 3] = S(tot[9 + r]);
+      }
+    }
+  }
+}
+
+std::vector<torch::Tensor> project_backward(
+    torch::Tensor means, torch::Tensor quats, torch::Tensor log_scales, torch::Tensor logits,
+    torch::Tensor viewmat, torch::Tensor gids, double fx, double fy, double cx, double cy,
+    int64_t width, int64_t height, double near, double far, double eps2d,
+    torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_depths,
+    torch::Tensor g_opac, bool need_viewmat, int64_t threads) {
+  check_gaussians(means, quats, log_scales, logits, viewmat);
+  const int64_t N = means.size(0), M = gids.size(0);
+  TORCH_CHECK(gids.scalar_type() == torch::kInt64 && gids.is_contiguous(), "ids must be int64");
+  g_means2d = g_means2d.contiguous();
+  g_conics = g_conics.contiguous();
+  g_depths = g_depths.contiguous();
+  g_opac = g_opac.contiguous();
+  TORCH_CHECK(g_means2d.numel() == 2 * M && g_conics.numel() == 3 * M &&
+                  g_depths.numel() == M && g_opac.numel() == M,
+              "gradients must match the projected outputs");
+  for (const auto* g : {&g_means2d, &g_conics, &g_depths, &g_opac})
+    TORCH_CHECK(g->scalar_type() == means.scalar_type(), "gradients must have the inputs' dtype");
+  const int nt = threads > 0 ? int(threads) : at::get_num_threads();
+  auto fopt = means.options();
+  auto g_means = torch::zeros({N, 3}, fopt);
+  auto g_quats = torch::zeros({N, 4}, fopt);
+  auto g_ls = torch::zeros({N, 3}, fopt);
+  auto g_logits = torch::zeros({N}, fopt);
+  auto g_view = torch::zeros({4, 4}, fopt);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+    const auto cm = make_proj_cam<scalar_t>(viewmat, fx, fy, cx, cy, width, height, near,
+                                            far, eps2d);
+    project_backward_impl<scalar_t>(means, quats, log_scales, logits, gids, cm, g_means2d,
+                                     g_conics, g_depths, g_opac, need_viewmat, nt, g_means,
+                                     g_quats, g_ls, g_logits, g_view);
+  });
+  return {g_means, g_quats, g_ls, g_logits, g_view};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -486,4 +946,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_backward", &composite_backward,
         "gradients for means2d, conics, features, opacities");
   m.def("bin_tiles", &bin_tiles, "tile offsets [T + 1] and depth-ordered ids [P]");
+  m.def("project_forward", &project_forward,
+        "EWA projection: ids [M], means2d [M, 2], conics [M, 3], depths, opacities, radii");
+  m.def("project_backward", &project_backward,
+        "gradients for means, quats, log_scales, opacity logits and the viewmat");
 }
