@@ -162,6 +162,28 @@ class ContentExternal(External):
     external_by_content = True
 
 
+class FileSourceConfig(StageConfig):
+    counter: str
+    source_file: str
+
+
+class FileSource(Stage):
+    """Provide the number a file outside the run holds (test stage)."""
+
+    name = "t_file_source"
+    Config = FileSourceConfig
+    provides = ("number",)
+
+    def external_inputs(self) -> list[Path]:
+        return [Path(self.config.source_file)]  # type: ignore[attr-defined]
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        atomic_write_text(ctx.stage_dir / "number.txt", Path(cfg.source_file).read_text())
+        ctx.provide("number", ctx.stage_dir / "number.txt")
+
+
 class TableConfig(StageConfig):
     counter: str
     rows: list[str]
@@ -197,6 +219,7 @@ TEST_STAGES: dict[str, type[Stage]] = {
     "t_external": External,
     "t_external_content": ContentExternal,
     "t_table": Table,
+    "t_file_source": FileSource,
 }
 
 
@@ -729,6 +752,30 @@ def test_a_run_folder_in_use_is_refused_and_left_alone(tmp_path: Path) -> None:
             _run(path, only="t_double")
         assert (run_dir / ".lock").exists()
     assert _calls(tmp_path) == {}
+
+
+def test_only_names_the_stage_that_stopped_the_chain_and_why(tmp_path: Path) -> None:
+    """``--only`` on a stage two steps below one whose input is gone (a model named by a
+    relative path, run from another folder) said only that the stage between "has not
+    finished (an earlier stage has not finished)". It names the stage at the root, the
+    missing file, and --from that stage."""
+    counter = str(tmp_path / "calls.txt")
+    source = tmp_path / "input.txt"
+    source.write_text("5")
+    path = _write_recipe(tmp_path, {
+        "name": "chain", "output": str(tmp_path / "run"),
+        "stages": [{"stage": "t_file_source", "counter": counter, "source_file": str(source)},
+                   {"stage": "t_double", "counter": counter},
+                   {"stage": "t_sink", "counter": counter}]})
+    _run(path)
+    source.unlink()
+    with pytest.raises(RecipeError) as err:
+        _run(path, only="t_sink")
+    message = str(err.value)
+    assert "stage 't_sink' needs the output of stage 't_double'" in message
+    assert f"before it, stage 't_file_source': settings or inputs changed: its input {source} " \
+           "is missing" in message
+    assert message.endswith("run it first, e.g. --from t_file_source")
 
 
 def test_from_reruns_from_stage(tmp_path: Path) -> None:

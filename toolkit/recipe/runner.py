@@ -92,6 +92,7 @@ STARTED_FILE = ".stage.started.json"
 _MARKERS = frozenset({STAGE_FILE, STARTED_FILE})  # the runner's, not a stage's output
 # Why a finished stage reruns when a file of its output was edited in place.
 _CHANGED = "changed since the stage wrote it"
+_UPSTREAM_UNFINISHED = "an earlier stage has not finished"
 RESOLVED_FILE = "recipe.resolved.yaml"
 LOG_FILE = "run.log"
 LOCK_FILE = ".lock"
@@ -398,12 +399,17 @@ class _Run:
         if waiting:
             if selected:
                 upstream = self.records[waiting[0]]
+                root = self.first_unfinished(upstream)
+                # The stage that stopped the chain and why (a recording or model not found
+                # from this folder), not only "an earlier stage has not finished".
+                before = ("" if root is upstream else
+                          f"; before it, stage {root.spec.id!r}: {root.reason}")
                 raise RecipeError(
                     f"{self.option()}: stage {spec.id!r} needs the output of stage "
-                    f"{upstream.spec.id!r}, which has not finished ({upstream.reason}); "
-                    f"run it first, e.g. --from {upstream.spec.id}"
+                    f"{upstream.spec.id!r}, which has not finished ({upstream.reason}"
+                    f"{before}); run it first, e.g. --from {root.spec.id}"
                 )
-            record.status, record.reason = "not run", "an earlier stage has not finished"
+            record.status, record.reason = "not run", _UPSTREAM_UNFINISHED
             return True
         start = time.perf_counter()
         try:
@@ -430,6 +436,10 @@ class _Run:
                 )
             else:
                 record.status = "not run"
+                missing = [p for p in stage.external_inputs() if not Path(p).exists()]
+                if missing:
+                    record.reason += (f": its input {os.path.abspath(missing[0])} is missing "
+                                      "(relative paths are read from the current folder)")
             return True
         if stored is not None and not self.rerun:
             self.reuse(record, stored)
@@ -456,6 +466,16 @@ class _Run:
         self.write_outputs()
         return ok
 
+    def first_unfinished(self, record: _Record) -> _Record:
+        """The earliest unfinished stage up the chain that ``record`` waits on (itself
+        when it is not waiting on another)."""
+        while record.reason == _UPSTREAM_UNFINISHED:
+            waiting = self.waiting_on(record.spec)
+            if not waiting:
+                break
+            record = self.records[waiting[0]]
+        return record
+
     def waiting_on(self, spec: StageSpec) -> list[str]:
         """The stages ``spec`` reads from that have not finished."""
         return [s for s in dict.fromkeys((*spec.sources.values(), *spec.reads))
@@ -475,7 +495,7 @@ class _Run:
             if record.status != "pending":
                 continue
             spec = record.spec
-            record.status, record.reason = "not run", "an earlier stage has not finished"
+            record.status, record.reason = "not run", _UPSTREAM_UNFINISHED
             if self.waiting_on(spec):
                 continue
             try:
