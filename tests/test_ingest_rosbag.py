@@ -1268,6 +1268,13 @@ def test_a_bad_transform_off_the_rigs_path_is_skipped_and_named(tmp_path, caplog
         rec = read_rosbag(bag)
     assert len(rec.scans) == len(c.scan_t)
     assert "no rotation or not finite were skipped map -> odom (1x)" in caplog.text
+    # counted beyond the log too, as skipped odometry messages are
+    assert rec.tf_skipped == {"map -> odom": 1}
+    res = convert(rec, tmp_path / "seq")
+    assert res.metrics()["tf_transforms_skipped_invalid"] == 1
+    assert "tf transforms skipped as no rigid motion: map -> odom (1x)" in res.summary()
+    meta = yaml.safe_load((tmp_path / "seq" / "meta.yaml").read_text())
+    assert meta["ingest"]["tf_skipped_invalid"] == {"map -> odom": 1}
 
 
 def test_driver_faults_name_topic_field_and_fix(tmp_path, caplog):

@@ -58,6 +58,7 @@ class ConvertResult:
     has_groundtruth: bool
     dropped_indexing: dict[str, int] = field(default_factory=dict)
     skipped_invalid: dict[str, dict[str, Any]] = field(default_factory=dict)  # Recording.skipped
+    tf_skipped_invalid: dict[str, int] = field(default_factory=dict)  # Recording.tf_skipped
     depth_pixels_beyond_format: int = 0  # written as invalid (a PNG holds up to 13.107 m)
 
     def metrics(self) -> dict[str, Any]:
@@ -74,6 +75,7 @@ class ConvertResult:
             "scans_resampled": self.scans_resampled,
             "messages_dropped_non_monotonic": sum(self.dropped_indexing.values()),
             "messages_skipped_invalid": sum(r["count"] for r in self.skipped_invalid.values()),
+            "tf_transforms_skipped_invalid": sum(self.tf_skipped_invalid.values()),
             "depth_pixels_beyond_format": self.depth_pixels_beyond_format,
             "convert_s": round(self.seconds, 3),
         }
@@ -113,6 +115,9 @@ class ConvertResult:
             lines.append(f"  odometry messages left out as no pose on {what}: {r['count']} of "
                          f"{r['of']} (first stamps {r['first_stamps_s']} s; gaps not "
                          f"interpolated across: {r['gaps_not_interpolated']})")
+        if self.tf_skipped_invalid:
+            lines.append("  tf transforms skipped as no rigid motion: " + ", ".join(
+                f"{k} ({n}x)" for k, n in self.tf_skipped_invalid.items()))
         lines.append(f"  odometry: {'yes' if self.has_odometry else 'no'}, ground truth: "
                      f"{'yes' if self.has_groundtruth else 'no'}, depth: "
                      f"{'yes' if self.has_depth else 'no'}")
@@ -269,6 +274,7 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "scans_resampled": resampled,
             "dropped_non_monotonic": dict(recording.dropped),
             "skipped_invalid": dict(recording.skipped),
+            "tf_skipped_invalid": dict(recording.tf_skipped),
             "depth_pixels_beyond_format": writer.depth_pixels_beyond_format,
         },
     })
@@ -281,4 +287,5 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         has_groundtruth=recording.groundtruth is not None,
         dropped_indexing=dict(recording.dropped),
         skipped_invalid=dict(recording.skipped),
+        tf_skipped_invalid=dict(recording.tf_skipped),
         depth_pixels_beyond_format=writer.depth_pixels_beyond_format)

@@ -63,6 +63,8 @@ class Recording:
     # Odometry messages left out as no pose (non-finite, zero quaternion): source (topic,
     # "ODOM lines") -> ``skipped_record``'s dict, for meta.yaml, metrics and the report.
     skipped: dict[str, dict[str, Any]] = field(default_factory=dict)
+    # tf transforms that were no rigid motion, skipped: "parent -> child" -> count (bags).
+    tf_skipped: dict[str, int] = field(default_factory=dict)
     scan_dynamic: np.ndarray | None = None  # [S, B] bool (sequence folders only)
     # The scans are made from the depth images (TUM RGB-D's virtual lidar): the depth
     # stream is then the lidar's clock and keeps its stamps when the camera's delay

@@ -217,6 +217,9 @@ def _report(cfg: IngestConfig, rec: Recording, res: ConvertResult) -> str:
             f"{', '.join(f'{t:.3f}' for t in r['first_stamps_s'])} s; longest gap "
             f"{r['longest_gap_s']:.2f} s, {r['gaps_not_interpolated']} not interpolated "
             "across)" for k, r in res.skipped_invalid.items())))
+    if res.tf_skipped_invalid:
+        rows.append(("tf transforms skipped (no rigid motion)", ", ".join(
+            f"{k}: {n}" for k, n in res.tf_skipped_invalid.items())))
     span = [s.stamp for s in rec.scans]
     if span:
         rows.append(("time span", f"{float(np.ptp(span)):.1f} s"))

@@ -1754,7 +1754,8 @@ def _build(paths: list[Path], kind: str, ch: TopicChoice, idx: _Index, opts: Ros
         frame_stamps=frame_stamps, load=loader,
         depth_stamps=np.asarray(dep.stamps, dtype=np.int64) / 1e9 if dep else None,
         odometry=odometry, has_camera=has_camera, meta=meta, dropped=dropped,
-        skipped=skipped)
+        skipped=skipped,
+        tf_skipped={f"{p} -> {c}": n for (p, c), n in sorted(idx.tf.invalid.items())})
 
 
 def _no_frames(pairs: Sequence[tuple[int, int]]) -> Iterator[FrameData]:
