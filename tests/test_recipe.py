@@ -162,20 +162,11 @@ class ContentExternal(External):
     external_by_content = True
 
 
-class FileSourceConfig(StageConfig):
-    counter: str
-    source_file: str
-
-
-class FileSource(Stage):
+class FileSource(External):
     """Provide the number a file outside the run holds (test stage)."""
 
     name = "t_file_source"
-    Config = FileSourceConfig
     provides = ("number",)
-
-    def external_inputs(self) -> list[Path]:
-        return [Path(self.config.source_file)]  # type: ignore[attr-defined]
 
     def run(self, ctx: StageContext) -> None:
         cfg: Any = self.config

@@ -10,9 +10,6 @@ Skips, saying why, where the extension cannot be built.
 
 from __future__ import annotations
 
-import shutil
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 import torch
@@ -22,21 +19,9 @@ from toolkit.splat.model import Gaussians
 from toolkit.splat.rasterize import cpp_ext, render
 from toolkit.splat.rasterize.common import CameraTensors, Projected, project
 
+# one torch thread for every test here (conftest.one_thread)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="module")
-def cpp() -> None:
-    if shutil.which("c++") is None:
-        pytest.skip("no C++ compiler on PATH: the fast rasteriser cannot be built")
-    if cpp_ext.load_extension() is None:
-        pytest.skip(f"C++ rasteriser build failed: {cpp_ext.extension_error()}")
 
 
 def _pose(seed: int) -> np.ndarray:

@@ -7,9 +7,6 @@ is available.
 
 from __future__ import annotations
 
-import shutil
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 import torch
@@ -20,22 +17,9 @@ from toolkit.splat.rasterize import cpp_ext, render, resolve_backend
 from toolkit.splat.rasterize.common import CameraTensors, project
 from toolkit.splat.synthetic import perturbed, room_camera, room_points
 
+# one torch thread for every test here (conftest.one_thread)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    """Tiny images: threads only add OpenMP barriers (and on a busy CI box, long waits)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="module")
-def cpp() -> None:
-    if shutil.which("c++") is None:
-        pytest.skip("no C++ compiler on PATH: the fast rasteriser cannot be built")
-    if cpp_ext.load_extension() is None:
-        pytest.skip(f"C++ rasteriser build failed: {cpp_ext.extension_error()}")
 
 
 def _one_gaussian(dtype: torch.dtype = torch.float64) -> tuple[Gaussians, np.ndarray]:

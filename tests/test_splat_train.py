@@ -28,13 +28,8 @@ from toolkit.splat.trainer import (
 BACKEND = "auto"  # the C++ path when it builds, else the reference: both must train
 
 
-@pytest.fixture(autouse=True)
-def one_thread() -> Iterator[None]:
-    """Tiny images: threads only add OpenMP barriers (and on a busy CI box, long waits)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# one torch thread for every test here (conftest.one_thread)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _views(n: int = 4, width: int = 40, height: int = 30, n_gauss: int = 1500) -> (

@@ -1042,9 +1042,7 @@ class FileDigests:
         entry = self.known.get(str(file))
         if entry is not None and entry[:4] == stamp:
             return str(entry[4])
-        h = hashlib.sha256()
-        _hash_bytes(h, file)
-        digest = h.hexdigest()
+        digest = _file_sha256(file)
         self.known[str(file)] = [*stamp, digest]
         if self.path is not None:
             with contextlib.suppress(OSError):  # a cache: not written, the file is hashed again

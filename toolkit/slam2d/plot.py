@@ -82,10 +82,9 @@ def save_map_png(
     # 28 bytes a cell at its peak (11 GB for 1 km x 1 km at 5 cm), and its nearest-cell
     # sampling dropped thin walls of a map larger than the plot.
     f = max(1, int(np.ceil(max(W / (fig_in[0] * dpi), H / (fig_in[1] * dpi)))))
-    if f == 1:
-        shade = _shade(grid.trinary())  # [H, W] as drawn before pooling existed
-    else:
-        shade = _shade(pooled_map(grid, f))  # [ceil(H/f), ceil(W/f)]
+    # [H, W] as drawn before pooling existed, else [ceil(H/f), ceil(W/f)]
+    codes = grid.trinary() if f == 1 else pooled_map(grid, f)
+    shade = _shade(codes)
     fig, ax = plt.subplots(figsize=fig_in)
     # Resampled as grey values, coloured after: the same pixels with nearest-neighbour
     # sampling, but matplotlib's default for a map larger than the figure colours every
@@ -114,9 +113,6 @@ def save_map_png(
     g = int(np.ceil(max(shade.shape[1] / plot_px[0], shade.shape[0] / plot_px[1])))
     if g > 1 or f > 1:
         if g > 1:  # pooled again, from the figure's pixels to the plot's (a small array)
-            codes = np.full(shade.shape, UNKNOWN, np.uint8)
-            codes[shade == 1.0] = FREE
-            codes[shade == 0.0] = OCCUPIED
             f *= g
             shade = _shade(_pool_codes(codes, g))
             im.set_data(shade)
