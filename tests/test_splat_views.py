@@ -7,13 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-# The tests folder is on sys.path; one_thread: tiny images train faster on one thread.
-from test_splat_train import _start_model, _views, one_thread  # noqa: F401
+# The tests folder is on sys.path.
+from test_splat_train import _start_model, _views
 
 from toolkit.camera import PinholeCamera
 from toolkit.splat.strategy import StrategyConfig
 from toolkit.splat.trainer import TrainConfig, Trainer, TrainView
 from toolkit.splat.views import LazyList, ViewSet, view_bytes
+
+# tiny images train faster on one thread (conftest.one_thread)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _pose(i: int) -> np.ndarray:
