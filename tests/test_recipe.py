@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -203,7 +204,30 @@ class Table(Stage):
                          "read_nan": "nan" in repr(rows)})
 
 
+class AllocConfig(StageConfig):
+    counter: str
+    mib: int = 0
+
+
+class Alloc(Stage):
+    """Hold ``mib`` MiB of touched memory for a moment (test stage)."""
+
+    name = "t_alloc"
+    Config = AllocConfig
+    provides = ("number",)
+
+    def run(self, ctx: StageContext) -> None:
+        cfg: Any = self.config
+        _count(cfg.counter, ctx.stage_id)
+        block = np.ones(cfg.mib * 2**20 // 8)  # [mib MiB / 8] float64, every page written
+        out = ctx.stage_dir / "number.txt"
+        atomic_write_text(out, str(float(block.sum())))
+        del block
+        ctx.provide("number", out)
+
+
 TEST_STAGES: dict[str, type[Stage]] = {
+    "t_alloc": Alloc,
     "t_source": Source,
     "t_double": Double,
     "t_sink": Sink,
@@ -2071,3 +2095,59 @@ def test_per_file_digests_leave_the_output_token_as_it_was(tmp_path: Path) -> No
     single = out / "sub" / "b.bin"
     one = hashlib.sha256(f"b.bin\0{1280000}\0".encode() + files["sub/b.bin"]).hexdigest()
     assert _digest_output(single)[:2] == (one, [[".", 1280000]])
+
+
+def test_each_stage_reports_its_own_peak_memory(tmp_path: Path) -> None:
+    counter = str(tmp_path / "calls.txt")
+    data = {"name": "mem", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "t_alloc", "id": "big", "counter": counter, "mib": 300},
+        {"stage": "t_alloc", "id": "small", "counter": counter, "mib": 0}]}
+    path = _write_recipe(tmp_path, data)
+    assert _run(path).ok
+    markers = {sid: json.loads((tmp_path / "run" / sid / ".stage.json").read_text())
+               for sid in ("big", "small")}
+    big, small = (markers[s]["peak_rss_mib"] for s in ("big", "small"))
+    assert big >= 300  # the 300 MiB block on top of the process's own
+    if markers["small"]["peak_rss_exact"]:  # reset per stage (Linux): its own peak
+        assert small < big - 250
+    else:  # the process's peak so far: never below the stage before
+        assert small >= big
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "| CPU load | peak memory (MiB) |" in report
+    row = next(line for line in report.splitlines() if line.startswith("| big |"))
+    assert row.rstrip(" |").endswith(f"{big:.0f}")
+    # A cached stage shows the figure of the run that computed it.
+    result = _run(path)
+    assert result.statuses == {"big": "cached", "small": "cached"}
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert next(line for line in report.splitlines()
+                if line.startswith("| big |")).rstrip(" |").endswith(f"{big:.0f}")
+    total = next(line for line in report.splitlines() if line.startswith("| total |"))
+    assert total.rstrip(" |").endswith(f"{big:.0f}")
+
+
+def test_peak_memory_without_a_per_stage_reset_is_an_upper_bound(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from toolkit.recipe import memory
+    # As on an OS or kernel without /proc/self/clear_refs: the process's peak so far.
+    monkeypatch.setattr(memory, "_CLEAR_REFS", tmp_path / "no" / "clear_refs")
+    counter = str(tmp_path / "calls.txt")
+    data = {"name": "mem", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "t_alloc", "id": "big", "counter": counter, "mib": 200},
+        {"stage": "t_alloc", "id": "small", "counter": counter, "mib": 0}]}
+    assert _run(_write_recipe(tmp_path, data)).ok
+    small = json.loads((tmp_path / "run" / "small" / ".stage.json").read_text())
+    assert small["peak_rss_exact"] is False and small["peak_rss_mib"] >= 200
+    report = (tmp_path / "run" / "report.md").read_text()
+    row = next(line for line in report.splitlines() if line.startswith("| small |"))
+    assert row.rstrip(" |").endswith(f"<= {small['peak_rss_mib']:.0f}")
+    # A marker from before the peak was recorded: the column stays empty, nothing fails.
+    for sid in ("big", "small"):
+        marker = tmp_path / "run" / sid / ".stage.json"
+        old = json.loads(marker.read_text())
+        del old["peak_rss_mib"], old["peak_rss_exact"]
+        marker.write_text(json.dumps(old))
+    assert _run(_write_recipe(tmp_path, data)).statuses == {"big": "cached", "small": "cached"}
+    row = next(line for line in (tmp_path / "run" / "report.md").read_text().splitlines()
+               if line.startswith("| small |"))
+    assert row.endswith("|  |")

@@ -14,6 +14,7 @@ from typing import Any
 from rich.table import Table
 
 from toolkit.io.atomic import atomic_write_json, atomic_write_text
+from toolkit.recipe.memory import PeakMemory
 
 REPORT_FILE = "report.md"
 METRICS_FILE = "metrics.json"
@@ -28,6 +29,7 @@ class StageSummary:
     status: str  # ran | cached | failed | pending | not run
     seconds: float | None = None
     cpu_seconds: float | None = None
+    peak: PeakMemory | None = None
     markdown: str = ""
     # Not run this time, but its folder holds an earlier run's files (of other settings or
     # inputs): the report says so, lest they be taken for this run's.
@@ -49,18 +51,28 @@ def _load(s: StageSummary) -> str:
     return f"{100.0 * s.cpu_seconds / s.seconds:.0f} %"
 
 
-def timing_rows(stages: Sequence[StageSummary]) -> list[tuple[str, str, str, str, str]]:
-    """(stage, status, seconds, CPU seconds, CPU load) rows, with a total over the stages
-    that have a time. CPU load is CPU time over wall time (100 % = one core busy)."""
-    rows = [(s.id, s.status, _seconds(s.seconds), _seconds(s.cpu_seconds), _load(s))
-            for s in stages]
+def _peak(peak: PeakMemory | None) -> str:
+    if peak is None:
+        return ""
+    # Not reset at the stage's start: the process's peak so far, an upper bound.
+    return f"{peak.mib:.0f}" if peak.exact else f"<= {peak.mib:.0f}"
+
+
+def timing_rows(stages: Sequence[StageSummary]) -> list[tuple[str, str, str, str, str, str]]:
+    """(stage, status, seconds, CPU seconds, CPU load, peak memory MiB) rows, with a total
+    over the stages that have a time (its peak: the largest). CPU load is CPU time over
+    wall time (100 % = one core busy)."""
+    rows = [(s.id, s.status, _seconds(s.seconds), _seconds(s.cpu_seconds), _load(s),
+             _peak(s.peak)) for s in stages]
     timed = [s for s in stages if s.seconds is not None]
     total = sum(s.seconds for s in timed)  # type: ignore[misc]
     with_cpu = [s for s in timed if s.cpu_seconds is not None]
     cpu = sum(s.cpu_seconds for s in with_cpu) if with_cpu else None  # type: ignore[misc]
     wall_cpu = sum(s.seconds for s in with_cpu)  # type: ignore[misc]
     load = StageSummary("", "", "", wall_cpu, cpu)
-    rows.append(("total", "", _seconds(total), _seconds(cpu), _load(load)))
+    peaks = [s.peak for s in stages if s.peak is not None]
+    top = max(peaks, key=lambda p: p.mib) if peaks else None
+    rows.append(("total", "", _seconds(total), _seconds(cpu), _load(load), _peak(top)))
     return rows
 
 
@@ -80,11 +92,14 @@ def build_report(
     for stage in stages:
         if stage.status in ("ran", "cached") and stage.markdown.strip():
             parts.append(f"## {stage_heading(stage.id, stage.type)}\n\n{stage.markdown.strip()}")
-    table = ["| stage | status | seconds | CPU seconds | CPU load |", "|---|---|---:|---:|---:|"]
+    table = ["| stage | status | seconds | CPU seconds | CPU load | peak memory (MiB) |",
+             "|---|---|---:|---:|---:|---:|"]
     table += ["| " + " | ".join(row) + " |" for row in timing_rows(stages)]
     timing = "## Timing\n\n" + "\n".join(table)
     timing += ("\n\nCached stages show the time of the run that computed them. CPU load = "
-               "CPU time / wall time, 100 % = one core.")
+               "CPU time / wall time, 100 % = one core. Peak memory: the process's "
+               "largest resident set while the stage ran (MiB = 2^20 bytes; \"<=\": "
+               "the peak since the run started, where it could not be reset per stage).")
     parts.append(timing)
     if error:
         parts.append(f"**Failed:** {error} (details in run.log)")
@@ -120,10 +135,12 @@ def timing_table(stages: Sequence[StageSummary], title: str = "Timing") -> Table
     table.add_column("seconds", justify="right")
     table.add_column("CPU s", justify="right")
     table.add_column("CPU load", justify="right")
+    table.add_column("peak MiB", justify="right")
     rows = timing_rows(stages)
-    for index, (stage, status, seconds, cpu, load) in enumerate(rows):
+    for index, (stage, status, seconds, cpu, load, peak) in enumerate(rows):
         if index == len(rows) - 1:
             table.add_section()
         style = _STYLES.get(status, "")
-        table.add_row(stage, f"[{style}]{status}[/]" if style else status, seconds, cpu, load)
+        table.add_row(stage, f"[{style}]{status}[/]" if style else status, seconds, cpu, load,
+                      peak)
     return table

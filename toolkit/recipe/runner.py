@@ -64,6 +64,7 @@ from toolkit.io.atomic import (
     to_jsonable,
 )
 from toolkit.recipe import registry, report
+from toolkit.recipe.memory import PeakMemory, StagePeak
 from toolkit.recipe.schema import (
     Recipe,
     RecipeError,
@@ -151,6 +152,7 @@ class _Record:
     output_tokens: dict[str, str] = field(default_factory=dict)  # digest of each output
     seconds: float | None = None
     cpu_seconds: float | None = None
+    peak: PeakMemory | None = None  # the stage's peak resident memory
     metrics: dict[str, Any] = field(default_factory=dict)
     report: list[str] = field(default_factory=list)
     provides: dict[str, Path] = field(default_factory=dict)
@@ -169,6 +171,7 @@ class _Record:
             status=self.status,
             seconds=self.seconds,
             cpu_seconds=self.cpu_seconds,
+            peak=self.peak,
             markdown="\n\n".join(self.report),
             stale_files=self.status == "not run" and folder is not None and folder.is_dir()
             # Hidden names are the runner's bookkeeping (a run killed as the stage started).
@@ -519,6 +522,7 @@ class _Run:
                                 (stored.get("output_tokens") or {}).items()}
         record.seconds = stored.get("seconds")
         record.cpu_seconds = stored.get("cpu_seconds")
+        record.peak = _stored_peak(stored)
         record.metrics = dict(stored.get("metrics") or {})
         text = stored.get("report") or ""
         record.report = [text] if text else []
@@ -600,6 +604,8 @@ class _Run:
         ctx = _Context(self, record)
         start = time.perf_counter()
         cpu_start = _cpu_seconds()
+        record.peak = None
+        peak = StagePeak()
         try:
             stage.run(ctx)
             ctx.check_provided()
@@ -608,6 +614,7 @@ class _Run:
             remove_temps_under(stage_dir)
             record.seconds = time.perf_counter() - start
             record.cpu_seconds = _cpu_seconds() - cpu_start
+            record.peak = peak.finish()
             record.token = uuid.uuid4().hex
             record.output_tokens = {}
             marker = {
@@ -621,15 +628,19 @@ class _Run:
                 "report": "\n\n".join(record.report),
                 "seconds": record.seconds,
                 "cpu_seconds": record.cpu_seconds,
+                **_peak_fields(record.peak),
                 "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
                 "manifest": {n: _manifest(p) for n, p in record.provides.items()},
             }
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
         except Exception as exc:
+            # What it reached before failing: a stage that ran out of memory says so.
+            record.peak = peak.finish()
             self.fail(record, exc, start)
             self.restore_previous(record, exc)
             return False
         except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
+            record.peak = peak.finish()
             self.fail(record, KeyboardInterrupt("interrupted"), start)
             self.settle_pending()
             self.write_outputs()
@@ -951,6 +962,20 @@ def _speed_values(spec: StageSpec) -> dict[str, Any]:
     """The stage's speed settings as this recipe gives them (plain data)."""
     data = config_data(spec.config)
     return {k: data.get(k) for k in sorted(spec.cls.speed_settings)}
+
+
+def _peak_fields(peak: PeakMemory | None) -> dict[str, Any]:
+    if peak is None:
+        return {}
+    return {"peak_rss_mib": round(peak.mib, 1), "peak_rss_exact": peak.exact}
+
+
+def _stored_peak(stored: Mapping[str, Any]) -> PeakMemory | None:
+    # Markers written before the peak was recorded have none.
+    mib = stored.get("peak_rss_mib")
+    if not isinstance(mib, int | float) or isinstance(mib, bool):
+        return None
+    return PeakMemory(float(mib), bool(stored.get("peak_rss_exact", False)))
 
 
 def _cpu_seconds() -> float:
