@@ -17,7 +17,7 @@ from toolkit.eval.relations import (
     select_relations,
 )
 from toolkit.geometry import Trajectory, se2_to_se3
-from toolkit.io.carmen import CarmenFormatError, read_carmen, read_g2o
+from toolkit.io.carmen import CarmenFormatError, CarmenLog, read_carmen, read_g2o
 from toolkit.io.occupancy import OccupancyMap, read_occupancy, write_occupancy
 
 
@@ -107,6 +107,16 @@ def test_a_non_finite_pose_is_a_line_error(tmp_path: Path):
     log = read_carmen(path)
     assert len(log.scans) == 2 and np.isnan(log.scan_odometry[1, 0])
     assert np.isinf(log.odom_poses[0, 1])
+    # ROBOTLASER1's robot pose is that odometry too; its line gives no laser mount, the
+    # others do. Its laser pose stays a line error, as FLASER's.
+    path.write_text(ROBOTLASER + ROBOTLASER.replace("0.5 1.0 0.0 0.5", "0.5 nan 0.0 0.5"))
+    log = read_carmen(path)
+    assert len(log.scans) == 2 and log.scan_lines == ["ROBOTLASER1"] * 2
+    assert np.isnan(log.scan_odometry[1, 0]) and np.isfinite(log.T_base_laser).all()
+    assert np.allclose(log.T_base_laser, read_carmen_text(tmp_path, ROBOTLASER).T_base_laser)
+    path.write_text(ROBOTLASER.replace("1.17551651", "nan"))
+    with pytest.raises(CarmenFormatError, match=r"nan.log:1: bad ROBOTLASER1 line: laser pose"):
+        read_carmen(path)
     path = tmp_path / "nan.g2o"
     path.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 nan 0 0\n")
     with pytest.raises(CarmenFormatError, match=r"nan.g2o:2: bad VERTEX_SE2 line: vertex pose"):
@@ -115,6 +125,12 @@ def test_a_non_finite_pose_is_a_line_error(tmp_path: Path):
     path = tmp_path / "ok.log"
     path.write_text(ROBOTLASER)
     assert np.isnan(read_carmen(path).scans[0].ranges).any()
+
+
+def read_carmen_text(folder: Path, text: str) -> CarmenLog:
+    path = folder / "one.log"
+    path.write_text(text)
+    return read_carmen(path)
 
 
 @pytest.mark.parametrize("reader", [read_carmen, read_g2o])
