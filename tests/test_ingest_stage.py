@@ -502,3 +502,6 @@ def test_skipped_odometry_reaches_the_stage_metrics_and_report(tmp_path, kind):
     assert "| odometry messages left out as no pose | scan lines' odometry: 2 of 50 (first " \
            "stamps 1004.000, 1004.200 s; longest gap 0.60 s, 0 not interpolated across) |" \
         in report
+    (meta_file,) = res.run_dir.glob("**/meta.yaml")
+    skipped = yaml.safe_load(meta_file.read_text())["ingest"]["skipped_invalid"]
+    assert skipped["scan lines' odometry"]["count"] == 2
