@@ -255,12 +255,13 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
     T_base_laser = np.eye(4)
     if laser_offsets:
         T_base_laser = _median_offset(laser_offsets)
-    elif "ROBOTLASER1" in kinds:
-        log.warning("%s: no ROBOTLASER1 line has a finite robot pose, so the laser's mount "
-                    "is not known from them: taken from PARAM robot_frontlaser_offset, or "
-                    "the robot's origin", path)
-    elif "robot_frontlaser_offset" in params:
-        T_base_laser[0, 3] = float(params["robot_frontlaser_offset"])
+    else:
+        if "ROBOTLASER1" in kinds:
+            log.warning("%s: no ROBOTLASER1 line has a finite robot pose, so the laser's "
+                        "mount is not known from them: taken from PARAM "
+                        "robot_frontlaser_offset, or the robot's origin", path)
+        if "robot_frontlaser_offset" in params:
+            T_base_laser[0, 3] = float(params["robot_frontlaser_offset"])
     return CarmenLog(
         path=path,
         scans=scans,
