@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
               "output_tokens": {n: o[0] for n, o in outputs.items()},
               "manifest": {n: o[1] for n, o in outputs.items()},
               "manifest_digests": {n: o[2] for n, o in outputs.items()}}
-    runner.atomic_write_json(src / runner.STAGE_FILE, marker, fsync=True)
+    runner.atomic_write_json(src / runner.STAGE_FILE, marker, fsync=True, compact=True)
     result["files"] = sum(len(o[1]) for o in outputs.values())  # hidden files left out
     result["finish_seconds"] = round(time.perf_counter() - t0, 3)
     result["finish_rss_growth_mib"] = round(_rss_mib() - rss, 1)

@@ -3,6 +3,7 @@ at fixed poses, and the saved model's round trip."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -82,6 +83,12 @@ def test_sfm_registers_images_and_aligns_to_the_true_path(scene: dict, sfm: SfMR
     assert back.names == sfm.names and frame_back == frame_of and stamp_back == stamps
     np.testing.assert_allclose(back.poses, sfm.poses, atol=1e-9)
     assert back.points == sfm.points
+    # ... and the mapper that made the model; a model saved before it was recorded: None.
+    assert sfm.mapper == "incremental" and back.mapper == "incremental"
+    summary = scene["root"] / "saved" / "summary.json"
+    old = {k: v for k, v in json.loads(summary.read_text()).items() if k != "mapper"}
+    summary.write_text(json.dumps(old))
+    assert load_sfm(scene["root"] / "saved")[0].mapper is None
 
 
 def test_triangulation_at_fixed_poses_checks_poses_and_intrinsics(scene: dict) -> None:

@@ -508,6 +508,33 @@ def test_camera_only_runs_colmap_itself_without_a_colmap_stage(tmp_path: Path) -
     assert not (tmp_path / "run/camera_only/database.json").exists()  # not an interrupted run's
 
 
+def test_camera_only_records_the_mapper_of_the_model_it_reuses(tmp_path: Path) -> None:
+    """camera_only reusing the colmap stage's model reported no mapper; its own key says
+    nothing then (the colmap stage's applies). A change of the colmap stage's mapper reruns
+    camera_only (the colmap output's token is drawn on each run) and the record follows."""
+    base = [{"stage": "t_room", "frames": 8, "width": 320, "height": 240}, {"stage": "t_depth"}]
+    colmap = {"stage": "colmap", "overlap": 4, "max_features": 1024, "triangulate": False,
+              "export": False}
+    # mapper: global on camera_only is not what made the reused model
+    only = {"stage": "camera_only", "geometry": False, "eval_frames": 4, "mapper": "global"}
+    res = _run(tmp_path, [*base, colmap, only])
+    assert res.ok, res.error
+    o = res.metrics["camera_only"]
+    assert o["colmap_reused"] and o["mapper"] == res.metrics["colmap"]["mapper"] == "incremental"
+    report = (tmp_path / "run/report.md").read_text()
+    assert "COLMAP poses (incremental mapping, reused from the colmap stage)" in report
+    res = _run(tmp_path, [*base, {**colmap, "mapper": "global"}, only])
+    assert res.ok, res.error
+    assert res.statuses["colmap"] == res.statuses["camera_only"] == "ran"
+    assert res.metrics["camera_only"]["mapper"] == res.metrics["colmap"]["mapper"] == "global"
+    # run alone, camera_only's model is its own mapper's
+    res = _run(tmp_path, [*base, {**only, "reuse_colmap": False, "overlap": 4,
+                                  "max_features": 1024, "mapper": "incremental"}])
+    assert res.ok, res.error
+    o = res.metrics["camera_only"]
+    assert not o["colmap_reused"] and o["mapper"] == "incremental"
+
+
 def test_camera_only_in_colmaps_unit_does_not_report_a_scale_error(tmp_path: Path) -> None:
     """Scaled by SfM points, the map is in COLMAP's unit, which the mapper sets from the
     camera path's extent (~10 units): the same room gave 12.4x, 7.9x and 6.9x the truth's

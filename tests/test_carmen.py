@@ -17,7 +17,7 @@ from toolkit.eval.relations import (
     select_relations,
 )
 from toolkit.geometry import Trajectory, se2_to_se3
-from toolkit.io.carmen import CarmenFormatError, read_carmen, read_g2o
+from toolkit.io.carmen import CarmenFormatError, CarmenLog, read_carmen, read_g2o
 from toolkit.io.occupancy import OccupancyMap, read_occupancy, write_occupancy
 
 
@@ -91,7 +91,7 @@ def test_scan_without_beams_is_a_line_error(tmp_path: Path):
         read_carmen(path)
 
 
-def test_a_non_finite_pose_is_a_line_error(tmp_path: Path):
+def test_a_non_finite_pose_is_a_line_error(tmp_path: Path, caplog: pytest.LogCaptureFixture):
     """Python reads 'nan' as a number: a log's NaN odometry went into odometry.tum, and the
     converted sequence was refused by the next stage, naming that file, not the log line."""
     path = tmp_path / "nan.log"
@@ -107,6 +107,22 @@ def test_a_non_finite_pose_is_a_line_error(tmp_path: Path):
     log = read_carmen(path)
     assert len(log.scans) == 2 and np.isnan(log.scan_odometry[1, 0])
     assert np.isinf(log.odom_poses[0, 1])
+    # ROBOTLASER1's robot pose is that odometry too; its line gives no laser mount, the
+    # others do. Its laser pose stays a line error, as FLASER's.
+    path.write_text(ROBOTLASER + ROBOTLASER.replace("0.5 1.0 0.0 0.5", "0.5 nan 0.0 0.5"))
+    log = read_carmen(path)
+    assert len(log.scans) == 2 and log.scan_lines == ["ROBOTLASER1"] * 2
+    assert np.isnan(log.scan_odometry[1, 0]) and np.isfinite(log.T_base_laser).all()
+    assert np.allclose(log.T_base_laser, read_carmen_text(tmp_path, ROBOTLASER).T_base_laser)
+    # None has one: the mount from PARAM (or none), with a warning.
+    path.write_text("PARAM robot_frontlaser_offset 0.2 nohost 0\n"
+                    + ROBOTLASER.replace("0.5 1.0 0.0 0.5", "0.5 nan 0.0 0.5"))
+    with caplog.at_level("WARNING"):
+        assert read_carmen(path).T_base_laser[0, 3] == pytest.approx(0.2)
+    assert "no ROBOTLASER1 line has a finite robot pose" in caplog.text
+    path.write_text(ROBOTLASER.replace("1.17551651", "nan"))
+    with pytest.raises(CarmenFormatError, match=r"nan.log:1: bad ROBOTLASER1 line: laser pose"):
+        read_carmen(path)
     path = tmp_path / "nan.g2o"
     path.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 nan 0 0\n")
     with pytest.raises(CarmenFormatError, match=r"nan.g2o:2: bad VERTEX_SE2 line: vertex pose"):
@@ -115,6 +131,12 @@ def test_a_non_finite_pose_is_a_line_error(tmp_path: Path):
     path = tmp_path / "ok.log"
     path.write_text(ROBOTLASER)
     assert np.isnan(read_carmen(path).scans[0].ranges).any()
+
+
+def read_carmen_text(folder: Path, text: str) -> CarmenLog:
+    path = folder / "one.log"
+    path.write_text(text)
+    return read_carmen(path)
 
 
 @pytest.mark.parametrize("reader", [read_carmen, read_g2o])

@@ -436,46 +436,65 @@ def test_a_dropped_carmen_line_is_one_dropped_message(tmp_path):
     assert len(seq.scans) == 7 and len(seq.groundtruth.poses_base) == 7
 
 
-def _flaser_log_with_bad_odometry(path: Path, n: int, bad: set[int]) -> list[float]:
-    """A raw CARMEN log of ``n`` FLASER lines (and ODOM lines), 0.2 s apart, whose
-    odometry fields are NaN on lines ``bad``; returns the stamps."""
+def _flaser_log_with_bad_odometry(path: Path, n: int, bad: set[int],
+                                  kind: str = "FLASER") -> list[float]:
+    """A raw CARMEN log of ``n`` ``kind`` (FLASER or ROBOTLASER1) lines and ODOM lines,
+    0.2 s apart, whose odometry fields (ROBOTLASER1: robot pose) are NaN on lines ``bad``;
+    the laser is mounted 0.1 m ahead. Returns the stamps."""
     lines, stamps = [], []
     ranges = " ".join(["2.0"] * 181)
     for i in range(n):
         t = 1000.0 + 0.2 * i
         stamps.append(t)
         odom = "nan 0 0" if i in bad else f"{0.1 * i:g} 0 0"
+        laser = f"{0.1 * i + 0.1:g} 0 0"
         lines.append(f"ODOM {odom} 0 0 0 {t - 0.05!r} host {t - 0.05!r}")
-        lines.append(f"FLASER 181 {ranges} {0.1 * i + 0.1:g} 0 0 {odom} {t!r} host {t!r}")
+        if kind == "FLASER":
+            lines.append(f"FLASER 181 {ranges} {laser} {odom} {t!r} host {t!r}")
+        else:  # 181 beams over 180 deg, no remissions; tv rv safety margins turn axis
+            lines.append(f"ROBOTLASER1 0 -1.5707963 3.1415927 0.017453293 50.0 0.01 0 181 "
+                         f"{ranges} 0 {laser} {odom} 0 0 0.5 0.2 0.3 {t!r} host {t!r}")
     path.write_text("\n".join(lines) + "\n")
     return stamps
 
 
-def test_a_carmen_log_with_one_bad_odometry_reading_is_kept(tmp_path, caplog):
+@pytest.mark.parametrize("kind", ["FLASER", "ROBOTLASER1"])
+def test_a_carmen_log_with_one_bad_odometry_reading_is_kept(tmp_path, caplog, kind):
     """A NaN odometry pose on one line of 50 refused the whole log (a line error); the
-    reading is left out and counted, the scan kept, as a bag's odometry message is."""
+    reading is left out and counted, the scan kept, as a bag's odometry message is.
+    ROBOTLASER1 lines (their robot pose) were refused so until 2026-11-28, after FLASER's."""
     log = tmp_path / "intel.log"
-    stamps = _flaser_log_with_bad_odometry(log, 50, {20})
+    stamps = _flaser_log_with_bad_odometry(log, 50, {20}, kind)
     with caplog.at_level("WARNING"):
         rec = read_carmen_recording(log)
     assert len(rec.scans) == 50 and len(rec.odometry) == 49
+    assert stamps[20] not in rec.odometry.stamps.tolist()
     assert rec.skipped["scan lines' odometry"]["count"] == 1
     assert rec.skipped["scan lines' odometry"]["first_stamps_s"] == [stamps[20]]
+    field = "robot_x robot_y robot_theta" if kind == "ROBOTLASER1" else "odom_x odom_y"
+    assert field in rec.skipped["scan lines' odometry"]["first_reason"]
     assert "scan lines' odometry: 1 of 50 messages left out as no pose" in caplog.text
+    if kind == "ROBOTLASER1":  # the mount from the other lines' laser and robot poses
+        assert np.allclose(rec.rig.T_base_laser[:3, 3], [0.1, 0, 0])
     rec = read_carmen_recording(log, CarmenOptions(odometry="odom_lines"))
     assert len(rec.odometry) == 49 and rec.skipped["ODOM lines"]["of"] == 50
     # all bad: refused, naming the fix
     log = tmp_path / "broken.log"
-    _flaser_log_with_bad_odometry(log, 50, set(range(50)))
+    _flaser_log_with_bad_odometry(log, 50, set(range(50)), kind)
     with pytest.raises(IngestError, match=r"scan lines' odometry: 50 of 50 messages are no "
                                           r"pose.*only 0 remain.*carmen.odometry: none"):
         read_carmen_recording(log)
     assert read_carmen_recording(log, CarmenOptions(odometry="none")).odometry is None
+    # exactly half valid: kept, as the rule says
+    log = tmp_path / "half.log"
+    _flaser_log_with_bad_odometry(log, 50, set(range(0, 50, 2)), kind)
+    assert len(read_carmen_recording(log).odometry) == 25
 
 
-def test_skipped_odometry_reaches_the_stage_metrics_and_report(tmp_path):
+@pytest.mark.parametrize("kind", ["FLASER", "ROBOTLASER1"])
+def test_skipped_odometry_reaches_the_stage_metrics_and_report(tmp_path, kind):
     log = tmp_path / "intel.log"
-    _flaser_log_with_bad_odometry(log, 50, {20, 21})
+    _flaser_log_with_bad_odometry(log, 50, {20, 21}, kind)
     res = run_recipe(load_recipe(recipe(tmp_path, source="carmen", path=str(log))))
     assert res.ok, res.error
     assert res.metrics["ingest"]["messages_skipped_invalid"] == 2
@@ -483,3 +502,6 @@ def test_skipped_odometry_reaches_the_stage_metrics_and_report(tmp_path):
     assert "| odometry messages left out as no pose | scan lines' odometry: 2 of 50 (first " \
            "stamps 1004.000, 1004.200 s; longest gap 0.60 s, 0 not interpolated across) |" \
         in report
+    (meta_file,) = res.run_dir.glob("**/meta.yaml")
+    skipped = yaml.safe_load(meta_file.read_text())["ingest"]["skipped_invalid"]
+    assert skipped["scan lines' odometry"]["count"] == 2

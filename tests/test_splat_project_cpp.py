@@ -35,15 +35,10 @@ def _pose(seed: int) -> np.ndarray:
     return T
 
 
-def _scene(n: int, seed: int, dtype: torch.dtype, overflow: bool = True) -> tuple[
+def _scene(n: int, seed: int, dtype: torch.dtype) -> tuple[
     list[torch.Tensor], np.ndarray
 ]:
-    """[means, quats, log_scales, opacity_logits, sh] in world coordinates of ``_pose``.
-
-    ``overflow``: include scales whose exp overflows (culled by both; the PyTorch
-    backward gives them NaN gradients, which spread through the viewmat's, so the
-    gradient tests leave them out).
-    """
+    """[means, quats, log_scales, opacity_logits, sh] in world coordinates of ``_pose``."""
     g = torch.Generator().manual_seed(seed)
     T = _pose(seed)
     # Camera-frame points: most in front, some behind the camera or the near plane, some
@@ -65,8 +60,7 @@ def _scene(n: int, seed: int, dtype: torch.dtype, overflow: bool = True) -> tupl
     log_scales[kind == 0, 0] = -20.0  # flat: a degenerate 3D covariance, kept by eps2d
     log_scales[kind == 1] = -25.0  # a point
     log_scales[kind == 2, 1] = 3.0  # huge footprint
-    if overflow:
-        log_scales[kind == 3, 2] = 400.0  # exp overflows to inf (float64 too): culled
+    log_scales[kind == 3, 2] = 400.0  # exp overflows in float32, a and c in float64: culled
     logits = torch.randn(n, dtype=torch.float64, generator=g) * 3.0
     logits[kind == 4] = float(np.log(0.5 / 255))  # opacity under 1/255
     sh = torch.randn(n, 4, 3, dtype=torch.float64, generator=g) * 0.3
@@ -77,10 +71,10 @@ def _scene(n: int, seed: int, dtype: torch.dtype, overflow: bool = True) -> tupl
 CAM = PinholeCamera(64, 48, 50.0, 52.0, 31.2, 23.9)
 
 
-def _both(dtype: torch.dtype, seed: int, n: int = 3000, overflow: bool = True) -> tuple[
+def _both(dtype: torch.dtype, seed: int, n: int = 3000) -> tuple[
     Projected, Projected, list[torch.Tensor], torch.Tensor
 ]:
-    params, T = _scene(n, seed, dtype, overflow)
+    params, T = _scene(n, seed, dtype)
     viewmat = torch.as_tensor(T, dtype=dtype).requires_grad_(True)
     ct = CameraTensors.of(CAM, viewmat, dtype)
     ref = project(*params, ct, 1)
@@ -180,9 +174,56 @@ def test_culling_cases(cpp: None) -> None:
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_overflowing_scales_get_zero_gradients(cpp: None, dtype: torch.dtype) -> None:
+    """Gaussians whose scale overflows are culled and change no gradient, in both paths.
+
+    Known answer: the scene's gradients equal those of the same scene without them, and
+    theirs are 0. Two kinds: exp(log_scale) itself overflows (100 in float32, 800 in
+    float64), and a finite scale whose row of J W_R R_q S overflows (88, 708: |J W_R| is
+    about fx / z = 15 here). PyTorch gave NaN for both, spread to the viewmat's gradient.
+    """
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5)
+    big_exp, big_row = (100.0, 88.0) if dtype == torch.float32 else (800.0, 708.0)
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.05, 2.0], [0.2, -0.1, 2.5],
+                          [-0.1, 0.1, 2.0], [0.05, 0.0, 3.0]], dtype=dtype)  # [5, 3]
+    n = len(means)
+    quats = torch.tensor([[1.0, 0.1, -0.2, 0.05]] * n, dtype=dtype)
+    log_s = torch.full((n, 3), float(np.log(0.05)), dtype=dtype)
+    log_s[1, 0] = big_exp
+    log_s[3, 1] = big_row
+    logit = torch.zeros(n, dtype=dtype)
+    sh = torch.full((n, 1, 3), 0.2, dtype=dtype)
+    bad = torch.tensor([1, 3])
+    good = torch.tensor([0, 2, 4])
+    pose = _pose(7)
+    pose[:3, 3] = 0.0  # the Gaussians stay in view
+
+    def grads(fn, rows: torch.Tensor) -> list[torch.Tensor]:
+        params = [x[rows].clone().requires_grad_(True) for x in (means, quats, log_s, logit, sh)]
+        viewmat = torch.as_tensor(pose, dtype=dtype).requires_grad_(True)
+        out = fn(*params, CameraTensors.of(cam, viewmat, dtype), 0)
+        loss = sum((x * (1.0 + torch.arange(x.numel(), dtype=dtype).reshape(x.shape))).sum()
+                   for x in _outputs(out))
+        return list(torch.autograd.grad(loss, [*params[:4], viewmat]))
+
+    for fn in (project, cpp_ext.project_cpp):
+        with_bad = grads(fn, torch.arange(n))
+        without = grads(fn, good)
+        for name, a, b in zip(["means", "quats", "log_scales", "logits", "viewmat"],
+                              with_bad, without, strict=True):
+            assert bool(torch.isfinite(a).all()), (fn.__name__, name)
+            if name == "viewmat":
+                assert float(a.abs().max()) > 0
+                assert torch.allclose(a, b, rtol=1e-5, atol=0), (fn.__name__, name)
+            else:
+                assert bool((a[bad] == 0).all()), (fn.__name__, name)
+                assert torch.allclose(a[good], b, rtol=1e-5, atol=0), (fn.__name__, name)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("seed", [0, 3])
 def test_gradients_match_autograd(cpp: None, dtype: torch.dtype, seed: int) -> None:
-    ref, new, params, viewmat = _both(dtype, seed, overflow=False)
+    ref, new, params, viewmat = _both(dtype, seed)
     assert torch.equal(new.gaussian_ids, ref.gaussian_ids)
     g = torch.Generator().manual_seed(100 + seed)
     weights = [torch.randn(x.shape, generator=g, dtype=torch.float64).to(dtype)
@@ -218,7 +259,7 @@ def test_viewmat_gradient_is_deterministic(cpp: None) -> None:
     try:
         for threads in (1, 2, 3):
             cpp_ext.set_threads(threads)
-            _, new, params, viewmat = _both(torch.float32, 4, 5000, overflow=False)
+            _, new, params, viewmat = _both(torch.float32, 4, 5000)
             loss = sum(x.sum() for x in _outputs(new))
             out.append(torch.autograd.grad(loss, [*params[:4], viewmat]))
     finally:
@@ -230,7 +271,7 @@ def test_viewmat_gradient_is_deterministic(cpp: None) -> None:
 
 def test_render_matches_torch_backend(cpp: None) -> None:
     """End to end: image and every gradient (pose included) against the PyTorch backend."""
-    params, T = _scene(3000, 5, torch.float64, overflow=False)
+    params, T = _scene(3000, 5, torch.float64)
     viewmat = torch.as_tensor(T).requires_grad_(True)
     gs = Gaussians(*params)
     results = []

@@ -78,6 +78,8 @@ class SfMResult:
     reprojection_error_px: float
     mean_track_length: float
     seconds: dict[str, float] = field(default_factory=dict)
+    # "incremental" / "global"; None: a model saved before save_sfm recorded it (2026-11-28)
+    mapper: str | None = None
 
     @property
     def registered(self) -> int:
@@ -307,7 +309,7 @@ def run_sfm(
     seconds["mapping"] = time.perf_counter() - t0
     if not models:
         return SfMResult(None, [], np.zeros((0, 4, 4)), None, len(names), 0, 0, float("nan"),
-                         0.0, seconds)
+                         0.0, seconds, settings.mapper)
     rec = max(models.values(), key=lambda r: r.num_reg_images())
     order = {n: i for i, n in enumerate(names)}
     reg = sorted((rec.images[i] for i in rec.reg_image_ids()),
@@ -319,7 +321,7 @@ def run_sfm(
         cam is not None) else None
     n, err, track = _stats(rec)
     return SfMResult(rec, [im.name for im in reg], poses, est_cam, len(names), len(models), n,
-                     err, track, seconds)
+                     err, track, seconds, settings.mapper)
 
 
 def evaluate_sfm_trajectory(est: Trajectory, ref: Trajectory) -> dict[str, Any]:
@@ -419,7 +421,8 @@ def triangulate_known_poses(
 def save_sfm(result: SfMResult, folder: Path | str, frame_of_name: dict[str, int],
              stamp_of_name: dict[str, float], all_names: Sequence[str]) -> Path:
     """Write the model as COLMAP text plus ``frames.csv`` (name, frame index, stamp,
-    registered) and ``summary.json``, so later stages can reuse it without rerunning."""
+    registered) and ``summary.json`` (with the mapper that made it), so later stages can
+    reuse it without rerunning."""
     import json
 
     from toolkit.io.atomic import atomic_write_text
@@ -435,7 +438,8 @@ def save_sfm(result: SfMResult, folder: Path | str, frame_of_name: dict[str, int
     rows = ["name,index,stamp,registered"] + [
         f"{n},{frame_of_name[n]},{stamp_of_name[n]!r},{int(n in reg)}" for n in all_names]
     atomic_write_text(folder / "frames.csv", "\n".join(rows) + "\n")
-    summary = {**result.summary(), "camera": result.camera.to_dict() if result.camera else None}
+    summary = {**result.summary(), "camera": result.camera.to_dict() if result.camera else None,
+               "mapper": result.mapper}
     atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
     return folder
 
@@ -454,10 +458,11 @@ def load_sfm(folder: Path | str) -> tuple[SfMResult, dict[str, int], dict[str, f
     frame_of = {r["name"]: int(r["index"]) for r in rows}
     stamp_of = {r["name"]: float(r["stamp"]) for r in rows}
     summary = json.loads((folder / "summary.json").read_text())
+    mapper = summary.get("mapper")  # absent: saved before it was recorded
     model_dir = folder / "model"
     if not (model_dir / "images.txt").exists():
         return SfMResult(None, [], np.zeros((0, 4, 4)), None, len(rows), 0, 0, float("nan"),
-                         0.0), frame_of, stamp_of
+                         0.0, mapper=mapper), frame_of, stamp_of
     rec = pycolmap.Reconstruction(model_dir)
     reg = sorted((rec.images[i] for i in rec.reg_image_ids()),
                  key=lambda im: frame_of.get(im.name, 1 << 62))
@@ -467,5 +472,5 @@ def load_sfm(folder: Path | str) -> tuple[SfMResult, dict[str, int], dict[str, f
     res = SfMResult(rec, [im.name for im in reg], poses,
                     camera_from_colmap(cam.model.name, cam.width, cam.height, cam.params),
                     int(summary.get("images", len(rows))), int(summary.get("models", 1)), n, err,
-                    track, {k[:-2]: v for k, v in summary.items() if k.endswith("_s")})
+                    track, {k[:-2]: v for k, v in summary.items() if k.endswith("_s")}, mapper)
     return res, frame_of, stamp_of

@@ -910,6 +910,9 @@ class CameraOnlyStage(Stage):
         metrics: dict[str, Any] = {
             "scale_source": res.scale_source, "units": res.units, "depth_kind": res.info["kind"],
             "colmap_reused": reused, "database_resumed": database_kept, "images": sfm.images,
+            # The mapper that made the model, as the colmap stage's metrics: a reused model's
+            # is the colmap stage's (None: saved before it was recorded), not this stage's key.
+            "mapper": sfm.mapper,
             "registered_images": sfm.registered,
             "frames_fused": int(res.used.sum()), "frames_fitted": res.info["frames_fitted"],
             "scale_smoothing": res.info["smoothing"],
@@ -923,7 +926,9 @@ class CameraOnlyStage(Stage):
             ("frames with a neighbour's scale (smoothing: "
              f"{res.info['smoothing']})", metrics["frames_flagged"]),
             ("map points", n)]
-        reuse_note = " (reused from the colmap stage)" if reused else ""
+        mapper = f"{sfm.mapper} mapping" if sfm.mapper else (
+            "mapper not recorded: a model saved before 2026-11-28")
+        reuse_note = f" ({mapper}, reused from the colmap stage)" if reused else f" ({mapper})"
         md = [f"Camera only (no lidar anywhere): COLMAP poses{reuse_note}, "
               f"`{res.info['kind']}` predictions scaled by "
               + ("COLMAP's sparse points per frame (map in COLMAP's arbitrary unit)"

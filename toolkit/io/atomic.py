@@ -154,9 +154,15 @@ def to_jsonable(obj: Any) -> Any:
     raise TypeError(f"cannot write {type(obj).__name__} as JSON: {obj!r}")
 
 
-def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, fsync: bool = False) -> None:
-    """Write ``obj`` as indented JSON (key order kept, NaN/inf as null) atomically."""
+def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, fsync: bool = False,
+                      compact: bool = False) -> None:
+    """Write ``obj`` as indented JSON (key order kept, NaN/inf as null) atomically;
+    ``compact``: on one line without spaces, for large files that machines read (a list
+    item per line made the runner's marker of a 120,000-file output 19.4 MB, 13.4 MB
+    compact: docs/runner.md)."""
     text = json.dumps(
-        to_jsonable(obj), indent=2, sort_keys=False, ensure_ascii=False, allow_nan=False
+        to_jsonable(obj), indent=None if compact else 2,
+        separators=(",", ":") if compact else None, sort_keys=False, ensure_ascii=False,
+        allow_nan=False,
     )
     atomic_write_text(path, text + "\n", fsync=fsync)

@@ -138,13 +138,14 @@ class CarmenLog:
     path: Path
     scans: list[LaserScan]
     scan_poses: np.ndarray  # [S, 3] pose stored with each scan (laser pose; may be corrected)
-    # [S, 3] odometry (robot) pose stored with each scan; a FLASER line's may be non-finite
-    # (a glitch), left for the ingest to skip and count
+    # [S, 3] odometry (robot) pose stored with each scan; may be non-finite (a glitch),
+    # left for the ingest to skip and count
     scan_odometry: np.ndarray
     odom_stamps: np.ndarray  # [K] ODOM line stamps
     odom_poses: np.ndarray  # [K, 3] ODOM line poses, non-finite where the line's are
     T_base_laser: np.ndarray  # [4, 4]
     params: dict[str, str] = field(default_factory=dict)
+    scan_lines: list[str] = field(default_factory=list)  # [S] "FLASER" or "ROBOTLASER1"
 
     @property
     def duration_s(self) -> float:
@@ -164,7 +165,11 @@ class CarmenLog:
         return Trajectory(stamps[keep], poses, "world", "base_link")
 
 
-def _parse_robotlaser1(f: list[str]) -> tuple[LaserScan, np.ndarray, np.ndarray]:
+def _parse_robotlaser1(f: list[str], robot_finite: bool = True) -> tuple[
+    LaserScan, np.ndarray, np.ndarray
+]:
+    """The scan, laser pose [3] and robot pose [3] of a line; ``robot_finite=False``: the
+    robot pose (a log's odometry) as read, as ``_pose``'s ``finite``."""
     start, fov, res, max_range = (float(v) for v in f[2:6])
     n = int(f[8])
     ranges = _ranges(f[9 : 9 + n], max_range)
@@ -172,7 +177,7 @@ def _parse_robotlaser1(f: list[str]) -> tuple[LaserScan, np.ndarray, np.ndarray]
     n_rem = int(f[k])
     k += 1 + n_rem
     laser = _pose(f[k : k + 3], "laser pose (laser_x laser_y laser_theta)")
-    robot = _pose(f[k + 3 : k + 6], "robot pose (x y theta)")
+    robot = _pose(f[k + 3 : k + 6], "robot pose (x y theta)", finite=robot_finite)
     stamp = float(f[k + 11])
     if len(ranges) != n:
         raise ValueError(f"{len(ranges)} ranges, expected {n}")
@@ -199,6 +204,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
     params: dict[str, str] = {}
     laser_offsets: list[np.ndarray] = []
     guessed: set[int] = set()  # FLASER beam counts of no known scanner, warned about
+    kinds: list[str] = []
     for lineno, line in enumerate(_open_text(path), 1):
         f = line.split()
         if not f or f[0].startswith("#"):
@@ -224,15 +230,21 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                 scans.append(LaserScan(stamp=float(rest[6]), ranges=ranges, angle_min=amin,
                                        angle_increment=inc, range_min=0.0,
                                        range_max=max_range))
+                kinds.append(f[0])
                 poses.append(_pose(rest[0:3], "laser pose (x y theta)"))
                 odoms.append(_pose(rest[3:6], "odometry pose (odom_x odom_y odom_theta)",
                                    finite=False))
             elif f[0] == "ROBOTLASER1":
-                scan, laser, robot = _parse_robotlaser1(f)
+                # The robot pose is the log's odometry: a glitched one is skipped and
+                # counted by the ingest, as a FLASER line's; the mount is the median of
+                # the other lines' offsets.
+                scan, laser, robot = _parse_robotlaser1(f, robot_finite=False)
                 scans.append(scan)
+                kinds.append(f[0])
                 poses.append(laser)
                 odoms.append(robot)
-                laser_offsets.append(_laser_offset(laser, robot))
+                if np.isfinite(robot).all():
+                    laser_offsets.append(_laser_offset(laser, robot))
             elif f[0] == "ODOM":
                 o_p.append(_pose(f[1:4], "odometry pose (x y theta)", finite=False).tolist())
                 o_t.append(float(f[7]))
@@ -243,8 +255,13 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
     T_base_laser = np.eye(4)
     if laser_offsets:
         T_base_laser = _median_offset(laser_offsets)
-    elif "robot_frontlaser_offset" in params:
-        T_base_laser[0, 3] = float(params["robot_frontlaser_offset"])
+    else:
+        if "ROBOTLASER1" in kinds:
+            log.warning("%s: no ROBOTLASER1 line has a finite robot pose, so the laser's "
+                        "mount is not known from them: taken from PARAM "
+                        "robot_frontlaser_offset, or the robot's origin", path)
+        if "robot_frontlaser_offset" in params:
+            T_base_laser[0, 3] = float(params["robot_frontlaser_offset"])
     return CarmenLog(
         path=path,
         scans=scans,
@@ -254,6 +271,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
         odom_poses=np.array(o_p, dtype=np.float64).reshape(-1, 3),
         T_base_laser=T_base_laser,
         params=params,
+        scan_lines=kinds,
     )
 
 

@@ -131,9 +131,13 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
         if g2o:
             raise IngestError(f"{path}: carmen.odometry: scans - a g2o file's ROBOTLASER1 "
                               "poses are corrected ones; use edges (the raw odometry chain)")
-        odometry, n = _odometry(stamps[keep], data.scan_odometry[keep],
-                                f"{path}: scan lines' odometry", "odometry pose (odom_x odom_y "
-                                "odom_theta)", "drop", log, skipped)
+        xyt = data.scan_odometry[keep]  # [S', 3]
+        bad = np.flatnonzero(~np.isfinite(xyt).all(axis=1))
+        robot = len(bad) > 0 and np.asarray(data.scan_lines)[keep][bad[0]] == "ROBOTLASER1"
+        fields = ("ROBOTLASER1 robot pose (robot_x robot_y robot_theta)" if robot else
+                  "odometry pose (odom_x odom_y odom_theta)")
+        odometry, n = _odometry(stamps[keep], xyt, f"{path}: scan lines' odometry", fields,
+                                "drop", log, skipped)
         dropped["odometry"] = n
     elif mode == "odom_lines":
         if g2o or len(data.odom_stamps) == 0:

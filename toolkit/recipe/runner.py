@@ -632,7 +632,7 @@ class _Run:
                 "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
                 "manifest": {n: _manifest(p) for n, p in record.provides.items()},
             }
-            atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True)
+            atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True, compact=True)
         except Exception as exc:
             # What it reached before failing: a stage that ran out of memory says so.
             record.peak = peak.finish()
@@ -728,7 +728,7 @@ class _Run:
         new = {**marker, "manifest": manifest, "manifest_digests": digests}
         if repeat and all(tokens.values()):
             new["output_tokens"] = tokens
-        atomic_write_json(self.run_dir / spec.id / STAGE_FILE, new, fsync=True)
+        atomic_write_json(self.run_dir / spec.id / STAGE_FILE, new, fsync=True, compact=True)
         if repeat and all(tokens.values()):
             record.output_tokens = tokens
         self.log.info("stage %s: outputs digested in %.1f s", spec.id,
@@ -1124,7 +1124,8 @@ def _read_marker(
         # Same bytes under new mtimes (a copied run folder): stored, so the next run does
         # not hash them again. A cache: a folder that cannot be written hashes next time.
         with contextlib.suppress(OSError):
-            atomic_write_json(marker, {**data, "manifest_digests": digests}, fsync=True)
+            atomic_write_json(marker, {**data, "manifest_digests": digests}, fsync=True,
+                              compact=True)
     return data, "up to date"
 
 

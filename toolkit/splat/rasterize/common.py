@@ -150,6 +150,10 @@ def project(
         u = cam.fx * pc[:, 0] / zs + cxg
         v = cam.fy * pc[:, 1] / zs + cyg
         ok &= (u + rxb > 0) & (u - rxb < cam.width) & (v + ryb > 0) & (v - ryb < cam.height)
+        # A scale whose exp overflows makes a or c inf or NaN, so 3) culls it anyway; it must
+        # not reach 2): autograd's 0 * inf there is NaN, which would spread through the
+        # viewmat's gradient to every Gaussian (the C++ backward gives culled ones 0).
+        ok &= torch.isfinite(smax)
         ids = torch.nonzero(ok).squeeze(1)
 
     # 2) EWA projection of the candidates. index_select, not x[ids]: its backward is an
@@ -166,8 +170,12 @@ def project(
     A1 = (cam.fy * rz)[:, None] * R[1] - (cam.fy * ty * rz2)[:, None] * R[2]
     Rq = quat_to_rotmat(torch.index_select(quats, 0, ids))  # [M, 3, 3]
     s = torch.exp(torch.index_select(log_scales, 0, ids))  # [M, 3]
-    T0 = (A0[:, :, None] * Rq).sum(1) * s  # [M, 3] row 0 of J W_R R_q S
-    T1 = (A1[:, :, None] * Rq).sum(1) * s
+    # Clamped to the largest finite value: a finite scale can still overflow T (|J W_R| > 1)
+    # and then T * T's backward, 0 * inf, is NaN. a or c is inf with or without the clamp,
+    # so 3) culls the same Gaussians, and a survivor's T is far inside the clamp.
+    big = torch.finfo(s.dtype).max
+    T0 = ((A0[:, :, None] * Rq).sum(1) * s).clamp(-big, big)  # [M, 3] row 0 of J W_R R_q S
+    T1 = ((A1[:, :, None] * Rq).sum(1) * s).clamp(-big, big)
     a = (T0 * T0).sum(-1) + eps2d
     b = (T0 * T1).sum(-1)
     c = (T1 * T1).sum(-1) + eps2d
