@@ -9,6 +9,7 @@ Scans, trajectories and meta are cheap and are written again at the end.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -128,13 +129,17 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             decimate: DecimateOptions | None = None,
             depth_format: Literal["png", "npy"] = "png", resume: bool = True,
             progress: Progress = no_progress,
-            log: logging.Logger | None = None) -> ConvertResult:
+            log: logging.Logger | None = None, workers: int | None = None) -> ConvertResult:
     """Write ``recording`` as a sequence folder at ``out``.
 
     With ``resume`` (the default) frames written by an interrupted earlier conversion
     into ``out`` are kept; the caller must make sure it converted the same input with the
     same settings (the ``ingest`` stage checks a fingerprint). If what is on disk does not
     match the plan, the folder is started afresh rather than mixed.
+
+    ``workers``: threads encoding and writing the frames' files while the next frames are
+    read (default: the CPU count, at most 4; 0 writes each frame before reading the next).
+    The folder's files are the same bytes either way.
     """
     log = log or _log
     sync = sync or SyncOptions()
@@ -221,29 +226,38 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         # sequence's own files go (SequenceWriter without resume): the folder may hold the
         # bag itself or the user's notes, which a removal of the folder took with it.
         log.warning("replacing the finished sequence in %s", out)
+    if workers is None:
+        workers = min(4, os.cpu_count() or 1)
     writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
-                            depth_format, resume=resume and not finished)
+                            depth_format, resume=resume and not finished, workers=workers)
     done = writer.num_frames
     if done and (done > len(pairs) or writer.last_frame_stamp != float(stamps[done - 1])):
         log.warning("%s holds %d frames that do not match this conversion's plan; "
                     "starting it afresh", out, done)
         writer.discard()
         writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
-                                depth_format)
+                                depth_format, workers=workers)
         done = 0
     if done:
         log.info("resuming: %d of %d frames already converted", done, len(pairs))
     todo = pairs[done:]
     if todo:
         frames = recording.load(todo)
-        for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
-            expected = float(stamps[done + k])
-            stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
-            if stamp != expected:
-                raise IngestError(f"{recording.source}: loader returned frame at {fd.stamp!r} "
-                                  f"where {expected + shift!r} was planned")
-            writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path,
-                             image_jpeg=fd.image_jpeg)
+        try:
+            for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
+                expected = float(stamps[done + k])
+                stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
+                if stamp != expected:
+                    raise IngestError(f"{recording.source}: loader returned frame at "
+                                      f"{fd.stamp!r} where {expected + shift!r} was planned")
+                writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path,
+                                 image_jpeg=fd.image_jpeg)
+            writer.flush()
+        except BaseException:
+            # Interrupted or failed: the frames in flight land and are journaled, so a
+            # rerun resumes after them.
+            writer.discard()
+            raise
         if writer.num_frames != len(pairs):
             raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "
                               "planned frames could be read (the input ended early: "
