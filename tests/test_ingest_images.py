@@ -5,11 +5,15 @@ folder."""
 from __future__ import annotations
 
 import hashlib
+import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+import yaml
 from test_ingest_rosbag import (
+    COMP_T,
     IMAGE_T,
     INFO_T,
     SCAN_T,
@@ -43,9 +47,11 @@ def camera_frames(n: int, seed: int = 0) -> list[np.ndarray]:
     return out
 
 
-def raw_image_bag(tmp_path: Path, encoding: str, frames: list[np.ndarray]) -> Path:
+def raw_image_bag(tmp_path: Path, encoding: str, frames: list[np.ndarray],
+                  message=None) -> Path:
     """A ROS 2 bag of raw Image frames at 15 Hz (in ``encoding``) with scans, CameraInfo
-    and the rig in tf_static."""
+    and the rig in tf_static; ``message(b, t, frame)``: another camera message
+    (topic, type, message) for each frame."""
     b = BagBuilder(ros1=False)
     msgs = [("/tf_static", TF_T, T0 - 1.0, b.tf([
         b.transform(T0, "base_link", "camera_link", T_BASE_CAMLINK),
@@ -57,9 +63,13 @@ def raw_image_bag(tmp_path: Path, encoding: str, frames: list[np.ndarray]) -> Pa
                      b.scan(t, np.full(90, 2.0, np.float32), np.zeros(90, np.float32))))
     for i, rgb in enumerate(frames):
         t = T0 + 0.02 + i / 15.0
-        px = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": rgb[..., 1:2]}[encoding]
-        msgs.append(("/camera/image_raw", IMAGE_T, t + 0.03,
-                     b.image(t, np.ascontiguousarray(px), encoding)))
+        if message is not None:
+            topic, msgtype, msg = message(b, t, rgb)
+            msgs.append((topic, msgtype, t + 0.03, msg))
+        else:
+            px = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "mono8": rgb[..., 1:2]}[encoding]
+            msgs.append(("/camera/image_raw", IMAGE_T, t + 0.03,
+                         b.image(t, np.ascontiguousarray(px), encoding)))
         msgs.append(("/camera/camera_info", INFO_T, t + 0.031, b.camera_info(t, w=W, h=H)))
     return write_bag(tmp_path / f"bag_{encoding}", "sqlite3", sorted(msgs, key=lambda m: m[2]))
 
@@ -152,3 +162,90 @@ def test_a_failed_frame_write_in_a_thread_is_raised_and_not_journaled(tmp_path, 
     w = SequenceWriter(tmp_path / "s", rig, resume=True, workers=2)
     assert w.resumed_frames == 4
     assert not (tmp_path / "s/camera/images/000005.png").exists()
+
+
+# ---------------------------------------------------------------------------- 16-bit frames
+
+
+def grey16_frames(n: int, top: int, seed: int = 0) -> list[np.ndarray]:
+    """[H, W] uint16 frames with samples in 0..top (top itself in each)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        v = rng.integers(0, top + 1, (H, W), dtype=np.uint16)
+        v[0, 0] = top
+        out.append(v)
+    return out
+
+
+@pytest.mark.parametrize("encoding", ["mono16", "bayer_rggb16"])
+def test_16bit_jpeg_payloads_are_counted_and_warned_about_as_clipped(tmp_path, caplog,
+                                                                      encoding):
+    """image_transport's JPEG codec hands a mono16 / Bayer 16 image to OpenCV's JPEG encoder
+    unscaled, which saturates every sample above 255 (compressed_publisher.cpp: only colour
+    encodings are converted to bgr8 first). The frames were stored as min(v, 255), mostly
+    white, without a word; the bag holds nothing more, so they are kept as the payload
+    holds them, counted and warned about."""
+    grey = grey16_frames(9, 40000)
+    payloads = []
+
+    def jpeg_of(b, t, rgb):
+        v = grey.pop(0)
+        ok, buf = cv2.imencode(".jpg", v, [cv2.IMWRITE_JPEG_QUALITY, 100])  # as the codec
+        assert ok
+        payloads.append(buf.tobytes())
+        return ("/camera/image_raw/compressed", COMP_T,
+                b.compressed(t, buf.tobytes(), f"{encoding}; jpeg compressed "))
+
+    bag = raw_image_bag(tmp_path, encoding, camera_frames(9), message=jpeg_of)
+    with caplog.at_level(logging.WARNING):
+        res = convert(read_rosbag(bag), tmp_path / "seq")
+    assert res.frames == 9 and res.metrics()["frames_16bit_clipped"] == 9
+    assert res.metrics()["frames_16bit_scaled"] == 0
+    assert "clipped" in res.summary()
+    assert "JPEG codec clipped" in caplog.text and "png transport" in caplog.text
+    meta = yaml.safe_load((tmp_path / "seq" / "meta.yaml").read_text())
+    assert meta["ingest"]["frames_16bit_clipped"] == 9
+    # stored as the payload decodes: the 8-bit samples (a grey payload: replicated)
+    seq = read_sequence(tmp_path / "seq")
+    first = cv2.imdecode(np.frombuffer(payloads[0], np.uint8), cv2.IMREAD_UNCHANGED)
+    assert first.dtype == np.uint8 and (first >= 250).mean() > 0.95  # saturated: white
+    if encoding == "mono16":
+        assert np.array_equal(seq.frames[0].image, np.repeat(first[..., None], 3, axis=2))
+
+
+def test_16bit_frames_are_scaled_exactly_and_counted(tmp_path, caplog):
+    grey = grey16_frames(9, 65535, seed=2)
+    truth = [g.copy() for g in grey]
+
+    def mono16(b, t, rgb):
+        return "/camera/image_raw", IMAGE_T, b.image(t, grey.pop(0), "mono16")
+
+    bag = raw_image_bag(tmp_path, "mono16", camera_frames(9), message=mono16)
+    with caplog.at_level(logging.WARNING):
+        res = convert(read_rosbag(bag), tmp_path / "seq", workers=2)
+    m = res.metrics()
+    assert (m["frames_16bit_scaled"], m["frames_16bit_clipped"]) == (9, 0)
+    assert res.peak_16bit == 65535 and "near black" not in caplog.text
+    seq = read_sequence(tmp_path / "seq")
+    for f, v in zip(seq.frames, truth, strict=True):
+        want = np.round(v.astype(np.float64) * 255 / 65535).astype(np.uint8)
+        assert np.array_equal(f.image, np.repeat(want[..., None], 3, axis=2))
+
+
+def test_12bit_data_in_16bit_frames_is_warned_about_as_near_black(tmp_path, caplog):
+    """A machine-vision camera's 12-bit data in mono16 samples (0..4095), scaled as cv_bridge
+    scales 16 bits, is stored as 0..16 of 255; the log says so, with the brightest sample."""
+    grey = grey16_frames(6, 4095, seed=4)
+
+    def mono16(b, t, rgb):
+        return "/camera/image_raw", IMAGE_T, b.image(t, grey.pop(0), "mono16")
+
+    bag = raw_image_bag(tmp_path, "mono16", camera_frames(6), message=mono16)
+    with caplog.at_level(logging.WARNING):
+        res = convert(read_rosbag(bag), tmp_path / "seq")
+    assert res.peak_16bit == 4095 and res.frames_16bit_scaled == 6
+    assert "brightest sample of the 6 16-bit frames is 4095 of 65535" in caplog.text
+    assert "at most 16 of 255" in caplog.text and "12-bit data" in caplog.text
+    meta = yaml.safe_load((tmp_path / "seq" / "meta.yaml").read_text())
+    assert meta["ingest"]["brightest_16bit_sample"] == 4095

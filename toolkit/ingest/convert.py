@@ -61,6 +61,11 @@ class ConvertResult:
     skipped_invalid: dict[str, dict[str, Any]] = field(default_factory=dict)  # Recording.skipped
     tf_skipped_invalid: dict[str, int] = field(default_factory=dict)  # Recording.tf_skipped
     depth_pixels_beyond_format: int = 0  # written as invalid (a PNG holds up to 13.107 m)
+    # Frames of 16-bit samples this run converted (FrameData.from_16bit): scaled to 8 bits,
+    # or clipped at 255 by the recording's JPEG codec; the brightest scaled sample.
+    frames_16bit_scaled: int = 0
+    frames_16bit_clipped: int = 0
+    peak_16bit: int = 0
 
     def metrics(self) -> dict[str, Any]:
         """Figures for metrics.json (units in the names)."""
@@ -78,6 +83,8 @@ class ConvertResult:
             "messages_skipped_invalid": sum(r["count"] for r in self.skipped_invalid.values()),
             "tf_transforms_skipped_invalid": sum(self.tf_skipped_invalid.values()),
             "depth_pixels_beyond_format": self.depth_pixels_beyond_format,
+            "frames_16bit_scaled": self.frames_16bit_scaled,
+            "frames_16bit_clipped": self.frames_16bit_clipped,
             "convert_s": round(self.seconds, 3),
         }
 
@@ -103,6 +110,13 @@ class ConvertResult:
                 lines.append(f"    depth pixels beyond a PNG's {PNG_DEPTH_MAX_M:.3f} m, "
                              f"written as invalid: {self.depth_pixels_beyond_format} "
                              "(depth_format: npy keeps them)")
+            if self.frames_16bit_scaled:
+                lines.append(f"    16-bit frames scaled to 8 bits (255/65535, as cv_bridge): "
+                             f"{self.frames_16bit_scaled} (brightest sample "
+                             f"{self.peak_16bit} of 65535)")
+            if self.frames_16bit_clipped:
+                lines.append(f"    16-bit frames the recording's JPEG codec clipped at 255: "
+                             f"{self.frames_16bit_clipped}")
         else:
             lines.append("  camera frames: none (lidar-only recording; the rig camera is a "
                          "placeholder)")
@@ -241,10 +255,15 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     if done:
         log.info("resuming: %d of %d frames already converted", done, len(pairs))
     todo = pairs[done:]
+    from_16bit = {"scaled": 0, "clipped": 0}
+    peak_16bit = 0
     if todo:
         frames = recording.load(todo)
         try:
             for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
+                if fd.from_16bit is not None:
+                    from_16bit[fd.from_16bit] += 1
+                    peak_16bit = max(peak_16bit, fd.peak_16bit)
                 expected = float(stamps[done + k])
                 stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
                 if stamp != expected:
@@ -266,6 +285,20 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         log.warning("%d depth pixels lie beyond the %.3f m a 16-bit depth PNG holds and were "
                     "written as invalid; set depth_format: npy to keep them",
                     writer.depth_pixels_beyond_format, PNG_DEPTH_MAX_M)
+    if from_16bit["clipped"]:
+        log.warning("%s: %d frames are 16-bit images that the recording's JPEG codec clipped "
+                    "to 8 bits (image_transport passes a mono16 / Bayer 16 image to OpenCV's "
+                    "JPEG encoder unscaled: every sample above 255 of 65535 became 255, "
+                    "white); they are stored as the payload holds them, min(v, 255). The bag "
+                    "has nothing more: record the raw topic, or the png transport, which "
+                    "keeps 16 bits", recording.source, from_16bit["clipped"])
+    if from_16bit["scaled"] and peak_16bit < 4096:
+        log.warning("%s: the brightest sample of the %d 16-bit frames is %d of 65535: scaled to "
+                    "8 bits as cv_bridge scales them (255/65535) they are stored at most %d of "
+                    "255, near black. The camera probably writes %d-bit data into 16-bit "
+                    "samples; republish it as 8 bits scaled to its own range",
+                    recording.source, from_16bit["scaled"], peak_16bit,
+                    (peak_16bit + 128) // 257, max(1, peak_16bit.bit_length()))
     dynamic = recording.scan_dynamic
     for k, s in enumerate(scans):
         writer.add_scan(s, None if dynamic is None else dynamic[k])
@@ -290,6 +323,9 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "skipped_invalid": dict(recording.skipped),
             "tf_skipped_invalid": dict(recording.tf_skipped),
             "depth_pixels_beyond_format": writer.depth_pixels_beyond_format,
+            "frames_16bit_scaled": from_16bit["scaled"],
+            "frames_16bit_clipped": from_16bit["clipped"],
+            **({"brightest_16bit_sample": peak_16bit} if from_16bit["scaled"] else {}),
         },
     })
     root = writer.close()
@@ -302,4 +338,6 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         dropped_indexing=dict(recording.dropped),
         skipped_invalid=dict(recording.skipped),
         tf_skipped_invalid=dict(recording.tf_skipped),
-        depth_pixels_beyond_format=writer.depth_pixels_beyond_format)
+        depth_pixels_beyond_format=writer.depth_pixels_beyond_format,
+        frames_16bit_scaled=from_16bit["scaled"], frames_16bit_clipped=from_16bit["clipped"],
+        peak_16bit=peak_16bit)
