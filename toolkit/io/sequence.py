@@ -1003,14 +1003,26 @@ def jpeg_as_is(data: bytes, image: np.ndarray) -> bool:
 
 
 # Lossless PNG, tuned for speed: the simulator writes 20+ frames/s and a long bag's raw
-# Image frames were mostly PNG encoding. The SUB filter cut encode time by a third at the
-# same size on rendered images. Z_RLE (deflate with run matches only) instead of full
-# LZ77 matching: on camera-like frames (sensor noise leaves few long matches) 1.5x
-# faster and 16% smaller at level 1, on flat rendered areas within 0.1 ms and 40% of a
-# few KB of the default strategy; Huffman-only was as fast on noise but 12x larger on
-# flat areas (docs/ingest.md, "Long recordings", has the figures).
+# Image frames were mostly PNG encoding. Level 1 with the SUB filter (a third faster than
+# the default filter at the same size on rendered images). Colour frames with zlib's
+# Z_RLE strategy (run matches only): on camera-like synthetic frames (sensor noise, few
+# long matches) 1.3x faster and 16% smaller than full matching (noise-free ones: 12%
+# slower, 4% smaller). Grey frames stored as RGB (R = G = B, a mono camera's) keep full
+# matching: RLE missed their repeats (265 -> 404 KB a frame, no faster). Figures and
+# scripts in docs/ingest.md, "Long recordings".
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
               cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+PNG_PARAMS_GREY = [cv2.IMWRITE_PNG_COMPRESSION, 1,
+                   cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
+
+
+def _is_grey(img: np.ndarray) -> bool:
+    """Whether an [H, W, 3] image has R = G = B everywhere (the first row decides most
+    colour frames at once; a whole grey frame takes about 0.7 ms at 640x480)."""
+    row = img[0]
+    if not ((row[:, 0] == row[:, 1]).all() and (row[:, 1] == row[:, 2]).all()):
+        return False
+    return bool((img[..., 0] == img[..., 1]).all() and (img[..., 1] == img[..., 2]).all())
 
 
 def _write_rgb(path: Path, image: np.ndarray) -> None:
@@ -1019,7 +1031,8 @@ def _write_rgb(path: Path, image: np.ndarray) -> None:
         raise ValueError(f"{path}: images must be RGB uint8 [H, W, 3], got {img.dtype} "
                          f"{img.shape}")
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), PNG_PARAMS):
+        params = PNG_PARAMS_GREY if _is_grey(img) else PNG_PARAMS
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), params):
             raise OSError(f"{path}: could not write image")
 
 
