@@ -254,3 +254,20 @@ def test_12bit_data_in_16bit_frames_is_warned_about_as_near_black(tmp_path, capl
     assert "at most 16 of 255" in caplog.text and "12-bit data" in caplog.text
     meta = yaml.safe_load((tmp_path / "seq" / "meta.yaml").read_text())
     assert meta["ingest"]["brightest_16bit_sample"] == 4095
+
+
+def test_a_resumed_writer_removes_the_temporaries_of_writes_a_kill_cut_short(tmp_path):
+    """A SIGKILL mid-write leaves the hidden temporary of each frame in flight (one per
+    encoding thread) beside the frames; a resumed conversion through the Python API kept
+    them (only the recipe runner swept them, after the stage)."""
+    rig = Rig(PinholeCamera.from_fov(W, H, 60.0))
+    w = SequenceWriter(tmp_path / "s", rig)
+    for k, img in enumerate(camera_frames(3)):
+        w.add_frame(float(k + 1), img)
+    w._journal.close()  # killed: no close()
+    images = tmp_path / "s/camera/images"
+    for name in (".000003.4242.0badc0de.tmp.png", ".000004.4242.deadbeef.tmp.png"):
+        (images / name).write_bytes(b"half a png")
+    w = SequenceWriter(tmp_path / "s", rig, resume=True)
+    assert w.resumed_frames == 3
+    assert sorted(p.name for p in images.iterdir()) == [f"{i:06d}.png" for i in range(3)]

@@ -41,7 +41,12 @@ import yaml
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory
-from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from toolkit.io.atomic import (
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_text,
+    remove_temps_under,
+)
 from toolkit.io.depth import write_depth
 from toolkit.io.tum import read_tum, write_tum
 from toolkit.io.yaml_file import load_yaml
@@ -969,11 +974,13 @@ def _read_journal(path: Path, camera_dir: Path) -> list[dict[str, str]]:
 
 def _remove_unlisted_frames(root: Path, n: int) -> None:
     """Delete per-frame files with index >= n (written after the last journaled frame),
-    which would otherwise make the folder disagree with its index."""
+    which would otherwise make the folder disagree with its index, and the temporaries of
+    writes a kill cut short (up to one per encoding thread)."""
     for sub in ("camera/images", "groundtruth/depth", "groundtruth/masks"):
         d = root / sub
         if not d.is_dir():
             continue
+        remove_temps_under(d)
         for p in d.iterdir():
             m = _INDEXED.match(p.name)
             if m and int(m.group(1)) >= n:
