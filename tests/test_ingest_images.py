@@ -271,3 +271,14 @@ def test_a_resumed_writer_removes_the_temporaries_of_writes_a_kill_cut_short(tmp
     w = SequenceWriter(tmp_path / "s", rig, resume=True)
     assert w.resumed_frames == 3
     assert sorted(p.name for p in images.iterdir()) == [f"{i:06d}.png" for i in range(3)]
+
+
+@pytest.mark.parametrize("fmt, clipped", [
+    ("mono16; jpeg compressed ", True), ("bayer_gbrg16; jpeg compressed ", True),
+    ("rgb16; jpeg compressed bgr8", False),  # the codec scaled it to bgr8 first
+    ("mono16; png compressed ", False),  # png keeps 16 bits
+    ("mono8; jpeg compressed ", False), ("jpeg", False), ("rgb8; jpeg compressed bgr8", False)])
+def test_which_compressed_formats_hold_clipped_16bit_samples(fmt, clipped):
+    from toolkit.io.rosbag import jpeg_of_16bit
+
+    assert jpeg_of_16bit(fmt) is clipped
