@@ -9,6 +9,7 @@ Scans, trajectories and meta are cheap and are written again at the end.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -60,6 +61,11 @@ class ConvertResult:
     skipped_invalid: dict[str, dict[str, Any]] = field(default_factory=dict)  # Recording.skipped
     tf_skipped_invalid: dict[str, int] = field(default_factory=dict)  # Recording.tf_skipped
     depth_pixels_beyond_format: int = 0  # written as invalid (a PNG holds up to 13.107 m)
+    # Frames of 16-bit samples this run converted (FrameData.from_16bit): scaled to 8 bits,
+    # or clipped at 255 by the recording's JPEG codec; the brightest scaled sample.
+    frames_16bit_scaled: int = 0
+    frames_16bit_clipped: int = 0
+    peak_16bit: int = 0
 
     def metrics(self) -> dict[str, Any]:
         """Figures for metrics.json (units in the names)."""
@@ -77,6 +83,8 @@ class ConvertResult:
             "messages_skipped_invalid": sum(r["count"] for r in self.skipped_invalid.values()),
             "tf_transforms_skipped_invalid": sum(self.tf_skipped_invalid.values()),
             "depth_pixels_beyond_format": self.depth_pixels_beyond_format,
+            "frames_16bit_scaled": self.frames_16bit_scaled,
+            "frames_16bit_clipped": self.frames_16bit_clipped,
             "convert_s": round(self.seconds, 3),
         }
 
@@ -102,6 +110,13 @@ class ConvertResult:
                 lines.append(f"    depth pixels beyond a PNG's {PNG_DEPTH_MAX_M:.3f} m, "
                              f"written as invalid: {self.depth_pixels_beyond_format} "
                              "(depth_format: npy keeps them)")
+            if self.frames_16bit_scaled:
+                lines.append(f"    16-bit frames scaled to 8 bits (255/65535, as cv_bridge): "
+                             f"{self.frames_16bit_scaled} (brightest sample "
+                             f"{self.peak_16bit} of 65535)")
+            if self.frames_16bit_clipped:
+                lines.append(f"    16-bit frames the recording's JPEG codec clipped at 255: "
+                             f"{self.frames_16bit_clipped}")
         else:
             lines.append("  camera frames: none (lidar-only recording; the rig camera is a "
                          "placeholder)")
@@ -128,13 +143,17 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             decimate: DecimateOptions | None = None,
             depth_format: Literal["png", "npy"] = "png", resume: bool = True,
             progress: Progress = no_progress,
-            log: logging.Logger | None = None) -> ConvertResult:
+            log: logging.Logger | None = None, workers: int | None = None) -> ConvertResult:
     """Write ``recording`` as a sequence folder at ``out``.
 
     With ``resume`` (the default) frames written by an interrupted earlier conversion
     into ``out`` are kept; the caller must make sure it converted the same input with the
     same settings (the ``ingest`` stage checks a fingerprint). If what is on disk does not
     match the plan, the folder is started afresh rather than mixed.
+
+    ``workers``: threads encoding and writing the frames' files while the next frames are
+    read (default: the CPU count, at most 4; 0 writes each frame before reading the next).
+    The folder's files are the same bytes either way.
     """
     log = log or _log
     sync = sync or SyncOptions()
@@ -221,29 +240,43 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         # sequence's own files go (SequenceWriter without resume): the folder may hold the
         # bag itself or the user's notes, which a removal of the folder took with it.
         log.warning("replacing the finished sequence in %s", out)
+    if workers is None:
+        workers = min(4, os.cpu_count() or 1)
     writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
-                            depth_format, resume=resume and not finished)
+                            depth_format, resume=resume and not finished, workers=workers)
     done = writer.num_frames
     if done and (done > len(pairs) or writer.last_frame_stamp != float(stamps[done - 1])):
         log.warning("%s holds %d frames that do not match this conversion's plan; "
                     "starting it afresh", out, done)
         writer.discard()
         writer = SequenceWriter(out, recording.rig, recording.name, recording.source,
-                                depth_format)
+                                depth_format, workers=workers)
         done = 0
     if done:
         log.info("resuming: %d of %d frames already converted", done, len(pairs))
     todo = pairs[done:]
+    from_16bit = {"scaled": 0, "clipped": 0}
+    peak_16bit = 0
     if todo:
         frames = recording.load(todo)
-        for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
-            expected = float(stamps[done + k])
-            stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
-            if stamp != expected:
-                raise IngestError(f"{recording.source}: loader returned frame at {fd.stamp!r} "
-                                  f"where {expected + shift!r} was planned")
-            writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path,
-                             image_jpeg=fd.image_jpeg)
+        try:
+            for k, fd in enumerate(progress(frames, total=len(todo), description="frames")):
+                if fd.from_16bit is not None:
+                    from_16bit[fd.from_16bit] += 1
+                    peak_16bit = max(peak_16bit, fd.peak_16bit)
+                expected = float(stamps[done + k])
+                stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
+                if stamp != expected:
+                    raise IngestError(f"{recording.source}: loader returned frame at "
+                                      f"{fd.stamp!r} where {expected + shift!r} was planned")
+                writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path,
+                                 image_jpeg=fd.image_jpeg)
+            writer.flush()
+        except BaseException:
+            # Interrupted or failed: the frames in flight land and are journaled, so a
+            # rerun resumes after them.
+            writer.discard()
+            raise
         if writer.num_frames != len(pairs):
             raise IngestError(f"{recording.source}: only {writer.num_frames} of {len(pairs)} "
                               "planned frames could be read (the input ended early: "
@@ -252,6 +285,20 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         log.warning("%d depth pixels lie beyond the %.3f m a 16-bit depth PNG holds and were "
                     "written as invalid; set depth_format: npy to keep them",
                     writer.depth_pixels_beyond_format, PNG_DEPTH_MAX_M)
+    if from_16bit["clipped"]:
+        log.warning("%s: %d frames are 16-bit images that the recording's JPEG codec clipped "
+                    "to 8 bits (image_transport passes a mono16 / Bayer 16 image to OpenCV's "
+                    "JPEG encoder unscaled: every sample above 255 of 65535 became 255, "
+                    "white); they are stored as the payload holds them, min(v, 255). The bag "
+                    "has nothing more: record the raw topic, or the png transport, which "
+                    "keeps 16 bits", recording.source, from_16bit["clipped"])
+    if from_16bit["scaled"] and peak_16bit < 4096:
+        log.warning("%s: the brightest sample of the %d 16-bit frames is %d of 65535: scaled to "
+                    "8 bits as cv_bridge scales them (255/65535) they are stored at most %d of "
+                    "255, near black. The camera probably writes %d-bit data into 16-bit "
+                    "samples; republish it as 8 bits scaled to its own range",
+                    recording.source, from_16bit["scaled"], peak_16bit,
+                    (peak_16bit + 128) // 257, max(1, peak_16bit.bit_length()))
     dynamic = recording.scan_dynamic
     for k, s in enumerate(scans):
         writer.add_scan(s, None if dynamic is None else dynamic[k])
@@ -276,6 +323,9 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
             "skipped_invalid": dict(recording.skipped),
             "tf_skipped_invalid": dict(recording.tf_skipped),
             "depth_pixels_beyond_format": writer.depth_pixels_beyond_format,
+            "frames_16bit_scaled": from_16bit["scaled"],
+            "frames_16bit_clipped": from_16bit["clipped"],
+            **({"brightest_16bit_sample": peak_16bit} if from_16bit["scaled"] else {}),
         },
     })
     root = writer.close()
@@ -288,4 +338,6 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
         dropped_indexing=dict(recording.dropped),
         skipped_invalid=dict(recording.skipped),
         tf_skipped_invalid=dict(recording.tf_skipped),
-        depth_pixels_beyond_format=writer.depth_pixels_beyond_format)
+        depth_pixels_beyond_format=writer.depth_pixels_beyond_format,
+        frames_16bit_scaled=from_16bit["scaled"], frames_16bit_clipped=from_16bit["clipped"],
+        peak_16bit=peak_16bit)

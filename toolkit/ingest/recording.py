@@ -38,6 +38,10 @@ class FrameData:
     image_jpeg: bytes | None = None  # the JPEG ``image`` came from, kept where exact
     depth: np.ndarray | None = None  # [H, W] float32 metres, 0 = invalid
     mask: np.ndarray | None = None  # [H, W] bool, dynamic pixels
+    # 16-bit source samples: "scaled" to 8 bits (255/65535), or "clipped" at 255 by the
+    # recording's JPEG codec (toolkit.io.rosbag.jpeg_of_16bit); None: 8-bit
+    from_16bit: str | None = None
+    peak_16bit: int = 0  # brightest 16-bit sample of a scaled frame
 
 
 # (frame index, depth index or -1) pairs in stamp order -> their pixels in the same order.

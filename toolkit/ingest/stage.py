@@ -217,6 +217,12 @@ def _report(cfg: IngestConfig, rec: Recording, res: ConvertResult) -> str:
             f"{', '.join(f'{t:.3f}' for t in r['first_stamps_s'])} s; longest gap "
             f"{r['longest_gap_s']:.2f} s, {r['gaps_not_interpolated']} not interpolated "
             "across)" for k, r in res.skipped_invalid.items())))
+    if res.frames_16bit_scaled:
+        rows.append(("16-bit frames scaled to 8 bits", f"{res.frames_16bit_scaled} (brightest "
+                     f"sample {res.peak_16bit} of 65535)"))
+    if res.frames_16bit_clipped:
+        rows.append(("16-bit frames clipped at 255 by the recording's JPEG codec",
+                     str(res.frames_16bit_clipped)))
     if res.tf_skipped_invalid:
         rows.append(("tf transforms skipped (no rigid motion)", ", ".join(
             f"{k}: {n}" for k, n in res.tf_skipped_invalid.items())))

@@ -388,6 +388,45 @@ def header_ns(msg: Any) -> int:
 def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     """[H, W, 3] RGB uint8 of a ``sensor_msgs/Image`` in a colour encoding, converted as
     cv_bridge converts it to rgb8 (``COLOR_ENCODINGS``)."""
+    return _to_8bit(_image_rgb(msg, where))
+
+
+class FramePixels(NamedTuple):
+    """A camera message's 8-bit RGB pixels and what became of 16-bit samples on the way."""
+
+    rgb: np.ndarray  # [H, W, 3] uint8
+    # None: 8-bit samples; "scaled": 16-bit samples scaled by 255/65535 (cv_bridge's rgb8);
+    # "clipped": a 16-bit image the publisher's JPEG codec saturated at 255 (jpeg_of_16bit)
+    from_16bit: str | None = None
+    peak_16bit: int = 0  # brightest 16-bit sample, where scaled
+
+
+def frame_pixels(msg: Any, compressed: bool, where: str = "image") -> FramePixels:
+    """``image_to_rgb`` / ``compressed_to_rgb`` of one camera message, saying what happened
+    to 16-bit samples (the sequence format holds 8 bits)."""
+    native = _compressed_native(msg, where) if compressed else _image_rgb(msg, where)
+    if native.dtype == np.uint16:
+        return FramePixels(_to_8bit(native), "scaled", int(native.max(initial=0)))
+    if compressed and jpeg_of_16bit(str(msg.format)):
+        return FramePixels(_to_8bit(native), "clipped")
+    return FramePixels(_to_8bit(native))
+
+
+def jpeg_of_16bit(fmt: str) -> bool:
+    """Whether a CompressedImage ``format`` is image_transport's JPEG of a 16-bit grey or
+    Bayer image ('mono16; jpeg compressed ', 'bayer_rggb16; jpeg compressed '). Its codec
+    converts only colour encodings to bgr8 (scaled, 'rgb16; jpeg compressed bgr8'); any
+    other image goes to OpenCV's JPEG encoder as it is, which takes 16-bit samples to
+    8 bits without scaling (convertTo: saturated), so the payload holds min(v, 255): a
+    16-bit camera's frames come out white wherever v > 255. Nothing more is in the bag."""
+    enc, order = compressed_format(fmt)
+    spec = COLOR_ENCODINGS.get(enc)
+    codec = fmt.partition(";")[2].partition("compressed")[0].strip().lower()
+    return spec is not None and spec.bits == 16 and codec == "jpeg" and not order
+
+
+def _image_rgb(msg: Any, where: str) -> np.ndarray:
+    """[H, W, 3] RGB of a ``sensor_msgs/Image``, uint8 or (16-bit encodings) uint16."""
     enc = str(msg.encoding)
     spec = COLOR_ENCODINGS.get(enc)
     if spec is None:
@@ -404,7 +443,7 @@ def image_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
                        "corrupt")
     else:
         rgb = a if spec.to_rgb is None else cv2.cvtColor(a, spec.to_rgb)  # [H, W, 3]
-    return _to_8bit(rgb)
+    return rgb
 
 
 def _accepted_colour() -> str:
@@ -484,6 +523,11 @@ def _pixels(msg: Any, dtype: np.dtype, channels: int, where: str) -> np.ndarray:
 
 def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
     """[H, W, 3] RGB uint8 of a ``sensor_msgs/CompressedImage`` (jpeg or png)."""
+    return _to_8bit(_compressed_native(msg, where))
+
+
+def _compressed_native(msg: Any, where: str) -> np.ndarray:
+    """[H, W, 3] RGB of a CompressedImage, uint8 or (a 16-bit png payload) uint16."""
     fmt = str(msg.format)
     if "compresseddepth" in fmt.lower():
         raise BagError(f"{where}: field 'format' is {fmt!r}, a depth image; give it as "
@@ -509,7 +553,7 @@ def compressed_to_rgb(msg: Any, where: str = "image") -> np.ndarray:
                            e for e, c in COLOR_ENCODINGS.items() if c.bits == 16) + ")"
                        + ("; a depth image: give it as rosbag.topics.depth (raw or "
                           "compressedDepth)" if enc in DEPTH_ENCODINGS else ""))
-    return _to_8bit(_compressed_rgb(img, enc, order, where))
+    return _compressed_rgb(img, enc, order, where)
 
 
 def _compressed_rgb(img: np.ndarray, enc: str, order: str, where: str) -> np.ndarray:
@@ -1854,7 +1898,7 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
             if d >= 0 and dep is not None:
                 want_dep.setdefault((dep.stamps[d], dep.bag_ns[d]), []).append(k)
                 start = min(start, dep.bag_ns[d])
-        # slot k: [rgb, depth, depth expected]
+        # slot k: [rgb, depth, depth expected, JPEG payload, FramePixels]
         slots: dict[int, list[Any]] = {}
         nxt = 0
         w, h = camera.size
@@ -1870,16 +1914,17 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
                     # convert).
                     at = (f"{where}, message stamped {stamp / 1e9:.9f} s (recorded at "
                           f"{ns / 1e9:.9f} s)")
-                    rgb = compressed_to_rgb(msg, at) if ch.image_compressed else \
-                        image_to_rgb(msg, at)
+                    px = frame_pixels(msg, ch.image_compressed, at)
+                    rgb = px.rgb
                     if rgb.shape[1] != w or rgb.shape[0] != h:
                         raise BagError(
                             f"{where}: image at {stamp / 1e9:.9f} s is {rgb.shape[1]}x"
                             f"{rgb.shape[0]} but the camera model is {w}x{h}; the stream "
                             "changed size. Fix: give intrinsics matching these images in the "
                             "calibration YAML ('camera:') or convert a part of constant size")
-                    slot = slots.setdefault(k, [None, None, pairs[k][1] >= 0, None])
+                    slot = slots.setdefault(k, [None, None, pairs[k][1] >= 0, None, None])
                     slot[0] = rgb
+                    slot[4] = px
                     if ch.image_compressed:  # stored as it is where that is exact
                         slot[3] = np.asarray(msg.data, dtype=np.uint8).tobytes()
                 elif topic == ch.depth and (stamp, ns) in want_dep:
@@ -1889,12 +1934,13 @@ def _make_loader(paths: list[Path], ch: TopicChoice, opts: RosbagOptions, img: _
                         raise BagError(f"{where}: depth at {stamp / 1e9:.9f} s is "
                                        f"{d.shape[1]}x{d.shape[0]}, the images {w}x{h}")
                     for k in want_dep.pop((stamp, ns)):
-                        slots.setdefault(k, [None, None, True, None])[1] = d
+                        slots.setdefault(k, [None, None, True, None, None])[1] = d
                 while nxt in slots and slots[nxt][0] is not None and (
                         slots[nxt][1] is not None or not slots[nxt][2]):
-                    rgb, d, _, jpeg = slots.pop(nxt)
+                    rgb, d, _, jpeg, px = slots.pop(nxt)
                     yield FrameData(stamp=img.stamps[pairs[nxt][0]] / 1e9, image=rgb, depth=d,
-                                    image_jpeg=jpeg)
+                                    image_jpeg=jpeg, from_16bit=px.from_16bit,
+                                    peak_16bit=px.peak_16bit)
                     nxt += 1
                 if nxt == len(pairs):
                     return

@@ -29,6 +29,8 @@ import re
 import shutil
 import struct
 import zipfile
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -39,7 +41,12 @@ import yaml
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory
-from toolkit.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from toolkit.io.atomic import (
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_text,
+    remove_temps_under,
+)
 from toolkit.io.depth import write_depth
 from toolkit.io.tum import read_tum, write_tum
 from toolkit.io.yaml_file import load_yaml
@@ -665,10 +672,20 @@ class SequenceWriter:
     trajectories, held-out views and ``extra_meta`` live in memory until ``close()`` and
     must be given again. The caller must make sure the earlier writer converted the same
     input with the same settings.
+
+    ``workers`` > 0 encodes and writes each frame's files in that many threads while the
+    caller produces the next frames (OpenCV's PNG and JPEG codecs release the GIL). The
+    files are the same bytes under the same names as without; frames are journaled in
+    order as their files land, so an interrupted run loses at most the frames in flight
+    (at most ``2 * workers``), whose files a resumed writer removes. ``flush()`` (called by
+    ``close()``) waits for them; a failed write is raised there or by a later
+    ``add_frame``. The arrays given to ``add_frame`` are then read after it returns: the
+    caller must not change them.
     """
 
     def __init__(self, root: Path | str, rig: Rig, name: str = "sequence",
-                 source: str = "", depth_format: str = "png", resume: bool = False) -> None:
+                 source: str = "", depth_format: str = "png", resume: bool = False,
+                 workers: int = 0) -> None:
         if depth_format not in ("png", "npy"):
             raise ValueError("depth_format must be 'png' (16-bit, 0.2 mm) or 'npy' (float32)")
         self.root = Path(root)
@@ -701,20 +718,28 @@ class SequenceWriter:
         atomic_write_text(self._journal_path, "".join(json.dumps(r) + "\n" for r in self._rows))
         self._journal = self._journal_path.open("a", encoding="utf-8")
         self.resumed_frames = len(self._rows)
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="frames") \
+            if workers > 0 else None
+        self._max_pending = 2 * workers  # frames held in memory while they are encoded
+        # (stamp, its files being written) in frame order
+        self._pending: deque[tuple[float, Future[tuple[dict[str, str], int]]]] = deque()
 
     @property
     def num_frames(self) -> int:
-        """Camera frames written so far (including resumed ones)."""
-        return len(self._rows)
+        """Camera frames added so far (including resumed ones and ones still in flight)."""
+        return len(self._rows) + len(self._pending)
 
     @property
     def frame_stamps(self) -> np.ndarray:
-        """[F] stamps of the frames written so far (including resumed ones)."""
-        return np.array([float(r["stamp"]) for r in self._rows], dtype=np.float64)
+        """[F] stamps of the frames added so far (including resumed ones)."""
+        return np.array([float(r["stamp"]) for r in self._rows]
+                        + [s for s, _ in self._pending], dtype=np.float64)
 
     @property
     def last_frame_stamp(self) -> float | None:
-        """Stamp of the last frame written, None before the first."""
+        """Stamp of the last frame added, None before the first."""
+        if self._pending:
+            return self._pending[-1][0]
         return float(self._rows[-1]["stamp"]) if self._rows else None
 
     def add_frame(self, stamp: float, image: np.ndarray, gt_depth: np.ndarray | None = None,
@@ -725,16 +750,57 @@ class SequenceWriter:
         ``image_jpeg``: the JPEG ``image`` was decoded from (a CompressedImage's payload).
         It is stored as it is, as is a JPEG ``image_path``, where every reader decodes it to
         the same pixels (``jpeg_as_is``); otherwise the pixels go into a PNG."""
-        i = len(self._rows)
+        i = self.num_frames
         # Checked here, not by the reader only: a NaN passed 'stamp <= previous' (and
         # disabled it for the next frame), and the folder was refused after the whole
         # recording had been written.
         if not np.isfinite(stamp):
             raise ValueError(f"frame {i}: stamp {stamp!r} is not finite")
         check_seconds(stamp, f"frame {i}", "stamp")
-        if self._rows and stamp <= float(self._rows[-1]["stamp"]):
+        last = self.last_frame_stamp
+        if last is not None and stamp <= last:
             raise ValueError(f"frame {i}: stamp {float(stamp)!r} not after the previous "
-                             f"frame's {float(self._rows[-1]['stamp'])!r}")
+                             f"frame's {last!r}")
+        if self._pool is None:
+            self._journal_frame(i, stamp, *self._write_frame_files(
+                i, image, gt_depth, gt_mask, image_path, image_jpeg))
+            return i
+        self._pending.append((float(stamp), self._pool.submit(
+            self._write_frame_files, i, image, gt_depth, gt_mask, image_path, image_jpeg)))
+        self._journal_done(wait_above=self._max_pending)
+        return i
+
+    def flush(self) -> None:
+        """Wait for the frames in flight and journal them (raising a failed write)."""
+        self._journal_done(wait_above=0)
+
+    def _journal_done(self, wait_above: int) -> None:
+        """Journal the finished frames at the head of the queue, in order, waiting for the
+        oldest while more than ``wait_above`` are in flight."""
+        while self._pending and (self._pending[0][1].done()
+                                 or len(self._pending) > wait_above):
+            stamp, fut = self._pending[0]
+            files, beyond = fut.result()  # a failed write stops here, unjournaled
+            self._pending.popleft()
+            self._journal_frame(len(self._rows), stamp, files, beyond)
+
+    def _journal_frame(self, i: int, stamp: float, files: dict[str, str],
+                       beyond: int) -> None:
+        row = {"index": str(i), "stamp": repr(float(stamp)), **files}
+        self.depth_pixels_beyond_format += beyond
+        self._rows.append(row)
+        # After the files: a journaled frame is always complete on disk. Flushed, not
+        # fsynced: this guards against a killed process, not against power loss.
+        self._journal.write(json.dumps(row) + "\n")
+        self._journal.flush()
+
+    def _write_frame_files(self, i: int, image: np.ndarray | None,
+                           gt_depth: np.ndarray | None, gt_mask: np.ndarray | None,
+                           image_path: Path | None, image_jpeg: bytes | None,
+                           ) -> tuple[dict[str, str], int]:
+        """Write frame ``i``'s files (in a worker thread with ``workers``): frames.csv's
+        file columns (paths relative to camera/) and the depth pixels written as invalid
+        because the format cannot hold them."""
         rel = f"images/{i:06d}.png"
         dst = self.root / "camera" / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -777,24 +843,20 @@ class SequenceWriter:
         if gt_depth is not None and np.shape(gt_depth)[:2] != (h, w):
             raise ValueError(f"frame {i}: ground-truth depth of {np.shape(gt_depth)[1]}x"
                              f"{np.shape(gt_depth)[0]}, the camera {w}x{h}")
-        row = {"index": str(i), "stamp": repr(float(stamp)), "image": rel}
+        files = {"image": rel}
+        beyond = 0
         if gt_depth is not None:
-            row["gt_depth"] = f"../groundtruth/depth/{i:06d}.{self.depth_format}"
-            p = self.root / "camera" / row["gt_depth"]
+            files["gt_depth"] = f"../groundtruth/depth/{i:06d}.{self.depth_format}"
+            p = self.root / "camera" / files["gt_depth"]
             p.parent.mkdir(parents=True, exist_ok=True)
-            self.depth_pixels_beyond_format += write_depth(p, gt_depth)
+            beyond = write_depth(p, gt_depth)
         if gt_mask is not None:
-            row["gt_mask"] = f"../groundtruth/masks/{i:06d}.png"
-            p = self.root / "camera" / row["gt_mask"]
+            files["gt_mask"] = f"../groundtruth/masks/{i:06d}.png"
+            p = self.root / "camera" / files["gt_mask"]
             p.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(p) as tmp:
                 cv2.imwrite(str(tmp), (np.asarray(gt_mask) > 0).astype(np.uint8) * 255)
-        self._rows.append(row)
-        # After the files: a journaled frame is always complete on disk. Flushed, not
-        # fsynced: this guards against a killed process, not against power loss.
-        self._journal.write(json.dumps(row) + "\n")
-        self._journal.flush()
-        return i
+        return files, beyond
 
     def add_scan(self, scan: LaserScan, dynamic: np.ndarray | None = None) -> None:
         """Keep one scan for ``close()``; its stamp must be finite and after the last's."""
@@ -832,10 +894,28 @@ class SequenceWriter:
 
     def discard(self) -> None:
         """Stop without finishing: the journal is closed, nothing more is written (a new
-        writer without ``resume`` then clears the folder's sequence files)."""
-        self._journal.close()
+        writer without ``resume`` then clears the folder's sequence files). Frames in
+        flight are finished and journaled up to the first that failed, so a resumed
+        writer keeps them."""
+        try:
+            self._stop_pool()
+        finally:
+            self._journal.close()
+
+    def _stop_pool(self) -> None:
+        """Let the frames in flight land, journal those written in order, stop the threads."""
+        if self._pool is None:
+            return
+        self._pool.shutdown(wait=True)
+        while self._pending and self._pending[0][1].exception() is None:
+            stamp, fut = self._pending.popleft()
+            self._journal_frame(len(self._rows), stamp, *fut.result())
+        self._pending.clear()
+        self._pool = None
 
     def close(self) -> Path:
+        self.flush()
+        self._stop_pool()
         write_rig(self.root / "rig.yaml", self.rig)
         if self._rows:
             _write_csv(self.root / "camera" / "frames.csv", self._rows)
@@ -894,11 +974,13 @@ def _read_journal(path: Path, camera_dir: Path) -> list[dict[str, str]]:
 
 def _remove_unlisted_frames(root: Path, n: int) -> None:
     """Delete per-frame files with index >= n (written after the last journaled frame),
-    which would otherwise make the folder disagree with its index."""
+    which would otherwise make the folder disagree with its index, and the temporaries of
+    writes a kill cut short (up to one per encoding thread)."""
     for sub in ("camera/images", "groundtruth/depth", "groundtruth/masks"):
         d = root / sub
         if not d.is_dir():
             continue
+        remove_temps_under(d)
         for p in d.iterdir():
             m = _INDEXED.match(p.name)
             if m and int(m.group(1)) >= n:
@@ -927,17 +1009,36 @@ def jpeg_as_is(data: bytes, image: np.ndarray) -> bool:
     return True
 
 
+# Lossless PNG, tuned for speed: the simulator writes 20+ frames/s and a long bag's raw
+# Image frames were mostly PNG encoding. Level 1 with the SUB filter (a third faster than
+# the default filter at the same size on rendered images). Colour frames with zlib's
+# Z_RLE strategy (run matches only): on camera-like synthetic frames (sensor noise, few
+# long matches) 1.3x faster and 16% smaller than full matching (noise-free ones: 12%
+# slower, 4% smaller). Grey frames stored as RGB (R = G = B, a mono camera's) keep full
+# matching: RLE missed their repeats (265 -> 404 KB a frame, no faster). Figures and
+# scripts in docs/ingest.md, "Long recordings".
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
+              cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+PNG_PARAMS_GREY = [cv2.IMWRITE_PNG_COMPRESSION, 1,
+                   cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
+
+
+def _looks_grey(img: np.ndarray) -> bool:
+    """Whether an [H, W, 3] image has R = G = B on every 16th row: only the PNG settings
+    depend on it, both lossless, so a sample decides (the whole frame took 0.7 ms, 7% of
+    a grey 640x480 frame's encoding)."""
+    rows = img[::16]  # [ceil(H / 16), W, 3]
+    return bool((rows[..., 0] == rows[..., 1]).all() and (rows[..., 1] == rows[..., 2]).all())
+
+
 def _write_rgb(path: Path, image: np.ndarray) -> None:
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"{path}: images must be RGB uint8 [H, W, 3], got {img.dtype} "
                          f"{img.shape}")
     with atomic_path(path) as tmp:
-        # Fast PNG compression: the simulator writes 20+ frames/s.
-        # The SUB filter cuts encode time by a third at the same size on rendered images.
-        if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR),
-                           [cv2.IMWRITE_PNG_COMPRESSION, 1,
-                            cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]):
+        params = PNG_PARAMS_GREY if _looks_grey(img) else PNG_PARAMS
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), params):
             raise OSError(f"{path}: could not write image")
 
 
