@@ -361,6 +361,10 @@ def test_an_option_left_off_keeps_the_settings_of_runs_made_before_it() -> None:
     plain = Slam2DStage.Config(stage="slam2d")
     assert "unseen_approach_cells" not in str(plain.model_dump())
     assert "unseen_approach_cells" not in str(plain.slam_config().model_dump())
+    assert "unknown_score" not in str(plain.model_dump())  # session 30, the same way
+    assert "unknown_score" not in str(plain.slam_config().model_dump())
+    neutral = Slam2DConfig.model_validate({"local": {"unknown_score": 0.5}})
+    assert neutral.model_dump()["local"]["unknown_score"] == 0.5
     on = Slam2DConfig.model_validate({"local": {"unseen_approach_cells": 2}})
     assert on.model_dump()["local"]["unseen_approach_cells"] == 2
     assert Slam2DConfig.model_validate(on.model_dump()) == on

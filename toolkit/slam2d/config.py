@@ -58,7 +58,7 @@ class LocalMatchingOptions(_Options, AddedOptions):
     # Left at 0, unseen_approach_cells (session 26) is not written: the slam2d stage's cache
     # key and slam2d_config.json (part of the trajectory artifact) stay those of runs made
     # before it, so they are neither redone nor make fuse rerun.
-    added_off = {"unseen_approach_cells": 0.0}
+    added_off = {"unseen_approach_cells": 0.0, "unknown_score": 0.0}
     # Correlative search window around the predicted pose. With odometry the prediction is
     # good to centimetres; without it the robot may have moved a metre and turned tens of
     # degrees since the last scan (sparse logs), so the window is wider.
@@ -114,6 +114,16 @@ class LocalMatchingOptions(_Options, AddedOptions):
     # the corridor and doors benchmarks gained (0.046 -> 0.020, 0.050 -> 0.036 m);
     # docs/slam2d.md, "Along-track scale".
     unseen_approach_cells: float = Field(0.0, ge=0)
+    # With odometry, cells the submap never observed score at least this in the local
+    # matcher's field (search and refinement), not p_min like observed free space. A wall
+    # the scan sees for the first time lies on unknown cells; scored as free, a pose a
+    # little further back, which puts it on the mapped part, wins, and the match slides
+    # back along a corridor. 0.5 (a probability grid's unknown prior): corridor benchmark
+    # 0.048 -> 0.026 m, doors 0.063 -> 0.023 m, hold off 3.29 -> 1.99 m; but Killian's
+    # relations 0.03424 -> 0.03488 m / 0.314 -> 0.327 deg and the simulated house
+    # 0.0125 -> 0.0134 m, so off (0) by default. Not used scan-only (see slam.py).
+    # docs/slam2d.md, "Unknown cells scored apart from free ones".
+    unknown_score: float = Field(0.0, ge=0, lt=1)
     # Without odometry the prediction ("stood still") carries no information about the
     # translation: no translation cost in the search, and the refinement is only held to
     # the search result, weakly, so that it cannot slide along a corridor. A mild rotation

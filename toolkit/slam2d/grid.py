@@ -204,7 +204,8 @@ class ProbabilityGrid:
         return self._prob_of_value[self.values]
 
     def matching_field(self, sigma: float, lo: np.ndarray | None = None,
-                       hi: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       hi: np.ndarray | None = None,
+                       unknown: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(field [h, w] float32, origin [2]) that scan matchers score against.
 
         ``p_min + (p_max - p_min) * exp(-d^2 / (2 sigma^2))`` with d the distance to the
@@ -214,7 +215,8 @@ class ProbabilityGrid:
         grazed by earlier beams, and in corridors the raw score then prefers a pose
         metres behind the true one. The distance field scores every observed wall alike
         and gives the continuous refinement a basin of a few cells. ``lo``/``hi`` (ix, iy)
-        crop the computation to where a scan can land.
+        crop the computation to where a scan can land. ``unknown``: never-observed cells
+        score at least this (None: like free space, p_min).
         """
         H, W = self.values.shape
         lo = np.zeros(2, int) if lo is None else np.clip(np.asarray(lo), 0, [W, H])
@@ -223,11 +225,19 @@ class ProbabilityGrid:
         free = (v < self._occupied_value).astype(np.uint8)
         origin = self.origin + lo * self.resolution
         if free.size == 0:
-            return np.full((1, 1), self.p_min, np.float32), origin
+            fill = self.p_min if unknown is None else max(self.p_min, unknown)
+            return np.full((1, 1), fill, np.float32), origin
         d = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_5)  # [h, w] in cells
         lut = _field_lut(self.resolution, sigma, self.p_min, self.p_max)
         idx = np.minimum(d * _LUT_STEPS, len(lut) - 1).astype(np.int32)
-        return lut[idx], origin
+        field = lut[idx]  # [h, w]
+        if unknown is not None and unknown > self.p_min:
+            # A point on a never-observed cell is not evidence against the pose, as one on
+            # observed free space is: scored alike, a pose that pulls a newly seen wall back
+            # onto the mapped part wins (a scan slides backwards along a corridor).
+            unseen = v == 0
+            field[unseen] = np.maximum(field[unseen], np.float32(unknown))
+        return field, origin
 
     def occupancy(self, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> (
             np.ndarray):

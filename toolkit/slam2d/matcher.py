@@ -42,17 +42,18 @@ class GridPyramid:
     a level-``d`` candidate stands for. All levels keep the fine resolution, so a
     candidate's cells are ``base + offset`` at every level and a bound costs one gather.
     The fine grid is padded with p_min by ``2 * window_cells + 2^depth`` cells so that
-    clamped indices of points off the grid always read unknown space.
+    clamped indices of points off the grid always read unknown space (``pad_value``
+    when unknown cells score apart from free ones).
     """
 
     def __init__(self, prob: np.ndarray, origin: np.ndarray, resolution: float, depth: int,
-                 p_min: float, window_cells: int) -> None:
+                 p_min: float, window_cells: int, pad_value: float | None = None) -> None:
         self.depth = int(depth)
         self.resolution = float(resolution)
         self.window_cells = int(window_cells)
         pad = 2 * self.window_cells + (1 << self.depth) + 1
         h, w = prob.shape
-        q_min = int(np.ceil(p_min * 255.0))
+        q_min = int(np.ceil((p_min if pad_value is None else pad_value) * 255.0))
         fine = np.full((h + 2 * pad, w + 2 * pad), q_min, np.uint8)
         # Round up: a bound must never be below the probability it stands for.
         fine[pad : pad + h, pad : pad + w] = np.ceil(prob * 255.0).astype(np.uint8)

@@ -274,8 +274,14 @@ class LidarSlam2D:
         hi_xy = np.minimum(at_pred.max(0) + swing, pred[:2] + r_max) + margin
         lo = grid.cell_of(lo_xy[None])[0]
         hi = grid.cell_of(hi_xy[None])[0] + 1
-        field, f_origin = grid.matching_field(self.config.grid.matching_sigma_m, lo, hi)
-        return field, f_origin, GridPyramid(field, f_origin, res, depth, grid.p_min, w)
+        # Scan-only the search's window is wide and its prediction "stood still": there a
+        # pose that puts returns off the map would win on unknown cells scored above free
+        # space (Intel / ACES ATE 0.086 / 0.084 m -> 11.7 / 23.4 m), so only with odometry.
+        u = lc.unknown_score if with_odom and lc.unknown_score > grid.p_min else None
+        field, f_origin = grid.matching_field(self.config.grid.matching_sigma_m, lo, hi,
+                                              unknown=u)
+        return field, f_origin, GridPyramid(field, f_origin, res, depth, grid.p_min, w,
+                                            pad_value=u)
 
     def _scan_match(self, pred: np.ndarray, points: np.ndarray, spread: float | None,
                     with_odom: bool, dt: float) -> tuple[np.ndarray, float]:
