@@ -1,7 +1,7 @@
-"""Command line: ``python -m toolkit.recipe run|validate|list``.
+"""Command line: ``python -m toolkit.recipe run|validate|list|doctor``.
 
-Exit codes: 0 success, 1 a stage failed, 2 the recipe or the command line is wrong
-(nothing ran), 130 interrupted.
+Exit codes: 0 success, 1 a stage failed (``doctor``: a required part is missing), 2 the
+recipe or the command line is wrong (nothing ran), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -55,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help=set_help)
 
     commands.add_parser("list", help="list the stage types a recipe may use")
+    doctor = commands.add_parser(
+        "doctor", help="check what this installation can run (packages, C++ and GPU paths)")
+    doctor.add_argument("--build", action="store_true",
+                        help="build the splat rasterisers now (C++: ~1 min; gsplat on a GPU: "
+                        "minutes) instead of saying the first run will")
+    doctor.add_argument("--json", action="store_true", help="print JSON (for bug reports)")
     return parser
 
 
@@ -64,6 +70,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "list":
             return _list()
+        if args.command == "doctor":
+            return _doctor(build=args.build, as_json=args.json)
         recipe = load_recipe(args.file, args.set)
         if args.command == "validate":
             problems = missing_inputs(recipe)
@@ -113,6 +121,35 @@ def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:
         words += ["--only", only]
     return (f"run {shlex.join(words)} to resume (without --force or --from, which would "
             "redo finished stages)")
+
+
+def _doctor(build: bool, as_json: bool) -> int:
+    import json
+
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    from toolkit.recipe import doctor
+
+    checks = doctor.collect(build=build)
+    summary = doctor.as_dict(checks)
+    if as_json:
+        print(json.dumps(summary, indent=2))
+    else:
+        table = Table(title="lidarcam-recon doctor", title_justify="left")
+        for column in ("part", "status", "detail", "fix"):
+            table.add_column(column, overflow="fold")
+        style = {"ok": "green", "note": "yellow", "missing": "bold red"}
+        for c in checks:
+            # Escaped: a fix such as pip install -e '.[cuda]' is not rich markup.
+            table.add_row(escape(c.part), f"[{style[c.status]}]{c.status}[/]",
+                          escape(c.detail), escape(c.fix))
+        Console().print(table)
+        missing = [c.part for c in checks if c.status == "missing"]
+        print(f"missing: {', '.join(missing)}" if missing
+              else "every required part works")
+    return 0 if summary["ok"] else 1
 
 
 def _list() -> int:
