@@ -282,18 +282,17 @@ class MeshRenderer:
         T = np.asarray(T_world_camera, dtype=np.float64)
         need = np.asarray(need, dtype=bool)
         out = np.zeros(need.shape, np.float32)  # [H, W]
-        lines = np.flatnonzero(need.any(axis=1))  # [R] image rows with a needed pixel
+        lines = np.flatnonzero(need.any(axis=1))  # image rows with a needed pixel
         if len(lines) == 0:
             return out
-        sub = need[lines]  # [R, W]
-        dirs = self._camera_rays(camera)[lines] @ T[:3, :3].T  # [R, W, 3]
+        band = slice(lines[0], lines[-1] + 1)  # views, not copies; R rows
+        sub = need[band]  # [R, W]
+        dirs = self._camera_rays(camera)[band] @ T[:3, :3].T  # [R, W, 3]
         rays = np.empty((int(sub.sum()), 6), dtype=np.float32)  # [n, 6] in row-major order
         rays[:, :3] = T[:3, 3]
         rays[:, 3:] = dirs[sub]
         t = self.scene.cast_rays(o3c.Tensor(rays))["t_hit"].numpy()  # [n]
-        block = np.zeros(sub.shape, np.float32)  # [R, W]
-        block[sub] = np.where(np.isfinite(t), t, 0.0)
-        out[lines] = block
+        out[band][sub] = np.where(np.isfinite(t), t, 0.0)
         return out
 
     def depth(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> np.ndarray:
