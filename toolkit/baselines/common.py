@@ -170,8 +170,6 @@ def _observed_mask(points: np.ndarray, camera: PinholeCamera, poses: np.ndarray,
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     seen = np.zeros(len(pts), bool)
     if len(pts) == 0:
-        for _ in zip(poses, views, strict=True):  # each view is still asked for, as before
-            pass
         return seen
     # Points are bucketed in cubes; a view tests only the points of cubes whose bounding
     # sphere meets its frustum (a house is large, a view sees a few percent of it).
