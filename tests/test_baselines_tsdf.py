@@ -74,9 +74,9 @@ def test_the_seen_surface_is_built_once_for_the_same_mesh_and_poses(
     cam, poses, _ = room_frames
     monkeypatch.setattr(common, "_REFERENCES", {})  # none from other tests
     renders = []
-    depth = MeshRenderer.depth
-    monkeypatch.setattr(MeshRenderer, "depth",
-                        lambda self, c, T: renders.append(1) or depth(self, c, T))
+    depth = MeshRenderer.depth_where  # the rays each view's test reads
+    monkeypatch.setattr(MeshRenderer, "depth_where",
+                        lambda self, c, T, need: renders.append(1) or depth(self, c, T, need))
     first = observed_reference(SMALL_ROOM.mesh(), cam, poses[:4], spacing_m=0.03)
     n = len(renders)
     assert n == 4 and len(first) > 1000
@@ -142,6 +142,116 @@ def test_observed_mask_ignores_occluded_and_out_of_view_points() -> None:
                     [0.0, 0.0, -2.0]])  # behind the camera
     np.testing.assert_array_equal(observed_mask(pts, cam, np.eye(4)[None], [depth]),
                                   [True, False, False, False])
+
+
+def _wall_and_boxes() -> tuple[Any, dict[str, np.ndarray]]:
+    """A 0.2 m thick wall 3 m ahead of a camera at (0, 0, 1) looking along +x, a box hidden
+    behind it and a box in front, left of it; and points on their faces, by face."""
+    def box(lo: tuple, hi: tuple) -> Any:
+        b = o3d.geometry.TriangleMesh.create_box(*(np.subtract(hi, lo)))
+        return b.translate(lo)
+
+    mesh = (box((3.0, -1.0, 0.0), (3.2, 1.0, 2.0)) + box((3.6, -0.3, 0.5), (4.0, 0.3, 1.0))
+            + box((1.8, 1.1, 0.5), (2.2, 1.5, 0.9)))
+    g = np.linspace(0.0, 1.0, 41)[1:-1]  # [39] inside each face, off its edges
+    a, b = (x.ravel() for x in np.meshgrid(g, g))
+
+    def face(x: float | np.ndarray, y: float | np.ndarray, z: float | np.ndarray) -> np.ndarray:
+        return np.stack(np.broadcast_arrays(x, y, z), -1).astype(np.float64)
+
+    faces = {
+        "wall_front": face(3.0, -1 + 2 * a, 2 * b),  # seen: nothing in front of it
+        "wall_back": face(3.2, -1 + 2 * a, 2 * b),  # 0.2 m behind the front: not seen
+        "hidden_front": face(3.6, -0.3 + 0.6 * a, 0.5 + 0.5 * b),  # behind the wall
+        "box_front": face(1.8, 1.1 + 0.4 * a, 0.5 + 0.4 * b),  # seen where in the image
+        "box_back": face(2.2, 1.1 + 0.4 * a, 0.5 + 0.4 * b),  # behind its front
+    }
+    return mesh, faces
+
+
+def test_observed_mask_sees_a_wall_but_not_the_box_behind_it() -> None:
+    """Known visibility, and the same mask whether each view's whole depth map is rendered
+    (``observed_mask``) or only the rays the test reads (``observed_reference``)."""
+    mesh, faces = _wall_and_boxes()
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 79.5, 59.5)
+    T = look_at([0.0, 0.0, 1.0], [3.0, 0.0, 1.0])
+    renderer = MeshRenderer(mesh)
+    pts = np.concatenate(list(faces.values()))  # [M, 3]
+    seen = observed_mask(pts, cam, T[None], [renderer.depth(cam, T)])
+    parts = dict(zip(faces, np.split(seen, np.cumsum([len(f) for f in faces.values()])[:-1]),
+                     strict=True))
+    assert parts["wall_front"].all()
+    assert not parts["wall_back"].any() and not parts["hidden_front"].any()
+    # The side of the box facing the camera ends at its back: only the back within 5 cm
+    # of that edge's depth counts.
+    assert not parts["box_back"][faces["box_back"][:, 1] > 1.2].any()
+    T_cw = np.linalg.inv(T)
+    uv, _ = cam.project(faces["box_front"] @ T_cw[:3, :3].T + T_cw[:3, 3])
+    inside = cam.in_image(uv)
+    assert 0 < inside.sum() < len(inside)  # partly out of the image: that part is not seen
+    np.testing.assert_array_equal(parts["box_front"], inside)
+    # Several views, from both sides of the wall: the ray-cast subset gives the same mask.
+    poses = np.stack([T, look_at([0.2, -0.5, 1.2], [3.0, 0.5, 0.8]),
+                      look_at([5.0, 0.3, 1.5], [3.0, -0.2, 0.6]),
+                      look_at([1.0, 2.5, 1.0], [2.0, 0.0, 0.7])])
+    ref = sample_mesh(mesh, 0.01)
+    full = observed_mask(ref, cam, poses, [renderer.depth(cam, P) for P in poses])
+    assert 0.2 < full.mean() < 0.8
+    np.testing.assert_array_equal(observed_reference(mesh, cam, poses, spacing_m=0.01),
+                                  ref[full])
+
+
+def test_depth_where_casts_the_needed_rays_bit_for_bit() -> None:
+    mesh, _ = _wall_and_boxes()
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 79.5, 59.5)
+    T = look_at([0.3, -0.4, 1.1], [3.0, 0.2, 0.9])
+    renderer = MeshRenderer(mesh)
+    whole = renderer.depth(cam, T)
+    need = np.random.default_rng(0).random((120, 160)) < 0.3
+    need[7] = False  # a row with nothing needed
+    part = renderer.depth_where(cam, T, need)
+    assert part.dtype == np.float32 and (whole[need] > 0).mean() > 0.2
+    np.testing.assert_array_equal(part[need], whole[need])  # exactly, not approximately
+    assert not part[~need].any()
+    assert not renderer.depth_where(cam, T, np.zeros_like(need)).any()
+
+
+def test_observed_mask_matches_the_plain_test_at_the_image_borders() -> None:
+    """Points over the whole image, its half-pixel borders included, against random depth
+    maps with holes (0 and NaN): the mask is the plain per-point test's, written out here
+    (all points, every view, the four pixels around each clipped to the image)."""
+    rng = np.random.default_rng(3)
+    cam = PinholeCamera(40, 30, 30.0, 30.0, 19.5, 14.5)
+    poses = np.stack([look_at(rng.uniform(-0.3, 0.3, 3), [0.0, 0.0, 3.0]) for _ in range(5)])
+    depths = [rng.uniform(1.0, 5.0, (30, 40)).astype(np.float32) for _ in poses]
+    for d in depths:
+        d[rng.random(d.shape) < 0.1] = 0.0
+        d[rng.random(d.shape) < 0.05] = np.nan
+    pts = []
+    for T, d in zip(poses, depths, strict=True):  # near each view's depth, some beyond
+        uv = np.c_[rng.uniform(-0.5, 39.5, 3000), rng.uniform(-0.5, 29.5, 3000)]
+        z = d[np.clip(np.round(uv[:, 1]).astype(int), 0, 29),
+              np.clip(np.round(uv[:, 0]).astype(int), 0, 39)] + rng.normal(0, 0.05, 3000)
+        z = np.where(np.isfinite(z) & (z > 0.1), z, 2.0)
+        pc = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z]
+        pts.append(pc @ T[:3, :3].T + T[:3, 3])
+    pts = np.concatenate(pts)
+    expect = np.zeros(len(pts), bool)
+    for T, d in zip(poses, depths, strict=True):
+        T_cw = np.linalg.inv(T)
+        pc = pts @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv, z = cam.project(pc)
+        ok = (z > 1e-6) & (z <= 4.0) & cam.in_image(uv)
+        u0, v0 = np.floor(uv[ok, 0]).astype(int), np.floor(uv[ok, 1]).astype(int)
+        near = np.stack([d[np.clip(v0 + dv, 0, 29), np.clip(u0 + du, 0, 39)]
+                         for du in (0, 1) for dv in (0, 1)]).astype(np.float64)  # [4, n]
+        valid = near > 0
+        lo = np.where(valid, near, np.inf).min(0)
+        hi = np.where(valid, near, -np.inf).max(0)
+        expect[np.flatnonzero(ok)[(z[ok] > lo - 0.05) & (z[ok] < hi + 0.05)]] = True
+    assert 0.2 < expect.mean() < 0.9
+    seen = observed_mask(pts, cam, poses, iter(depths), tolerance_m=0.05, max_depth_m=4.0)
+    np.testing.assert_array_equal(seen, expect)
 
 
 def test_a_grazing_floor_is_observed_where_it_is_visible() -> None:

@@ -268,6 +268,33 @@ class MeshRenderer:
         rays[..., 3:] = dirs
         return dirs, self.scene.cast_rays(o3c.Tensor(rays))
 
+    def depth_where(self, camera: PinholeCamera, T_world_camera: np.ndarray,
+                    need: np.ndarray) -> np.ndarray:
+        """[H, W] float32: ``depth`` at the pixels where ``need`` [H, W] bool is set, 0
+        elsewhere, casting only those rays.
+
+        The values are ``depth``'s bit for bit: each needed image row's directions come
+        from the same matrix product as in ``_cast_rays`` (numpy multiplies a stack row by
+        row), and Embree intersects each ray on its own.
+        """
+        import open3d.core as o3c
+
+        T = np.asarray(T_world_camera, dtype=np.float64)
+        need = np.asarray(need, dtype=bool)
+        out = np.zeros(need.shape, np.float32)  # [H, W]
+        lines = np.flatnonzero(need.any(axis=1))  # image rows with a needed pixel
+        if len(lines) == 0:
+            return out
+        band = slice(lines[0], lines[-1] + 1)  # views, not copies; R rows
+        sub = need[band]  # [R, W]
+        dirs = self._camera_rays(camera)[band] @ T[:3, :3].T  # [R, W, 3]
+        rays = np.empty((int(sub.sum()), 6), dtype=np.float32)  # [n, 6] in row-major order
+        rays[:, :3] = T[:3, 3]
+        rays[:, 3:] = dirs[sub]
+        t = self.scene.cast_rays(o3c.Tensor(rays))["t_hit"].numpy()  # [n]
+        out[band][sub] = np.where(np.isfinite(t), t, 0.0)
+        return out
+
     def depth(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> np.ndarray:
         """[H, W] float32 z-depth, 0 where nothing was hit: ``cast`` without the hit points,
         triangles and barycentrics (half its time on a 640x480 view)."""
