@@ -1,45 +1,50 @@
 """Peak resident memory of one stage, for the run's timing table.
 
-Stages run one after another in the runner's process, so the process's peak (``VmHWM``,
-``ru_maxrss``) after the second stage is the larger of the two. On Linux the peak is reset
-when a stage starts (writing ``5`` to ``/proc/self/clear_refs``, Linux 4.0+), so each
-stage's figure is its own. Where that cannot be done (another OS, a kernel without it)
-the figure is the process's peak since it started: an upper bound, marked ``exact=False``.
-Memory of child processes (a compiler building an extension) is not counted.
+Stages run one after another in the runner's process, whose peak resident set
+(``ru_maxrss``) only grows: after the second stage it is the larger of the two. So:
+
+- a stage that raised the process's peak gets that peak, **exact**;
+- another one gets the largest resident set **sampled** every 20 ms while it ran
+  (``/proc/self/statm``; a spike shorter than that can be missed), shown ``~``;
+- where nothing can be sampled (no ``/proc``: macOS, Windows) it gets the process's peak
+  so far, an upper **bound**, shown ``<=``.
+
+The process's peak itself is never reset (Linux could, through ``/proc/self/clear_refs``),
+so ``/usr/bin/time -v`` and other tools still see the whole run's. Memory of child
+processes (a compiler building an extension) is not counted.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 try:
     import resource
 except ImportError:  # Windows
     resource = None  # type: ignore[assignment]
 
-_STATUS = Path("/proc/self/status")
-_CLEAR_REFS = Path("/proc/self/clear_refs")
+How = Literal["exact", "sampled", "bound"]
+_STATM = Path("/proc/self/statm")
+SAMPLE_S = 0.02
 
 
 @dataclass(frozen=True)
 class PeakMemory:
-    """A stage's peak resident memory in MiB (2^20 bytes); ``exact`` False: the process's
-    peak since it started, which may belong to an earlier stage."""
+    """A stage's peak resident memory in MiB (2^20 bytes) and how it is known (module
+    doc): ``exact``, ``sampled`` (a lower bound) or ``bound`` (an upper bound)."""
 
     mib: float
-    exact: bool
+    how: How
 
-
-def _hwm_mib() -> float | None:
-    try:
-        for line in _STATUS.read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0  # kB
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    def text(self) -> str:
+        """For a table: ``1897``, ``~1195`` (sampled) or ``<= 1897`` (bound)."""
+        prefix = {"exact": "", "sampled": "~", "bound": "<= "}[self.how]
+        return f"{prefix}{self.mib:.0f}"
 
 
 def _maxrss_mib() -> float | None:
@@ -50,26 +55,53 @@ def _maxrss_mib() -> float | None:
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
 
 
-def _reset_peak() -> bool:
+def _page_mib() -> float:
     try:
-        _CLEAR_REFS.write_text("5")
-    except OSError:
-        return False
-    return True
+        return os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (AttributeError, ValueError, OSError):
+        return 4096 / 2**20
+
+
+def _rss_mib(page_mib: float) -> float | None:
+    try:
+        return int(_STATM.read_text().split()[1]) * page_mib  # resident pages
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 class StagePeak:
-    """Started when a stage starts; ``finish()`` gives its peak."""
+    """Started when a stage starts (a sampling thread); ``finish()`` stops it and gives
+    the stage's peak."""
 
     def __init__(self) -> None:
-        self._exact = _reset_peak() and _hwm_mib() is not None
+        self._start_peak = _maxrss_mib()
+        self._page = _page_mib()
+        self._sampled = _rss_mib(self._page)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if self._sampled is not None:
+            self._thread = threading.Thread(target=self._sample, name="peak-memory",
+                                            daemon=True)
+            self._thread.start()
+
+    def _sample(self) -> None:
+        while not self._stop.wait(SAMPLE_S):
+            rss = _rss_mib(self._page)
+            if rss is not None and (self._sampled is None or rss > self._sampled):
+                self._sampled = rss
 
     def finish(self) -> PeakMemory | None:
-        """The peak since ``__init__`` (or since the process started, ``exact=False``);
-        None where the platform reports neither."""
-        if self._exact:
-            mib = _hwm_mib()
-            if mib is not None:
-                return PeakMemory(mib, True)
-        mib = _maxrss_mib()
-        return None if mib is None else PeakMemory(mib, False)
+        """The stage's peak (module doc); None where the platform reports nothing."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+            rss = _rss_mib(self._page)
+            if rss is not None and self._sampled is not None:
+                self._sampled = max(self._sampled, rss)
+        peak = _maxrss_mib()
+        if peak is not None and self._start_peak is not None and peak > self._start_peak:
+            return PeakMemory(peak, "exact")  # the process's peak rose during this stage
+        if self._sampled is not None:
+            return PeakMemory(self._sampled, "sampled")
+        return None if peak is None else PeakMemory(peak, "bound")

@@ -52,10 +52,7 @@ def _load(s: StageSummary) -> str:
 
 
 def _peak(peak: PeakMemory | None) -> str:
-    if peak is None:
-        return ""
-    # Not reset at the stage's start: the process's peak so far, an upper bound.
-    return f"{peak.mib:.0f}" if peak.exact else f"<= {peak.mib:.0f}"
+    return "" if peak is None else peak.text()
 
 
 def timing_rows(stages: Sequence[StageSummary]) -> list[tuple[str, str, str, str, str, str]]:
@@ -98,8 +95,9 @@ def build_report(
     timing = "## Timing\n\n" + "\n".join(table)
     timing += ("\n\nCached stages show the time of the run that computed them. CPU load = "
                "CPU time / wall time, 100 % = one core. Peak memory: the process's "
-               "largest resident set while the stage ran (MiB = 2^20 bytes; \"<=\": "
-               "the peak since the run started, where it could not be reset per stage).")
+               "largest resident set while the stage ran (MiB = 2^20 bytes), exact where "
+               "the stage raised the run's peak, \"~\" sampled every 20 ms otherwise, "
+               "\"<=\" the run's peak so far where memory cannot be sampled.")
     parts.append(timing)
     if error:
         parts.append(f"**Failed:** {error} (details in run.log)")

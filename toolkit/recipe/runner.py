@@ -967,15 +967,16 @@ def _speed_values(spec: StageSpec) -> dict[str, Any]:
 def _peak_fields(peak: PeakMemory | None) -> dict[str, Any]:
     if peak is None:
         return {}
-    return {"peak_rss_mib": round(peak.mib, 1), "peak_rss_exact": peak.exact}
+    return {"peak_rss_mib": round(peak.mib, 1), "peak_rss_how": peak.how}
 
 
 def _stored_peak(stored: Mapping[str, Any]) -> PeakMemory | None:
     # Markers written before the peak was recorded have none.
-    mib = stored.get("peak_rss_mib")
-    if not isinstance(mib, int | float) or isinstance(mib, bool):
+    mib, how = stored.get("peak_rss_mib"), stored.get("peak_rss_how")
+    if (not isinstance(mib, int | float) or isinstance(mib, bool)
+            or how not in ("exact", "sampled", "bound")):
         return None
-    return PeakMemory(float(mib), bool(stored.get("peak_rss_exact", False)))
+    return PeakMemory(float(mib), how)
 
 
 def _cpu_seconds() -> float:
