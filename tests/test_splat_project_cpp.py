@@ -10,6 +10,8 @@ Skips, saying why, where the extension cannot be built.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -296,3 +298,13 @@ def test_render_matches_torch_backend(cpp: None) -> None:
     # densification reads the screen-space gradient
     assert new.meta.means2d.grad is not None
     assert torch.allclose(new.meta.means2d.grad, ref.meta.means2d.grad, rtol=1e-8, atol=1e-12)
+
+
+def test_each_torch_installation_gets_its_own_build_folder(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # ninja's build file names torch's include folders: two venvs with the same torch
+    # version sharing one folder rebuilt the extension each time they took turns.
+    name = cpp_ext.build_name()
+    assert cpp_ext.build_name() == name  # stable
+    monkeypatch.setattr(torch, "__file__", str(tmp_path / "other_venv" / "torch" / "__init__.py"))
+    assert cpp_ext.build_name() != name

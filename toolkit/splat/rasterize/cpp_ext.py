@@ -92,10 +92,16 @@ def _cpu_signature() -> str:
 
 
 def build_name() -> str:
-    """Extension module name: stable for one source, flag set, toolchain and CPU."""
+    """Extension module name: stable for one source, flag set, toolchain, CPU and torch
+    installation."""
     h = hashlib.sha256()
+    # The torch folder too: ninja's build file names its include and library folders, so
+    # two environments with the same torch version (a project's venv and a CI clone's)
+    # sharing one build folder rebuilt it (about a minute) each time they took turns.
+    torch_dir = str(Path(torch.__file__).resolve().parent)
     for part in (SOURCE.read_bytes(), " ".join(CFLAGS + LDFLAGS).encode(),
-                 torch.__version__.encode(), sys.version.encode(), _cpu_signature().encode()):
+                 torch.__version__.encode(), sys.version.encode(), _cpu_signature().encode(),
+                 torch_dir.encode()):
         h.update(part)
     return f"toolkit_splat_composite_{h.hexdigest()[:16]}"
 
