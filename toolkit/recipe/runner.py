@@ -604,7 +604,6 @@ class _Run:
         ctx = _Context(self, record)
         start = time.perf_counter()
         cpu_start = _cpu_seconds()
-        record.peak = None
         peak = StagePeak()
         try:
             stage.run(ctx)
