@@ -460,6 +460,23 @@ def test_intrinsics_names_images_without_the_board(capture: tuple[Path, object],
     assert not (tmp_path / "cam.yaml").exists()
 
 
+def test_intrinsics_on_too_few_images_names_the_folder(capture: tuple[Path, object],
+                                                      tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder of one image, the board found in it: the error said only '1 usable views;
+    at least 3 are needed', naming neither the folder nor its image."""
+    cap_dir, _ = capture
+    folder = tmp_path / "one"
+    folder.mkdir()
+    shutil.copy(sorted((cap_dir / "images").glob("*.png"))[0], folder / "only.png")
+    assert main(["intrinsics", "--images", str(folder), "--board", "11x8", "--square", "0.05",
+                 "--out", str(tmp_path / "cam.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert f"{folder} holds 1 image(s) (only.png)" in err
+    assert "at least 3 views are needed; capture more" in err
+    assert not (tmp_path / "cam.yaml").exists()
+
+
 def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, object],
                                                            tmp_path: Path) -> None:
     """check --images/--scans --frames 3 scored and drew all 8 pairs (--frames applied to
