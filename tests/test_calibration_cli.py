@@ -42,6 +42,19 @@ def test_help_of_every_command() -> None:
         assert r.returncode == 0 and "usage: python -m calibration" in r.stdout
 
 
+def test_help_names_where_output_goes_by_default(capsys: pytest.CaptureFixture[str]) -> None:
+    """intrinsics wrote camera.yaml into the current folder (check and time-offset their
+    folders) while --help said only "camera YAML to write" / "output folder"."""
+    helps = {}
+    for cmd in ("intrinsics", "check", "time-offset"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        helps[cmd] = " ".join(capsys.readouterr().out.split())
+    assert "(default: camera.yaml, in the current folder)" in helps["intrinsics"]
+    assert "(default: calibration_check)" in helps["check"]
+    assert "(default: time_offset)" in helps["time-offset"]
+
+
 def test_extrinsic_end_to_end(capture: tuple[Path, object], tmp_path: Path,
                               capsys: pytest.CaptureFixture[str]) -> None:
     cap_dir, cap = capture
