@@ -412,7 +412,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                           for k, v in _models().items()))
     pi.add_argument("--max-image-rms", type=float, default=None, metavar="PX",
                     help="reject images above this RMS (default: 3x the median, >= 0.5 px)")
-    pi.add_argument("--out", default="camera.yaml", help="camera YAML to write")
+    pi.add_argument("--out", default="camera.yaml",
+                    help="camera YAML to write (default: %(default)s, in the current folder)")
     pi.set_defaults(func=cmd_intrinsics)
 
     pe = sub.add_parser(
@@ -490,7 +491,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stamp_unit(pc)
     pc.add_argument("--perturb-deg", type=float, default=2.0,
                     help="rotation of the sensitivity test (default 2 deg)")
-    pc.add_argument("--out", default="calibration_check", help="output folder")
+    pc.add_argument("--out", default="calibration_check",
+                    help="output folder (default: %(default)s)")
     pc.set_defaults(func=cmd_check)
 
     pt = sub.add_parser(
@@ -513,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--max-frames", type=positive_int, default=3000,
                     help="read at most this many frames, in runs of 100 spread along a "
                          "longer recording (default 3000)")
-    pt.add_argument("--out", default="time_offset", help="output folder")
+    pt.add_argument("--out", default="time_offset", help="output folder (default: %(default)s)")
     pt.set_defaults(func=cmd_time_offset)
     return p
 

@@ -160,4 +160,11 @@ def detect_folder(folder: Path, board: BoardSpec, min_images: int = 3) -> (
             f"{folder} ({', '.join(d.name for d in dets)}); at least {min_images} are "
             f"needed, and there is no board found in {shown}."
             + board_hint(first_missed[0], board, first_missed[1]))
+    if len(dets) < min_images:
+        # The board is in every image, there are just too few of them: without this the
+        # error came from calibrate_intrinsics as "1 usable views", naming no folder.
+        raise BoardError(
+            f"{folder} holds {len(paths)} image(s) ({', '.join(d.name for d in dets)}), the "
+            f"{board} found in each, but at least {min_images} views are needed; capture "
+            "more (10-20 recommended, with the board tilted and reaching the image corners)")
     return dets, missed

@@ -42,6 +42,19 @@ def test_help_of_every_command() -> None:
         assert r.returncode == 0 and "usage: python -m calibration" in r.stdout
 
 
+def test_help_names_where_output_goes_by_default(capsys: pytest.CaptureFixture[str]) -> None:
+    """intrinsics wrote camera.yaml into the current folder (check and time-offset their
+    folders) while --help said only "camera YAML to write" / "output folder"."""
+    helps = {}
+    for cmd in ("intrinsics", "check", "time-offset"):
+        with pytest.raises(SystemExit):
+            main([cmd, "--help"])
+        helps[cmd] = " ".join(capsys.readouterr().out.split())
+    assert "(default: camera.yaml, in the current folder)" in helps["intrinsics"]
+    assert "(default: calibration_check)" in helps["check"]
+    assert "(default: time_offset)" in helps["time-offset"]
+
+
 def test_extrinsic_end_to_end(capture: tuple[Path, object], tmp_path: Path,
                               capsys: pytest.CaptureFixture[str]) -> None:
     cap_dir, cap = capture
@@ -457,6 +470,23 @@ def test_intrinsics_names_images_without_the_board(capture: tuple[Path, object],
     assert "found in only 2 of the 5 images" in err and "at least 3 are needed" in err
     assert "no board found in b0.png, b1.png, b2.png" in err
     assert "grid was found in b0.png; pass --board 12x9" in err and "Rejected: {}" not in err
+    assert not (tmp_path / "cam.yaml").exists()
+
+
+def test_intrinsics_on_too_few_images_names_the_folder(capture: tuple[Path, object],
+                                                      tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder of one image, the board found in it: the error said only '1 usable views;
+    at least 3 are needed', naming neither the folder nor its image."""
+    cap_dir, _ = capture
+    folder = tmp_path / "one"
+    folder.mkdir()
+    shutil.copy(sorted((cap_dir / "images").glob("*.png"))[0], folder / "only.png")
+    assert main(["intrinsics", "--images", str(folder), "--board", "11x8", "--square", "0.05",
+                 "--out", str(tmp_path / "cam.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert f"{folder} holds 1 image(s) (only.png)" in err
+    assert "at least 3 views are needed; capture more" in err
     assert not (tmp_path / "cam.yaml").exists()
 
 

@@ -895,6 +895,21 @@ def test_garbage_and_missing_metadata(tmp_path):
         read_rosbag(bag)
 
 
+def test_a_file_that_is_no_bag_names_the_other_sources(tmp_path):
+    """A CARMEN log given to 'source: rosbag' was reported as a damaged ROS 2 sqlite3 bag,
+    with a sqlite3 repair recipe; a ROS 2 storage file named alone is still read."""
+    log = tmp_path / "intel.log.gz"
+    log.write_bytes(b"FLASER 180 1.0 2.0" * 20)
+    with pytest.raises(BagError) as e:
+        read_rosbag(log)
+    msg = str(e.value)
+    assert msg.startswith(f"{log}: not a ROS bag") and "'source: carmen'" in msg
+    assert "sqlite3" not in msg
+    bag, _ = make_bag(tmp_path, "sqlite3")
+    (bag / "metadata.yaml").unlink()
+    assert len(read_rosbag(next(bag.glob("*.db3"))).scans) == 20
+
+
 def test_unknown_encoding(tmp_path):
     c = make_content(n_images=2)
     b = BagBuilder(ros1=False)

@@ -505,3 +505,16 @@ def test_skipped_odometry_reaches_the_stage_metrics_and_report(tmp_path, kind):
     (meta_file,) = res.run_dir.glob("**/meta.yaml")
     skipped = yaml.safe_load(meta_file.read_text())["ingest"]["skipped_invalid"]
     assert skipped["scan lines' odometry"]["count"] == 2
+
+
+def test_carmen_source_on_a_folder_or_a_bag_names_the_fix(tmp_path: Path) -> None:
+    """A folder given to 'source: carmen' failed with a bare IsADirectoryError; a file with
+    no scan lines (a ROS bag) said only that no FLASER line was found."""
+    with pytest.raises(IngestError, match=r"a folder, not a CARMEN log or g2o file; give the "
+                       r"log file \(plain, .gz or .zip\), or the 'source'"):
+        read_carmen_recording(tmp_path)
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n" + bytes(200))
+    with pytest.raises(IngestError, match=r"no laser scans .* found; for another kind of "
+                       r"recording set its 'source' \(rosbag"):
+        read_carmen_recording(bag)

@@ -232,3 +232,14 @@ def test_a_late_colour_stamp_is_moved_back_and_the_depth_clock_kept(tmp_path):
     expected = T0 + 0.2 * np.arange(6)
     assert seq.frame_stamps == pytest.approx(expected, abs=1e-6)
     assert [s.stamp for s in seq.scans] == pytest.approx(expected + 0.005, abs=1e-6)
+
+
+def test_a_file_given_as_the_folder_is_not_called_missing(tmp_path: Path) -> None:
+    """A file named as the TUM folder (rgb.txt itself, a bag) was reported as "TUM RGB-D
+    folder not found" though it exists."""
+    f = tmp_path / "rgb.txt"
+    f.write_text("# timestamp filename\n")
+    with pytest.raises(IngestError, match=r"rgb.txt: is a file, not a TUM RGB-D folder"):
+        read_tum_rgbd(f)
+    with pytest.raises(IngestError, match=r"nowhere: TUM RGB-D folder not found"):
+        read_tum_rgbd(tmp_path / "nowhere")

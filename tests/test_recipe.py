@@ -528,6 +528,33 @@ def test_a_yaml_syntax_error_names_the_file_and_line(tmp_path: Path) -> None:
     assert f'in "{bad}", line 5' in text and "<unicode string>" not in text
 
 
+def test_a_missing_input_names_the_setting_that_holds_it(tmp_path: Path) -> None:
+    """The error named the stage and the path but not the key to change, and told a user
+    with an absolute path (the docs' `--set ingest.path=/data/my_run.bag`) to "run from the
+    folder it is relative to"."""
+    from toolkit.recipe.runner import missing_inputs
+
+    data = _recipe_data(tmp_path)
+    gone = tmp_path / "gone.log"
+    data["stages"].append({"stage": "t_external", "id": "late", "counter": str(
+        tmp_path / "calls.txt"), "source_file": str(gone)})
+    (problem,) = missing_inputs(load_recipe(_write_recipe(tmp_path, data)))
+    assert problem == (f"stages[3] (late): input {gone} does not exist; fix the stage's "
+                       "'source_file' setting")
+    data["stages"][-1]["source_file"] = "no/such/input.log"
+    (problem,) = missing_inputs(load_recipe(_write_recipe(tmp_path, data)))
+    assert problem.endswith("; fix the stage's 'source_file' setting, or run from the "
+                            "folder it is relative to")
+    # Nested settings and lists (split bags) by the name a recipe or --set writes.
+    from toolkit.recipe.runner import setting_holding
+
+    settings = {"source": "rosbag", "path": ["a.bag", "./b.bag"],
+                "rosbag": {"calibration": "calib.yaml", "stamps": "header"}}
+    assert setting_holding(settings, Path("b.bag")) == "path[1]"
+    assert setting_holding(settings, Path("calib.yaml")) == "rosbag.calibration"
+    assert setting_holding(settings, Path("model.onnx.data")) is None
+
+
 def test_a_missing_input_from_a_variables_default_names_the_variable(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A recipe's ${NAME:-../shared/data}/x holds only from the folder it was written for:

@@ -613,3 +613,15 @@ def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> Non
     refused(r"not strictly increasing at scan 1 \(1700000000.0 then 1700000000.0\); they are "
             r"float32.*store them as float64",
             stamps=(1.7e9 + good["stamps"]).astype(np.float32))
+
+
+def test_a_file_given_as_the_sequence_folder_is_not_called_missing(tmp_path: Path) -> None:
+    """A file named as the sequence folder (its meta.yaml, a bag) was reported as
+    "sequence folder not found" though it exists."""
+    f = tmp_path / "meta.yaml"
+    f.write_text("name: x\n")
+    with pytest.raises(SequenceFormatError, match=r"meta.yaml: is a file, not a sequence "
+                       r"folder \(the one holding rig.yaml and meta.yaml\)"):
+        read_sequence(f)
+    with pytest.raises(SequenceFormatError, match=r"nowhere: sequence folder not found"):
+        read_sequence(tmp_path / "nowhere")

@@ -93,6 +93,11 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
     path = Path(path)
     if not path.exists():
         raise IngestError(f"{path}: CARMEN log / g2o file not found")
+    if path.is_dir():
+        # Read as a file it failed with a bare IsADirectoryError.
+        raise IngestError(f"{path}: a folder, not a CARMEN log or g2o file; give the log "
+                          "file (plain, .gz or .zip), or the 'source' that reads this folder "
+                          "(rosbag: a ROS 2 bag, tum_rgbd, sequence)")
     # Radish names GMapping-corrected logs *-corrected.log; raw ones are *-raw.log or, in
     # some collections, *-uncorrected.log.
     lower = path.name.lower()
@@ -103,7 +108,9 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
     except CarmenFormatError as e:
         raise IngestError(str(e)) from None
     if not data.scans:
-        raise IngestError(f"{path}: no laser scans (FLASER / ROBOTLASER1 lines) found")
+        raise IngestError(f"{path}: no laser scans (FLASER / ROBOTLASER1 lines) found; "
+                          "for another kind of recording set its 'source' (rosbag, tum_rgbd, "
+                          "sequence)")
     where = f"{path}: scans"
     stamps = np.array([s.stamp for s in data.scans], dtype=np.float64)
     keep = stamps_keep(stamps, where, on_non_monotonic)

@@ -191,6 +191,10 @@ class RosbagOptions(BaseModel):
 # ---------------------------------------------------------------------------- the bag
 
 
+# The storage files of a ROS 2 bag (rosbag2's sqlite3 and mcap plugins).
+ROS2_STORAGE = (".db3", ".mcap")
+
+
 def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
     """Normalise what a user names: one ROS 2 bag folder or storage file, or ROS 1 ``.bag``
     files (several for a split recording)."""
@@ -205,6 +209,15 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
             raise BagError(f"{p}: bag not found")
         if p.is_file() and not is_ros1_bag(p) and (p.parent / "metadata.yaml").exists():
             _whole_recording(p)
+        if (p.is_file() and not is_ros1_bag(p) and p.suffix.lower() not in ROS2_STORAGE
+                and not (p.parent / "metadata.yaml").exists()):
+            # Another kind of recording given to 'source: rosbag' (a CARMEN log, a TUM
+            # folder's file) was reported as a damaged sqlite3 bag with a repair recipe.
+            raise BagError(
+                f"{p}: not a ROS bag: a ROS 1 bag starts with '#ROSBAG', a ROS 2 bag is a "
+                f"folder with metadata.yaml (or its {' / '.join(ROS2_STORAGE)} file). Fix: "
+                "'source: carmen' for a CARMEN log or g2o file, 'source: tum_rgbd' for a "
+                "TUM RGB-D folder, 'source: sequence' for a sequence folder")
         if p.is_dir() and not (p / "metadata.yaml").exists():
             ros1_files = sorted(str(f) for f in p.iterdir() if is_ros1_bag(f))
             if ros1_files:

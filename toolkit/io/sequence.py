@@ -430,7 +430,10 @@ def read_sequence(root: Path | str) -> Sequence:
     """Load a sequence folder (images stay on disk until used)."""
     root = Path(root)
     if not root.is_dir():
-        raise SequenceFormatError(f"{root}: sequence folder not found")
+        # A file named here was reported as "not found" though it exists.
+        raise SequenceFormatError(
+            f"{root}: is a file, not a sequence folder (the one holding rig.yaml and "
+            "meta.yaml)" if root.exists() else f"{root}: sequence folder not found")
     check_sequence_folder(root)
     meta: dict[str, Any] = {}
     meta_path = root / "meta.yaml"

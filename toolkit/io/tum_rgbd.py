@@ -242,7 +242,11 @@ def read_tum_rgbd(root: Path | str, options: TumRgbdOptions | None = None,
     log = log or _log
     root = Path(root)
     if not root.is_dir():
-        raise IngestError(f"{root}: TUM RGB-D folder not found")
+        # A file named here (a bag, a log, rgb.txt itself) was reported as "not found".
+        what = ("is a file, not a TUM RGB-D folder (the one holding rgb.txt, depth.txt and "
+                "groundtruth.txt); give that folder, or the 'source' that reads this file"
+                if root.exists() else "TUM RGB-D folder not found")
+        raise IngestError(f"{root}: {what}")
     rgb_t, rgb_f, rgb_drop = read_list(root / "rgb.txt", on_non_monotonic)
     dep_t, dep_f, dep_drop = read_list(root / "depth.txt", on_non_monotonic)
     if len(rgb_t) == 0 or len(dep_t) == 0:

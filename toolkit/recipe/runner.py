@@ -896,6 +896,26 @@ class _Context(StageContext):
                 self.log.info("%s: %d done", label, count)
 
 
+def setting_holding(data: Any, path: Path, prefix: str = "") -> str | None:
+    """The dotted name (``rosbag.calibration``, ``path[1]``) of the setting in a stage's
+    settings ``data`` whose value is ``path``; None where none is (a file the stage derives,
+    such as a model's external weights)."""
+    if isinstance(data, str):
+        return (prefix or None) if os.path.normpath(data) == os.path.normpath(path) else None
+    if isinstance(data, dict):
+        items: Iterable[tuple[str, Any]] = ((f"{prefix}.{k}" if prefix else str(k), v)
+                                            for k, v in data.items())
+    elif isinstance(data, list):
+        items = ((f"{prefix}[{i}]", v) for i, v in enumerate(data))
+    else:
+        return None
+    for name, value in items:
+        found = setting_holding(value, path, name)
+        if found:
+            return found
+    return None
+
+
 def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> list[str]:
     """One problem per external input (a recording, a model) of the named stages (all by
     default) that does not exist or is unusable (``Stage.input_problems``): found before
@@ -912,8 +932,12 @@ def missing_inputs(recipe: Recipe, stage_ids: Iterable[str] | None = None) -> li
             continue
         absent = [p for p in paths if not Path(p).exists()]
         for path in absent:
-            where = "" if Path(path).is_absolute() else f" (relative to {Path.cwd()})"
-            fix = "fix the path, or run from the folder it is relative to"
+            relative = not Path(path).is_absolute()
+            where = f" (relative to {Path.cwd()})" if relative else ""
+            setting = setting_holding(config_data(spec.config), Path(path))
+            fix = f"fix the stage's {setting!r} setting" if setting else "fix the path"
+            if relative:
+                fix += ", or run from the folder it is relative to"
             # A path made from an unset variable's default: setting the variable is the fix.
             made = [(name, default) for value, name, default in recipe.env_defaults
                     if os.path.normpath(value) == os.path.normpath(path)]
