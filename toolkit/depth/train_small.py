@@ -419,8 +419,9 @@ def augment(imgs: np.ndarray, depth: np.ndarray, ch: int | None, cw: int | None,
     return out_i, out_d
 
 
-def evaluate(model: object, imgs: np.ndarray, depth: np.ndarray) -> dict[str, float]:
-    """AbsRel, RMSE and delta1 after the per-image median scale (the oracle scale)."""
+def evaluate(model: object, imgs: np.ndarray, depth: np.ndarray) -> dict[str, float | str]:
+    """AbsRel, RMSE and delta1 after the per-image median scale (the oracle scale), the
+    network and predict latencies, and ``loadavg`` as text."""
     import torch
 
     from toolkit.eval.depth import ErrorAccumulator
