@@ -378,6 +378,39 @@ def test_fusion_bench_counts_the_frames_it_fused(box_room: Path) -> None:
         run_bench(box_room, 6, repeat=1, config=cfg)
 
 
+def test_fusion_bench_refuses_a_recording_without_ground_truth(box_room: Path,
+                                                               tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture
+                                                               ) -> None:
+    """The bench makes its predictions from ground-truth depth and builds the map at
+    ground-truth poses: a user's own recording (no ground truth) failed with AttributeError
+    ('NoneType' object has no attribute 'depth'), one with depth but no poses with
+    TypeError (object of type 'NoneType' has no len()). Both are now refused naming what
+    is missing, and --sequence says so as a usage error."""
+    import dataclasses
+
+    from toolkit.fusion.bench import main, run_bench
+    from toolkit.io.sequence import write_sequence
+    from toolkit.sensors import GroundTruth
+
+    seq = read_sequence(box_room)
+    assert seq.groundtruth is not None
+    cases = {"none": (None, "poses (groundtruth/poses_base.tum) and ground-truth depth"),
+             "depth_only": (GroundTruth(depth_paths=seq.groundtruth.depth_paths),
+                            "needs ground-truth poses (groundtruth/poses_base.tum), which"),
+             "poses_only": (GroundTruth(poses_base=seq.groundtruth.poses_base),
+                            "needs ground-truth depth (frames.csv's gt_depth), which")}
+    for tag, (gt, says) in cases.items():
+        root = write_sequence(dataclasses.replace(seq, groundtruth=gt), tmp_path / tag)
+        with pytest.raises(ValueError, match=re.escape(says)):
+            run_bench(root, 4, repeat=1)
+        with pytest.raises(SystemExit) as exc:
+            main(["--sequence", str(root), "--frames", "4", "--repeat", "1",
+                  "--out", str(tmp_path / f"{tag}.json")])
+        assert exc.value.code == 2 and says in capsys.readouterr().err
+        assert not (tmp_path / f"{tag}.json").exists()
+
+
 def test_fusion_bench_times_a_recipe_stage_as_it_runs(box_room: Path, tmp_path: Path) -> None:
     """``--recipe``/``--stage`` take every fusion setting from the stage (the network row's
     refine grid and gates), flags beside them override, and a stage of another type is

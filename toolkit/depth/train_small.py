@@ -453,11 +453,12 @@ def sequence_problem(sequence: Path) -> str | None:
 
 
 def evaluate_sequence(model_path: Path, sequence: Path, every: int = 4, threads: int = 2,
-                      max_depth: float = 10.0) -> dict[str, float]:
+                      max_depth: float = 10.0) -> dict[str, float | str]:
     """A model run through ``OnnxDepthBackend`` (the depth stage's code path, full
     640x480 frames) on every ``every``-th frame of a simulated sequence, against its
     ground-truth depth after the per-image median scale (the oracle scale: the lidar-scaled
-    figures, which add the scale estimator's own error, come from the ``fuse`` stage)."""
+    figures, which add the scale estimator's own error, come from the ``fuse`` stage).
+    Figures in float (``frames`` an int), and ``loadavg`` as text."""
     from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
     from toolkit.eval.depth import ErrorAccumulator
     from toolkit.io.sequence import read_sequence

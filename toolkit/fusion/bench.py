@@ -29,6 +29,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 # OpenBLAS's idle threads spin ~0.1 s after each product it splits (toolkit.recipe's
 # __main__ says more): as in the fuse stage, before numpy loads it.
@@ -40,6 +41,9 @@ from toolkit.cli_types import positive_int  # noqa: E402
 from toolkit.depth.simulated import PRESETS  # noqa: E402
 from toolkit.fusion.exposure import frames_to_solve, solve_exposure  # noqa: E402
 from toolkit.fusion.pipeline import FusionConfig  # noqa: E402
+
+if TYPE_CHECKING:
+    from toolkit.sensors import Sequence
 
 
 def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: int = 2,
@@ -58,6 +62,9 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     from toolkit.io.sequence import read_sequence
 
     seq = read_sequence(seq_path)
+    problem = ground_truth_problem(seq)
+    if problem:
+        raise ValueError(f"{seq_path}: {problem}")
     gt = seq.groundtruth
     n = min(frames, len(seq.frames))
     idx = np.arange(n)  # consecutive frames, as the stage sees them
@@ -86,6 +93,22 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
         "runs_fps_per_frame_work": [r["fps_per_frame_work"] for r in runs],
         "runs_fps_including_finish": [r["fps_including_finish"] for r in runs],
     }
+
+
+def ground_truth_problem(seq: Sequence) -> str | None:
+    """Why ``seq`` cannot be benchmarked (None: it can). The predictions are made from its
+    ground-truth depth and the map is built at its ground-truth poses; a recording without
+    them (a user's own bag) failed with a bare AttributeError or TypeError deep inside."""
+    gt = seq.groundtruth
+    missing = [what for what, absent in (
+        ("ground-truth poses (groundtruth/poses_base.tum)", gt is None or gt.poses_base is None),
+        ("ground-truth depth (frames.csv's gt_depth)", gt is None or gt.depth_paths is None))
+        if absent]
+    if not missing:
+        return None
+    return (f"the fusion bench needs {' and '.join(missing)}, which this sequence lacks: give "
+            "a simulator sequence (a recipe's simulate stage), or leave --sequence out for "
+            "the synthetic box room")
 
 
 def _timed_run(seq: object, fp: np.ndarray, sp: np.ndarray, covered: np.ndarray,
@@ -176,6 +199,12 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--out {a.out} is a folder; give the JSON file to write")
     if a.sequence is not None and not (a.sequence / "meta.yaml").is_file():
         ap.error(f"--sequence {a.sequence}: no sequence folder (meta.yaml) there")
+    if a.sequence is not None:
+        from toolkit.io.sequence import read_sequence
+
+        problem = ground_truth_problem(read_sequence(a.sequence))
+        if problem:
+            ap.error(f"--sequence {a.sequence}: {problem}")
     if (a.recipe is None) != (a.stage is None):
         ap.error("--recipe and --stage go together: the recipe file and the id of its fuse "
                  "stage (for example --recipe recipes/paper_benchmark.yaml --stage fuse_net)")

@@ -745,7 +745,8 @@ class SequenceWriter:
             return self._pending[-1][0]
         return float(self._rows[-1]["stamp"]) if self._rows else None
 
-    def add_frame(self, stamp: float, image: np.ndarray, gt_depth: np.ndarray | None = None,
+    def add_frame(self, stamp: float, image: np.ndarray | None,
+                  gt_depth: np.ndarray | None = None,
                   gt_mask: np.ndarray | None = None, image_path: Path | None = None,
                   image_jpeg: bytes | None = None) -> int:
         """Write one RGB image [H, W, 3] (or copy ``image_path``) with optional ground truth.
@@ -1099,7 +1100,7 @@ def write_sequence(seq: Sequence, root: Path | str, depth_format: str = "png") -
         depth = gt.depth(i) if gt is not None and gt.depth_paths else None
         mask = gt.mask(i) if gt is not None and gt.mask_paths else None
         if f.path is not None and f._image is None:
-            w.add_frame(f.stamp, None, depth, mask, image_path=f.path)  # type: ignore[arg-type]
+            w.add_frame(f.stamp, None, depth, mask, image_path=f.path)
         else:
             w.add_frame(f.stamp, f.image, depth, mask)
     dyn = gt.scan_dynamic if gt is not None else None

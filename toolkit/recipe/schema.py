@@ -6,6 +6,7 @@ in the last stage of a long recipe fails in a second instead of after an hour of
 
 from __future__ import annotations
 
+import builtins
 import difflib
 import io
 import json
@@ -47,7 +48,9 @@ class StageSpec:
     index: int
     id: str
     type: str
-    cls: type[Stage]
+    # builtins.: in this class body ``type`` is the field above, and type checkers read
+    # ``type[Stage]`` as an index into it (every use of ``cls`` came out untyped).
+    cls: builtins.type[Stage]
     config: StageConfig
     # Artifact name -> id of the nearest earlier stage that provides it, for the names in
     # ``requires`` and those in ``optional_requires`` that some earlier stage provides.

@@ -37,8 +37,8 @@ class WorkTimer:
         self.seconds += float(seconds)
         self.cpu_seconds += float(cpu_seconds)
 
-    def metrics(self, frames: int) -> dict[str, float | int]:
-        """The standard ``work_*`` keys for ``metrics.json``."""
+    def metrics(self, frames: int) -> dict[str, float | int | None]:
+        """The standard ``work_*`` keys for ``metrics.json`` (``work_metrics``)."""
         return work_metrics(self.seconds, self.cpu_seconds, frames)
 
 
@@ -51,10 +51,12 @@ def usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
-def work_metrics(seconds: float, cpu_seconds: float, frames: int) -> dict[str, float | int]:
+def work_metrics(seconds: float, cpu_seconds: float, frames: int
+                 ) -> dict[str, float | int | None]:
     """``work_seconds``, ``work_cpu_seconds``, ``work_frames``, ``work_fps``,
     ``work_cpu_load_pct`` (100 = one core busy) and ``work_cpu_cores`` (``usable_cpus``:
-    a cached stage may have run on another machine, so each records its own)."""
+    a cached stage may have run on another machine, so each records its own). The rate and
+    the load are None when ``seconds`` is 0."""
     return {
         "work_seconds": round(float(seconds), 4),
         "work_cpu_seconds": round(float(cpu_seconds), 4),
