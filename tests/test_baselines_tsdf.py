@@ -285,6 +285,36 @@ def test_depth_where_is_bit_for_bit_at_full_size_from_many_poses(size: tuple[int
         assert not part[~need].any()
 
 
+def test_observed_mask_runs_blas_on_one_thread_and_gives_the_same_mask() -> None:
+    """OpenBLAS's threads made the per-view [n, 3] products 50 times slower on the busy
+    2-core machine: the test runs on one, its views' renders included, and gives the mask
+    the library's default threads give."""
+    from threadpoolctl import threadpool_info
+
+    from toolkit.baselines.common import _observed_mask, _observed_mask_one_blas_thread
+
+    mesh, _ = _wall_and_boxes()
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 79.5, 59.5)
+    poses = np.stack([look_at([0.0, 0.0, 1.0], [3.0, 0.0, 1.0]),
+                      look_at([0.2, -0.5, 1.2], [3.0, 0.5, 0.8])])
+    renderer = MeshRenderer(mesh)
+    ref = sample_mesh(mesh, 0.01)
+    blas_threads: list[set[int]] = []
+
+    def view(T: np.ndarray) -> Any:
+        def depth(need: np.ndarray) -> np.ndarray:
+            blas_threads.append({i["num_threads"] for i in threadpool_info()
+                                 if i["user_api"] == "blas"})
+            return renderer.depth_where(cam, T, need)
+        return depth
+
+    seen = _observed_mask(ref, cam, poses, [view(T) for T in poses], 0.05, np.inf)
+    assert blas_threads == [{1}, {1}] and 0.1 < seen.mean() < 0.9
+    default = _observed_mask_one_blas_thread(ref, cam, poses, [view(T) for T in poses],
+                                             0.05, np.inf)
+    np.testing.assert_array_equal(default, seen)
+
+
 def test_observed_mask_matches_the_plain_test_at_the_image_borders() -> None:
     """Points over the whole image, its half-pixel borders included, against random depth
     maps with holes (0 and NaN): the mask is the plain per-point test's, written out here
