@@ -169,7 +169,7 @@ def _observed_mask(points: np.ndarray, camera: PinholeCamera, poses: np.ndarray,
     quickstart's house, most of a view's points were seen by an earlier one).
 
     OpenBLAS runs on one thread here: a [300 000, 3] x [3, 3] product, as each view makes,
-    took 170-180 ms on its threads on the 2-core machine under load (they wait for each
+    took 168-184 ms on its threads on the 2-core machine under load (they wait for each
     other and for the ray caster's) and 3 ms on one, with the same values
     (docs/baselines.md, "Speed of the reference"; each row is computed on its own either way).
     The views' ``view(need)`` run under the same limit."""

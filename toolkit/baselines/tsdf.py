@@ -336,7 +336,7 @@ class MeshRenderer:
 
         The pixels are ``cast``'s hits shaded as before, bit for bit (the same float64
         expression, element by element), without the hit points ``cast`` builds, and over
-        every pixel rather than the hit ones picked out (on the quickstart's held-out views
+        every pixel rather than the hit ones picked out (on a view along the quickstart's path
         99 % of them hit; docs/baselines.md, "Rendering without OpenGL")."""
         _, ans = self._cast_rays(camera, np.asarray(T_world_camera, dtype=np.float64))
         t = ans["t_hit"].numpy()  # [H, W] float32, inf where nothing was hit
