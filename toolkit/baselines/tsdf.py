@@ -350,15 +350,19 @@ class MeshRenderer:
             # its colour is not kept.
             prim = np.where(hit, ans["primitive_ids"].numpy(), 0).reshape(-1)  # [N]
             corners = np.take(self._corner_colors(), prim, axis=0)  # [N, 3, 3]
-            if corners.dtype == np.uint8:
-                corners = corners / 255.0  # the float64 vertex colours, exactly
+
+            def corner(j: int) -> np.ndarray:
+                """[N, 3] float64 colours of corner j; 8-bit ones made the vertex colours
+                again, exactly, one corner at a time (a third of the memory)."""
+                return corners[:, j] / 255.0 if corners.dtype == np.uint8 else corners[:, j]
+
             uv = ans["primitive_uvs"].numpy().reshape(-1, 2).astype(np.float64)  # [N, 2]
             b1, b2 = uv[:, 0:1], uv[:, 1:2]
             # Embree's barycentrics: p = (1 - b1 - b2) v0 + b1 v1 + b2 v2; summed in this
             # order, as before, so each value is the same to the last bit.
-            c = (1.0 - b1 - b2) * corners[:, 0]  # [N, 3]
-            c += b1 * corners[:, 1]
-            c += b2 * corners[:, 2]
+            c = (1.0 - b1 - b2) * corner(0)  # [N, 3]
+            c += b1 * corner(1)
+            c += b2 * corner(2)
             c *= 255.0
             np.round(c, out=c)
             np.clip(c, 0, 255, out=c)
