@@ -57,6 +57,54 @@ def test_renderer_interpolates_vertex_colours_with_barycentrics() -> None:
     assert depth[0, 0] == 0 and tuple(rgb[0, 0]) == (0, 0, 0)  # off the triangle: empty
 
 
+def _shaded_from_cast(renderer: MeshRenderer, cam: PinholeCamera, T: np.ndarray,
+                      background: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The renderer's image as it was made before its fast path: from ``cast``'s hits, the
+    hit pixels picked out, float64 barycentric interpolation."""
+    hits = renderer.cast(cam, T)
+    rgb = np.empty((cam.height, cam.width, 3), dtype=np.uint8)
+    rgb[:] = np.asarray(background, dtype=np.uint8)
+    m = hits.valid
+    if renderer.colors is None:
+        rgb[m] = 200
+    else:
+        tri = renderer.triangles[hits.triangle[m]]
+        b1, b2 = hits.uv[m, 0:1].astype(np.float64), hits.uv[m, 1:2].astype(np.float64)
+        c = ((1.0 - b1 - b2) * renderer.colors[tri[:, 0]] + b1 * renderer.colors[tri[:, 1]]
+             + b2 * renderer.colors[tri[:, 2]])
+        rgb[m] = np.clip(np.round(c * 255.0), 0, 255).astype(np.uint8)
+    return rgb, np.where(m, hits.depth, 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("colours", ["8-bit", "any", "none"])
+def test_render_is_the_cast_hits_shaded_bit_for_bit(colours: str) -> None:
+    """``render`` shades every pixel from one per-triangle colour table instead of picking
+    the hit pixels out of ``cast``: the same bytes, for 8-bit vertex colours (a PLY's, the
+    uint8 table), for any float colours (the float64 table) and for an uncoloured mesh."""
+    mesh, _ = _wall_and_boxes()
+    rng = np.random.default_rng(2)
+    n = len(mesh.vertices)
+    if colours == "8-bit":
+        mesh.vertex_colors = o3d.utility.Vector3dVector(rng.integers(0, 256, (n, 3)) / 255.0)
+    elif colours == "any":
+        mesh.vertex_colors = o3d.utility.Vector3dVector(rng.random((n, 3)))
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 79.5, 59.5)
+    renderer = MeshRenderer(mesh)
+    for k, bg in enumerate([(0, 0, 0), (10, 200, 255), (255, 255, 255)]):
+        T = look_at([0.3 * k, -0.4, 1.1], [3.0, 0.2 * k, 0.9])
+        rgb, depth = renderer.render(cam, T, bg)
+        old_rgb, old_depth = _shaded_from_cast(renderer, cam, T, bg)
+        hit = depth > 0
+        assert 0.2 < hit.mean() < 1.0  # background in view
+        assert rgb.dtype == np.uint8 and depth.dtype == np.float32
+        np.testing.assert_array_equal(rgb, old_rgb)
+        np.testing.assert_array_equal(depth, old_depth)
+        assert (rgb[~hit] == bg).all()
+    if colours != "none":
+        expect = np.uint8 if colours == "8-bit" else np.float64
+        assert renderer._corner_colors().dtype == expect
+
+
 def test_room_renderer_depth_equals_plane_distance() -> None:
     cam = default_camera(64, 48)
     T = look_at([1.0, 1.3, 1.1], [3.2, 1.3, 1.1])  # facing the wall x = 3.2, 2.2 m away
@@ -214,6 +262,57 @@ def test_depth_where_casts_the_needed_rays_bit_for_bit() -> None:
     np.testing.assert_array_equal(part[need], whole[need])  # exactly, not approximately
     assert not part[~need].any()
     assert not renderer.depth_where(cam, T, np.zeros_like(need)).any()
+
+
+@pytest.mark.parametrize("size", [(640, 480), (97, 61)])
+def test_depth_where_is_bit_for_bit_at_full_size_from_many_poses(size: tuple[int, int]) -> None:
+    """The needed rays' directions are rotated as one block, not image row by image row:
+    at the quickstart's 640 x 480 and at an odd size (rows that are no multiple of a BLAS
+    block), from poses all round, the depths are the whole view's to the bit."""
+    mesh, _ = _wall_and_boxes()
+    w, h = size
+    cam = PinholeCamera(w, h, 0.8 * w, 0.8 * w, (w - 1) / 2, (h - 1) / 2)
+    renderer = MeshRenderer(mesh)
+    rng = np.random.default_rng(1)
+    for k in range(6):
+        eye = [rng.uniform(-0.5, 1.5), rng.uniform(-1.0, 1.0), rng.uniform(0.5, 1.5)]
+        T = look_at(eye, [3.0 + rng.uniform(-0.5, 0.5), rng.uniform(-1.0, 1.0), 0.9])
+        whole = renderer.depth(cam, T)
+        need = rng.random((h, w)) < (0.2, 0.5, 0.9, 0.01, 1.0, 0.5)[k]
+        part = renderer.depth_where(cam, T, need)
+        assert (whole[need] > 0).any()
+        np.testing.assert_array_equal(part[need], whole[need])
+        assert not part[~need].any()
+
+
+def test_observed_mask_runs_blas_on_one_thread_and_gives_the_same_mask() -> None:
+    """OpenBLAS's threads made the per-view [n, 3] products 50 times slower on the busy
+    2-core machine: the test runs on one, its views' renders included, and gives the mask
+    the library's default threads give."""
+    from threadpoolctl import threadpool_info
+
+    from toolkit.baselines.common import _observed_mask, _observed_mask_one_blas_thread
+
+    mesh, _ = _wall_and_boxes()
+    cam = PinholeCamera(160, 120, 100.0, 100.0, 79.5, 59.5)
+    poses = np.stack([look_at([0.0, 0.0, 1.0], [3.0, 0.0, 1.0]),
+                      look_at([0.2, -0.5, 1.2], [3.0, 0.5, 0.8])])
+    renderer = MeshRenderer(mesh)
+    ref = sample_mesh(mesh, 0.01)
+    blas_threads: list[set[int]] = []
+
+    def view(T: np.ndarray) -> Any:
+        def depth(need: np.ndarray) -> np.ndarray:
+            blas_threads.append({i["num_threads"] for i in threadpool_info()
+                                 if i["user_api"] == "blas"})
+            return renderer.depth_where(cam, T, need)
+        return depth
+
+    seen = _observed_mask(ref, cam, poses, [view(T) for T in poses], 0.05, np.inf)
+    assert blas_threads == [{1}, {1}] and 0.1 < seen.mean() < 0.9
+    default = _observed_mask_one_blas_thread(ref, cam, poses, [view(T) for T in poses],
+                                             0.05, np.inf)
+    np.testing.assert_array_equal(default, seen)
 
 
 def test_observed_mask_matches_the_plain_test_at_the_image_borders() -> None:

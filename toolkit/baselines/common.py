@@ -166,7 +166,25 @@ def _observed_mask(points: np.ndarray, camera: PinholeCamera, poses: np.ndarray,
     """``observed_mask`` with each view's depth map asked for once, in order, by
     ``view(need)``: ``need`` [H, W] bool marks the pixels the test reads (the others may
     hold anything), so a renderer can cast only those rays (in the 644 views of the
-    quickstart's house, most of a view's points were seen by an earlier one)."""
+    quickstart's house, most of a view's points were seen by an earlier one).
+
+    OpenBLAS runs on one thread here: on its threads, on the 2-core machine under load, a
+    [300 000, 3] x [3, 3] product took 168-184 ms against 3 ms on one (they wait for each
+    other and for the ray caster's), and the views' [n, 3] products 26.3 s of the
+    quickstart's 78.9 s; the values are the same (each row is computed on its own either
+    way; docs/baselines.md, "Speed of the reference"). The views' ``view(need)`` run under
+    the same limit."""
+    from threadpoolctl import ThreadpoolController
+
+    with ThreadpoolController().limit(limits=1, user_api="blas"):
+        return _observed_mask_one_blas_thread(points, camera, poses, views, tolerance_m,
+                                              max_depth_m)
+
+
+def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
+                                   poses: np.ndarray,
+                                   views: Iterable[Callable[[np.ndarray], np.ndarray]],
+                                   tolerance_m: float, max_depth_m: float) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     seen = np.zeros(len(pts), bool)
     if len(pts) == 0:

@@ -251,6 +251,7 @@ class MeshRenderer:
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         self._rays_cache: dict[tuple, np.ndarray] = {}
+        self._corners: np.ndarray | None = None  # built by the first render
 
     def _camera_rays(self, camera: PinholeCamera) -> np.ndarray:
         key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
@@ -273,26 +274,28 @@ class MeshRenderer:
         """[H, W] float32: ``depth`` at the pixels where ``need`` [H, W] bool is set, 0
         elsewhere, casting only those rays.
 
-        The values are ``depth``'s bit for bit: each needed image row's directions come
-        from the same matrix product as in ``_cast_rays`` (numpy multiplies a stack row by
-        row), and Embree intersects each ray on its own.
+        The values are ``depth``'s bit for bit: OpenBLAS computes each row of a product
+        with a 3 x 3 matrix on its own, so the needed rays' directions, picked out first
+        and multiplied as one [n, 3] block, are the rows ``depth``'s whole-image product
+        gives them (``test_depth_where_casts_the_needed_rays_bit_for_bit``; and the same
+        observed reference on the quickstart), and Embree intersects each ray on its own.
+        Picking them out first rotates only the needed rays (about half of a view's in
+        ``observed_reference``) and picks float64 [n, 3] rows by index, not by mask.
         """
         import open3d.core as o3c
 
         T = np.asarray(T_world_camera, dtype=np.float64)
         need = np.asarray(need, dtype=bool)
         out = np.zeros(need.shape, np.float32)  # [H, W]
-        lines = np.flatnonzero(need.any(axis=1))  # image rows with a needed pixel
-        if len(lines) == 0:
+        idx = np.flatnonzero(need)  # [n] in row-major order
+        if len(idx) == 0:
             return out
-        band = slice(lines[0], lines[-1] + 1)  # views, not copies; R rows
-        sub = need[band]  # [R, W]
-        dirs = self._camera_rays(camera)[band] @ T[:3, :3].T  # [R, W, 3]
-        rays = np.empty((int(sub.sum()), 6), dtype=np.float32)  # [n, 6] in row-major order
+        cam_rays = self._camera_rays(camera).reshape(-1, 3)  # [H * W, 3]
+        rays = np.empty((len(idx), 6), dtype=np.float32)  # [n, 6]
         rays[:, :3] = T[:3, 3]
-        rays[:, 3:] = dirs[sub]
-        t = self.scene.cast_rays(o3c.Tensor(rays))["t_hit"].numpy()  # [n]
-        out[band][sub] = np.where(np.isfinite(t), t, 0.0)
+        rays[:, 3:] = np.take(cam_rays, idx, axis=0) @ T[:3, :3].T
+        t = self.scene.cast_rays(o3c.Tensor.from_numpy(rays))["t_hit"].numpy()  # [n]
+        out.reshape(-1)[idx] = np.where(np.isfinite(t), t, 0.0)
         return out
 
     def depth(self, camera: PinholeCamera, T_world_camera: np.ndarray) -> np.ndarray:
@@ -313,23 +316,58 @@ class MeshRenderer:
         points[hit] = T[:3, 3] + dirs[hit] * t[hit, None].astype(np.float64)
         return RayHits(t.astype(np.float32), prim, ans["primitive_uvs"].numpy(), points)
 
+    def _corner_colors(self) -> np.ndarray:
+        """[T, 3, 3] each triangle's corner colours: uint8 (0..255) when every vertex colour
+        is k / 255 exactly (a PLY's 8-bit colours, as the TSDF mesh has), float64 (0..1)
+        otherwise. One gather per pixel from it instead of a triangle lookup and three
+        colour lookups; 8-bit, it takes 9 bytes a triangle (10 MB for the quickstart's
+        1.2 M) instead of 72."""
+        if self._corners is None:
+            assert self.colors is not None
+            k = np.round(self.colors * 255.0)  # [V, 3]
+            table = (k.astype(np.uint8) if np.array_equal(k / 255.0, self.colors)
+                     else self.colors)
+            self._corners = table[self.triangles]
+        return self._corners
+
     def render(self, camera: PinholeCamera, T_world_camera: np.ndarray,
                background: tuple[int, int, int] = (0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
-        """RGB uint8 [H, W, 3] and z-depth float32 [H, W] (0 where empty) of the mesh."""
-        hits = self.cast(camera, T_world_camera)
-        rgb = np.empty((camera.height, camera.width, 3), dtype=np.uint8)
-        rgb[:] = np.asarray(background, dtype=np.uint8)
-        m = hits.valid
-        if self.colors is not None and m.any():
-            tri = self.triangles[hits.triangle[m]]  # [M, 3] vertex ids
-            b1, b2 = hits.uv[m, 0:1].astype(np.float64), hits.uv[m, 1:2].astype(np.float64)
-            # Embree's barycentrics: p = (1 - b1 - b2) v0 + b1 v1 + b2 v2.
-            c = ((1.0 - b1 - b2) * self.colors[tri[:, 0]] + b1 * self.colors[tri[:, 1]]
-                 + b2 * self.colors[tri[:, 2]])
-            rgb[m] = np.clip(np.round(c * 255.0), 0, 255).astype(np.uint8)
-        elif m.any():
-            rgb[m] = 200  # an uncoloured mesh renders grey, so its silhouette still shows
-        depth = np.where(m, hits.depth, 0.0).astype(np.float32)
+        """RGB uint8 [H, W, 3] and z-depth float32 [H, W] (0 where empty) of the mesh.
+
+        The pixels are ``cast``'s hits shaded as before, bit for bit (the same float64
+        expression, element by element), without the hit points ``cast`` builds, and over
+        every pixel rather than the hit ones picked out (on a view along the quickstart's path
+        99 % of them hit; docs/baselines.md, "Rendering without OpenGL")."""
+        _, ans = self._cast_rays(camera, np.asarray(T_world_camera, dtype=np.float64))
+        t = ans["t_hit"].numpy()  # [H, W] float32, inf where nothing was hit
+        hit = np.isfinite(t)  # [H, W]
+        bg = np.asarray(background, dtype=np.uint8)  # [3]
+        if self.colors is None or not hit.any():
+            # An uncoloured mesh renders grey, so its silhouette still shows.
+            rgb = np.where(hit[..., None], np.uint8(200), bg)  # [H, W, 3] uint8
+        else:
+            # A missed ray's id is 2^32 - 1 (and its barycentrics 0): triangle 0 stands in,
+            # its colour is not kept.
+            prim = np.where(hit, ans["primitive_ids"].numpy(), 0).reshape(-1)  # [N]
+            corners = np.take(self._corner_colors(), prim, axis=0)  # [N, 3, 3]
+
+            def corner(j: int) -> np.ndarray:
+                """[N, 3] float64 colours of corner j; 8-bit ones made the vertex colours
+                again, exactly, one corner at a time (a third of the memory)."""
+                return corners[:, j] / 255.0 if corners.dtype == np.uint8 else corners[:, j]
+
+            uv = ans["primitive_uvs"].numpy().reshape(-1, 2).astype(np.float64)  # [N, 2]
+            b1, b2 = uv[:, 0:1], uv[:, 1:2]
+            # Embree's barycentrics: p = (1 - b1 - b2) v0 + b1 v1 + b2 v2; summed in this
+            # order, as before, so each value is the same to the last bit.
+            c = (1.0 - b1 - b2) * corner(0)  # [N, 3]
+            c += b1 * corner(1)
+            c += b2 * corner(2)
+            c *= 255.0
+            np.round(c, out=c)
+            np.clip(c, 0, 255, out=c)
+            rgb = np.where(hit[..., None], c.astype(np.uint8).reshape(*hit.shape, 3), bg)
+        depth = np.where(hit, t, 0.0).astype(np.float32)
         return rgb, depth
 
 
