@@ -93,6 +93,16 @@ def test_tum_line_rejects_bad_input():
         g.tum_line_to_pose("0 nan 0 0 0 0 0 1")
 
 
+def test_wrap_angle_stays_in_its_half_open_range_just_below_minus_pi() -> None:
+    """Angles within a few ulp below -pi wrapped to +pi (the sum with pi rounds to a tiny
+    negative number whose modulo rounds up to 2 pi): outside [-pi, pi)."""
+    a = -np.pi - np.logspace(-16, -14, 200)  # [200]
+    w = g.wrap_angle(a)
+    assert np.all((w >= -np.pi) & (w < np.pi))
+    assert all(-np.pi <= g.wrap_angle(float(x)) < np.pi for x in a)
+    assert g.wrap_angle(np.nextafter(-np.pi, -4.0)) == -np.pi
+
+
 @settings(max_examples=30, deadline=None)
 @given(seeds, st.booleans())
 def test_umeyama_recovers_random_sim3_exactly(seed, with_scale):

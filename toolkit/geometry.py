@@ -124,9 +124,11 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     """Wrap angles to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi if np.ndim(a) else float(
-        (a + np.pi) % (2.0 * np.pi) - np.pi
-    )
+    w = (np.asarray(a, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+    # Just below -pi (within 2e-15) the sum rounds to a tiny negative number, whose modulo
+    # rounds up to 2 pi: the result was +pi, outside the half-open range.
+    w = np.where(w >= np.pi, -np.pi, w)
+    return w if np.ndim(a) else float(w)
 
 
 def se2_to_matrix(x: float, y: float, theta: float) -> np.ndarray:
