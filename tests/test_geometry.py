@@ -93,6 +93,17 @@ def test_tum_line_rejects_bad_input():
         g.tum_line_to_pose("0 nan 0 0 0 0 0 1")
 
 
+def test_umeyama_with_scale_refuses_identical_source_points_without_a_warning() -> None:
+    """The check came after dividing by their zero spread: a RuntimeWarning first, and that
+    instead of the ValueError where warnings are errors."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="all identical"):
+            g.umeyama_alignment(np.ones((4, 3)), np.arange(12.0).reshape(4, 3), True)
+
+
 def test_wrap_angle_stays_in_its_half_open_range_just_below_minus_pi() -> None:
     """Angles within a few ulp below -pi wrapped to +pi (the sum with pi rounds to a tiny
     negative number whose modulo rounds up to 2 pi): outside [-pi, pi)."""

@@ -414,9 +414,11 @@ def umeyama_alignment(
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:
         S[-1, -1] = -1.0
     R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / sigma_s) if with_scale else 1.0
+    # Checked before the division: 0 / 0 warned "invalid value encountered" first (an
+    # error of its own where warnings are errors, as under pytest -W error).
     if with_scale and sigma_s <= 0:
         raise ValueError("degenerate source points: all identical")
+    s = float(np.trace(np.diag(D) @ S) / sigma_s) if with_scale else 1.0
     t = mu_d - s * R @ mu_s
     return R, t, s
 
