@@ -250,6 +250,24 @@ def test_occupancy_roundtrip_and_flip(tmp_path: Path):
     assert np.isnan(back.occupancy[1, 1])
 
 
+@pytest.mark.parametrize("free_thresh, occupied_thresh", [(0.25, 0.65), (0.05, 0.15),
+                                                          (0.3, 0.9)])
+def test_occupancy_written_with_other_thresholds_keeps_unknown_cells_unknown(
+        tmp_path: Path, free_thresh: float, occupied_thresh: float) -> None:
+    """The thresholds classify the probabilities; the pixels are then map_saver's constants
+    (254, 0, 205), so the YAML must hold thresholds that read 205 as unknown. Writing the
+    given ones made map_server (and read_occupancy) read every unknown cell as free with
+    free_thresh 0.25 (nav2's default: (255 - 205) / 255 = 0.196 < 0.25), or as occupied with
+    occupied_thresh 0.15: a planner then drives through unmapped space. ROS 1's map_saver
+    and nav2's (ros-navigation/navigation2#5278) write 0.65 and 0.196 for trinary maps."""
+    occ = np.array([[0.0, 1.0, np.nan, 0.5 * (free_thresh + occupied_thresh)]], np.float32)
+    write_occupancy(tmp_path / "map.yaml", OccupancyMap(occ, 0.05, (0.0, 0.0, 0.0)),
+                    occupied_thresh, free_thresh)
+    back = read_occupancy(tmp_path / "map.yaml").occupancy
+    assert back[0, 0] == 0.0 and back[0, 1] == 1.0
+    assert np.isnan(back[0, 2]) and np.isnan(back[0, 3])
+
+
 # ------------------------------------------------------------------ relations metric
 
 

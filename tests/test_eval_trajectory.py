@@ -105,6 +105,22 @@ def test_associate_one_to_one():
     assert i.tolist() == [0, 1] and j.tolist() == [1, 0]
 
 
+def test_associate_pairs_a_reference_whose_stamps_are_not_sorted() -> None:
+    """A Trajectory built by hand may hold its stamps in any order; associate.py pairs them
+    all the same. The binary search in unsorted stamps kept 3 of these 10 pairs, and
+    trajectory_report scored the 3 without a word."""
+    rng = np.random.default_rng(0)
+    stamps = np.cumsum(rng.uniform(0.05, 0.2, 10))  # [10]
+    est = Trajectory(stamps, np.stack([se2_to_se3(t, 0.1 * t, 0.0) for t in stamps]))
+    shuffled = rng.permutation(10)
+    ref = Trajectory(stamps[shuffled], est.poses[shuffled])
+    i, j = associate(est, ref, max_diff=0.01)
+    assert i.tolist() == list(range(10))
+    assert shuffled[j].tolist() == list(range(10))  # each pose with its own copy
+    report = trajectory_report(est, ref)
+    assert report["ate_count"] == 10 and report["ate_rmse_m"] < 1e-12
+
+
 def test_evo_reference_kitti(shared_data):
     d = shared_data / "eval" / "evo-reference"
     gt = read_kitti(d / "KITTI_00_gt.txt", d / "KITTI_00_gt_times.txt")

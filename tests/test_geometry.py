@@ -93,6 +93,27 @@ def test_tum_line_rejects_bad_input():
         g.tum_line_to_pose("0 nan 0 0 0 0 0 1")
 
 
+def test_umeyama_with_scale_refuses_identical_source_points_without_a_warning() -> None:
+    """The check came after dividing by their zero spread: a RuntimeWarning first, and that
+    instead of the ValueError where warnings are errors."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="all identical"):
+            g.umeyama_alignment(np.ones((4, 3)), np.arange(12.0).reshape(4, 3), True)
+
+
+def test_wrap_angle_stays_in_its_half_open_range_just_below_minus_pi() -> None:
+    """Angles within a few ulp below -pi wrapped to +pi (the sum with pi rounds to a tiny
+    negative number whose modulo rounds up to 2 pi): outside [-pi, pi)."""
+    a = -np.pi - np.logspace(-16, -14, 200)  # [200]
+    w = g.wrap_angle(a)
+    assert np.all((w >= -np.pi) & (w < np.pi))
+    assert all(-np.pi <= g.wrap_angle(float(x)) < np.pi for x in a)
+    assert g.wrap_angle(np.nextafter(-np.pi, -4.0)) == -np.pi
+
+
 @settings(max_examples=30, deadline=None)
 @given(seeds, st.booleans())
 def test_umeyama_recovers_random_sim3_exactly(seed, with_scale):
@@ -149,6 +170,36 @@ def test_a_weaving_drive_is_aligned_by_its_positions_not_its_orientations() -> N
     est = M @ np.stack([g.se3(B @ r, p) for r, p in zip(rot, pos, strict=True)])
     R, t, _ = g.pose_alignment(est, gt)
     np.testing.assert_allclose(g.se3(R, t) @ M, np.eye(4), atol=1e-9)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seeds, st.booleans())
+def test_a_straight_drive_aligns_the_same_in_any_frame_of_the_estimate(seed: int,
+                                                                       with_scale: bool) -> None:
+    """The alignment onto an exactly straight reference, of an estimate with 0.2 m of noise,
+    must not depend on the frame the estimate is given in. The turn about the line was
+    taken about the estimate's own principal axis after Umeyama's rotation, whose part
+    about the line the positions leave free: the aligned positions moved by up to 11 mm
+    with a rigid motion of the estimate (200 such drives)."""
+    rng = np.random.default_rng(seed)
+    n = 20
+    ref = np.tile(np.eye(4), (n, 1, 1))  # [n, 4, 4]
+    ref[:, :3, :3] = Rotation.random(n, random_state=rng).as_matrix()
+    ref[:, :3, 3] = np.outer(np.linspace(0.0, 20.0, n), [0.6, 0.8, 0.0])
+    est = ref.copy()
+    est[:, :3, 3] += rng.normal(0.0, 0.2, (n, 3))
+    est[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.01, (n, 3))).as_matrix() @ est[
+        :, :3, :3]
+    aligned = []
+    for k in range(3):
+        M = random_pose(rng, 10.0) if k else np.eye(4)
+        moved = M @ est
+        if with_scale:
+            moved[:, :3, 3] *= 2.5
+        R, t, s = g.pose_alignment(moved, ref, with_scale)
+        aligned.append(s * moved[:, :3, 3] @ R.T + t)  # [n, 3]
+    np.testing.assert_allclose(aligned[1], aligned[0], atol=1e-9)
+    np.testing.assert_allclose(aligned[2], aligned[0], atol=1e-9)
 
 
 def _turn_onset_drive(stamps: np.ndarray) -> np.ndarray:

@@ -44,20 +44,28 @@ def associate(est: Trajectory, ref: Trajectory, max_diff: float = 0.01, offset: 
 ):
     """Index pairs [K], [K] of stamps closer than ``max_diff`` (one-to-one, nearest first).
 
-    Same rule as TUM's associate.py and evo's ``associate_trajectories``.
+    Same rule as TUM's associate.py and evo's ``associate_trajectories``, whatever order
+    either trajectory's stamps come in.
     """
     t_est = est.stamps + offset
+    # The candidate search below needs sorted reference stamps; a Trajectory built by hand
+    # need not have them, and binary search in unsorted stamps silently dropped most pairs
+    # (3 of 10 kept for a shuffled copy of the estimate's own stamps). associate.py pairs
+    # stamps regardless of order, so the reference is searched sorted and its indices
+    # mapped back.
+    ref_order = np.argsort(ref.stamps, kind="stable")  # [M]
+    t_ref = ref.stamps[ref_order]  # [M] sorted
     # Every pair within max_diff, nearest first; a stamp already paired passes its next
     # candidate on (taking each one's nearest only dropped pairs associate.py keeps).
-    lo = np.searchsorted(ref.stamps, t_est - max_diff, side="left")
-    hi = np.searchsorted(ref.stamps, t_est + max_diff, side="right")
+    lo = np.searchsorted(t_ref, t_est - max_diff, side="left")
+    hi = np.searchsorted(t_ref, t_est + max_diff, side="right")
     counts = hi - lo
     i_all = np.repeat(np.arange(len(t_est)), counts)  # [C]
     j_all = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
              + np.repeat(lo, counts))
-    d_all = np.abs(ref.stamps[j_all] - t_est[i_all])
+    d_all = np.abs(t_ref[j_all] - t_est[i_all])
     keep = d_all < max_diff
-    i_all, j_all, d_all = i_all[keep], j_all[keep], d_all[keep]
+    i_all, j_all, d_all = i_all[keep], ref_order[j_all[keep]], d_all[keep]
     used_est: set[int] = set()
     used_ref: set[int] = set()
     pairs = []

@@ -20,6 +20,10 @@ from toolkit.io.atomic import atomic_write_bytes, atomic_write_text
 from toolkit.io.yaml_file import load_yaml
 
 FREE, OCCUPIED, UNKNOWN = 254, 0, 205
+# The thresholds a trinary map's YAML holds, whatever thresholds classified its cells:
+# map_server reads the pixel 205 as p = 50 / 255 = 0.196, which is unknown only between
+# these (ROS 1's map_saver writes them; nav2's since ros-navigation/navigation2#5278).
+TRINARY_OCCUPIED_THRESH, TRINARY_FREE_THRESH = 0.65, 0.196
 
 
 @dataclass
@@ -61,7 +65,12 @@ def _pgm_bytes(img: np.ndarray, resolution: float) -> bytes:
 
 def write_occupancy(yaml_path: Path | str, grid: OccupancyMap, occupied_thresh: float = 0.65,
                     free_thresh: float = 0.196) -> Path:
-    """Write ``<name>.yaml`` and ``<name>.pgm`` next to it (atomically); returns the PGM path."""
+    """Write ``<name>.yaml`` and ``<name>.pgm`` next to it (atomically); returns the PGM path.
+
+    ``occupied_thresh`` and ``free_thresh`` classify the cells into map_saver's pixels; the
+    YAML holds map_saver's own 0.65 and 0.196, the thresholds that read those pixels back as
+    the same classes (given ones above 0.196, nav2's default 0.25 among them, read every
+    unknown cell as free)."""
     yaml_path = Path(yaml_path)
     if yaml_path.suffix not in (".yaml", ".yml"):
         raise ValueError(f"{yaml_path}: give the .yaml path; the .pgm goes next to it")
@@ -74,8 +83,8 @@ def write_occupancy(yaml_path: Path | str, grid: OccupancyMap, occupied_thresh: 
         "resolution": float(grid.resolution),
         "origin": [float(v) for v in grid.origin],
         "negate": 0,
-        "occupied_thresh": float(occupied_thresh),
-        "free_thresh": float(free_thresh),
+        "occupied_thresh": TRINARY_OCCUPIED_THRESH,
+        "free_thresh": TRINARY_FREE_THRESH,
     }
     atomic_write_text(yaml_path, yaml.safe_dump(meta, sort_keys=False))
     return pgm_path
