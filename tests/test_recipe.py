@@ -1323,32 +1323,53 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     assert [p.name for p in path.parent.iterdir()] == []  # no temporary files left
 
 
-class _SlowToPickle:
-    """A state that takes ``seconds`` to pickle (a large map)."""
+class _Clock:
+    """Stands in for the checkpoint module's ``time``: seconds pass only when the test
+    says so. With the real clock a quick save preempted for 10 ms on a loaded machine
+    already stretched the interval past the test's bound (11 of 100 loaded reruns)."""
 
-    def __init__(self, seconds: float) -> None:
-        self.seconds = seconds
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+    monotonic = perf_counter
+
+
+class _SlowToPickle:
+    """A state that takes ``seconds`` of ``clock`` to pickle (a large map)."""
+
+    def __init__(self, clock: _Clock, seconds: float) -> None:
+        self.clock, self.seconds = clock, seconds
 
     def __reduce__(self) -> tuple[Any, ...]:
-        import time
-
-        time.sleep(self.seconds)
-        return (_SlowToPickle, (self.seconds,))
+        self.clock.now += self.seconds
+        return (float, (self.seconds,))
 
 
-def test_checkpoints_never_take_more_than_their_share_of_the_time(tmp_path: Path) -> None:
+def test_checkpoints_never_take_more_than_their_share_of_the_time(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A state that grows with the recording takes longer to save each time: at a fixed
     interval saving would come to cost more than the work; the interval stretches so that
     saving stays within max_share of the time."""
+    from toolkit.recipe import checkpoint
     from toolkit.recipe.checkpoint import Checkpoint
 
+    clock = _Clock()
+    monkeypatch.setattr(checkpoint, "time", clock)
     ck = Checkpoint(tmp_path / "c.pkl", "k", every_s=0.05, max_share=0.1)
     assert ck.interval_s == 0.05
-    ck.save(_SlowToPickle(0.2))
-    assert ck.last_save_s >= 0.2 and ck.interval_s >= 2.0  # 0.2 s is 10 % of 2 s
+    ck.save(_SlowToPickle(clock, 0.2))
+    assert ck.last_save_s == pytest.approx(0.2)
+    assert ck.interval_s == pytest.approx(2.0)  # 0.2 s is 10 % of 2 s
+    clock.now += 1.9
     assert not ck.due()
-    ck.save(_SlowToPickle(0.0))
-    assert ck.interval_s == pytest.approx(0.05, abs=0.05)  # quick again: back to every_s
+    clock.now += 0.2
+    assert ck.due()
+    ck.save(_SlowToPickle(clock, 0.0))
+    assert ck.interval_s == 0.05  # quick again: back to every_s
+    assert Checkpoint(tmp_path / "c.pkl", "k", every_s=1).load() == 0.0
     with pytest.raises(ValueError, match="max_share"):
         Checkpoint(tmp_path / "c.pkl", "k", every_s=1, max_share=0)
 
