@@ -319,14 +319,22 @@ def test_a_second_ctrl_c_while_threads_wind_down_ends_the_process_at_once() -> N
     """After an interrupted run has saved its state and returned 130, Python joins the
     threads still winding down at exit; a second Ctrl-C there printed an "Exception
     ignored in atexit callback" traceback and the wait went on. Here an exit hook that
-    would wait 30 s stands for those threads, and the second SIGINT comes 0.5 s in."""
+    would wait 30 s stands for those threads, and the second SIGINT comes 0.5 s after the
+    first one's handling is over (SIGINT back to its default; 10 s at most): a fixed 0.5 s
+    from the thread's start could come first on a loaded machine."""
     code = (
         "import atexit, os, runpy, signal, threading, time\n"
         "import toolkit.recipe.cli as cli\n"
+        "def second_ctrl_c():\n"
+        "    deadline = time.monotonic() + 10\n"
+        "    while (signal.getsignal(signal.SIGINT) is not signal.SIG_DFL\n"
+        "           and time.monotonic() < deadline):\n"
+        "        time.sleep(0.01)\n"
+        "    time.sleep(0.5)\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
         "def interrupted_run():\n"
         "    atexit.register(time.sleep, 30)\n"
-        "    threading.Thread(target=lambda: (time.sleep(0.5), "
-        "os.kill(os.getpid(), signal.SIGINT)), daemon=True).start()\n"
+        "    threading.Thread(target=second_ctrl_c, daemon=True).start()\n"
         "    return cli.INTERRUPTED if hasattr(cli, 'INTERRUPTED') else 130\n"
         "cli.main = interrupted_run\n"
         "runpy.run_module('toolkit.recipe', run_name='__main__')\n")
