@@ -22,8 +22,13 @@ def test_prefetched_keeps_order_and_loads_ahead() -> None:
     for i, sq in prefetched(load, range(6), ahead=2):
         out.append((i, sq))
         if i == 0:
-            time.sleep(0.05)  # the thread meanwhile loads items 1 and 2
-            assert started[:3] == [0, 1, 2]
+            # The thread meanwhile loads items 1 and 2, and no further. Waited for, not
+            # slept on: a loaded machine may not run the thread within a fixed 50 ms.
+            deadline = time.monotonic() + 30
+            while len(started) < 3 and time.monotonic() < deadline:
+                time.sleep(0.001)
+            time.sleep(0.01)  # room for a wrong fourth load to show
+            assert started == [0, 1, 2]
     assert out == [(i, i * i) for i in range(6)]
 
 

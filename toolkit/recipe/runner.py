@@ -613,7 +613,7 @@ class _Run:
             remove_temps_under(stage_dir)
             record.seconds = time.perf_counter() - start
             record.cpu_seconds = _cpu_seconds() - cpu_start
-            record.peak = peak.finish()
+            record.peak = _finished_peak(peak)
             record.token = uuid.uuid4().hex
             record.output_tokens = {}
             marker = {
@@ -634,12 +634,12 @@ class _Run:
             atomic_write_json(stage_dir / STAGE_FILE, marker, fsync=True, compact=True)
         except Exception as exc:
             # What it reached before failing: a stage that ran out of memory says so.
-            record.peak = peak.finish()
+            record.peak = _finished_peak(peak)
             self.fail(record, exc, start)
             self.restore_previous(record, exc)
             return False
         except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
-            record.peak = peak.finish()
+            record.peak = _finished_peak(peak)
             self.fail(record, KeyboardInterrupt("interrupted"), start)
             self.settle_pending()
             self.write_outputs()
@@ -987,10 +987,18 @@ def _speed_values(spec: StageSpec) -> dict[str, Any]:
     return {k: data.get(k) for k in sorted(spec.cls.speed_settings)}
 
 
+def _finished_peak(peak: StagePeak) -> PeakMemory | None:
+    # To 0.1 MiB, as the marker stores it: the report of the run that measured it then
+    # shows the figure a cached run reads back (unrounded, 367.47 read 367 there and,
+    # stored as 367.5, 368 once cached).
+    got = peak.finish()
+    return None if got is None else PeakMemory(round(got.mib, 1), got.how)
+
+
 def _peak_fields(peak: PeakMemory | None) -> dict[str, Any]:
     if peak is None:
         return {}
-    return {"peak_rss_mib": round(peak.mib, 1), "peak_rss_how": peak.how}
+    return {"peak_rss_mib": peak.mib, "peak_rss_how": peak.how}
 
 
 def _stored_peak(stored: Mapping[str, Any]) -> PeakMemory | None:
