@@ -371,13 +371,12 @@ def test_wrong_square_size_is_named(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "square size (--square) is probably 1.1" in out
 
 
-def test_cli_names_units_sizes_and_a_missing_rig_first(capture: tuple[Path, object],
-                                                      tmp_path: Path,
-                                                      capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_names_units_sizes_and_a_missing_rig_first(
+        capture: tuple[Path, object], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """Millimetre scans said only 'no segment matches the board'; a missing --rig failed
     after the whole solve; mixed image sizes named no image."""
     import shutil
-    import time
 
     import cv2
 
@@ -393,11 +392,18 @@ def test_cli_names_units_sizes_and_a_missing_rig_first(capture: tuple[Path, obje
     args[args.index("--scans") + 1] = str(mm)
     assert main(args) == 2
     assert "are they in millimetres?" in capsys.readouterr().err
-    t0 = time.perf_counter()
+    # Before the solve: a solve that runs fails the test (a wall-clock bound on the
+    # refusal failed on a loaded 2-core machine, reading the images alone took longer).
+    import calibration.pipeline
+
+    def no_solve(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the missing --rig must be found before the solve")
+
+    monkeypatch.setattr(calibration.pipeline, "run_extrinsic", no_solve)
     assert main(_args(cap_dir, "--no-loo", "--out", str(tmp_path / "r.yaml"), "--rig",
                       str(tmp_path / "missing.yaml"))) == 2
     assert "missing.yaml: rig file not found" in capsys.readouterr().err
-    assert time.perf_counter() - t0 < 5.0  # before the solve
+    monkeypatch.undo()
     mixed = tmp_path / "mixed"
     mixed.mkdir()
     for i, p in enumerate(sorted((cap_dir / "images").glob("*.png"))[:6]):
