@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -227,8 +228,36 @@ class Alloc(Stage):
         ctx.provide("number", out)
 
 
+class BlasConfig(StageConfig):
+    counter: str
+
+
+class Blas(Stage):
+    """Write the BLAS thread counts its own thread and a worker thread see (test stage)."""
+
+    name = "t_blas"
+    Config = BlasConfig
+    provides = ("number",)
+
+    def run(self, ctx: StageContext) -> None:
+        from threadpoolctl import threadpool_info
+
+        def counts() -> list[int]:
+            return sorted({i["num_threads"] for i in threadpool_info()
+                           if i["user_api"] == "blas"})
+
+        seen: dict[str, list[int]] = {"stage": counts()}
+        worker = threading.Thread(target=lambda: seen.update(worker=counts()))
+        worker.start()
+        worker.join()
+        out = ctx.stage_dir / "threads.json"
+        atomic_write_json(out, seen)
+        ctx.provide("number", out)
+
+
 TEST_STAGES: dict[str, type[Stage]] = {
     "t_alloc": Alloc,
+    "t_blas": Blas,
     "t_source": Source,
     "t_double": Double,
     "t_sink": Sink,
@@ -2273,3 +2302,51 @@ def test_a_fresh_run_shows_the_peak_its_marker_stores(
     assert _marker(tmp_path, "big")["peak_rss_mib"] == 367.5
     assert _run(path).statuses == {"big": "cached"}
     assert peak_cell() == fresh == "368"
+
+
+# --- BLAS threads -------------------------------------------------------------------------
+
+
+def _blas_recipe(tmp_path: Path) -> Path:
+    return _write_recipe(tmp_path, {
+        "name": "blas", "output": str(tmp_path / "run"),
+        "stages": [{"stage": "t_blas", "counter": str(tmp_path / "calls.txt")}]})
+
+
+def _blas_counts() -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+
+
+@pytest.mark.parametrize("setting, expected", [(None, [1]), ("1", [1]), ("2", [2]),
+                                               ("default", [2])])
+def test_stages_run_with_blas_on_one_thread_unless_told_otherwise(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, setting: str | None,
+        expected: list[int]) -> None:
+    """A stage and its worker threads run with numpy's BLAS on one thread (OpenBLAS split
+    the stages' [N, 3] @ [3, 3] products over threads that waited for each other on a
+    busy 2-core machine: docs/runner.md, "BLAS on one thread"); TOOLKIT_RECIPE_BLAS_THREADS
+    sets another count or leaves the libraries alone ("default"). The run puts the
+    process's own setting back."""
+    from threadpoolctl import threadpool_limits
+
+    if setting is None:
+        monkeypatch.delenv("TOOLKIT_RECIPE_BLAS_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("TOOLKIT_RECIPE_BLAS_THREADS", setting)
+    with threadpool_limits(2, user_api="blas"):  # the libraries' own: 2 threads
+        assert _blas_counts() == [2]
+        assert _run(_blas_recipe(tmp_path)).ok
+        assert _blas_counts() == [2]
+    seen = json.loads((tmp_path / "run" / "t_blas" / "threads.json").read_text())
+    assert seen == {"stage": expected, "worker": expected}
+
+
+@pytest.mark.parametrize("setting", ["0", "two", "-1"])
+def test_a_bad_blas_thread_count_is_refused_before_anything_runs(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, setting: str) -> None:
+    monkeypatch.setenv("TOOLKIT_RECIPE_BLAS_THREADS", setting)
+    with pytest.raises(RecipeError, match="TOOLKIT_RECIPE_BLAS_THREADS"):
+        _run(_blas_recipe(tmp_path))
+    assert not (tmp_path / "run").exists()

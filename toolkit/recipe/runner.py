@@ -109,6 +109,47 @@ FAILED_DIR = ".failed"
 # Why a stage with a folder but no finished marker runs (the reason line says more).
 _UNFINISHED = "did not finish last time"
 
+# Stages run with numpy's BLAS on this many threads (an integer, or "default" for the
+# libraries' own setting): see _blas_limit.
+BLAS_THREADS_ENV = "TOOLKIT_RECIPE_BLAS_THREADS"
+
+
+def blas_threads() -> int | None:
+    """The BLAS thread count stages run with: ``TOOLKIT_RECIPE_BLAS_THREADS`` (unset: 1),
+    or None for "default" (the libraries' own, e.g. ``OPENBLAS_NUM_THREADS`` or a thread
+    per core). Raises ``RecipeError`` for any other value."""
+    value = os.environ.get(BLAS_THREADS_ENV, "").strip() or "1"
+    if value.lower() == "default":
+        return None
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise RecipeError(f"environment variable {BLAS_THREADS_ENV}={value!r}: set a "
+                          "number of threads (1 or more) or 'default'")
+    return n
+
+
+@contextlib.contextmanager
+def _blas_limit(threads: int | None) -> Iterator[None]:
+    """BLAS on ``threads`` threads while a stage runs (None: left alone).
+
+    The stages' numpy products are point transforms ([N, 3] @ [3, 3]) and small solves;
+    OpenBLAS splits them over its threads, which on a busy 2-core machine wait for each
+    other and for the stage's own threads (Open3D's, torch's): docs/runner.md, "BLAS on
+    one thread". The limit is OpenBLAS's global thread count, so the stage's worker
+    threads run under it too; it covers the BLAS libraries loaded when the stage starts
+    (numpy's, scipy's and OpenCV's, once the recipe's stage modules are imported)."""
+    if threads is None:
+        yield
+        return
+    from threadpoolctl import ThreadpoolController
+
+    with ThreadpoolController().limit(limits=threads, user_api="blas"):
+        yield
+
+
 # Log records carrying this go to run.log only (tracebacks, lines already printed nicely).
 _FILE_ONLY = {"console": False}
 
@@ -202,6 +243,7 @@ def run_recipe(
     problems = missing_inputs(recipe, selected)
     if problems:
         raise RecipeError(problems)
+    threads = blas_threads()
     console = console or Console()
     run_dir = recipe.output if recipe.output.is_absolute() else Path.cwd() / recipe.output
     # The folders this call makes: the run folder and any missing parents, top first.
@@ -232,6 +274,7 @@ def run_recipe(
                 raise RecipeError(foreign)
             with _run_logging(run_dir, console) as log:
                 run = _Run(recipe, run_dir, console, log, force, from_index, only_index)
+                run.blas_threads = threads
                 return run.execute()
         except RecipeError:
             # A refused --only / --from leaves no folders of lock and log behind; only
@@ -346,6 +389,7 @@ class _Run:
         self.bar_active = False
         self._resolved_written = False
         self.digests = FileDigests(run_dir / DIGESTS_FILE)
+        self.blas_threads: int | None = 1  # BLAS threads the stages run with
 
     def write_resolved(self) -> None:
         """``recipe.resolved.yaml``, once something of this run is kept: an option check
@@ -606,7 +650,8 @@ class _Run:
         cpu_start = _cpu_seconds()
         peak = StagePeak()
         try:
-            stage.run(ctx)
+            with _blas_limit(self.blas_threads):
+                stage.run(ctx)
             ctx.check_provided()
             # A kill before this run left half-written temporaries in the folder (a resumed
             # fuse's scaled depth): the finished folder holds outputs only.
