@@ -23,6 +23,20 @@ class BoardError(ValueError):
     """A board specification or a detection problem; the message says what to change."""
 
 
+def found_in(found: int, total: int) -> str:
+    """Which of ``total`` images the board was found in, for a message: "in only 2 of the 5
+    images", "in all 3 images", "in the only image" (it said "in only 1 of the 1 images"
+    and "only 3 of the 3"). With ``found`` 0, for "no board found ...": "in any of the 5
+    images", "in the only image"."""
+    if total == 1:
+        return "in the only image"
+    if found == 0:
+        return f"in any of the {total} images"
+    if found == total:
+        return "in both images" if total == 2 else f"in all {total} images"
+    return f"in only {found} of the {total} images"
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """A planar checkerboard: inner corners ``cols`` x ``rows``, square side in metres."""

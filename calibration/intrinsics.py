@@ -20,6 +20,7 @@ from calibration.board import (
     Detection,
     board_hint,
     detect_corners,
+    found_in,
     list_images,
     read_image,
 )
@@ -149,14 +150,13 @@ def detect_folder(folder: Path, board: BoardSpec, min_images: int = 3) -> (
             dets.append(d)
     if not dets:
         hint = board_hint(first, board) if first is not None else ""
-        raise BoardError(f"no {board} found in any of the {len(paths)} images in "
-                         f"{folder}.{hint}")
+        raise BoardError(f"no {board} found {found_in(0, len(paths))} in {folder}.{hint}")
     if len(dets) < min_images and first_missed is not None:
         names = list(missed)
         shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10
                                          else "")
         raise BoardError(
-            f"the {board} was found in only {len(dets)} of the {len(paths)} images in "
+            f"the {board} was found {found_in(len(dets), len(paths))} in "
             f"{folder} ({', '.join(d.name for d in dets)}); at least {min_images} are "
             f"needed, and there is no board found in {shown}."
             + board_hint(first_missed[0], board, first_missed[1]))
@@ -164,7 +164,8 @@ def detect_folder(folder: Path, board: BoardSpec, min_images: int = 3) -> (
         # The board is in every image, there are just too few of them: without this the
         # error came from calibrate_intrinsics as "1 usable views", naming no folder.
         raise BoardError(
-            f"{folder} holds {len(paths)} image(s) ({', '.join(d.name for d in dets)}), the "
-            f"{board} found in each, but at least {min_images} views are needed; capture "
-            "more (10-20 recommended, with the board tilted and reaching the image corners)")
+            f"the {board} was found {found_in(len(dets), len(paths))} in {folder} "
+            f"({', '.join(d.name for d in dets)}), but at least {min_images} views are "
+            "needed; capture more (10-20 recommended, with the board tilted and reaching "
+            "the image corners)")
     return dets, missed

@@ -20,6 +20,7 @@ from calibration.board import (
     Detection,
     board_hint,
     detect_corners,
+    found_in,
     list_images,
     read_image,
 )
@@ -202,8 +203,8 @@ def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | No
     folder = images.paths[0].parent if images.paths else "?"
     if not found:
         hint = board_hint(first_image, board) if first_image is not None else ""
-        raise BoardError(f"no {board} found in any of the {len(images.paths)} "
-                         f"images in {folder}.{hint}")
+        raise BoardError(f"no {board} found {found_in(0, len(images.paths))} in "
+                         f"{folder}.{hint}")
     if len(found) < min_found:
         names = ", ".join(d.name for d in found.values())
         if missed and first_image is not None:
@@ -212,8 +213,8 @@ def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | No
             hint = (" Each board gives two constraints on the extrinsic's six unknowns; "
                     "capture more views (10 or more), the board leaned forward and back and "
                     "turned left and right by 20-45 degrees.")
-        raise BoardError(f"the {board} was found in only {len(found)} of the "
-                         f"{len(images.paths)} images in {folder} ({names}); at least "
+        raise BoardError(f"the {board} was found {found_in(len(found), len(images.paths))} "
+                         f"in {folder} ({names}); at least "
                          f"{min_found} views are needed.{hint}")
     return found, missed
 

@@ -217,7 +217,8 @@ def test_too_few_views_and_square_in_millimetres(capture: tuple[Path, object], t
             .replace(str(cap_dir / "lasers"), str(few / "lasers")) for a in _args(cap_dir)]
     assert main([*args, "--out", str(tmp_path / "rig.yaml")]) == 2
     err = capsys.readouterr().err
-    assert "found in only 3 of the 3 images" in err and "at least 4 views" in err
+    # "only 3 of the 3" read as a garbled count
+    assert "found in all 3 images" in err and "at least 4 views" in err
     assert "capture more views" in err and not (tmp_path / "rig.yaml").exists()
     args = _args(cap_dir, "--no-loo")
     args[args.index("--square") + 1] = "50"
@@ -455,6 +456,30 @@ def test_max_offset_error_names_views_not_in_the_solve(tmp_path: Path,
     assert "--square" not in err
 
 
+def test_extrinsic_on_one_image_says_the_board_is_in_it(capture: tuple[Path, object],
+                                                       tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """A folder of one image, the board in it: extrinsic said "found in only 1 of the 1
+    images"; with no board in it, "in any of the 1 images"."""
+    from calibration.board import found_in
+
+    cap_dir, _ = capture
+    one = tmp_path / "one"
+    for sub in ("images", "lasers"):
+        (one / sub).mkdir(parents=True)
+        shutil.copy(sorted((cap_dir / sub).iterdir())[0], one / sub)
+    args = [a.replace(str(cap_dir / "images"), str(one / "images"))
+            .replace(str(cap_dir / "lasers"), str(one / "lasers")) for a in _args(cap_dir)]
+    assert main([*args, "--out", str(tmp_path / "rig.yaml")]) == 2
+    err = capsys.readouterr().err
+    name = next((one / "images").iterdir()).name
+    assert f"was found in the only image in {one / 'images'} ({name}); at least 4 views" in err
+    assert "1 of the 1" not in err and not (tmp_path / "rig.yaml").exists()
+    assert [found_in(f, n) for f, n in [(0, 1), (0, 3), (2, 2), (2, 5), (4, 4)]] == [
+        "in the only image", "in any of the 3 images", "in both images",
+        "in only 2 of the 5 images", "in all 4 images"]
+
+
 def test_intrinsics_names_images_without_the_board(capture: tuple[Path, object], tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """Two images of the given 11x8 board and three of a 12x9 one: the error said only '2
@@ -491,7 +516,8 @@ def test_intrinsics_on_too_few_images_names_the_folder(capture: tuple[Path, obje
     assert main(["intrinsics", "--images", str(folder), "--board", "11x8", "--square", "0.05",
                  "--out", str(tmp_path / "cam.yaml")]) == 2
     err = capsys.readouterr().err
-    assert f"{folder} holds 1 image(s) (only.png)" in err
+    assert f"board (inner corners, 50 mm squares) was found in the only image in {folder} " \
+        "(only.png)" in err
     assert "at least 3 views are needed; capture more" in err
     assert not (tmp_path / "cam.yaml").exists()
 

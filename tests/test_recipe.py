@@ -996,8 +996,10 @@ def test_resume_after_exception(tmp_path: Path) -> None:
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 2}
     # the stage folder was not wiped: its own partial files survive
     assert (run_dir / "t_sink" / "checkpoint.txt").exists()
-    assert "t_sink (t_sink) started: did not finish last time: resumes" in (
-        run_dir / "run.log").read_text()
+    # it failed, it was not interrupted: "did not finish last time" read as the latter
+    log = (run_dir / "run.log").read_text()
+    assert "t_sink (t_sink) started: failed last time: runs again, on the files it wrote" in log
+    assert "did not finish last time" not in log
 
 
 def test_the_reason_says_whether_an_interrupted_stage_resumes(tmp_path: Path) -> None:
@@ -1011,12 +1013,12 @@ def test_the_reason_says_whether_an_interrupted_stage_resumes(tmp_path: Path) ->
         assert not _run(path).ok
         if case == "force":
             assert _run(path, force=True).ok
-            said = "did not finish last time; --force starts it afresh"
+            said = "failed last time; --force starts it afresh"
         else:
             other = folder / "other_marker"
             other.touch()
             assert _run(path, f"t_sink.fail_marker={other}").ok
-            said = "did not finish last time, under other settings: starts afresh"
+            said = "failed last time, under other settings: starts afresh"
         assert f"t_sink (t_sink) started: {said}" in (folder / "run" / "run.log").read_text()
 
 
@@ -1134,6 +1136,10 @@ def test_resume_after_sigkill(tmp_path: Path) -> None:
     proc = _cli("run", str(path), cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 2}
+    # killed, not failed: it resumes, and is not said to have failed
+    log = (tmp_path / "run" / "run.log").read_text()
+    assert "t_sink (t_sink) started: did not finish last time: resumes" in log
+    assert "failed last time" not in log
 
 
 def test_failure_keeps_the_results_of_independent_later_stages(tmp_path: Path) -> None:

@@ -106,8 +106,10 @@ DIGESTS_FILE = ".file_digests.json"
 PREVIOUS_DIR = ".previous"
 FAILED_DIR = ".failed"
 
-# Why a stage with a folder but no finished marker runs (the reason line says more).
+# Why a stage with a folder but no finished marker runs (the reason line says more):
+# interrupted (killed, Ctrl-C), or failed with an error, which its started marker records.
 _UNFINISHED = "did not finish last time"
+_FAILED = "failed last time"
 
 # Stages run with numpy's BLAS on this many threads (an integer, or "default" for the
 # libraries' own setting): see _blas_limit.
@@ -493,14 +495,17 @@ class _Run:
             return True
         if stored is not None:
             record.reason = self.option() or "--force"
-        elif record.reason == _UNFINISHED:
-            # Say whether it resumes (prepare_stage_dir's rule): an interrupted run of other
-            # settings, or any under --force, starts afresh.
+        elif record.reason in (_UNFINISHED, _FAILED):
+            # Say whether it resumes (prepare_stage_dir's rule): an unfinished run of other
+            # settings, or any under --force, starts afresh. A failed one is kept to resume
+            # like an interrupted one, but "resumes" alone reads as "was interrupted".
             started = _started_folder_key(self.run_dir / spec.id / STARTED_FILE)
             if self.force:
                 record.reason += "; --force starts it afresh"
             elif started != record.folder_key:
                 record.reason += ", under other settings: starts afresh"
+            elif record.reason == _FAILED:
+                record.reason += ": runs again, on the files it wrote"
             else:
                 record.reason += ": resumes"
         elif record.reason.endswith(_CHANGED):
@@ -681,6 +686,9 @@ class _Run:
             # What it reached before failing: a stage that ran out of memory says so.
             record.peak = _finished_peak(peak)
             self.fail(record, exc, start)
+            # The next run tells a failure from an interruption (which leaves the marker
+            # as it was) by this.
+            _mark_started_failed(stage_dir / STARTED_FILE, self.error or "")
             self.restore_previous(record, exc)
             return False
         except BaseException:  # Ctrl-C / SIGTERM: keep what finished, then stop
@@ -1165,7 +1173,9 @@ def _read_marker(
     """The stored ``.stage.json`` if it proves the stage complete, else None; and why."""
     marker = stage_dir / STAGE_FILE
     if not marker.exists():
-        return None, _UNFINISHED if stage_dir.exists() else "never ran"
+        if not stage_dir.exists():
+            return None, "never ran"
+        return None, _FAILED if _started_failed(stage_dir / STARTED_FILE) else _UNFINISHED
     try:
         data = json.loads(marker.read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -1217,6 +1227,25 @@ def _started_folder_key(path: Path) -> str | None:
         return None
     key = data.get("folder_key") if isinstance(data, dict) else None
     return str(key) if key else None
+
+
+def _mark_started_failed(path: Path, error: str) -> None:
+    """Record in the started marker ``path`` that the stage failed with ``error``."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict):
+            atomic_write_json(path, {**data, "failed": error}, fsync=True)
+    except (OSError, ValueError):  # no marker, an unwritable folder: reported as unfinished
+        pass
+
+
+def _started_failed(path: Path) -> bool:
+    """True when the started marker ``path`` records a failure (_mark_started_failed)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and bool(data.get("failed"))
 
 
 def _manifest(path: Path) -> list[list[Any]]:
