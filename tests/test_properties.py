@@ -441,11 +441,12 @@ def _circle_ranges(px: np.ndarray, py: np.ndarray, th: np.ndarray, R: float) -> 
 
 
 @bounded
-@given(seeds, st.booleans(), st.booleans())
+@given(seeds, st.booleans(), st.booleans(), st.booleans())
 def test_deskew_undoes_a_constant_velocity_sweep_in_a_round_room(
-        seed: int, back_angles: bool, back_time: bool) -> None:
+        seed: int, back_angles: bool, back_time: bool, both_ends: bool) -> None:
     rng = np.random.default_rng(seed)
-    n, R = 360, float(rng.uniform(3, 8))
+    # both_ends: a beam at -pi and at pi, as rplidar's driver spaces them (n - 1 steps).
+    n, R = 360 + both_ends, float(rng.uniform(3, 8))
     inc = 2 * np.pi / 360 * (-1 if back_angles else 1)
     a0 = float(rng.uniform(-np.pi, np.pi))
     start = rng.uniform(-1, 1, 2)  # laser at the first beam, room-centred frame, heading 0
