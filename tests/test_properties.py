@@ -568,3 +568,21 @@ def test_sequence_keeps_unix_stamps_from_nanoseconds_to_the_bit(tmp_path: Path, 
     # float64 holds 1.7e9 s to 2**-22 s (238 ns): the ns come back within that.
     assert np.abs(np.round(back.scan_stamps * 1e9).astype(np.int64) - s_ns).max() <= 256
     assert [s.time_increment for s in back.scans] == [1e-4] * 5
+
+
+@bounded
+@given(seeds)
+def test_rig_transforms_compose_and_remounting_keeps_the_camera(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    rig = Rig(cam, random_pose(rng, 0.5), random_pose(rng, 0.5))
+    P = rng.normal(size=(20, 3))  # [20, 3] laser-frame points
+    h = np.c_[P, np.ones(20)]
+    via_base = (g.inv_se3(rig.T_base_camera) @ rig.T_base_laser @ h.T).T[:, :3]
+    np.testing.assert_allclose((rig.T_camera_laser @ h.T).T[:, :3], via_base, atol=1e-12)
+    T_new = random_pose(rng, 0.5)
+    moved = rig.with_T_camera_laser(T_new)
+    np.testing.assert_array_equal(moved.T_base_camera, rig.T_base_camera)
+    np.testing.assert_allclose(moved.T_camera_laser, T_new, atol=1e-12)
+    again = moved.with_T_camera_laser(rig.T_camera_laser)
+    np.testing.assert_allclose(again.T_base_laser, rig.T_base_laser, atol=1e-12)
