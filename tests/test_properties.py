@@ -586,3 +586,19 @@ def test_rig_transforms_compose_and_remounting_keeps_the_camera(seed: int) -> No
     np.testing.assert_allclose(moved.T_camera_laser, T_new, atol=1e-12)
     again = moved.with_T_camera_laser(rig.T_camera_laser)
     np.testing.assert_allclose(again.T_base_laser, rig.T_base_laser, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [5, 100])  # both lookup paths: bisect, searchsorted
+def test_nearest_stamp_refuses_a_nan_time(n: int) -> None:
+    # NaN compared false everywhere: it passed the range check and max_dt and got scan 0
+    # from 5 scans, the last from 100, without a word.
+    stamps = 1.7e9 + np.arange(n) * 0.1
+    frames = [CameraFrame.from_array(float(t), np.zeros((2, 2, 3)), k)
+              for k, t in enumerate(stamps)]
+    scans = [LaserScan(float(t), np.ones(3), 0.0, 0.1) for t in stamps]
+    seq = Sequence(rig=None, frames=frames, scans=scans)  # type: ignore[arg-type]
+    for look in (seq.scan_index_at, seq.frame_index_at):
+        with pytest.raises(ValueError, match="nan"):
+            look(float("nan"))
+        with pytest.raises(ValueError, match="nan"):
+            look(float("nan"), max_dt=0.05)
