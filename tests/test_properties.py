@@ -368,3 +368,237 @@ def test_colmap_models_round_trip_cameras_poses_and_points(tmp_path: Path, seed:
         np.testing.assert_allclose(im.center, T[:3, 3], atol=1e-10)
     np.testing.assert_array_equal(model.points, points)
     np.testing.assert_array_equal(model.colors, np.round(colours * 255).astype(np.uint8))
+
+
+# ------------------------------------------------- second round: scans, de-skewing, SLAM grid
+
+from dataclasses import replace  # noqa: E402
+
+from toolkit import deskew as dk  # noqa: E402
+from toolkit.io.sequence import read_sequence, write_sequence  # noqa: E402
+from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence  # noqa: E402
+from toolkit.slam2d.grid import ProbabilityGrid  # noqa: E402
+from toolkit.slam2d.matcher import GridPyramid, correlative_search, refine  # noqa: E402
+
+bounded = settings(max_examples=40, deadline=None,
+                   suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@bounded
+@given(seeds, st.booleans())
+def test_scan_points_keep_valid_beams_at_their_angle_and_range(seed: int, backwards: bool) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    inc = rng.uniform(0.001, 2 * np.pi / n) * (-1 if backwards else 1)
+    r_min, r_max = rng.uniform(0, 0.5), rng.uniform(5, 30)
+    r = rng.uniform(-1, 35, n).astype(np.float32)  # [n]
+    special = rng.random(n) < 0.3
+    r[special] = rng.choice(np.array([np.nan, np.inf, -np.inf, 0.0, r_min, r_max], np.float32),
+                            special.sum())
+    scan = LaserScan(0.0, r, float(rng.uniform(-np.pi, np.pi)), float(inc), float(r_min),
+                     float(r_max))
+    want = np.isfinite(r) & (r > 0) & (r >= np.float32(r_min)) & (r < np.float32(r_max))
+    p = scan.points()
+    assert p.shape == (want.sum(), 2)
+    np.testing.assert_allclose(np.hypot(p[:, 0], p[:, 1]), r[want], rtol=1e-6)
+    a = scan.angle_min + np.flatnonzero(want) * inc
+    d = np.angle(np.exp(1j * (np.arctan2(p[:, 1], p[:, 0]) - a)))
+    assert np.all(np.abs(d) < 1e-6)
+    assert np.isclose(scan.angles()[-1], scan.angle_max)
+    p3 = scan.points_3d()
+    np.testing.assert_array_equal(p3[:, :2], p)
+    assert np.all(p3[:, 2] == 0)
+
+
+@bounded
+@given(seeds, st.integers(1, 130))
+def test_scan_at_picks_the_nearest_stamp_at_ends_and_off_midpoints(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    # Both lookup paths: bisect below 64 stamps, searchsorted from 64 on.
+    stamps = 1.7e9 + np.cumsum(rng.uniform(0.01, 0.2, n))  # [n]
+    scans = [LaserScan(float(t), np.ones(3), 0.0, 0.1) for t in stamps]
+    seq = Sequence(rig=None, frames=[], scans=scans)  # type: ignore[arg-type]
+    for i, t in enumerate(stamps):
+        assert seq.scan_index_at(float(t)) == i
+    assert seq.scan_index_at(float(stamps[0]) - 0.5) == 0
+    assert seq.scan_index_at(float(stamps[-1]) + 0.5) == n - 1
+    for i in range(n - 1):
+        a, b = float(stamps[i]), float(stamps[i + 1])
+        mid = a + (b - a) / 2
+        eps = 1e-3 * (b - a)
+        assert seq.scan_index_at(mid - eps) == i
+        assert seq.scan_index_at(mid + eps) == i + 1
+        assert seq.scan_at(mid - eps) is scans[i]
+    with pytest.raises(LookupError):
+        seq.scan_index_at(float(stamps[-1]) + 0.5, max_dt=0.4)
+
+
+def _circle_ranges(px: np.ndarray, py: np.ndarray, th: np.ndarray, R: float) -> np.ndarray:
+    """[B] distance from (px, py) along heading th to a circle of radius R about 0."""
+    dx, dy = np.cos(th), np.sin(th)
+    b = px * dx + py * dy
+    return -b + np.sqrt(b * b - (px * px + py * py - R * R))
+
+
+@bounded
+@given(seeds, st.booleans(), st.booleans(), st.booleans())
+def test_deskew_undoes_a_constant_velocity_sweep_in_a_round_room(
+        seed: int, back_angles: bool, back_time: bool, both_ends: bool) -> None:
+    rng = np.random.default_rng(seed)
+    # both_ends: a beam at -pi and at pi, as rplidar's driver spaces them (n - 1 steps).
+    n, R = 360 + both_ends, float(rng.uniform(3, 8))
+    inc = 2 * np.pi / 360 * (-1 if back_angles else 1)
+    a0 = float(rng.uniform(-np.pi, np.pi))
+    start = rng.uniform(-1, 1, 2)  # laser at the first beam, room-centred frame, heading 0
+    m = np.r_[rng.uniform(-0.1, 0.1, 2), rng.uniform(-0.2, 0.2)]  # [3] motion over the sweep
+    f = np.arange(n) / (n - 1)
+    ang = a0 + np.arange(n) * inc
+    skewed = _circle_ranges(start[0] + f * m[0], start[1] + f * m[1], f * m[2] + ang, R)
+    scan = LaserScan(5.0, skewed, a0, inc, 0.1, 50.0,
+                     time_increment=(-1e-4 if back_time else 1e-4))
+    out = dk.deskew_scan(scan, m)
+    want = _circle_ranges(np.full(n, start[0]), np.full(n, start[1]), ang, R)
+    assert out.time_increment == 0
+    # A turn against the beams' direction leaves a wedge no beam looked into: NaN there
+    # (widened by the translation's parallax: walls are at least R - 1.5 m away).
+    gap = np.isnan(out.ranges)
+    turn_against = abs(m[2]) if m[2] * inc < 0 else 0.0
+    assert gap.sum() <= (turn_against + np.hypot(m[0], m[1]) / (R - 1.5)) / abs(inc) + 2
+    # Next to the wedge a bin takes its nearest point (up to half a beam off), unblended.
+    edge = gap | np.roll(gap, 1) | np.roll(gap, -1)
+    np.testing.assert_allclose(out.ranges[~edge], want[~edge], atol=2e-3)
+
+
+@bounded
+@given(seeds)
+def test_deskew_of_a_standing_robot_or_an_instant_scan_changes_nothing(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 500))
+    r = rng.uniform(0.2, 20, n).astype(np.float32)
+    r[rng.random(n) < 0.2] = np.nan
+    scan = LaserScan(1.7e9, r, -2.0, 4.0 / n, 0.1, 20.0, intensities=rng.random(n),
+                     time_increment=1e-5)
+    for m, s in ((np.zeros(3), scan), (rng.normal(size=3), replace(scan, time_increment=0.0))):
+        out = dk.deskew_scan(s, m)
+        np.testing.assert_array_equal(out.ranges, scan.ranges)
+        np.testing.assert_array_equal(out.intensities, scan.intensities)
+        assert out.time_increment == 0 and out.stamp == scan.stamp
+
+
+@bounded
+@given(seeds, st.sampled_from([0.01, 0.025, 0.05, 0.1, 0.2]))
+def test_grid_cell_of_is_the_cell_whose_corner_is_at_or_below(seed: int, res: float) -> None:
+    rng = np.random.default_rng(seed)
+    grid = ProbabilityGrid(res, center=tuple(rng.uniform(-50, 50, 2)))
+    c = rng.integers(-3000, 3000, (200, 2))  # [200, 2] grid cells, negative ones too
+    corner = grid.origin + c * res  # [200, 2]
+    # A point a hair (1e-6 cell) inside either side of a border; exactly on it is rounding.
+    np.testing.assert_array_equal(grid.cell_of(corner + res * 1e-6), c)
+    np.testing.assert_array_equal(grid.cell_of(corner - res * 1e-6), c - 1)
+    np.testing.assert_array_equal(grid.cell_of(corner + res * rng.uniform(0.01, 0.99, c.shape)), c)
+
+
+def _room_points(rng: np.random.Generator) -> np.ndarray:
+    """[N, 2] points on the walls of a 6 x 4 m room with a pillar: no symmetry to slide on."""
+    t = rng.uniform(0, 1, 600)
+    u = 8 * np.pi * t[550:]  # [50] round the pillar
+    walls = [np.c_[-3 + 6 * t[:150], np.full(150, -2.0)],
+             np.c_[-3 + 6 * t[150:300], np.full(150, 2.0)],
+             np.c_[np.full(150, -3.0), -2 + 4 * t[300:450]],
+             np.c_[np.full(100, 3.0), -2 + 4 * t[450:550]],
+             np.c_[1.0 + 0.3 * np.cos(u), -0.5 + 0.3 * np.sin(u)]]
+    return np.concatenate(walls)
+
+
+def _se2(p: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    c, s = np.cos(p[2]), np.sin(p[2])
+    return np.c_[c * pts[:, 0] - s * pts[:, 1] + p[0], s * pts[:, 0] + c * pts[:, 1] + p[1]]
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_scan_matcher_recovers_a_known_small_shift_and_is_rigid_invariant(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    res = 0.05
+    world = _room_points(rng)
+    frame = np.r_[rng.uniform(-5, 5, 2), rng.uniform(-np.pi, np.pi)]  # rigid motion of both
+    truth = np.r_[rng.uniform(-0.15, 0.15, 2), rng.uniform(-0.08, 0.08)]
+    errs = []
+    for T in (np.zeros(3), frame):
+        grid = ProbabilityGrid(res, center=tuple(T[:2]))
+        mapped = _se2(T, world)
+        for _ in range(3):
+            grid.insert(T[:2], mapped)
+        field, origin = grid.matching_field(0.05)
+        pyr = GridPyramid(field, origin, res, 4, grid.p_min, int(0.4 / res))
+        # The scan, in its own frame, of a robot at T + truth (composed in T's frame).
+        pose = np.r_[_se2(T, truth[None, :2])[0], T[2] + truth[2]]
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        d = mapped - pose[:2]
+        scan = np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]]
+        found = correlative_search(pyr, scan, T, 0.3, 0.15, np.radians(0.5))
+        assert found.found
+        ref = refine(field, origin, res, scan, found.pose, translation_weight=0.0,
+                     rotation_weight=0.0)
+        # Walls along the grid's axes sit anywhere in their cells but score at the cells'
+        # centres: up to half a cell off (the identity frame), ~1 mm when turned (measured).
+        assert np.hypot(*(ref.pose[:2] - pose[:2])) < 0.6 * res
+        assert abs(np.angle(np.exp(1j * (ref.pose[2] - pose[2])))) < np.radians(0.5)
+        errs.append(_se2(np.r_[0, 0, -T[2]], (ref.pose[:2] - T[:2])[None])[0])
+    # The same scan and map moved together match to about the same relative pose.
+    assert np.hypot(*(errs[0] - errs[1])) < 0.6 * res
+
+
+@settings(max_examples=15, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seeds)
+def test_sequence_keeps_unix_stamps_from_nanoseconds_to_the_bit(tmp_path: Path, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    # ROS stamps: integer ns near 1.7e9 s, taken to float seconds as the bag reader does.
+    f_ns = 1_700_000_000_000_000_000 + np.cumsum(rng.integers(1, 10**8, 4))  # [4]
+    s_ns = 1_700_000_000_000_000_000 + np.cumsum(rng.integers(1, 10**8, 5))  # [5]
+    f_t, s_t = [int(v) / 1e9 for v in f_ns], [int(v) / 1e9 for v in s_ns]
+    rig = Rig(PinholeCamera(8, 6, 10.0, 10.0, 4.0, 3.0))
+    frames = [CameraFrame.from_array(t, np.full((6, 8, 3), k, np.uint8), k)
+              for k, t in enumerate(f_t)]
+    scans = [LaserScan(t, rng.uniform(1, 5, 9), -1.0, 0.25, time_increment=1e-4) for t in s_t]
+    write_sequence(Sequence(rig, frames, scans), tmp_path / "seq")
+    back = read_sequence(tmp_path / "seq")
+    assert back.frame_stamps.tolist() == f_t and back.scan_stamps.tolist() == s_t
+    # float64 holds 1.7e9 s to 2**-22 s (238 ns): the ns come back within that.
+    assert np.abs(np.round(back.scan_stamps * 1e9).astype(np.int64) - s_ns).max() <= 256
+    assert [s.time_increment for s in back.scans] == [1e-4] * 5
+
+
+@bounded
+@given(seeds)
+def test_rig_transforms_compose_and_remounting_keeps_the_camera(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 32.0, 24.0)
+    rig = Rig(cam, random_pose(rng, 0.5), random_pose(rng, 0.5))
+    P = rng.normal(size=(20, 3))  # [20, 3] laser-frame points
+    h = np.c_[P, np.ones(20)]
+    via_base = (g.inv_se3(rig.T_base_camera) @ rig.T_base_laser @ h.T).T[:, :3]
+    np.testing.assert_allclose((rig.T_camera_laser @ h.T).T[:, :3], via_base, atol=1e-12)
+    T_new = random_pose(rng, 0.5)
+    moved = rig.with_T_camera_laser(T_new)
+    np.testing.assert_array_equal(moved.T_base_camera, rig.T_base_camera)
+    np.testing.assert_allclose(moved.T_camera_laser, T_new, atol=1e-12)
+    again = moved.with_T_camera_laser(rig.T_camera_laser)
+    np.testing.assert_allclose(again.T_base_laser, rig.T_base_laser, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [5, 100])  # both lookup paths: bisect, searchsorted
+def test_nearest_stamp_refuses_a_nan_time(n: int) -> None:
+    # NaN compared false everywhere: it passed the range check and max_dt and got scan 0
+    # from 5 scans, the last from 100, without a word.
+    stamps = 1.7e9 + np.arange(n) * 0.1
+    frames = [CameraFrame.from_array(float(t), np.zeros((2, 2, 3)), k)
+              for k, t in enumerate(stamps)]
+    scans = [LaserScan(float(t), np.ones(3), 0.0, 0.1) for t in stamps]
+    seq = Sequence(rig=None, frames=frames, scans=scans)  # type: ignore[arg-type]
+    for look in (seq.scan_index_at, seq.frame_index_at):
+        with pytest.raises(ValueError, match="nan"):
+            look(float("nan"))
+        with pytest.raises(ValueError, match="nan"):
+            look(float("nan"), max_dt=0.05)

@@ -67,8 +67,11 @@ def deskew_scan(scan: LaserScan, motion: np.ndarray) -> LaserScan:
     order = np.argsort(u, kind="stable")
     u, rho, src = u[order], rho[order], ok[order]
     if abs(scan.angle_increment) * n >= 2 * np.pi - 1e-6 and len(u):
-        # A full turn: the points past one end continue at the other.
-        u = np.concatenate([u - n, u, u + n])
+        # A full turn: the points past one end continue at the other, a turn (not n beams)
+        # away: drivers that put a beam at both -pi and pi (rplidar's n - 1 increments over
+        # the turn) overlap the ends, and n beams put the wrapped points a beam off.
+        turn = 2 * np.pi / abs(scan.angle_increment)
+        u = np.concatenate([u - turn, u, u + turn])
         rho = np.tile(rho, 3)
         src = np.tile(src, 3)
     out = np.where(moves, np.nan, scan.ranges).astype(np.float32)

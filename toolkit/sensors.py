@@ -277,6 +277,10 @@ class Sequence:
     def _nearest(stamps: np.ndarray, t: float, max_dt: float | None = None) -> int:
         if len(stamps) == 0:
             raise IndexError("no data to look up")
+        if t != t:
+            # NaN compares false: it passed every check below and got the first or the last
+            # item (by the lookup's length), max_dt or not.
+            raise ValueError(f"t={t!r} is not a time")
         span = float(stamps[-1] - stamps[0])
         off = max(float(stamps[0]) - t, t - float(stamps[-1]))
         if off > max(span, 1.0):
