@@ -228,6 +228,13 @@ class Alloc(Stage):
         ctx.provide("number", out)
 
 
+def _blas_counts() -> list[int]:
+    """The distinct thread counts of the loaded BLAS libraries."""
+    from threadpoolctl import threadpool_info
+
+    return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+
+
 class BlasConfig(StageConfig):
     counter: str
 
@@ -240,14 +247,8 @@ class Blas(Stage):
     provides = ("number",)
 
     def run(self, ctx: StageContext) -> None:
-        from threadpoolctl import threadpool_info
-
-        def counts() -> list[int]:
-            return sorted({i["num_threads"] for i in threadpool_info()
-                           if i["user_api"] == "blas"})
-
-        seen: dict[str, list[int]] = {"stage": counts()}
-        worker = threading.Thread(target=lambda: seen.update(worker=counts()))
+        seen: dict[str, list[int]] = {"stage": _blas_counts()}
+        worker = threading.Thread(target=lambda: seen.update(worker=_blas_counts()))
         worker.start()
         worker.join()
         out = ctx.stage_dir / "threads.json"
@@ -2317,12 +2318,6 @@ def _blas_recipe(tmp_path: Path) -> Path:
     return _write_recipe(tmp_path, {
         "name": "blas", "output": str(tmp_path / "run"),
         "stages": [{"stage": "t_blas", "counter": str(tmp_path / "calls.txt")}]})
-
-
-def _blas_counts() -> list[int]:
-    from threadpoolctl import threadpool_info
-
-    return sorted({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
 
 
 @pytest.mark.parametrize("setting, expected", [(None, [1]), ("1", [1]), ("2", [2]),

@@ -1219,33 +1219,33 @@ def _read_marker(
 _REPORT_LINK_RE = re.compile(r"\]\(([^)\s]+)\)")  # [text](target) and ![alt](target)
 
 
-def _started_folder_key(path: Path) -> str | None:
-    """The folder key in a started marker (None: no readable one)."""
+def _read_started(path: Path) -> dict[str, Any]:
+    """The started marker ``path`` as a mapping (empty: none, or unreadable)."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return None
-    key = data.get("folder_key") if isinstance(data, dict) else None
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _started_folder_key(path: Path) -> str | None:
+    """The folder key in a started marker (None: no readable one)."""
+    key = _read_started(path).get("folder_key")
     return str(key) if key else None
 
 
 def _mark_started_failed(path: Path, error: str) -> None:
     """Record in the started marker ``path`` that the stage failed with ``error``."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-        if isinstance(data, dict):
+    data = _read_started(path)
+    if data:
+        # An unwritable folder: the next run reports the stage as unfinished.
+        with contextlib.suppress(OSError):
             atomic_write_json(path, {**data, "failed": error}, fsync=True)
-    except (OSError, ValueError):  # no marker, an unwritable folder: reported as unfinished
-        pass
 
 
 def _started_failed(path: Path) -> bool:
     """True when the started marker ``path`` records a failure (_mark_started_failed)."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(data, dict) and bool(data.get("failed"))
+    return bool(_read_started(path).get("failed"))
 
 
 def _manifest(path: Path) -> list[list[Any]]:
