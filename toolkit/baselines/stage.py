@@ -192,7 +192,8 @@ class TSDFStage(Stage):
     # mesh's exposure. 5: colour averaged in float32 (uint16 truncated it: darker meshes);
     # frames without valid depth skipped; no geometry score without an alignment
     # 6: the alignment fits on the frames the ground truth covers, no end slack
-    version = 6
+    # 7: a straight path's alignment turns about the reference's line, not the estimate's
+    version = 7
 
     def run(self, ctx: StageContext) -> None:
         import cv2
@@ -495,7 +496,8 @@ class ColmapStage(Stage):
     # 5: the alignment fits on the frames the ground truth covers, no end slack
     # 6: the exported fused map moved into the exported poses' frame (or the triangulated
     # points instead): cameras and points came from different frames
-    version = 6
+    # 7: a straight path's alignment turns about the reference's line, not the estimate's
+    version = 7
     outputs_repeat = False  # sfm/summary.json holds the steps' seconds
 
     def run(self, ctx: StageContext) -> None:
@@ -841,7 +843,8 @@ class CameraOnlyStage(Stage):
     # COLMAP's unit, not a scale error
     # 7: SfM points nearer than 5 % of the model's median depth are not depth observations
     # (points triangulated while turning on the spot gave one frame 1 % of the true depth)
-    version = 7
+    # 8: a straight path's alignment turns about the reference's line, not the estimate's
+    version = 8
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction

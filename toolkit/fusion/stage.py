@@ -424,7 +424,8 @@ class FuseStage(Stage):
     # 13: dynamic_beams also asks scans 6-128 s away (dynamic_far_offsets_s) on surfaces
     #    >= 10 cm wide: a person who stood still, then left, is masked in the frames of the
     #    stay (paper benchmark: people 0.51 -> 0.22 % of the simulated map)
-    version = 13
+    # 14: full-turn scans with a beam at both -pi and pi de-skewed a turn apart
+    version = 14
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:

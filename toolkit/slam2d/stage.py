@@ -77,7 +77,9 @@ class Slam2DStage(Stage):
     # 5: far loop-closure matches as good as one near the estimate are rejected
     # 6: the ATE against ground truth interpolates it at the scans' stamps
     # 7: camera poses between the scans' follow the wheel odometry (use_odometry)
-    version = 7
+    # 8: full-turn scans with a beam at both -pi and pi de-skewed a turn (not n beams)
+    #    apart; the map YAML holds map_saver's thresholds (unknown cells read as unknown)
+    version = 8
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
