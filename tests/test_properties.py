@@ -498,6 +498,25 @@ def test_grid_cell_of_is_the_cell_whose_corner_is_at_or_below(seed: int, res: fl
     np.testing.assert_array_equal(grid.cell_of(corner + res * rng.uniform(0.01, 0.99, c.shape)), c)
 
 
+@bounded
+@given(seeds, st.sampled_from([0.01, 0.025, 0.05, 0.1, 0.2]))
+def test_grid_point_on_a_border_is_in_the_cell_whose_corner_it_is(seed: int, res: float) -> None:
+    rng = np.random.default_rng(seed)
+    grid = ProbabilityGrid(res, center=tuple(rng.uniform(-50, 50, 2)))
+    c = rng.integers(-3000, 3000, (200, 2))  # [200, 2] grid cells
+    corner = grid.origin + c * res  # [200, 2] cell -> world, rounded either way
+    np.testing.assert_array_equal(grid.cell_of(corner), c)
+    # Decimal borders too (0.3 / 0.1 = 2.9999999999999996 in floats), and a scan's hit
+    # on one is inserted into that same cell.
+    k = rng.integers(-3000, 3000, (200, 2))  # [200, 2] lattice cells (cell (0, 0) at 0 m)
+    on = np.round(k * res, 6)  # [200, 2] the nearest floats to the decimal borders
+    np.testing.assert_array_equal(grid.cell_of(on), k + grid.cell_of(np.zeros((1, 2))))
+    near = ProbabilityGrid(res, center=tuple(on[0]))  # small: the whole span is 1200 m
+    near.insert(on[0] + 1.0, on[:1])
+    hit = near.cell_of(on[:1])[0]
+    assert near.occupancy()[hit[1], hit[0]] > 0.5
+
+
 def _room_points(rng: np.random.Generator) -> np.ndarray:
     """[N, 2] points on the walls of a 6 x 4 m room with a pillar: no symmetry to slide on."""
     t = rng.uniform(0, 1, 600)
