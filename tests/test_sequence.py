@@ -137,6 +137,14 @@ def test_depth_png_round_trip(tmp_path):
     assert np.array_equal(read_depth(tmp_path / "e.png"), once)
 
 
+def test_depth_png_keeps_a_positive_depth_below_half_its_quantum_valid(tmp_path: Path) -> None:
+    q = 1 / 5000  # m, one PNG unit
+    d = np.array([[1e-30, 1e-6, 0.49 * q, 0.51 * q, 0.0, -1e-6]], np.float32)  # [1, 6]
+    assert write_depth(tmp_path / "d.png", d) == 0
+    back = read_depth(tmp_path / "d.png")
+    np.testing.assert_allclose(back, [[q, q, q, q, 0.0, 0.0]], rtol=1e-6)
+
+
 def test_missing_rig_is_named(tmp_path):
     write_small(tmp_path / "a")
     (tmp_path / "a" / "rig.yaml").unlink()
