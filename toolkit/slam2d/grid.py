@@ -153,7 +153,8 @@ class ProbabilityGrid:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.values.shape  # type: ignore[return-value]
+        H, W = self.values.shape  # numpy 1.26 types shape tuple[int, ...]: unpacked, not cast
+        return H, W
 
     def cell_of(self, points: np.ndarray) -> np.ndarray:
         """[N, 2] int (ix, iy) cell of metric points [N, 2] (may lie outside the grid); a
