@@ -7,10 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_geometry import half_turns  # the tests folder is on sys.path
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import inv_se3
+from toolkit.geometry import inv_se3, se3
 from toolkit.io.colmap_text import (
+    ColmapImage,
     camera_from_colmap,
     camera_to_colmap,
     format_cameras,
@@ -43,6 +45,24 @@ def test_pose_convention_hand_computed() -> None:
     # Hamilton wxyz of M = R^T = [[0,-1,0],[0,0,-1],[1,0,0]]: w = sqrt(1 + tr M) / 2 = 0.5,
     # x = (M21 - M12) / 4w = 0.5, y = (M02 - M20) / 4w = -0.5, z = (M10 - M01) / 4w = 0.5.
     np.testing.assert_allclose(q, [0.5, 0.5, -0.5, 0.5], atol=1e-15)
+
+
+def test_a_half_turn_is_written_with_one_quaternion_sign_however_it_was_computed(
+        tmp_path: Path) -> None:
+    cam = PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5, np.zeros(5))
+    for k, group in enumerate(half_turns()):
+        poses = np.stack([se3(R, [1.0, -2.0, 3.0]) for R in group])  # [n, 4, 4]
+        texts = set()
+        for T in poses:
+            q, t = pose_to_colmap(T)
+            assert q[0] == 0 and q[1 + np.flatnonzero(q[1:])[0]] > 0
+            line = format_images([ColmapImage(1, q, t, 1, "a.png")]).splitlines()[4]
+            texts.add(" ".join(line.split()[1:5]))  # QW QX QY QZ (t differs by rounding)
+        assert len(texts) == 1, texts
+        folder = write_poses_as_colmap(tmp_path / str(k), cam, [f"{i}.png" for i in
+                                                                range(len(poses))], poses)
+        back = np.stack([im.T_world_camera for im in read_colmap_model(folder).images])
+        np.testing.assert_allclose(back, poses, atol=1e-15)
 
 
 def test_round_trip_is_exact_and_centres_are_minus_rt_t(tmp_path: Path) -> None:

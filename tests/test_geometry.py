@@ -86,6 +86,42 @@ def test_tum_line_round_trip(seed, stamp):
     assert np.allclose(T2, T, atol=1e-12)
 
 
+def half_turns() -> list[list[np.ndarray]]:
+    """Groups of half-turns [3, 3]: each group one rotation computed in ways that differ by
+    rounding only, which scipy turns into a w of +-6e-17 or 2e-16 (q or -q)."""
+    def rv(v: list[float] | np.ndarray) -> np.ndarray:
+        return Rotation.from_rotvec(v).as_matrix()
+
+    ax = np.array([1.0, 2.0, 2.0]) / 3
+    return [[rv([0, 0, np.pi]), rv([0, 0, -np.pi]), rv([0, 0, np.pi / 2]) @ rv([0, 0, np.pi / 2]),
+             np.diag([-1.0, -1.0, 1.0])],
+            [rv([np.pi, 0, 0]), rv([-np.pi, 0, 0]), np.diag([1.0, -1.0, -1.0])],
+            [rv([0, -np.pi, 0]), rv([0, np.pi, 0])],
+            [rv(np.pi * ax), rv(-np.pi * ax)]]
+
+
+def test_a_half_turn_is_written_with_one_quaternion_sign_however_it_was_computed() -> None:
+    t = np.array([1.0, -2.0, 3.0])
+    for group in half_turns():
+        lines = {g.pose_to_tum_line(5.0, g.se3(R, t)) for R in group}
+        assert len(lines) == 1, lines
+        q = np.array(lines.pop().split()[4:], dtype=float)  # [4] xyzw
+        assert q[3] == 0 and q[np.flatnonzero(q[:3])[0]] > 0
+        for R in group:
+            np.testing.assert_allclose(g.tum_line_to_pose(g.pose_to_tum_line(5.0, g.se3(R, t)))[1],
+                                       g.se3(R, t), atol=1e-15)
+    # The same half-turn as 2 a a^T - I differs from the rotation vector's in the last
+    # digits of x, y, z; the sign still agrees.
+    a = np.array([1.0, 2.0, 2.0]) / 3
+    _, q1 = g.pose_to_xyz_quat(g.se3(2 * np.outer(a, a) - np.eye(3)))
+    _, q2 = g.pose_to_xyz_quat(g.se3(Rotation.from_rotvec(-np.pi * a).as_matrix()))
+    np.testing.assert_allclose(q1, q2, atol=1e-15)
+    # Batches take the same rule; w > 0 stays as it was, w < 0 flips.
+    qs = np.array([[0.0, 0.0, -1.0, -1e-17], [-0.6, 0.0, 0.0, 0.8], [0.6, 0.0, 0.0, -0.8]])
+    want = [[0.0, 0.0, 1.0, 0.0], [-0.6, 0.0, 0.0, 0.8], [-0.6, 0.0, 0.0, 0.8]]
+    np.testing.assert_array_equal(g.canonical_quat(qs), want)
+
+
 def test_tum_line_rejects_bad_input():
     with pytest.raises(ValueError, match="8 numbers"):
         g.tum_line_to_pose("1 2 3")

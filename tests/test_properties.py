@@ -314,6 +314,8 @@ def test_depth_files_round_trip_within_their_precision(tmp_path: Path, seed: int
     d = rng.uniform(-1.0, 15.0, (h, w)).astype(np.float32)  # [H, W] metres
     d[rng.random((h, w)) < 0.1] = np.nan
     d[rng.random((h, w)) < 0.05] = np.float32(depth.PNG_DEPTH_MAX_M)
+    tiny = rng.random((h, w)) < 0.05  # [H, W] positive, below half a PNG unit (0.1 mm)
+    d[tiny] = rng.uniform(1e-9, 0.99e-4, int(tiny.sum()))
     path = tmp_path / f"d{suffix}"
     beyond = depth.write_depth(path, d)
     back = depth.read_depth(path)
@@ -325,7 +327,10 @@ def test_depth_files_round_trip_within_their_precision(tmp_path: Path, seed: int
         return
     fits = valid & (np.round(d.astype(np.float64) * depth.PNG_DEPTH_SCALE) <= 65535)
     assert beyond == int((valid & ~fits).sum()) and (back[valid & ~fits] == 0).all()
-    assert np.abs(back[fits] - d[fits]).max(initial=0) <= 0.5 / depth.PNG_DEPTH_SCALE + 1e-6
+    assert (back[valid & fits] > 0).all()  # a valid depth never reads back as invalid
+    near = fits & ~tiny  # tiny ones are written as one unit, 0.2 mm: off by < 1 unit
+    assert np.abs(back[near] - d[near]).max(initial=0) <= 0.5 / depth.PNG_DEPTH_SCALE + 1e-6
+    assert np.abs(back[tiny] - d[tiny]).max(initial=0) <= 1.0 / depth.PNG_DEPTH_SCALE
 
 
 @quick
@@ -496,6 +501,25 @@ def test_grid_cell_of_is_the_cell_whose_corner_is_at_or_below(seed: int, res: fl
     np.testing.assert_array_equal(grid.cell_of(corner + res * 1e-6), c)
     np.testing.assert_array_equal(grid.cell_of(corner - res * 1e-6), c - 1)
     np.testing.assert_array_equal(grid.cell_of(corner + res * rng.uniform(0.01, 0.99, c.shape)), c)
+
+
+@bounded
+@given(seeds, st.sampled_from([0.01, 0.025, 0.05, 0.1, 0.2]))
+def test_grid_point_on_a_border_is_in_the_cell_whose_corner_it_is(seed: int, res: float) -> None:
+    rng = np.random.default_rng(seed)
+    grid = ProbabilityGrid(res, center=tuple(rng.uniform(-50, 50, 2)))
+    c = rng.integers(-3000, 3000, (200, 2))  # [200, 2] grid cells
+    corner = grid.origin + c * res  # [200, 2] cell -> world, rounded either way
+    np.testing.assert_array_equal(grid.cell_of(corner), c)
+    # Decimal borders too (0.3 / 0.1 = 2.9999999999999996 in floats), and a scan's hit
+    # on one is inserted into that same cell.
+    k = rng.integers(-3000, 3000, (200, 2))  # [200, 2] lattice cells (cell (0, 0) at 0 m)
+    on = np.round(k * res, 6)  # [200, 2] the nearest floats to the decimal borders
+    np.testing.assert_array_equal(grid.cell_of(on), k + grid.cell_of(np.zeros((1, 2))))
+    near = ProbabilityGrid(res, center=tuple(on[0]))  # small: the whole span is 1200 m
+    near.insert(on[0] + 1.0, on[:1])
+    hit = near.cell_of(on[:1])[0]
+    assert near.occupancy()[hit[1], hit[0]] > 0.5
 
 
 def _room_points(rng: np.random.Generator) -> np.ndarray:

@@ -8,6 +8,7 @@ import yaml
 
 from toolkit.camera import PinholeCamera
 from toolkit.geometry import Trajectory, se2_to_se3, se3
+from toolkit.ingest.sync import match_nearest
 from toolkit.io.depth import read_depth, write_depth
 from toolkit.io.sequence import (
     SequenceFormatError,
@@ -17,7 +18,7 @@ from toolkit.io.sequence import (
     write_sequence,
 )
 from toolkit.io.tum import read_tum, write_tum
-from toolkit.sensors import LaserScan, Rig
+from toolkit.sensors import LaserScan, Rig, Sequence
 
 W, H = 32, 24
 
@@ -134,6 +135,14 @@ def test_depth_png_round_trip(tmp_path):
     assert np.max(np.abs(once[ok] - d[ok])) <= 0.5 / 5000 + 1e-6
     write_depth(tmp_path / "e.png", once)
     assert np.array_equal(read_depth(tmp_path / "e.png"), once)
+
+
+def test_depth_png_keeps_a_positive_depth_below_half_its_quantum_valid(tmp_path: Path) -> None:
+    q = 1 / 5000  # m, one PNG unit
+    d = np.array([[1e-30, 1e-6, 0.49 * q, 0.51 * q, 0.0, -1e-6]], np.float32)  # [1, 6]
+    assert write_depth(tmp_path / "d.png", d) == 0
+    back = read_depth(tmp_path / "d.png")
+    np.testing.assert_allclose(back, [[q, q, q, q, 0.0, 0.0]], rtol=1e-6)
 
 
 def test_missing_rig_is_named(tmp_path):
@@ -294,6 +303,28 @@ def test_lookups_far_outside_the_recording_are_errors(tmp_path: Path) -> None:
         seq.scan_at(seq.scan_stamps[-1] + 0.3, max_dt=0.05)
     with pytest.raises(LookupError, match="nothing within"):
         seq.frame_at(t0 + 1.2, max_dt=0.1)
+
+
+def test_scans_between_refuses_nan_limits() -> None:
+    scans = [LaserScan(t, np.ones(3), 0.0, 0.1) for t in (1.0, 2.0, 3.0)]
+    seq = Sequence(rig=None, frames=[], scans=scans)  # type: ignore[arg-type]
+    assert [s.stamp for s in seq.scans_between(1.5, 3.0)] == [2.0]
+    for t0, t1 in ((float("nan"), 3.0), (1.0, float("nan")), (np.nan, np.nan)):
+        with pytest.raises(ValueError, match="not a time"):
+            seq.scans_between(t0, t1)
+
+
+def test_scan_at_midway_takes_the_earlier_and_the_first_of_equal_stamps() -> None:
+    stamps = (1.0, 2.0, 2.0, 3.0, 3.0)
+    scans = [LaserScan(t, np.ones(3), 0.0, 0.1) for t in stamps]
+    seq = Sequence(rig=None, frames=[], scans=scans)  # type: ignore[arg-type]
+    assert seq.scan_index_at(1.5) == 0  # midway: the earlier
+    assert seq.scan_index_at(2.5) == 1  # midway, the earlier stamp twice: the first of them
+    assert seq.scan_index_at(2.0) == 1 and seq.scan_index_at(3.4) == 3
+    assert seq.scan_at(2.5) is scans[1]
+    # The same picks as the ingest's nearest matching.
+    q = np.array([1.5, 2.5, 2.0, 3.4])
+    assert match_nearest(q, np.array(stamps), np.inf).tolist() == [0, 1, 1, 3]
 
 
 def test_formats_round_trip_what_they_hold(tmp_path: Path) -> None:

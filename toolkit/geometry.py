@@ -99,14 +99,30 @@ def pose_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     return T if batch else T[0]
 
 
+# Quaternion components within this of 0 are rounding: a half-turn's w comes out of scipy
+# as +-6e-17 or 2e-16 by how its matrix was computed, and its sign would pick q or -q.
+_QUAT_ZERO = 8 * float(np.finfo(np.float64).eps)
+
+
+def canonical_quat(q_xyzw: np.ndarray) -> np.ndarray:
+    """[.., 4] the xyzw unit quaternions [.., 4] with one sign per rotation, so that written
+    files are reproducible: w > 0, or when w is 0 the first non-zero of x, y, z positive.
+    Components within 8 eps (1.8e-15) of 0 count as 0 and are written as 0 (moving the
+    rotation by at most 3.6e-15 rad)."""
+    q = np.array(q_xyzw, dtype=np.float64)  # [.., 4] a copy
+    q[np.abs(q) <= _QUAT_ZERO] = 0.0
+    wxyz = q[..., [3, 0, 1, 2]]  # [.., 4]
+    first = np.take_along_axis(wxyz, np.argmax(wxyz != 0, axis=-1)[..., None], -1)  # [.., 1]
+    return np.where(first < 0, -q, q) + 0.0  # + 0.0 turns -0.0 into 0.0 for the text
+
+
 def pose_to_xyz_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Positions [.., 3] and xyzw quaternions [.., 4] (w >= 0) of transforms [.., 4, 4]."""
+    """Positions [.., 3] and xyzw quaternions [.., 4] of transforms [.., 4, 4], signs as
+    ``canonical_quat``."""
     T = np.asarray(T, dtype=np.float64)
     batch = T.ndim == 3
     T2 = T if batch else T[None]
-    q = Rotation.from_matrix(T2[:, :3, :3]).as_quat()
-    # Canonical sign so that written files are reproducible.
-    q = np.where(q[:, 3:4] < 0, -q, q)
+    q = canonical_quat(Rotation.from_matrix(T2[:, :3, :3]).as_quat())
     xyz = T2[:, :3, 3].copy()
     return (xyz, q) if batch else (xyz[0], q[0])
 

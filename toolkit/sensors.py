@@ -298,6 +298,9 @@ class Sequence:
             k = len(stamps) - 1
         else:
             k = i if stamps[i] - t < t - stamps[i - 1] else i - 1
+        if k > 0 and stamps[k - 1] == stamps[k]:
+            # First of equal stamps, as ingest.sync.match_nearest (argmin) picks.
+            k = int(np.searchsorted(stamps, stamps[k], "left"))
         if max_dt is not None and abs(float(stamps[k]) - t) > max_dt:
             raise LookupError(f"nothing within {max_dt:g} s of t={t!r}: the nearest is "
                               f"{float(stamps[k]) - t:+.3g} s away")
@@ -305,12 +308,13 @@ class Sequence:
 
     def frame_index_at(self, t: float, max_dt: float | None = None) -> int:
         """Index of the camera frame nearest in time to ``t`` (``LookupError`` when it is
-        more than ``max_dt`` seconds away)."""
+        more than ``max_dt`` seconds away); ties as ``scan_index_at``."""
         return self._nearest(self._frame_stamps, t, max_dt)
 
     def scan_index_at(self, t: float, max_dt: float | None = None) -> int:
         """Index of the scan nearest in time to ``t`` (``LookupError`` when it is more than
-        ``max_dt`` seconds away)."""
+        ``max_dt`` seconds away). A ``t`` exactly midway between two stamps gets the
+        earlier, and among equal stamps the first, as ``ingest.sync.match_nearest``."""
         return self._nearest(self._scan_stamps, t, max_dt)
 
     def frame_at(self, t: float, max_dt: float | None = None) -> CameraFrame:
@@ -318,10 +322,14 @@ class Sequence:
 
     def scan_at(self, t: float, max_dt: float | None = None) -> LaserScan:
         """The scan nearest in time to ``t``; with ``max_dt``, none further than that (the
-        last scan, a minute away, is the "nearest" to a time near the recording's end)."""
+        last scan, a minute away, is the "nearest" to a time near the recording's end).
+        Midway between two stamps: the earlier scan (ties as ``scan_index_at``)."""
         return self.scans[self.scan_index_at(t, max_dt)]
 
     def scans_between(self, t0: float, t1: float) -> list[LaserScan]:
         """Scans with t0 <= stamp < t1."""
+        if t0 != t0 or t1 != t1:
+            # NaN sorts after every stamp: it gave no scans as t0, all from t0 on as t1.
+            raise ValueError(f"scans_between({t0!r}, {t1!r}): a limit is not a time")
         i0, i1 = np.searchsorted(self._scan_stamps, [t0, t1])
         return self.scans[i0:i1]

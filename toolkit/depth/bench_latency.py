@@ -241,7 +241,7 @@ def bench(sizes: list[tuple[int, int]], threads: list[int], runs: int, impl: str
 
     torch.manual_seed(0)
     model = (vit_s14_dpt() if impl == "torch" else transformers_model()).eval()  # type: ignore
-    n_params = sum(p.numel() for p in model.parameters())  # type: ignore[attr-defined]
+    n_params = sum(p.numel() for p in model.parameters())
     frame = np.random.default_rng(0).integers(0, 256, (*frame_hw, 3), dtype=np.uint8)
     results = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -249,7 +249,7 @@ def bench(sizes: list[tuple[int, int]], threads: list[int], runs: int, impl: str
             x = torch.randn(1, 3, h, w)
             t0, c0 = time.perf_counter(), time.process_time()
             with torch.no_grad():
-                ref = model(x).numpy()  # type: ignore[operator]
+                ref = model(x).numpy()
             t_torch, c_torch = time.perf_counter() - t0, time.process_time() - c0
             path = Path(tmp) / f"da_small_{h}x{w}.onnx"
             t_export = export_onnx(model, path, h, w)
@@ -354,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{a.export} (kind and preprocessing come from its metadata; threads: 2)")
         return 0
     load0 = os.getloadavg()
-    res = bench(sizes, threads, a.runs, a.impl,  # type: ignore
+    res = bench(sizes, threads, a.runs, a.impl,
                 a.spin, int8=a.int8)
     res.update({"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                 "loadavg_before": load0, "loadavg_after": os.getloadavg(),

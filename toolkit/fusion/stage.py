@@ -724,7 +724,7 @@ class FuseStage(Stage):
                 [int(pairs[i].seen_by_both.sum()) for i in frames])),
             "depth_kind": store.kind, "scale_method": cfg.scale,
             # The lidar's scale over the frames it was used on (a metric network's: ~1).
-            "scale_median": float(np.median(sm.scale[sm.used])),  # type: ignore[attr-defined]
+            "scale_median": float(np.median(sm.scale[sm.used])),
             "poses": pose_source,
             # Frames between the poses placed with the wheel odometry (false: on the
             # straight line, or the sequence has none).

@@ -321,7 +321,7 @@ class VoxelMap:
             self._table = KeyTable()
         if parts is not None:
             self._no_pending()
-            for uk, sums, cnt, _, frame, _, near in parts:  # type: ignore[union-attr]
+            for uk, sums, cnt, _, frame, _, near in parts:
                 a, b = self._pending_n, self._pending_n + len(uk)
                 self._grow(self._PENDING, a, b)
                 self._p_keys[a:b], self._p_sums[:, a:b], self._p_count[a:b] = uk, sums, cnt

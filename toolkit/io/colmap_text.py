@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from toolkit.camera import PinholeCamera
-from toolkit.geometry import inv_se3
+from toolkit.geometry import canonical_quat, inv_se3
 from toolkit.io.atomic import atomic_write_text
 
 # COLMAP's pixel-corner origin vs OpenCV's pixel-centre origin (see the module docstring).
@@ -136,11 +136,8 @@ def camera_from_colmap(model: str, width: int, height: int,
 def pose_to_colmap(T_world_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(qvec [4] wxyz, tvec [3]) of cam_from_world for a camera pose ``T_world_camera``."""
     T_cw = inv_se3(np.asarray(T_world_camera, dtype=np.float64))
-    x, y, z, w = Rotation.from_matrix(T_cw[:3, :3]).as_quat()
-    q = np.array([w, x, y, z])
-    if q[0] < 0:  # one canonical sign, so exported files are reproducible
-        q = -q
-    return q, T_cw[:3, 3].copy()
+    x, y, z, w = canonical_quat(Rotation.from_matrix(T_cw[:3, :3]).as_quat())
+    return np.array([w, x, y, z]), T_cw[:3, 3].copy()
 
 
 def _f(v: float) -> str:

@@ -36,7 +36,8 @@ class OccupancyMap:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.occupancy.shape  # type: ignore[return-value]
+        H, W = self.occupancy.shape  # numpy 1.26 types shape tuple[int, ...]: unpacked, not cast
+        return H, W
 
     def trinary(self, occupied_thresh: float = 0.65, free_thresh: float = 0.196) -> np.ndarray:
         """[H, W] uint8 map_saver pixel values (254 free, 0 occupied, 205 unknown), in map
@@ -144,4 +145,4 @@ def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     else:
         out[p > occ_t] = 1.0
         out[p < free_t] = 0.0
-    return OccupancyMap(out[::-1].copy(), resolution, origin)  # type: ignore[arg-type]
+    return OccupancyMap(out[::-1].copy(), resolution, origin)

@@ -65,6 +65,7 @@ from toolkit.io.atomic import (
 )
 from toolkit.recipe import registry, report
 from toolkit.recipe.memory import PeakMemory, StagePeak
+from toolkit.recipe.report import StageSummary
 from toolkit.recipe.schema import (
     Recipe,
     RecipeError,
@@ -206,9 +207,11 @@ class _Record:
     def finished(self) -> bool:
         return self.status in ("ran", "cached")
 
-    def summary(self, run_dir: Path | None = None) -> report.StageSummary:
+    # StageSummary, not report.StageSummary: in this class body ``report`` is the field
+    # above, and type checkers looked the annotation up in it (mypy: name-defined).
+    def summary(self, run_dir: Path | None = None) -> StageSummary:
         folder = run_dir / self.spec.id if run_dir is not None else None
-        return report.StageSummary(
+        return StageSummary(
             id=self.spec.id,
             type=self.spec.type,
             status=self.status,

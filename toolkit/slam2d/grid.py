@@ -25,6 +25,20 @@ _SHIFT = 4  # cv2 fixed-point bits for sub-cell ray end points
 
 _LUT_STEPS = 8  # field look-up table entries per cell of distance
 
+# World -> cell treats points within this many cells of a border as on it: a border
+# computed as origin + res * ix (cell -> world), or a decimal one (0.3 / 0.1 =
+# 2.9999999999999996), is off by rounding (~1e-11 cells at 1e5 cells from 0) and would
+# otherwise floor into the cell below.
+_BORDER_TOL = 1e-9
+
+
+def lattice_cells(points: np.ndarray, resolution: float) -> np.ndarray:
+    """[N, 2] int64 lattice cells (ix, iy) of metric points [N, 2]: cell (ix, iy) covers
+    ``res * [ix, ix + 1) x [iy, iy + 1)``, a point on a border (within rounding) is in
+    the cell above it."""
+    u = np.asarray(points, dtype=np.float64) / resolution  # [N, 2] in cells
+    return np.floor(u + _BORDER_TOL).astype(np.int64)
+
 
 @lru_cache(maxsize=8)
 def _field_lut(resolution: float, sigma: float, p_min: float, p_max: float) -> np.ndarray:
@@ -88,7 +102,7 @@ def rasterize(resolution: float, sensor_xy: np.ndarray, hits: np.ndarray,
         segs[:, 0] = start
         segs[:, 1] = stop
         cv2.polylines(mask, list(segs), False, 1, 1, cv2.LINE_8, _SHIFT)
-    hc = np.floor(hits / resolution).astype(np.int64) - b0  # [N, 2] in mask coordinates
+    hc = lattice_cells(hits, resolution) - b0  # [N, 2] in mask coordinates
     Wm = mask.shape[1]
     key = np.unique(hc[:, 1] * Wm + hc[:, 0])
     hy, hx = np.divmod(key, Wm)
@@ -139,11 +153,13 @@ class ProbabilityGrid:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.values.shape  # type: ignore[return-value]
+        H, W = self.values.shape  # numpy 1.26 types shape tuple[int, ...]: unpacked, not cast
+        return H, W
 
     def cell_of(self, points: np.ndarray) -> np.ndarray:
-        """[N, 2] int (ix, iy) cell of metric points [N, 2] (may lie outside the grid)."""
-        return np.floor(np.asarray(points) / self.resolution).astype(np.int64) - self._offset
+        """[N, 2] int (ix, iy) cell of metric points [N, 2] (may lie outside the grid); a
+        point on a border (within rounding) is in the cell whose corner it is."""
+        return lattice_cells(points, self.resolution) - self._offset
 
     def observed(self, points: np.ndarray) -> np.ndarray:
         """[N] bool: whether the cell under each metric point [N, 2] was ever observed (hit

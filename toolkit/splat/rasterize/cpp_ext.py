@@ -168,7 +168,7 @@ class _Composite(torch.autograd.Function):
     """Differentiable compositing: (means2d, conics, features, opacities) -> image, T."""
 
     @staticmethod
-    def forward(  # type: ignore[override]
+    def forward(
         ctx: Any,
         means2d: Tensor,  # [M, 2]
         conics: Tensor,  # [M, 3]
@@ -192,7 +192,7 @@ class _Composite(torch.autograd.Function):
         return accum, T  # [H, W, C], [H, W]
 
     @staticmethod
-    def backward(ctx: Any, g_accum: Tensor, g_T: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+    def backward(ctx: Any, g_accum: Tensor, g_T: Tensor) -> tuple[Tensor | None, ...]:
         ext = load_extension()
         assert ext is not None
         means2d, conics, feats, opac, rects, offsets, ids, T, last = ctx.saved_tensors
@@ -231,7 +231,7 @@ class _Project(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(  # type: ignore[override]
+    def forward(
         ctx: Any,
         means: Tensor,  # [N, 3]
         quats: Tensor,  # [N, 4] wxyz, unnormalised
@@ -255,7 +255,7 @@ class _Project(torch.autograd.Function):
         return gids, means2d, conics, depths, opac, radii
 
     @staticmethod
-    def backward(  # type: ignore[override]
+    def backward(
         ctx: Any, _g_ids: Tensor | None, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor,
         g_opac: Tensor, _g_radii: Tensor | None,
     ) -> tuple[Tensor | None, ...]:
