@@ -119,6 +119,26 @@ def test_projector_places_scan_at_its_stamp_and_image_at_its_own(seed: int, dist
 
 
 
+@quick
+@given(seeds, st.integers(1, 4))
+def test_projector_takes_the_nearest_usable_scans(seed: int, n: int) -> None:
+    """scan_indices gives the n nearest scans among the usable ones (ties to the earlier),
+    within max_dt, nearest first - however the unusable ones lie around the image stamp
+    (a brute-force sort of every usable stamp is the reference)."""
+    rng = np.random.default_rng(seed)
+    cam = PinholeCamera(32, 24, 30.0, 30.0, 15.5, 11.5, np.zeros(5))
+    stamps = np.sort(np.round(rng.uniform(0, 2, int(rng.integers(1, 40))), 2))  # ties too
+    usable = rng.uniform(size=len(stamps)) < rng.uniform(0.1, 1.0)
+    scans = [LaserScan(float(t), np.ones(3), 0.0, 0.1) for t in stamps]
+    seq = Sequence(Rig(cam), [], scans)
+    max_dt = float(rng.uniform(0.05, 1.0))
+    proj = LidarProjector(seq, scans_per_frame=n, max_dt=max_dt, scan_usable=usable)
+    cand = np.flatnonzero(usable)
+    for t in rng.uniform(-0.5, 2.5, 30):
+        order = cand[np.argsort(np.abs(stamps[cand] - t), kind="stable")[:n]]
+        expect = [int(k) for k in order if abs(stamps[k] - t) <= max_dt]
+        assert proj.scan_indices(float(t)) == expect, (t, stamps.tolist(), usable.tolist())
+
 # ---------------------------------------------------------------------------- depth -> points
 
 
