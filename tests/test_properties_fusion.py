@@ -424,14 +424,16 @@ def test_onnx_preprocess_matches_a_hand_normalisation(tmp_path: Path, seed: int,
     np.testing.assert_allclose(out, expect[..., channel], rtol=1e-5, atol=1e-5)
 
 
-@few
-@given(seeds, st.sampled_from(["stretch", "keep_aspect", "letterbox"]), st.sampled_from([1]),
+@quick
+@given(seeds, st.sampled_from(["stretch", "keep_aspect", "letterbox"]), st.sampled_from([1, 2, 4]),
        st.sampled_from(["linear", "cubic", "area", "nearest"]))
 def test_onnx_output_of_a_uniform_image_is_uniform_over_the_image(
         tmp_path: Path, seed: int, resize: str, pool: int, interp: str) -> None:
     """A uniform image stays uniform through any resize to the network and its output's
     resize back, at any output resolution: a letterbox's fill (set far from the image's
-    colour) must not bleed into the image's border."""
+    colour) must not bleed into the image's border. (An output pixel that straddles the
+    image's edge in the input mixes fill and image in the network itself: there only the
+    rows and columns beyond it are checked.)"""
     from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
 
     rng = np.random.default_rng(seed)
@@ -448,8 +450,43 @@ def test_onnx_output_of_a_uniform_image_is_uniform_over_the_image(
     rgb = np.broadcast_to(colour.astype(np.uint8), (H, W, 3)).copy()
     out = be.predict(rgb).values
     assert out.shape == (H, W)
-    np.testing.assert_allclose(out, (colour[1] / 255.0 - 0.5) / 0.25, atol=1e-5)
+    top, left, nh, nw = be.placement((H, W))
+    inner = (slice(None), slice(None))
+    if any(e % pool for e in (top, left, top + nh, left + nw)):
+        # the straddling output pixel reaches a pixel further when upsampled, and the
+        # input's rows and columns are H / nh image rows and W / nw columns apart
+        mr, mc = int(np.ceil((pool + 1) * H / nh)) + 1, int(np.ceil((pool + 1) * W / nw)) + 1
+        inner = (slice(mr, max(mr, H - mr)), slice(mc, max(mc, W - mc)))
+    np.testing.assert_allclose(out[inner], (colour[1] / 255.0 - 0.5) / 0.25, atol=1e-5)
 
+
+
+@quick
+@given(seeds, st.sampled_from([2, 4]), st.integers(1, 3), st.booleans())
+def test_onnx_letterbox_fill_stays_out_of_a_coarse_output(tmp_path: Path, seed: int, pool: int,
+                                                          up: int, bands_above: bool) -> None:
+    """A letterbox whose fill ends on the output's pixel grid: an output at 1/pool of the
+    input holds pure fill and pure image pixels, and none of the fill's prediction may
+    reach the image (upsampled bilinearly, the fill's last output row was blended into the
+    image's first rows)."""
+    from toolkit.depth.onnx_backend import OnnxDepthBackend, OnnxDepthConfig
+
+    rng = np.random.default_rng(seed)
+    fill_side = pool * int(rng.integers(1, 6))  # fill on each side, a whole output pixel
+    n_img, n_other = pool * int(rng.integers(2, 12)), pool * int(rng.integers(2, 12))
+    ih, iw = (n_img + 2 * fill_side, n_other) if bands_above else (n_other, n_img + 2 * fill_side)
+    H, W = (n_img * up, n_other * up) if bands_above else (n_other * up, n_img * up)
+    colour = rng.integers(0, 256, 3)
+    be = OnnxDepthBackend(OnnxDepthConfig(
+        model=channel_model(tmp_path / "c.onnx", 0, pool), kind="relative_disparity",
+        input_size=(ih, iw), multiple_of=pool, resize="letterbox", interpolation="linear",
+        mean=(0.5, 0.5, 0.5), std=(0.25, 0.25, 0.25),
+        fill=(255.0 - colour).astype(float).tolist(), threads=1, device="cpu"))
+    assert be.placement((H, W)) == ((fill_side, 0, n_img, n_other) if bands_above else
+                                    (0, fill_side, n_other, n_img))
+    rgb = np.broadcast_to(colour.astype(np.uint8), (H, W, 3)).copy()
+    out = be.predict(rgb).values
+    np.testing.assert_allclose(out, (colour[0] / 255.0 - 0.5) / 0.25, atol=1e-5)
 
 @quick
 @given(seeds, st.floats(0.05, 20.0), st.sampled_from(["relative_depth", "relative_disparity",
