@@ -634,3 +634,86 @@ def test_extrinsic_solve_recovers_a_known_extrinsic_in_any_view_order(seed: int)
     res2 = calibrate_extrinsic(shuffled, camera=cap.camera)
     rot2, tra2 = transform_error(res2.T_camera_laser, res.T_camera_laser)
     assert rot2 < 1e-6 and tra2 < 1e-8, (rot2, tra2)
+
+
+# ---------------------------------------------------------------------------- fusion helpers
+
+
+@quick
+@given(seeds)
+def test_window_extreme_and_zbuffer_match_brute_force(seed: int) -> None:
+    """The windowed minimum / maximum of every query at once, and the nearest lidar point per
+    pixel, equal a loop over every query and pixel."""
+    from toolkit.fusion.projection import LidarPixels, window_extreme, zbuffer_lidar
+
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(0, 60))
+    keys = np.round(rng.uniform(0, 50, m), int(rng.integers(0, 3)))  # ties among keys
+    vals = rng.uniform(0, 10, m)
+    lo = rng.uniform(-5, 55, 40)
+    hi = lo + rng.choice([0.0, 0.5, 5.0, 80.0], 40)
+    for op, empty, red in ((np.minimum, np.inf, np.min), (np.maximum, -np.inf, np.max)):
+        got = window_extreme(keys, vals, lo, hi, op)
+        ref = [red(vals[(keys >= a) & (keys <= b)], initial=empty)
+               for a, b in zip(lo, hi, strict=True)]
+        np.testing.assert_array_equal(got, ref)
+    n = int(rng.integers(1, 80))
+    uv = np.c_[rng.uniform(-0.5, 7.5, n), rng.uniform(-0.5, 4.5, n)]
+    z = np.round(rng.uniform(0.5, 3, n), 1)  # equal depths on one pixel too
+    lp = LidarPixels(uv, z, np.c_[uv, z], np.arange(n), np.zeros(n, np.int64))
+    zb = zbuffer_lidar(lp, (5, 8))
+    px = lp.pixel
+    for p in {tuple(q) for q in px.tolist()}:
+        on = (px == p).all(1)
+        kept = (zb.pixel == p).all(1)
+        assert kept.sum() == 1 and zb.z[kept][0] == z[on].min()
+    assert len(zb) == len({tuple(q) for q in px.tolist()})
+
+
+@quick
+@given(seeds, st.floats(0.3, 3.0), st.floats(-0.2, 0.2))
+def test_edge_pairs_on_disparity_equal_those_on_its_depth(seed: int, scale: float,
+                                                         shift: float) -> None:
+    """edge_pairs on a disparity with (scale, shift) flags what it flags on the depth that
+    disparity stands for: the test is on depth, whatever the prediction's kind."""
+    from toolkit.fusion.projection import LidarPixels, edge_pairs
+
+    rng = np.random.default_rng(seed)
+    h, w = int(rng.integers(6, 30)), int(rng.integers(6, 30))
+    depth = rng.uniform(1.0, 1.1, (h, w))
+    depth[:, int(rng.integers(1, w)):] += rng.uniform(0, 2)  # an edge, maybe
+    depth[rng.uniform(size=(h, w)) < 0.05] = np.nan
+    disp = (1.0 / depth - shift) / scale  # so that 1 / (scale * disp + shift) = depth
+    n = 40
+    uv = np.c_[rng.integers(0, w, n), rng.integers(0, h, n)].astype(float)
+    lp = LidarPixels(uv, np.ones(n), np.zeros((n, 3)), np.arange(n), np.zeros(n, np.int64))
+    a = edge_pairs(depth, lp, 0.06)
+    b = edge_pairs(disp, lp, 0.06, disparity=True, scale=scale, shift=shift)
+    np.testing.assert_array_equal(a, b)
+
+
+@quick
+@given(seeds)
+def test_voxel_map_weights_count_as_repeated_points_and_survive_a_pickle(seed: int) -> None:
+    """A point of integer weight w counts as w copies of it (count, mean, colour, depth);
+    a map pickled with frames pending gives the same map as one never pickled."""
+    import pickle
+
+    rng = np.random.default_rng(seed)
+    a, b = VoxelMap(0.05), VoxelMap(0.05, batch_entries=int(rng.integers(1, 500)))
+    for k in range(int(rng.integers(1, 5))):
+        n = int(rng.integers(1, 200))
+        pts = rng.normal(0, 0.3, (n, 3))
+        col = rng.integers(0, 256, (n, 3), dtype=np.uint8)
+        dep = rng.uniform(0.5, 4, n)
+        wt = rng.integers(1, 5, n)
+        a.integrate(pts, col, k, depths=dep, weights=wt)
+        b.integrate(np.repeat(pts, wt, 0), np.repeat(col, wt, 0), k, depths=np.repeat(dep, wt))
+        if k == 0:
+            b = pickle.loads(pickle.dumps(b))
+    ma, mb = a.arrays(), b.arrays()
+    np.testing.assert_allclose(ma.points, mb.points, atol=1e-12)
+    np.testing.assert_allclose(ma.near, mb.near, rtol=1e-6)
+    for f in ("colors", "count", "frames", "first", "last"):
+        np.testing.assert_array_equal(getattr(ma, f), getattr(mb, f), err_msg=f)
+
