@@ -18,7 +18,14 @@ from scipy.spatial.transform import Rotation
 
 from toolkit import geometry as g
 from toolkit.camera import UNDISTORT_TOL_PX, PinholeCamera
-from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, edge_mask, ramp_mask
+from toolkit.fusion.cloud import (
+    CloudOptions,
+    RayCache,
+    depth_to_points,
+    edge_mask,
+    ramp_mask,
+    valid_pixels,
+)
 from toolkit.fusion.dynamic import CarveOptions, SeeThroughCounter
 from toolkit.fusion.projection import LidarProjector, project_points
 from toolkit.fusion.voxel_map import VoxelMap
@@ -717,3 +724,102 @@ def test_voxel_map_weights_count_as_repeated_points_and_survive_a_pickle(seed: i
     for f in ("colors", "count", "frames", "first", "last"):
         np.testing.assert_array_equal(getattr(ma, f), getattr(mb, f), err_msg=f)
 
+
+
+def fuse_view(depth: np.ndarray) -> np.ndarray:
+    """A carving view as the fuse stage keeps it: NaN where the frame adds no points
+    (``valid_pixels``: out of range, on a depth edge)."""
+    d = depth.astype(np.float32)
+    return np.where(valid_pixels(d, CloudOptions(max_depth_m=8.0)), d, np.nan)
+
+
+@few
+@given(seeds)
+def test_a_static_box_seen_by_every_frame_is_never_carved(seed: int) -> None:
+    """A box and a wall in every frame, exact depth and poses, carving views masked as the
+    fuse stage masks them: nothing is carved (the edge filter leaves the silhouettes,
+    where a voxel's nearest pixel may look past the box, without a vote)."""
+    rng = np.random.default_rng(seed)
+    w, h = [(96, 72), (192, 144)][int(rng.integers(2))]
+    cam = PinholeCamera(w, h, 0.62 * w, 0.62 * w, (w - 1) / 2, (h - 1) / 2, np.zeros(5))
+    wall_x = 6.0
+    centre = np.r_[rng.uniform(2.5, 3.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2)]
+    half = rng.uniform(0.15, 0.3, 3)
+    vm = VoxelMap(0.05)
+    views = []
+    for k in range(8):
+        eye = np.r_[rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.1, 0.1)]
+        T = look_at(eye, np.r_[wall_x, centre[1], 0.0])
+        dep = render_depth(cam, T, [(centre - half, centre + half)], wall_x)
+        ok = np.isfinite(dep) & (dep < 8.0)
+        vm.integrate(g.transform_points(T, cam.pixel_rays()[ok] * dep[ok][:, None]),
+                     np.zeros((int(ok.sum()), 3), np.uint8), k)
+        views.append((T, fuse_view(dep)))
+    m = vm.arrays()
+    counter = SeeThroughCounter(m.points, CarveOptions(min_free=3))
+    for k, (T, dep) in enumerate(views):
+        counter.add_depth_view(cam, g.inv_se3(T), dep, index=k)
+    assert not counter.dynamic_mask().any()
+
+
+@few
+@given(seeds)
+def test_after_last_carves_a_box_that_stood_most_of_the_time_then_left(seed: int) -> None:
+    """(Carving views masked as the fuse stage masks them.) A box fused in the first 5 of
+    8 frames outvotes the 3 frames that see through it, so the majority rule keeps what
+    they saw; with ``after_last`` the views after its last frame carve it. The wall stays
+    either way."""
+    rng = np.random.default_rng(seed)
+    cam = PinholeCamera(96, 72, 60.0, 60.0, 47.5, 35.5, np.zeros(5))
+    wall_x = 6.0
+    centre = np.r_[rng.uniform(2.5, 3.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2)]
+    half = rng.uniform(0.15, 0.3, 3)
+    box = (centre - half, centre + half)
+    vm = VoxelMap(0.05)
+    views = []
+    for k in range(8):
+        eye = np.r_[rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.1, 0.1)]
+        T = look_at(eye, np.r_[wall_x, centre[1], 0.0])
+        dep = render_depth(cam, T, [box] if k < 5 else [], wall_x)
+        ok = np.isfinite(dep) & (dep < 8.0)
+        pw = g.transform_points(T, cam.pixel_rays()[ok] * dep[ok][:, None])
+        vm.integrate(pw, np.zeros((len(pw), 3), np.uint8), k)
+        views.append((T, fuse_view(dep)))
+    m = vm.arrays()
+    on_box = (np.abs(m.points - centre) <= half + 1e-6).all(1)
+    on_wall = np.abs(m.points[:, 0] - wall_x) < 1e-6
+    gone, hit = {}, {}
+    for after_last in (False, True):
+        counter = SeeThroughCounter(m.points, CarveOptions(min_free=3, after_last=after_last),
+                                    last_frame=m.last, last_stamp=m.last.astype(float))
+        for k, (T, dep) in enumerate(views):
+            counter.add_depth_view(cam, g.inv_se3(T), dep, index=k)
+        gone[after_last], hit[after_last] = counter.dynamic_mask(), counter.hit
+        late_seen = counter.late["depth_free"] + counter.late["depth_hit"] >= 3
+    # Box voxels that more early views saw where they are than the 3 later ones can see
+    # through stay under the majority rule (its rim, on the early views' masked depth
+    # edges, has no view that saw it there, and goes).
+    kept = on_box & (hit[False] > 3)
+    assert kept.sum() > 5 and not gone[False][kept].any() and not gone[True][on_wall].any()
+    front = on_box & late_seen  # the box's faces the later frames look at
+    assert front.sum() > 5 and gone[True][front].all()
+
+
+@quick
+@given(seeds, st.integers(0, 600))
+def test_simulated_scale_wander_does_not_depend_on_query_order(seed: int, index: int) -> None:
+    """A frame's scale is the same whether the frames before it were asked first or not
+    (a depth stage resumed mid-sequence predicts what an uninterrupted one did); the
+    correlated noise field has the per-pixel std it is scaled to (1)."""
+    from toolkit.depth.simulated import SimulatedDepthBackend, SimulatedDepthParams
+
+    rng = np.random.default_rng(seed)
+    p = SimulatedDepthParams(seed=int(rng.integers(0, 1000)), scale_log_sigma=0.3,
+                             wander_sigma=0.05, noise_corr_px=float(rng.uniform(0.1, 3.0)))
+    a, b = SimulatedDepthBackend(p), SimulatedDepthBackend(p)
+    first = a.frame_scale(index)
+    for k in range(0, 2 * index + 300, 97):
+        b.frame_scale(k)
+    assert b.frame_scale(index) == first
+    n = a.noise_field(256, 256, index)
+    assert abs(float(n.std()) - 1.0) < 0.1
