@@ -823,3 +823,69 @@ def test_simulated_scale_wander_does_not_depend_on_query_order(seed: int, index:
     assert b.frame_scale(index) == first
     n = a.noise_field(256, 256, index)
     assert abs(float(n.std()) - 1.0) < 0.1
+
+
+@quick
+@given(seeds, st.booleans())
+def test_lidar_carving_does_not_depend_on_how_the_beams_are_listed(seed: int,
+                                                                   full: bool) -> None:
+    """The same scan listed backwards (negative increment from the last bearing) or, for a
+    full turn, starting at another beam, sees through and hits the same voxels."""
+    rng = np.random.default_rng(seed)
+    n = 720 if full else 541
+    inc = (2 * np.pi if full else np.radians(270)) / n
+    a0 = float(rng.uniform(-np.pi, np.pi)) if full else -np.radians(135)
+    ranges = rng.uniform(0.5, 6.0, n)
+    ranges[rng.uniform(size=n) < 0.05] = np.inf
+    pts = np.c_[rng.uniform(-6, 6, (3000, 2)), rng.uniform(-0.04, 0.04, 3000)]  # [V, 3]
+    # and voxels on the beams' end points, to be hit
+    a = a0 + np.arange(n) * inc
+    ends = np.c_[ranges * np.cos(a), ranges * np.sin(a), np.zeros(n)][np.isfinite(ranges)]
+    pts = np.r_[pts, ends]
+    T = g.se2_to_se3(*rng.normal(0, 2, 2), rng.uniform(-np.pi, np.pi))  # T_world_laser
+    world = g.transform_points(T, pts)
+    listings = [(a0, inc, ranges), (a0 + (n - 1) * inc, -inc, ranges[::-1])]
+    if full:
+        k = int(rng.integers(1, n))
+        listings.append((a0 + k * inc, inc, np.roll(ranges, -k)))
+    counts = []
+    for amin, step, r in listings:
+        c = SeeThroughCounter(world, CarveOptions())
+        c.add_scan(LaserScan(0.0, r, float(amin), float(step), range_max=30.0), g.inv_se3(T))
+        counts.append((c.lidar_free.copy(), c.lidar_hit.copy()))
+    assert counts[0][1].sum() > 0 and counts[0][0].sum() > 0
+    for free, hit in counts[1:]:
+        np.testing.assert_array_equal(free, counts[0][0])
+        np.testing.assert_array_equal(hit, counts[0][1])
+
+
+@quick
+@given(seeds, st.floats(0.5, 2.0))
+def test_depth_errors_pooled_over_frames_equal_those_of_all_pairs(seed: int,
+                                                                  scale: float) -> None:
+    """Frames pooled by ErrorAccumulator score what all their pairs score together; a
+    prediction of exactly scale x reference has AbsRel |scale - 1| and RMSE |scale - 1| x
+    the reference's RMS; invalid pairs (NaN, 0, inf on either side) count nowhere."""
+    from toolkit.eval.depth import ErrorAccumulator, depth_errors
+
+    rng = np.random.default_rng(seed)
+    acc = ErrorAccumulator()
+    preds, refs = [], []
+    for _ in range(int(rng.integers(1, 5))):
+        ref = rng.uniform(0.3, 10, int(rng.integers(0, 50)))
+        pred = ref * scale
+        bad = rng.uniform(size=len(ref)) < 0.2
+        ref[bad] = rng.choice([np.nan, 0.0, np.inf], int(bad.sum()))
+        acc.add(pred, ref)
+        preds.append(pred)
+        refs.append(ref)
+    p, r = np.concatenate(preds), np.concatenate(refs)
+    whole, pooled = depth_errors(p, r), acc.result()
+    assert whole.count == pooled.count == int((np.isfinite(r) & (r > 0)).sum())
+    if whole.count:
+        for k in ("rmse_m", "mae_m", "absrel", "delta1"):
+            assert getattr(pooled, k) == pytest.approx(getattr(whole, k), rel=1e-9), k
+        ok = np.isfinite(r) & (r > 0)
+        assert whole.absrel == pytest.approx(abs(scale - 1), abs=1e-12)
+        assert whole.rmse_m == pytest.approx(abs(scale - 1) * np.sqrt(np.mean(r[ok] ** 2)),
+                                             rel=1e-9, abs=1e-12)
