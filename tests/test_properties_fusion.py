@@ -889,3 +889,25 @@ def test_depth_errors_pooled_over_frames_equal_those_of_all_pairs(seed: int,
         assert whole.absrel == pytest.approx(abs(scale - 1), abs=1e-12)
         assert whole.rmse_m == pytest.approx(abs(scale - 1) * np.sqrt(np.mean(r[ok] ** 2)),
                                              rel=1e-9, abs=1e-12)
+
+
+@quick
+@given(seeds, st.sampled_from([0.01, 0.02, 0.05, 0.3]))
+def test_voxel_keys_centres_and_map_ply_round_trip(tmp_path: Path, seed: int,
+                                                   vs: float) -> None:
+    """A point's voxel centre is within half a voxel of it on every axis (negative
+    coordinates too); a map written as PLY reads back with its float32 positions and its
+    colours exactly."""
+    from toolkit.fusion.voxel_map import key_centres, read_map_ply, voxel_keys, write_map_ply
+
+    rng = np.random.default_rng(seed)
+    p = rng.normal(0, 1, (200, 3)) * rng.choice([0.1, 10.0, 1000.0])
+    c = key_centres(voxel_keys(p, vs), vs)
+    assert (np.abs(c - p) <= vs / 2 * (1 + 1e-9)).all()
+    vm = VoxelMap(vs)
+    vm.integrate(p, rng.integers(0, 256, (200, 3), dtype=np.uint8), 0)
+    m = vm.arrays()
+    write_map_ply(tmp_path / "m.ply", m)
+    pts, col = read_map_ply(tmp_path / "m.ply")
+    np.testing.assert_array_equal(pts, m.points.astype(np.float32))
+    np.testing.assert_array_equal(col, m.colors)
