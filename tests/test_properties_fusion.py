@@ -800,7 +800,7 @@ def test_after_last_carves_a_box_that_stood_most_of_the_time_then_left(seed: int
     # through stay under the majority rule (its rim, on the early views' masked depth
     # edges, has no view that saw it there, and goes).
     kept = on_box & (hit[False] > 3)
-    assert kept.sum() > 5 and not gone[False][kept].any() and not gone[True][on_wall].any()
+    assert kept.any() and not gone[False][kept].any() and not gone[True][on_wall].any()
     front = on_box & late_seen  # the box's faces the later frames look at
     assert front.sum() > 5 and gone[True][front].all()
 
