@@ -460,9 +460,11 @@ def test_onnx_output_of_a_uniform_image_is_uniform_over_the_image(
     top, left, nh, nw = be.placement((H, W))
     inner = (slice(None), slice(None))
     if any(e % pool for e in (top, left, top + nh, left + nw)):
-        # the straddling output pixel reaches a pixel further when upsampled, and the
-        # input's rows and columns are H / nh image rows and W / nw columns apart
-        mr, mc = int(np.ceil((pool + 1) * H / nh)) + 1, int(np.ceil((pool + 1) * W / nw)) + 1
+        # the straddling output pixel spans up to pool input rows into the image, reaches
+        # half an output pixel further when upsampled and one input row more when resized
+        # to the image; the input's rows are H / nh image rows apart (columns: W / nw)
+        k = 2 * pool + 2
+        mr, mc = int(np.ceil(k * H / nh)) + 1, int(np.ceil(k * W / nw)) + 1
         inner = (slice(mr, max(mr, H - mr)), slice(mc, max(mc, W - mc)))
     np.testing.assert_allclose(out[inner], (colour[1] / 255.0 - 0.5) / 0.25, atol=1e-5)
 
