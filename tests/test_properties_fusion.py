@@ -856,9 +856,13 @@ def test_lidar_carving_does_not_depend_on_how_the_beams_are_listed(seed: int,
         c.add_scan(LaserScan(0.0, r, float(amin), float(step), range_max=30.0), g.inv_se3(T))
         counts.append((c.lidar_free.copy(), c.lidar_hit.copy()))
     assert counts[0][1].sum() > 0 and counts[0][0].sum() > 0
+    # A voxel half way between two beams (to float32's precision, in which carving works)
+    # may go to either, whichever way the beams are listed.
+    frac = np.mod((np.arctan2(pts[:, 1], pts[:, 0]) - a0) / inc, 1.0)
+    clear = np.abs(frac - 0.5) > 1e-3
     for free, hit in counts[1:]:
-        np.testing.assert_array_equal(free, counts[0][0])
-        np.testing.assert_array_equal(hit, counts[0][1])
+        np.testing.assert_array_equal(free[clear], counts[0][0][clear])
+        np.testing.assert_array_equal(hit[clear], counts[0][1][clear])
 
 
 @quick
