@@ -666,6 +666,15 @@ class OnnxDepthBackend:
             # 1/4) cut at whole output pixels moved the depth by up to 2 image columns.
             top, left, nh, nw = self.last_placement
             if out.shape != self.last_input_hw:
+                # Output pixels wholly in the fill are no depth of the image: upsampled
+                # with the rest, they blended the network's guess for the flat fill into
+                # the image's border (a quarter of it into the first row at 1/2 resolution).
+                # Pixels straddling the image's edge mixed the two in the network itself.
+                (oh, ow), (ih, iw) = out.shape, self.last_input_hw
+                rows, cols = np.arange(oh) * (ih / oh), np.arange(ow) * (iw / ow)  # starts
+                fill_r = (rows + ih / oh <= top) | (rows >= top + nh)  # [oh]
+                fill_c = (cols + iw / ow <= left) | (cols >= left + nw)  # [ow]
+                bad = bad | fill_r[:, None] | fill_c[None, :]
                 out = self._resize(out, bad, self.last_input_hw)
                 bad = ~np.isfinite(out)
             out = out[top:top + nh, left:left + nw]

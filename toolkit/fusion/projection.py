@@ -113,6 +113,14 @@ class LidarProjector:
         self.scan_poses = scan_poses
         # [S] bool or None: scans that may be used (those with a trustworthy pose)
         self.scan_usable = None if scan_usable is None else np.asarray(scan_usable, bool)
+        # [U] the usable scans' indices (sorted by stamp) and [U] their stamps: the nearest
+        # are searched among these alone. Searched among all stamps and filtered after, a
+        # window of n places held too few usable scans next to unusable ones, or none: an
+        # image with an unusable scan on each side got no lidar while a usable one lay
+        # within max_dt.
+        self._usable_index = (np.arange(len(sequence.scans)) if scan_usable is None
+                              else np.flatnonzero(self.scan_usable))
+        self._usable_stamps = sequence.scan_stamps[self._usable_index]
         self.scans_per_frame = max(1, int(scans_per_frame))
         self.max_dt = max_dt
         self.min_z = min_z
@@ -122,7 +130,7 @@ class LidarProjector:
 
     def scan_indices(self, t: float) -> list[int]:
         """Indices of the scans used for an image at stamp ``t`` (nearest first)."""
-        stamps = self.seq.scan_stamps  # sorted
+        stamps = self._usable_stamps  # sorted
         if len(stamps) == 0:
             return []
         # The n nearest of sorted stamps lie within n places of t: no sort of every stamp
@@ -134,10 +142,8 @@ class LidarProjector:
         lo = int(np.searchsorted(stamps, stamps[lo], "left"))
         hi = int(np.searchsorted(stamps, stamps[hi - 1], "right")) if hi > lo else hi
         cand = np.arange(lo, hi)
-        if self.scan_usable is not None:
-            cand = cand[self.scan_usable[cand]]
         order = cand[np.argsort(np.abs(stamps[cand] - t), kind="stable")[:n]]
-        return [int(k) for k in order if abs(stamps[k] - t) <= self.max_dt]
+        return [int(self._usable_index[k]) for k in order if abs(stamps[k] - t) <= self.max_dt]
 
     def laser_points(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Scan ``k``'s valid end points [N, 3] in the laser frame and their beams [N]."""
