@@ -186,7 +186,9 @@ class DepthStage(Stage):
     # wander's first value drawn before its steps (no jump at frames 256, 512, ...), the
     # noise normalised by OpenCV's own kernel. 4: simulated: invalid ground truth stays
     # invalid (was filled with 20 m and blurred into its valid neighbours)
-    version = 4
+    # 5: onnx letterbox: output pixels wholly in the fill left out of the resize back (a
+    #    coarse output blended the fill's guess into the image's border)
+    version = 5
     # The same depth maps on any thread count or device (up to float rounding): an
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
     # for its timings).

@@ -425,6 +425,8 @@ class FuseStage(Stage):
     #    >= 10 cm wide: a person who stood still, then left, is masked in the frames of the
     #    stay (paper benchmark: people 0.51 -> 0.22 % of the simulated map)
     # 14: full-turn scans with a beam at both -pi and pi de-skewed a turn apart
+    #     an image's nearest scans searched among the usable ones (next to scans without
+    #     a trustworthy pose it got farther scans, or none)
     version = 14
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
