@@ -2351,3 +2351,30 @@ def test_a_bad_blas_thread_count_is_refused_before_anything_runs(
     with pytest.raises(RecipeError, match="TOOLKIT_RECIPE_BLAS_THREADS"):
         _run(_blas_recipe(tmp_path))
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("damage", [
+    {"manifest": "x"},
+    {"manifest": {"number": [["number.txt"]]}},
+    {"manifest": {"number": 5}},
+    {"provides": {"number": 5}},
+    {"provides": ["number.txt"]},
+    {"metrics": [1, 2]},
+    {"output_tokens": "abc"},
+    {"report": 7},
+    {"seconds": "soon"},
+])
+def test_a_marker_of_the_wrong_shape_reruns_the_stage(
+        tmp_path: Path, damage: dict[str, Any]) -> None:
+    """A finish marker that parses as JSON but holds the wrong types (a hand edit, a bit
+    flipped in a digit's place) reruns its stage like an unreadable one: it stopped the
+    whole run with a traceback (``'str' object has no attribute 'items'``)."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    f = tmp_path / "run" / "t_source" / ".stage.json"
+    f.write_text(json.dumps({**json.loads(f.read_text()), **damage}))
+    result = _run(path)
+    assert result.ok
+    assert result.statuses["t_source"] == "ran"
+    assert (tmp_path / "run" / "t_source" / "number.txt").read_text() == "3"
+    assert json.loads(f.read_text())["provides"] == {"number": "number.txt"}

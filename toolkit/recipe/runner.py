@@ -1185,6 +1185,11 @@ def _read_marker(
     stored = data.get("provides")
     if not isinstance(stored, dict) or not set(provides) <= set(stored):
         return None, "settings or inputs changed"
+    wrong = _marker_shape_problem(data)
+    if wrong:
+        # Read as it is, it stopped the whole run with a traceback; rerunning the stage
+        # writes a good one.
+        return None, f"unreadable {STAGE_FILE} ({wrong})"
     missing = [name for name, rel in stored.items() if not (stage_dir / rel).exists()]
     if missing:
         return None, f"output {missing[0]!r} is missing"
@@ -1214,6 +1219,34 @@ def _read_marker(
             atomic_write_json(marker, {**data, "manifest_digests": digests}, fsync=True,
                               compact=True)
     return data, "up to date"
+
+
+def _marker_shape_problem(data: Mapping[str, Any]) -> str | None:
+    """What in a parsed finish marker is not of the type the runner reads it as (a hand
+    edit, a flipped bit that still parses), or None; fields a marker from before lacks
+    may be absent."""
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool)
+
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in data["provides"].items()):
+        return "'provides' must map output names to paths"
+    manifest = data.get("manifest")
+    if manifest is not None:
+        if not isinstance(manifest, dict):
+            return "'manifest' must be a mapping"
+        for files in manifest.values():
+            if not isinstance(files, list) or not all(
+                    isinstance(e, list) and len(e) >= 2 and isinstance(e[0], str)
+                    and number(e[1]) for e in files):
+                return "'manifest' must list [path, size] per file"
+    for name, kind in (("metrics", dict), ("output_tokens", dict), ("report", str),
+                       ("speed_settings", dict), ("manifest_digests", dict)):
+        if data.get(name) is not None and not isinstance(data[name], kind):
+            return f"{name!r} must be a {'mapping' if kind is dict else 'text'}"
+    for name in ("seconds", "cpu_seconds"):
+        if data.get(name) is not None and not number(data[name]):
+            return f"{name!r} must be a number"
+    return None
 
 
 _REPORT_LINK_RE = re.compile(r"\]\(([^)\s]+)\)")  # [text](target) and ![alt](target)
