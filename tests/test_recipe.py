@@ -2378,3 +2378,39 @@ def test_a_marker_of_the_wrong_shape_reruns_the_stage(
     assert result.statuses["t_source"] == "ran"
     assert (tmp_path / "run" / "t_source" / "number.txt").read_text() == "3"
     assert json.loads(f.read_text())["provides"] == {"number": "number.txt"}
+
+
+def test_a_run_folder_whose_files_cannot_be_replaced_names_the_file_meant(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A finished run whose folder lets its lock be opened but no file be made (an
+    immutable folder, ``chattr +i``): every stage is cached, but the run's own files
+    cannot be written. The message named the atomic write's hidden temporary
+    (``.recipe.resolved.31858.ff634781.tmp.yaml``) and no fix; it names the file meant and
+    what to do, and nothing of the run is lost."""
+    import errno
+
+    from toolkit.io import atomic
+    from toolkit.recipe import cli
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert cli.main(["run", str(path)]) == 0
+    capsys.readouterr()
+    run_dir = tmp_path / "run"
+    def files() -> dict[Path, bytes]:  # run.log gets this run's lines, as it should
+        return {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()
+                and p.name != "run.log"}
+
+    before = files()
+
+    def read_only(path: Any) -> Any:
+        tmp = atomic._temp_name(Path(path))
+        raise PermissionError(errno.EPERM, "Operation not permitted", str(tmp))
+
+    monkeypatch.setattr(atomic, "atomic_path", read_only)
+    assert cli.main(["run", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot write {run_dir / 'recipe.resolved.yaml'}" in err
+    assert ".tmp" not in err
+    assert "writable" in err
+    assert files() == before

@@ -95,11 +95,23 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {where}{problem}", file=sys.stderr)
         return 2
     except OSError as exc:  # the run's own files (report, metrics) could not be written
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_write_error(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as exc:
         print(f"interrupted; {_resume_advice(args, exc)}", file=sys.stderr)
         return INTERRUPTED
+
+
+def _write_error(exc: OSError) -> str:
+    """An OSError from writing the run's own files, naming the file meant (not the hidden
+    temporary of its atomic write) and the fix."""
+    if not exc.filename:
+        return str(exc)
+    from toolkit.io.atomic import target_of
+
+    target = target_of(exc.filename)
+    return (f"cannot write {target} ({exc.strerror or exc}): make {target.parent} writable "
+            "(or free space on its disk), then run again; the finished stages are kept")
 
 
 def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:
