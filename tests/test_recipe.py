@@ -2414,3 +2414,39 @@ def test_a_run_folder_whose_files_cannot_be_replaced_names_the_file_meant(
     assert ".tmp" not in err
     assert "writable" in err
     assert files() == before
+
+
+def test_a_killed_rerun_that_then_fails_puts_the_finished_output_back(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun (--force) moves the finished folder aside and puts it back when it fails.
+    Killed instead (SIGKILL, Ctrl-C), it leaves the finished output aside for the next run,
+    which resumes the stage: when that one fails, the finished output stayed in
+    .previous/, unmentioned, the stage and its readers had no result, and a later rerun
+    deleted it."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    run_dir = tmp_path / "run"
+    finished = (run_dir / "t_source" / "number.txt").read_text()
+
+    def killed(self: Any, ctx: StageContext) -> None:
+        (ctx.stage_dir / "partial.txt").write_text("half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Source, "run", killed)
+    with pytest.raises(KeyboardInterrupt):
+        _run(path, force=True)
+    assert (run_dir / ".previous" / "t_source" / ".stage.json").exists()
+
+    def fails(self: Any, ctx: StageContext) -> None:
+        raise StageError("its input is gone")
+
+    monkeypatch.setattr(Source, "run", fails)
+    result = _run(path)
+    assert result.failed_stage == "t_source"
+    assert (run_dir / "t_source" / "number.txt").read_text() == finished
+    assert (run_dir / "t_source" / ".stage.json").exists()
+    assert not (run_dir / ".previous" / "t_source").exists()
+    assert (run_dir / ".failed" / "t_source" / "partial.txt").exists()
+    monkeypatch.undo()
+    result = _run(path)  # the finished output is taken as it is: no stage reruns
+    assert result.ok and set(result.statuses.values()) == {"cached"}

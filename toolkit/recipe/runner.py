@@ -591,6 +591,11 @@ class _Run:
         read as this run's (an old per-frame depth beside the new, an old capture, old
         renders), and ``--force`` means from scratch."""
         stage_dir = self.run_dir / record.spec.id
+        aside = self.run_dir / PREVIOUS_DIR / record.spec.id
+        if (aside / STAGE_FILE).exists():
+            # A rerun killed (SIGKILL, Ctrl-C) left the finished output aside: this run
+            # puts it back if it fails, as the rerun would have, and deletes it once done.
+            record.previous = aside
         if not stage_dir.exists() or not any(stage_dir.iterdir()):
             return
         done = (stage_dir / STAGE_FILE).exists()
