@@ -7,6 +7,7 @@ recipe or the command line is wrong (nothing ran), 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import errno
 import shlex
 import signal
 import sys
@@ -110,8 +111,16 @@ def _write_error(exc: OSError) -> str:
     from toolkit.io.atomic import target_of
 
     target = target_of(exc.filename)
-    return (f"cannot write {target} ({exc.strerror or exc}): make {target.parent} writable "
-            "(or free space on its disk), then run again; the finished stages are kept")
+    why = exc.strerror or str(exc)
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        fix = f"make {target.parent} writable, then run again"
+    elif exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        fix = "free space on its disk, then run again"
+    elif exc.errno == errno.EISDIR and "folder" not in why:
+        fix = "a folder is in its place: move or delete it, then run again"
+    else:  # the atomic writer's own words already say what to do (a folder in the way)
+        return f"cannot write {target} ({why}); the finished stages are kept"
+    return f"cannot write {target} ({why}): {fix}; the finished stages are kept"
 
 
 def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:
