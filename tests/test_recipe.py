@@ -2450,3 +2450,33 @@ def test_a_killed_rerun_that_then_fails_puts_the_finished_output_back(
     monkeypatch.undo()
     result = _run(path)  # the finished output is taken as it is: no stage reruns
     assert result.ok and set(result.statuses.values()) == {"cached"}
+
+
+def test_a_rerun_killed_as_it_deleted_the_old_output_leaves_nothing_behind(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun that finished deletes the old output it kept in .previous/; killed right
+    then (its marker written, the old folder not yet deleted: a big folder's rmtree takes
+    a while), the stage was cached from then on and the old folder stayed on disk for
+    good, unmentioned. The next run deletes it."""
+    from toolkit.recipe import runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    run_dir = tmp_path / "run"
+    real_remove = runner.remove_path
+
+    def killed_there(p: Path, *a: Any, **kw: Any) -> None:
+        if p == run_dir / ".previous" / "t_source" and p.exists():  # not the clearing
+            raise KeyboardInterrupt
+        real_remove(p, *a, **kw)
+
+    monkeypatch.setattr(runner, "remove_path", killed_there)
+    with pytest.raises(KeyboardInterrupt):
+        _run(path, only="t_source", force=True)
+    assert (run_dir / ".previous" / "t_source" / "number.txt").exists()
+    monkeypatch.undo()
+    result = _run(path)
+    # (Its readers run: it finished under a new run token, its digests not yet taken.)
+    assert result.ok and result.statuses["t_source"] == "cached"
+    assert not (run_dir / ".previous").exists()
+    assert (run_dir / "t_source" / "number.txt").read_text() == "3"

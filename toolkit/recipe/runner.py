@@ -584,6 +584,14 @@ class _Run:
                f"--only {record.spec.id} reruns it for its timings)") if changed else ""
         self.console.print(f"[cyan]{record.spec.id}[/] cached{why}")
         self.log.info("stage %s cached (key %s)", record.spec.id, record.key, extra=_FILE_ONLY)
+        old = self.run_dir / PREVIOUS_DIR / record.spec.id
+        if old.exists():
+            # The rerun that made this output was killed before it deleted the output it
+            # replaced: deleted now, as that rerun would have (else it stays for good).
+            remove_path(old, ignore_errors=True)
+            _drop_if_empty(old.parent)
+            self.log.info("stage %s: deleted %s, the output its last rerun replaced",
+                          record.spec.id, old, extra=_FILE_ONLY)
 
     def prepare_stage_dir(self, record: _Record) -> None:
         """Empty the stage's folder unless it holds an interrupted run of these very
