@@ -2351,3 +2351,132 @@ def test_a_bad_blas_thread_count_is_refused_before_anything_runs(
     with pytest.raises(RecipeError, match="TOOLKIT_RECIPE_BLAS_THREADS"):
         _run(_blas_recipe(tmp_path))
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("damage", [
+    {"manifest": "x"},
+    {"manifest": {"number": [["number.txt"]]}},
+    {"manifest": {"number": 5}},
+    {"provides": {"number": 5}},
+    {"provides": ["number.txt"]},
+    {"metrics": [1, 2]},
+    {"output_tokens": "abc"},
+    {"report": 7},
+    {"seconds": "soon"},
+])
+def test_a_marker_of_the_wrong_shape_reruns_the_stage(
+        tmp_path: Path, damage: dict[str, Any]) -> None:
+    """A finish marker that parses as JSON but holds the wrong types (a hand edit, a bit
+    flipped in a digit's place) reruns its stage like an unreadable one: it stopped the
+    whole run with a traceback (``'str' object has no attribute 'items'``)."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    f = tmp_path / "run" / "t_source" / ".stage.json"
+    f.write_text(json.dumps({**json.loads(f.read_text()), **damage}))
+    result = _run(path)
+    assert result.ok
+    assert result.statuses["t_source"] == "ran"
+    assert (tmp_path / "run" / "t_source" / "number.txt").read_text() == "3"
+    assert json.loads(f.read_text())["provides"] == {"number": "number.txt"}
+
+
+def test_a_run_folder_whose_files_cannot_be_replaced_names_the_file_meant(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A finished run whose folder lets its lock be opened but no file be made (an
+    immutable folder, ``chattr +i``): every stage is cached, but the run's own files
+    cannot be written. The message named the atomic write's hidden temporary
+    (``.recipe.resolved.31858.ff634781.tmp.yaml``) and no fix; it names the file meant and
+    what to do, and nothing of the run is lost."""
+    import errno
+
+    from toolkit.io import atomic
+    from toolkit.recipe import cli
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert cli.main(["run", str(path)]) == 0
+    capsys.readouterr()
+    run_dir = tmp_path / "run"
+    def files() -> dict[Path, bytes]:  # run.log gets this run's lines, as it should
+        return {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file()
+                and p.name != "run.log"}
+
+    before = files()
+
+    def read_only(path: Any) -> Any:
+        tmp = atomic._temp_name(Path(path))
+        raise PermissionError(errno.EPERM, "Operation not permitted", str(tmp))
+
+    monkeypatch.setattr(atomic, "atomic_path", read_only)
+    assert cli.main(["run", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot write {run_dir / 'recipe.resolved.yaml'}" in err
+    assert ".tmp" not in err
+    assert "writable" in err
+    assert files() == before
+
+
+def test_a_killed_rerun_that_then_fails_puts_the_finished_output_back(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun (--force) moves the finished folder aside and puts it back when it fails.
+    Killed instead (SIGKILL, Ctrl-C), it leaves the finished output aside for the next run,
+    which resumes the stage: when that one fails, the finished output stayed in
+    .previous/, unmentioned, the stage and its readers had no result, and a later rerun
+    deleted it."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    run_dir = tmp_path / "run"
+    finished = (run_dir / "t_source" / "number.txt").read_text()
+
+    def killed(self: Any, ctx: StageContext) -> None:
+        (ctx.stage_dir / "partial.txt").write_text("half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Source, "run", killed)
+    with pytest.raises(KeyboardInterrupt):
+        _run(path, force=True)
+    assert (run_dir / ".previous" / "t_source" / ".stage.json").exists()
+
+    def fails(self: Any, ctx: StageContext) -> None:
+        raise StageError("its input is gone")
+
+    monkeypatch.setattr(Source, "run", fails)
+    result = _run(path)
+    assert result.failed_stage == "t_source"
+    assert (run_dir / "t_source" / "number.txt").read_text() == finished
+    assert (run_dir / "t_source" / ".stage.json").exists()
+    assert not (run_dir / ".previous" / "t_source").exists()
+    assert (run_dir / ".failed" / "t_source" / "partial.txt").exists()
+    monkeypatch.undo()
+    result = _run(path)  # the finished output is taken as it is: no stage reruns
+    assert result.ok and set(result.statuses.values()) == {"cached"}
+
+
+def test_a_rerun_killed_as_it_deleted_the_old_output_leaves_nothing_behind(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rerun that finished deletes the old output it kept in .previous/; killed right
+    then (its marker written, the old folder not yet deleted: a big folder's rmtree takes
+    a while), the stage was cached from then on and the old folder stayed on disk for
+    good, unmentioned. The next run deletes it."""
+    from toolkit.recipe import runner
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    assert _run(path).ok
+    run_dir = tmp_path / "run"
+    real_remove = runner.remove_path
+
+    def killed_there(p: Path, *a: Any, **kw: Any) -> None:
+        if p == run_dir / ".previous" / "t_source" and p.exists():  # not the clearing
+            raise KeyboardInterrupt
+        real_remove(p, *a, **kw)
+
+    monkeypatch.setattr(runner, "remove_path", killed_there)
+    with pytest.raises(KeyboardInterrupt):
+        _run(path, only="t_source", force=True)
+    assert (run_dir / ".previous" / "t_source" / "number.txt").exists()
+    monkeypatch.undo()
+    result = _run(path)
+    # (Its readers run: it finished under a new run token, its digests not yet taken.)
+    assert result.ok and result.statuses["t_source"] == "cached"
+    assert not (run_dir / ".previous").exists()
+    assert (run_dir / "t_source" / "number.txt").read_text() == "3"

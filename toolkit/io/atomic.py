@@ -26,6 +26,7 @@ __all__ = [
     "atomic_write_json",
     "atomic_write_text",
     "remove_leftover_temps",
+    "target_of",
     "to_jsonable",
 ]
 
@@ -60,6 +61,14 @@ def remove_temps_under(folder: str | os.PathLike[str]) -> int:
             p.unlink(missing_ok=True)
             n += 1
     return n
+
+
+def target_of(path: str | os.PathLike[str]) -> Path:
+    """The file an atomic write's temporary ``path`` was for (``path`` itself when it is
+    no such temporary): an error about the temporary is about that file."""
+    p = Path(path)
+    m = re.fullmatch(r"\.(.+)\.\d+\.[0-9a-f]{8}\.tmp(\.[^.]*)?", p.name)
+    return p.with_name(m.group(1) + (m.group(2) or "")) if m else p
 
 
 @contextmanager

@@ -7,6 +7,7 @@ recipe or the command line is wrong (nothing ran), 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import errno
 import shlex
 import signal
 import sys
@@ -95,11 +96,31 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {where}{problem}", file=sys.stderr)
         return 2
     except OSError as exc:  # the run's own files (report, metrics) could not be written
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_write_error(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as exc:
         print(f"interrupted; {_resume_advice(args, exc)}", file=sys.stderr)
         return INTERRUPTED
+
+
+def _write_error(exc: OSError) -> str:
+    """An OSError from writing the run's own files, naming the file meant (not the hidden
+    temporary of its atomic write) and the fix."""
+    if not exc.filename:
+        return str(exc)
+    from toolkit.io.atomic import target_of
+
+    target = target_of(exc.filename)
+    why = exc.strerror or str(exc)
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        fix = f"make {target.parent} writable, then run again"
+    elif exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        fix = "free space on its disk, then run again"
+    elif exc.errno == errno.EISDIR and "folder" not in why:
+        fix = "a folder is in its place: move or delete it, then run again"
+    else:  # the atomic writer's own words already say what to do (a folder in the way)
+        return f"cannot write {target} ({why}); the finished stages are kept"
+    return f"cannot write {target} ({why}): {fix}; the finished stages are kept"
 
 
 def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:

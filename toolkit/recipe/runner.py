@@ -587,6 +587,14 @@ class _Run:
                f"--only {record.spec.id} reruns it for its timings)") if changed else ""
         self.console.print(f"[cyan]{record.spec.id}[/] cached{why}")
         self.log.info("stage %s cached (key %s)", record.spec.id, record.key, extra=_FILE_ONLY)
+        old = self.run_dir / PREVIOUS_DIR / record.spec.id
+        if old.exists():
+            # The rerun that made this output was killed before it deleted the output it
+            # replaced: deleted now, as that rerun would have (else it stays for good).
+            remove_path(old, ignore_errors=True)
+            _drop_if_empty(old.parent)
+            self.log.info("stage %s: deleted %s, the output its last rerun replaced",
+                          record.spec.id, old, extra=_FILE_ONLY)
 
     def prepare_stage_dir(self, record: _Record) -> None:
         """Empty the stage's folder unless it holds an interrupted run of these very
@@ -594,6 +602,11 @@ class _Run:
         read as this run's (an old per-frame depth beside the new, an old capture, old
         renders), and ``--force`` means from scratch."""
         stage_dir = self.run_dir / record.spec.id
+        aside = self.run_dir / PREVIOUS_DIR / record.spec.id
+        if (aside / STAGE_FILE).exists():
+            # A rerun killed (SIGKILL, Ctrl-C) left the finished output aside: this run
+            # puts it back if it fails, as the rerun would have, and deletes it once done.
+            record.previous = aside
         if not stage_dir.exists() or not any(stage_dir.iterdir()):
             return
         done = (stage_dir / STAGE_FILE).exists()
@@ -1188,6 +1201,11 @@ def _read_marker(
     stored = data.get("provides")
     if not isinstance(stored, dict) or not set(provides) <= set(stored):
         return None, "settings or inputs changed"
+    wrong = _marker_shape_problem(data)
+    if wrong:
+        # Read as it is, it stopped the whole run with a traceback; rerunning the stage
+        # writes a good one.
+        return None, f"unreadable {STAGE_FILE} ({wrong})"
     missing = [name for name, rel in stored.items() if not (stage_dir / rel).exists()]
     if missing:
         return None, f"output {missing[0]!r} is missing"
@@ -1217,6 +1235,34 @@ def _read_marker(
             atomic_write_json(marker, {**data, "manifest_digests": digests}, fsync=True,
                               compact=True)
     return data, "up to date"
+
+
+def _marker_shape_problem(data: Mapping[str, Any]) -> str | None:
+    """What in a parsed finish marker is not of the type the runner reads it as (a hand
+    edit, a flipped bit that still parses), or None; fields a marker from before lacks
+    may be absent."""
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool)
+
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in data["provides"].items()):
+        return "'provides' must map output names to paths"
+    manifest = data.get("manifest")
+    if manifest is not None:
+        if not isinstance(manifest, dict):
+            return "'manifest' must be a mapping"
+        for files in manifest.values():
+            if not isinstance(files, list) or not all(
+                    isinstance(e, list) and len(e) >= 2 and isinstance(e[0], str)
+                    and number(e[1]) for e in files):
+                return "'manifest' must list [path, size] per file"
+    for name, kind in (("metrics", dict), ("output_tokens", dict), ("report", str),
+                       ("speed_settings", dict), ("manifest_digests", dict)):
+        if data.get(name) is not None and not isinstance(data[name], kind):
+            return f"{name!r} must be a {'mapping' if kind is dict else 'text'}"
+    for name in ("seconds", "cpu_seconds"):
+        if data.get(name) is not None and not number(data[name]):
+            return f"{name!r} must be a number"
+    return None
 
 
 _REPORT_LINK_RE = re.compile(r"\]\(([^)\s]+)\)")  # [text](target) and ![alt](target)
