@@ -868,6 +868,26 @@ def test_training_refuses_bad_counts_and_sequences_before_training(
     assert "--images-per-house 20" in ts._command(c, "m.onnx")
 
 
+def test_eval_only_refuses_a_missing_model_or_sequence_as_usage(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``train_small --eval-only MODEL --sequence SEQ`` (docs/depth_fusion.md, Reproduce)
+    with a wrong path ended in a FileNotFoundError / SequenceFormatError traceback; the
+    training path asked both up front. Now a usage error naming the option, exit 2."""
+    import toolkit.depth.train_small as ts
+
+    shipped = Path(__file__).resolve().parents[1] / "datasets/models/small-depth.onnx"
+    for args, said in (
+            (["--eval-only", str(tmp_path / "none.onnx"), "--sequence", str(tmp_path)],
+             f"--eval-only {tmp_path / 'none.onnx'}: no such model file"),
+            (["--eval-only", str(shipped), "--sequence", str(tmp_path / "missing")],
+             "--sequence: ")):
+        with pytest.raises(SystemExit) as e:
+            ts.main(args)
+        assert e.value.code == 2, args
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err, err
+
+
 def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
                  props: dict[str, str] | None = None) -> Path:
     """A model built node by node: mean over the channels, then softplus (depth > 0)."""
