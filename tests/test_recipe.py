@@ -1888,6 +1888,18 @@ def test_a_number_written_with_its_unit_is_told_the_unit() -> None:
                 f"(got '{value}'); write a plain number, {unit}")):
             parse_recipe({"name": "u", "output": "runs/u", "stages": [{"stage": stage,
                                                                       key: value}]})
+    # Above a unit key's upper bound: docs/depth_fusion.md says voxel_size_m over 1 is
+    # "refused as a unit mistake"; the message said only "less than or equal to 1".
+    with pytest.raises(RecipeError, match=re.escape(
+            "voxel_size_m: Input should be less than or equal to 1 (got 20); the key is in "
+            "metres (its _m suffix)")):
+        parse_recipe({"name": "u", "output": "runs/u",
+                      "stages": [{"stage": "fuse", "voxel_size_m": 20}]})
+    # A value below a bound is no unit question: no hint there.
+    with pytest.raises(RecipeError) as e:
+        parse_recipe({"name": "u", "output": "runs/u",
+                      "stages": [{"stage": "fuse", "voxel_size_m": -0.02}]})
+    assert "greater than 0 (got -0.02)" in str(e.value) and "unit" not in str(e.value)
 
 
 def test_a_folder_where_a_file_is_to_be_written_is_named_with_the_fix(tmp_path: Path) -> None:

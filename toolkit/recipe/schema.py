@@ -731,14 +731,23 @@ _UNITS = (("_m_s", "metres per second"), ("_deg_s", "degrees per second"),
 
 def _unit_hint(path: tuple[Any, ...], kind: str, given: Any) -> str:
     """'; a plain number, in seconds (the key's _s)' for a number given as text with a unit
-    ('8s', '15 cm'): the message said only that it was no valid number."""
-    if not (path and isinstance(path[-1], str) and isinstance(given, str)
-            and kind in ("float_parsing", "int_parsing", "float_type", "int_type")):
+    ('8s', '15 cm'): the message said only that it was no valid number. A number above a
+    unit key's upper bound is most often another unit's (voxel_size_m: 20, meant in cm):
+    it gets the unit the key is in."""
+    if not (path and isinstance(path[-1], str)):
+        return ""
+    text = isinstance(given, str) and kind in ("float_parsing", "int_parsing", "float_type",
+                                               "int_type")
+    too_large = (isinstance(given, int | float) and not isinstance(given, bool)
+                 and kind in ("less_than", "less_than_equal"))
+    if not (text or too_large):
         return ""
     key = path[-1].lower()
     for suffix, unit in _UNITS:
         if key.endswith(suffix):
-            return f"; write a plain number, in {unit} (the key's {suffix})"
+            if text:
+                return f"; write a plain number, in {unit} (the key's {suffix})"
+            return f"; the key is in {unit} (its {suffix} suffix)"
     return ""
 
 
