@@ -286,8 +286,12 @@ def _set_by(problem: str, overrides: Sequence[str], source: str | Path | None) -
         key = item.partition("=")[0].strip()
         stage_id, _, path = key.partition(".")
         if path:
+            # The key as the problem's location, or first in the message of a check of the
+            # stage's own ("random_depth_m [5.0, 1.0]: give [near, far]", "scan:
+            # scan.min_range (40.0 m) must be below"); not anywhere (a list of keys).
             about = (rf"stages\[\d+\] \({re.escape(stage_id)}\): "
-                     rf"(?:unknown key '{re.escape(path)}'|{re.escape(path)}: )")
+                     rf"(?:unknown key '{re.escape(path)}'|{re.escape(path)}: |"
+                     rf"(?:[\w.\[\]]+: )?{re.escape(path)}(?![\w.]))")
         else:
             about = rf"{where}: '{re.escape(key)}' "
         if re.match(about, problem):
@@ -708,6 +712,14 @@ def format_validation_error(
         elif kind == "missing" and loc:
             parent, _ = _resolve_loc(model, loc[:-1])
             lines.append(f"{label}: missing required key {_fmt_loc((*parent, loc[-1]))!r}")
+        elif kind == "value_error" and isinstance(item.get("input"), Mapping):
+            # A model's own check (scan.min_range below max_range, random_depth_m's order):
+            # its message names the values; pydantic's "Value error, " prefix and the
+            # whole settings mapping as "got" only buried it.
+            path, _ = _resolve_loc(model, loc)
+            where = f"{label}: {_fmt_loc(path)}" if path else label
+            merged.setdefault(f"{where}: ", []).append(
+                str(item["msg"]).removeprefix("Value error, "))
         else:
             path, _ = _resolve_loc(model, loc)
             where = f"{label}: {_fmt_loc(path)}" if path else label
