@@ -99,7 +99,8 @@ def test_onnx_backend_is_exact_on_a_tiny_model(tmp_path: Path, rgb: np.ndarray) 
     ref2 = _reference(rgb, (28, 42), np.array(mean, np.float32), np.array(std, np.float32),
                       bgr=True, interp=cv2.INTER_LINEAR)
     np.testing.assert_allclose(be2.predict(rgb).values, ref2, rtol=1e-5, atol=1e-6)
-    with pytest.raises(ValueError, match="fixed 42x28 input"):
+    with pytest.raises(ValueError, match=r"fixed input of height 28, width 42, but "
+                                         r"input_size asks for \[56, 56\]"):
         OnnxDepthBackend(C(model=path, kind="relative_depth", input_size=56)).predict(rgb)
     # A BGR network with the default normalisation: ImageNet's mean and std in its channel
     # order, so an image of the ImageNet mean colour goes in as zeros (they were applied
@@ -867,6 +868,26 @@ def test_training_refuses_bad_counts_and_sequences_before_training(
     assert "--images-per-house 20" in ts._command(c, "m.onnx")
 
 
+def test_eval_only_refuses_a_missing_model_or_sequence_as_usage(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``train_small --eval-only MODEL --sequence SEQ`` (docs/depth_fusion.md, Reproduce)
+    with a wrong path ended in a FileNotFoundError / SequenceFormatError traceback; the
+    training path asked both up front. Now a usage error naming the option, exit 2."""
+    import toolkit.depth.train_small as ts
+
+    shipped = Path(__file__).resolve().parents[1] / "datasets/models/small-depth.onnx"
+    for args, said in (
+            (["--eval-only", str(tmp_path / "none.onnx"), "--sequence", str(tmp_path)],
+             f"--eval-only {tmp_path / 'none.onnx'}: no such model file"),
+            (["--eval-only", str(shipped), "--sequence", str(tmp_path / "missing")],
+             "--sequence: ")):
+        with pytest.raises(SystemExit) as e:
+            ts.main(args)
+        assert e.value.code == 2, args
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err, err
+
+
 def _graph_model(path: Path, shape: list, elem: int, nhwc: bool,
                  props: dict[str, str] | None = None) -> Path:
     """A model built node by node: mean over the channels, then softplus (depth > 0)."""
@@ -1041,8 +1062,13 @@ def test_depth_settings_the_model_refuses_are_found_before_the_run(tmp_path: Pat
                                   "output_index"),
             ({"model": fixed, "resize": "keep_aspect"}, "keep_aspect needs a model exported "
                                                         "with dynamic height/width"),
-            ({"model": fixed, "input_size": 56}, "fixed 42x28 input but input_size asks for "
-                                                 "56x56; drop input_size")):
+            ({"model": fixed, "input_size": 56}, r"fixed input of height 28, width 42, but "
+                                                 r"input_size asks for \[56, 56\].*set "
+                                                 r"input_size: \[28, 42\] or drop it"),
+            # Swapped sides (a user reading a WxH figure): the message shows both in the
+            # recipe's [h, w] order.
+            ({"model": fixed, "input_size": [42, 28]}, r"asks for \[42, 28\] \(\[height, "
+                                                       r"width\]\); set input_size: \[28, 42\]")):
         found = problems(**{"model": dyn, "output": "relative_disparity", **keys})
         assert len(found) == 1 and re.search(why, found[0]), (keys, found)
     # keep_aspect takes one side: refused with the recipe, no model needed.

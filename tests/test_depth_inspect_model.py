@@ -116,3 +116,9 @@ def test_cli_names_a_bad_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> 
         assert main([str(SHIPPED), "--set", "min_confidense=0.5"]) == 2
         err = capsys.readouterr().err
         assert "not a valid depth stage" in err and "min_confidense" in err
+        # One line naming the option, the rule and a close name; not pydantic's dump.
+        assert "unknown key 'min_confidense' (did you mean 'min_confidence'?)" in err, err
+        assert main([str(SHIPPED), "--set", "multiple_of=0"]) == 2
+        err = capsys.readouterr().err
+        assert ("--set multiple_of: multiple_of: Input should be greater than or equal to 1 "
+                "(got 0)") in err and "pydantic" not in err, err

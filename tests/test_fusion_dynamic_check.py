@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 import toolkit.sim.simulate as sim
 from toolkit.fusion.dynamic_check import check
 from toolkit.sim.sensors import CameraSpec
@@ -34,3 +36,18 @@ def test_a_recording_without_people_tracks_is_scored_whole(tmp_path: Path) -> No
     out = check(write_box_room(tmp_path / "seq", n_frames=20))
     assert "recall_standing" not in out["near"] and "standing" not in out["truth"]
     assert out["truth"]["beams"] > 0 and out["near"]["precision"] > 0.9
+
+
+def test_cli_names_a_wrong_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m toolkit.fusion.dynamic_check <sequence>`` given a folder that is not a
+    sequence ended in a traceback (SequenceFormatError); now one error line and exit 2,
+    and the usage line names the module, not ``dynamic_check.py``."""
+    from toolkit.fusion.dynamic_check import main
+
+    assert main([str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "sequence folder not found" in err
+    assert str(tmp_path / "none") in err and "Traceback" not in err
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "python -m toolkit.fusion.dynamic_check" in capsys.readouterr().out

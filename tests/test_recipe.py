@@ -1888,6 +1888,18 @@ def test_a_number_written_with_its_unit_is_told_the_unit() -> None:
                 f"(got '{value}'); write a plain number, {unit}")):
             parse_recipe({"name": "u", "output": "runs/u", "stages": [{"stage": stage,
                                                                       key: value}]})
+    # Above a unit key's upper bound: docs/depth_fusion.md says voxel_size_m over 1 is
+    # "refused as a unit mistake"; the message said only "less than or equal to 1".
+    with pytest.raises(RecipeError, match=re.escape(
+            "voxel_size_m: Input should be less than or equal to 1 (got 20); the key is in "
+            "metres (its _m suffix)")):
+        parse_recipe({"name": "u", "output": "runs/u",
+                      "stages": [{"stage": "fuse", "voxel_size_m": 20}]})
+    # A value below a bound is no unit question: no hint there.
+    with pytest.raises(RecipeError) as e:
+        parse_recipe({"name": "u", "output": "runs/u",
+                      "stages": [{"stage": "fuse", "voxel_size_m": -0.02}]})
+    assert "greater than 0 (got -0.02)" in str(e.value) and "unit" not in str(e.value)
 
 
 def test_a_folder_where_a_file_is_to_be_written_is_named_with_the_fix(tmp_path: Path) -> None:
@@ -2480,3 +2492,30 @@ def test_a_rerun_killed_as_it_deleted_the_old_output_leaves_nothing_behind(
     assert result.ok and result.statuses["t_source"] == "cached"
     assert not (run_dir / ".previous").exists()
     assert (run_dir / "t_source" / "number.txt").read_text() == "3"
+
+
+def test_a_stage_s_own_check_reads_as_its_message_with_the_set_that_broke_it(
+        tmp_path: Path) -> None:
+    """A check a stage's settings make as a whole (slam2d's scan.min_range below
+    max_range, splat's random_depth_m order, the ViT input of depth's dav2s_random) read
+    "Value error, <message> (got {'stage': 'splat', 'max_seconds': 180, ...})": pydantic's
+    prefix and the whole settings mapping, and no "(from --set ...)" when the value was
+    typed on the command line. Now the message alone, with the --set that named the key."""
+    from toolkit.recipe.schema import parse_recipe
+
+    data = {"name": "u", "output": str(tmp_path / "run"), "stages": [
+        {"stage": "simulate", "duration_s": 1},
+        {"stage": "slam2d"},
+        {"stage": "depth", "backend": "dav2s_random", "input_size": [224, 294]},
+        {"stage": "splat", "init": "random", "depth_weight": 0}]}
+    for override, said in (
+            ("slam2d.scan.min_range=40", "stages[1] (slam2d): scan: scan.min_range (40.0 m) "
+                                         "must be below scan.max_range (30.0 m)"),
+            ("splat.random_depth_m=[5, 1]", "stages[3] (splat): random_depth_m [5.0, 1.0]: "
+                                            "give [near, far] in metres, 0 < near < far"),
+            ("depth.input_size=[224, 300]", "stages[2] (depth): input_size 224x300: a "
+                                            "ViT-S/14 needs multiples of 14 (e.g. 224x294)")):
+        with pytest.raises(RecipeError) as e:
+            parse_recipe(data, [override])
+        assert str(e.value).endswith(f"{said} (from --set {override})"), str(e.value)
+        assert "Value error" not in str(e.value) and "(got {" not in str(e.value)

@@ -293,7 +293,14 @@ def main(argv: list[str] | None = None) -> int:
     try:  # a misspelt --set key must not reach a recipe
         DepthConfig(stage="depth", backend="onnx", model=a.model, **sug.settings)
     except ValidationError as e:
-        print(f"error: these settings are not a valid depth stage: {e}", file=sys.stderr)
+        # The recipe's one-line messages (key, rule, value given, a close name for a typo),
+        # not pydantic's dump with its web links.
+        from toolkit.recipe.schema import format_validation_error
+
+        given = " ".join(f"--set {k}" for k, _ in a.set)
+        lines = format_validation_error(e, given or "the suggested settings", DepthConfig)
+        print("error: these settings are not a valid depth stage: " + "\n  ".join(lines),
+              file=sys.stderr)
         return 2
     if sug.recognised:
         print(f"recognised: {sug.recognised}")

@@ -376,9 +376,13 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
         size = config.input_size
         hw = (size, size) if isinstance(size, int) else size
         if hw is not None and tuple(hw) != fixed:
-            raise ValueError(f"{path}: the model takes a fixed {fixed[1]}x{fixed[0]} "
-                             f"input but input_size asks for {hw[1]}x{hw[0]}; drop "
-                             "input_size or re-export with dynamic height/width")
+            # input_size is [h, w] in the recipe: both sides are given in that order, so
+            # that a swapped pair reads as one (a WxH figure read as the recipe's order).
+            raise ValueError(f"{path}: the model takes a fixed input of height {fixed[0]}, "
+                             f"width {fixed[1]}, but input_size asks for "
+                             f"[{hw[0]}, {hw[1]}] ([height, width]); set input_size: "
+                             f"[{fixed[0]}, {fixed[1]}] or drop it, or re-export the model "
+                             "with dynamic height/width")
     # A timing stand-in (``bench_latency --export``) runs like a real network; its depth
     # is noise, which the backend says loudly.
     warning = metadata.get("warning") or (

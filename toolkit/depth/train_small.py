@@ -858,6 +858,12 @@ def main(argv: list[str] | None = None) -> int:
     if a.eval_only is not None:
         if a.sequence is None:
             ap.error("--eval-only needs --sequence")
+        # Asked as the training path asks them: a wrong path is a usage error, not a
+        # traceback out of onnxruntime or the sequence reader.
+        if not a.eval_only.is_file():
+            ap.error(f"--eval-only {a.eval_only}: no such model file")
+        if problem := sequence_problem(a.sequence):
+            ap.error(f"--sequence: {problem}")
         print(json.dumps(evaluate_sequence(a.eval_only, a.sequence, a.every, a.threads),
                          indent=2))
         return 0

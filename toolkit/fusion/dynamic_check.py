@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from toolkit.fusion.dynamic import dynamic_beams
 from toolkit.fusion.pipeline import FusionConfig, pose_arrays
-from toolkit.io.sequence import read_sequence
+from toolkit.io.sequence import SequenceFormatError, read_sequence
 
 
 def standing_beams(root: Path, hits_xy: list[np.ndarray], beams: list[np.ndarray],
@@ -90,13 +91,20 @@ def check(root: Path) -> dict[str, dict[str, float]]:
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m toolkit.fusion.dynamic_check",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("sequence", type=Path, help="a simulated sequence folder")
-    args = ap.parse_args()
-    for name, row in check(args.sequence).items():
+    args = ap.parse_args(argv)
+    try:
+        rows = check(args.sequence)
+    except SequenceFormatError as exc:  # a wrong folder: its message, not a traceback
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for name, row in rows.items():
         print(name, row)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

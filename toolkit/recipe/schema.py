@@ -286,8 +286,12 @@ def _set_by(problem: str, overrides: Sequence[str], source: str | Path | None) -
         key = item.partition("=")[0].strip()
         stage_id, _, path = key.partition(".")
         if path:
+            # The key as the problem's location, or first in the message of a check of the
+            # stage's own ("random_depth_m [5.0, 1.0]: give [near, far]", "scan:
+            # scan.min_range (40.0 m) must be below"); not anywhere (a list of keys).
             about = (rf"stages\[\d+\] \({re.escape(stage_id)}\): "
-                     rf"(?:unknown key '{re.escape(path)}'|{re.escape(path)}: )")
+                     rf"(?:unknown key '{re.escape(path)}'|{re.escape(path)}: |"
+                     rf"(?:[\w.\[\]]+: )?{re.escape(path)}(?![\w.]))")
         else:
             about = rf"{where}: '{re.escape(key)}' "
         if re.match(about, problem):
@@ -708,6 +712,14 @@ def format_validation_error(
         elif kind == "missing" and loc:
             parent, _ = _resolve_loc(model, loc[:-1])
             lines.append(f"{label}: missing required key {_fmt_loc((*parent, loc[-1]))!r}")
+        elif kind == "value_error" and isinstance(item.get("input"), Mapping):
+            # A model's own check (scan.min_range below max_range, random_depth_m's order):
+            # its message names the values; pydantic's "Value error, " prefix and the
+            # whole settings mapping as "got" only buried it.
+            path, _ = _resolve_loc(model, loc)
+            where = f"{label}: {_fmt_loc(path)}" if path else label
+            merged.setdefault(f"{where}: ", []).append(
+                str(item["msg"]).removeprefix("Value error, "))
         else:
             path, _ = _resolve_loc(model, loc)
             where = f"{label}: {_fmt_loc(path)}" if path else label
@@ -731,14 +743,23 @@ _UNITS = (("_m_s", "metres per second"), ("_deg_s", "degrees per second"),
 
 def _unit_hint(path: tuple[Any, ...], kind: str, given: Any) -> str:
     """'; a plain number, in seconds (the key's _s)' for a number given as text with a unit
-    ('8s', '15 cm'): the message said only that it was no valid number."""
-    if not (path and isinstance(path[-1], str) and isinstance(given, str)
-            and kind in ("float_parsing", "int_parsing", "float_type", "int_type")):
+    ('8s', '15 cm'): the message said only that it was no valid number. A number above a
+    unit key's upper bound is most often another unit's (voxel_size_m: 20, meant in cm):
+    it gets the unit the key is in."""
+    if not (path and isinstance(path[-1], str)):
+        return ""
+    text = isinstance(given, str) and kind in ("float_parsing", "int_parsing", "float_type",
+                                               "int_type")
+    too_large = (isinstance(given, int | float) and not isinstance(given, bool)
+                 and kind in ("less_than", "less_than_equal"))
+    if not (text or too_large):
         return ""
     key = path[-1].lower()
     for suffix, unit in _UNITS:
         if key.endswith(suffix):
-            return f"; write a plain number, in {unit} (the key's {suffix})"
+            if text:
+                return f"; write a plain number, in {unit} (the key's {suffix})"
+            return f"; the key is in {unit} (its {suffix} suffix)"
     return ""
 
 

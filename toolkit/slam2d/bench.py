@@ -19,6 +19,7 @@ the map (PGM + YAML) and a PNG.
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import logging
 import os
@@ -28,13 +29,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from toolkit.geometry import Trajectory, umeyama_alignment
 from toolkit.io.atomic import atomic_write_json
 from toolkit.io.occupancy import write_occupancy
 from toolkit.io.yaml_file import load_yaml
-from toolkit.recipe.schema import read_yaml_value
+from toolkit.recipe.schema import format_validation_error, read_yaml_value
 from toolkit.slam2d.config import Slam2DConfig
 from toolkit.slam2d.pipeline import grid_to_occupancy, run_slam
 from toolkit.slam2d.plot import save_map_png
@@ -71,9 +72,21 @@ def ate_se2(estimate: Trajectory, reference: Trajectory, tol: float = 1e-3) -> d
             "ate_max_m": float(err.max()), "ate_poses": int(keep.sum())}
 
 
+def _settings(data: object, label: str) -> Slam2DConfig:
+    """``data`` validated as ``Slam2DConfig``; a ValueError of the recipe's one-line
+    messages otherwise, each starting with ``label`` (the file or the --set that gave it)
+    and naming the key, what it needs and what was given, instead of pydantic's dump."""
+    try:
+        return Slam2DConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ValueError("\n".join(format_validation_error(exc, label, Slam2DConfig))) from None
+
+
 def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
     """``--set a.b=v`` on the settings. Keys are checked against the models' fields, not
-    the dump: an option left out of the dump while off (``AddedOptions``) is settable."""
+    the dump: an option left out of the dump while off (``AddedOptions``) is settable.
+    Validated once all are applied (a pair such as scan.min_range / max_range may be valid
+    only together); an error names the --set options given."""
     data = config.model_dump()
     for item in sets:
         key, _, value = item.partition("=")
@@ -81,11 +94,15 @@ def _apply_overrides(config: Slam2DConfig, sets: list[str]) -> Slam2DConfig:
         parts = key.split(".")
         for depth, p in enumerate(parts):
             if not isinstance(model, BaseModel) or p not in type(model).model_fields:
-                raise KeyError(f"--set {key}: unknown setting {p!r}")
+                known = list(type(model).model_fields) if isinstance(model, BaseModel) else []
+                close = difflib.get_close_matches(p, known, n=1, cutoff=0.6)
+                hint = f" (did you mean {close[0]!r}?)" if close else (
+                    f"; settings here: {', '.join(known)}" if known else "")
+                raise KeyError(f"--set {key}: unknown setting {p!r}{hint}")
             if depth < len(parts) - 1:
                 node, model = node[p], getattr(model, p)
         node[parts[-1]] = read_yaml_value(value)  # as a recipe's --set reads it
-    return Slam2DConfig.model_validate(data)
+    return _settings(data, " ".join(f"--set {item}" for item in sets)) if sets else config
 
 
 def run_benchmark(name: str, out: Path, config: Slam2DConfig | None = None,
@@ -225,8 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     config = Slam2DConfig()
     try:
         if args.config:
-            config = Slam2DConfig.model_validate(
-                load_yaml(args.config, ValueError, "settings file not found (--config)") or {})
+            config = _settings(
+                load_yaml(args.config, ValueError, "settings file not found (--config)") or {},
+                str(args.config))
         config = _apply_overrides(config, args.set)
     except (ValueError, KeyError) as e:  # pydantic's ValidationError is a ValueError
         print(f"error: {e.args[0] if isinstance(e, KeyError) else e}", file=sys.stderr)
