@@ -419,6 +419,63 @@ def test_depth_store_round_trip(tmp_path: Path) -> None:
     assert z[1, 1] == pytest.approx(1 / (2 * vals[1, 1] + 0.1))
 
 
+def test_depth_store_float16_writes_what_it_cannot_hold_as_invalid_and_counts_it(
+        tmp_path: Path) -> None:
+    """float16 made values above 65504 inf (a depth, or a disparity of 0, downstream) and
+    non-zero values below 2^-24 / 2 zero (no depth), silently: now NaN and counted, and
+    +-2^-24, as write_depth's PNG writes 0 beyond its range and one quantum below it."""
+    tiny = float(np.finfo(np.float16).smallest_subnormal)  # 2^-24, 5.96e-8
+    vals = np.array([[7e4, -1e6, 65504.0, 65519.0, 1.0, 0.0],
+                     [1e-9, -1e-9, 2.0**-25, np.nan, np.inf, 2.5]], np.float32)  # [2, 6]
+    want = np.array([[np.nan, np.nan, 65504.0, 65504.0, 1.0, 0.0],
+                     [tiny, -tiny, tiny, np.nan, np.inf, 2.5]], np.float32)
+    root = tmp_path / "d"
+    w = DepthStoreWriter(root, "relative_disparity", dtype="float16", resume_key="k")
+    assert w.add(0, 0.0, DepthPrediction(vals, "relative_disparity")) == 2
+    assert w.add(1, 1.0, DepthPrediction(vals[::-1], "relative_disparity")) == 2
+    del w  # killed: the counts of the frames kept come back with them
+    w = DepthStoreWriter(root, "relative_disparity", dtype="float16", resume_key="k")
+    assert w.resumed == 2 and w.beyond_float16 == 4
+    assert w.add(2, 2.0, DepthPrediction(np.ones((2, 6), np.float32), "relative_disparity")) == 0
+    w.close()
+    s = DepthStore(root)
+    np.testing.assert_array_equal(s.read(0).values, want)
+    np.testing.assert_array_equal(s.read(1).values, want[::-1])
+    assert [r.get("beyond_float16") for r in s.rows] == ["2", "2", ""]
+    # float32 keeps every value as given.
+    w32 = DepthStoreWriter(tmp_path / "d32", "relative_disparity")
+    assert w32.add(0, 0.0, DepthPrediction(vals, "relative_disparity")) == 0
+    w32.close()
+    np.testing.assert_array_equal(DepthStore(tmp_path / "d32").read(0).values, vals)
+
+
+def test_depth_stage_reports_the_pixels_float16_could_not_hold(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path
+
+    from toolkit.depth.stage import DepthStage
+    from toolkit.fusion.synthetic import write_box_room
+
+    predict = SimulatedDepthBackend.predict
+
+    def far_corner(self: SimulatedDepthBackend, rgb: np.ndarray, **kw: object) -> object:
+        pred = predict(self, rgb, **kw)  # type: ignore[arg-type]
+        pred.values[:3, :4] = 1e5  # [3, 4] beyond float16 in every frame
+        return pred
+
+    monkeypatch.setattr(SimulatedDepthBackend, "predict", far_corner)
+    seq = write_box_room(tmp_path / "seq", n_frames=2)
+    res = run_stages(tmp_path, [{"stage": "t_sequence", "path": str(seq)},
+                                {"stage": "depth", "backend": "simulated",
+                                 "dtype": "float16"}],
+                     {"t_sequence": SequenceFolder, "depth": DepthStage})
+    assert res.ok, res.error
+    assert res.metrics["depth"]["pixels_beyond_float16"] == 24
+    assert "24 pixels beyond float16's range" in (tmp_path / "run/report.md").read_text()
+    v = DepthStore(tmp_path / "run/depth/depth").read(1).values
+    assert np.isnan(v[:3, :4]).all() and not np.isinf(v).any()
+
+
 def test_depth_store_keeps_an_interrupted_writers_frames_under_the_same_key(
         tmp_path: Path) -> None:
     vals = np.arange(12, dtype=np.float32).reshape(3, 4)

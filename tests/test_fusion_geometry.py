@@ -127,6 +127,30 @@ def test_zbuffer_keeps_nearest_per_pixel() -> None:
     assert sorted(z.z.tolist()) == [2.0, 4.0]
 
 
+def test_lidar_pixel_k_covers_k_minus_half_to_k_plus_half() -> None:
+    """Pixel k spans [k - 0.5, k + 0.5) (in_image's half-open span): np.rint put u = 0.5
+    in pixel 0 and u = 1.5 and 2.5 both in pixel 2 (halves to even)."""
+    below_half = np.nextafter(0.5, 0.0)  # 0.49999999999999994: floor(u + 0.5) gives 1
+    u = np.array([-0.5, 0.5, 1.5, 2.5, 3.5, below_half, 1.0, 63.0, np.nextafter(63.5, 0.0)])
+    want = np.array([0, 1, 2, 3, 4, 0, 1, 63, 63])
+    uv = np.stack([u, u[::-1]], 1)  # [9, 2] the rows as well as the columns
+    lp = LidarPixels(uv, np.ones(len(u)), np.zeros((len(u), 3)), np.arange(len(u)),
+                     np.zeros(len(u), int))
+    np.testing.assert_array_equal(lp.pixel, np.stack([want, want[::-1]], 1))
+    # Every point in_image keeps is sampled in the image, on the pixel whose span holds it.
+    cam = PinholeCamera(64, 64, 50.0, 50.0, 31.5, 31.5)
+    rng = np.random.default_rng(0)
+    k = rng.integers(0, 64, (1000, 2))  # [1000, 2] pixels
+    uv = k + rng.choice([-0.5, 0.0, 0.25, -0.25], (1000, 2))  # [1000, 2] exact sums
+    top = rng.random((1000, 2)) < 0.2
+    uv[top] = np.nextafter(k[top] + 0.5, 0.0)  # the largest float in the pixel's span
+    assert cam.in_image(uv).all()
+    lp = LidarPixels(uv, np.ones(1000), np.zeros((1000, 3)), np.arange(1000), np.zeros(1000, int))
+    np.testing.assert_array_equal(lp.pixel, k)
+    values = np.arange(64 * 64, dtype=np.float32).reshape(64, 64)  # [H, W] value = row * 64 + col
+    np.testing.assert_array_equal(sample_depth(values, lp), k[:, 1] * 64 + k[:, 0])
+
+
 def test_occlusion_drops_far_side_of_range_jumps_only() -> None:
     # One beam spacing is 525 * 1 deg = 9.2 px at the image centre. A chair leg at 1 m in
     # front of a wall at 3 m: the wall beams next to it are hidden from the camera above;

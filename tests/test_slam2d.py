@@ -129,6 +129,25 @@ def test_branch_and_bound_matches_brute_force():
     assert bnb.candidates < exact.candidates
 
 
+@pytest.mark.parametrize("res", [0.025, 0.05, 0.1, 0.2])
+def test_matcher_scores_a_point_on_a_cell_border_in_the_grid_cell(res: float):
+    # The grid puts a point on a cell border (within rounding) in the cell above it
+    # (lattice_cells); the search floored (x - origin) / res, and decimal borders fell into
+    # the cell below: 8 to 32 of these 40 per resolution and pyramid (none at 0.1 m, depth 2).
+    g = ProbabilityGrid(res)
+    field, origin = g.matching_field(0.1)
+    k = np.arange(-40, 40, 2)  # [40] even lattice cells: the cell below each is odd
+    pts = np.stack([np.round(k * res, 6), np.full(len(k), 0.5 * res)], -1)  # [40, 2]
+    cells = g.cell_of(pts)  # [40, 2] field cells: the field shares the grid's origin
+    assert np.array_equal(cells[:, 0] - cells[0, 0], k - k[0])
+    field = np.full_like(field, g.p_min)
+    field[cells[:, 1], cells[:, 0]] = g.p_max
+    for depth in (0, 2):
+        pyr = GridPyramid(field, origin, res, depth, g.p_min, 4)
+        found = correlative_search(pyr, pts, np.zeros(3), 0.0, 0.0, np.radians(1.0))
+        assert found.score == pytest.approx(np.ceil(g.p_max * 255) / 255, abs=1e-12)
+
+
 def test_interpolation_gradient_matches_finite_differences():
     rng = np.random.default_rng(0)
     prob = rng.random((20, 30)).astype(np.float32)

@@ -61,6 +61,8 @@ class DepthConfig(StageConfig):
     preset: Literal["paper", "scale_only", "hard", "groundtruth"] = "paper"
     simulated: dict[str, Any] = Field(default_factory=dict)
     # --- storage
+    # float16 halves the files; magnitudes above 65504 are then stored invalid (NaN) and
+    # counted in pixels_beyond_float16, non-zero ones below 6e-8 as +-6e-8 (depth.store)
     dtype: Literal["float32", "float16"] = "float32"
     every: int = Field(1, ge=1)  # predict every n-th frame only
     # Decode the next images in a thread while the network runs (quickstart 13.4 -> 9.2 s);
@@ -308,7 +310,14 @@ class DepthStage(Stage):
                    "device": _device(backend),
                    **timer.metrics(len(todo)),
                    # of the pixels with depth, the share the confidence kept
-                   **({"confident_fraction_mean": float(np.mean(kept))} if kept else {})}
+                   **({"confident_fraction_mean": float(np.mean(kept))} if kept else {}),
+                   # magnitudes above 65504, stored as invalid (NaN), not as inf
+                   **({"pixels_beyond_float16": writer.beyond_float16}
+                      if cfg.dtype == "float16" else {})}
+        if writer.beyond_float16:
+            ctx.log.warning("depth: %d pixels beyond float16's range (magnitude above 65504) "
+                            "stored as invalid; store dtype float32 to keep them",
+                            writer.beyond_float16)
         # The first frame as stored, whichever run predicted it: a resumed run draws the
         # figure a whole one does (it drew the first frame predicted after the restart).
         i = indices[0]
@@ -330,6 +339,9 @@ class DepthStage(Stage):
               f"{resumed}, {'simulation' if simulated else 'network'} time "
               f"{metrics['latency_mean_s'] * 1000:.1f} ms/frame "
               f"(median {metrics['latency_median_s'] * 1000:.1f} ms){where}."]
+        if writer.beyond_float16:
+            md.append(f"**{writer.beyond_float16} pixels beyond float16's range** (magnitude "
+                      "above 65504) were stored as invalid (`dtype: float32` keeps them).")
         if kept:
             md.append(f"The network's confidence (output {cfg.confidence_index}, at least "
                       f"{cfg.min_confidence:g}) kept {100 * float(np.mean(kept)):.1f} % of the "

@@ -3,6 +3,7 @@
     <dir>/meta.json        kind, backend settings, image size, frame count
     <dir>/index.csv        index,stamp,file,latency_s[,true_scale]
     <dir>/frames/NNNNNN.npy  [H, W] float32 (float16 when asked), NaN invalid
+    <dir>/index.csv's beyond_float16: a frame's pixels float16 could not hold (written NaN)
     <dir>/journal.jsonl    a key line, then a line per frame on disk (a killed run's
                            frames are kept by a writer with the same key); kept after
                            ``close``, since the stage is not finished until its runner
@@ -10,6 +11,13 @@
 
 ``.npy`` and not 16-bit PNG: relative predictions have no unit, and disparity can be
 tiny or negative, which the TUM depth PNG cannot hold.
+
+float16 holds magnitudes up to 65504 and down to 2^-24 (6e-8), as ``write_depth``'s PNG
+holds 13.107 m: beyond the top a value would become inf, which reads as a depth (an
+infinite one) or a disparity of 0; it is written NaN (invalid) and counted, as the PNG
+writes 0 and counts. A non-zero value below the bottom would become 0, which reads as no
+depth (or a disparity at infinity); it is written as +-2^-24, off by less than that, as
+the PNG writes a depth below its quantum as one quantum.
 """
 
 from __future__ import annotations
@@ -27,6 +35,20 @@ from toolkit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from toolkit.io.depth import file_complete
 
 JOURNAL = "journal.jsonl"
+_F16_TINY = float(np.finfo(np.float16).smallest_subnormal)  # 2^-24
+
+
+def to_float16(values: np.ndarray) -> tuple[np.ndarray, int]:
+    """(values [H, W] as float16, pixels beyond float16's range written NaN): see the
+    module's notes; NaN stays NaN, +-inf stays +-inf."""
+    v = np.asarray(values, dtype=np.float32)
+    with np.errstate(over="ignore"):
+        h = v.astype(np.float16)  # [H, W]
+    beyond = np.isinf(h) & np.isfinite(v)
+    h[beyond] = np.nan
+    flushed = (h == 0) & (v != 0)
+    h[flushed] = np.copysign(np.float16(_F16_TINY), v[flushed])
+    return h, int(beyond.sum())
 
 
 class DepthStoreWriter:
@@ -89,23 +111,36 @@ class DepthStoreWriter:
         """Frame indices already written (by this writer or a resumed one)."""
         return {int(r["index"]) for r in self.rows}
 
-    def add(self, index: int, stamp: float, pred: DepthPrediction) -> None:
+    @property
+    def beyond_float16(self) -> int:
+        """Pixels float16 could not hold, written NaN, over every frame on disk (a resumed
+        writer's included); 0 when storing float32."""
+        return sum(int(r.get("beyond_float16") or 0) for r in self.rows)
+
+    def add(self, index: int, stamp: float, pred: DepthPrediction) -> int:
+        """Write frame ``index``; returns its pixels beyond what the stored dtype can hold
+        (float16: magnitudes above 65504), written NaN (invalid)."""
         if pred.kind != self.kind:
             raise ValueError(f"frame {index}: kind {pred.kind} differs from {self.kind}")
         rel = f"frames/{index:06d}.npy"
+        values, beyond = (to_float16(pred.values) if self.dtype == "float16"
+                          else (pred.values.astype(np.float32), 0))
         with atomic_path(self.root / rel) as tmp:
-            np.save(tmp, pred.values.astype(self.dtype))
+            np.save(tmp, values)
         self.shape = pred.values.shape
         row = {"index": str(index), "stamp": repr(float(stamp)), "file": rel,
                "latency_s": f"{pred.latency_s:.6f}"}
         for key in ("true_scale", "confident_fraction"):
             if key in pred.extra:
                 row[key] = repr(float(pred.extra[key]))
+        if beyond:
+            row["beyond_float16"] = str(beyond)
         self.rows.append(row)
         # After the file: a journaled frame is complete on disk. Flushed, not fsynced: this
         # guards against a killed process, not against power loss.
         self._journal.write(json.dumps(row) + "\n")
         self._journal.flush()
+        return beyond
 
     def close(self) -> Path:
         self.rows.sort(key=lambda r: int(r["index"]))

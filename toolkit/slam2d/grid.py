@@ -33,10 +33,10 @@ _BORDER_TOL = 1e-9
 
 
 def lattice_cells(points: np.ndarray, resolution: float) -> np.ndarray:
-    """[N, 2] int64 lattice cells (ix, iy) of metric points [N, 2]: cell (ix, iy) covers
+    """[..., 2] int64 lattice cells (ix, iy) of metric points [..., 2]: cell (ix, iy) covers
     ``res * [ix, ix + 1) x [iy, iy + 1)``, a point on a border (within rounding) is in
     the cell above it."""
-    u = np.asarray(points, dtype=np.float64) / resolution  # [N, 2] in cells
+    u = np.asarray(points, dtype=np.float64) / resolution  # [..., 2] in cells
     return np.floor(u + _BORDER_TOL).astype(np.int64)
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toolkit.geometry import se2_to_matrix, transform_points
+from toolkit.slam2d.grid import lattice_cells
 
 
 @dataclass
@@ -112,12 +113,14 @@ def correlative_search(
     dth = np.arange(-n_ang, n_ang + 1) * angular_resolution  # [K]
     c, s = np.cos(th0 + dth), np.sin(th0 + dth)
     # Fine cell of every point at every angle at zero offset, clamped so that any offset
-    # in the window stays on the padded grid.  [K, N]
-    wx = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + x0
-    wy = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + y0
-    cx = np.clip(np.floor((wx - pyramid.origin[0]) / res), w, Wp - 1 - w - (1 << D))
-    cy = np.clip(np.floor((wy - pyramid.origin[1]) / res), w, Hp - 1 - w - (1 << D))
-    base = (cy.astype(np.int64) * Wp + cx.astype(np.int64))  # [K, N]
+    # in the window stays on the padded grid. The grid's world -> cell rule: a point on a
+    # cell border (within rounding) is in the cell above it, as where the grid inserted it.
+    wx = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + x0  # [K, N]
+    wy = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + y0  # [K, N]
+    cell = lattice_cells(np.stack([wx, wy], -1) - pyramid.origin, res)  # [K, N, 2]
+    cx = np.clip(cell[..., 0], w, Wp - 1 - w - (1 << D))  # [K, N]
+    cy = np.clip(cell[..., 1], w, Hp - 1 - w - (1 << D))
+    base = cy * Wp + cx  # [K, N]
     n = pts.shape[0]
     norm = 1.0 / (255.0 * max(n, 1))
     use_prior = translation_cost > 0.0 or rotation_cost > 0.0
