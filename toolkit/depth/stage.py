@@ -189,7 +189,8 @@ class DepthStage(Stage):
     # noise normalised by OpenCV's own kernel. 4: simulated: invalid ground truth stays
     # invalid (was filled with 20 m and blurred into its valid neighbours)
     # 5: onnx letterbox: output pixels wholly in the fill left out of the resize back (a
-    #    coarse output blended the fill's guess into the image's border)
+    #    coarse output blended the fill's guess into the image's border); float16 storage
+    #    writes magnitudes above 65504 invalid and counts them (they were inf)
     version = 5
     # The same depth maps on any thread count or device (up to float rounding): an
     # interrupted run's frames stay, and a finished run stays cached (--only reruns it
