@@ -1003,6 +1003,67 @@ def test_resume_after_exception(tmp_path: Path) -> None:
     assert "did not finish last time" not in log
 
 
+class FailsConfig(StageConfig):
+    how: str
+    path: str
+
+
+class Fails(Stage):
+    """Fails reading bad input, or with a bug, as ``how`` says (test stage)."""
+
+    name = "t_fails"
+    Config = FailsConfig
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.io.sequence import read_sequence
+        from toolkit.io.tum import read_tum
+
+        how, path = self.config.how, Path(self.config.path)  # type: ignore[attr-defined]
+        if how == "png":  # what SequenceWriter.add_frame raises for a truncated PNG
+            raise ValueError(f"{path}: frame 50 is not a readable PNG image (truncated or "
+                             "another format); replace it and run again")
+        if how in ("tum", "no file"):
+            read_tum(path)
+        if how == "folder":
+            read_sequence(path)
+        if how == "key":
+            _ = {}["focal"]
+        if how == "broadcast":
+            _ = np.zeros(3) + np.zeros(4)
+
+
+@pytest.mark.parametrize("how, shown", [
+    ("png", "{path}: frame 50 is not a readable PNG image (truncated or another format); "
+            "replace it and run again"),
+    ("tum", "{path}:2: "),
+    ("no file", "{path}: trajectory file not found"),
+    ("folder", "{path}: sequence folder not found"),
+    ("key", "KeyError: 'focal'"),
+    ("broadcast", "ValueError: operands could not be broadcast together"),
+])
+def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
+        tmp_path: Path, how: str, shown: str) -> None:
+    """A stage failing on bad input was shown as "ValueError: <path>: ... (traceback in
+    run.log)": the class name is noise where the message names the file and the fix. A
+    bug (KeyError, numpy's broadcast ValueError) keeps it, for the bug report; the
+    traceback stays in run.log either way."""
+    from recipe_helpers import run_stages  # the tests folder is on sys.path
+
+    path = {"png": tmp_path / "seq" / "000050.png", "tum": tmp_path / "odometry.tum",
+            "no file": tmp_path / "none.tum", "folder": tmp_path / "no_such_sequence"}.get(
+                how, tmp_path)
+    if how == "png":
+        path.parent.mkdir()
+        path.write_bytes(b"\x89PNG\r\n\x1a\n")  # the signature, no image
+    if how == "tum":
+        path.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 zero 0 0 0 1\n")
+    result = run_stages(tmp_path, [{"stage": "t_fails", "how": how, "path": str(path)}],
+                        {"t_fails": Fails})
+    expected = f"stage 't_fails' failed: {shown.format(path=path)}"
+    assert (result.error or "").startswith(expected), result.error
+    assert "Traceback" in (tmp_path / "run" / "run.log").read_text()
+
+
 def test_the_reason_says_whether_an_interrupted_stage_resumes(tmp_path: Path) -> None:
     """An interrupted stage rerun with --force, or under other settings, starts afresh,
     yet the runner said only "did not finish last time", as it does when it resumes."""

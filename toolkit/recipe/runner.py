@@ -813,7 +813,12 @@ class _Run:
             hint = ""
         else:
             lines = str(exc).strip().splitlines()
-            message = f"{type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+            first = lines[0] if lines else ""
+            # Bad input reads better without the class name ("ValueError: .../000050.png:
+            # frame 50 is not a readable PNG image ..."); an unexpected error (a bug:
+            # KeyError, AttributeError) keeps it, for the bug report.
+            message = first if first and _is_input_error(exc) else (
+                f"{type(exc).__name__}: {first}".rstrip(": "))
             self.log.error("stage %s failed", sid, exc_info=exc, extra=_FILE_ONLY)
             hint = f" (traceback in {self.run_dir / LOG_FILE})"
         self.error = f"stage {sid!r} failed: {message}"
@@ -1367,6 +1372,41 @@ def _file_sha256(path: Path) -> str:
     h = hashlib.sha256()
     _hash_bytes(h, path)
     return h.hexdigest()
+
+
+# The packages whose error classes (SequenceFormatError, CalibrationFileError, IngestError,
+# ...) are raised for bad input, each with a message naming the file and the fix.
+_OWN_PACKAGES = ("toolkit.", "calibration.")
+# "<path>:<line>:" at the start of a message: the file (and line) it is about.
+_PATH_HEAD = re.compile(r"^(?P<path>(?:[A-Za-z]:)?[^:]+?)(?::\d+)*: ")
+
+
+def _is_input_error(exc: BaseException) -> bool:
+    """Whether ``exc`` says what is wrong with an input: one of the project's own error
+    classes, an OSError naming its file, or a ValueError / OSError whose message starts
+    with the path it is about (the project's readers write "<path>[:<line>]: ..."; such
+    a path exists, or its folder does for a file not found). Anything else is taken
+    for a bug (numpy's "operands could not be broadcast", a KeyError)."""
+    if type(exc).__module__.startswith(_OWN_PACKAGES):
+        return True
+    if isinstance(exc, OSError) and exc.filename is not None:
+        return True
+    if not isinstance(exc, ValueError | OSError):
+        return False
+    head = _PATH_HEAD.match(str(exc).strip())
+    if head is None:
+        return False
+    text = head["path"]
+    if text.strip(". ") == "":  # "." names the working folder, no file
+        return False
+    path = Path(text)
+    try:
+        if path.exists():
+            return True
+        # Not there ("<path>: trajectory file not found"): a path into a folder that is.
+        return ("/" in text or os.sep in text) and path.parent.is_dir()
+    except OSError:  # a name too long for a path: words, not a file
+        return False
 
 
 def _digest_failure(exc: Exception) -> str:
