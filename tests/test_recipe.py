@@ -702,6 +702,49 @@ def test_a_stage_folder_that_cannot_be_emptied_is_named(
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
 
 
+def test_a_file_named_like_the_runners_folders_is_named_as_in_the_way(tmp_path: Path) -> None:
+    """``<output>/.previous`` as a file (not the folder a finished stage's output waits in
+    while it reruns) got "make the folder writable or free space", which fixes nothing;
+    the message names the file and says to move or delete it."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    (run_dir / ".previous").write_text("not a folder")
+    result = _run(path, only="t_double", force=True)
+    assert result.failed_stage == "t_double"
+    assert result.error == (
+        f"stage 't_double' failed: cannot prepare its folder {run_dir / 't_double'}: "
+        f"{run_dir / '.previous'} is a file where the runner needs a folder (where a "
+        "finished stage's output waits while the stage reruns); move or delete that file, "
+        "then run again (the stage did not start)")
+    assert (run_dir / "t_double" / ".stage.json").exists()  # the finished output kept
+    (run_dir / ".previous").unlink()
+    assert _run(path, only="t_double", force=True).statuses["t_double"] == "ran"
+
+
+def test_a_stage_folder_without_its_record_says_so_and_how_to_rerun(tmp_path: Path) -> None:
+    """A finished stage's folder whose .stage.json was deleted was blamed on "files of your
+    own"; it says what is likely true (its outputs without their record) and the fix:
+    delete the folder to run the stage again."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    stage_dir = tmp_path / "run" / "t_double"
+    (stage_dir / ".stage.json").unlink()
+    with pytest.raises(RecipeError) as info:
+        _run(path)
+    assert str(info.value) == (
+        f"{stage_dir} holds files but no record of a run of stage 't_double' (.stage.json / "
+        ".stage.started.json): the stage's outputs whose record was deleted (a copy or "
+        "clean-up that skips hidden files does that), or files that are not the runner's, "
+        "which it does not delete. Delete the folder to run the stage again (move it "
+        "elsewhere first if it holds files to keep), then run again (nothing was changed)")
+    import shutil
+
+    shutil.rmtree(stage_dir)  # the fix it gives
+    result = _run(path)
+    assert result.ok and result.statuses["t_double"] == "ran"
+
+
 @pytest.mark.parametrize("stage", ["fuse", "tsdf"])
 def test_a_voxel_size_in_other_units_than_metres_is_refused(stage: str) -> None:
     """voxel_size_m: 15 (meant as mm) fused a 240-frame simulated run into 5 points and

@@ -323,10 +323,44 @@ def _other_recipes_run(run_dir: Path, recipe: Recipe) -> str | None:
 
 
 def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
+    # The likely case first: a finished stage whose marker went (deleted by hand, a copy
+    # or clean-up that skips hidden files). The runner cannot tell its outputs from
+    # files put there, so it deletes neither.
     return (f"{stage_dir} holds files but no record of a run of stage {stage_id!r} "
-            f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
-            "of an older version of the toolkit. Move or delete the folder, then run "
-            "again (nothing was changed)")
+            f"({STAGE_FILE} / {STARTED_FILE}): the stage's outputs whose record was "
+            "deleted (a copy or clean-up that skips hidden files does that), or files "
+            "that are not the runner's, which it does not delete. Delete the folder to "
+            "run the stage again (move it elsewhere first if it holds files to keep), "
+            "then run again (nothing was changed)")
+
+
+def _file_in_the_way(path: str | os.PathLike[str] | None) -> Path | None:
+    """The file standing where ``path`` or a folder above it must be a folder (what
+    ENOTDIR and mkdir's EEXIST are about), or None."""
+    if path is None:
+        return None
+    for p in (Path(os.fsdecode(path)), *Path(os.fsdecode(path)).parents):
+        if p.is_symlink() or p.exists():
+            return None if p.is_dir() else p
+    return None
+
+
+def _prepare_failure(run_dir: Path, stage_dir: Path, exc: OSError) -> str:
+    """Why a stage's folder could not be made ready, and the fix for that cause."""
+    blocker = _file_in_the_way(exc.filename)
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST) and blocker is not None:
+        # "make the folder writable or free space" was the advice for a file named
+        # .previous, which neither would fix.
+        purpose = {run_dir / PREVIOUS_DIR: " (where a finished stage's output waits while "
+                   "the stage reruns)", run_dir / FAILED_DIR: " (where a failed rerun's "
+                   "files are kept)"}.get(blocker, "")
+        return (f"cannot prepare its folder {stage_dir}: {blocker} is a file where the "
+                f"runner needs a folder{purpose}; move or delete that file, then run again "
+                "(the stage did not start)")
+    # Named with the stage's folder: shutil.rmtree's errors name a file alone
+    # ("Permission denied: 'path_020.png'"), not where it is.
+    return (f"cannot prepare its folder {stage_dir} ({type(exc).__name__}: {exc}); make "
+            "the folder writable or free space, then run again (the stage did not start)")
 
 
 def _clear_marker_temporaries(stage_dir: Path) -> None:
@@ -652,13 +686,9 @@ class _Run:
             self.write_resolved()
         except RecipeError:
             raise
-        except OSError as exc:  # a full disk, a read-only folder: before any work
-            # Named with the stage's folder: shutil.rmtree's errors name a file alone
-            # ("Permission denied: 'path_020.png'"), not where it is.
-            self.fail(record, StageError(
-                f"cannot prepare its folder {stage_dir} ({type(exc).__name__}: {exc}); make "
-                "the folder writable or free space, then run again (the stage did not start)"),
-                start)
+        except OSError as exc:  # a full disk, a read-only folder, a file in the way
+            self.fail(record, StageError(_prepare_failure(self.run_dir, stage_dir, exc)),
+                      start)
             self.restore_previous(record)
             return False
         record.metrics, record.report, record.provides = {}, [], {}
