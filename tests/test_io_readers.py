@@ -115,6 +115,23 @@ def test_rounded_rotations_are_taken_and_transposed_matrices_named(tmp_path):
         Rig(cam, np.diag([1.0, 1.1, 1.0, 1.0]), np.eye(4))
 
 
+def test_a_rig_that_is_not_rigid_says_what_to_do(tmp_path):
+    """rig.yaml with a non-orthonormal rotation said "R R^T is 0.21 off the identity" and
+    no way out: the message names the fix (export it again, or the calibration command
+    that writes a rig)."""
+    d = rig_to_dict(Rig(PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5), np.eye(4), np.eye(4)))
+    d["T_base_camera"] = np.diag([1.0, 1.1, 1.0, 1.0]).tolist()  # R R^T: diag(1, 1.21, 1)
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(SequenceFormatError) as info:
+        read_rig(tmp_path / "rig.yaml")
+    assert str(info.value) == (
+        f"{tmp_path / 'rig.yaml'}: T_base_camera is not a rigid transform: R R^T is 0.21 off "
+        "the identity (the rotation is not orthonormal); export it again, with all its "
+        "digits, from the tool that made it, or estimate it: python -m calibration "
+        "extrinsic ... --out rig.yaml writes a rig from checkerboard views "
+        "(docs/calibration.md)")
+
+
 def test_calibration_output_feeds_bag_ingest_and_back(tmp_path):
     cam = PinholeCamera(640, 480, 519.3, 518.9, 331.1, 229.4)
     T_cl = np.array([[0, -1, 0, 0.02], [0, 0, -1, 0.1], [1, 0, 0, -0.05], [0, 0, 0, 1.0]])
