@@ -289,6 +289,23 @@ def test_empty_odometry_runs_scan_only():
     assert res.metrics["scans_with_odometry"] == 0 and len(res.poses) == len(scans)
 
 
+def test_meta_yaml_keys_are_optional_but_another_format_is_refused(tmp_path):
+    """As read_sequence's docstring says: meta.yaml and its keys are optional (a folder
+    is a sequence by its rig.yaml), a format other than lidarcam-sequence is refused."""
+    from toolkit.fusion.synthetic import write_box_room
+    from toolkit.io.sequence import SequenceFormatError, read_sequence
+
+    root = write_box_room(tmp_path / "seq", n_frames=2)
+    assert yaml.safe_load((root / "meta.yaml").read_text())["format"] == "lidarcam-sequence"
+    (root / "meta.yaml").write_text("version: 1\nname: box\n")
+    assert read_sequence(root).name == "box"
+    (root / "meta.yaml").unlink()
+    assert read_sequence(root).name == "seq"
+    (root / "meta.yaml").write_text("format: tum-rgbd\n")
+    with pytest.raises(SequenceFormatError, match=r"meta\.yaml: field 'format' is 'tum-rgbd'"):
+        read_sequence(root)
+
+
 def test_a_broken_meta_yaml_names_the_file(tmp_path):
     """A parse error or a version that is no number named neither file nor field."""
     from toolkit.fusion.synthetic import write_box_room
