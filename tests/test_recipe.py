@@ -1498,6 +1498,47 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     assert [p.name for p in path.parent.iterdir()] == []  # no temporary files left
 
 
+def test_a_damaged_checkpoint_that_still_unpickles_starts_afresh(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A byte changed on disk inside an unfinished stage's checkpoint, where the pickle
+    still loads (an array's data), gave the stage the changed state to go on from. The
+    file carries the SHA-256 of its pickle: a mismatch warns and starts afresh."""
+    import logging
+
+    from toolkit.recipe.checkpoint import Checkpoint
+
+    path = tmp_path / "stage" / "checkpoint.pkl"
+    state = {"frames": 12, "depth_sum": np.full(4096, 7, dtype=np.int64)}  # [4096]
+    Checkpoint(path, "key", every_s=0).save(state)
+    loaded = Checkpoint(path, "key", every_s=60).load()
+    assert loaded["frames"] == 12 and np.array_equal(loaded["depth_sum"], state["depth_sum"])
+    data = bytearray(path.read_bytes())
+    at = data.find(np.full(64, 7, dtype=np.int64).tobytes()) + 8 * 100
+    data[at] ^= 0x01  # element 100 of the sums: 7 -> 6, same size, still a pickle
+    path.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.checkpoint"):
+        assert Checkpoint(path, "key", every_s=60).load() is None
+    assert "the checkpoint is damaged (its SHA-256 does not match" in caplog.text
+
+
+def test_a_checkpoint_from_before_the_checksum_starts_afresh(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A format-1 checkpoint (a bare pickle, no digest) cannot be checked: loading it
+    would keep the risk the digest removes, so the stage starts afresh, saying why."""
+    import logging
+    import pickle
+
+    from toolkit.recipe.checkpoint import Checkpoint
+
+    path = tmp_path / "checkpoint.pkl"
+    path.write_bytes(pickle.dumps({"format": 1, "key": "key", "state": {"frames": 3}}))
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.checkpoint"):
+        assert Checkpoint(path, "key", every_s=60).load() is None
+    assert "written before checkpoints carried a checksum" in caplog.text
+    Checkpoint(path, "key", every_s=0).save({"frames": 4})  # the next save is checked
+    assert Checkpoint(path, "key", every_s=60).load() == {"frames": 4}
+
+
 class _Clock:
     """Stands in for the checkpoint module's ``time``: seconds pass only when the test
     says so. With the real clock a quick save preempted for 10 ms on a loaded machine
