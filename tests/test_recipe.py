@@ -722,6 +722,48 @@ def test_a_file_named_like_the_runners_folders_is_named_as_in_the_way(tmp_path: 
     assert _run(path, only="t_double", force=True).statuses["t_double"] == "ran"
 
 
+@pytest.mark.parametrize("aside", [".previous", ".failed"])
+def test_a_file_named_like_the_runners_folders_costs_a_finished_stage_nothing(
+        tmp_path: Path, aside: str, caplog: pytest.LogCaptureFixture) -> None:
+    """With ``<output>/.previous`` or ``.failed`` a file, every stage that finished lost its
+    per-file digests, under a warning blaming them ("could not be digested: .previous/
+    t_sink: Not a directory"): removing the old output "inside" the file failed first."""
+    import logging
+    import shutil
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    (run_dir / aside).write_text("not a folder")
+    shutil.rmtree(run_dir / "t_sink")  # runs again, from no folder
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.runner"):
+        result = _run(path)
+    assert result.ok and result.statuses["t_sink"] == "ran"
+    assert "could not be digested" not in caplog.text
+    marker = json.loads((run_dir / "t_sink" / ".stage.json").read_text())
+    assert "manifest_digests" in marker and marker["output_tokens"]
+
+
+def test_a_file_named_failed_is_named_when_a_previous_output_cannot_go_back(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A failed rerun could not keep its attempt in ``<output>/.failed`` (a file there), so
+    the finished output stayed aside with "Not a directory" and no fix."""
+    import logging
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    (run_dir / ".failed").write_text("not a folder")
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.runner"):
+        assert not _run(path, "t_sink.stage_error=true").ok
+    assert (f"{run_dir / '.failed'} is a file where the runner needs a folder: move or "
+            "delete it, then run again") in caplog.text
+    (run_dir / ".failed").unlink()  # the fix it gives
+    result = _run(path)
+    assert result.ok and result.statuses["t_sink"] == "ran"
+    assert not (run_dir / ".previous").exists()
+
+
 def test_a_stage_folder_without_its_record_says_so_and_how_to_rerun(tmp_path: Path) -> None:
     """A finished stage's folder whose .stage.json was deleted was blamed on "files of your
     own"; it says what is likely true (its outputs without their record) and the fix:

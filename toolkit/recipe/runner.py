@@ -752,8 +752,12 @@ class _Run:
         try:
             (stage_dir / STARTED_FILE).unlink(missing_ok=True)
             for aside in (PREVIOUS_DIR, FAILED_DIR):  # the old output, a failed attempt
-                remove_path(self.run_dir / aside / spec.id)
-                _drop_if_empty(self.run_dir / aside)
+                # A file of that name holds nothing of the stage; removing "inside" it
+                # failed (ENOTDIR), which cost the stage its digests under a warning
+                # blaming them. A rerun names the file (_prepare_failure).
+                if (self.run_dir / aside).is_dir():
+                    remove_path(self.run_dir / aside / spec.id)
+                    _drop_if_empty(self.run_dir / aside)
             self.digest_outputs(record, marker)
         except Exception as exc:  # an unreadable output, a disk error: only the digest lost
             self.log.warning("stage %s finished, but its outputs could not be digested: %s",
@@ -788,8 +792,12 @@ class _Run:
             os.replace(keep, stage_dir)
             _drop_if_empty(keep.parent)
         except OSError as exc:
+            blocker = _file_in_the_way(exc.filename)
+            fix = (f"; {blocker} is a file where the runner needs a folder: move or delete "
+                   "it, then run again" if exc.errno in (errno.ENOTDIR, errno.EEXIST)
+                   and blocker is not None else "")
             self.log.warning("stage %s: its previous output could not be put back from %s "
-                             "(%s); it is still there", record.spec.id, keep, exc)
+                             "(%s); it is still there%s", record.spec.id, keep, exc, fix)
             return
         self.console.print(f"[yellow]{record.spec.id}[/]: its previous output (the last "
                            f"finished run's) is back in {stage_dir}{escape(where)}",
