@@ -28,3 +28,9 @@ def test_runner_digest_cost_hashes_every_file_once_after_a_copy(tmp_path: Path) 
     assert out["first_check_files_hashed"] == 250  # new mtimes: every file read once
     assert out["next_check_files_hashed"] == 0  # their mtimes stored: nothing read
     assert out["marker_bytes"] > 250 * 64  # a SHA-256 hex digest per file
+
+
+def test_checkpoint_cost_saves_and_loads_the_state(tmp_path: Path) -> None:
+    out = _run("benchmarks/checkpoint_cost.py", "1", "--repeats", "2", "--work", str(tmp_path))
+    assert out["mib"] == 1 and out["file_bytes"] > 2**20  # the array and the header
+    assert len(out["save_s"]) == len(out["load_s"]) == 2

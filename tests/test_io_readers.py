@@ -115,6 +115,23 @@ def test_rounded_rotations_are_taken_and_transposed_matrices_named(tmp_path):
         Rig(cam, np.diag([1.0, 1.1, 1.0, 1.0]), np.eye(4))
 
 
+def test_a_rig_that_is_not_rigid_says_what_to_do(tmp_path):
+    """rig.yaml with a non-orthonormal rotation said "R R^T is 0.21 off the identity" and
+    no way out: the message names the fix (export it again, or the calibration command
+    that writes a rig)."""
+    d = rig_to_dict(Rig(PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5), np.eye(4), np.eye(4)))
+    d["T_base_camera"] = np.diag([1.0, 1.1, 1.0, 1.0]).tolist()  # R R^T: diag(1, 1.21, 1)
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(d))
+    with pytest.raises(SequenceFormatError) as info:
+        read_rig(tmp_path / "rig.yaml")
+    assert str(info.value) == (
+        f"{tmp_path / 'rig.yaml'}: T_base_camera is not a rigid transform: R R^T is 0.21 off "
+        "the identity (the rotation is not orthonormal); export it again, with all its "
+        "digits, from the tool that made it, or estimate it: python -m calibration "
+        "extrinsic ... --out rig.yaml writes a rig from checkerboard views "
+        "(docs/calibration.md)")
+
+
 def test_calibration_output_feeds_bag_ingest_and_back(tmp_path):
     cam = PinholeCamera(640, 480, 519.3, 518.9, 331.1, 229.4)
     T_cl = np.array([[0, -1, 0, 0.02], [0, 0, -1, 0.1], [1, 0, 0, -0.05], [0, 0, 0, 1.0]])
@@ -270,6 +287,23 @@ def test_empty_odometry_runs_scan_only():
     scans = [make_scan(p, float(k)) for k, p in enumerate(_drive(6))]
     res = run_slam(scans, Trajectory(np.zeros(0), np.zeros((0, 4, 4)), "odom", "base_link"))
     assert res.metrics["scans_with_odometry"] == 0 and len(res.poses) == len(scans)
+
+
+def test_meta_yaml_keys_are_optional_but_another_format_is_refused(tmp_path):
+    """As read_sequence's docstring says: meta.yaml and its keys are optional (a folder
+    is a sequence by its rig.yaml), a format other than lidarcam-sequence is refused."""
+    from toolkit.fusion.synthetic import write_box_room
+    from toolkit.io.sequence import SequenceFormatError, read_sequence
+
+    root = write_box_room(tmp_path / "seq", n_frames=2)
+    assert yaml.safe_load((root / "meta.yaml").read_text())["format"] == "lidarcam-sequence"
+    (root / "meta.yaml").write_text("version: 1\nname: box\n")
+    assert read_sequence(root).name == "box"
+    (root / "meta.yaml").unlink()
+    assert read_sequence(root).name == "seq"
+    (root / "meta.yaml").write_text("format: tum-rgbd\n")
+    with pytest.raises(SequenceFormatError, match=r"meta\.yaml: field 'format' is 'tum-rgbd'"):
+        read_sequence(root)
 
 
 def test_a_broken_meta_yaml_names_the_file(tmp_path):

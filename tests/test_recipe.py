@@ -702,6 +702,91 @@ def test_a_stage_folder_that_cannot_be_emptied_is_named(
     assert _calls(tmp_path) == {"t_source": 1, "t_double": 1, "t_sink": 1}
 
 
+def test_a_file_named_like_the_runners_folders_is_named_as_in_the_way(tmp_path: Path) -> None:
+    """``<output>/.previous`` as a file (not the folder a finished stage's output waits in
+    while it reruns) got "make the folder writable or free space", which fixes nothing;
+    the message names the file and says to move or delete it."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    (run_dir / ".previous").write_text("not a folder")
+    result = _run(path, only="t_double", force=True)
+    assert result.failed_stage == "t_double"
+    assert result.error == (
+        f"stage 't_double' failed: cannot prepare its folder {run_dir / 't_double'}: "
+        f"{run_dir / '.previous'} is a file where the runner needs a folder (where a "
+        "finished stage's output waits while the stage reruns); move or delete that file, "
+        "then run again (the stage did not start)")
+    assert (run_dir / "t_double" / ".stage.json").exists()  # the finished output kept
+    (run_dir / ".previous").unlink()
+    assert _run(path, only="t_double", force=True).statuses["t_double"] == "ran"
+
+
+@pytest.mark.parametrize("aside", [".previous", ".failed"])
+def test_a_file_named_like_the_runners_folders_costs_a_finished_stage_nothing(
+        tmp_path: Path, aside: str, caplog: pytest.LogCaptureFixture) -> None:
+    """With ``<output>/.previous`` or ``.failed`` a file, every stage that finished lost its
+    per-file digests, under a warning blaming them ("could not be digested: .previous/
+    t_sink: Not a directory"): removing the old output "inside" the file failed first."""
+    import logging
+    import shutil
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    (run_dir / aside).write_text("not a folder")
+    shutil.rmtree(run_dir / "t_sink")  # runs again, from no folder
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.runner"):
+        result = _run(path)
+    assert result.ok and result.statuses["t_sink"] == "ran"
+    assert "could not be digested" not in caplog.text
+    marker = json.loads((run_dir / "t_sink" / ".stage.json").read_text())
+    assert "manifest_digests" in marker and marker["output_tokens"]
+
+
+def test_a_file_named_failed_is_named_when_a_previous_output_cannot_go_back(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A failed rerun could not keep its attempt in ``<output>/.failed`` (a file there), so
+    the finished output stayed aside with "Not a directory" and no fix."""
+    import logging
+
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    run_dir = tmp_path / "run"
+    (run_dir / ".failed").write_text("not a folder")
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.runner"):
+        assert not _run(path, "t_sink.stage_error=true").ok
+    assert (f"{run_dir / '.failed'} is a file where the runner needs a folder: move or "
+            "delete it, then run again") in caplog.text
+    (run_dir / ".failed").unlink()  # the fix it gives
+    result = _run(path)
+    assert result.ok and result.statuses["t_sink"] == "ran"
+    assert not (run_dir / ".previous").exists()
+
+
+def test_a_stage_folder_without_its_record_says_so_and_how_to_rerun(tmp_path: Path) -> None:
+    """A finished stage's folder whose .stage.json was deleted was blamed on "files of your
+    own"; it says what is likely true (its outputs without their record) and the fix:
+    delete the folder to run the stage again."""
+    path = _write_recipe(tmp_path, _recipe_data(tmp_path))
+    _run(path)
+    stage_dir = tmp_path / "run" / "t_double"
+    (stage_dir / ".stage.json").unlink()
+    with pytest.raises(RecipeError) as info:
+        _run(path)
+    assert str(info.value) == (
+        f"{stage_dir} holds files but no record of a run of stage 't_double' (.stage.json / "
+        ".stage.started.json): the stage's outputs whose record was deleted (a copy or "
+        "clean-up that skips hidden files does that), or files that are not the runner's, "
+        "which it does not delete. Delete the folder to run the stage again (move it "
+        "elsewhere first if it holds files to keep), then run again (nothing was changed)")
+    import shutil
+
+    shutil.rmtree(stage_dir)  # the fix it gives
+    result = _run(path)
+    assert result.ok and result.statuses["t_double"] == "ran"
+
+
 @pytest.mark.parametrize("stage", ["fuse", "tsdf"])
 def test_a_voxel_size_in_other_units_than_metres_is_refused(stage: str) -> None:
     """voxel_size_m: 15 (meant as mm) fused a 240-frame simulated run into 5 points and
@@ -1001,6 +1086,67 @@ def test_resume_after_exception(tmp_path: Path) -> None:
     log = (run_dir / "run.log").read_text()
     assert "t_sink (t_sink) started: failed last time: runs again, on the files it wrote" in log
     assert "did not finish last time" not in log
+
+
+class FailsConfig(StageConfig):
+    how: str
+    path: str
+
+
+class Fails(Stage):
+    """Fails reading bad input, or with a bug, as ``how`` says (test stage)."""
+
+    name = "t_fails"
+    Config = FailsConfig
+
+    def run(self, ctx: StageContext) -> None:
+        from toolkit.io.sequence import read_sequence
+        from toolkit.io.tum import read_tum
+
+        how, path = self.config.how, Path(self.config.path)  # type: ignore[attr-defined]
+        if how == "png":  # what SequenceWriter.add_frame raises for a truncated PNG
+            raise ValueError(f"{path}: frame 50 is not a readable PNG image (truncated or "
+                             "another format); replace it and run again")
+        if how in ("tum", "no file"):
+            read_tum(path)
+        if how == "folder":
+            read_sequence(path)
+        if how == "key":
+            _ = {}["focal"]
+        if how == "broadcast":
+            _ = np.zeros(3) + np.zeros(4)
+
+
+@pytest.mark.parametrize("how, shown", [
+    ("png", "{path}: frame 50 is not a readable PNG image (truncated or another format); "
+            "replace it and run again"),
+    ("tum", "{path}:2: "),
+    ("no file", "{path}: trajectory file not found"),
+    ("folder", "{path}: sequence folder not found"),
+    ("key", "KeyError: 'focal'"),
+    ("broadcast", "ValueError: operands could not be broadcast together"),
+])
+def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
+        tmp_path: Path, how: str, shown: str) -> None:
+    """A stage failing on bad input was shown as "ValueError: <path>: ... (traceback in
+    run.log)": the class name is noise where the message names the file and the fix. A
+    bug (KeyError, numpy's broadcast ValueError) keeps it, for the bug report; the
+    traceback stays in run.log either way."""
+    from recipe_helpers import run_stages  # the tests folder is on sys.path
+
+    path = {"png": tmp_path / "seq" / "000050.png", "tum": tmp_path / "odometry.tum",
+            "no file": tmp_path / "none.tum", "folder": tmp_path / "no_such_sequence"}.get(
+                how, tmp_path)
+    if how == "png":
+        path.parent.mkdir()
+        path.write_bytes(b"\x89PNG\r\n\x1a\n")  # the signature, no image
+    if how == "tum":
+        path.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 zero 0 0 0 1\n")
+    result = run_stages(tmp_path, [{"stage": "t_fails", "how": how, "path": str(path)}],
+                        {"t_fails": Fails})
+    expected = f"stage 't_fails' failed: {shown.format(path=path)}"
+    assert (result.error or "").startswith(expected), result.error
+    assert "Traceback" in (tmp_path / "run" / "run.log").read_text()
 
 
 def test_the_reason_says_whether_an_interrupted_stage_resumes(tmp_path: Path) -> None:
@@ -1392,6 +1538,47 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     ck.remove()
     assert not path.exists()
     assert [p.name for p in path.parent.iterdir()] == []  # no temporary files left
+
+
+def test_a_damaged_checkpoint_that_still_unpickles_starts_afresh(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A byte changed on disk inside an unfinished stage's checkpoint, where the pickle
+    still loads (an array's data), gave the stage the changed state to go on from. The
+    file carries the SHA-256 of its pickle: a mismatch warns and starts afresh."""
+    import logging
+
+    from toolkit.recipe.checkpoint import Checkpoint
+
+    path = tmp_path / "stage" / "checkpoint.pkl"
+    state = {"frames": 12, "depth_sum": np.full(4096, 7, dtype=np.int64)}  # [4096]
+    Checkpoint(path, "key", every_s=0).save(state)
+    loaded = Checkpoint(path, "key", every_s=60).load()
+    assert loaded["frames"] == 12 and np.array_equal(loaded["depth_sum"], state["depth_sum"])
+    data = bytearray(path.read_bytes())
+    at = data.find(np.full(64, 7, dtype=np.int64).tobytes()) + 8 * 100
+    data[at] ^= 0x01  # element 100 of the sums: 7 -> 6, same size, still a pickle
+    path.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.checkpoint"):
+        assert Checkpoint(path, "key", every_s=60).load() is None
+    assert "the checkpoint is damaged (its SHA-256 does not match" in caplog.text
+
+
+def test_a_checkpoint_from_before_the_checksum_starts_afresh(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A format-1 checkpoint (a bare pickle, no digest) cannot be checked: loading it
+    would keep the risk the digest removes, so the stage starts afresh, saying why."""
+    import logging
+    import pickle
+
+    from toolkit.recipe.checkpoint import Checkpoint
+
+    path = tmp_path / "checkpoint.pkl"
+    path.write_bytes(pickle.dumps({"format": 1, "key": "key", "state": {"frames": 3}}))
+    with caplog.at_level(logging.WARNING, logger="toolkit.recipe.checkpoint"):
+        assert Checkpoint(path, "key", every_s=60).load() is None
+    assert "written before checkpoints carried a checksum" in caplog.text
+    Checkpoint(path, "key", every_s=0).save({"frames": 4})  # the next save is checked
+    assert Checkpoint(path, "key", every_s=60).load() == {"frames": 4}
 
 
 class _Clock:

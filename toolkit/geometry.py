@@ -41,8 +41,12 @@ def checked_rigid(T: np.ndarray) -> np.ndarray:
     R = T[:3, :3]
     off = float(np.abs(R @ R.T - np.eye(3)).max())
     if off > 1e-3:
+        # Not rounding (up to 1e-3 passes): a scaled, sheared or hand-typed matrix.
         raise ValueError(f"is not a rigid transform: R R^T is {off:.2g} off the identity "
-                         "(the rotation is not orthonormal)")
+                         "(the rotation is not orthonormal); export it again, with all its "
+                         "digits, from the tool that made it, or estimate it: python -m "
+                         "calibration extrinsic ... --out rig.yaml writes a rig from "
+                         "checkerboard views (docs/calibration.md)")
     if np.linalg.det(R) < 0:
         raise ValueError("is a reflection (det -1), not a rotation: frames are right-handed "
                          "(REP 103); check the optical-frame axes (x right, y down, z "

@@ -427,7 +427,16 @@ def check_sequence_folder(root: Path) -> None:
 
 
 def read_sequence(root: Path | str) -> Sequence:
-    """Load a sequence folder (images stay on disk until used)."""
+    """Load a sequence folder (images stay on disk until used).
+
+    ``meta.yaml`` and each of its keys are optional: a folder is a sequence by its
+    ``rig.yaml`` (``check_sequence_folder``), and a hand-made one (rig.yaml, frames.csv,
+    scans.npz) is read without a meta.yaml at all. So a meta.yaml without ``format`` is
+    read as ``lidarcam-sequence``, without ``version`` as version 1 and without ``name``
+    under the folder's name; ``format`` refuses a meta.yaml that names another format,
+    and ``version`` one newer than this toolkit reads. (Requiring ``format`` in a
+    meta.yaml would refuse a folder that deleting the file makes readable.)
+    ``SequenceWriter`` always writes all three."""
     root = Path(root)
     if not root.is_dir():
         # A file named here was reported as "not found" though it exists.

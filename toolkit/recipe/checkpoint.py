@@ -5,20 +5,45 @@ file in the stage's folder together with the stage's cache key; a later run load
 under the same key, so changed settings or inputs start afresh. The file is the stage's own
 intermediate output, read back only by the stage that wrote it (it is a pickle: do not
 load checkpoints from elsewhere).
+
+The file is a header line, the SHA-256 of the rest, and the pickle. A pickle carries no
+check of its own: a byte changed on disk (a bad sector, a bit flipped in the page cache)
+that still unpickles gave the stage a wrong state to go on from, whose error then stood in
+its finished, cached outputs. A checkpoint whose digest does not match is set aside (a
+warning; the stage starts afresh), as one of another version of the stage is. So is one
+written before the digest (format 1, a bare pickle): loading it unchecked would keep the
+risk, and starting afresh costs the interrupted stage's work once, on the first run after
+the upgrade.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import pickle
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from toolkit.io.atomic import atomic_path, remove_leftover_temps
 
-_FORMAT = 1
+_FORMAT = 2
+_MAGIC = b"lidarcam-recon checkpoint 2\n"
+_DIGEST_LEN = 64  # hex SHA-256, then a newline
+
+
+class _HashingWriter:
+    """A file for ``pickle.dump`` that hashes what goes through it (the state is streamed
+    to disk, never held twice in memory)."""
+
+    def __init__(self, fh: IO[bytes]) -> None:
+        self.fh = fh
+        self.sha = hashlib.sha256()
+
+    def write(self, data: bytes | memoryview) -> int:
+        self.sha.update(data)
+        return self.fh.write(data)
 
 
 class Checkpoint:
@@ -50,6 +75,23 @@ class Checkpoint:
             return None
         try:
             with open(self.path, "rb") as fh:
+                head = fh.readline(len(_MAGIC))
+                if head != _MAGIC:
+                    why = ("written before checkpoints carried a checksum (an older "
+                           "toolkit)" if head.startswith(b"\x80") else "not a checkpoint "
+                           "file, or its first line is damaged")
+                    self.log.warning("%s: %s; starting afresh", self.path, why)
+                    return None
+                stored = fh.readline(_DIGEST_LEN + 1).strip().decode("ascii", "replace")
+                start = fh.tell()
+                # Read twice (digest, then unpickle): a state of gigabytes is not held
+                # as bytes beside the objects made of them.
+                actual = hashlib.file_digest(fh, "sha256").hexdigest()
+                if actual != stored:
+                    self.log.warning("%s: the checkpoint is damaged (its SHA-256 does not "
+                                     "match what was written); starting afresh", self.path)
+                    return None
+                fh.seek(start)
                 saved = pickle.load(fh)
         except Exception as e:  # written by another version of the code, or damaged
             self.log.warning("%s: cannot read the checkpoint (%s); starting afresh", self.path, e)
@@ -81,8 +123,14 @@ class Checkpoint:
         t0 = time.perf_counter()
         with atomic_path(self.path) as tmp:
             with open(tmp, "wb") as fh:
-                pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, fh,
+                fh.write(_MAGIC)
+                digest_at = fh.tell()
+                fh.write(b"0" * _DIGEST_LEN + b"\n")  # filled in once the pickle is out
+                out = _HashingWriter(fh)
+                pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, out,
                             protocol=pickle.HIGHEST_PROTOCOL)
+                fh.seek(digest_at)
+                fh.write(out.sha.hexdigest().encode("ascii"))
         self.saves += 1
         self.last_save_s = time.perf_counter() - t0
         self.seconds += self.last_save_s

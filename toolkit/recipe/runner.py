@@ -323,10 +323,44 @@ def _other_recipes_run(run_dir: Path, recipe: Recipe) -> str | None:
 
 
 def _foreign_folder_message(stage_dir: Path, stage_id: str) -> str:
+    # The likely case first: a finished stage whose marker went (deleted by hand, a copy
+    # or clean-up that skips hidden files). The runner cannot tell its outputs from
+    # files put there, so it deletes neither.
     return (f"{stage_dir} holds files but no record of a run of stage {stage_id!r} "
-            f"({STAGE_FILE} / {STARTED_FILE}): files of your own, or an interrupted run "
-            "of an older version of the toolkit. Move or delete the folder, then run "
-            "again (nothing was changed)")
+            f"({STAGE_FILE} / {STARTED_FILE}): the stage's outputs whose record was "
+            "deleted (a copy or clean-up that skips hidden files does that), or files "
+            "that are not the runner's, which it does not delete. Delete the folder to "
+            "run the stage again (move it elsewhere first if it holds files to keep), "
+            "then run again (nothing was changed)")
+
+
+def _file_in_the_way(path: str | os.PathLike[str] | None) -> Path | None:
+    """The file standing where ``path`` or a folder above it must be a folder (what
+    ENOTDIR and mkdir's EEXIST are about), or None."""
+    if path is None:
+        return None
+    for p in (Path(os.fsdecode(path)), *Path(os.fsdecode(path)).parents):
+        if p.is_symlink() or p.exists():
+            return None if p.is_dir() else p
+    return None
+
+
+def _prepare_failure(run_dir: Path, stage_dir: Path, exc: OSError) -> str:
+    """Why a stage's folder could not be made ready, and the fix for that cause."""
+    blocker = _file_in_the_way(exc.filename)
+    if exc.errno in (errno.ENOTDIR, errno.EEXIST) and blocker is not None:
+        # "make the folder writable or free space" was the advice for a file named
+        # .previous, which neither would fix.
+        purpose = {run_dir / PREVIOUS_DIR: " (where a finished stage's output waits while "
+                   "the stage reruns)", run_dir / FAILED_DIR: " (where a failed rerun's "
+                   "files are kept)"}.get(blocker, "")
+        return (f"cannot prepare its folder {stage_dir}: {blocker} is a file where the "
+                f"runner needs a folder{purpose}; move or delete that file, then run again "
+                "(the stage did not start)")
+    # Named with the stage's folder: shutil.rmtree's errors name a file alone
+    # ("Permission denied: 'path_020.png'"), not where it is.
+    return (f"cannot prepare its folder {stage_dir} ({type(exc).__name__}: {exc}); make "
+            "the folder writable or free space, then run again (the stage did not start)")
 
 
 def _clear_marker_temporaries(stage_dir: Path) -> None:
@@ -652,13 +686,9 @@ class _Run:
             self.write_resolved()
         except RecipeError:
             raise
-        except OSError as exc:  # a full disk, a read-only folder: before any work
-            # Named with the stage's folder: shutil.rmtree's errors name a file alone
-            # ("Permission denied: 'path_020.png'"), not where it is.
-            self.fail(record, StageError(
-                f"cannot prepare its folder {stage_dir} ({type(exc).__name__}: {exc}); make "
-                "the folder writable or free space, then run again (the stage did not start)"),
-                start)
+        except OSError as exc:  # a full disk, a read-only folder, a file in the way
+            self.fail(record, StageError(_prepare_failure(self.run_dir, stage_dir, exc)),
+                      start)
             self.restore_previous(record)
             return False
         record.metrics, record.report, record.provides = {}, [], {}
@@ -722,8 +752,12 @@ class _Run:
         try:
             (stage_dir / STARTED_FILE).unlink(missing_ok=True)
             for aside in (PREVIOUS_DIR, FAILED_DIR):  # the old output, a failed attempt
-                remove_path(self.run_dir / aside / spec.id)
-                _drop_if_empty(self.run_dir / aside)
+                # A file of that name holds nothing of the stage; removing "inside" it
+                # failed (ENOTDIR), which cost the stage its digests under a warning
+                # blaming them. A rerun names the file (_prepare_failure).
+                if (self.run_dir / aside).is_dir():
+                    remove_path(self.run_dir / aside / spec.id)
+                    _drop_if_empty(self.run_dir / aside)
             self.digest_outputs(record, marker)
         except Exception as exc:  # an unreadable output, a disk error: only the digest lost
             self.log.warning("stage %s finished, but its outputs could not be digested: %s",
@@ -758,8 +792,12 @@ class _Run:
             os.replace(keep, stage_dir)
             _drop_if_empty(keep.parent)
         except OSError as exc:
+            blocker = _file_in_the_way(exc.filename)
+            fix = (f"; {blocker} is a file where the runner needs a folder: move or delete "
+                   "it, then run again" if exc.errno in (errno.ENOTDIR, errno.EEXIST)
+                   and blocker is not None else "")
             self.log.warning("stage %s: its previous output could not be put back from %s "
-                             "(%s); it is still there", record.spec.id, keep, exc)
+                             "(%s); it is still there%s", record.spec.id, keep, exc, fix)
             return
         self.console.print(f"[yellow]{record.spec.id}[/]: its previous output (the last "
                            f"finished run's) is back in {stage_dir}{escape(where)}",
@@ -813,7 +851,12 @@ class _Run:
             hint = ""
         else:
             lines = str(exc).strip().splitlines()
-            message = f"{type(exc).__name__}: {lines[0] if lines else ''}".rstrip(": ")
+            first = lines[0] if lines else ""
+            # Bad input reads better without the class name ("ValueError: .../000050.png:
+            # frame 50 is not a readable PNG image ..."); an unexpected error (a bug:
+            # KeyError, AttributeError) keeps it, for the bug report.
+            message = first if first and _is_input_error(exc) else (
+                f"{type(exc).__name__}: {first}".rstrip(": "))
             self.log.error("stage %s failed", sid, exc_info=exc, extra=_FILE_ONLY)
             hint = f" (traceback in {self.run_dir / LOG_FILE})"
         self.error = f"stage {sid!r} failed: {message}"
@@ -1367,6 +1410,41 @@ def _file_sha256(path: Path) -> str:
     h = hashlib.sha256()
     _hash_bytes(h, path)
     return h.hexdigest()
+
+
+# The packages whose error classes (SequenceFormatError, CalibrationFileError, IngestError,
+# ...) are raised for bad input, each with a message naming the file and the fix.
+_OWN_PACKAGES = ("toolkit.", "calibration.")
+# "<path>:<line>:" at the start of a message: the file (and line) it is about.
+_PATH_HEAD = re.compile(r"^(?P<path>(?:[A-Za-z]:)?[^:]+?)(?::\d+)*: ")
+
+
+def _is_input_error(exc: BaseException) -> bool:
+    """Whether ``exc`` says what is wrong with an input: one of the project's own error
+    classes, an OSError naming its file, or a ValueError / OSError whose message starts
+    with the path it is about (the project's readers write "<path>[:<line>]: ..."; such
+    a path exists, or its folder does for a file not found). Anything else is taken
+    for a bug (numpy's "operands could not be broadcast", a KeyError)."""
+    if type(exc).__module__.startswith(_OWN_PACKAGES):
+        return True
+    if isinstance(exc, OSError) and exc.filename is not None:
+        return True
+    if not isinstance(exc, ValueError | OSError):
+        return False
+    head = _PATH_HEAD.match(str(exc).strip())
+    if head is None:
+        return False
+    text = head["path"]
+    if text.strip(". ") == "":  # "." names the working folder, no file
+        return False
+    path = Path(text)
+    try:
+        if path.exists():
+            return True
+        # Not there ("<path>: trajectory file not found"): a path into a folder that is.
+        return ("/" in text or os.sep in text) and path.parent.is_dir()
+    except OSError:  # a name too long for a path: words, not a file
+        return False
 
 
 def _digest_failure(exc: Exception) -> str:
