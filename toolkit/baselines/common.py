@@ -189,6 +189,12 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
     seen = np.zeros(len(pts), bool)
     if len(pts) == 0:
         return seen
+    finite = np.isfinite(pts).all(axis=1)  # [M]
+    if not finite.all():
+        # Never seen; bucketed with the others, one NaN gave every cube a wrong centre.
+        seen[finite] = _observed_mask_one_blas_thread(pts[finite], camera, poses, views,
+                                                      tolerance_m, max_depth_m)
+        return seen
     # Points are bucketed in cubes; a view tests only the points of cubes whose bounding
     # sphere meets its frustum (a house is large, a view sees a few percent of it). 0.25 m
     # rather than 0.5: on the quickstart's lap the views' candidates fell from 130.9 M to
@@ -211,8 +217,7 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
     unseen = np.diff(bounds)  # [C] points of each cube not seen yet: 0 skips the cube
     cube_s = np.repeat(np.arange(len(starts)), unseen)  # [M] cube of each sorted point
     radius = cell * np.sqrt(3.0) / 2
-    tx = max(camera.cx, camera.width - camera.cx) / camera.fx  # half-FOV tangents
-    ty = max(camera.cy, camera.height - camera.cy) / camera.fy
+    tx, ty = _half_fov_tangents(camera)
     mx, my = radius * np.sqrt(1 + tx * tx), radius * np.sqrt(1 + ty * ty)
     W, H = camera.width, camera.height
     W2 = W + 2
@@ -225,10 +230,11 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
     for T, view in zip(poses, views, strict=True):
         T_cw = inv_se3(T)
         c = centres @ T_cw[:3, :3].T + T_cw[:3, 3]  # [C, 3]
-        near = ((c[:, 2] > -radius) & (c[:, 2] < max_depth_m + radius)
-                & (np.abs(c[:, 0]) <= c[:, 2] * tx + mx)
-                & (np.abs(c[:, 1]) <= c[:, 2] * ty + my)
-                & (unseen > 0))
+        near = (c[:, 2] > -radius) & (c[:, 2] < max_depth_m + radius) & (unseen > 0)
+        if np.isfinite(tx):  # inf * 0 would drop the cubes around the camera
+            near &= np.abs(c[:, 0]) <= c[:, 2] * tx + mx
+        if np.isfinite(ty):
+            near &= np.abs(c[:, 1]) <= c[:, 2] * ty + my
         cubes = np.flatnonzero(near)
         start, count = bounds[cubes], bounds[cubes + 1] - bounds[cubes]
         # [sum(count)] sorted positions: each near cube's run, one after another
@@ -282,6 +288,22 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
         unseen -= np.bincount(cube_s[hit], minlength=len(unseen))
     seen[order] = seen_s
     return seen
+
+
+def _half_fov_tangents(camera: PinholeCamera) -> tuple[float, float]:
+    """(tx, ty): no point with |x / z| > tx or |y / z| > ty projects into the image, whose
+    pixel centres span -0.5 .. width - 0.5 (inf: no bound).
+
+    A pinhole's come from the image's edges. A distorted camera's edges bend: a barrel
+    lens's corners see wider than a pinhole with its fx, and the views' frustum test cut
+    away points its image holds. Its rays reach the image only inside the radius where
+    the model turns back (``project`` gives NaN past it), so that radius bounds both;
+    a model that never turns back gives no bound."""
+    if camera.has_distortion:
+        r = float(np.sqrt(camera.max_radius2()))
+        return r, r
+    return (max(camera.cx + 0.5, camera.width - 0.5 - camera.cx) / camera.fx,
+            max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy)
 
 
 def _unpad(padded: np.ndarray) -> np.ndarray:
