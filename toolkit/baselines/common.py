@@ -245,7 +245,8 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
         # bit, docs/baselines.md), so a sample within an ulp of a threshold could change
         # sides; on the quickstart's lap the mask is the same to the bit (478 020 samples).
         # Everything after them is elementwise.
-        P = sorted_pts[pos]  # [N, 3]
+        # np.take, not P[pos]: numpy's fancy indexing of rows took 2.7 times as long.
+        P = np.take(sorted_pts, pos, axis=0)  # [N, 3]
         z = P @ T_cw[2, :3]  # [N]
         z += T_cw[2, 3]
         # Every candidate placed and projected, then one selection: the rows behind the
@@ -257,7 +258,8 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
         keep = camera.in_image(uv)
         keep &= z > 1e-6
         keep &= z <= max_depth_m
-        pos, zc, uv = pos[keep], zc[keep], uv[keep]  # [n], [n], [n, 2]
+        kept = np.flatnonzero(keep)  # [n]; three boolean selections took 4.6 times as long
+        pos, zc, uv = pos.take(kept), zc.take(kept), uv.take(kept, axis=0)  # [n], [n], [n, 2]
         # Against the depths of the 2 x 2 pixel centres around the projection, not the
         # nearest one alone: on a floor seen at a grazing angle the depth changes by more
         # than the tolerance from one pixel to the next, and a fifth of the plainly visible
