@@ -315,10 +315,30 @@ def test_observed_mask_runs_blas_on_one_thread_and_gives_the_same_mask() -> None
     np.testing.assert_array_equal(default, seen)
 
 
+def _plain_observed_mask(pts: np.ndarray, cam: PinholeCamera, poses: np.ndarray,
+                         depths: list[np.ndarray], tol: float, max_depth: float) -> np.ndarray:
+    """[M] bool: the per-point test written out (all points, every view, the four pixels
+    around each clipped to the image)."""
+    h, w = cam.height, cam.width
+    expect = np.zeros(len(pts), bool)
+    for T, d in zip(poses, depths, strict=True):
+        T_cw = np.linalg.inv(T)
+        pc = pts @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv, z = cam.project(pc)
+        ok = (z > 1e-6) & (z <= max_depth) & cam.in_image(uv)
+        u0, v0 = np.floor(uv[ok, 0]).astype(int), np.floor(uv[ok, 1]).astype(int)
+        near = np.stack([d[np.clip(v0 + dv, 0, h - 1), np.clip(u0 + du, 0, w - 1)]
+                         for du in (0, 1) for dv in (0, 1)]).astype(np.float64)  # [4, n]
+        valid = near > 0
+        lo = np.where(valid, near, np.inf).min(0)
+        hi = np.where(valid, near, -np.inf).max(0)
+        expect[np.flatnonzero(ok)[(z[ok] > lo - tol) & (z[ok] < hi + tol)]] = True
+    return expect
+
+
 def test_observed_mask_matches_the_plain_test_at_the_image_borders() -> None:
     """Points over the whole image, its half-pixel borders included, against random depth
-    maps with holes (0 and NaN): the mask is the plain per-point test's, written out here
-    (all points, every view, the four pixels around each clipped to the image)."""
+    maps with holes (0 and NaN): the mask is the plain per-point test's."""
     rng = np.random.default_rng(3)
     cam = PinholeCamera(40, 30, 30.0, 30.0, 19.5, 14.5)
     poses = np.stack([look_at(rng.uniform(-0.3, 0.3, 3), [0.0, 0.0, 3.0]) for _ in range(5)])
@@ -335,22 +355,93 @@ def test_observed_mask_matches_the_plain_test_at_the_image_borders() -> None:
         pc = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z]
         pts.append(pc @ T[:3, :3].T + T[:3, 3])
     pts = np.concatenate(pts)
-    expect = np.zeros(len(pts), bool)
-    for T, d in zip(poses, depths, strict=True):
-        T_cw = np.linalg.inv(T)
-        pc = pts @ T_cw[:3, :3].T + T_cw[:3, 3]
-        uv, z = cam.project(pc)
-        ok = (z > 1e-6) & (z <= 4.0) & cam.in_image(uv)
-        u0, v0 = np.floor(uv[ok, 0]).astype(int), np.floor(uv[ok, 1]).astype(int)
-        near = np.stack([d[np.clip(v0 + dv, 0, 29), np.clip(u0 + du, 0, 39)]
-                         for du in (0, 1) for dv in (0, 1)]).astype(np.float64)  # [4, n]
-        valid = near > 0
-        lo = np.where(valid, near, np.inf).min(0)
-        hi = np.where(valid, near, -np.inf).max(0)
-        expect[np.flatnonzero(ok)[(z[ok] > lo - 0.05) & (z[ok] < hi + 0.05)]] = True
+    expect = _plain_observed_mask(pts, cam, poses, depths, 0.05, 4.0)
     assert 0.2 < expect.mean() < 0.9
     seen = observed_mask(pts, cam, poses, iter(depths), tolerance_m=0.05, max_depth_m=4.0)
     np.testing.assert_array_equal(seen, expect)
+
+
+def test_observed_mask_matches_the_plain_test_all_round_the_cameras() -> None:
+    """Points all round the cameras, behind them and in their image plane: the views
+    project every candidate before they drop the ones behind or too far, and the mask is
+    still the plain per-point test's."""
+    rng = np.random.default_rng(5)
+    cam = PinholeCamera(48, 36, 30.0, 30.0, 23.5, 17.5)
+    poses = np.stack([np.eye(4)] + [look_at(rng.uniform(-1.0, 1.0, 3),
+                                            rng.uniform(-3.0, 3.0, 3)) for _ in range(5)])
+    depths = [rng.uniform(0.5, 4.5, (36, 48)).astype(np.float32) for _ in poses]
+    for d in depths:
+        d[rng.random(d.shape) < 0.1] = 0.0
+    pts = rng.uniform(-4.0, 4.0, (20000, 3))  # [M, 3] all round, cubes cut by every frustum
+    # In the first camera's image plane, just in front of it and behind it.
+    plane = np.c_[rng.uniform(-1, 1, (300, 2)), np.repeat([0.0, 1e-7, -1.0], 100)]
+    pts = np.concatenate([pts, plane])
+    # Near each view's depth too, so that a fair share is seen.
+    for T, d in zip(poses, depths, strict=True):
+        uv = np.c_[rng.uniform(-0.5, 47.5, 2000), rng.uniform(-0.5, 35.5, 2000)]
+        xy = cam.undistort_points(uv)
+        z = d[np.clip(np.round(uv[:, 1]).astype(int), 0, 35),
+              np.clip(np.round(uv[:, 0]).astype(int), 0, 47)] + rng.normal(0, 0.05, 2000)
+        pc = np.c_[xy * z[:, None], z]
+        pts = np.concatenate([pts, pc @ T[:3, :3].T + T[:3, 3]])
+    expect = _plain_observed_mask(pts, cam, poses, depths, 0.05, 3.5)
+    assert 0.1 < expect.mean() < 0.6
+    seen = observed_mask(pts, cam, poses, iter(depths), tolerance_m=0.05, max_depth_m=3.5)
+    np.testing.assert_array_equal(seen, expect)
+
+
+@pytest.mark.parametrize("dist", [[-0.3, 0.0, 0.01, 0.0, 0.0],  # turns back at r = 1.05
+                                  [-0.3, 0.08, 0.0, 0.0, 0.0]])  # never turns back
+def test_observed_mask_keeps_what_a_distorted_image_holds(dist: list[float]) -> None:
+    """A barrel lens's corners see wider than a pinhole with its fx: the views' frustum
+    test bounded rays by the pinhole's, and 0.8 % (a model that turns back) and 1.8 %
+    (one that does not) of these points, which the image holds, were never tested."""
+    rng = np.random.default_rng(5)
+    cam = PinholeCamera(48, 36, 30.0, 30.0, 23.5, 17.5, np.array(dist))
+    poses = np.stack([np.eye(4)] + [look_at(rng.uniform(-1.0, 1.0, 3),
+                                            rng.uniform(-3.0, 3.0, 3)) for _ in range(5)])
+    depths = [rng.uniform(0.5, 4.5, (36, 48)).astype(np.float32) for _ in poses]
+    for d in depths:
+        d[rng.random(d.shape) < 0.1] = 0.0
+    pts = [rng.uniform(-4.0, 4.0, (20000, 3))]  # [M, 3] all round
+    for T, d in zip(poses, depths, strict=True):  # near each view's depth too
+        uv = np.c_[rng.uniform(-0.5, 47.5, 2000), rng.uniform(-0.5, 35.5, 2000)]
+        xy = cam.undistort_points(uv)
+        z = d[np.clip(np.round(uv[:, 1]).astype(int), 0, 35),
+              np.clip(np.round(uv[:, 0]).astype(int), 0, 47)] + rng.normal(0, 0.05, 2000)
+        pc = np.c_[xy * z[:, None], z][np.isfinite(xy).all(1)]  # no ray past the peak
+        pts.append(pc @ T[:3, :3].T + T[:3, 3])
+    pts = np.concatenate(pts)
+    expect = _plain_observed_mask(pts, cam, poses, depths, 0.05, 3.5)
+    assert 0.1 < expect.mean() < 0.6
+    seen = observed_mask(pts, cam, poses, iter(depths), tolerance_m=0.05, max_depth_m=3.5)
+    np.testing.assert_array_equal(seen, expect)
+
+
+def test_observed_mask_keeps_the_half_pixel_beside_an_off_centre_principal_point() -> None:
+    """Pixel centres span -0.5 .. width - 0.5: with the principal point at the right edge
+    the image reaches (cx + 0.5) / fx to the left, and the frustum test's bound, cx / fx,
+    dropped the points on a wall 100 m ahead that land in the left half pixel."""
+    cam = PinholeCamera(20, 10, 10.0, 10.0, 19.0, 4.5)
+    u = np.linspace(-0.5, 19.49, 400)
+    v = np.linspace(-0.5, 9.49, 7)
+    uu, vv = (a.ravel() for a in np.meshgrid(u, v))
+    pts = np.c_[(uu - cam.cx) / cam.fx * 100.0, (vv - cam.cy) / cam.fy * 100.0,
+                np.full(len(uu), 100.0)]  # [M, 3] on the wall z = 100
+    seen = observed_mask(pts, cam, np.eye(4)[None], [np.full((10, 20), 100.0, np.float32)])
+    assert seen.all()
+
+
+def test_observed_mask_leaves_non_finite_points_unseen_and_the_others_alone() -> None:
+    """A NaN point was bucketed with the others: its cube index, cast from NaN, gave every
+    cube a wrong centre, and the view saw none of a wall it faces."""
+    cam = PinholeCamera(20, 20, 10.0, 10.0, 9.5, 9.5)
+    g = np.linspace(-1.5, 1.5, 31)
+    xx, yy = (a.ravel() for a in np.meshgrid(g, g))
+    wall = np.c_[xx, yy, np.full(len(xx), 2.0)]  # [M, 3] on the wall z = 2, in the image
+    pts = np.concatenate([wall, [[np.nan, 0.0, 2.0], [0.0, np.inf, 2.0]]])
+    seen = observed_mask(pts, cam, np.eye(4)[None], [np.full((20, 20), 2.0, np.float32)])
+    np.testing.assert_array_equal(seen, [True] * len(wall) + [False, False])
 
 
 def test_a_grazing_floor_is_observed_where_it_is_visible() -> None:

@@ -189,27 +189,35 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
     seen = np.zeros(len(pts), bool)
     if len(pts) == 0:
         return seen
+    finite = np.isfinite(pts).all(axis=1)  # [M]
+    if not finite.all():
+        # Never seen; bucketed with the others, one NaN gave every cube a wrong centre.
+        seen[finite] = _observed_mask_one_blas_thread(pts[finite], camera, poses, views,
+                                                      tolerance_m, max_depth_m)
+        return seen
     # Points are bucketed in cubes; a view tests only the points of cubes whose bounding
-    # sphere meets its frustum (a house is large, a view sees a few percent of it).
-    cell = 0.5
+    # sphere meets its frustum (a house is large, a view sees a few percent of it). 0.25 m
+    # rather than 0.5: on the quickstart's lap the views' candidates fell from 130.9 M to
+    # 105.5 M (80.3 M of them land in the image either way), for 4x the cubes to test.
+    cell = 0.25
     ijk = np.floor(pts / cell).astype(np.int64)
     ijk -= ijk.min(axis=0)
     dims = ijk.max(axis=0) + 1
     keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]  # one int per cube
-    _, first, cube_of = np.unique(keys, return_index=True, return_inverse=True)
-    centres = (ijk[first] + 0.5) * cell + np.floor(pts.min(axis=0) / cell) * cell  # [C, 3]
     # The points sorted by cube: cube c holds sorted[bounds[c]:bounds[c + 1]], so a view
-    # reads its cubes' points from runs of memory, in the order the earlier code gathered
-    # them (``order[pos]``), and the arithmetic below sees the same rows in the same order.
-    order = np.argsort(cube_of, kind="stable")  # [M]
-    bounds = np.searchsorted(cube_of[order], np.arange(len(centres) + 1))  # [C + 1]
+    # reads its cubes' points from runs of memory. One stable sort of the keys gives the
+    # order, the runs and each cube's first point (np.unique and a second sort did).
+    order = np.argsort(keys, kind="stable")  # [M]
+    sorted_keys = keys[order]  # [M]
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])  # [C]
+    bounds = np.r_[starts, len(pts)]  # [C + 1]
+    centres = (ijk[order[starts]] + 0.5) * cell + np.floor(pts.min(axis=0) / cell) * cell
     sorted_pts = pts[order]  # [M, 3]
     seen_s = np.zeros(len(pts), bool)  # [M] seen, in sorted order
     unseen = np.diff(bounds)  # [C] points of each cube not seen yet: 0 skips the cube
-    cube_s = cube_of[order]  # [M]
+    cube_s = np.repeat(np.arange(len(starts)), unseen)  # [M] cube of each sorted point
     radius = cell * np.sqrt(3.0) / 2
-    tx = max(camera.cx, camera.width - camera.cx) / camera.fx  # half-FOV tangents
-    ty = max(camera.cy, camera.height - camera.cy) / camera.fy
+    tx, ty = _half_fov_tangents(camera)
     mx, my = radius * np.sqrt(1 + tx * tx), radius * np.sqrt(1 + ty * ty)
     W, H = camera.width, camera.height
     W2 = W + 2
@@ -222,33 +230,42 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
     for T, view in zip(poses, views, strict=True):
         T_cw = inv_se3(T)
         c = centres @ T_cw[:3, :3].T + T_cw[:3, 3]  # [C, 3]
-        near = ((c[:, 2] > -radius) & (c[:, 2] < max_depth_m + radius)
-                & (np.abs(c[:, 0]) <= c[:, 2] * tx + mx)
-                & (np.abs(c[:, 1]) <= c[:, 2] * ty + my)
-                & (unseen > 0))
+        near = (c[:, 2] > -radius) & (c[:, 2] < max_depth_m + radius) & (unseen > 0)
+        if np.isfinite(tx):  # inf * 0 would drop the cubes around the camera
+            near &= np.abs(c[:, 0]) <= c[:, 2] * tx + mx
+        if np.isfinite(ty):
+            near &= np.abs(c[:, 1]) <= c[:, 2] * ty + my
         cubes = np.flatnonzero(near)
         start, count = bounds[cubes], bounds[cubes + 1] - bounds[cubes]
         # [sum(count)] sorted positions: each near cube's run, one after another
         pos = np.arange(count.sum()) + np.repeat(start - (np.cumsum(count) - count), count)
         pos = pos[~seen_s[pos]]  # a point seen once needs no more tests
-        # The two products below see the same rows in the same order as before this
-        # function sorted its points: BLAS's result for a row can depend on the rows
-        # around it (1 in 10^6 differ in the last bit), so a different batch could move a
-        # point across a threshold. Everything after them is elementwise.
-        P = sorted_pts[pos]  # [N, 3]
-        z = P @ T_cw[2, :3] + T_cw[2, 3]  # [N]
-        front = (z > 1e-6) & (z <= max_depth_m)
-        pos = pos[front]
-        pc = P[front] @ T_cw[:3, :3].T + T_cw[:3, 3]  # [n, 3]
-        uv, zc = camera.project(pc)
-        inside = camera.in_image(uv)
-        pos, zc = pos[inside], zc[inside]
+        # The two products below batch other rows than the 0.5 m cubes did. OpenBLAS's
+        # result for a row can depend on the rows around it (1 in 10^6 differ in the last
+        # bit, docs/baselines.md), so a sample within an ulp of a threshold could change
+        # sides; on the quickstart's lap the mask is the same to the bit (478 020 samples).
+        # Everything after them is elementwise.
+        # np.take, not P[pos]: numpy's fancy indexing of rows took 2.7 times as long.
+        P = np.take(sorted_pts, pos, axis=0)  # [N, 3]
+        z = P @ T_cw[2, :3]  # [N]
+        z += T_cw[2, 3]
+        # Every candidate placed and projected, then one selection: the rows behind the
+        # camera or past max_depth_m (5 % of them on the quickstart's lap) cost less
+        # than picking the others out of P first.
+        pc = P @ T_cw[:3, :3].T  # [N, 3]
+        pc += T_cw[:3, 3]
+        uv, zc = camera.project(pc)  # [N, 2], [N]; NaN pixels behind the camera
+        keep = camera.in_image(uv)
+        keep &= z > 1e-6
+        keep &= z <= max_depth_m
+        kept = np.flatnonzero(keep)  # [n]; three boolean selections took 4.6 times as long
+        pos, zc, uv = pos.take(kept), zc.take(kept), uv.take(kept, axis=0)  # [n], [n], [n, 2]
         # Against the depths of the 2 x 2 pixel centres around the projection, not the
         # nearest one alone: on a floor seen at a grazing angle the depth changes by more
         # than the tolerance from one pixel to the next, and a fifth of the plainly visible
         # floor at 5-6 m (at 640x480, f 525) was left out of the reference.
-        f = ((np.floor(uv[inside, 1]) + 1) * W2
-             + (np.floor(uv[inside, 0]) + 1)).astype(np.int64)  # [n] exact small integers
+        f = ((np.floor(uv[:, 1]) + 1) * W2
+             + (np.floor(uv[:, 0]) + 1)).astype(np.int64)  # [n] exact small integers
         need_p[:] = False
         for k in corners:
             need_p[k:][f] = True
@@ -273,6 +290,22 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
         unseen -= np.bincount(cube_s[hit], minlength=len(unseen))
     seen[order] = seen_s
     return seen
+
+
+def _half_fov_tangents(camera: PinholeCamera) -> tuple[float, float]:
+    """(tx, ty): no point with |x / z| > tx or |y / z| > ty projects into the image, whose
+    pixel centres span -0.5 .. width - 0.5 (inf: no bound).
+
+    A pinhole's come from the image's edges. A distorted camera's edges bend: a barrel
+    lens's corners see wider than a pinhole with its fx, and the views' frustum test cut
+    away points its image holds. Its rays reach the image only inside the radius where
+    the model turns back (``project`` gives NaN past it), so that radius bounds both;
+    a model that never turns back gives no bound."""
+    if camera.has_distortion:
+        r = float(np.sqrt(camera.max_radius2()))
+        return r, r
+    return (max(camera.cx + 0.5, camera.width - 0.5 - camera.cx) / camera.fx,
+            max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy)
 
 
 def _unpad(padded: np.ndarray) -> np.ndarray:
