@@ -404,3 +404,15 @@ def test_sparse_depth_pairs_each_point_with_the_pixel_it_was_seen_at() -> None:
     sp = sparse_depth(NS(reconstruction=rec), "a.png", ours)
     np.testing.assert_allclose(sp.uv, seen_at, atol=1e-9)
     np.testing.assert_allclose(sp.z, z)
+
+
+def test_sample_prediction_reads_the_pixel_whose_span_holds_the_point() -> None:
+    """Pixel k covers [k - 0.5, k + 0.5) (the lidar pixels' rule): np.rint read
+    u = 0.5 from pixel 0 and v = 2.5 from row 2."""
+    from toolkit.baselines.camera_only import sample_prediction
+
+    values = np.arange(20, dtype=np.float32).reshape(4, 5)  # [H, W] value = row * 5 + col
+    uv = np.array([[0.5, 2.5], [1.5, 0.0], [4.4, 3.4], [4.5, 0.0]])
+    out = sample_prediction(values, uv)
+    np.testing.assert_array_equal(out[:3], [3 * 5 + 1, 0 * 5 + 2, 3 * 5 + 4])
+    assert np.isnan(out[3])  # pixel 5 is past the image

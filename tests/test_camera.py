@@ -242,3 +242,20 @@ def test_distortion_under_other_tools_names_is_refused():
     ray = np.array([[(0 - 319.5) / 525, (0 - 239.5) / 525, 1.0]])
     ref = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), cam.K, np.array(coeffs))[0]
     assert np.allclose(cam.project(ray)[0], ref.reshape(-1, 2), atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_pixel_index_puts_k_minus_half_to_k_plus_half_in_pixel_k(dtype):
+    """Pixel k spans [k - 0.5, k + 0.5), in_image's half-open span; np.rint rounds halves
+    to even (0.5 -> 0, 2.5 -> 2), and floor(u + 0.5) rounds 0.49999999999999994 up."""
+    from toolkit.camera import pixel_index
+
+    below_half = np.nextafter(dtype(0.5), dtype(0.0))
+    u = np.array([-0.5, 0.5, 1.5, 2.5, 3.5, below_half, 1.0, -0.25, 62.5,
+                  np.nextafter(dtype(63.5), dtype(0.0))], dtype)
+    want = np.array([0, 1, 2, 3, 4, 0, 1, 0, 63, 63])
+    np.testing.assert_array_equal(pixel_index(u), want)
+    # Any shape; a column of (u, v) pairs as well.
+    np.testing.assert_array_equal(pixel_index(np.stack([u, u[::-1]], 1)),
+                                  np.stack([want, want[::-1]], 1))
+    assert pixel_index(u).dtype == np.int64

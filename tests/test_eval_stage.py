@@ -96,7 +96,7 @@ def test_evaluate_scores_known_errors(tmp_path: Path, fake_scene):
     m = res.metrics["evaluate"]
     # A rigid offset of the whole SLAM frame is not an error.
     assert m["trajectory"]["position_rmse_m"] < 1e-9
-    assert m["trajectory"]["poses"] == 20
+    assert m["trajectory"]["poses"] == m["trajectory"]["poses_total"] == 20
     # The map sits 3 cm above the floor/ceiling: 3 cm there, 0 on walls near the edges.
     fm = m["fused_map"]
     # Precision at 2 cm is the walls' share of the surface: 40 m^2 of 72 m^2 = 0.56.
@@ -105,6 +105,7 @@ def test_evaluate_scores_known_errors(tmp_path: Path, fake_scene):
     assert (tmp_path / "run" / "evaluate" / "trajectory.png").exists()
     report = (tmp_path / "run" / "report.md").read_text()
     assert "Table I" in report and "F@5cm" in report
+    assert "cm over 20 frames." in report
 
 
 def test_a_map_built_at_ground_truth_poses_is_not_moved(tmp_path: Path, fake_scene):
@@ -145,7 +146,8 @@ def test_map_to_world_recovers_the_slam_frame_offset() -> None:
 def test_evaluate_without_or_with_partial_ground_truth(tmp_path: Path, fake_scene,
                                                        groundtruth: str) -> None:
     """A user's own recording (no ground truth) ends the recipe cleanly; ground truth over
-    part of it scores the part it covers."""
+    part of it scores the part it covers, and the metrics and report say of how many
+    (the report said "over 10 frames" of a 20-frame trajectory)."""
     recipe = parse_recipe({"name": "ev", "output": str(tmp_path / "run"), "stages": [
         {"stage": "t_scene", "groundtruth": groundtruth},
         {"stage": "evaluate", "mesh_spacing_m": 0.05},
@@ -157,8 +159,10 @@ def test_evaluate_without_or_with_partial_ground_truth(tmp_path: Path, fake_scen
         assert m == {"ground_truth": False}
         assert "No ground truth in this recording" in (tmp_path / "run/report.md").read_text()
     else:
-        assert m["trajectory"]["poses"] == 10
+        assert (m["trajectory"]["poses"], m["trajectory"]["poses_total"]) == (10, 20)
         assert m["trajectory"]["position_rmse_m"] < 1e-6
+        report = (tmp_path / "run/report.md").read_text()
+        assert "cm over the 10 of 20 frames that have ground truth." in report
 
 
 class LidarOnlyConfig(StageConfig):

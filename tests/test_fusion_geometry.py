@@ -701,6 +701,32 @@ def test_carving_sees_the_whole_image_of_a_barrel_lens() -> None:
     assert c.free.tolist() == [4, 4, 4]
 
 
+@pytest.mark.parametrize("stride", [1, 2])
+def test_carving_tests_a_voxel_at_the_pixel_whose_span_holds_it(stride: int) -> None:
+    """Subsampled pixel j covers [j - 0.5, j + 0.5) in uv / stride, as lidar pixels do: a
+    voxel straight ahead at uv / stride = (2.5, 1.0) is in column 3, where np.rint took
+    column 2 (halves to even) and counted the wall at the voxel's depth as a hit."""
+    from toolkit.fusion.dynamic import CarveOptions, SeeThroughCounter
+
+    cam = PinholeCamera(6 * stride, 3 * stride, 4.0, 4.0, 2.5 * stride, 1.0 * stride)
+    depth = np.full((3, 6), 2.0, np.float32)  # [H / stride, W / stride] a wall at the voxel
+    depth[:, 3] = 5.0  # and far behind it in column 3
+    c = SeeThroughCounter(np.array([[0.0, 0.0, 2.0]]), CarveOptions())
+    c.add_depth_view(cam, np.eye(4), depth, stride, 7.0)
+    assert (c.depth_free.tolist(), c.depth_hit.tolist()) == ([1], [0])
+
+
+def test_point_rendering_draws_a_point_in_the_pixel_whose_span_holds_it() -> None:
+    """u = 2.5 is in pixel 3 ([2.5, 3.5)); np.rint drew it in pixel 2."""
+    from toolkit.fusion.figures import render_points
+
+    cam = PinholeCamera(6, 4, 4.0, 4.0, 2.5, 1.5)
+    img = render_points(np.array([[0.0, 0.0, 2.0]]), np.array([[0, 0, 0]], np.uint8), cam,
+                        np.eye(4), splat=1)
+    drawn = np.argwhere((img != 255).any(-1))  # [K, 2] (row, col)
+    assert drawn.tolist() == [[2, 3]]
+
+
 def test_pair_edges_are_tested_on_depth_for_a_disparity() -> None:
     """A smooth slanted wall at 4-5.3 m spans 0.7 % in depth around a pixel; its raw
     disparity (1/z = d + 0.18) spans more than the 6 % threshold at the far end."""

@@ -300,3 +300,15 @@ def test_max_columns_is_a_maximum() -> None:
     full = anchors(120)  # one column per point, all of the same height here
     for n in (121, 200, 239, 240, 400):
         assert full / 2 <= anchors(n) <= full, n
+
+
+def test_column_anchor_pixels_cover_k_minus_half_to_k_plus_half() -> None:
+    """A column straight ahead of a camera with cx = 2.5 projects to u = 2.5 exactly:
+    pixel 3 ([2.5, 3.5)), where np.rint put it in pixel 2 (halves to even)."""
+    cam = PinholeCamera(6, 40, 4.0, 4.0, 2.5, 19.5)
+    refiner = DepthRefiner(cam, RefineOptions(grid=(2, 2), step_px=2))
+    T = camera_pose(0.0)  # level, 0.45 m above the floor
+    px, z = refiner.column_anchors(np.array([[0.0, 0.0, 2.0]]), T, np.eye(4))
+    assert len(z) > 10
+    np.testing.assert_allclose(z, 2.0)
+    assert (px[:, 0] == 3).all(), px[:, 0]

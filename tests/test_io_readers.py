@@ -306,6 +306,38 @@ def test_meta_yaml_keys_are_optional_but_another_format_is_refused(tmp_path):
         read_sequence(root)
 
 
+def test_a_sequence_whose_writer_stopped_before_meta_yaml_is_refused(tmp_path, monkeypatch):
+    """SequenceWriter.close() writes rig.yaml, frames.csv and scans.npz, then the ground
+    truth, then meta.yaml last (its "finished" mark) and only then drops its journal: a
+    write cut short between them was read as a sequence without ground truth."""
+    import toolkit.io.sequence as sequence
+    from toolkit.geometry import Trajectory
+    from toolkit.io.sequence import SequenceWriter, read_sequence
+    from toolkit.sensors import LaserScan
+
+    root = tmp_path / "seq"
+    w = SequenceWriter(root, Rig(PinholeCamera(8, 6, 5.0, 5.0, 3.5, 2.5)), name="cut")
+    for k in range(3):
+        w.add_frame(0.1 * k, np.full((6, 8, 3), 40 * k, np.uint8))
+        w.add_scan(LaserScan(0.1 * k, np.full(8, 2.0, np.float32), -np.pi, np.pi / 4, 0.1, 10.0))
+    w.groundtruth_poses = Trajectory(np.array([0.0, 0.2]), np.stack([np.eye(4)] * 2))
+
+    def disk_full(*args: object, **kwargs: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(sequence, "write_tum", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        w.close()
+    assert (root / "camera" / "frames.csv").exists() and (root / "scans.npz").exists()
+    assert not (root / "meta.yaml").exists()
+    with pytest.raises(SequenceFormatError, match=r"unfinished sequence: its writer stopped "
+                       r"before meta\.yaml.*\.frames\.journal\.jsonl"):
+        read_sequence(root)
+    # Without the journal it is a hand-made folder, which meta.yaml's absence does not refuse.
+    (root / sequence.JOURNAL_NAME).unlink()
+    assert len(read_sequence(root).frames) == 3
+
+
 def test_a_broken_meta_yaml_names_the_file(tmp_path):
     """A parse error or a version that is no number named neither file nor field."""
     from toolkit.fusion.synthetic import write_box_room

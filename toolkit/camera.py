@@ -33,6 +33,20 @@ PLUMB_BOB_NAMES = frozenset({"pinhole", "plumb_bob", "radtan", "opencv", "opencv
                              "none", ""})
 
 
+def pixel_index(uv: np.ndarray) -> np.ndarray:
+    """Integer pixel index (same shape as ``uv``, int64) of pixel coordinates: pixel k
+    covers ``[k - 0.5, k + 0.5)`` (centres on integers, the half-open span
+    ``PinholeCamera.in_image`` keeps), so u = 0.5 is in pixel 1. Works on any shape and
+    on float32 as well as float64; a subsampled image's pixel is ``pixel_index(uv / stride)``."""
+    # Not np.rint: it rounds halves to even (0.5 -> 0, 1.5 -> 2, 2.5 -> 2). Not
+    # floor(uv + 0.5) either: the sum rounds 0.49999999999999994 up to 1. The
+    # fraction uv - floor(uv) is exact (float32 too) except for uv in (-0.5, 0), where
+    # uv + 1 may round but not below 0.5: pixel 0 either way.
+    uv = np.asarray(uv)
+    f = np.floor(uv)
+    return (f + (uv - f >= 0.5)).astype(np.int64)
+
+
 def plumb_bob_distortion(model: Any, dist: np.ndarray) -> np.ndarray | None:
     """The coefficients ``dist`` of a lens named ``model`` as this camera's k1 k2 p1 p2 k3,
     or None for another model (an equidistant fisheye's k1..k4 read as these project

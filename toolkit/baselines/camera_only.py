@@ -30,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 from toolkit.baselines.colmap import SfMResult, cam_from_world_matrix
-from toolkit.camera import PinholeCamera
+from toolkit.camera import PinholeCamera, pixel_index
 
 ScaleSource = Literal["auto", "network", "sfm"]
 
@@ -174,8 +174,7 @@ def sparse_depth(sfm: SfMResult, name: str, camera: PinholeCamera,
 def sample_prediction(values: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """[K] prediction at the nearest pixel of each ``uv`` [K, 2] (NaN outside)."""
     h, w = values.shape
-    u = np.rint(uv[:, 0]).astype(np.int64)
-    v = np.rint(uv[:, 1]).astype(np.int64)
+    u, v = pixel_index(uv).T  # [K] each
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     out = np.full(len(uv), np.nan, np.float64)
     out[inside] = values[v[inside], u[inside]]

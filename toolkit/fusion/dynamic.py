@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toolkit.camera import PinholeCamera
+from toolkit.camera import PinholeCamera, pixel_index
 from toolkit.geometry import inv_se3
 from toolkit.ingest.sync import match_nearest
 from toolkit.sensors import LaserScan
@@ -165,8 +165,11 @@ class SeeThroughCounter:
             uv[:, 1] = uv[:, 1] * np.float32(camera.fy) + np.float32(camera.cy)
         inside = camera.in_image(uv)
         front, uv, z = front[inside], uv[inside], z[inside]
-        col = np.clip(np.rint(uv[:, 0] / stride).astype(np.int64), 0, depth.shape[1] - 1)
-        row = np.clip(np.rint(uv[:, 1] / stride).astype(np.int64), 0, depth.shape[0] - 1)
+        # Pixel j of the subsampled image is full-size pixel j * stride, covering
+        # [j - 0.5, j + 0.5) in uv / stride.
+        px = pixel_index(uv / stride)  # [M, 2] (col, row)
+        col = np.clip(px[:, 0], 0, depth.shape[1] - 1)
+        row = np.clip(px[:, 1], 0, depth.shape[0] - 1)
         d = depth[row, col]
         ok = np.isfinite(d) & (d > 0)
         front, z, d = front[ok], z[ok], d[ok]

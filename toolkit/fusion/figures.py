@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.camera import PinholeCamera
+from toolkit.camera import PinholeCamera, pixel_index
 from toolkit.geometry import inv_se3, se3, transform_points
 from toolkit.io.atomic import atomic_path
 
@@ -117,7 +117,7 @@ def render_points(points: np.ndarray, colors: np.ndarray, camera: PinholeCamera,
     col = colors[front]
     img = np.full((camera.height, camera.width, 3), background, np.uint8)
     zbuf = np.full((camera.height, camera.width), np.inf)
-    px = np.rint(uv).astype(np.int64)
+    px = pixel_index(uv)  # [M, 2]
     for dy in range(splat):
         for dx in range(splat):
             u, v = px[:, 0] + dx, px[:, 1] + dy

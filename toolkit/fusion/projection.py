@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toolkit.camera import PinholeCamera
+from toolkit.camera import PinholeCamera, pixel_index
 from toolkit.deskew import is_swept
 from toolkit.geometry import inv_se3, transform_points
 from toolkit.sensors import LaserScan, Sequence
@@ -35,12 +35,8 @@ class LidarPixels:
     def pixel(self) -> np.ndarray:
         """[N, 2] int (col, row) of the pixel each point falls in: pixel k covers
         ``[k - 0.5, k + 0.5)`` (pixel centres on integers, the half-open span
-        ``PinholeCamera.in_image`` keeps), so u = 0.5 is in pixel 1."""
-        # Not np.rint: it rounds halves to even (0.5 -> 0, 1.5 -> 2, 2.5 -> 2). Not
-        # floor(uv + 0.5) either: the sum rounds 0.49999999999999994 up to 1. The
-        # fraction uv - floor(uv) is exact.
-        f = np.floor(self.uv)  # [N, 2]
-        return (f + (self.uv - f >= 0.5)).astype(np.int64)
+        ``PinholeCamera.in_image`` keeps), so u = 0.5 is in pixel 1 (``pixel_index``)."""
+        return pixel_index(self.uv)
 
     @classmethod
     def empty(cls) -> LidarPixels:

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from toolkit.camera import PinholeCamera
+from toolkit.camera import PinholeCamera, pixel_index
 from toolkit.fusion.cloud import edge_mask
 
 
@@ -404,7 +404,7 @@ class DepthRefiner:
         q = q[valid]
         uv, z = self.camera.project(q)
         keep = (z > 0.05) & self.camera.in_image(uv)
-        return np.rint(uv[keep]).astype(np.int64), z[keep]
+        return pixel_index(uv[keep]), z[keep]
 
     def refine(self, depth: np.ndarray, T_world_camera: np.ndarray,
                T_world_base: np.ndarray, lidar_px: np.ndarray | None = None,

@@ -436,16 +436,28 @@ def read_sequence(root: Path | str) -> Sequence:
     under the folder's name; ``format`` refuses a meta.yaml that names another format,
     and ``version`` one newer than this toolkit reads. (Requiring ``format`` in a
     meta.yaml would refuse a folder that deleting the file makes readable.)
-    ``SequenceWriter`` always writes all three."""
+    ``SequenceWriter`` always writes all three.
+
+    A folder ``SequenceWriter`` left without meta.yaml is refused as unfinished: it
+    writes meta.yaml last and only then removes its frame journal, so the journal
+    without meta.yaml is a write cut short (ground truth, odometry or held-out views
+    may be missing)."""
     root = Path(root)
     if not root.is_dir():
         # A file named here was reported as "not found" though it exists.
         raise SequenceFormatError(
             f"{root}: is a file, not a sequence folder (the one holding rig.yaml and "
             "meta.yaml)" if root.exists() else f"{root}: sequence folder not found")
+    meta_path = root / "meta.yaml"
+    if (root / JOURNAL_NAME).exists() and not meta_path.exists():
+        # close() writes rig.yaml, frames.csv and scans.npz before the ground truth and
+        # meta.yaml: cut short between them, the folder read as a sequence without them.
+        raise SequenceFormatError(
+            f"{root}: unfinished sequence: its writer stopped before meta.yaml, which it "
+            f"writes last ({JOURNAL_NAME} is still there); write it again (a recipe reruns "
+            "the stage that writes it)")
     check_sequence_folder(root)
     meta: dict[str, Any] = {}
-    meta_path = root / "meta.yaml"
     if meta_path.exists():
         meta = load_yaml(meta_path, SequenceFormatError) or {}
         if not isinstance(meta, dict):
@@ -675,7 +687,8 @@ class SequenceWriter:
 
     Images and depth maps are written as they come (each atomically); the index files
     (frames.csv, scans.npz, trajectories, meta.yaml) are written by ``close()``, meta.yaml
-    last, so a folder without meta.yaml is an unfinished one.
+    last, so a folder without meta.yaml is an unfinished one (``read_sequence`` refuses it
+    while the journal is there).
 
     Every frame is also appended to a journal once its files are in place. ``resume=True``
     reads the journal of an earlier, unfinished writer on the same folder and continues
