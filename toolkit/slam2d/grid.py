@@ -245,7 +245,10 @@ class ProbabilityGrid:
             return np.full((1, 1), fill, np.float32), origin
         d = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_5)  # [h, w] in cells
         lut = _field_lut(self.resolution, sigma, self.p_min, self.p_max)
-        idx = np.minimum(d * _LUT_STEPS, len(lut) - 1).astype(np.int32)
+        # With no occupied cell in the window OpenCV gives a distance near float32's
+        # top, whose product overflows to inf: the table's last entry all the same.
+        with np.errstate(over="ignore"):
+            idx = np.minimum(d * _LUT_STEPS, len(lut) - 1).astype(np.int32)
         field = lut[idx]  # [h, w]
         if unknown is not None and unknown > self.p_min:
             # A point on a never-observed cell is not evidence against the pose, as one on
