@@ -123,6 +123,13 @@ void forward_tile(const Tiling& tl, int t, const S* means2d, const S* conics, co
       if (!row_span(mx, dy, ca, cb, cc, tcut, lx0, lx1, cx0, cx1)) continue;
       for (int cs = cx0; cs <= cx1; cs += kLanes) {
         const int base = ly * TS + cs;
+        // A lane group whose pixels have all stopped (or are padding) takes nothing from
+        // this Gaussian: skipping it leaves every output as it was, and on opaque walls most
+        // of a tile's later Gaussians meet only such groups.
+        S live = S(0);
+#pragma omp simd reduction(max : live)
+        for (int j = 0; j < kLanes; ++j) live = std::max(live, active[base + j]);
+        if (live == S(0)) continue;
         int done_here = 0;
 #pragma omp simd reduction(+ : done_here)
         for (int j = 0; j < kLanes; ++j) {
@@ -205,6 +212,13 @@ void backward_tile(const Tiling& tl, int t, const S* means2d, const S* conics, c
       if (!row_span(mx, dy, ca, cb, cc, tcut, lx0, lx1, cx0, cx1)) continue;
       for (int cs = cx0; cs <= cx1; cs += kLanes) {
         const int base = ly * TS + cs;
+        // Pixels that stopped before Gaussian k (last < k; padding has -1) get nothing from
+        // it and give it no gradient, their T and `behind` stay as they are: a group of
+        // only such pixels is skipped with no change to any result.
+        int32_t reach = -1;
+#pragma omp simd reduction(max : reach)
+        for (int j = 0; j < kLanes; ++j) reach = std::max(reach, last[base + j]);
+        if (reach < k) continue;
         S r_mx = 0, r_my = 0, r_a = 0, r_b = 0, r_c = 0, r_op = 0;
 #pragma omp simd reduction(+ : r_mx, r_my, r_a, r_b, r_c, r_op)
         for (int j = 0; j < kLanes; ++j) {
