@@ -177,6 +177,24 @@ def test_cpp_matches_reference_where_pixels_stop(cpp: None) -> None:
             assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()), tile
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cpp_depth_order_is_torchs_stable_argsort(cpp: None, dtype: torch.dtype) -> None:
+    """The binning's radix sort gives torch.argsort(stable=True)'s order: ties in model
+    order, -0 equal to +0, negatives, infinities, NaN last."""
+    ext = cpp_ext.load_extension()
+    g = torch.Generator().manual_seed(0)
+    for n in (0, 1, 2, 1000, 70_000):
+        x = (torch.rand(n, generator=g, dtype=torch.float64) * 8).round(decimals=2).to(dtype)
+        if n >= 1000:  # ties by the hundred, and the special values
+            x[:6] = torch.tensor([-0.0, 0.0, -1.5, float("inf"), float("-inf"), float("nan")],
+                                 dtype=dtype)
+            x[500:510] = torch.tensor([float("nan"), -0.0] * 5, dtype=dtype)
+        assert torch.equal(ext.depth_order(x), torch.argsort(x, stable=True)), (n, dtype)
+    # one byte of the key shared by all (a pass that moves nothing)
+    x = torch.full((300,), 2.0, dtype=dtype) + torch.arange(300, dtype=dtype) * 2.0**-20
+    assert torch.equal(ext.depth_order(x.flip(0)), torch.argsort(x.flip(0), stable=True))
+
+
 def test_reference_does_not_depend_on_tile_size() -> None:
     g, cam, T = _bench_like(1500, 40, 30)
     a = render(g, cam, T, backend="torch", tile_size=4)
