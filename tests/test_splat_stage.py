@@ -395,42 +395,6 @@ def test_fused_depth_is_read_for_the_training_frames_only(tmp_path: Path,
     assert "heldout_depth_mae_m" in res.metrics["splat"]  # ground truth still read
 
 
-@pytest.mark.parametrize(("load", "setting", "expect"), [
-    (8.0, "auto", (1, 1)),  # busy: one thread for torch and for the C++ kernels
-    (0.0, "auto", (2, 2)),  # idle: both on every core
-    (8.0, 1, (1, 2)),  # a number sets torch's threads only
-])
-def test_threads_auto_on_a_busy_machine_puts_the_cpp_kernels_on_one_thread(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, load: float, setting: Any,
-        expect: tuple[int, int]) -> None:
-    """Under load the C++ kernels' parallel loops wait for descheduled threads as torch's
-    do (a step 1.5-2.7x slower on 2 threads than on 1 at load 3-4)."""
-    import os
-
-    from toolkit.splat import trainer as trainer_mod
-    from toolkit.splat.rasterize import cpp_ext
-
-    monkeypatch.setattr(os, "getloadavg", lambda: (load, load, load))
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)
-    seen: list[tuple[int, int]] = []
-    train = trainer_mod.Trainer.train
-
-    def spy(self: Any, *args: Any, **kwargs: Any) -> Any:
-        seen.append((torch.get_num_threads(), cpp_ext.get_threads()))
-        return train(self, *args, **kwargs)
-
-    monkeypatch.setattr(trainer_mod.Trainer, "train", spy)
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        res = run_recipe(load_recipe(_recipe(tmp_path, with_traj=True, iterations=2,
-                                             threads=setting)))
-    finally:
-        torch.set_num_threads(before)
-    assert res.ok, res.error
-    assert seen == [expect]
-
-
 def test_ground_truth_poses_are_refused_for_a_map_built_at_other_poses(
         tmp_path: Path) -> None:
     """splat.poses: groundtruth beside a map fused at the SLAM poses trained splats from a

@@ -99,10 +99,8 @@ class SplatConfig(TrainConfig, StageConfig):
     strip_views: int = Field(4, ge=0, description="held-out views in renders.png")
     # Torch threads. "auto": torch's default, except 1 when the machine is already fully
     # loaded: on a shared 2-core machine PyTorch with 2 OpenMP threads ran 10x slower in wall
-    # time than with 1 once other processes kept both cores busy (docs/splatting.md); the
-    # C++ kernels then take 1 thread as well (a step 1.5-2.7x faster in wall time, 15-30 %
-    # less CPU than on 2 at load 3-4). A number sets torch's threads; the C++ kernels keep
-    # all cores. The thread counts never change the results.
+    # time than with 1 once other processes kept both cores busy (docs/splatting.md). The
+    # compositing kernels keep all cores either way (one parallel loop per pass).
     threads: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     # Where the model trains. cuda: on the GPU, rendered by gsplat (the `cuda` extra); auto:
     # cuda where torch sees a GPU and gsplat's kernels load, else the CPU. Views stay in CPU
@@ -332,14 +330,10 @@ class SplatStage(Stage):
 
         before = torch.get_num_threads()
         threads = choose_threads(cfg.threads)
-        # On a busy machine the C++ kernels' parallel loops wait at their ends for a thread
-        # the OS has descheduled, as torch's do: one thread for both (docs/splatting.md,
-        # "Threads on a busy machine").
-        kernels = threads if cfg.threads == "auto" else before
         if threads != before:
-            ctx.log.info("splat: %d torch thread(s) (%s), C++ kernels on %d", threads,
-                         "busy machine" if cfg.threads == "auto" else "setting", kernels)
-        cpp_ext.set_threads(kernels)
+            ctx.log.info("splat: %d torch thread(s) (%s), compositing on %d", threads,
+                         "busy machine" if cfg.threads == "auto" else "setting", before)
+        cpp_ext.set_threads(before)
         torch.set_num_threads(threads)
         try:
             self._run(ctx, cfg)
