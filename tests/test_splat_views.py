@@ -13,6 +13,7 @@ import torch
 # The tests folder is on sys.path.
 from test_splat_train import _start_model, _views
 
+import toolkit.splat.views as views_module
 from toolkit.camera import PinholeCamera
 from toolkit.splat.strategy import StrategyConfig
 from toolkit.splat.trainer import TrainConfig, Trainer, TrainView
@@ -118,18 +119,20 @@ def test_views_larger_than_the_first_switch_to_reading_on_demand() -> None:
     assert [views[i].name for i in range(n)] == [f"v{i}" for i in range(n)]
 
 
-def test_the_eager_set_is_read_by_several_threads_at_once() -> None:
+def test_the_eager_set_is_read_by_several_threads_at_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """Views 1 and 2 each wait for the other's read to start: one-by-one reading never
-    gets past view 1 (the barrier breaks)."""
+    gets past view 1 (the barrier breaks). By default, a thread per core (two here)."""
+    monkeypatch.setattr(views_module, "usable_cpus", lambda: 2, raising=False)
     poses, names, plain = _loader(6)
-    both = threading.Barrier(2, timeout=10)
+    both = threading.Barrier(2, timeout=5)
 
     def load(i: int) -> TrainView:
         if i in (1, 2):
             both.wait()
         return plain(i)  # type: ignore[operator]
 
-    views = ViewSet(poses, names, load, cache_bytes=10**6, read_workers=2)
+    views = ViewSet(poses, names, load, cache_bytes=10**6)
     assert views.eager and views.reads == 6
 
 
