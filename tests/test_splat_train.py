@@ -3,6 +3,8 @@ state aligned and respects the Gaussian budget."""
 
 from __future__ import annotations
 
+import io
+import logging
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -237,6 +239,48 @@ def test_resume_refuses_other_settings_or_data_and_takes_finished_runs(tmp_path:
     (tmp_path / "checkpoint.pt").write_bytes(b"")
     fresh = Trainer(_start_model(300), views, _cfg(), tmp_path)
     assert not fresh.resume() and fresh.step == 0
+
+
+def test_a_checkpoint_with_a_flipped_bit_trains_afresh_with_a_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    t = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    t.train_step()
+    t.train_step()
+    path = t.save_checkpoint()
+    raw = bytearray(path.read_bytes())
+    means = t.model.means.detach().cpu().numpy().tobytes()  # [300, 3] float32
+    at = raw.find(means)
+    assert at >= 0 and raw.find(means, at + 1) < 0
+    raw[at + len(means) // 2] ^= 0x04  # one bit of one coordinate, the size unchanged
+    path.write_bytes(bytes(raw))
+    # torch.load checks no CRC: the damaged zip still loads, with one coordinate changed.
+    damaged = torch.load(io.BytesIO(bytes(raw[raw.index(b"PK\x03\x04"):])),
+                         map_location="cpu", weights_only=False)
+    changed = damaged["params"]["means"] != t.model.means.detach().cpu()
+    assert int(changed.sum()) == 1
+    with caplog.at_level(logging.WARNING, logger="toolkit.splat.trainer"):
+        fresh = Trainer(_start_model(300), views, _cfg(), tmp_path)
+        assert not fresh.resume() and fresh.step == 0 and fresh.resumed_from is None
+    assert "SHA-256 does not match" in caplog.text
+    # a good checkpoint still resumes (test_checkpoint_resume_reproduces_uninterrupted_run:
+    # to the uninterrupted run's bytes)
+    t.save_checkpoint()
+    again = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    assert again.resume() and again.step == 2
+    assert torch.equal(again.model.means, t.model.means)
+
+
+def test_a_checkpoint_from_before_the_checksum_trains_afresh_with_a_warning(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    t = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    t.train_step()
+    torch.save(t.state_dict(), tmp_path / "checkpoint.pt")  # as the old trainer wrote it
+    with caplog.at_level(logging.WARNING, logger="toolkit.splat.trainer"):
+        fresh = Trainer(_start_model(300), views, _cfg(), tmp_path)
+        assert not fresh.resume() and fresh.step == 0
+    assert "before splat checkpoints carried a checksum" in caplog.text
 
 
 def _meta_for(model: GaussianModel, grads: torch.Tensor) -> RenderMeta:

@@ -3,6 +3,9 @@ and training on them gives the same model as on views held in memory."""
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -10,6 +13,7 @@ import torch
 # The tests folder is on sys.path.
 from test_splat_train import _start_model, _views
 
+import toolkit.splat.views as views_module
 from toolkit.camera import PinholeCamera
 from toolkit.splat.strategy import StrategyConfig
 from toolkit.splat.trainer import TrainConfig, Trainer, TrainView
@@ -113,6 +117,102 @@ def test_views_larger_than_the_first_switch_to_reading_on_demand() -> None:
                     load, cache_bytes=n * 6 * 8 * 3 + 1)
     assert not views.eager and views.held_bytes <= n * 6 * 8 * 3 + 1
     assert [views[i].name for i in range(n)] == [f"v{i}" for i in range(n)]
+
+
+def test_the_eager_set_is_read_by_several_threads_at_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Views 1 and 2 each wait for the other's read to start: one-by-one reading never
+    gets past view 1 (the barrier breaks). By default, a thread per core (two here)."""
+    monkeypatch.setattr(views_module, "usable_cpus", lambda: 2, raising=False)
+    poses, names, plain = _loader(6)
+    both = threading.Barrier(2, timeout=5)
+
+    def load(i: int) -> TrainView:
+        if i in (1, 2):
+            both.wait()
+        return plain(i)  # type: ignore[operator]
+
+    views = ViewSet(poses, names, load, cache_bytes=10**6)
+    assert views.eager and views.reads == 6
+
+
+def test_views_read_by_threads_are_the_ones_read_one_by_one_in_order() -> None:
+    """Later views finish first; each is kept under its own index, the progress bar counts
+    every one, and the set is what one-by-one reading gives."""
+    n = 24
+    poses, names, plain = _loader(n)
+
+    def load(i: int) -> TrainView:
+        time.sleep(0.002 * ((n - i) % 5))  # reads finish out of order
+        return plain(i)  # type: ignore[operator]
+
+    def counting(seen: list[int]):  # type: ignore[no-untyped-def]
+        def progress(it, total, desc):  # type: ignore[no-untyped-def]
+            for i in it:
+                seen.append(i)
+                yield i
+        return progress
+
+    got = {}
+    for workers in (1, 4):
+        seen: list[int] = []
+        views = ViewSet(poses, names, load, cache_bytes=10**6, progress=counting(seen),
+                        read_workers=workers)
+        assert views.eager and views.reads == n and seen == list(range(1, n))
+        got[workers] = [(v.name, v.image.numpy().tobytes(), v.depth.numpy().tobytes())
+                        for v in (views[i] for i in range(n))]
+        assert views.reads == n  # all held: none read again
+    assert got[4] == got[1]
+    assert [name for name, _, _ in got[4]] == names
+
+
+def test_a_threaded_read_past_the_budget_switches_as_one_by_one_reading_does() -> None:
+    cam = PinholeCamera.from_fov(8, 6, 70.0)
+
+    def load(i: int) -> TrainView:
+        depth = None if i == 0 else np.ones((6, 8), np.float32)
+        return TrainView(np.full((6, 8, 3), i, np.uint8), cam, _pose(i), depth, f"v{i}")
+
+    n = 30
+    first = 6 * 8 * 3
+    held = {}
+    for workers in (1, 3):
+        seen: list[int] = []
+
+        def progress(it, total, desc, seen=seen):  # type: ignore[no-untyped-def]
+            for i in it:
+                seen.append(i)
+                yield i
+
+        views = ViewSet(np.array([_pose(i) for i in range(n)]), [f"v{i}" for i in range(n)],
+                        load, cache_bytes=n * first + 1, progress=progress,
+                        read_workers=workers)
+        assert not views.eager and views.held_bytes <= n * first + 1
+        held[workers] = (list(views._cache), views.held_bytes, seen)
+        # up to 2 reads per thread beyond the view that passed the budget, then dropped
+        assert views.reads <= len(seen) + 1 + 2 * workers
+        assert [int(views[i].image[0, 0, 0]) for i in range(n)] == list(range(n))
+    assert held[3] == held[1]
+
+
+def test_a_view_that_fails_to_read_raises_its_error_when_read_by_threads() -> None:
+    poses, names, plain = _loader(40)
+    calls: list[int] = []
+
+    def load(i: int) -> TrainView:
+        calls.append(i)
+        if i == 5:
+            raise FileNotFoundError("camera/images/000005.png: missing or not a readable "
+                                    "image")
+        return plain(i)  # type: ignore[operator]
+
+    before = {t.ident for t in threading.enumerate()}
+    with pytest.raises(FileNotFoundError, match=r"000005.png: missing or not a readable"):
+        ViewSet(poses, names, load, cache_bytes=10**6, read_workers=3)
+    assert max(calls) <= 5 + 2 * 3 + 1  # no further reading than the threads ran ahead
+    # the reading threads are gone
+    assert not [t for t in threading.enumerate()
+                if t.ident not in before and t.name.startswith("prefetch")]
 
 
 def test_a_loader_returning_another_pose_is_refused() -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import json
 import math
 import os
@@ -18,9 +19,10 @@ import shutil
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 __all__ = [
+    "HashingWriter",
     "atomic_path",
     "atomic_write_bytes",
     "atomic_write_json",
@@ -103,6 +105,23 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     except BaseException:
         remove_path(tmp, ignore_errors=True)
         raise
+
+
+class HashingWriter:
+    """A file for ``pickle.dump`` or ``torch.save`` that hashes (SHA-256) what goes through
+    it: a checkpoint's digest is computed as it streams to disk, never held twice in
+    memory (toolkit.recipe.checkpoint, the splat trainer's)."""
+
+    def __init__(self, fh: IO[bytes]) -> None:
+        self.fh = fh
+        self.sha = hashlib.sha256()
+
+    def write(self, data: bytes | memoryview) -> int:
+        self.sha.update(data)
+        return self.fh.write(data)
+
+    def flush(self) -> None:  # torch.save flushes its buffer at the end
+        self.fh.flush()
 
 
 def remove_path(path: Path, ignore_errors: bool = False) -> None:

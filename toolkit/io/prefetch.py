@@ -18,17 +18,18 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def prefetched(load: Callable[[T], R], items: Iterable[T], ahead: int = 2) -> Iterator[
-        tuple[T, R]]:
-    """``(item, load(item))`` for every item in order, the next ``ahead`` items loading in a
-    thread meanwhile (``ahead`` 0: no thread). An error in ``load`` is raised when its
-    item's turn comes."""
+def prefetched(load: Callable[[T], R], items: Iterable[T], ahead: int = 2,
+               workers: int = 1) -> Iterator[tuple[T, R]]:
+    """``(item, load(item))`` for every item in order, the next ``ahead`` items loading in
+    ``workers`` threads meanwhile (``ahead`` 0: no thread; ``load`` must be safe to call
+    from several threads at once when ``workers`` > 1). An error in ``load`` is raised when
+    its item's turn comes; closing the generator early drops the loads not started."""
     if ahead <= 0:
         for item in items:
             yield item, load(item)
         return
     it = iter(items)
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch")
+    pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="prefetch")
     pending: deque[tuple[T, Future]] = deque()
     try:
         for item in it:

@@ -24,26 +24,13 @@ import pickle
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-from toolkit.io.atomic import atomic_path, remove_leftover_temps
+from toolkit.io.atomic import HashingWriter, atomic_path, remove_leftover_temps
 
 _FORMAT = 2
 _MAGIC = b"lidarcam-recon checkpoint 2\n"
 _DIGEST_LEN = 64  # hex SHA-256, then a newline
-
-
-class _HashingWriter:
-    """A file for ``pickle.dump`` that hashes what goes through it (the state is streamed
-    to disk, never held twice in memory)."""
-
-    def __init__(self, fh: IO[bytes]) -> None:
-        self.fh = fh
-        self.sha = hashlib.sha256()
-
-    def write(self, data: bytes | memoryview) -> int:
-        self.sha.update(data)
-        return self.fh.write(data)
 
 
 class Checkpoint:
@@ -126,7 +113,7 @@ class Checkpoint:
                 fh.write(_MAGIC)
                 digest_at = fh.tell()
                 fh.write(b"0" * _DIGEST_LEN + b"\n")  # filled in once the pickle is out
-                out = _HashingWriter(fh)
+                out = HashingWriter(fh)
                 pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, out,
                             protocol=pickle.HIGHEST_PROTOCOL)
                 fh.seek(digest_at)

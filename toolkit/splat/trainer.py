@@ -11,6 +11,16 @@ Checkpoints (``checkpoint_every`` steps and at the end) hold parameters, optimis
 strategy statistics and the RNG state, written atomically; ``Trainer.resume`` continues
 from one and reproduces the uninterrupted run exactly (the view order is a pure function
 of the seed and the step).
+
+A checkpoint is a header line, the SHA-256 of the rest, and ``torch.save``'s zip, as the
+recipe's checkpoints are (toolkit.recipe.checkpoint). ``torch.load`` checks no CRC: a
+byte changed on disk (a bad sector, a bit flipped in the page cache) that still loaded gave
+the training a wrong parameter or Adam moment to go on from, whose error then stood in the
+stage's cached splats. A checkpoint whose digest does not match is ignored with a warning
+(training starts afresh). So is one written before the digest (a bare zip): loading it
+unchecked would keep the risk, and starting afresh costs an interrupted training's steps
+once, on the first run after the upgrade (a finished stage's checkpoint is never read: a
+rerun starts from an empty folder).
 """
 
 from __future__ import annotations
@@ -35,7 +45,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.image import psnr as psnr_fn
 from toolkit.eval.image import ssim as ssim_fn
 from toolkit.geometry import inv_se3
-from toolkit.io.atomic import atomic_path, remove_leftover_temps
+from toolkit.io.atomic import HashingWriter, atomic_path, remove_leftover_temps
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
 from toolkit.splat.rasterize import RenderOutput, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
@@ -44,6 +54,8 @@ log = logging.getLogger(__name__)
 
 IterWrapper = Callable[[Iterable[int], int, str], Iterable[int]]
 CHECKPOINT_NAME = "checkpoint.pt"
+_MAGIC = b"lidarcam-recon splat checkpoint 2\n"
+_DIGEST_LEN = 64  # hex SHA-256, then a newline
 
 
 Unit = Annotated[float, Field(ge=0, le=1)]  # a value in [0, 1]
@@ -531,9 +543,41 @@ class Trainer:
         of training again (a stage interrupted while evaluating).
         """
         path = self.checkpoint_path()
-        with atomic_path(path) as tmp:
-            torch.save(self.state_dict(finished, outcome), tmp)
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            fh.write(_MAGIC)
+            digest_at = fh.tell()
+            fh.write(b"0" * _DIGEST_LEN + b"\n")  # filled in once the zip is out
+            out = HashingWriter(fh)
+            torch.save(self.state_dict(finished, outcome), out)
+            fh.seek(digest_at)
+            fh.write(out.sha.hexdigest().encode("ascii"))
         return path
+
+    def _read_checkpoint(self) -> dict[str, Any] | None:
+        """The checkpoint's contents, or None (with a warning) where its digest does not
+        match what was written or it has none."""
+        path = self.checkpoint_path()
+        with open(path, "rb") as fh:
+            head = fh.readline(len(_MAGIC))
+            if head != _MAGIC:
+                why = ("written before splat checkpoints carried a checksum (an older "
+                       "toolkit)" if head.startswith(b"PK\x03\x04") else "not a splat "
+                       "checkpoint, or its first line is damaged")
+                log.warning("ignoring checkpoint %s (%s); training from the start", path, why)
+                return None
+            stored = fh.readline(_DIGEST_LEN + 1).strip().decode("ascii", "replace")
+            start = fh.tell()
+            # Read twice (digest, then load): the model is not held as bytes beside the
+            # tensors made of them.
+            if hashlib.file_digest(fh, "sha256").hexdigest() != stored:
+                log.warning("ignoring checkpoint %s (damaged: its SHA-256 does not match "
+                            "what was written); training from the start", path)
+                return None
+            fh.seek(start)  # torch.load reads the zip from here (offsets relative to it)
+            ckpt = torch.load(fh, map_location="cpu", weights_only=False)
+        if not isinstance(ckpt, dict):
+            raise ValueError("not a checkpoint of this trainer")
+        return ckpt
 
     def load_state_dict(self, ckpt: dict[str, Any]) -> None:
         if ckpt.get("config_digest") != config_digest(self.cfg):
@@ -568,9 +612,9 @@ class Trainer:
         if not self.checkpoint_path().exists():
             return False
         try:
-            ckpt = torch.load(self.checkpoint_path(), map_location="cpu", weights_only=False)
-            if not isinstance(ckpt, dict):
-                raise ValueError("not a checkpoint of this trainer")
+            ckpt = self._read_checkpoint()
+            if ckpt is None:
+                return False
             outcome = ckpt.get("outcome") or {}
             if ckpt.get("finished") and outcome.get("settings") != config_digest(
                     self.cfg, whole=True):

@@ -7,10 +7,15 @@ of as many views as ``cache_bytes`` allows; the rest are read from disk when a s
 them (the most recently used stay), the next one in a background thread while the current
 step trains (the view order is known in advance). A recording that fits is read once, up
 front, as before: the results are the same either way, only the reading differs.
+
+Up front, views are read by a few threads at once (PNG decoding, undistortion and resizing
+in OpenCV release the GIL), kept in index order as they come: the same views, held and
+counted against the budget in the same order as one after another.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
@@ -19,6 +24,8 @@ from typing import TypeVar, overload
 
 import numpy as np
 
+from toolkit.io.prefetch import prefetched
+from toolkit.recipe.timing import usable_cpus
 from toolkit.splat.trainer import TrainView
 
 T = TypeVar("T")
@@ -62,12 +69,15 @@ class ViewSet(_Indexed[TrainView]):
     it in the background. Every view is read up front when ``n * bytes of the first view``
     fits ``cache_bytes`` (``eager``) and keeps fitting as they are read (views differ: some
     have a depth target, some not); otherwise at most that many bytes of views are held.
+    ``read_workers`` threads read the eager set (None: up to 4, as many as there are cores;
+    1: one after another in the caller's thread); ``load`` must be safe to call from
+    several threads at once (the lazy mode's prefetching calls it from a thread too).
     """
 
     def __init__(self, poses: np.ndarray, names: list[str], load: Callable[[int], TrainView],
                  cache_bytes: int,
-                 progress: Callable[[Iterator[int], int, str], Iterator[int]] | None = None
-                 ) -> None:
+                 progress: Callable[[Iterator[int], int, str], Iterator[int]] | None = None,
+                 read_workers: int | None = None) -> None:
         if len(names) != len(poses):
             raise ValueError(f"{len(names)} names for {len(poses)} poses")
         self.poses = np.asarray(poses, dtype=np.float64)  # [N, 4, 4] T_camera_world
@@ -88,18 +98,27 @@ class ViewSet(_Indexed[TrainView]):
         self.eager = self.view_bytes * len(poses) <= self._budget
         self._keep(0, first)
         if self.eager:
+            workers = min(4, usable_cpus()) if read_workers is None else max(1, read_workers)
             rest: Iterator[int] = iter(range(1, len(poses)))
             if progress is not None:
                 rest = iter(progress(rest, len(poses) - 1, "splat: load views"))
-            for i in rest:
-                self._keep(i, self._read(i))
-                if self._held > self._budget:
-                    # Later views are larger than the first (it had no depth target): read
-                    # the rest on demand, dropping what passed the budget.
-                    self.eager = False
-                    with self._lock:
-                        self._evict()
-                    break
+            # Reads run at most 2 per thread ahead of the view being kept: past the budget,
+            # those few are all that is read beyond what one-by-one reading read (and are
+            # dropped, not kept).
+            reads = prefetched(self._read, range(1, len(poses)),
+                               ahead=2 * workers if workers > 1 else 0, workers=workers)
+            with contextlib.closing(reads):
+                for i in rest:
+                    j, view = next(reads)
+                    assert j == i
+                    self._keep(i, view)
+                    if self._held > self._budget:
+                        # Later views are larger than the first (it had no depth target):
+                        # read the rest on demand, dropping what passed the budget.
+                        self.eager = False
+                        with self._lock:
+                            self._evict()
+                        break
 
     @property
     def held_bytes(self) -> int:
