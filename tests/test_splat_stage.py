@@ -479,3 +479,21 @@ def test_heldout_depth_error_says_what_share_of_pixels_it_covers() -> None:
     res = evaluate_views(model, [view], "torch", (0.5,) * 3, [view.depth.numpy()])
     assert res["depth_coverage"] == pytest.approx(0.5, abs=0.05)
     assert res["depth_mae_m"] < 0.05
+
+
+@pytest.mark.parametrize(("cores", "load", "default", "expected"), [
+    (2, 0.1, 2, 1),   # two cores, idle: one torch thread (the kernels keep both)
+    (1, 0.0, 1, 1),
+    (8, 0.5, 8, 8),   # more cores, idle: torch's default
+    (8, 9.0, 8, 1),   # every core already busy
+])
+def test_auto_threads_take_one_torch_thread_on_two_cores_or_a_busy_machine(
+        monkeypatch: pytest.MonkeyPatch, cores: int, load: float, default: int,
+        expected: int) -> None:
+    from toolkit.splat import stage as splat_stage
+
+    monkeypatch.setattr(splat_stage, "usable_cpus", lambda: cores)
+    monkeypatch.setattr(splat_stage.os, "getloadavg", lambda: (load, load, load))
+    monkeypatch.setattr(splat_stage.torch, "get_num_threads", lambda: default)
+    assert splat_stage.choose_threads("auto") == expected
+    assert splat_stage.choose_threads(3) == 3

@@ -56,6 +56,7 @@ from toolkit.geometry import Trajectory, inv_se3, rigid_alignment
 from toolkit.heldout import camera_trajectory, heldout_split
 from toolkit.io.atomic import atomic_path, atomic_write_json
 from toolkit.recipe.stage import Stage, StageConfig, StageContext, StageError
+from toolkit.recipe.timing import usable_cpus
 from toolkit.sensors import Sequence, load_rgb
 from toolkit.splat.export import write_ply
 from toolkit.splat.mesh_compare import Comparison, MeshViewRenderer
@@ -97,10 +98,11 @@ class SplatConfig(TrainConfig, StageConfig):
     compare_tsdf: bool = True
     poses: Literal["auto", "trajectory", "groundtruth"] = "auto"
     strip_views: int = Field(4, ge=0, description="held-out views in renders.png")
-    # Torch threads. "auto": torch's default, except 1 when the machine is already fully
-    # loaded: on a shared 2-core machine PyTorch with 2 OpenMP threads ran 10x slower in wall
-    # time than with 1 once other processes kept both cores busy (docs/splatting.md). The
-    # compositing kernels keep all cores either way (one parallel loop per pass).
+    # Torch threads. "auto": torch's default, except 1 on a machine of two cores or fewer
+    # (8-13 % faster there, idle) and when the machine is already fully loaded: on a shared
+    # 2-core machine PyTorch with 2 OpenMP threads ran 10x slower in wall time than with 1
+    # once other processes kept both cores busy (docs/splatting.md). The compositing
+    # kernels keep all cores either way (one parallel loop per pass).
     threads: Annotated[int, Field(ge=1)] | Literal["auto"] = "auto"
     # Where the model trains. cuda: on the GPU, rendered by gsplat (the `cuda` extra); auto:
     # cuda where torch sees a GPU and gsplat's kernels load, else the CPU. Views stay in CPU
@@ -143,17 +145,28 @@ def choose_device(setting: str, backend: str = "auto") -> torch.device:
 
 
 def choose_threads(setting: int | str) -> int:
-    """Torch threads for training: ``setting``, or for "auto" the default unless the 1-minute
-    load average says every core is already busy."""
+    """Torch threads for training: ``setting``, or for "auto" the default, except 1 on a
+    machine of two cores or fewer, or when the 1-minute load average says every core is
+    already busy.
+
+    Two cores: torch's OpenMP threads spin at the end of its small parallel regions while
+    the compositing kernels want both cores; one torch thread trained the quickstart's
+    splats 8-13 % faster on the idle 2-core machine (docs/splatting.md, "Threads on a busy
+    machine"), and its figures no longer depend on the load the recipe's own earlier
+    stages left in the load average (which tipped it between 1 and 2)."""
     if setting != "auto":
         return int(setting)
     default = torch.get_num_threads()
+    if default <= 1:
+        return default
+    cores = usable_cpus()
+    if cores <= 2:
+        return 1
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):
         return default
-    cores = os.cpu_count() or default
-    return 1 if default > 1 and load >= cores else default
+    return 1 if load >= cores else default
 
 
 # ------------------------------------------------------------------------ inputs
@@ -331,8 +344,10 @@ class SplatStage(Stage):
         before = torch.get_num_threads()
         threads = choose_threads(cfg.threads)
         if threads != before:
-            ctx.log.info("splat: %d torch thread(s) (%s), compositing on %d", threads,
-                         "busy machine" if cfg.threads == "auto" else "setting", before)
+            why = ("setting" if cfg.threads != "auto" else
+                   "two cores" if usable_cpus() <= 2 else "busy machine")
+            ctx.log.info("splat: %d torch thread(s) (%s), compositing on %d", threads, why,
+                         before)
         cpp_ext.set_threads(before)
         torch.set_num_threads(threads)
         try:
