@@ -27,6 +27,8 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_json",
     "atomic_write_text",
+    "digest_problem",
+    "digested_write",
     "remove_leftover_temps",
     "target_of",
     "to_jsonable",
@@ -110,7 +112,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 class HashingWriter:
     """A file for ``pickle.dump`` or ``torch.save`` that hashes (SHA-256) what goes through
     it: a checkpoint's digest is computed as it streams to disk, never held twice in
-    memory (toolkit.recipe.checkpoint, the splat trainer's)."""
+    memory (``digested_write``)."""
 
     def __init__(self, fh: IO[bytes]) -> None:
         self.fh = fh
@@ -122,6 +124,46 @@ class HashingWriter:
 
     def flush(self) -> None:  # torch.save flushes its buffer at the end
         self.fh.flush()
+
+
+_DIGEST_LEN = 64  # hex SHA-256, then a newline
+
+
+@contextmanager
+def digested_write(path: str | os.PathLike[str], magic: bytes) -> Iterator[HashingWriter]:
+    """Write ``path`` atomically as the header line ``magic``, the SHA-256 of the rest, and
+    the rest: what is written to the yielded file (``pickle.dump``, ``torch.save``), hashed
+    as it streams out. ``digest_problem`` checks such a file before it is loaded (a pickle
+    or a zip carries no check of its own: a byte changed on disk that still loads gave a
+    wrong state to resume from)."""
+    if not magic.endswith(b"\n"):
+        raise ValueError("the header must be one line, ending in a newline")
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(magic)
+        digest_at = fh.tell()
+        fh.write(b"0" * _DIGEST_LEN + b"\n")  # filled in once the rest is out
+        out = HashingWriter(fh)
+        yield out
+        fh.seek(digest_at)
+        fh.write(out.sha.hexdigest().encode("ascii"))
+
+
+def digest_problem(fh: IO[bytes], magic: bytes, older: tuple[bytes, str]) -> str | None:
+    """None when ``fh`` (open at its start) is a file ``digested_write`` wrote with
+    ``magic`` whose SHA-256 matches, and then ``fh`` stands where its contents begin; else
+    what is wrong: ``older[1]`` for a file that starts as ``older[0]`` (the format before
+    the digest), a missing header, or a damaged file. The file is read twice (digest, then
+    its load): a state of gigabytes is not held as bytes beside the objects made of it."""
+    head = fh.readline(len(magic))
+    if head != magic:
+        return older[1] if head.startswith(older[0]) else (
+            "no header line: another kind of file, or its first line is damaged")
+    stored = fh.readline(_DIGEST_LEN + 1).strip().decode("ascii", "replace")
+    start = fh.tell()
+    if hashlib.file_digest(fh, "sha256").hexdigest() != stored:
+        return "damaged: its SHA-256 does not match what was written"
+    fh.seek(start)
+    return None
 
 
 def remove_path(path: Path, ignore_errors: bool = False) -> None:

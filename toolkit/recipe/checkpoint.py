@@ -18,7 +18,6 @@ the upgrade.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import pickle
 import time
@@ -26,11 +25,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from toolkit.io.atomic import HashingWriter, atomic_path, remove_leftover_temps
+from toolkit.io.atomic import digest_problem, digested_write, remove_leftover_temps
 
 _FORMAT = 2
 _MAGIC = b"lidarcam-recon checkpoint 2\n"
-_DIGEST_LEN = 64  # hex SHA-256, then a newline
+# A bare pickle (protocol 2 and up start with 0x80): the format before the digest.
+_OLDER = (b"\x80", "written before checkpoints carried a checksum (an older toolkit)")
 
 
 class Checkpoint:
@@ -62,23 +62,10 @@ class Checkpoint:
             return None
         try:
             with open(self.path, "rb") as fh:
-                head = fh.readline(len(_MAGIC))
-                if head != _MAGIC:
-                    why = ("written before checkpoints carried a checksum (an older "
-                           "toolkit)" if head.startswith(b"\x80") else "not a checkpoint "
-                           "file, or its first line is damaged")
-                    self.log.warning("%s: %s; starting afresh", self.path, why)
+                problem = digest_problem(fh, _MAGIC, _OLDER)
+                if problem is not None:
+                    self.log.warning("%s: %s; starting afresh", self.path, problem)
                     return None
-                stored = fh.readline(_DIGEST_LEN + 1).strip().decode("ascii", "replace")
-                start = fh.tell()
-                # Read twice (digest, then unpickle): a state of gigabytes is not held
-                # as bytes beside the objects made of them.
-                actual = hashlib.file_digest(fh, "sha256").hexdigest()
-                if actual != stored:
-                    self.log.warning("%s: the checkpoint is damaged (its SHA-256 does not "
-                                     "match what was written); starting afresh", self.path)
-                    return None
-                fh.seek(start)
                 saved = pickle.load(fh)
         except Exception as e:  # written by another version of the code, or damaged
             self.log.warning("%s: cannot read the checkpoint (%s); starting afresh", self.path, e)
@@ -108,16 +95,9 @@ class Checkpoint:
     def save(self, state: Any) -> None:
         """Write ``state`` atomically (a kill during the write leaves the previous one)."""
         t0 = time.perf_counter()
-        with atomic_path(self.path) as tmp:
-            with open(tmp, "wb") as fh:
-                fh.write(_MAGIC)
-                digest_at = fh.tell()
-                fh.write(b"0" * _DIGEST_LEN + b"\n")  # filled in once the pickle is out
-                out = HashingWriter(fh)
-                pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, out,
-                            protocol=pickle.HIGHEST_PROTOCOL)
-                fh.seek(digest_at)
-                fh.write(out.sha.hexdigest().encode("ascii"))
+        with digested_write(self.path, _MAGIC) as out:
+            pickle.dump({"format": _FORMAT, "key": self.key, "state": state}, out,
+                        protocol=pickle.HIGHEST_PROTOCOL)
         self.saves += 1
         self.last_save_s = time.perf_counter() - t0
         self.seconds += self.last_save_s

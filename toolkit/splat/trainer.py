@@ -45,7 +45,7 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.image import psnr as psnr_fn
 from toolkit.eval.image import ssim as ssim_fn
 from toolkit.geometry import inv_se3
-from toolkit.io.atomic import HashingWriter, atomic_path, remove_leftover_temps
+from toolkit.io.atomic import digest_problem, digested_write, remove_leftover_temps
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
 from toolkit.splat.rasterize import RenderOutput, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
@@ -55,7 +55,9 @@ log = logging.getLogger(__name__)
 IterWrapper = Callable[[Iterable[int], int, str], Iterable[int]]
 CHECKPOINT_NAME = "checkpoint.pt"
 _MAGIC = b"lidarcam-recon splat checkpoint 2\n"
-_DIGEST_LEN = 64  # hex SHA-256, then a newline
+# torch.save's zip alone: the format before the digest.
+_OLDER = (b"PK\x03\x04", "written before splat checkpoints carried a checksum (an older "
+          "toolkit)")
 
 
 Unit = Annotated[float, Field(ge=0, le=1)]  # a value in [0, 1]
@@ -543,14 +545,8 @@ class Trainer:
         of training again (a stage interrupted while evaluating).
         """
         path = self.checkpoint_path()
-        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-            fh.write(_MAGIC)
-            digest_at = fh.tell()
-            fh.write(b"0" * _DIGEST_LEN + b"\n")  # filled in once the zip is out
-            out = HashingWriter(fh)
+        with digested_write(path, _MAGIC) as out:
             torch.save(self.state_dict(finished, outcome), out)
-            fh.seek(digest_at)
-            fh.write(out.sha.hexdigest().encode("ascii"))
         return path
 
     def _read_checkpoint(self) -> dict[str, Any] | None:
@@ -558,22 +554,12 @@ class Trainer:
         match what was written or it has none."""
         path = self.checkpoint_path()
         with open(path, "rb") as fh:
-            head = fh.readline(len(_MAGIC))
-            if head != _MAGIC:
-                why = ("written before splat checkpoints carried a checksum (an older "
-                       "toolkit)" if head.startswith(b"PK\x03\x04") else "not a splat "
-                       "checkpoint, or its first line is damaged")
-                log.warning("ignoring checkpoint %s (%s); training from the start", path, why)
+            problem = digest_problem(fh, _MAGIC, _OLDER)
+            if problem is not None:
+                log.warning("ignoring checkpoint %s (%s); training from the start", path,
+                            problem)
                 return None
-            stored = fh.readline(_DIGEST_LEN + 1).strip().decode("ascii", "replace")
-            start = fh.tell()
-            # Read twice (digest, then load): the model is not held as bytes beside the
-            # tensors made of them.
-            if hashlib.file_digest(fh, "sha256").hexdigest() != stored:
-                log.warning("ignoring checkpoint %s (damaged: its SHA-256 does not match "
-                            "what was written); training from the start", path)
-                return None
-            fh.seek(start)  # torch.load reads the zip from here (offsets relative to it)
+            # torch.load reads the zip from here (its offsets relative to it)
             ckpt = torch.load(fh, map_location="cpu", weights_only=False)
         if not isinstance(ckpt, dict):
             raise ValueError("not a checkpoint of this trainer")
