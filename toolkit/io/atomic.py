@@ -51,8 +51,8 @@ def remove_leftover_temps(path: str | os.PathLike[str]) -> None:
         tmp.unlink(missing_ok=True)
 
 
-# _temp_name's pattern: ".<stem>.<pid>.<8 hex>.tmp<suffix>".
-_TEMP_NAME = re.compile(r"\..+\.\d+\.[0-9a-f]{8}\.tmp(\.[^.]*)?")
+# _temp_name's pattern: ".<stem>.<pid>.<8 hex>.tmp<suffix>" (groups: stem, suffix).
+_TEMP_NAME = re.compile(r"\.(.+)\.\d+\.[0-9a-f]{8}\.tmp(\.[^.]*)?")
 
 
 def remove_temps_under(folder: str | os.PathLike[str]) -> int:
@@ -71,7 +71,7 @@ def target_of(path: str | os.PathLike[str]) -> Path:
     """The file an atomic write's temporary ``path`` was for (``path`` itself when it is
     no such temporary): an error about the temporary is about that file."""
     p = Path(path)
-    m = re.fullmatch(r"\.(.+)\.\d+\.[0-9a-f]{8}\.tmp(\.[^.]*)?", p.name)
+    m = _TEMP_NAME.fullmatch(p.name)
     return p.with_name(m.group(1) + (m.group(2) or "")) if m else p
 
 
