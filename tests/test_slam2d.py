@@ -834,13 +834,18 @@ def test_unknown_cells_scored_neutral_keep_a_corridor_advance():
     # Featureless corridor (26 m, 8 m lidar, 3 % odometry error), one way, the hold on, no
     # closures: scored like free space, the wall a scan sees first (at the lidar's reach)
     # pulls each match back, and the 22 m advance came out 0.69 % short (0.15 m); scored
-    # at the unknown prior, 0.12 %.
+    # at the unknown prior, 0.12 %. Those figures follow the CPU's float rounding (numpy
+    # picks its SIMD kernels by the CPU): on an AVX-only CPU, 0.34 % and 0.09 % short. So
+    # the test holds the contrast, not one machine's figures.
     on = {"local": {"unknown_score": 0.5}, "loop_closure": {"enabled": False}}
     est, truth, _ = _corridor_run(on, back=False)
     advance = np.hypot(*(truth[-1, :2] - truth[0, :2]))
-    assert abs(np.hypot(*(est[-1, :2] - est[0, :2])) / advance - 1.0) < 0.003
+    err_on = np.hypot(*(est[-1, :2] - est[0, :2])) / advance - 1.0
+    assert abs(err_on) < 0.003
     est0, _, _ = _corridor_run({"loop_closure": {"enabled": False}}, back=False)
-    assert np.hypot(*(est0[-1, :2] - est0[0, :2])) / advance - 1.0 < -0.005
+    err_default = np.hypot(*(est0[-1, :2] - est0[0, :2])) / advance - 1.0
+    assert err_default < -0.002
+    assert abs(err_on) < 0.5 * abs(err_default)
 
 
 def test_forward_lidar_path_length_with_unknown_cells_scored_neutral():
