@@ -8,12 +8,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from calibration.time_offset import frames_to_use
 from toolkit.geometry import se2_between, se2_compose, wrap_angle
 from toolkit.ingest.sync import longest_increasing, match_nearest
+from toolkit.io.carmen import CarmenFormatError, read_g2o
 from toolkit.io.sequence import read_scans, write_scans
 from toolkit.sensors import LaserScan
 from toolkit.slam2d.grid import lattice_cells
@@ -213,3 +215,64 @@ def test_time_offset_reads_at_most_max_frames_all_of_them_recording_frames(
     assert use[0] == 0 and use[-1] < n
     if n <= max_frames:
         assert len(use) == n
+
+
+# ---------------------------------------------------------------------------- g2o files
+
+
+def _robotlaser1(stamp: float, ranges: np.ndarray, laser: np.ndarray,
+                 robot: np.ndarray) -> str:
+    return (f"ROBOTLASER1 0 -1.5708 3.14159 0.0174533 50 0.01 0 {len(ranges)} "
+            + " ".join(f"{r:.3f}" for r in ranges) + " 0 "
+            + " ".join(repr(float(v)) for v in (*laser, *robot)) + f" 0 0 0 0 0 {stamp!r} h 0\n")
+
+
+@quick
+@given(seeds, st.integers(2, 8), st.booleans())
+def test_g2o_odometry_is_the_edge_chain_and_information_rows_match_edges(
+        tmp_path: Path, seed: int, n: int, with_info: bool) -> None:
+    """Vertex ids with gaps (0 10 20 ...), an odometry edge from each to the next with or
+    without its information numbers, a loop edge, a scan at some vertices: the odometry
+    is the chain composed from the first scan's vertex, and there is one information row
+    per edge (edges without numbers gave 0 rows for E edges)."""
+    rng = np.random.default_rng(seed)
+    ids = np.cumsum(rng.integers(1, 12, n))  # [V]
+    X = np.c_[rng.normal(0, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)]  # [V, 3]
+    info = " 500 0 0 500 0 2000" if with_info else ""
+    lines = [f"VERTEX_SE2 {i} " + " ".join(repr(float(v)) for v in x) + "\n"
+             for i, x in zip(ids, X, strict=True)]
+    lines += [f"EDGE_SE2 {ids[k]} {ids[k + 1]} "
+              + " ".join(repr(float(v)) for v in se2_between(X[k], X[k + 1])) + info + "\n"
+              for k in range(n - 1)]
+    lines.append(f"EDGE_SE2 {ids[-1]} {ids[0]} 0 0 0{info}\n")
+    scanned = np.flatnonzero(rng.random(n) < 0.7)
+    if len(scanned) == 0:
+        scanned = np.array([0])
+    body = []
+    for k in range(n):
+        body.append(lines[k])
+        if k in scanned:
+            body.append(_robotlaser1(1e9 + 0.1 * k, rng.uniform(1, 5, 9),
+                                     se2_compose(X[k], np.array([0.2, 0.0, 0.0])), X[k]))
+    path = tmp_path / "graph.g2o"
+    path.write_text("".join(body + lines[n:]))
+    g2o = read_g2o(path)
+    assert g2o.edge_information.shape == (n, 6)
+    assert np.isnan(g2o.edge_information).all() != with_info
+    assert g2o.sequential_edges().tolist() == [True] * (n - 1) + [False]
+    odo = g2o.odometry()
+    first = X[scanned[0]]
+    want = se2_between(np.broadcast_to(first, (len(scanned), 3)), X[scanned])  # [S, 3]
+    got = np.c_[odo.poses[:, 0, 3], odo.poses[:, 1, 3],
+                np.arctan2(odo.poses[:, 1, 0], odo.poses[:, 0, 0])]
+    _assert_same_poses(got, want, 1e-9)
+    np.testing.assert_allclose(g2o.T_base_laser[:2, 3], [0.2, 0.0], atol=1e-9)
+
+
+def test_g2o_edge_with_part_of_its_information_names_the_line(tmp_path: Path) -> None:
+    path = tmp_path / "part.g2o"
+    path.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n"
+                    "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 1 0 -1 0 0 1 0 0\n")
+    with pytest.raises(CarmenFormatError, match=r"part\.g2o:4: bad EDGE_SE2 line: 3 "
+                                                r"information numbers"):
+        read_g2o(path)
