@@ -18,6 +18,8 @@ from toolkit.ingest.sync import longest_increasing, match_nearest
 from toolkit.io.carmen import CarmenFormatError, read_g2o
 from toolkit.io.sequence import read_scans, write_scans
 from toolkit.sensors import LaserScan
+from toolkit.slam2d import LidarSlam2D, Slam2DConfig
+from toolkit.slam2d.config import ScanOptions
 from toolkit.slam2d.grid import lattice_cells
 from toolkit.slam2d.matcher import GridPyramid, correlative_search
 from toolkit.slam2d.pose_graph import PoseGraph2D
@@ -276,3 +278,36 @@ def test_g2o_edge_with_part_of_its_information_names_the_line(tmp_path: Path) ->
     with pytest.raises(CarmenFormatError, match=r"part\.g2o:4: bad EDGE_SE2 line: 3 "
                                                 r"information numbers"):
         read_g2o(path)
+
+
+# ---------------------------------------------------------------------------- SLAM input
+
+
+@many
+@given(seeds, st.floats(0.0, 0.5), st.sampled_from([4.0, 5.6, 30.0, np.inf]),
+       st.sampled_from([0.0, 0.02, 0.3]))
+def test_slam_hits_are_the_scans_valid_returns_within_reach(
+        seed: int, min_range: float, range_max: float, range_min: float) -> None:
+    """The SLAM inserts as walls exactly the beams ``LaserScan.valid_mask`` calls returns
+    (within scan.max_range), and casts free space along the no-returns, whatever the
+    configured min_range: with min_range 0 a driver's zero (no return) was a wall at the
+    laser itself, moving with the robot."""
+    rng = np.random.default_rng(seed)
+    n = 64
+    r = rng.uniform(0.0, 8.0, n).astype(np.float32)  # [B]
+    for code in (0.0, -1.0, np.nan, np.inf, -np.inf, range_max):
+        r[rng.random(n) < 0.08] = code
+    scan = LaserScan(0.0, r, -np.pi, 2 * np.pi / n, range_min, range_max)
+    slam = LidarSlam2D(Slam2DConfig(scan=ScanOptions(min_range=min_range, max_range=6.0,
+                                                     min_valid_beams=3)))
+    pre = slam._preprocess(scan)
+    with np.errstate(invalid="ignore"):
+        want = scan.valid_mask() & (r >= min_range) & (r <= 6.0)  # [B]
+        no_return = (r == np.inf) | (np.isfinite(r) & (r >= np.float32(range_max)))
+    if want.sum() < 3:
+        assert pre is None
+        return
+    assert pre is not None
+    hits, free = pre
+    np.testing.assert_allclose(np.sort(np.hypot(*hits.T)), np.sort(r[want]), rtol=1e-6)
+    assert len(free) == int(no_return.sum() + (scan.valid_mask() & (r > 6.0)).sum())
