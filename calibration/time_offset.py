@@ -162,6 +162,9 @@ def frames_to_use(n: int, max_frames: int = 3000, block: int = 100) -> np.ndarra
     read between neighbours; an hour at 10 Hz is 36,000 frames, ten minutes of reading)."""
     if n <= max_frames:
         return np.arange(n)
+    # Runs no longer than max_frames: --max-frames 50 on 80 frames read one run of 100,
+    # indices past the recording's last frame (an IndexError before any image was read).
+    block = max(min(block, max_frames), 1)
     runs = max(max_frames // block, 1)
     starts = np.linspace(0, n - block, runs).round().astype(int)
     return np.unique((starts[:, None] + np.arange(block)).ravel())

@@ -304,7 +304,8 @@ class G2OLog:
     vertex_poses: np.ndarray  # [V, 3] as written: for killian.g2o a corrected solution
     edges: np.ndarray  # [E, 2] int (i, j)
     edge_measurements: np.ndarray  # [E, 3] (x, y, theta) of j in i
-    edge_information: np.ndarray  # [E, 6] upper triangle of the information matrix
+    # [E, 6] upper triangle of the information matrix; NaN where the line gives none
+    edge_information: np.ndarray
     scans: list[LaserScan]
     scan_vertex: np.ndarray  # [S] vertex id each scan belongs to
     scan_laser_poses: np.ndarray  # [S, 3] ROBOTLASER1 laser pose (corrected too)
@@ -389,7 +390,13 @@ def read_g2o(path: Path | str) -> G2OLog:
             elif f[0] == "EDGE_SE2":
                 eij.append((int(f[1]), int(f[2])))
                 ez.append(_pose(f[3:6], "edge measurement (dx dy dtheta)").tolist())
-                einfo.append([float(v) for v in f[6:12]])
+                info = [float(v) for v in f[6:12]]
+                # Some or none: a line of 1 to 5 failed later as a bare ValueError naming
+                # no line, and edges all without one gave 0 rows for E edges.
+                if len(info) not in (0, 6):
+                    raise ValueError(f"{len(info)} information numbers, expected the 6 of "
+                                     "its upper triangle (I11 I12 I13 I22 I23 I33) or none")
+                einfo.append(info or [np.nan] * 6)
             elif f[0] == "ROBOTLASER1":
                 if not vids:
                     raise ValueError("ROBOTLASER1 before any VERTEX_SE2")

@@ -172,7 +172,11 @@ def warn_if_unreliable(path: Path, data: Any) -> None:
 
 def scans_to_arrays(scans: list[LaserScan], source: str = "scans") -> dict[str, np.ndarray]:
     if not scans:
-        return {"stamps": np.zeros(0), "ranges": np.zeros((0, 0), np.float32)}
+        # Every array scans_from_arrays asks for, empty: without the limits a file of no
+        # scans was written but read back as "missing array 'angle_min'".
+        return {"stamps": np.zeros(0), "ranges": np.zeros((0, 0), np.float32),
+                **{k: np.zeros(0) for k in ("angle_min", "angle_increment", "range_min",
+                                            "range_max")}}
     nb = {len(s) for s in scans}
     if len(nb) != 1:
         raise SequenceFormatError(f"{source}: scans have different beam counts {sorted(nb)}; "

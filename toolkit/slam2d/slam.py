@@ -211,7 +211,9 @@ class LidarSlam2D:
             # A reading at (or past) the sensor's range_max is a beam without return:
             # CARMEN and many drivers report no-return as exactly range_max.
             no_return = (r == np.inf) | (finite & (r >= rmax))
-            ok = finite & (r >= rmin) & ~no_return
+            # A zero is no return too, whatever the limits say (LaserScan.valid_mask): with
+            # scan.min_range 0 a driver's zeros were walls at the laser, moving with it.
+            ok = finite & (r > 0) & (r >= rmin) & ~no_return
             hit = ok & (r <= c.max_range)
             free = no_return | (ok & (r > c.max_range))
         bad = int(len(r) - ok.sum() - no_return.sum())

@@ -79,7 +79,8 @@ class Slam2DStage(Stage):
     # 7: camera poses between the scans' follow the wheel odometry (use_odometry)
     # 8: full-turn scans with a beam at both -pi and pi de-skewed a turn (not n beams)
     #    apart; the map YAML holds map_saver's thresholds (unknown cells read as unknown)
-    version = 8
+    # 9: zero ranges are no returns with scan.min_range 0 too (they were walls at the laser)
+    version = 9
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
