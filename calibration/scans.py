@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import re
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -244,6 +245,18 @@ def read_csv_scan(path: Path) -> np.ndarray:
                           "angle,range (radians)")
 
 
+def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an npz file, or an error naming it: a truncated file, a lone .npy
+    array or pickled objects stopped extrinsic and check with numpy's traceback."""
+    try:
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, TypeError, zipfile.BadZipFile) as e:
+        # TypeError: np.load returned one array (a .npy file), not an archive to open.
+        raise ScanFormatError(f"{path}: not a readable npz scan file ({e}); write it with "
+                              "numpy.savez(points=[N, 2] x y in metres)") from None
+
+
 def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     """Scans of one file: one for PCD/CSV/npz-with-points, many for a sequence-style npz."""
     path = Path(path)
@@ -253,8 +266,7 @@ def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     if suffix == ".csv":
         return [StampedScan(stamp_from_name(path, stamp_unit), read_csv_scan(path), str(path))]
     if suffix == ".npz":
-        with np.load(path) as data:
-            arrays = {k: data[k] for k in data.files}
+        arrays = _npz_arrays(path)
         if "points" in arrays:
             stamp = (float(arrays["stamp"]) if "stamp" in arrays
                      else stamp_from_name(path, stamp_unit))
