@@ -282,6 +282,21 @@ def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
                           f"{', '.join(SCAN_SUFFIXES)} or a sequence folder")
 
 
+def refuse_same_stamps(folder: Path, names: list[str], stamps: np.ndarray, what: str) -> None:
+    """Refuse two files of one folder whose names give one stamp (``1.png`` and ``1.jpg``,
+    ``12.5.csv`` and ``12.50.csv``): pairing took one and called the other unpaired, or
+    dropped it without a word."""
+    order = np.argsort(stamps, kind="stable")
+    same = np.flatnonzero(np.diff(stamps[order]) == 0)
+    if len(same):
+        a, b = names[order[same[0]]], names[order[same[0] + 1]]
+        raise PairingError(
+            f"{folder}: {a} and {b} have the same stamp ({stamps[order[same[0]]]:.9f} s)"
+            f"{f' and {len(same) - 1} more pairs of {what} do' if len(same) > 1 else ''}: "
+            f"one moment cannot have two {what}; remove the copy (or rename it by its own "
+            "stamp)")
+
+
 def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     """All scans of a folder of scan files, an npz of many scans, or a sequence folder."""
     source = Path(source)
@@ -301,6 +316,8 @@ def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
             raise FileNotFoundError(f"{source}: no scan files ({', '.join(SCAN_SUFFIXES)}) and "
                                     "not a sequence folder (rig.yaml + scans.npz)")
         scans = [s for p in files for s in read_scan_file(p, stamp_unit)]
+        refuse_same_stamps(source, [Path(s.source).name for s in scans],
+                           np.array([s.stamp for s in scans]), "scans")
     scans.sort(key=lambda s: s.stamp)
     return scans
 
