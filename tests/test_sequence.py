@@ -644,6 +644,18 @@ def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> Non
     refused(r"not strictly increasing at scan 1 \(1700000000.0 then 1700000000.0\); they are "
             r"float32.*store them as float64",
             stamps=(1.7e9 + good["stamps"]).astype(np.float32))
+    # Before: a TypeError ("only 0-dimensional arrays"), numpy's broadcast error called the
+    # file unreadable, and the same arrays stopped calibration's npz reader with a traceback.
+    refused(r"'stamps' must hold one stamp per scan \(\[S\]\), got shape \(6, 1\)",
+            stamps=good["stamps"][:, None])
+    refused(r"'time_increment' has 4 values for 6 scans; give one per scan or one for all",
+            time_increment=np.zeros(4))
+    refused(r"'ranges' must hold numbers \(metres\)", ranges=np.full(good["ranges"].shape, "far"))
+    from calibration.scans import read_scan_file
+
+    np.savez(path, **{**good, "time_increment": np.zeros(4)})
+    with pytest.raises(SequenceFormatError, match="'time_increment' has 4 values"):
+        read_scan_file(path)
 
 
 def test_a_file_given_as_the_sequence_folder_is_not_called_missing(tmp_path: Path) -> None:

@@ -198,13 +198,29 @@ def scans_to_arrays(scans: list[LaserScan], source: str = "scans") -> dict[str, 
     return out
 
 
+def _per_scan(value: Any, key: str, n: int, source: str) -> np.ndarray:
+    """[n] float64 of a value given once per scan or once for all."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.size not in (1, n):
+        raise SequenceFormatError(f"{source}: '{key}' has {a.size} values for {n} scans; "
+                                  "give one per scan or one for all")
+    return np.broadcast_to(a.reshape(-1), (n,))
+
+
 def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
     for key in ("stamps", "ranges", "angle_min", "angle_increment", "range_min", "range_max"):
         if key not in data:
             raise SequenceFormatError(f"{source}: missing array '{key}'")
-    stamps = np.asarray(data["stamps"], dtype=np.float64)
+    stamps = np.asarray(data["stamps"], dtype=np.float64)  # [S]
+    if stamps.ndim != 1:
+        raise SequenceFormatError(f"{source}: 'stamps' must hold one stamp per scan ([S]), "
+                                  f"got shape {stamps.shape}")
     check_seconds(stamps, source, "stamps")
-    ranges = np.asarray(data["ranges"], dtype=np.float32)
+    try:
+        ranges = np.asarray(data["ranges"], dtype=np.float32)  # [S, B]
+    except ValueError:
+        raise SequenceFormatError(f"{source}: 'ranges' must hold numbers (metres), got "
+                                  f"{np.asarray(data['ranges']).dtype}") from None
     n = len(stamps)
     if ranges.ndim != 2 or len(ranges) != n:
         raise SequenceFormatError(f"{source}: 'ranges' must be [S, B] with S = {n} stamps, got "
@@ -218,13 +234,8 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
                if np.asarray(data["stamps"]).dtype == np.float32 else "")
         raise SequenceFormatError(f"{source}: 'stamps' not strictly increasing at scan {i} "
                                   f"({float(stamps[i - 1])!r} then {float(stamps[i])!r}){why}")
-    per = {}
-    for key in ("angle_min", "angle_increment", "range_min", "range_max"):
-        a = np.asarray(data[key], dtype=np.float64)
-        if a.size not in (1, n):
-            raise SequenceFormatError(f"{source}: '{key}' has {a.size} values for {n} scans; "
-                                      "give one per scan or one for all")
-        per[key] = np.broadcast_to(a.reshape(-1), (n,))
+    per = {key: _per_scan(data[key], key, n, source)
+           for key in ("angle_min", "angle_increment", "range_min", "range_max")}
     if np.any(per["angle_increment"] == 0):
         raise SequenceFormatError(f"{source}: 'angle_increment' is zero for some scans")
     for key, a in per.items():
@@ -247,8 +258,8 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
             raise SequenceFormatError(f"{source}: 'has_intensities' has {len(has)} values for "
                                       f"{n} scans")
     # Written only when a scan has per-beam timing; files from before it hold none.
-    dt = np.broadcast_to(np.asarray(data["time_increment"] if "time_increment" in data else 0.0,
-                                       np.float64), (n,))
+    dt = _per_scan(data["time_increment"] if "time_increment" in data else 0.0,
+                   "time_increment", n, source)
     if not np.all(np.isfinite(dt)):
         raise SequenceFormatError(f"{source}: 'time_increment' holds non-finite values "
                                   "(0 for scans without per-beam timing)")
