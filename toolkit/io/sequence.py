@@ -864,7 +864,9 @@ class SequenceWriter:
             # Decoded once here: a truncated or foreign file copied unread failed stages
             # later, naming this copy (which a rerun then overwrote with the bad source).
             data = Path(image_path).read_bytes()  # type: ignore[arg-type]
-            pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            # An empty buffer is OpenCV's assertion error, naming no file.
+            pixels = (cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+                      if data else None)
             if pixels is None:
                 raise ValueError(f"{image_path}: frame {i} is not a readable PNG image "
                                  "(truncated or another format); replace it and run again")
