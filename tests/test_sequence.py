@@ -658,6 +658,31 @@ def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> Non
         read_scan_file(path)
 
 
+def test_a_malformed_pose_file_is_a_sequence_format_error(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]
+                                                         ) -> None:
+    """A bad line of odometry.tum or groundtruth/poses_base.tum was the TUM reader's plain
+    ValueError: ``python -m calibration check | time-offset | extrinsic --sequence`` printed
+    its traceback and exited 1 instead of the one-line error and exit 2."""
+    from calibration.cli import main
+
+    root = tmp_path / "a"
+    write_small(root)
+    for name in ("odometry.tum", "groundtruth/poses_base.tum"):
+        path = root / name
+        good = path.read_text()
+        lines = good.splitlines()
+        lines[-1] = lines[-1][: len(lines[-1]) // 3]  # cut short mid-line
+        path.write_text("\n".join(lines) + "\n")
+        with pytest.raises(SequenceFormatError, match=rf"{name}:\d+: TUM line needs 8"):
+            read_sequence(root)
+        assert main(["time-offset", "--sequence", str(root), "--out",
+                     str(tmp_path / "t")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {path}:") and "Traceback" not in err, err
+        path.write_text(good)
+
+
 def test_a_file_given_as_the_sequence_folder_is_not_called_missing(tmp_path: Path) -> None:
     """A file named as the sequence folder (its meta.yaml, a bag) was reported as
     "sequence folder not found" though it exists."""

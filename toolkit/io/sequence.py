@@ -376,12 +376,24 @@ _IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", "
 _BASE_NAMES = ("base_link", "base_footprint", "base")
 
 
+def _read_pose_file(path: Path, frame: str | None = None, child: str | None = None) -> (
+    Trajectory
+):
+    """``read_tum`` whose errors (a line cut short, a NaN, stamps going back; each named
+    by file and line) are the sequence's: the calibration CLI printed the plain
+    ValueError's traceback."""
+    try:
+        return read_tum(path, frame, child)
+    except ValueError as e:
+        raise SequenceFormatError(str(e)) from None
+
+
 def _read_base_trajectory(path: Path, frame: str) -> Trajectory:
     """T_<frame>_base_link poses of ``path`` (odometry.tum, poses_base.tum). A header
     (``# T_a_b: b pose in a``, as format_tum writes) naming other frames is refused: camera
     or laser poses, or inverted ones, were read as base poses without a word."""
     # Read once with the header's frames (world / base_link without one), then checked.
-    traj = read_tum(path)
+    traj = _read_pose_file(path)
     h_frame, h_child = traj.frame, traj.child
     said = f"its header says the poses are T_{h_frame}_{h_child} ({h_child} in {h_frame})"
     want = f"this file holds T_{frame}_base_link (base_link poses in a fixed frame)"
@@ -660,7 +672,7 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
     if (hdir / "frames.csv").exists():
         rows = _read_frames_csv(hdir / "frames.csv")
         frames, hdepth, _ = _frames_from_rows(rows, hdir, hdir / "frames.csv")
-        poses = read_tum(hdir / "poses_camera.tum", "world", "camera")
+        poses = _read_pose_file(hdir / "poses_camera.tum", "world", "camera")
         check_seconds(poses.stamps, str(hdir / "poses_camera.tum"), "timestamp")
         if len(poses) != len(frames):
             raise SequenceFormatError(f"{hdir / 'poses_camera.tum'}: {len(poses)} poses for "
