@@ -86,6 +86,8 @@ def _legend(img: np.ndarray, lo: float, hi: float, lut: np.ndarray) -> None:
     h, w = img.shape[:2]
     bw, bh = min(160, w // 3), 10
     x0, y0 = w - bw - 10, h - bh - 22
+    if x0 < 0 or y0 < 0 or bw < 40:
+        return  # no room for the bar and its two labels: the points alone
     bar = np.repeat(lut[np.linspace(0, 255, bw).astype(int), 0, ::-1][None], bh, axis=0)
     img[y0:y0 + bh, x0:x0 + bw] = bar
     for text, x in ((f"{lo:.1f} m", x0), (f"{hi:.1f} m", x0 + bw - 40)):

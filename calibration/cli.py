@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,12 @@ from calibration.files import CalibrationFileError
 from calibration.intrinsics import IntrinsicsError
 from calibration.scans import PairingError, ScanFormatError
 from calibration.time_offset import TimeOffsetError
-from toolkit.cli_types import positive_float, positive_int
+from toolkit.cli_types import (
+    INTERRUPTED,
+    positive_float,
+    positive_int,
+    sigterm_as_interrupt,
+)
 
 # The extrinsic was estimated but the views do not pin it down (scripts must not go on).
 EXIT_UNRELIABLE = 3
@@ -538,6 +544,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("calibration.progress").setLevel(logging.INFO)
+    previous = sigterm_as_interrupt()
     try:
         if getattr(args, "sequence", None):
             # Before any of the sequence's files is read, so that a run or stage folder
@@ -546,6 +553,12 @@ def main(argv: list[str] | None = None) -> int:
 
             check_sequence_folder(Path(args.sequence))
         return int(args.func(args))
+    except KeyboardInterrupt:
+        # Every file is written whole or not at all (the one in flight was removed): no
+        # traceback, and no temporary left beside the outputs by a kill.
+        print("interrupted: the files written so far are whole, the one being written was "
+              "not kept; run the command again to write them all", file=sys.stderr)
+        return INTERRUPTED
     except USER_ERRORS as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -555,3 +568,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)

@@ -54,6 +54,7 @@ from calibration.scans import (
     describe_unpaired,
     pair_by_stamp,
     read_scans,
+    refuse_same_stamps,
     stamp_from_name,
 )
 from toolkit.camera import PinholeCamera
@@ -168,7 +169,9 @@ class ImageSource:
 
 def images_from_folder(folder: Path, stamp_unit: str = "auto") -> ImageSource:
     paths = list_images(folder)
-    return ImageSource(paths, np.array([stamp_from_name(p, stamp_unit) for p in paths]))
+    stamps = np.array([stamp_from_name(p, stamp_unit) for p in paths])  # [I]
+    refuse_same_stamps(Path(folder), [p.name for p in paths], stamps, "images")
+    return ImageSource(paths, stamps)
 
 
 def detect_all(images: ImageSource, board: BoardSpec, camera: PinholeCamera | None,

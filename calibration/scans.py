@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import re
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -244,6 +245,18 @@ def read_csv_scan(path: Path) -> np.ndarray:
                           "angle,range (radians)")
 
 
+def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an npz file, or an error naming it: a truncated file, a lone .npy
+    array or pickled objects stopped extrinsic and check with numpy's traceback."""
+    try:
+        with np.load(path) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, TypeError, zipfile.BadZipFile) as e:
+        # TypeError: np.load returned one array (a .npy file), not an archive to open.
+        raise ScanFormatError(f"{path}: not a readable npz scan file ({e}); write it with "
+                              "numpy.savez(points=[N, 2] x y in metres)") from None
+
+
 def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     """Scans of one file: one for PCD/CSV/npz-with-points, many for a sequence-style npz."""
     path = Path(path)
@@ -253,8 +266,7 @@ def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     if suffix == ".csv":
         return [StampedScan(stamp_from_name(path, stamp_unit), read_csv_scan(path), str(path))]
     if suffix == ".npz":
-        with np.load(path) as data:
-            arrays = {k: data[k] for k in data.files}
+        arrays = _npz_arrays(path)
         if "points" in arrays:
             stamp = (float(arrays["stamp"]) if "stamp" in arrays
                      else stamp_from_name(path, stamp_unit))
@@ -268,6 +280,21 @@ def read_scan_file(path: Path, stamp_unit: str = "auto") -> list[StampedScan]:
                               "sequence arrays 'stamps', 'ranges', 'angle_min', ...")
     raise ScanFormatError(f"{path}: unknown scan format {suffix!r}; use "
                           f"{', '.join(SCAN_SUFFIXES)} or a sequence folder")
+
+
+def refuse_same_stamps(folder: Path, names: list[str], stamps: np.ndarray, what: str) -> None:
+    """Refuse two files of one folder whose names give one stamp (``1.png`` and ``1.jpg``,
+    ``12.5.csv`` and ``12.50.csv``): pairing took one and called the other unpaired, or
+    dropped it without a word."""
+    order = np.argsort(stamps, kind="stable")
+    same = np.flatnonzero(np.diff(stamps[order]) == 0)
+    if len(same):
+        a, b = names[order[same[0]]], names[order[same[0] + 1]]
+        raise PairingError(
+            f"{folder}: {a} and {b} have the same stamp ({stamps[order[same[0]]]:.9f} s)"
+            f"{f' and {len(same) - 1} more pairs of {what} do' if len(same) > 1 else ''}: "
+            f"one moment cannot have two {what}; remove the copy (or rename it by its own "
+            "stamp)")
 
 
 def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
@@ -289,6 +316,8 @@ def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
             raise FileNotFoundError(f"{source}: no scan files ({', '.join(SCAN_SUFFIXES)}) and "
                                     "not a sequence folder (rig.yaml + scans.npz)")
         scans = [s for p in files for s in read_scan_file(p, stamp_unit)]
+        refuse_same_stamps(source, [Path(s.source).name for s in scans],
+                           np.array([s.stamp for s in scans]), "scans")
     scans.sort(key=lambda s: s.stamp)
     return scans
 

@@ -102,6 +102,18 @@ def test_overlay_draws_points_coloured_by_range(scene) -> None:  # noqa: ANN001
         np.zeros((0, 2)), T, camera))).all()
 
 
+def test_overlay_of_a_small_image_leaves_out_the_range_legend() -> None:
+    """An image too small for the range legend (the 32x24 frames of a test bag) stopped
+    check with numpy's "could not broadcast (10,10,3) into (0,10,3)"."""
+    from calibration.check import Projection
+
+    img = np.full((24, 32, 3), 90, np.uint8)
+    proj = Projection(np.array([[5.0, 5.0], [20.0, 12.0]]), np.array([1.0, 2.0]),
+                      np.array([1.0, 2.0]), np.array([0, 1]))
+    out = overlay(img, proj, radius=1)
+    assert out.shape == img.shape and (out[5, 5] != 90).any() and (out[0, 31] == 90).all()
+
+
 def _write_sequence(scene, root):  # noqa: ANN001, ANN202
     """The boxes scene as a sequence folder (images, scans, ground-truth depth, rig)."""
     from toolkit.io.sequence import SequenceWriter

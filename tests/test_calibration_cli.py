@@ -589,3 +589,46 @@ def test_a_run_folder_given_as_sequence_names_the_sequence_in_it(
     assert code == 2
     err = capsys.readouterr().err
     assert "not a sequence folder" in err and str(inner) in err
+
+
+_KILL_AT_SECOND_OVERLAY = """
+import os, signal, sys
+import cv2
+from calibration.cli import main
+real, written = cv2.imwrite, []
+def imwrite(path, img, *args):
+    ok = real(path, img, *args)  # the temporary of an atomic write, whole on disk
+    written.append(path)
+    if len(written) == 2:
+        os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    return ok
+cv2.imwrite = imwrite
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_check_stopped_while_it_writes_leaves_no_temporary(
+        capture: tuple[Path, object], tmp_path: Path, sig: str) -> None:
+    """SIGTERM (kill, a scheduler) ended the command at once: the overlay being written
+    stayed beside the outputs as a hidden temporary for good; Ctrl-C printed Python's
+    traceback. Now both end as the recipe runner's do: the write in flight removed, one
+    line saying what was written, exit 130; a rerun writes everything."""
+    cap_dir, cap = capture
+    ext = tmp_path / "true.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    out = tmp_path / "chk"
+    args = ["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+            "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--out",
+            str(out)]
+    r = subprocess.run([sys.executable, "-c", _KILL_AT_SECOND_OVERLAY, sig, *args], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 130, (r.returncode, r.stderr[-2000:])
+    assert "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert r.stderr.strip().splitlines()[-1].startswith("interrupted:"), r.stderr
+    assert sorted(p.name for p in out.iterdir()) == [
+        f"{Path(n).stem}_overlay.png" for n in sorted(p.name for p in
+                                                      (cap_dir / "images").iterdir())[:1]]
+    assert main(args) == 0
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert len(list(out.glob("*_overlay.png"))) == 8 and (out / "check.json").exists()

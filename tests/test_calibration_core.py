@@ -185,6 +185,48 @@ def test_pcd_without_points_reads_as_an_empty_scan(tmp_path: Path) -> None:
         assert read_pcd(tmp_path / f"{kind}.pcd").shape == (0, 2), kind
 
 
+def test_unreadable_npz_scan_names_the_file(tmp_path: Path) -> None:
+    """A truncated npz (or an .npy, or one of pickled objects) stopped extrinsic and
+    check with numpy's traceback (zipfile.BadZipFile, "Object arrays cannot be loaded")
+    instead of a message naming the file."""
+    np.savez(tmp_path / "whole.npz", points=np.array([[1.0, 1.0], [2.0, 0.5]]), stamp=3.5)
+    raw = (tmp_path / "whole.npz").read_bytes()
+    (tmp_path / "7.npz").write_bytes(raw[: len(raw) // 2])
+    (tmp_path / "8.npz").write_bytes(b"")
+    np.savez(tmp_path / "9.npz", points=np.array([{"x": 1.0}], dtype=object))
+    with open(tmp_path / "10.npz", "wb") as f:  # one array: a .npy file under another name
+        np.save(f, np.zeros((3, 2)))
+    for name in ("7.npz", "8.npz", "9.npz", "10.npz"):
+        with pytest.raises(ScanFormatError) as e:
+            read_scan_file(tmp_path / name)
+        assert f"{name}: not a readable npz" in str(e.value), str(e.value)
+
+
+def test_two_files_of_one_stamp_are_named(tmp_path: Path) -> None:
+    """Two images of one stamp (1700000000000000000.png and .jpg) were paired with one scan
+    between them, and extrinsic said the other had "no scan within 100 ms: nearest scan
+    12.0 ms away"; two scans of one stamp had one of them dropped without a word."""
+    from calibration.pipeline import images_from_folder
+    from calibration.scans import PairingError, read_scans
+
+    images, scans = tmp_path / "images", tmp_path / "scans"
+    images.mkdir()
+    scans.mkdir()
+    for name in ("1700000000000000000.png", "1700000000000000000.jpg",
+                 "1700000002000000000.png"):
+        (images / name).write_bytes(b"")
+    with pytest.raises(PairingError) as e:
+        images_from_folder(images)
+    msg = str(e.value)
+    assert "1700000000000000000.jpg and 1700000000000000000.png" in msg, msg
+    assert str(images) in msg and "remove" in msg, msg
+    (scans / "12.5.csv").write_text("x,y\n1,0\n")
+    (scans / "12.50.csv").write_text("x,y\n2,0\n")
+    with pytest.raises(PairingError) as e:
+        read_scans(scans)
+    assert "12.5.csv and 12.50.csv" in str(e.value), str(e.value)
+
+
 def test_range_noise_is_measured_on_the_scans() -> None:
     """The lidar's range noise from neighbouring beams, whatever the surfaces' incidence."""
     from calibration.board_lines import range_noise

@@ -910,6 +910,22 @@ def test_a_file_that_is_no_bag_names_the_other_sources(tmp_path):
     assert len(read_rosbag(next(bag.glob("*.db3"))).scans) == 20
 
 
+def test_a_folder_that_holds_no_bag_names_the_other_sources(tmp_path):
+    """An empty folder, a TUM RGB-D folder or a sequence folder given to 'source: rosbag'
+    was a damaged ROS 2 sqlite3 bag ("Expected metadata file ... does not exist") with a
+    sqlite3 repair recipe; a bag folder that lost its metadata.yaml keeps that hint."""
+    (tmp_path / "empty").mkdir()
+    tum = tmp_path / "rgbd_dataset_freiburg1_xyz"
+    tum.mkdir()
+    (tum / "rgb.txt").write_text("# timestamp filename\n")
+    for folder in (tmp_path / "empty", tum):
+        with pytest.raises(BagError) as e:
+            read_rosbag(folder)
+        msg = str(e.value)
+        assert msg.startswith(f"{folder}: not a ROS bag") and "'source: tum_rgbd'" in msg, msg
+        assert "sqlite3 FILE.db3" not in msg and "no metadata.yaml" in msg, msg
+
+
 def test_unknown_encoding(tmp_path):
     c = make_content(n_images=2)
     b = BagBuilder(ros1=False)

@@ -395,6 +395,11 @@ def test_a_broken_image_in_a_sequence_is_named_at_ingest(tmp_path):
     bad.write_bytes(good[: len(good) // 3])
     res = run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src))))
     assert not res.ok and str(bad) in res.error and "not a readable PNG" in res.error
+    # An empty file (a copy cut short at zero bytes) was OpenCV's "!buf.empty()" assertion,
+    # naming no file.
+    bad.write_bytes(b"")
+    res = run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src))))
+    assert not res.ok and str(bad) in res.error and "not a readable PNG" in res.error
     cv2.imwrite(str(bad), np.zeros((24, 32, 3), np.uint8))
     res = run_recipe(load_recipe(recipe(tmp_path, source="sequence", path=str(src))))
     assert not res.ok and f"{bad}: image is 32x24 but" in res.error  # the reader's check

@@ -249,6 +249,10 @@ def test_kitti_tum_and_depth_readers_check_what_they_read(tmp_path):
     (tmp_path / "d.npy").write_bytes(b"\x93NUMPY garbage")
     with pytest.raises(ValueError, match="d.npy: not a readable .npy depth map"):
         read_depth(tmp_path / "d.npy")
+    # An empty file (a copy cut short) was numpy's EOFError "No data left in file".
+    (tmp_path / "e.npy").write_bytes(b"")
+    with pytest.raises(ValueError, match="e.npy: not a readable .npy depth map"):
+        read_depth(tmp_path / "e.npy")
 
 
 def test_scan_arrays_and_frame_rows_name_what_is_wrong(tmp_path):

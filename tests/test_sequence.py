@@ -644,6 +644,43 @@ def test_scan_file_values_are_named_not_called_unreadable(tmp_path: Path) -> Non
     refused(r"not strictly increasing at scan 1 \(1700000000.0 then 1700000000.0\); they are "
             r"float32.*store them as float64",
             stamps=(1.7e9 + good["stamps"]).astype(np.float32))
+    # Before: a TypeError ("only 0-dimensional arrays"), numpy's broadcast error called the
+    # file unreadable, and the same arrays stopped calibration's npz reader with a traceback.
+    refused(r"'stamps' must hold one stamp per scan \(\[S\]\), got shape \(6, 1\)",
+            stamps=good["stamps"][:, None])
+    refused(r"'time_increment' has 4 values for 6 scans; give one per scan or one for all",
+            time_increment=np.zeros(4))
+    refused(r"'ranges' must hold numbers \(metres\)", ranges=np.full(good["ranges"].shape, "far"))
+    from calibration.scans import read_scan_file
+
+    np.savez(path, **{**good, "time_increment": np.zeros(4)})
+    with pytest.raises(SequenceFormatError, match="'time_increment' has 4 values"):
+        read_scan_file(path)
+
+
+def test_a_malformed_pose_file_is_a_sequence_format_error(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]
+                                                         ) -> None:
+    """A bad line of odometry.tum or groundtruth/poses_base.tum was the TUM reader's plain
+    ValueError: ``python -m calibration check | time-offset | extrinsic --sequence`` printed
+    its traceback and exited 1 instead of the one-line error and exit 2."""
+    from calibration.cli import main
+
+    root = tmp_path / "a"
+    write_small(root)
+    for name in ("odometry.tum", "groundtruth/poses_base.tum"):
+        path = root / name
+        good = path.read_text()
+        lines = good.splitlines()
+        lines[-1] = lines[-1][: len(lines[-1]) // 3]  # cut short mid-line
+        path.write_text("\n".join(lines) + "\n")
+        with pytest.raises(SequenceFormatError, match=rf"{name}:\d+: TUM line needs 8"):
+            read_sequence(root)
+        assert main(["time-offset", "--sequence", str(root), "--out",
+                     str(tmp_path / "t")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {path}:") and "Traceback" not in err, err
+        path.write_text(good)
 
 
 def test_a_file_given_as_the_sequence_folder_is_not_called_missing(tmp_path: Path) -> None:

@@ -87,7 +87,7 @@ def read_depth(path: Path | str) -> np.ndarray:
             raise FileNotFoundError(f"{path}: depth file not found")
         try:
             d = np.load(path)
-        except (OSError, ValueError) as e:
+        except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
             raise ValueError(f"{path}: not a readable .npy depth map ({e}); write it with "
                              "numpy.save as [H, W] float32 metres") from None
         if not isinstance(d, np.ndarray) or d.ndim != 2:

@@ -213,11 +213,7 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
                 and not (p.parent / "metadata.yaml").exists()):
             # Another kind of recording given to 'source: rosbag' (a CARMEN log, a TUM
             # folder's file) was reported as a damaged sqlite3 bag with a repair recipe.
-            raise BagError(
-                f"{p}: not a ROS bag: a ROS 1 bag starts with '#ROSBAG', a ROS 2 bag is a "
-                f"folder with metadata.yaml (or its {' / '.join(ROS2_STORAGE)} file). Fix: "
-                "'source: carmen' for a CARMEN log or g2o file, 'source: tum_rgbd' for a "
-                "TUM RGB-D folder, 'source: sequence' for a sequence folder")
+            raise _not_a_bag(p)
         if p.is_dir() and not (p / "metadata.yaml").exists():
             ros1_files = sorted(str(f) for f in p.iterdir() if is_ros1_bag(f))
             if ros1_files:
@@ -225,6 +221,11 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
                 raise BagError(f"{p}: a folder of ROS 1 bags, not a ROS 2 bag folder (no "
                                "metadata.yaml). Fix: list the bags of the recording under "
                                f"'path:' (a split recording is read as one):{listed}")
+            if not any(f.suffix.lower() in ROS2_STORAGE for f in p.iterdir()):
+                # An empty, TUM RGB-D or sequence folder: no storage file for 'ros2 bag
+                # reindex' to index, so its repair hint was no fix.
+                raise _not_a_bag(p, "no metadata.yaml and no "
+                                    f"{' / '.join(ROS2_STORAGE)} file in the folder")
     ros1 = [is_ros1_bag(p) for p in items]
     if any(ros1) and not all(ros1):
         raise BagError(f"{', '.join(map(str, items))}: mix of ROS 1 .bag files and other "
@@ -233,6 +234,16 @@ def bag_paths(path: Path | str | Sequence[Path | str]) -> list[Path]:
         raise BagError(f"{', '.join(map(str, items))}: a ROS 2 recording is one folder "
                        "(with metadata.yaml); give that folder")
     return items
+
+
+def _not_a_bag(path: Path, why: str = "") -> BagError:
+    """The error for a file or folder that holds no ROS bag, naming the other sources."""
+    return BagError(
+        f"{path}: not a ROS bag{f' ({why})' if why else ''}: a ROS 1 bag starts with "
+        f"'#ROSBAG', a ROS 2 bag is a folder with metadata.yaml (or its "
+        f"{' / '.join(ROS2_STORAGE)} file). Fix: 'source: carmen' for a CARMEN log or g2o "
+        "file, 'source: tum_rgbd' for a TUM RGB-D folder, 'source: sequence' for a "
+        "sequence folder")
 
 
 def _whole_recording(storage: Path) -> None:

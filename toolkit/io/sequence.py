@@ -202,13 +202,29 @@ def scans_to_arrays(scans: list[LaserScan], source: str = "scans") -> dict[str, 
     return out
 
 
+def _per_scan(value: Any, key: str, n: int, source: str) -> np.ndarray:
+    """[n] float64 of a value given once per scan or once for all."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.size not in (1, n):
+        raise SequenceFormatError(f"{source}: '{key}' has {a.size} values for {n} scans; "
+                                  "give one per scan or one for all")
+    return np.broadcast_to(a.reshape(-1), (n,))
+
+
 def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
     for key in ("stamps", "ranges", "angle_min", "angle_increment", "range_min", "range_max"):
         if key not in data:
             raise SequenceFormatError(f"{source}: missing array '{key}'")
-    stamps = np.asarray(data["stamps"], dtype=np.float64)
+    stamps = np.asarray(data["stamps"], dtype=np.float64)  # [S]
+    if stamps.ndim != 1:
+        raise SequenceFormatError(f"{source}: 'stamps' must hold one stamp per scan ([S]), "
+                                  f"got shape {stamps.shape}")
     check_seconds(stamps, source, "stamps")
-    ranges = np.asarray(data["ranges"], dtype=np.float32)
+    try:
+        ranges = np.asarray(data["ranges"], dtype=np.float32)  # [S, B]
+    except ValueError:
+        raise SequenceFormatError(f"{source}: 'ranges' must hold numbers (metres), got "
+                                  f"{np.asarray(data['ranges']).dtype}") from None
     n = len(stamps)
     if ranges.ndim != 2 or len(ranges) != n:
         raise SequenceFormatError(f"{source}: 'ranges' must be [S, B] with S = {n} stamps, got "
@@ -222,13 +238,8 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
                if np.asarray(data["stamps"]).dtype == np.float32 else "")
         raise SequenceFormatError(f"{source}: 'stamps' not strictly increasing at scan {i} "
                                   f"({float(stamps[i - 1])!r} then {float(stamps[i])!r}){why}")
-    per = {}
-    for key in ("angle_min", "angle_increment", "range_min", "range_max"):
-        a = np.asarray(data[key], dtype=np.float64)
-        if a.size not in (1, n):
-            raise SequenceFormatError(f"{source}: '{key}' has {a.size} values for {n} scans; "
-                                      "give one per scan or one for all")
-        per[key] = np.broadcast_to(a.reshape(-1), (n,))
+    per = {key: _per_scan(data[key], key, n, source)
+           for key in ("angle_min", "angle_increment", "range_min", "range_max")}
     if np.any(per["angle_increment"] == 0):
         raise SequenceFormatError(f"{source}: 'angle_increment' is zero for some scans")
     for key, a in per.items():
@@ -251,8 +262,8 @@ def scans_from_arrays(data: Any, source: str) -> list[LaserScan]:
             raise SequenceFormatError(f"{source}: 'has_intensities' has {len(has)} values for "
                                       f"{n} scans")
     # Written only when a scan has per-beam timing; files from before it hold none.
-    dt = np.broadcast_to(np.asarray(data["time_increment"] if "time_increment" in data else 0.0,
-                                       np.float64), (n,))
+    dt = _per_scan(data["time_increment"] if "time_increment" in data else 0.0,
+                   "time_increment", n, source)
     if not np.all(np.isfinite(dt)):
         raise SequenceFormatError(f"{source}: 'time_increment' holds non-finite values "
                                   "(0 for scans without per-beam timing)")
@@ -369,12 +380,24 @@ _IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", "
 _BASE_NAMES = ("base_link", "base_footprint", "base")
 
 
+def _read_pose_file(path: Path, frame: str | None = None, child: str | None = None) -> (
+    Trajectory
+):
+    """``read_tum`` whose errors (a line cut short, a NaN, stamps going back; each named
+    by file and line) are the sequence's: the calibration CLI printed the plain
+    ValueError's traceback."""
+    try:
+        return read_tum(path, frame, child)
+    except ValueError as e:
+        raise SequenceFormatError(str(e)) from None
+
+
 def _read_base_trajectory(path: Path, frame: str) -> Trajectory:
     """T_<frame>_base_link poses of ``path`` (odometry.tum, poses_base.tum). A header
     (``# T_a_b: b pose in a``, as format_tum writes) naming other frames is refused: camera
     or laser poses, or inverted ones, were read as base poses without a word."""
     # Read once with the header's frames (world / base_link without one), then checked.
-    traj = read_tum(path)
+    traj = _read_pose_file(path)
     h_frame, h_child = traj.frame, traj.child
     said = f"its header says the poses are T_{h_frame}_{h_child} ({h_child} in {h_frame})"
     want = f"this file holds T_{frame}_base_link (base_link poses in a fixed frame)"
@@ -653,7 +676,7 @@ def _read_groundtruth(root: Path, depth: list[Path] | None, masks: list[Path] | 
     if (hdir / "frames.csv").exists():
         rows = _read_frames_csv(hdir / "frames.csv")
         frames, hdepth, _ = _frames_from_rows(rows, hdir, hdir / "frames.csv")
-        poses = read_tum(hdir / "poses_camera.tum", "world", "camera")
+        poses = _read_pose_file(hdir / "poses_camera.tum", "world", "camera")
         check_seconds(poses.stamps, str(hdir / "poses_camera.tum"), "timestamp")
         if len(poses) != len(frames):
             raise SequenceFormatError(f"{hdir / 'poses_camera.tum'}: {len(poses)} poses for "
@@ -857,7 +880,9 @@ class SequenceWriter:
             # Decoded once here: a truncated or foreign file copied unread failed stages
             # later, naming this copy (which a rerun then overwrote with the bad source).
             data = Path(image_path).read_bytes()  # type: ignore[arg-type]
-            pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            # An empty buffer is OpenCV's assertion error, naming no file.
+            pixels = (cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+                      if data else None)
             if pixels is None:
                 raise ValueError(f"{image_path}: frame {i} is not a readable PNG image "
                                  "(truncated or another format); replace it and run again")

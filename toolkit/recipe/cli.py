@@ -12,14 +12,11 @@ import shlex
 import signal
 import sys
 from collections.abc import Sequence
-from types import FrameType
-from typing import Any
 
+from toolkit.cli_types import INTERRUPTED, sigterm_as_interrupt
 from toolkit.recipe import registry
 from toolkit.recipe.runner import StoppedAfterStage, missing_inputs, run_recipe
 from toolkit.recipe.schema import Recipe, RecipeError, load_recipe
-
-INTERRUPTED = 130  # the exit status of a run stopped by Ctrl-C or SIGTERM (128 + SIGINT)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,7 +77,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise RecipeError(problems)
             _describe(recipe)
             return 0
-        previous = _sigterm_as_interrupt()
+        # A `kill` or a scheduler's preemption still writes the report and metrics of the
+        # finished stages before the process exits.
+        previous = sigterm_as_interrupt()
         try:
             result = run_recipe(
                 recipe, force=args.force, from_stage=args.from_stage, only=args.only
@@ -199,17 +198,3 @@ def _describe(recipe: Recipe) -> None:
         if spec.cls.provides:
             line += f"  provides: {', '.join(spec.cls.provides)}"
         print(line)
-
-
-def _sigterm_as_interrupt() -> signal.Handlers | Any | None:
-    """Make SIGTERM end the run like Ctrl-C; returns the handler it replaced."""
-
-    # `kill` or a scheduler's preemption then still writes the report and metrics of the
-    # finished stages before the process exits.
-    def handler(signum: int, frame: FrameType | None) -> None:
-        raise KeyboardInterrupt
-
-    try:
-        return signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread (embedded use): leave signals alone
-        return None
