@@ -263,6 +263,39 @@ def test_tsdf_stage_scaled_depth_at_trajectory_poses(tmp_path: Path) -> None:
 
 
 
+def test_tsdf_stage_sizes_its_volume_to_its_frames_and_frees_it_after_the_mesh(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The quickstart's tsdf peak: a hash map doubled to 8192 blocks for 4728 (640 MiB of
+    # voxels), kept alive while the stage rendered its views.
+    import weakref
+
+    from toolkit.baselines.stage import TSDFStage
+    from toolkit.baselines.tsdf import TSDFVolume
+
+    extract, views = TSDFVolume.extract_mesh, TSDFStage._views
+    seen: dict[str, Any] = {}
+
+    def extract_mesh(self: TSDFVolume) -> Any:
+        hm = self.grid.hashmap()
+        seen.update(size=hm.size(), capacity=hm.capacity(), volume=weakref.ref(self))
+        return extract(self)
+
+    def views_after(*a: Any, **kw: Any) -> Any:
+        seen["alive_at_views"] = seen["volume"]() is not None
+        return views(*a, **kw)
+
+    monkeypatch.setattr(TSDFVolume, "extract_mesh", extract_mesh)
+    monkeypatch.setattr(TSDFStage, "_views", staticmethod(views_after))
+    res = _run(tmp_path, [{"stage": "t_room", "frames": 8, "width": 160, "height": 120,
+                           "small": True},
+                          {"stage": "tsdf", "depth_source": "groundtruth", "views": 1,
+                           "geometry": False}])
+    assert res.ok, res.error
+    # Room for the blocks held plus one frame's (Open3D's insertion test), not 4096.
+    assert seen["size"] < seen["capacity"] < 2 * seen["size"], seen
+    assert seen["alive_at_views"] is False
+
+
 def test_tsdf_stage_resumes_from_its_checkpoint(tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     from toolkit.baselines.tsdf import TSDFVolume

@@ -599,6 +599,31 @@ def test_a_frame_without_valid_depth_is_skipped_and_counted(room_frames: tuple) 
     assert resumed.skipped == 2 and resumed.frames == 1
 
 
+def test_reserve_for_sizes_the_map_once_and_keeps_the_mesh(room_frames: tuple) -> None:
+    # Open3D doubles a full hash map, and to insert a frame's blocks it wants room for all
+    # of them, held or not: the quickstart's volume went 4096 -> 8192 blocks for 4728.
+    cam, poses, frames = room_frames
+    plain = integrate_frames(((d, rgb, T) for (rgb, d), T in zip(frames, poses, strict=True)),
+                             cam, TSDFSettings(block_count=1))
+    vol = TSDFVolume(TSDFSettings(block_count=1))
+    blocks = [vol.frame_blocks(d, cam, T) for (_, d), T in zip(frames, poses, strict=True)]
+    assert vol.frame_blocks(np.full_like(frames[0][1], np.nan), cam, poses[0]) is None
+    held: set[tuple[int, ...]] = set()
+    need = 0
+    for b in blocks:
+        need = max(need, len(held) + len(b))
+        held |= set(map(tuple, b.tolist()))
+    assert vol.reserve_for(blocks) == need < plain.grid.hashmap().capacity()
+    for ((rgb, d), T), b in zip(zip(frames, poses, strict=True), blocks, strict=True):
+        vol.integrate(d, rgb, cam, T, b)
+        assert vol.grid.hashmap().capacity() == need  # never grew
+    assert vol.grid.hashmap().size() == len(held) == plain.grid.hashmap().size()
+    assert vol.reserve_for([]) == need  # never shrinks (Open3D's reserve would)
+    a, b = plain.extract_mesh(), vol.extract_mesh()
+    for attr in ("vertices", "triangles", "vertex_colors", "vertex_normals"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, attr)), np.asarray(getattr(b, attr)))
+
+
 def _box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> Any:
     """An axis-aligned box mesh from corner ``lo`` to corner ``hi``."""
     b = o3d.geometry.TriangleMesh.create_box(*(np.subtract(hi, lo)))

@@ -35,9 +35,11 @@ class TSDFSettings:
     trunc_voxels: float = 4.0
     depth_max_m: float = 8.0
     block_resolution: int = 16
-    # Initial hash-map capacity in blocks (16^3 voxels, 48 KB each). Open3D doubles it when
-    # full, but each rehash copies everything; a 5 x 4 m room needs ~1000 blocks at 2 cm.
-    # Allocation is zeroed up front, so a huge default costs seconds for small scenes.
+    # Initial hash-map capacity in blocks (16^3 voxels, 80 KB each with the float32
+    # attributes below). Open3D doubles it when full, but each rehash copies everything; a
+    # 5 x 4 m room needs ~1000 blocks at 2 cm. Allocation is zeroed up front, so a huge
+    # default costs seconds for small scenes. ``TSDFVolume.reserve_for`` sizes it to the
+    # frames instead (the ``tsdf`` stage does).
     block_count: int = 4096
     # Frames that must have seen a voxel for it to be part of the surface; 2 or more drops
     # surfaces seen once (often flying pixels of a single bad depth map).
@@ -92,12 +94,67 @@ class TSDFVolume(GridCheckpoint):
         self.skipped = int(state.get("skipped", 0))
 
     def integrate(self, depth: np.ndarray, color: np.ndarray, camera: PinholeCamera,
-                  T_world_camera: np.ndarray) -> None:
+                  T_world_camera: np.ndarray, blocks: np.ndarray | None = None) -> None:
         """Fuse one frame: ``depth`` [H, W] metres, ``color`` [H, W, 3] uint8 RGB.
 
         The camera must be distortion-free (undistort images and depth first): the
-        volume projects voxels with a plain pinhole ``K``.
+        volume projects voxels with a plain pinhole ``K``. ``blocks`` [B, 3] int32: the
+        frame's ``frame_blocks``, computed earlier (``reserve_for``); None computes them.
         """
+        inputs = self._depth_inputs(depth, camera, T_world_camera)
+        if color.shape[:2] != np.shape(depth):
+            raise ValueError(f"colour {color.shape} and depth {np.shape(depth)} differ in size")
+        if inputs is None:
+            # Open3D refuses a frame that touches no block ("check depth_scale and
+            # voxel_size"): one frame facing a far wall stopped the whole stage.
+            self.skipped += 1
+            return
+        o3d, o3c = self._o3d, self._o3c
+        depth_img, K, extrinsic = inputs
+        color_img = o3d.t.geometry.Image(
+            o3c.Tensor(np.ascontiguousarray(np.asarray(color, dtype=np.uint8))))
+        s = self.settings
+        dmax, trunc = float(s.depth_max_m), float(s.trunc_voxels)
+        if blocks is None:
+            blocks = self._blocks(depth_img, K, extrinsic)
+        else:
+            blocks = o3c.Tensor(np.ascontiguousarray(blocks, dtype=np.int32))
+        self.grid.integrate(blocks, depth_img, color_img, K, K, extrinsic, self.depth_scale,
+                            dmax, trunc)
+        self.frames += 1
+
+    def frame_blocks(self, depth: np.ndarray, camera: PinholeCamera,
+                     T_world_camera: np.ndarray) -> np.ndarray | None:
+        """[B, 3] int32 coordinates of the blocks ``integrate`` of this depth [H, W] (metres)
+        would fill, None for a frame without valid depth (``integrate`` skips it)."""
+        inputs = self._depth_inputs(depth, camera, T_world_camera)
+        return None if inputs is None else self._blocks(*inputs).numpy()
+
+    def reserve_for(self, frame_blocks: Iterable[np.ndarray | None]) -> int:
+        """Size the hash map, once, for integrating frames whose ``frame_blocks`` these are
+        (in this order, after what the volume holds); returns its capacity in blocks.
+
+        To insert a frame's B blocks Open3D wants room for B more than it holds, new or not,
+        and a full map doubles: on the quickstart it went 4096 -> 8192 blocks for the 4728
+        it filled (640 MiB of voxels for 370 MiB used), and the copy held both tables. The
+        capacity here is the largest (blocks held before a frame + that frame's), so the
+        map never grows while the frames go in."""
+        hm = self.grid.hashmap()
+        held = {tuple(k) for k in hm.key_tensor()[hm.active_buf_indices()].numpy().tolist()}
+        need = len(held)
+        for b in frame_blocks:
+            if b is None:
+                continue
+            need = max(need, len(held) + len(b))
+            held.update(map(tuple, np.asarray(b).tolist()))
+        if need > hm.capacity():  # Open3D's reserve also shrinks
+            hm.reserve(need)
+        return int(hm.capacity())
+
+    def _depth_inputs(self, depth: np.ndarray, camera: PinholeCamera,
+                      T_world_camera: np.ndarray) -> tuple[Any, Any, Any] | None:
+        """Open3D's (uint16 depth image, K, world-to-camera extrinsic) of a frame, None when
+        no pixel of ``depth`` [H, W] is valid."""
         o3d, o3c = self._o3d, self._o3c
         if camera.has_distortion:
             raise ValueError("TSDF integration needs undistorted frames; pass "
@@ -106,29 +163,24 @@ class TSDFVolume(GridCheckpoint):
         if depth.shape != (camera.height, camera.width):
             raise ValueError(f"depth is {depth.shape[::-1]} (WxH), camera is "
                              f"{camera.width}x{camera.height}")
-        if color.shape[:2] != depth.shape:
-            raise ValueError(f"colour {color.shape} and depth {depth.shape} differ in size")
         s = self.settings
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(depth) & (depth > 0) & (depth <= s.depth_max_m)
         if not ok.any():
-            # Open3D refuses a frame that touches no block ("check depth_scale and
-            # voxel_size"): one frame facing a far wall stopped the whole stage.
-            self.skipped += 1
-            return
+            return None
         d16 = np.where(ok, np.round(depth * self.depth_scale), 0).astype(np.uint16)
         depth_img = o3d.t.geometry.Image(o3c.Tensor(d16))
-        color_img = o3d.t.geometry.Image(
-            o3c.Tensor(np.ascontiguousarray(np.asarray(color, dtype=np.uint8))))
         K = o3c.Tensor(camera.open3d_K(), o3c.float64)
         extrinsic = o3c.Tensor(inv_se3(T_world_camera), o3c.float64)  # world -> camera
+        return depth_img, K, extrinsic
+
+    def _blocks(self, depth_img: Any, K: Any, extrinsic: Any) -> Any:
+        """Open3D's [B, 3] Int32 tensor of the blocks a frame touches."""
+        s = self.settings
         # float(): Open3D's bindings reject a Python int where they declare a float.
-        dmax, trunc = float(s.depth_max_m), float(s.trunc_voxels)
-        blocks = self.grid.compute_unique_block_coordinates(
-            depth_img, K, extrinsic, self.depth_scale, dmax, trunc)
-        self.grid.integrate(blocks, depth_img, color_img, K, K, extrinsic, self.depth_scale,
-                            dmax, trunc)
-        self.frames += 1
+        return self.grid.compute_unique_block_coordinates(
+            depth_img, K, extrinsic, self.depth_scale, float(s.depth_max_m),
+            float(s.trunc_voxels))
 
     def extract_mesh(self) -> Any:
         """Legacy ``open3d.geometry.TriangleMesh`` with vertex colours in [0, 1] and normals."""
