@@ -369,6 +369,12 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         print(f"note: {source} holds T_{traj.frame}_{traj.child}: its yaw is taken as the "
               "robot's (any frame mounted level on the robot turns alike)")
     strided = seq.frames[::args.stride] if args.stride > 1 else seq.frames
+    if len(strided) < 3:  # said with the folder: a lidar-only recording has no images at all
+        kept = f" ({len(strided)} with --stride {args.stride})" if args.stride > 1 else ""
+        raise CalibrationFileError(
+            f"{args.sequence}: {len(seq.frames)} camera frames{kept}; time-offset compares "
+            "the camera's turning with the trajectory's and needs at least 3 (a lidar-only "
+            "recording, such as a converted CARMEN log, has none: give a sequence with images)")
     m = measure(strided, seq.rig.camera, seq.rig.T_base_camera, traj, source,
                 lambda it, total: track(it, total=total, description="camera rotations",
                                         transient=True, disable=not sys.stderr.isatty()),
