@@ -292,13 +292,21 @@ def cmd_check(args: argparse.Namespace) -> int:
             use_gt_depth=args.score != "edges", camera=camera,
             camera_source=str(args.rig) if args.rig else str(root / "rig.yaml"))
     else:
-        if not (args.images and args.scans and args.camera and (args.extrinsic or args.rig)):
-            raise CalibrationFileError("give --sequence, or --images, --scans, --camera and "
-                                       "--extrinsic (or --rig)")
-        camera = load_camera(Path(args.camera))
+        # A rig holds the camera too (the one `extrinsic --out` writes): asking for the
+        # same camera again as --camera sent users back to the command with one more flag.
+        camera_file = args.camera or args.rig
+        missing = [flag for flag, given in (("--images", args.images), ("--scans", args.scans),
+                                            ("--camera (or a --rig holding it)", camera_file),
+                                            ("--extrinsic (or --rig)",
+                                             args.extrinsic or args.rig)) if not given]
+        if missing:
+            raise CalibrationFileError(f"missing {', '.join(missing)}: give --sequence, or "
+                                       "--images, --scans, --camera and --extrinsic (or a "
+                                       "--rig, which holds both)")
+        camera = load_camera(Path(camera_file))
         T = load_extrinsic(Path(args.extrinsic or args.rig))
         frames = check_frames_from_pairs(Path(args.images), Path(args.scans), camera,
-                                         str(args.camera), args.max_dt,
+                                         str(camera_file), args.max_dt,
                                          Path(args.depth) if args.depth else None,
                                          args.stamp_unit, args.frames)
     # Scored first: a check that cannot score (no depth maps for --score depth) writes no
@@ -367,6 +375,12 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         print(f"note: {source} holds T_{traj.frame}_{traj.child}: its yaw is taken as the "
               "robot's (any frame mounted level on the robot turns alike)")
     strided = seq.frames[::args.stride] if args.stride > 1 else seq.frames
+    if len(strided) < 3:  # said with the folder: a lidar-only recording has no images at all
+        kept = f" ({len(strided)} with --stride {args.stride})" if args.stride > 1 else ""
+        raise CalibrationFileError(
+            f"{args.sequence}: {len(seq.frames)} camera frames{kept}; time-offset compares "
+            "the camera's turning with the trajectory's and needs at least 3 (a lidar-only "
+            "recording, such as a converted CARMEN log, has none: give a sequence with images)")
     m = measure(strided, seq.rig.camera, seq.rig.T_base_camera, traj, source,
                 lambda it, total: track(it, total=total, description="camera rotations",
                                         transient=True, disable=not sys.stderr.isatty()),
@@ -485,7 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--extrinsic", help="extrinsic YAML overriding the rig's")
     pc.add_argument("--images", help="image folder (instead of --sequence)")
     pc.add_argument("--scans", help="scan folder (instead of --sequence)")
-    pc.add_argument("--camera", help="camera YAML (with --images)")
+    pc.add_argument("--camera", help="camera YAML (with --images; default: the --rig's)")
     pc.add_argument("--depth", help="folder of metric depth maps (<index:06d> or image stem, "
                                     ".npy or .png)")
     pc.add_argument("--score", default="auto", choices=("auto", "depth", "edges"),

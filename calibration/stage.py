@@ -237,7 +237,7 @@ class CalibrateStage(Stage):
             atomic_write_text(ctx.stage_dir / "calibration.unreliable.yaml", calib_text)
             raise StageError(
                 f"calibrate: the extrinsic from {len(res.views_used)} views is unreliable: "
-                f"{'; '.join(res.unreliable)}. It is in "
+                f"{'; '.join(r.rstrip('.') for r in res.unreliable)}. It is in "
                 f"{ctx.stage_dir / 'calibration.unreliable.yaml'}; capture more views (boards "
                 "tilted differently, nearer), or set allow_unreliable: true to use it anyway")
         calib_path = ctx.stage_dir / "calibration.yaml"
@@ -300,10 +300,11 @@ class CalibrateStage(Stage):
             what = f"the extrinsic of {cfg.extrinsic}"
             if marks is not None and marks["reliable"] is False and not cfg.allow_unreliable:
                 # Passed on, it is what the later stages place every lidar point with.
+                why = [str(r).rstrip(".") for r in marks.get("unreliable_because") or []]
                 raise StageError(
                     f"calibrate: {cfg.extrinsic} is marked reliable: false (field "
                     "'reliable' of its calibration): "
-                    f"{'; '.join(map(str, marks.get('unreliable_because') or [])) or 'no reason'}"
+                    f"{'; '.join(why) or 'no reason'}"
                     ". Calibrate again with more varied board views, or set allow_unreliable: "
                     "true to check it and pass it on as the rig anyway")
         else:

@@ -211,7 +211,7 @@ def test_stage_check_only_gates_an_extrinsic_marked_unreliable(scene, tmp_path, 
 
     frames, camera, T = scene
     _write_sequence(scene, tmp_path / "seq")
-    why = "the 5 board normals all lie within 1.3 degrees (RMS) of one plane"
+    why = "the 5 board normals all lie within 1.3 degrees (RMS) of one plane."  # as written
     marked = tmp_path / "rig.unreliable.yaml"
     marked.write_text(yaml.safe_dump({**extrinsic_to_mapping(T), "calibration": {
         "reliable": False, "unreliable_because": [why]}}))
@@ -222,6 +222,7 @@ def test_stage_check_only_gates_an_extrinsic_marked_unreliable(scene, tmp_path, 
         res = _run_with_sequence(tmp_path / "seq", [stage], tmp_path / "a")
     assert not res.ok and "reliable: false" in str(res.error)
     assert "allow_unreliable" in str(res.error) and why in str(res.error)
+    assert ".." not in str(res.error), res.error  # the reason's period, then the message's
     assert not (tmp_path / "a" / "run" / "calibrate" / "rig.yaml").exists()
     assert any("marked unreliable" in r.getMessage() for r in caplog.records)
     (tmp_path / "b").mkdir()

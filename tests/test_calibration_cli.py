@@ -83,6 +83,16 @@ def test_extrinsic_end_to_end(capture: tuple[Path, object], tmp_path: Path,
     assert rc == 0
     chk = json.loads((tmp_path / "chk" / "check.json").read_text())
     assert chk["kind"] == "edges" and len(chk["overlays"]) == 8
+    # That rig holds the camera: --camera is not needed beside it (it was refused).
+    rc = main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+               "--rig", str(tmp_path / "rig.yaml"), "--out", str(tmp_path / "chk2")])
+    assert rc == 0
+    again = json.loads((tmp_path / "chk2" / "check.json").read_text())
+    assert again["score"] == chk["score"]
+    capsys.readouterr()
+    rc = main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+               "--extrinsic", str(tmp_path / "rig.yaml"), "--out", str(tmp_path / "chk3")])
+    assert rc == 2 and "missing --camera" in capsys.readouterr().err
 
 
 def test_extrinsic_is_deterministic(capture: tuple[Path, object], tmp_path: Path) -> None:

@@ -47,6 +47,7 @@ def test_an_unreliable_extrinsic_stops_the_stage(tmp_path: Path) -> None:
     (tmp_path / "a").mkdir()
     res = run_stages(tmp_path / "a", [stage], {"calibrate": CalibrateStage})
     assert not res.ok and "unreliable" in res.error and "allow_unreliable" in res.error
+    assert ".." not in res.error, res.error  # each reason ends in a period of its own
     out = tmp_path / "a" / "run" / "calibrate"
     assert (out / "calibration.unreliable.yaml").exists() and not (out / "rig.yaml").exists()
     (tmp_path / "b").mkdir()

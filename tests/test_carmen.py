@@ -394,3 +394,25 @@ def test_a_reference_stamp_glitched_into_the_future_costs_one_pose(tmp_path: Pat
     assert len(rec.scans) == 99 and len(rec.groundtruth) == 99
     assert rec.groundtruth.stamps[-1] == rec.scans[-1].stamp
     assert rec.dropped == {"scans": 1}  # one line: its pose goes with its scan
+
+
+@pytest.mark.parametrize("g2o", [False, True])
+def test_a_scan_stamp_going_backwards_names_its_line(tmp_path: Path, g2o: bool):
+    """'message 295' sent a user counting scans through a 5000-line log; the error names
+    the file's line of the scan (FLASER / ROBOTLASER1) that goes backwards."""
+    from toolkit.ingest.sync import IngestError
+    from toolkit.io.carmen_ingest import read_carmen_recording
+
+    if g2o:
+        text = ""
+        for i, t in enumerate((100.25, 101.25, 100.75)):  # the third scan goes back
+            text += f"VERTEX_SE2 {i} {0.1 * i} 0 0\n" + ROBOTLASER.replace(
+                "100.25 host 100.3", f"{t} host {t}")
+        path, bad_line = tmp_path / "run.g2o", 6
+    else:
+        text = "# a comment\n" + FLASER + ODOM + FLASER.replace("12.5 host", "12.4 host")
+        path, bad_line = tmp_path / "run.log", 4
+    path.write_text(text)
+    with pytest.raises(IngestError, match=rf"{path.name}: scans: stamps are not monotonic: "
+                                          rf"line {bad_line} at "):
+        read_carmen_recording(path)

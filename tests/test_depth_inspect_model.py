@@ -103,6 +103,10 @@ def test_cli_names_a_bad_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> 
     bad.write_bytes(b"not a model")
     assert main([str(bad)]) == 2
     assert "bad.onnx" in capsys.readouterr().err
+    # A missing --image is named as missing, before the model is read or printed.
+    assert main([str(bad), "--image", str(tmp_path / "f.png")]) == 2
+    out, err = capsys.readouterr()
+    assert "f.png: no such file" in err and "bad.onnx" not in err + out, err
     for arg in ("no-equals-sign", "output=["):  # not KEY=VALUE, not YAML: usage, no trace
         with pytest.raises(SystemExit):
             main([str(bad), "--set", arg])

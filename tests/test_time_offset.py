@@ -148,6 +148,23 @@ def test_time_offset_cli_names_what_is_missing(delayed: Path, tmp_path: Path,
     assert "another clock?" in capsys.readouterr().err
 
 
+def test_time_offset_cli_names_a_sequence_without_images(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A lidar-only sequence (a converted CARMEN log) was refused with '0 camera frames;
+    at least 3 are needed', naming neither the folder nor why it had none."""
+    from toolkit.io.carmen_ingest import read_carmen_recording
+
+    log = tmp_path / "run.log"
+    log.write_text("".join(f"FLASER 4 1.0 2.0 3.0 3.5 {0.1 * i:.1f} 0 0 {0.1 * i:.1f} 0 0 "
+                           f"{10 + 0.1 * i:.1f} host {10 + 0.1 * i:.1f}\n" for i in range(20)))
+    convert(read_carmen_recording(log), tmp_path / "lidar_only")
+    assert calibration_main(["time-offset", "--sequence", str(tmp_path / "lidar_only"),
+                             "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert str(tmp_path / "lidar_only") in err and "0 camera frames" in err, err
+    assert "lidar-only" in err, err
+
+
 def test_the_calibrate_check_reports_the_delay(delayed: Path, tmp_path: Path) -> None:
     """The quickstart's `calibrate` check measures the delay and says how to undo it."""
     from recipe_helpers import SequenceFolder, run_stages  # the tests folder is on sys.path

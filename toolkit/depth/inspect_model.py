@@ -269,6 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--png", type=Path, default=None,
                     help="with --image: write the image beside its prediction here")
     a = ap.parse_args(argv)
+    if a.image is not None and not a.image.is_file():
+        # Said first, not after the model's whole printout as "not an image OpenCV can read"
+        # (with OpenCV's own warning line above it) for a path that is simply not there.
+        print(f"error: --image {a.image}: no such file (a relative path is read from "
+              f"{Path.cwd()}); give the path of a PNG or JPEG frame", file=sys.stderr)
+        return 2
     try:
         ins, outs, meta = read_model(a.model)
     except (FileNotFoundError, ValueError) as e:

@@ -146,6 +146,7 @@ class CarmenLog:
     T_base_laser: np.ndarray  # [4, 4]
     params: dict[str, str] = field(default_factory=dict)
     scan_lines: list[str] = field(default_factory=list)  # [S] "FLASER" or "ROBOTLASER1"
+    scan_linenos: list[int] = field(default_factory=list)  # [S] file line, named in errors
 
     @property
     def duration_s(self) -> float:
@@ -205,6 +206,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
     laser_offsets: list[np.ndarray] = []
     guessed: set[int] = set()  # FLASER beam counts of no known scanner, warned about
     kinds: list[str] = []
+    linenos: list[int] = []
     for lineno, line in enumerate(_open_text(path), 1):
         f = line.split()
         if not f or f[0].startswith("#"):
@@ -231,6 +233,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                                        angle_increment=inc, range_min=0.0,
                                        range_max=max_range))
                 kinds.append(f[0])
+                linenos.append(lineno)
                 poses.append(_pose(rest[0:3], "laser pose (x y theta)"))
                 odoms.append(_pose(rest[3:6], "odometry pose (odom_x odom_y odom_theta)",
                                    finite=False))
@@ -241,6 +244,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
                 scan, laser, robot = _parse_robotlaser1(f, robot_finite=False)
                 scans.append(scan)
                 kinds.append(f[0])
+                linenos.append(lineno)
                 poses.append(laser)
                 odoms.append(robot)
                 if np.isfinite(robot).all():
@@ -272,6 +276,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
         T_base_laser=T_base_laser,
         params=params,
         scan_lines=kinds,
+        scan_linenos=linenos,
     )
 
 
@@ -310,6 +315,7 @@ class G2OLog:
     scan_vertex: np.ndarray  # [S] vertex id each scan belongs to
     scan_laser_poses: np.ndarray  # [S, 3] ROBOTLASER1 laser pose (corrected too)
     T_base_laser: np.ndarray  # [4, 4]
+    scan_linenos: list[int] = field(default_factory=list)  # [S] file line, named in errors
 
     @property
     def duration_s(self) -> float:
@@ -378,6 +384,7 @@ def read_g2o(path: Path | str) -> G2OLog:
     scans: list[LaserScan] = []
     svert: list[int] = []
     slaser: list[np.ndarray] = []
+    linenos: list[int] = []
     offsets: list[np.ndarray] = []
     for lineno, line in enumerate(_open_text(path), 1):
         f = line.split()
@@ -402,6 +409,7 @@ def read_g2o(path: Path | str) -> G2OLog:
                     raise ValueError("ROBOTLASER1 before any VERTEX_SE2")
                 scan, laser, robot = _parse_robotlaser1(f)
                 scans.append(scan)
+                linenos.append(lineno)
                 svert.append(vids[-1])
                 slaser.append(laser)
                 offsets.append(_laser_offset(laser, robot))
@@ -419,4 +427,5 @@ def read_g2o(path: Path | str) -> G2OLog:
         scan_vertex=np.array(svert, dtype=np.int64),
         scan_laser_poses=np.array(slaser).reshape(-1, 3),
         T_base_laser=T_base_laser,
+        scan_linenos=linenos,
     )

@@ -113,7 +113,8 @@ def read_carmen_recording(path: Path | str, options: CarmenOptions | None = None
                           "sequence)")
     where = f"{path}: scans"
     stamps = np.array([s.stamp for s in data.scans], dtype=np.float64)
-    keep = stamps_keep(stamps, where, on_non_monotonic)
+    # The file's line is named, not the scan's number: a log is read with an editor.
+    keep = stamps_keep(stamps, where, on_non_monotonic, lines=data.scan_linenos or None)
     scans = [s for s, k in zip(data.scans, keep, strict=True) if k]
     dropped = {"scans": int((~keep).sum())}
 
