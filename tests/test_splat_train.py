@@ -283,6 +283,68 @@ def test_a_checkpoint_from_before_the_checksum_trains_afresh_with_a_warning(
     assert "before splat checkpoints carried a checksum" in caplog.text
 
 
+def _same_state(a: object, b: object) -> bool:
+    """Whether two nested checkpoint states (dicts, lists, tensors, numbers) are equal."""
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return (isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor)
+                and a.shape == b.shape and torch.equal(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same_state(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same_state(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def _break(state: dict, part: str) -> None:
+    """Damage one of the parts ``load_state_dict`` reads after the parameters."""
+    if part == "optimizer shape":  # a later group's moment, one Gaussian short (shN has
+        # none yet: its degree starts at step 10)
+        moments = state["optimizers"]["sh0"]["state"][0]
+        moments["exp_avg"] = moments["exp_avg"][1:].clone()
+    elif part == "strategy statistics":  # one per Gaussian, one short
+        state["strategy_state"]["grad2d"] = state["strategy_state"]["grad2d"][1:].clone()
+    elif part == "strategy state":
+        state["strategy_state"] = None
+    elif part == "generator":
+        state["generator"] = torch.zeros(3, dtype=torch.uint8)
+    elif part == "pose optimiser":
+        del state["pose_opt"]
+    else:
+        raise AssertionError(part)
+
+
+@pytest.mark.parametrize("part", ["optimizer shape", "strategy statistics", "strategy state",
+                                  "generator", "pose optimiser"])
+def test_a_checkpoint_broken_part_way_leaves_the_trainer_fresh(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, part: str) -> None:
+    """A checkpoint whose later part fails to load: "training from the start" really is.
+    load_state_dict replaced the parameters (and optimisers, strategy state) before
+    failing, and resume trained on from that half-loaded state at step 0."""
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    cfg = _cfg(iterations=12)
+    t = Trainer(_start_model(300), views, cfg, tmp_path)
+    for _ in range(6):  # densifies at step 5: the model's size changes too
+        t.train_step()
+    state = t.state_dict()
+    _break(state, part)
+    monkeypatch.setattr(t, "state_dict", lambda *a, **kw: state)
+    t.save_checkpoint()  # with its digest: the file is sound, its contents are not
+
+    offered = Trainer(_start_model(300), views, cfg, tmp_path)
+    assert not offered.resume()
+    never = Trainer(_start_model(300), views, cfg)
+    assert offered.step == 0 and offered.resumed_from is None
+    assert offered.history == [] and offered.ema == {}
+    fresh_state, offered_state = never.state_dict(), offered.state_dict()
+    for k in ("params", "optimizers", "strategy_state", "generator", "pose", "pose_opt"):
+        assert _same_state(offered_state[k], fresh_state[k]), k
+    # and a training from it is the one never offered the checkpoint, to the bit
+    offered.train()
+    never.train()
+    assert offered.history == never.history
+    assert _same_state(offered.state_dict(), never.state_dict())
+
+
 def _meta_for(model: GaussianModel, grads: torch.Tensor) -> RenderMeta:
     n = len(model)
     means2d = torch.zeros(n, 2, requires_grad=True)
