@@ -283,6 +283,40 @@ def test_a_checkpoint_from_before_the_checksum_trains_afresh_with_a_warning(
     assert "before splat checkpoints carried a checksum" in caplog.text
 
 
+def test_torch_load_reads_the_checkpoint_zip_as_a_file_of_its_own(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """torch.load was handed the checkpoint file standing after its header line: it worked
+    because torch 2.13's zip reader takes the position it is given as the start, no
+    documented guarantee. Now it gets the zip as a file whose offsets start at 0."""
+    import zipfile
+
+    import toolkit.splat.trainer as trainer_module
+
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    t = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    t.train_step()
+    path = t.save_checkpoint()
+    body = path.read_bytes().split(b"\n", 2)[2]  # after the header and digest lines
+    seen: dict[str, object] = {}
+    real_load = torch.load
+
+    def load(f: object, *args: object, **kwargs: object) -> object:
+        seen["tell"] = f.tell()  # type: ignore[attr-defined]
+        seen["head"] = f.read(4)  # type: ignore[attr-defined]
+        seen["size"] = f.seek(0, io.SEEK_END)  # type: ignore[attr-defined]
+        f.seek(0)  # type: ignore[attr-defined]
+        seen["names"] = zipfile.ZipFile(f).namelist()  # type: ignore[arg-type]
+        f.seek(0)  # type: ignore[attr-defined]
+        return real_load(f, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(trainer_module.torch, "load", load)
+    again = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    assert again.resume() and again.step == 1
+    assert seen["tell"] == 0 and seen["head"] == b"PK\x03\x04" and seen["size"] == len(body)
+    assert any(n.endswith("data.pkl") for n in seen["names"])  # type: ignore[attr-defined]
+    assert torch.equal(again.model.means, t.model.means)
+
+
 def _same_state(a: object, b: object) -> bool:
     """Whether two nested checkpoint states (dicts, lists, tensors, numbers) are equal."""
     if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):

@@ -45,7 +45,12 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.image import psnr as psnr_fn
 from toolkit.eval.image import ssim as ssim_fn
 from toolkit.geometry import inv_se3
-from toolkit.io.atomic import digest_problem, digested_write, remove_leftover_temps
+from toolkit.io.atomic import (
+    FileTail,
+    digest_problem,
+    digested_write,
+    remove_leftover_temps,
+)
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
 from toolkit.splat.rasterize import RenderOutput, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
@@ -565,8 +570,9 @@ class Trainer:
                 log.warning("ignoring checkpoint %s (%s); training from the start", path,
                             problem)
                 return None
-            # torch.load reads the zip from here (its offsets relative to it)
-            ckpt = torch.load(fh, map_location="cpu", weights_only=False)
+            # The zip as a file of its own (offsets from 0): torch.load seeks in it, and
+            # reading a file from where it stands is no documented guarantee of it.
+            ckpt = torch.load(FileTail(fh), map_location="cpu", weights_only=False)
         if not isinstance(ckpt, dict):
             raise ValueError("not a checkpoint of this trainer")
         return ckpt
