@@ -14,6 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolkit.errors import MissingInputError
+
 # Corner refinement stops when a corner moves less than 1e-3 px or after 50 iterations:
 # the refined corners then sit well below the 0.1 px level that matters for PnP.
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
@@ -207,11 +209,11 @@ def list_images(folder: Path) -> list[Path]:
     """Image files of a folder, sorted by name (stamps in names sort in time order)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: image folder not found")
+        raise MissingInputError(f"{folder}: image folder not found")
     paths = sorted(p for p in folder.iterdir()
                    if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
     if not paths:
-        raise FileNotFoundError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
+        raise MissingInputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
     return paths
 
 
@@ -221,5 +223,5 @@ def read_image(path: Path) -> np.ndarray:
     the frames these intrinsics are then used on."""
     img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
-        raise FileNotFoundError(f"{path}: missing or not a readable image")
+        raise MissingInputError(f"{path}: missing or not a readable image")
     return img

@@ -58,6 +58,7 @@ from calibration.scans import (
     stamp_from_name,
 )
 from toolkit.camera import PinholeCamera
+from toolkit.errors import MissingInputError
 from toolkit.geometry import Trajectory, inv_se3, se3
 from toolkit.sensors import LaserScan
 
@@ -480,7 +481,7 @@ def load_candidates(images_dir: Path, scans_src: Path, board: BoardSpec, camera:
     images = images_from_folder(images_dir, stamp_unit)
     scans = read_scans(scans_src, stamp_unit)
     if not scans:
-        raise FileNotFoundError(f"{scans_src}: no scans")
+        raise MissingInputError(f"{scans_src}: no scans")
     dets, missed = detect_all(images, board, camera, camera_source)
     cands, skipped = pair_views(images, dets, scans, max_dt, skip_unpaired)
     return cands, {**missed, **skipped}
@@ -496,9 +497,9 @@ def load_candidates_from_sequence(root: Path, board: BoardSpec, max_dt: float,
 
     seq = read_sequence(root)
     if not seq.frames:
-        raise FileNotFoundError(f"{root}: the sequence has no camera frames")
+        raise MissingInputError(f"{root}: the sequence has no camera frames")
     if not seq.scans:
-        raise FileNotFoundError(f"{root}: the sequence has no scans (scans.npz)")
+        raise MissingInputError(f"{root}: the sequence has no scans (scans.npz)")
     cam = camera or seq.rig.camera
     images = ImageSource([f.path for f in seq.frames if f.path is not None],
                          np.array([f.stamp for f in seq.frames]))
@@ -535,10 +536,10 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
 
     # As check_frames_from_pairs: a mistyped --depth said "no depth map for frame 0".
     if depth_dir is not None and not Path(depth_dir).is_dir():
-        raise FileNotFoundError(f"{depth_dir}: depth folder (--depth) not found")
+        raise MissingInputError(f"{depth_dir}: depth folder (--depth) not found")
     seq = read_sequence(root)
     if not seq.frames or not seq.scans:
-        raise FileNotFoundError(f"{root}: check needs camera frames and scans")
+        raise MissingInputError(f"{root}: check needs camera frames and scans")
     stamps = seq.scan_stamps
     usable = [i for i, f in enumerate(seq.frames)
               if np.min(np.abs(stamps - f.stamp)) <= max_dt]
@@ -636,7 +637,7 @@ def _depth_for(depth_dir: Path, image_path: Path | None, index: int, reader: Any
                         f"16-bit PNG at {PNG_DEPTH_SCALE:g} per metre (TUM's scale: a "
                         "millimetre PNG, ROS 16UC1, reads 5x too deep; save it as .npy in "
                         "metres)") from None
-    raise FileNotFoundError(f"{depth_dir}: no depth map for frame {index} (looked for "
+    raise MissingInputError(f"{depth_dir}: no depth map for frame {index} (looked for "
                             f"{', '.join(s + '.npy|.png' for s in stems)})")
 
 
@@ -652,7 +653,7 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
     from toolkit.sensors import load_rgb
 
     if depth_dir is not None and not Path(depth_dir).is_dir():
-        raise FileNotFoundError(f"{depth_dir}: depth folder (--depth) not found")
+        raise MissingInputError(f"{depth_dir}: depth folder (--depth) not found")
     images = images_from_folder(images_dir, stamp_unit)
     scans = read_scans(scans_src, stamp_unit)
     pairs, unpaired = pair_by_stamp(images.stamps, np.array([s.stamp for s in scans]), max_dt)

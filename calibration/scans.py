@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.errors import MissingInputError
+
 SCAN_SUFFIXES = (".pcd", ".csv", ".npz")
 # Beams that return exactly the sensor origin are "no return" in many drivers' PCD output.
 _MIN_RANGE_M = 1e-3
@@ -301,7 +303,7 @@ def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
     """All scans of a folder of scan files, an npz of many scans, or a sequence folder."""
     source = Path(source)
     if not source.exists():
-        raise FileNotFoundError(f"{source}: scan file or folder not found")
+        raise MissingInputError(f"{source}: scan file or folder not found")
     if source.is_file():
         scans = read_scan_file(source, stamp_unit)
     elif (source / "scans.npz").exists() and (source / "rig.yaml").exists():
@@ -313,7 +315,7 @@ def read_scans(source: Path, stamp_unit: str = "auto") -> list[StampedScan]:
         files = sorted(p for p in source.iterdir()
                        if p.suffix.lower() in SCAN_SUFFIXES and not p.name.startswith("."))
         if not files:
-            raise FileNotFoundError(f"{source}: no scan files ({', '.join(SCAN_SUFFIXES)}) and "
+            raise MissingInputError(f"{source}: no scan files ({', '.join(SCAN_SUFFIXES)}) and "
                                     "not a sequence folder (rig.yaml + scans.npz)")
         scans = [s for p in files for s in read_scan_file(p, stamp_unit)]
         refuse_same_stamps(source, [Path(s.source).name for s in scans],

@@ -34,3 +34,10 @@ def test_checkpoint_cost_saves_and_loads_the_state(tmp_path: Path) -> None:
     out = _run("benchmarks/checkpoint_cost.py", "1", "--repeats", "2", "--work", str(tmp_path))
     assert out["mib"] == 1 and out["file_bytes"] > 2**20  # the array and the header
     assert len(out["save_s"]) == len(out["load_s"]) == 2
+
+
+def test_checkpoint_cost_saves_and_loads_a_splat_trainer(tmp_path: Path) -> None:
+    out = _run("benchmarks/checkpoint_cost.py", "2", "--kind", "splat", "--repeats", "1",
+               "--work", str(tmp_path))
+    assert out["kind"] == "splat" and out["file_bytes"] > 2 * 2**20 * 0.9
+    assert len(out["load_cpu_s"]) == 1 and out["peak_rss_mib"] >= out["peak_rss_before_load_mib"]

@@ -1100,21 +1100,27 @@ class Fails(Stage):
     Config = FailsConfig
 
     def run(self, ctx: StageContext) -> None:
+        from toolkit.errors import InputError
         from toolkit.io.sequence import read_sequence
         from toolkit.io.tum import read_tum
+        from toolkit.splat.export import read_ply
 
         how, path = self.config.how, Path(self.config.path)  # type: ignore[attr-defined]
         if how == "png":  # what SequenceWriter.add_frame raises for a truncated PNG
-            raise ValueError(f"{path}: frame 50 is not a readable PNG image (truncated or "
+            raise InputError(f"{path}: frame 50 is not a readable PNG image (truncated or "
                              "another format); replace it and run again")
         if how in ("tum", "no file"):
             read_tum(path)
         if how == "folder":
             read_sequence(path)
+        if how == "ply":
+            read_ply(path)
         if how == "key":
             _ = {}["focal"]
         if how == "broadcast":
             _ = np.zeros(3) + np.zeros(4)
+        if how == "bug about a file":  # a bug's ValueError that names an existing file
+            raise ValueError(f"{path}: expected 3 values, got 2")
 
 
 @pytest.mark.parametrize("how, shown", [
@@ -1123,8 +1129,12 @@ class Fails(Stage):
     ("tum", "{path}:2: "),
     ("no file", "{path}: trajectory file not found"),
     ("folder", "{path}: sequence folder not found"),
+    ("ply", "{path}: no 'vertex' element; not a Gaussian splat PLY"),
     ("key", "KeyError: 'focal'"),
     ("broadcast", "ValueError: operands could not be broadcast together"),
+    # The class decides, not the message: a path at the start of a ValueError's message
+    # took its class name away, a bug's too.
+    ("bug about a file", "ValueError: {path}: expected 3 values, got 2"),
 ])
 def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
         tmp_path: Path, how: str, shown: str) -> None:
@@ -1135,11 +1145,16 @@ def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
     from recipe_helpers import run_stages  # the tests folder is on sys.path
 
     path = {"png": tmp_path / "seq" / "000050.png", "tum": tmp_path / "odometry.tum",
-            "no file": tmp_path / "none.tum", "folder": tmp_path / "no_such_sequence"}.get(
+            "no file": tmp_path / "none.tum", "folder": tmp_path / "no_such_sequence",
+            "ply": tmp_path / "splats.ply", "bug about a file": tmp_path / "odometry.tum"}.get(
                 how, tmp_path)
     if how == "png":
         path.parent.mkdir()
         path.write_bytes(b"\x89PNG\r\n\x1a\n")  # the signature, no image
+    if how == "ply":
+        path.write_bytes(b"ply\nformat ascii 1.0\nend_header\n")  # a header, no elements
+    if how == "bug about a file":
+        path.write_text("1.0 0 0 0 0 0 0 1\n")  # the file is there, and sound
     if how == "tum":
         path.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 zero 0 0 0 1\n")
     result = run_stages(tmp_path, [{"stage": "t_fails", "how": how, "path": str(path)}],

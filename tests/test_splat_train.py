@@ -283,6 +283,102 @@ def test_a_checkpoint_from_before_the_checksum_trains_afresh_with_a_warning(
     assert "before splat checkpoints carried a checksum" in caplog.text
 
 
+def test_torch_load_reads_the_checkpoint_zip_as_a_file_of_its_own(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """torch.load was handed the checkpoint file standing after its header line: it worked
+    because torch 2.13's zip reader takes the position it is given as the start, no
+    documented guarantee. Now it gets the zip as a file whose offsets start at 0."""
+    import zipfile
+
+    import toolkit.splat.trainer as trainer_module
+
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    t = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    t.train_step()
+    path = t.save_checkpoint()
+    body = path.read_bytes().split(b"\n", 2)[2]  # after the header and digest lines
+    seen: dict[str, object] = {}
+    real_load = torch.load
+
+    def load(f: object, *args: object, **kwargs: object) -> object:
+        seen["tell"] = f.tell()  # type: ignore[attr-defined]
+        seen["head"] = f.read(4)  # type: ignore[attr-defined]
+        seen["size"] = f.seek(0, io.SEEK_END)  # type: ignore[attr-defined]
+        f.seek(0)  # type: ignore[attr-defined]
+        seen["names"] = zipfile.ZipFile(f).namelist()  # type: ignore[arg-type]
+        f.seek(0)  # type: ignore[attr-defined]
+        return real_load(f, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(trainer_module.torch, "load", load)
+    again = Trainer(_start_model(300), views, _cfg(), tmp_path)
+    assert again.resume() and again.step == 1
+    assert seen["tell"] == 0 and seen["head"] == b"PK\x03\x04" and seen["size"] == len(body)
+    assert any(n.endswith("data.pkl") for n in seen["names"])  # type: ignore[attr-defined]
+    assert torch.equal(again.model.means, t.model.means)
+
+
+def _same_state(a: object, b: object) -> bool:
+    """Whether two nested checkpoint states (dicts, lists, tensors, numbers) are equal."""
+    if isinstance(a, torch.Tensor) or isinstance(b, torch.Tensor):
+        return (isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor)
+                and a.shape == b.shape and torch.equal(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same_state(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(_same_state(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def _break(state: dict, part: str) -> None:
+    """Damage one of the parts ``load_state_dict`` reads after the parameters."""
+    if part == "optimizer shape":  # a later group's moment, one Gaussian short (shN has
+        # none yet: its degree starts at step 10)
+        moments = state["optimizers"]["sh0"]["state"][0]
+        moments["exp_avg"] = moments["exp_avg"][1:].clone()
+    elif part == "strategy statistics":  # one per Gaussian, one short
+        state["strategy_state"]["grad2d"] = state["strategy_state"]["grad2d"][1:].clone()
+    elif part == "strategy state":
+        state["strategy_state"] = None
+    elif part == "generator":
+        state["generator"] = torch.zeros(3, dtype=torch.uint8)
+    elif part == "pose optimiser":
+        del state["pose_opt"]
+    else:
+        raise AssertionError(part)
+
+
+@pytest.mark.parametrize("part", ["optimizer shape", "strategy statistics", "strategy state",
+                                  "generator", "pose optimiser"])
+def test_a_checkpoint_broken_part_way_leaves_the_trainer_fresh(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, part: str) -> None:
+    """A checkpoint whose later part fails to load: "training from the start" really is.
+    load_state_dict replaced the parameters (and optimisers, strategy state) before
+    failing, and resume trained on from that half-loaded state at step 0."""
+    views = _views(n=2, width=24, height=18, n_gauss=300)
+    cfg = _cfg(iterations=12)
+    t = Trainer(_start_model(300), views, cfg, tmp_path)
+    for _ in range(6):  # densifies at step 5: the model's size changes too
+        t.train_step()
+    state = t.state_dict()
+    _break(state, part)
+    monkeypatch.setattr(t, "state_dict", lambda *a, **kw: state)
+    t.save_checkpoint()  # with its digest: the file is sound, its contents are not
+
+    offered = Trainer(_start_model(300), views, cfg, tmp_path)
+    assert not offered.resume()
+    never = Trainer(_start_model(300), views, cfg)
+    assert offered.step == 0 and offered.resumed_from is None
+    assert offered.history == [] and offered.ema == {}
+    fresh_state, offered_state = never.state_dict(), offered.state_dict()
+    for k in ("params", "optimizers", "strategy_state", "generator", "pose", "pose_opt"):
+        assert _same_state(offered_state[k], fresh_state[k]), k
+    # and a training from it is the one never offered the checkpoint, to the bit
+    offered.train()
+    never.train()
+    assert offered.history == never.history
+    assert _same_state(offered.state_dict(), never.state_dict())
+
+
 def _meta_for(model: GaussianModel, grads: torch.Tensor) -> RenderMeta:
     n = len(model)
     means2d = torch.zeros(n, 2, requires_grad=True)

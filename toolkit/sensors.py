@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import MissingInputError
 from toolkit.geometry import Trajectory, checked_rigid, inv_se3
 
 
@@ -138,7 +139,7 @@ def load_rgb(path: Path) -> np.ndarray:
     180-degree tag rolled the camera against its rig without a word)."""
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
-        raise FileNotFoundError(f"{path}: missing or not a readable image")
+        raise MissingInputError(f"{path}: missing or not a readable image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -231,7 +232,7 @@ class GroundTruth:
             raise ValueError("this sequence has no ground-truth masks")
         m = cv2.imread(str(self.mask_paths[index]), cv2.IMREAD_UNCHANGED)
         if m is None:
-            raise FileNotFoundError(f"{self.mask_paths[index]}: missing or unreadable mask")
+            raise MissingInputError(f"{self.mask_paths[index]}: missing or unreadable mask")
         return m > 0
 
 

@@ -25,6 +25,7 @@ from typing import Any, Literal
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import MissingInputError
 from toolkit.geometry import Trajectory
 from toolkit.io.colmap_text import (
     camera_from_colmap,
@@ -452,7 +453,7 @@ def load_sfm(folder: Path | str) -> tuple[SfMResult, dict[str, int], dict[str, f
     pycolmap = _pycolmap()
     folder = Path(folder)
     if not (folder / "frames.csv").exists():
-        raise FileNotFoundError(f"{folder}: no frames.csv; not a folder written by save_sfm")
+        raise MissingInputError(f"{folder}: no frames.csv; not a folder written by save_sfm")
     with (folder / "frames.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     frame_of = {r["name"]: int(r["index"]) for r in rows}

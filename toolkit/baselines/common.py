@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import MissingInputError, WriteError
 from toolkit.geometry import Trajectory, inv_se3
 from toolkit.io.atomic import atomic_path
 from toolkit.sensors import Sequence
@@ -64,7 +65,7 @@ def load_camera_trajectory(path: Path, seq: Sequence) -> Trajectory:
             [p / n for n in ("trajectory.tum", "poses_base.tum", "poses.tum") if (p / n).exists()]
             or sorted(p.glob("*.tum")))
         if not cands:
-            raise FileNotFoundError(f"{p}: the trajectory artifact holds no .tum file")
+            raise MissingInputError(f"{p}: the trajectory artifact holds no .tum file")
         p = cands[0]
     traj = read_tum(p)
     if p.name == "trajectory_camera.tum" or traj.child in ("camera", "camera_optical"):
@@ -135,7 +136,7 @@ def image_folder(seq: Sequence, indices: Seq[int], work_dir: Path) -> (
         img = cam.undistort_image(f.image)
         with atomic_path(out / name) as tmp:
             if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-                raise OSError(f"{out / name}: could not write image")
+                raise WriteError(f"{out / name}: could not write image")
         names.append(name)
     return out, names, cam.undistorted()
 
@@ -410,7 +411,7 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
     """Write an RGB uint8 image atomically."""
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2BGR)):
-            raise OSError(f"{path}: could not write PNG")
+            raise WriteError(f"{path}: could not write PNG")
 
 
 def save_figure(fig: Any, path: Path, dpi: int = 100) -> None:

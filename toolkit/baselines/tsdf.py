@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError, MissingInputError, WriteError
 from toolkit.geometry import inv_se3
 from toolkit.io.atomic import atomic_path
 from toolkit.io.voxel_grid import GridCheckpoint
@@ -250,7 +251,7 @@ def write_mesh(path: Path | str, mesh: Any) -> None:
     path = Path(path)
     with atomic_path(path) as tmp:
         if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False):
-            raise OSError(f"{path}: Open3D could not write the mesh")
+            raise WriteError(f"{path}: Open3D could not write the mesh")
 
 
 def read_mesh(path: Path | str) -> Any:
@@ -259,10 +260,10 @@ def read_mesh(path: Path | str) -> Any:
 
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: mesh file not found")
+        raise MissingInputError(f"{path}: mesh file not found")
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0:
-        raise ValueError(f"{path}: the mesh has no triangles")
+        raise InputError(f"{path}: the mesh has no triangles")
     return mesh
 
 

@@ -25,6 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
+from toolkit.errors import InputError, MissingInputError
 
 _log = logging.getLogger(__name__)
 
@@ -293,12 +294,12 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
     if config.intrinsics_input is not None:
         named = [i for i in inputs if i.name == config.intrinsics_input]
         if not named:
-            raise ValueError(f"{path}: intrinsics_input {config.intrinsics_input!r} is not an "
+            raise InputError(f"{path}: intrinsics_input {config.intrinsics_input!r} is not an "
                              f"input of the model; its inputs are {listed}")
         intrinsics = _IntrinsicsInput.of(path, named[0])
         images = [i for i in inputs if i.name != config.intrinsics_input]
     if len(images) != 1:
-        raise ValueError(
+        raise InputError(
             f"{path}: the model takes {len(inputs)} inputs ({listed}); this backend feeds one "
             "image, and the camera intrinsics where intrinsics_input names their input. "
             "Re-export it with any other input fixed inside the graph")
@@ -307,48 +308,48 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
     # A half-precision export takes float16: the image is cast, not refused.
     input_dtype = {"tensor(float)": np.float32, "tensor(float16)": np.float16}.get(inp.type)
     if input_dtype is None:
-        raise ValueError(f"{path}: input {inp.name!r} is {inp.type}; expected a float or "
+        raise InputError(f"{path}: input {inp.name!r} is {inp.type}; expected a float or "
                          "float16 image tensor")
     outputs_text = ", ".join(f"{i}: {o.name!r} {o.shape}" for i, o in enumerate(outputs))
     if not 0 <= config.output_index < len(outputs):
-        raise ValueError(f"{path}: output_index {config.output_index}, but the model has "
+        raise InputError(f"{path}: output_index {config.output_index}, but the model has "
                          f"{len(outputs)} output(s): {outputs_text}; set output_index to the "
                          "depth map's")
     output_name = outputs[config.output_index].name
     shape = outputs[config.output_index].shape
     if _fixed_non_map(shape):
-        raise ValueError(not_depth_message(path, config.output_index, output_name, shape,
+        raise InputError(not_depth_message(path, config.output_index, output_name, shape,
                                            outputs_text))
     confidence_name = None
     if config.confidence_index is not None:
         ci = config.confidence_index
         if not 0 <= ci < len(outputs) or ci == config.output_index:
-            raise ValueError(f"{path}: confidence_index {ci} is not another output of the "
+            raise InputError(f"{path}: confidence_index {ci} is not another output of the "
                              f"model; its outputs are {outputs_text}")
         if _fixed_non_map(outputs[ci].shape):
-            raise ValueError(f"{path}: output {ci} ({outputs[ci].name!r}) has shape "
+            raise InputError(f"{path}: output {ci} ({outputs[ci].name!r}) has shape "
                              f"{list(outputs[ci].shape)}, not one confidence image; the "
                              f"model's outputs are {outputs_text}")
         confidence_name = outputs[ci].name
     kind = config.kind or metadata.get("depth_kind")
     if kind is None:
-        raise ValueError(
+        raise InputError(
             f"{path}: the model has no 'depth_kind' metadata; say what the network outputs "
             f"with the depth stage's 'output' setting (OnnxDepthConfig.kind from Python), one "
             f"of {DEPTH_KINDS} (Depth Anything's and MiDaS's relative models: "
             "relative_disparity)")
     if kind not in DEPTH_KINDS:
-        raise ValueError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
+        raise InputError(f"{path}: depth kind {kind!r} is not one of {DEPTH_KINDS}")
     problem = settings_problem(kind, config.canonical_focal, config.min_confidence,
                                config.confidence_index)
     if problem:  # the kind may come from the model's metadata
-        raise ValueError(f"{path}: {problem}")
+        raise InputError(f"{path}: {problem}")
     multiple = config.multiple_of  # >= 1, as the metadata's
     if multiple is None:
         multiple = _meta_int(path, metadata, "multiple_of")
     order = str(config.channel_order or metadata.get("channel_order", "rgb")).lower()
     if order not in ("rgb", "bgr"):
-        raise ValueError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
+        raise InputError(f"{path}: channel_order {order!r} is neither rgb nor bgr")
     # mean / std are per network input channel, in its order; ImageNet's defaults are
     # written R, G, B, so a BGR network takes them reversed.
     flip = slice(None, None, -1 if order == "bgr" else 1)
@@ -358,18 +359,18 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
                      dtype=np.float32)  # [3]
     if mean.max() > 1.0 or std.max() > 1.0:
         # mmcv/Metric3D configs give 123.675, 58.395...: the image here is in [0, 1].
-        raise ValueError(f"{path}: mean {mean.tolist()} / std {std.tolist()} are in 0-255 "
+        raise InputError(f"{path}: mean {mean.tolist()} / std {std.tolist()} are in 0-255 "
                          "units; give them divided by 255 (the image is scaled to [0, 1] "
                          "first)")
     if ("input_height" in metadata) != ("input_width" in metadata):
-        raise ValueError(f"{path}: metadata names one of input_height / input_width without "
+        raise InputError(f"{path}: metadata names one of input_height / input_width without "
                          "the other; give input_size in the recipe")
     meta_hw = (_meta_int(path, metadata, "input_height"),
                _meta_int(path, metadata, "input_width"))
     fixed = _fixed_input_hw(list(inp.shape), config.layout)
     if fixed is not None:
         if config.resize == "keep_aspect":
-            raise ValueError(f"{path}: resize: keep_aspect needs a model exported with "
+            raise InputError(f"{path}: resize: keep_aspect needs a model exported with "
                              f"dynamic height/width; this one takes a fixed input "
                              f"{inp.shape}: use resize: stretch (or letterbox to keep the "
                              "image's aspect)")
@@ -378,7 +379,7 @@ def plan_model(config: OnnxDepthConfig, inputs: Sequence[Any], outputs: Sequence
         if hw is not None and tuple(hw) != fixed:
             # input_size is [h, w] in the recipe: both sides are given in that order, so
             # that a swapped pair reads as one (a WxH figure read as the recipe's order).
-            raise ValueError(f"{path}: the model takes a fixed input of height {fixed[0]}, "
+            raise InputError(f"{path}: the model takes a fixed input of height {fixed[0]}, "
                              f"width {fixed[1]}, but input_size asks for "
                              f"[{hw[0]}, {hw[1]}] ([height, width]); set input_size: "
                              f"[{fixed[0]}, {fixed[1]}] or drop it, or re-export the model "
@@ -399,25 +400,25 @@ def _check_image_input(path: Path, name: str, shape: list[Any], layout: str) -> 
     """One RGB image of rank 4 with its channel axis where ``layout`` says: fixed axes
     that disagree are refused when the model is loaded, not at its first frame."""
     if len(shape) != 4:
-        raise ValueError(f"{path}: input shape {shape}: expected an image batch "
+        raise InputError(f"{path}: input shape {shape}: expected an image batch "
                          "[1, 3, H, W] (layout: nchw) or [1, H, W, 3] (layout: nhwc)")
     c_first, c_last = shape[1], shape[3]
     if layout == "nchw" and c_first != 3 and c_last == 3:
-        raise ValueError(f"{path}: input shape {shape} has its 3 channels last; set "
+        raise InputError(f"{path}: input shape {shape} has its 3 channels last; set "
                          "layout: nhwc in the depth stage")
     if layout == "nhwc" and c_last != 3 and c_first == 3:
-        raise ValueError(f"{path}: input shape {shape} has its 3 channels first; set "
+        raise InputError(f"{path}: input shape {shape} has its 3 channels first; set "
                          "layout: nchw in the depth stage")
     channels = c_first if layout == "nchw" else c_last
     if isinstance(channels, int) and channels != 3:
         # A grayscale or RGB-D network: onnxruntime refused the first frame, with advice
         # about input sizes.
-        raise ValueError(f"{path}: input {name!r} {shape} takes {channels} channel(s); this "
+        raise InputError(f"{path}: input {name!r} {shape} takes {channels} channel(s); this "
                          "backend feeds RGB images (3 channels), so a grayscale or RGB-D "
                          "network cannot run on it: use a model that takes a 3-channel image "
                          f"(layout: {layout})")
     if isinstance(shape[0], int) and shape[0] != 1:
-        raise ValueError(f"{path}: input {name!r} {shape} takes a batch of {shape[0]} images; "
+        raise InputError(f"{path}: input {name!r} {shape} takes a batch of {shape[0]} images; "
                          "this backend feeds one: re-export with batch 1 or a dynamic batch "
                          "axis")
 
@@ -441,19 +442,19 @@ def _open_session(path: Path, opts: Any, providers: list[str]) -> Any:
     import onnxruntime as ort
 
     if path.is_dir():
-        raise FileNotFoundError(folder_model_message(path))
+        raise MissingInputError(folder_model_message(path))
     if not path.is_file():
-        raise FileNotFoundError(missing_model_message(path))
+        raise MissingInputError(missing_model_message(path))
     problem = model_file_problem(path)
     if problem:
-        raise ValueError(problem)
+        raise InputError(problem)
     try:
         return ort.InferenceSession(str(path), opts, providers=providers)
     except (RuntimeError, ort.capi.onnxruntime_pybind11_state.Fail,
             ort.capi.onnxruntime_pybind11_state.InvalidProtobuf,
             ort.capi.onnxruntime_pybind11_state.InvalidGraph) as e:
         # A copy cut short reads as an invalid protobuf too: copying again is the cheaper fix.
-        raise ValueError(f"{path}: onnxruntime cannot load the model ({e}); if the file "
+        raise InputError(f"{path}: onnxruntime cannot load the model ({e}); if the file "
                          f"({path.stat().st_size} bytes) was copied or downloaded, copy it "
                          "again in full, else re-export it (torch.onnx.export, opset 17 or "
                          "newer)") from None
@@ -589,7 +590,7 @@ class OnnxDepthBackend:
         input sees it: scaled with the image (pixel-centre aware) and shifted by a
         letterbox's fill."""
         if (int(camera.height), int(camera.width)) != tuple(image_hw):
-            raise ValueError(f"{self.config.model}: the camera is {camera.width}x"
+            raise InputError(f"{self.config.model}: the camera is {camera.width}x"
                              f"{camera.height} but the image is {image_hw[1]}x{image_hw[0]}; "
                              "the intrinsics must be those of the images the network sees")
         top, left, nh, nw = self.placement(image_hw)
@@ -604,7 +605,7 @@ class OnnxDepthBackend:
         stretched input has two focal lengths, the canonical camera one (equal to fx for
         any aspect-keeping resize)."""
         if self.config.canonical_focal is None:
-            raise ValueError(f"{self.config.model}: no canonical_focal set")
+            raise InputError(f"{self.config.model}: no canonical_focal set")
         fx, fy, _, _ = self.network_intrinsics(camera, image_hw)
         return self._focal_factor(fx, fy)
 
@@ -646,7 +647,7 @@ class OnnxDepthBackend:
         """Network output ([1, 1, h, w], [1, h, w] or [h, w]) -> [H, W] float32, NaN invalid."""
         out = _squeezed(raw)
         if not _image_shaped(out.shape, self.last_input_hw):
-            raise ValueError(not_depth_message(self.config.model, self.config.output_index,
+            raise InputError(not_depth_message(self.config.model, self.config.output_index,
                                                self.output_name, np.shape(raw),
                                                self._outputs_text))
         out = out * np.float32(self.config.output_scale)
@@ -656,7 +657,7 @@ class OnnxDepthBackend:
         """The confidence output -> [H, W] float32 over the image, as the depth is placed."""
         conf = _squeezed(raw)
         if not _image_shaped(conf.shape, self.last_input_hw):
-            raise ValueError(f"{self.config.model}: output {self.config.confidence_index} "
+            raise InputError(f"{self.config.model}: output {self.config.confidence_index} "
                              f"({self.confidence_name!r}) has shape {list(np.shape(raw))}, "
                              "not one confidence image")
         return self._to_image(conf, ~np.isfinite(conf), image_hw)
@@ -710,7 +711,7 @@ class OnnxDepthBackend:
         ``PinholeCamera``) is needed with ``canonical_focal`` or ``intrinsics_input``."""
         t0 = time.perf_counter()
         if self.needs_camera and camera is None:
-            raise ValueError(f"{self.config.model}: canonical_focal / intrinsics_input need "
+            raise InputError(f"{self.config.model}: canonical_focal / intrinsics_input need "
                              "the camera's intrinsics: pass camera= (the depth stage passes "
                              "the sequence's)")
         x = self.preprocess(rgb)
@@ -726,7 +727,7 @@ class OnnxDepthBackend:
         try:
             raws = self.session.run(names, feeds)
         except Exception as e:  # onnxruntime's own exception types, from its C++ core
-            raise ValueError(
+            raise InputError(
                 f"{self.config.model}: onnxruntime failed on a {hw[1]}x{hw[0]} input: "
                 f"{str(e).strip()[:400]}. {self._failure_hint(str(e))}") from e
         t2 = time.perf_counter()
@@ -802,7 +803,7 @@ class _IntrinsicsInput:
         dtype = {"tensor(float)": np.float32, "tensor(float16)": np.float16,
                  "tensor(double)": np.float64}.get(inp.type)
         if dims not in ((1, 3, 3), (3, 3), (1, 4), (4,)) or dtype is None:
-            raise ValueError(f"{path}: intrinsics input {inp.name!r} is {inp.type} "
+            raise InputError(f"{path}: intrinsics input {inp.name!r} is {inp.type} "
                              f"{inp.shape}; expected a float K [1, 3, 3] / [3, 3] or fx, fy, "
                              "cx, cy [1, 4] / [4]")
         return cls(inp.name, dims, dtype)
@@ -867,7 +868,7 @@ def _floats(path: Path, metadata: dict[str, str], key: str) -> tuple[float, ...]
     except ValueError:
         vals = ()
     if len(vals) != 3:
-        raise ValueError(f"{path}: ONNX metadata {key!r} is {text!r}, not 3 numbers; give "
+        raise InputError(f"{path}: ONNX metadata {key!r} is {text!r}, not 3 numbers; give "
                          f"'{key}' in the depth stage (it wins over the metadata)")
     return vals
 
@@ -881,6 +882,6 @@ def _meta_int(path: Path, metadata: dict[str, str], key: str) -> int | None:
     except ValueError:
         value = float("nan")
     if not (value.is_integer() and value > 0):
-        raise ValueError(f"{path}: ONNX metadata {key!r} is {text!r}, not a positive whole "
+        raise InputError(f"{path}: ONNX metadata {key!r} is {text!r}, not a positive whole "
                          f"number; give it in the depth stage (input_size / multiple_of)")
     return int(value)

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from toolkit.depth.protocol import DEPTH_KINDS, DepthKind, DepthPrediction
+from toolkit.errors import InputError, MissingInputError
 from toolkit.io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from toolkit.io.depth import file_complete
 
@@ -170,11 +171,11 @@ class DepthStore:
         self.root = Path(root)
         meta_path = self.root / "meta.json"
         if not meta_path.exists():
-            raise FileNotFoundError(f"{meta_path}: not a finished depth folder (no meta.json)")
+            raise MissingInputError(f"{meta_path}: not a finished depth folder (no meta.json)")
         self.meta: dict[str, Any] = json.loads(meta_path.read_text())
         kind = self.meta.get("kind")
         if kind not in DEPTH_KINDS:
-            raise ValueError(f"{meta_path}: field 'kind' is {kind!r}, not one of {DEPTH_KINDS}")
+            raise InputError(f"{meta_path}: field 'kind' is {kind!r}, not one of {DEPTH_KINDS}")
         self.kind: DepthKind = kind
         with (self.root / "index.csv").open(newline="") as f:
             self.rows = list(csv.DictReader(f))

@@ -48,6 +48,7 @@ import numpy as np
 
 from toolkit.cli_types import positive_float, positive_int
 from toolkit.depth.onnx_backend import IMAGENET_MEAN, IMAGENET_STD
+from toolkit.errors import InputError
 from toolkit.io.atomic import atomic_write_text
 
 
@@ -289,11 +290,11 @@ def load_onnx_weights(model: object, path: Path) -> None:
     try:
         m = onnx.load(str(path))
     except Exception as e:  # protobuf's DecodeError / ParseError, or an OSError
-        raise ValueError(f"{path}: not an ONNX model ({type(e).__name__}: {e}); --init takes "
+        raise InputError(f"{path}: not an ONNX model ({type(e).__name__}: {e}); --init takes "
                          "a .onnx file exported by this script") from e
     nodes = [n for n in m.graph.node if n.op_type == "Conv"]
     if not nodes:  # protobuf reads many a small non-ONNX file as an empty model
-        raise ValueError(f"{path}: not an ONNX model with convolutions; --init takes a .onnx "
+        raise InputError(f"{path}: not an ONNX model with convolutions; --init takes a .onnx "
                          "file exported by this script")
     init = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
     convs: list[torch.nn.Conv2d] = []
@@ -309,7 +310,7 @@ def load_onnx_weights(model: object, path: Path) -> None:
     shapes = [tuple(init[n.input[1]].shape) for n in nodes]
     if len(nodes) != len(convs) or any(
             s != tuple(c.weight.shape) for s, c in zip(shapes, convs, strict=False)):
-        raise ValueError(f"{path}: its {len(nodes)} convolutions (kernels {shapes[:3]} ...) "
+        raise InputError(f"{path}: its {len(nodes)} convolutions (kernels {shapes[:3]} ...) "
                          f"do not match this network's {len(convs)} (kernels "
                          f"{[tuple(c.weight.shape) for c in convs[:3]]} ...): give the "
                          "--widths it was trained with (its card names them)")
@@ -317,7 +318,7 @@ def load_onnx_weights(model: object, path: Path) -> None:
         for node, conv in zip(nodes, convs, strict=True):
             conv.weight.copy_(torch.from_numpy(init[node.input[1]].copy()))
             if conv.bias is None or len(node.input) < 3:
-                raise ValueError(f"{path}: convolution {node.name} has no bias: not an "
+                raise InputError(f"{path}: convolution {node.name} has no bias: not an "
                                  "export of toolkit.depth.train_small")
             conv.bias.copy_(torch.from_numpy(init[node.input[2]].copy()))
         ours = torch.exp(model(x)).numpy()  # type: ignore[operator]
@@ -325,7 +326,7 @@ def load_onnx_weights(model: object, path: Path) -> None:
     theirs = sess.run(None, {sess.get_inputs()[0].name: x.numpy()})[0]
     err = float(np.max(np.abs(ours / theirs - 1)))
     if err > 1e-3:
-        raise ValueError(f"{path}: the network rebuilt from its weights differs from it by "
+        raise InputError(f"{path}: the network rebuilt from its weights differs from it by "
                          f"{100 * err:.2g} %: not an export of this architecture")
 
 
@@ -465,7 +466,7 @@ def evaluate_sequence(model_path: Path, sequence: Path, every: int = 4, threads:
 
     seq = read_sequence(sequence)
     if seq.groundtruth is None or seq.groundtruth.depth_paths is None:
-        raise ValueError(f"{sequence}: no ground-truth depth to evaluate against")
+        raise InputError(f"{sequence}: no ground-truth depth to evaluate against")
     be = OnnxDepthBackend(OnnxDepthConfig(model=model_path, threads=threads))
     acc = ErrorAccumulator()
     lat, cpu = [], []
@@ -575,7 +576,7 @@ def _check_resumable(ckpt: Path, saved: dict, cfg: TrainConfig) -> None:
     diff = {k: (saved.get(k), now[k]) for k in now if saved.get(k) != now[k]}
     if diff:
         said = "; ".join(f"{k}: checkpoint {a}, now {b}" for k, (a, b) in diff.items())
-        raise ValueError(f"{ckpt}: checkpoint of a different training configuration ({said}); "
+        raise InputError(f"{ckpt}: checkpoint of a different training configuration ({said}); "
                          "train with the checkpoint's settings to resume it (--houses, "
                          "--widths), or delete it to start afresh")
 

@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from toolkit.errors import InputError
+
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.10)
 
 
@@ -37,7 +39,7 @@ def load_mesh(mesh: Any) -> Any:
         path = Path(mesh)
         mesh = o3d.io.read_triangle_mesh(str(path))
         if len(mesh.triangles) == 0:
-            raise ValueError(f"{path}: no triangles (missing or not a mesh)")
+            raise InputError(f"{path}: no triangles (missing or not a mesh)")
     elif not isinstance(mesh, o3d.geometry.TriangleMesh):
         raise TypeError(f"mesh must be an Open3D TriangleMesh or a path to one, not "
                         f"{type(mesh).__name__}")

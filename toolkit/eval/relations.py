@@ -26,6 +26,7 @@ from typing import Literal
 
 import numpy as np
 
+from toolkit.errors import InputError, MissingInputError
 from toolkit.geometry import Trajectory, se2_between, se3_to_se2, wrap_angle
 
 
@@ -43,7 +44,7 @@ def read_relations(path: Path | str) -> Relations:
     """Read a Freiburg ``.relations`` file; errors name the file and line."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: relations file not found")
+        raise MissingInputError(f"{path}: relations file not found")
     rows = []
     for lineno, line in enumerate(path.read_text().splitlines(), 1):
         s = line.strip()
@@ -51,12 +52,12 @@ def read_relations(path: Path | str) -> Relations:
             continue
         parts = s.split()
         if len(parts) < 8:
-            raise ValueError(f"{path}:{lineno}: expected 't1 t2 x y z roll pitch yaw', "
+            raise InputError(f"{path}:{lineno}: expected 't1 t2 x y z roll pitch yaw', "
                              f"got {len(parts)} fields")
         try:
             rows.append([float(v) for v in parts[:8]])
         except ValueError:
-            raise ValueError(f"{path}:{lineno}: non-numeric field") from None
+            raise InputError(f"{path}:{lineno}: non-numeric field") from None
     a = np.array(rows, dtype=np.float64).reshape(-1, 8)
     return Relations(a[:, 0], a[:, 1], a[:, [2, 3, 7]])
 

@@ -39,6 +39,7 @@ import numpy as np  # noqa: E402
 
 from toolkit.cli_types import positive_int  # noqa: E402
 from toolkit.depth.simulated import PRESETS  # noqa: E402
+from toolkit.errors import InputError
 from toolkit.fusion.exposure import frames_to_solve, solve_exposure  # noqa: E402
 from toolkit.fusion.pipeline import FusionConfig  # noqa: E402
 
@@ -64,7 +65,7 @@ def run_bench(seq_path: Path, frames: int, method: str = "clustered", stride: in
     seq = read_sequence(seq_path)
     problem = ground_truth_problem(seq)
     if problem:
-        raise ValueError(f"{seq_path}: {problem}")
+        raise InputError(f"{seq_path}: {problem}")
     gt = seq.groundtruth
     n = min(frames, len(seq.frames))
     idx = np.arange(n)  # consecutive frames, as the stage sees them

@@ -33,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolkit.errors import InputError
 from toolkit.fusion.voxel_map import KeyTable, pack_key_columns
 from toolkit.io.atomic import atomic_write_text
 
@@ -421,10 +422,10 @@ def read_exposure_gains(path: Path) -> dict[int, np.ndarray]:
                 g = np.array([float(row[f"gain_{c}"]) for c in "rgb"])
                 out[int(row["index"])] = g
             except (KeyError, TypeError, ValueError) as exc:
-                raise ValueError(f"{path} line {n}: needs index,stamp,gain_r,gain_g,gain_b "
+                raise InputError(f"{path} line {n}: needs index,stamp,gain_r,gain_g,gain_b "
                                  f"({exc}); rerun the fuse stage to rewrite it") from exc
             if not (np.isfinite(g).all() and (g > 0).all()):
-                raise ValueError(f"{path} line {n}: gains must be positive and finite; rerun "
+                raise InputError(f"{path} line {n}: gains must be positive and finite; rerun "
                                  "the fuse stage to rewrite it")
     return out
 
@@ -442,7 +443,7 @@ def gains_for_frames(fused: Path | None, frames: Iterable[int]) -> dict[int, np.
     wanted = [int(i) for i in frames]
     missing = [i for i in wanted if i not in gains]
     if missing:
-        raise ValueError(f"{path} has no gain for {len(missing)} of the {len(wanted)} frames "
+        raise InputError(f"{path} has no gain for {len(missing)} of the {len(wanted)} frames "
                          f"(first: {missing[0]}): rerun the fuse stage (it writes every "
                          "frame's), or set exposure: none here")
     return gains

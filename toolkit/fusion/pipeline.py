@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from toolkit.camera import PinholeCamera
 from toolkit.depth.protocol import DepthPrediction
+from toolkit.errors import MissingInputError
 from toolkit.fusion.cloud import CloudOptions, RayCache, depth_to_points, valid_pixels
 from toolkit.fusion.consensus import TRUNC_VOXELS, ConsensusSurface
 from toolkit.fusion.dynamic import (
@@ -316,7 +317,7 @@ class CarveViews:
         # end of the map pass it failed with numpy's EOF error, naming no file.
         missing = [i for i in self.indices if not file_complete(self._path(i))]
         if missing:
-            raise FileNotFoundError(f"{self.folder}: carving views of frames {missing[:5]} are "
+            raise MissingInputError(f"{self.folder}: carving views of frames {missing[:5]} are "
                                     "gone or cut short; run the stage again with --force")
 
 

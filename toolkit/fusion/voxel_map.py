@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.errors import InputError
+
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)  # voxel indices in [-2^20, 2^20): +-21 km at 2 cm
 _MASK = (1 << _BITS) - 1
@@ -427,12 +429,12 @@ def read_map_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
     try:
         ply = PlyData.read(str(path))
     except Exception as e:  # noqa: BLE001 - plyfile raises several kinds, none naming the file
-        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e}); rerun "
+        raise InputError(f"{path}: not a readable PLY file ({type(e).__name__}: {e}); rerun "
                          "the fuse stage to write it again") from e
     v = ply["vertex"].data if "vertex" in ply else None
     names = set(v.dtype.names or ()) if v is not None else set()
     if not {"x", "y", "z"} <= names:
-        raise ValueError(f"{path}: no vertex x, y, z properties; not a point cloud PLY")
+        raise InputError(f"{path}: no vertex x, y, z properties; not a point cloud PLY")
     pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)  # [N, 3]
     if {"red", "green", "blue"} <= names:
         col = np.stack([v["red"], v["green"], v["blue"]], axis=1)  # [N, 3]

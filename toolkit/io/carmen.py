@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.errors import MissingInputError
 from toolkit.geometry import Trajectory, se2_compose, se2_to_se3
 from toolkit.ingest.sync import longest_increasing
 from toolkit.sensors import LaserScan
@@ -196,7 +197,7 @@ def read_carmen(path: Path | str, max_range: float = 50.0) -> CarmenLog:
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: CARMEN log not found")
+        raise MissingInputError(f"{path}: CARMEN log not found")
     scans: list[LaserScan] = []
     poses: list[np.ndarray] = []
     odoms: list[np.ndarray] = []
@@ -375,7 +376,7 @@ def read_g2o(path: Path | str) -> G2OLog:
     """
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: g2o file not found")
+        raise MissingInputError(f"{path}: g2o file not found")
     vids: list[int] = []
     vposes: list[list[float]] = []
     eij: list[tuple[int, int]] = []

@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError, MissingInputError
 from toolkit.geometry import canonical_quat, inv_se3
 from toolkit.io.atomic import atomic_write_text
 
@@ -281,7 +282,7 @@ MODEL_PARAMS = {
 def _numbered_lines(path: Path) -> list[tuple[int, str]]:
     """(line number, stripped text) of every line, as COLMAP reads them (trimmed)."""
     if not path.exists():
-        raise FileNotFoundError(f"{path}: COLMAP model file not found")
+        raise MissingInputError(f"{path}: COLMAP model file not found")
     text = path.read_text(encoding="utf-8-sig")
     return [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
 
@@ -292,12 +293,12 @@ def _data(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
 
 def _parse_camera(p: list[str], where: str) -> tuple[int, tuple[str, int, int, np.ndarray]]:
     if len(p) < 4:
-        raise ValueError(f"{where}: camera line has {len(p)} fields; expected CAMERA_ID "
+        raise InputError(f"{where}: camera line has {len(p)} fields; expected CAMERA_ID "
                          "MODEL WIDTH HEIGHT PARAMS[]")
     model, params = p[1], np.array([float(v) for v in p[4:]])
     names = MODEL_PARAMS.get(model)
     if names is not None and len(params) != len(names.split()):
-        raise ValueError(f"{where}: {model} has {len(names.split())} parameters ({names}), "
+        raise InputError(f"{where}: {model} has {len(names.split())} parameters ({names}), "
                          f"this line gives {len(params)}")
     return int(p[0]), (model, int(p[2]), int(p[3]), params)
 
@@ -331,13 +332,13 @@ def read_colmap_model(folder: Path | str) -> ColmapModel:
         where = f"{path}:{n}"
         head = ln.split()
         if len(head) < 10:
-            raise ValueError(f"{where}: image line has {len(head)} fields; expected IMAGE_ID "
+            raise InputError(f"{where}: image line has {len(head)} fields; expected IMAGE_ID "
                              "QW QX QY QZ TX TY TZ CAMERA_ID NAME")
         obs_line = lines[k][1] if k < len(lines) else ""
         k += 1
         obs = obs_line.split()
         if len(obs) % 3:
-            raise ValueError(f"{path}:{n + 1}: observations of image {head[0]} are not "
+            raise InputError(f"{path}:{n + 1}: observations of image {head[0]} are not "
                              "X Y POINT3D_ID triples")
         try:
             o = np.array([float(v) for v in obs]).reshape(-1, 3)
@@ -351,13 +352,13 @@ def read_colmap_model(folder: Path | str) -> ColmapModel:
                 point3d_ids=o[:, 2].astype(np.int64),
             ))
         except ValueError as e:
-            raise ValueError(f"{where}: {e}") from None
+            raise InputError(f"{where}: {e}") from None
     ids, pts, cols, errs, tracks = [], [], [], [], []
     points_path = folder / "points3D.txt"
     for n, ln in (_data(_numbered_lines(points_path)) if points_path.exists() else []):
         p = ln.split()
         if len(p) < 8 or (len(p) - 8) % 2:
-            raise ValueError(f"{points_path}:{n}: point line has {len(p)} fields; expected "
+            raise InputError(f"{points_path}:{n}: point line has {len(p)} fields; expected "
                              "POINT3D_ID X Y Z R G B ERROR and (IMAGE_ID, POINT2D_IDX) pairs")
         try:
             ids.append(int(p[0]))
@@ -369,7 +370,7 @@ def read_colmap_model(folder: Path | str) -> ColmapModel:
             errs.append(float(p[7]))
             tracks.append(np.array([int(v) for v in p[8:]], dtype=np.int64).reshape(-1, 2))
         except ValueError as e:
-            raise ValueError(f"{points_path}:{n}: {e}") from None
+            raise InputError(f"{points_path}:{n}: {e}") from None
     return ColmapModel(
         cameras=cameras,
         images=images,

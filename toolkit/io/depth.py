@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolkit.errors import InputError, MissingInputError, WriteError
 from toolkit.io.atomic import atomic_path
 
 PNG_DEPTH_SCALE = 5000.0
@@ -44,10 +45,10 @@ def write_depth(path: Path | str, depth: np.ndarray) -> int:
             if not cv2.imwrite(str(tmp), q.astype(np.uint16),
                                [cv2.IMWRITE_PNG_COMPRESSION, 1,
                                 cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]):
-                raise OSError(f"{path}: could not write depth PNG")
+                raise WriteError(f"{path}: could not write depth PNG")
             return int(beyond.sum())
         else:
-            raise ValueError(f"{path}: depth files must end in .npy or .png")
+            raise InputError(f"{path}: depth files must end in .npy or .png")
     return 0
 
 
@@ -84,19 +85,19 @@ def read_depth(path: Path | str) -> np.ndarray:
     path = Path(path)
     if path.suffix == ".npy":
         if not path.exists():
-            raise FileNotFoundError(f"{path}: depth file not found")
+            raise MissingInputError(f"{path}: depth file not found")
         try:
             d = np.load(path)
         except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
-            raise ValueError(f"{path}: not a readable .npy depth map ({e}); write it with "
+            raise InputError(f"{path}: not a readable .npy depth map ({e}); write it with "
                              "numpy.save as [H, W] float32 metres") from None
         if not isinstance(d, np.ndarray) or d.ndim != 2:
-            raise ValueError(f"{path}: depth .npy must hold one [H, W] array of metres")
+            raise InputError(f"{path}: depth .npy must hold one [H, W] array of metres")
         return d.astype(np.float32, copy=False)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
-        raise FileNotFoundError(f"{path}: missing or unreadable depth PNG")
+        raise MissingInputError(f"{path}: missing or unreadable depth PNG")
     if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise ValueError(f"{path}: depth PNG must be single-channel 16-bit, got {raw.dtype} "
+        raise InputError(f"{path}: depth PNG must be single-channel 16-bit, got {raw.dtype} "
                          f"with shape {raw.shape}")
     return (raw.astype(np.float32) / np.float32(PNG_DEPTH_SCALE)).astype(np.float32)

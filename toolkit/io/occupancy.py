@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from toolkit.errors import InputError, MissingInputError
 from toolkit.io.atomic import atomic_write_bytes, atomic_write_text
 from toolkit.io.yaml_file import load_yaml
 
@@ -74,7 +75,7 @@ def write_occupancy(yaml_path: Path | str, grid: OccupancyMap, occupied_thresh: 
     unknown cell as free)."""
     yaml_path = Path(yaml_path)
     if yaml_path.suffix not in (".yaml", ".yml"):
-        raise ValueError(f"{yaml_path}: give the .yaml path; the .pgm goes next to it")
+        raise InputError(f"{yaml_path}: give the .yaml path; the .pgm goes next to it")
     pgm_path = yaml_path.with_suffix(".pgm")
     img = grid.trinary(occupied_thresh, free_thresh)[::-1]  # map_saver: top row = max y
     atomic_write_bytes(pgm_path, _pgm_bytes(img, grid.resolution))
@@ -101,25 +102,25 @@ def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     yaml_path = Path(yaml_path)
     meta = load_yaml(yaml_path, ValueError, "map YAML not found", FileNotFoundError)
     if not isinstance(meta, dict):
-        raise ValueError(f"{yaml_path}: expected a map_server mapping (image, resolution, "
+        raise InputError(f"{yaml_path}: expected a map_server mapping (image, resolution, "
                          "origin, ...)")
     for key in ("image", "resolution", "origin"):
         if key not in meta:
-            raise ValueError(f"{yaml_path}: missing field '{key}'")
+            raise InputError(f"{yaml_path}: missing field '{key}'")
     try:
         origin = tuple(float(v) for v in meta["origin"])
         resolution = float(meta["resolution"])
     except (TypeError, ValueError):
         origin, resolution = (), float("nan")
     if len(origin) != 3 or not np.all(np.isfinite(origin)):
-        raise ValueError(f"{yaml_path}: field 'origin' must be [x, y, yaw] (3 numbers), got "
+        raise InputError(f"{yaml_path}: field 'origin' must be [x, y, yaw] (3 numbers), got "
                          f"{meta['origin']!r}")
     if not (np.isfinite(resolution) and resolution > 0):
-        raise ValueError(f"{yaml_path}: field 'resolution' must be a positive number of "
+        raise InputError(f"{yaml_path}: field 'resolution' must be a positive number of "
                          f"metres per cell, got {meta['resolution']!r}")
     mode = meta.get("mode", "trinary")
     if mode not in ("trinary", "scale", "raw"):
-        raise ValueError(f"{yaml_path}: field 'mode' is {mode!r}; map_server knows trinary, "
+        raise InputError(f"{yaml_path}: field 'mode' is {mode!r}; map_server knows trinary, "
                          "scale and raw")
     img_path = (yaml_path.parent / str(meta["image"])).resolve()
     import cv2
@@ -129,7 +130,7 @@ def read_occupancy(yaml_path: Path | str) -> OccupancyMap:
     img = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE) if img_path.is_file() else None
     if img is None:
         what = "is not there" if not img_path.exists() else "is unreadable or truncated"
-        raise FileNotFoundError(f"{yaml_path}: field 'image' names {img_path}, which {what}; "
+        raise MissingInputError(f"{yaml_path}: field 'image' names {img_path}, which {what}; "
                                 "keep the map image next to its YAML (or fix the name), or "
                                 "save the map again")
     x = img.astype(np.float32)

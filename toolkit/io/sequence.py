@@ -40,6 +40,7 @@ import numpy as np
 import yaml
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError, WriteError
 from toolkit.geometry import Trajectory
 from toolkit.io.atomic import (
     atomic_path,
@@ -869,7 +870,7 @@ class SequenceWriter:
                     _check_8bit(Path(image_path), raw)
             image = load_rgb(Path(image_path))
             if image.shape[:2] != (h, w):
-                raise ValueError(f"{image_path}: frame {i} is {image.shape[1]}x"
+                raise InputError(f"{image_path}: frame {i} is {image.shape[1]}x"
                                  f"{image.shape[0]}, the camera {w}x{h}")
             if image_jpeg is None and suffix in (".jpg", ".jpeg"):
                 image_jpeg = Path(image_path).read_bytes()
@@ -884,10 +885,10 @@ class SequenceWriter:
             pixels = (cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
                       if data else None)
             if pixels is None:
-                raise ValueError(f"{image_path}: frame {i} is not a readable PNG image "
+                raise InputError(f"{image_path}: frame {i} is not a readable PNG image "
                                  "(truncated or another format); replace it and run again")
             if pixels.shape[:2] != (h, w):
-                raise ValueError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
+                raise InputError(f"{image_path}: frame {i} is {pixels.shape[1]}x"
                                  f"{pixels.shape[0]}, the camera {w}x{h}")
             _check_8bit(Path(image_path), pixels)  # type: ignore[arg-type]
             atomic_write_bytes(dst, data)
@@ -1089,12 +1090,12 @@ def _looks_grey(img: np.ndarray) -> bool:
 def _write_rgb(path: Path, image: np.ndarray) -> None:
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"{path}: images must be RGB uint8 [H, W, 3], got {img.dtype} "
+        raise InputError(f"{path}: images must be RGB uint8 [H, W, 3], got {img.dtype} "
                          f"{img.shape}")
     with atomic_path(path) as tmp:
         params = PNG_PARAMS_GREY if _looks_grey(img) else PNG_PARAMS
         if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR), params):
-            raise OSError(f"{path}: could not write image")
+            raise WriteError(f"{path}: could not write image")
 
 
 def _write_csv(path: Path, rows: list[dict[str, str]]) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from toolkit.errors import InputError, MissingInputError
 from toolkit.geometry import Trajectory, pose_to_tum_line, tum_line_to_pose
 from toolkit.io.atomic import atomic_write_text
 
@@ -42,7 +43,7 @@ def read_tum_with_lines(
     stamps themselves and name the line."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: trajectory file not found")
+        raise MissingInputError(f"{path}: trajectory file not found")
     stamps, poses, lines = [], [], []
     header: tuple[str, str] | None = None
     for lineno, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), 1):
@@ -58,7 +59,7 @@ def read_tum_with_lines(
         try:
             t, T = tum_line_to_pose(s.replace(",", " "))
         except ValueError as e:
-            raise ValueError(f"{path}:{lineno}: {e}") from None
+            raise InputError(f"{path}:{lineno}: {e}") from None
         stamps.append(t)
         poses.append(T)
         lines.append(lineno)
@@ -66,7 +67,7 @@ def read_tum_with_lines(
     if require_monotonic and len(st) > 1 and np.any(np.diff(st) <= 0):
         bad = int(np.argmax(np.diff(st) <= 0)) + 1
         what = "repeats" if st[bad] == st[bad - 1] else "goes back from"
-        raise ValueError(f"{path}:{lines[bad]}: stamps not strictly increasing: "
+        raise InputError(f"{path}:{lines[bad]}: stamps not strictly increasing: "
                          f"{float(st[bad])!r} {what} {float(st[bad - 1])!r} (line "
                          f"{lines[bad - 1]}); sort the file by stamp and remove repeated "
                          "stamps")

@@ -66,6 +66,7 @@ class Checkpoint:
                 if problem is not None:
                     self.log.warning("%s: %s; starting afresh", self.path, problem)
                     return None
+                # pickle reads on from here and never seeks: no FileTail needed
                 saved = pickle.load(fh)
         except Exception as e:  # written by another version of the code, or damaged
             self.log.warning("%s: cannot read the checkpoint (%s); starting afresh", self.path, e)

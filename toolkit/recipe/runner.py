@@ -1415,36 +1415,20 @@ def _file_sha256(path: Path) -> str:
 # The packages whose error classes (SequenceFormatError, CalibrationFileError, IngestError,
 # ...) are raised for bad input, each with a message naming the file and the fix.
 _OWN_PACKAGES = ("toolkit.", "calibration.")
-# "<path>:<line>:" at the start of a message: the file (and line) it is about.
-_PATH_HEAD = re.compile(r"^(?P<path>(?:[A-Za-z]:)?[^:]+?)(?::\d+)*: ")
 
 
 def _is_input_error(exc: BaseException) -> bool:
     """Whether ``exc`` says what is wrong with an input: one of the project's own error
-    classes, an OSError naming its file, or a ValueError / OSError whose message starts
-    with the path it is about (the project's readers write "<path>[:<line>]: ..."; such
-    a path exists, or its folder does for a file not found). Anything else is taken
-    for a bug (numpy's "operands could not be broadcast", a KeyError)."""
+    classes (``toolkit.errors``' InputError, MissingInputError and WriteError, which the
+    readers raise with "<path>[:<line>]: ..." messages, and each area's own, such as
+    CalibrationFileError), or an OSError naming its file. Anything else is taken for a bug
+    (numpy's "operands could not be broadcast", a KeyError), also a ValueError whose
+    message starts with a path: the class decides, not the message (a bug's ValueError
+    about an existing file lost its class name when a path at the start of any message
+    counted)."""
     if type(exc).__module__.startswith(_OWN_PACKAGES):
         return True
-    if isinstance(exc, OSError) and exc.filename is not None:
-        return True
-    if not isinstance(exc, ValueError | OSError):
-        return False
-    head = _PATH_HEAD.match(str(exc).strip())
-    if head is None:
-        return False
-    text = head["path"]
-    if text.strip(". ") == "":  # "." names the working folder, no file
-        return False
-    path = Path(text)
-    try:
-        if path.exists():
-            return True
-        # Not there ("<path>: trajectory file not found"): a path into a folder that is.
-        return ("/" in text or os.sep in text) and path.parent.is_dir()
-    except OSError:  # a name too long for a path: words, not a file
-        return False
+    return isinstance(exc, OSError) and exc.filename is not None
 
 
 def _digest_failure(exc: Exception) -> str:

@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolkit.errors import InputError, WriteError
 from toolkit.geometry import transform_points
 from toolkit.io.atomic import atomic_path
 from toolkit.io.sequence import read_sequence
@@ -32,7 +33,7 @@ def preview_strip(root: Path | str, out_png: Path | str, n: int = 4, width: int 
     seq = read_sequence(root)
     gt = seq.groundtruth
     if not seq.frames:
-        raise ValueError(f"{root}: no camera frames to preview")
+        raise InputError(f"{root}: no camera frames to preview")
     idx = np.linspace(0, len(seq.frames) - 1, n).round().astype(int)
     cols = []
     for i in idx:
@@ -55,7 +56,7 @@ def preview_strip(root: Path | str, out_png: Path | str, n: int = 4, width: int 
     out_png = Path(out_png)
     with atomic_path(out_png) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(strip, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"{out_png}: could not write preview")
+            raise WriteError(f"{out_png}: could not write preview")
     return out_png
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from toolkit.errors import WriteError
 from toolkit.sim.textures import MATERIAL_ID, TILE, TextureBank
 
 # Fixed sun-like light: shading depends only on the surface, never on the viewer, so a
@@ -297,4 +298,4 @@ class Scene:
 
         with atomic_path(path) as tmp:
             if not o3d.io.write_triangle_mesh(str(tmp), self.to_open3d(), write_ascii=False):
-                raise OSError(f"{path}: could not write mesh")
+                raise WriteError(f"{path}: could not write mesh")

@@ -18,6 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from toolkit.errors import MissingInputError
+
 TILE = 512  # texels per tile side (power of two: wrapping is a bit mask)
 LEVELS = 4  # mip levels 0..3 (512, 256, 128, 64 texels)
 
@@ -73,7 +75,7 @@ def _load(name: str) -> np.ndarray:
     path = skimage_data_dir() / name
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
-        raise FileNotFoundError(f"{path}: texture image missing from the scikit-image wheel")
+        raise MissingInputError(f"{path}: texture image missing from the scikit-image wheel")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
+from toolkit.errors import InputError, MissingInputError
 from toolkit.io.atomic import atomic_path
 from toolkit.splat.model import GaussianModel
 from toolkit.splat.sh import degree_from_bases
@@ -54,7 +55,7 @@ def write_ply(path: Path | str, model: GaussianModel) -> None:
     arr = model_to_array(model)
     bad = ~np.all(np.isfinite(np.stack([arr[a] for a in arr.dtype.names], 1)), axis=1)
     if bad.any():
-        raise ValueError(f"{path}: {int(bad.sum())} of {len(arr)} Gaussians have non-finite "
+        raise InputError(f"{path}: {int(bad.sum())} of {len(arr)} Gaussians have non-finite "
                          "parameters (training diverged); not written")
     el = PlyElement.describe(arr, "vertex")
     with atomic_path(Path(path)) as tmp:
@@ -65,25 +66,25 @@ def read_ply(path: Path | str, dtype: torch.dtype = torch.float32) -> GaussianMo
     """Read a 3DGS PLY (ours or another tool's) back into a model."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"{path}: splat file not found")
+        raise MissingInputError(f"{path}: splat file not found")
     try:
         ply = PlyData.read(str(path))
     except Exception as e:  # noqa: BLE001 - plyfile raises several kinds, none naming the file
-        raise ValueError(f"{path}: not a readable PLY file ({type(e).__name__}: {e}); a "
+        raise InputError(f"{path}: not a readable PLY file ({type(e).__name__}: {e}); a "
                          "truncated download or another format") from e
     if "vertex" not in ply:
-        raise ValueError(f"{path}: no 'vertex' element; not a Gaussian splat PLY")
+        raise InputError(f"{path}: no 'vertex' element; not a Gaussian splat PLY")
     v = ply["vertex"].data
     names = set(v.dtype.names or ())
     need = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
             "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     missing = [a for a in need if a not in names]
     if missing:
-        raise ValueError(f"{path}: missing properties {missing}; not a 3DGS PLY")
+        raise InputError(f"{path}: missing properties {missing}; not a 3DGS PLY")
     rest_names = sorted((a for a in names if a.startswith("f_rest_")),
                         key=lambda a: int(a.split("_")[-1]))
     if len(rest_names) % 3:
-        raise ValueError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3")
+        raise InputError(f"{path}: {len(rest_names)} f_rest properties is not a multiple of 3")
     k = len(rest_names) // 3
     degree_from_bases(k + 1)  # raises for an impossible band count
 

@@ -46,6 +46,7 @@ import torch
 from pydantic import Field, model_validator
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import WriteError
 from toolkit.fusion.exposure import (
     EXPOSURE_FILE,
     corrected_image,
@@ -297,7 +298,7 @@ def _strip(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], depth_max: flo
 def _write_png(path: Path, rgb: np.ndarray) -> None:
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"{path}: could not write image")
+            raise WriteError(f"{path}: could not write image")
 
 
 def _to_u8(t: torch.Tensor) -> np.ndarray:

@@ -45,7 +45,12 @@ from toolkit.camera import PinholeCamera
 from toolkit.eval.image import psnr as psnr_fn
 from toolkit.eval.image import ssim as ssim_fn
 from toolkit.geometry import inv_se3
-from toolkit.io.atomic import digest_problem, digested_write, remove_leftover_temps
+from toolkit.io.atomic import (
+    FileTail,
+    digest_problem,
+    digested_write,
+    remove_leftover_temps,
+)
 from toolkit.splat.model import PARAM_NAMES, GaussianModel
 from toolkit.splat.rasterize import RenderOutput, render
 from toolkit.splat.strategy import DefaultStrategy, StrategyConfig
@@ -352,8 +357,7 @@ class Trainer:
         self.pose_opt: torch.optim.Optimizer | None = None
         if config.pose_refine:
             self.pose = PoseRefinement(len(views), self.device)
-            self.pose_opt = torch.optim.Adam(self.pose.parameters(), lr=config.lr_pose,
-                                             weight_decay=config.pose_reg)
+            self.pose_opt = self._make_pose_opt(self.pose)
         self.history: list[dict[str, float]] = []
         # Running averages of loss and PSNR (history, progress bar, final figures): in the
         # checkpoint, so that a resumed run reports what an uninterrupted one does.
@@ -370,12 +374,19 @@ class Trainer:
                 "quats": c.lr_quats, "opacity_logits": c.lr_opacities, "sh0": c.lr_sh0,
                 "shN": c.lr_shN}
 
-    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+    def _make_optimizers(self, params: dict[str, nn.Parameter] | None = None) -> (
+            dict[str, torch.optim.Optimizer]):
+        """Adam over ``params`` (None: the model's)."""
         # One Adam per group (gsplat): densification swaps one tensor at a time, and eps
         # 1e-15 as in 3DGS (the default 1e-8 stalls tiny SH and position updates). The fused
         # kernel: on CPU the default per-tensor Adam took 38 ms a step for 100k Gaussians,
         # fused 5 ms.
-        return {k: _adam([self.model.params[k]], lr) for k, lr in self._lrs().items()}
+        params = dict(self.model.params) if params is None else params
+        return {k: _adam([params[k]], lr) for k, lr in self._lrs().items()}
+
+    def _make_pose_opt(self, pose: PoseRefinement) -> torch.optim.Optimizer:
+        return torch.optim.Adam(pose.parameters(), lr=self.cfg.lr_pose,
+                                weight_decay=self.cfg.pose_reg)
 
     def view_index(self, step: int) -> int:
         """Views in a fresh random order every epoch; a function of seed and step only."""
@@ -559,36 +570,66 @@ class Trainer:
                 log.warning("ignoring checkpoint %s (%s); training from the start", path,
                             problem)
                 return None
-            # torch.load reads the zip from here (its offsets relative to it)
-            ckpt = torch.load(fh, map_location="cpu", weights_only=False)
+            # The zip as a file of its own (offsets from 0): torch.load seeks in it, and
+            # reading a file from where it stands is no documented guarantee of it.
+            ckpt = torch.load(FileTail(fh), map_location="cpu", weights_only=False)
         if not isinstance(ckpt, dict):
             raise ValueError("not a checkpoint of this trainer")
         return ckpt
 
     def load_state_dict(self, ckpt: dict[str, Any]) -> None:
+        """Take the state of ``ckpt`` (``state_dict``'s), all or nothing: every part is read
+        into new objects and checked against what it belongs to first, and the trainer
+        takes them only once all are, so a checkpoint that fails part way (a missing or
+        misshapen optimiser, strategy or pose state) raises and leaves the trainer as it
+        was. Half taken, ``resume`` went on "from the start" with the checkpoint's
+        parameters and the fresh rest."""
         if ckpt.get("config_digest") != config_digest(self.cfg):
             raise ValueError("checkpoint was written with different training settings")
         if ckpt.get("data_key", "") != self.data_key:
             raise ValueError("checkpoint was written for different input data")
         model = GaussianModel.from_state(ckpt["params"])
-        self.model.replace_params({k: nn.Parameter(model.params[k].detach().to(self.device))
-                                   for k in PARAM_NAMES})
-        self.optimizers = self._make_optimizers()
-        for k, o in self.optimizers.items():
+        params = {k: nn.Parameter(model.params[k].detach().to(self.device))
+                  for k in PARAM_NAMES}
+        optimizers = self._make_optimizers(params)
+        for k, o in optimizers.items():
             o.load_state_dict(ckpt["optimizers"][k])
+            _check_adam_state(o, f"optimiser {k}")
         # Loaded on the CPU (map_location) and moved to this trainer's device: a GPU run's
         # checkpoint resumes on the CPU and back.
-        self.strategy_state = {k: v.to(self.device) if isinstance(v, Tensor) else v
-                               for k, v in ckpt["strategy_state"].items()}
-        self.generator.set_state(ckpt["generator"])
-        if self.pose is not None and ckpt.get("pose") is not None:
-            self.pose.load_state_dict(ckpt["pose"])
-            assert self.pose_opt is not None
-            self.pose_opt.load_state_dict(ckpt["pose_opt"])
-        self.history = list(ckpt.get("history", []))
-        self.ema = dict(ckpt.get("ema") or {})
-        self.step = int(ckpt["step"])
-        self.resumed_from = self.step
+        strategy_state = {k: v.to(self.device) if isinstance(v, Tensor) else v
+                          for k, v in dict(ckpt["strategy_state"]).items()}
+        fresh = self.strategy.initialize_state(len(model), self.scene_scale, self.device)
+        for k, v in fresh.items():
+            got = strategy_state.get(k)
+            if isinstance(v, Tensor) and not (isinstance(got, Tensor)
+                                              and got.shape == v.shape):
+                raise ValueError(f"strategy state {k!r} is not a tensor of shape "
+                                 f"{list(v.shape)} (one per Gaussian)")
+        generator_state = ckpt["generator"]
+        torch.Generator().set_state(generator_state)  # raises on a foreign state
+        pose = pose_opt = None
+        if self.pose is not None:
+            if ckpt.get("pose") is None or ckpt.get("pose_opt") is None:
+                raise ValueError("checkpoint holds no pose corrections, but pose refinement "
+                                 "is on")
+            pose = PoseRefinement(len(self.views), self.device)
+            pose.load_state_dict(ckpt["pose"])  # strict: names and shapes
+            pose_opt = self._make_pose_opt(pose)
+            pose_opt.load_state_dict(ckpt["pose_opt"])
+            _check_adam_state(pose_opt, "pose optimiser")
+        history = list(ckpt.get("history", []))
+        ema = dict(ckpt.get("ema") or {})
+        step = int(ckpt["step"])
+        # Everything is read: from here on nothing raises.
+        self.model.replace_params(params)
+        self.optimizers = optimizers
+        self.strategy_state = strategy_state
+        self.generator.set_state(generator_state)
+        if pose is not None:
+            self.pose, self.pose_opt = pose, pose_opt
+        self.history, self.ema = history, ema
+        self.step = self.resumed_from = step
 
     def resume(self) -> bool:
         """Continue from the checkpoint in ``checkpoint_dir`` if there is a usable one."""
@@ -611,9 +652,9 @@ class Trainer:
                 return False
             self.load_state_dict(ckpt)
         except Exception as exc:  # noqa: BLE001 - a truncated or foreign file: start afresh
+            # load_state_dict takes all or nothing: the trainer is as it was made
             log.warning("ignoring checkpoint %s (%s: %s); training from the start",
                         self.checkpoint_path(), type(exc).__name__, exc)
-            self.step, self.resumed_from, self.history, self.ema = 0, None, [], {}
             return False
         if ckpt.get("finished"):
             self.done = {k: v for k, v in outcome.items() if k != "settings"}
@@ -622,6 +663,18 @@ class Trainer:
             return True
         log.info("resumed training at step %d from %s", self.step, self.checkpoint_path())
         return True
+
+
+def _check_adam_state(opt: torch.optim.Optimizer, what: str) -> None:
+    """Raise where a loaded Adam state's moments do not match their parameter's shape
+    (``Optimizer.load_state_dict`` checks only the parameter count: a checkpoint with a
+    misshapen moment was resumed)."""
+    for group in opt.param_groups:
+        for p in group["params"]:
+            for name, v in opt.state.get(p, {}).items():
+                if name != "step" and isinstance(v, Tensor) and v.shape != p.shape:
+                    raise ValueError(f"{what}: {name} is {list(v.shape)}, its parameter "
+                                     f"{list(p.shape)}")
 
 
 def _default_data_key(model: GaussianModel, views: Sequence[TrainView]) -> str:
