@@ -834,9 +834,9 @@ def test_unknown_cells_scored_neutral_keep_a_corridor_advance():
     # Featureless corridor (26 m, 8 m lidar, 3 % odometry error), one way, the hold on, no
     # closures: scored like free space, the wall a scan sees first (at the lidar's reach)
     # pulls each match back, and the 22 m advance came out 0.69 % short (0.15 m); scored
-    # at the unknown prior, 0.12 %. Those figures follow the CPU's float rounding (numpy
-    # picks its SIMD kernels by the CPU): on an AVX-only CPU, 0.34 % and 0.09 % short. So
-    # the test holds the contrast, not one machine's figures.
+    # at the unknown prior, 0.12 %. Those figures follow the float rounding of the BLAS
+    # kernels OpenBLAS picks for the CPU: on an AVX2 CPU without AVX-512, 0.34 % and 0.09 %
+    # short. So the test holds the contrast, not one machine's figures.
     on = {"local": {"unknown_score": 0.5}, "loop_closure": {"enabled": False}}
     est, truth, _ = _corridor_run(on, back=False)
     advance = np.hypot(*(truth[-1, :2] - truth[0, :2]))
