@@ -140,6 +140,37 @@ def test_moving_pixels_cover_the_walking_box_at_full_resolution(box_room: Path) 
     assert box > 500 and hit > 0.95 * box and wrong < 0.7 * hit
 
 
+def test_moving_pixels_are_the_per_pixel_cylinder_test(box_room: Path) -> None:
+    """moving_pixels (gathered by flat index for speed) is bit for bit the cylinder test on
+    every valid pixel's world point taken with a 2-D mask: the scaled depth files the fuse
+    stage writes must not change with how the pixels are gathered."""
+    from toolkit.fusion.cloud import RayCache
+    from toolkit.fusion.dynamic import cylinder_mask
+
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    fp, sp, _ = pose_arrays(seq, gt.poses_base)
+    cfg = FusionConfig(scale="none")
+    fu = Fusion(seq, cfg, fp, sp)
+    rays = RayCache(seq.rig.camera, 1).rays  # [H, W, 3]
+    frames_with_hits = 0
+    for i in range(len(seq.frames)):
+        d = gt.depth(i)
+        depth = np.where(d > 0, d, np.nan).astype(np.float32)  # [H, W]
+        m = fu.moving_pixels(i, depth)
+        if m is None:
+            continue
+        frames_with_hits += 1
+        T = fu.T_world_camera(i).astype(np.float32)
+        ok = np.isfinite(depth) & (depth > 0)
+        world = (rays[ok] * depth[ok][:, None]) @ T[:3, :3].T + T[:3, 3]  # [N, 3]
+        ref = np.zeros(depth.shape, bool)
+        ref[ok] = cylinder_mask(world, fu.dynamic_hits(i), cfg.dynamic_radius_m,
+                                cfg.dynamic_height_m)
+        assert np.array_equal(m, ref)
+    assert frames_with_hits > 3
+
+
 def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path,
                                              monkeypatch: pytest.MonkeyPatch) -> None:
     from toolkit.depth.stage import DepthStage

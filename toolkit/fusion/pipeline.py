@@ -703,11 +703,15 @@ class Fusion:
         ok = np.isfinite(depth) & (depth > 0)
         if self._full_rays.reachable is not None:
             ok &= self._full_rays.reachable
-        pc = self._full_rays.rays[ok] * depth[ok][:, None].astype(np.float32)  # [N, 3]
-        out = np.zeros(depth.shape, bool)
-        out[ok] = cylinder_mask(pc @ T[:3, :3].T + T[:3, 3], centres,
-                                self.cfg.dynamic_radius_m, self.cfg.dynamic_height_m)
-        return out
+        # Flat indices and row gathers (as depth_to_points): a 2-D boolean mask on the
+        # [H, W, 3] rays took 12 of this call's 15 ms a frame on the quickstart.
+        idx = np.flatnonzero(ok)  # [N]
+        z = depth.reshape(-1)[idx].astype(np.float32)  # [N]
+        pc = np.take(self._full_rays.rays.reshape(-1, 3), idx, axis=0) * z[:, None]  # [N, 3]
+        out = np.zeros(depth.size, bool)
+        out[idx] = cylinder_mask(pc @ T[:3, :3].T + T[:3, 3], centres,
+                                 self.cfg.dynamic_radius_m, self.cfg.dynamic_height_m)
+        return out.reshape(depth.shape)
 
     def smooth(self, estimates: list[ScaleEstimate], pairs: list[FramePairs] | None = None,
                disparity: bool = False) -> SmoothedScale:
