@@ -727,6 +727,18 @@ def test_camera_files_of_other_lenses_and_message_dumps() -> None:
                             "cam.yaml")
     with pytest.raises(CalibrationFileError, match="missing field 'camera_matrix' "):
         camera_from_mapping({"image_width": 640, "image_height": 480}, "ros.yaml")
+    # Three coefficients (k1 k2 k3 to some tools) were read as k1 k2 p1: refused in every
+    # layout, naming the file and field.
+    for d, field in (({**echo, "d": [-0.1, 0.02, 0.001]}, "d"),
+                     ({"image_width": 640, "image_height": 480, "distortion_model": "plumb_bob",
+                       "camera_matrix": {"data": echo["k"]},
+                       "distortion_coefficients": {"data": [-0.1, 0.02, 0.001]}},
+                      "distortion_coefficients"),
+                     ({**fisheye, "model": "pinhole", "distortion": [-0.1, 0.02, 0.001]},
+                      "distortion")):
+        with pytest.raises(CalibrationFileError, match=rf"cam.yaml: .*field '{field}' has 3 "
+                           r"coefficients \[-0.1, 0.02, 0.001\]; OpenCV's distortion takes 4"):
+            camera_from_mapping(d, "cam.yaml")
 
 
 def test_angle_window_across_the_back_of_the_laser() -> None:

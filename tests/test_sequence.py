@@ -693,3 +693,21 @@ def test_a_file_given_as_the_sequence_folder_is_not_called_missing(tmp_path: Pat
         read_sequence(f)
     with pytest.raises(SequenceFormatError, match=r"nowhere: sequence folder not found"):
         read_sequence(tmp_path / "nowhere")
+
+
+@pytest.mark.parametrize("distortion", [[0.1, -0.05, 0.01], [[0.1], [-0.05], [0.0], [0.0]]])
+def test_rig_distortion_lists_opencv_does_not_take_are_refused(
+        tmp_path: Path, distortion: list) -> None:
+    """A 3-list (k1 k2 k3 to tools that give radial terms only) was read as k1 k2 p1, and a
+    nested list was flattened: both read without a word; now the file and field are named."""
+    write_small(tmp_path)
+    rig = yaml.safe_load((tmp_path / "rig.yaml").read_text())
+    rig["camera"]["distortion"] = distortion
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    with pytest.raises(SequenceFormatError, match=r"rig.yaml: field 'camera': field "
+                       r"'distortion' (has 3 coefficients|is \[\[)"):
+        read_sequence(tmp_path)
+    rig["camera"]["distortion"] = [0.1, -0.05, 0.0, 0.0]  # k1 k2 p1 p2: OpenCV's 4
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    assert read_sequence(tmp_path).rig.camera.dist.tolist() == [0.1, -0.05, 0.0, 0.0, 0.0]
+
