@@ -711,3 +711,17 @@ def test_rig_distortion_lists_opencv_does_not_take_are_refused(
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
     assert read_sequence(tmp_path).rig.camera.dist.tolist() == [0.1, -0.05, 0.0, 0.0, 0.0]
 
+
+@pytest.mark.parametrize("key", ["has_camera", "check_image_size"])
+def test_meta_flags_are_yaml_booleans_only(tmp_path: Path, key: str) -> None:
+    """A quoted "false" was read with bool() (or as truthy): True, so a lidar-only
+    recording counted as having a camera."""
+    write_small(tmp_path)
+    meta_path = tmp_path / "meta.yaml"
+    meta = yaml.safe_load(meta_path.read_text())
+    meta_path.write_text(yaml.safe_dump({**meta, key: "false"}))
+    with pytest.raises(SequenceFormatError, match=rf"meta.yaml: field '{key}' is 'false', "
+                       rf"not a YAML boolean; write {key}: true or {key}: false"):
+        read_sequence(tmp_path)
+    meta_path.write_text(yaml.safe_dump({**meta, key: False}))
+    assert read_sequence(tmp_path).meta[key] is False
