@@ -530,7 +530,8 @@ def _add_stamp_unit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stamp-unit", default="auto", choices=("auto", "s", "ms", "us", "ns"),
                    help="unit of the stamps in image and scan file names; auto (default): "
                         "integers of 10, 13, 16 or 19 digits are Unix times in s, ms, us or "
-                        "ns, decimals and shorter integers are seconds")
+                        "ns, decimals and shorter integers are seconds; <sec>_<nsec> names "
+                        "take auto or s")
 
 
 def _models() -> dict[str, str]:

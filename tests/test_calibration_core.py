@@ -705,6 +705,11 @@ def test_scan_name_stamps_and_degree_angles(tmp_path: Path) -> None:
     # ROS's sec_nsec naming: the nanoseconds are the fraction, not dropped
     for name in ("1773380642_900000000.pcd", "frame_1773380642-900000000.png"):
         assert stamp_from_name(Path(name)) == pytest.approx(1773380642.9, abs=1e-6)
+        assert stamp_from_name(Path(name), "s") == pytest.approx(1773380642.9, abs=1e-6)
+        # The seconds' digits alone in the unit given: 1773380642 ns read as 1.77 s.
+        with pytest.raises(ScanFormatError, match=r"holds <seconds>_<nanoseconds> "
+                           r"\(1773380642.900000000\).*'ns'.*drop --stamp-unit"):
+            stamp_from_name(Path(name), "ns")
     path = tmp_path / "deg.csv"
     path.write_text("angle,range\n-135,1.0\n0,2.0\n135,1.5\n")
     with pytest.raises(ScanFormatError, match="look like degrees"):
