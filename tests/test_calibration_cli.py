@@ -565,6 +565,40 @@ def test_check_that_scores_no_point_fails_naming_the_slip(capture: tuple[Path, o
     assert "beyond --max-offset 0.5 m" in err and "millimetres" in err, err
 
 
+def test_scans_of_only_nan_points_are_named_not_the_extrinsic(
+        capture: tuple[Path, object], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Scan files of only NaN points: check blamed the extrinsic's file ("ext.yaml: only 0
+    scan points ... hold no points") and extrinsic advised --angle-window, --mount and the
+    rest for "no segment matches the board"; both now name the scan files."""
+    from calibration.synthetic import write_pcd
+
+    src, cap = capture
+    cap_dir = Path(shutil.copytree(src, tmp_path / "cap"))
+    lasers = sorted((cap_dir / "lasers").glob("*.pcd"))
+    for p in lasers:
+        write_pcd(p, np.full((50, 3), np.nan))
+    ext = tmp_path / "ext.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": np.asarray(
+        cap.T_camera_laser).tolist()}))  # type: ignore[attr-defined]
+    assert main(["check", "--images", str(cap_dir / "images"), "--scans",
+                 str(cap_dir / "lasers"), "--camera", str(cap_dir / "camera.yaml"),
+                 "--extrinsic", str(ext), "--out", str(tmp_path / "chk")]) == 2
+    err = capsys.readouterr().err
+    assert "hold no finite points" in err and str(lasers[0]) in err and str(ext) not in err, err
+    assert main(_args(cap_dir)) == 2
+    err = capsys.readouterr().err
+    assert f"none of the 8 paired scans holds a finite point ({lasers[0].name}" in err, err
+    assert "--angle-window" not in err, err
+    # One such scan among good ones: the view is left out saying why (it said "no segment
+    # matches the board", or "no scan points near the predicted board plane").
+    shutil.rmtree(cap_dir / "lasers")
+    shutil.copytree(src / "lasers", cap_dir / "lasers")
+    write_pcd(lasers[2], np.full((50, 3), np.nan))
+    assert main(_args(cap_dir, "--no-loo", "--json", str(tmp_path / "r.json"))) == 0
+    skipped = json.loads((tmp_path / "r.json").read_text())["images_skipped"]
+    assert list(skipped.values()) == [f"scan {lasers[2].name}: no finite points in the file"]
+
+
 def test_bench_markdown_says_the_real_result_is_unreliable() -> None:
     """bench.md's ACFR paragraph gave the residual and spread but not the verdict that
     bench.json holds (reliable: false)."""
