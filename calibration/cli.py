@@ -175,6 +175,10 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
     run.skipped = {**skipped, **run.skipped}
     summary = run.summary()
     _print_extrinsic(run.result.T_camera_laser, summary, args.allow_unreliable)
+    if args.out and args.json:
+        # Written second, an earlier run's JSON would stand beside this rig if the run
+        # stopped between the two: gone first, a stop leaves the rig without a JSON.
+        Path(args.json).unlink(missing_ok=True)
     if args.out:
         rig = rig_for_extrinsic(camera, run.result.T_camera_laser, base)
         out_path = Path(args.out)

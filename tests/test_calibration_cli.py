@@ -599,6 +599,24 @@ def test_scans_of_only_nan_points_are_named_not_the_extrinsic(
     assert list(skipped.values()) == [f"scan {lasers[2].name}: no finite points in the file"]
 
 
+def test_a_stop_between_rig_and_json_leaves_no_earlier_json_beside_the_new_rig(
+        capture: tuple[Path, object], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--out then --json: a run stopped between the two writes left the previous run's JSON
+    beside the new rig, a pair that disagrees."""
+    import toolkit.io.atomic
+
+    cap_dir, _ = capture
+    rig, js = tmp_path / "rig.yaml", tmp_path / "r.json"
+    js.write_text(json.dumps({"T_camera_laser": "of an earlier run"}))
+
+    def stopped(*_: object, **__: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(toolkit.io.atomic, "atomic_write_json", stopped)
+    assert main(_args(cap_dir, "--no-loo", "--out", str(rig), "--json", str(js))) != 0
+    assert rig.exists() and not js.exists()
+
+
 def test_bench_markdown_says_the_real_result_is_unreliable() -> None:
     """bench.md's ACFR paragraph gave the residual and spread but not the verdict that
     bench.json holds (reliable: false)."""
