@@ -8,6 +8,7 @@ anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import signal
 import sys
@@ -310,6 +311,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     source = args.extrinsic or args.rig or str(Path(args.sequence) / "rig.yaml")
     scores = sensitivity(frames, T, camera, args.perturb_deg, args.score, source)
     out.mkdir(parents=True, exist_ok=True)
+    earlier = _earlier_overlays(out / "check.json")
     written = []
     for f in frames:
         img = overlay(f.image, project_scan(f.points, T, camera))
@@ -330,9 +332,26 @@ def cmd_check(args: argparse.Namespace) -> int:
     if scores.kind == "edges":
         print("note: the edge score judges rotation about the camera's vertical axis (ry) "
               "only; give depth maps (--depth) to judge tilts too")
+    # An earlier run's overlays of other frames stood beside these while check.json listed
+    # only these. Only the files that run's check.json lists go: never a user's.
+    for name in sorted(earlier - set(written)):
+        (out / name).unlink(missing_ok=True)
     atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written})
     print(f"wrote {len(written)} overlays and check.json to {out}")
     return 0
+
+
+def _earlier_overlays(path: Path) -> set[str]:
+    """Overlay file names an earlier ``check`` listed in its ``path`` (check.json): plain
+    ``*_overlay.png`` names only; none when the file is missing or not such a listing."""
+    try:
+        listed = json.loads(path.read_text()).get("overlays", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    if not isinstance(listed, list):
+        return set()
+    return {n for n in listed if isinstance(n, str) and n.endswith("_overlay.png")
+            and Path(n).name == n and (path.parent / n).is_file()}
 
 
 # ---------------------------------------------------------------------------- time offset

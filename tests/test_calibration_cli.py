@@ -535,6 +535,17 @@ def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, 
     images = sorted((cap_dir / "images").glob("*.png"))
     chk = json.loads((tmp_path / "chk" / "check.json").read_text())
     assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 4, 7)]
+    # Again into the same folder with other frames: the first run's overlays of frames
+    # this one does not draw stood beside the new ones, which check.json alone listed.
+    # Files check.json does not list (a user's, even of the same pattern) stay.
+    (tmp_path / "chk" / "mine_overlay.png").write_bytes(b"a user's")
+    assert main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+                 "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--frames",
+                 "2", "--out", str(tmp_path / "chk")]) == 0
+    chk = json.loads((tmp_path / "chk" / "check.json").read_text())
+    assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 7)]
+    assert sorted(p.name for p in (tmp_path / "chk").iterdir()) == sorted(
+        ["check.json", "mine_overlay.png", *chk["overlays"]])
 
 
 def test_check_that_scores_no_point_fails_naming_the_slip(capture: tuple[Path, object],
