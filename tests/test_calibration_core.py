@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from calibration.board import BoardError, BoardSpec, Detection, detect_corners
@@ -28,6 +29,7 @@ from calibration.files import (
     camera_from_mapping,
     extrinsic_from_mapping,
     extrinsic_to_mapping,
+    read_extrinsic,
 )
 from calibration.pipeline import BoardSearch, _expectation, mount_guess
 from calibration.scans import (
@@ -699,6 +701,21 @@ def test_camera_body_frame_in_a_tf_entry_is_refused() -> None:
     plain = {"T_base_camera": tf(T_base_link @ T_link_optical, "base_link", "cam0"),
              "T_base_laser": laser}
     assert np.allclose(extrinsic_from_mapping(plain, "r.yaml"), T_true, atol=1e-12)
+
+
+def test_an_extrinsic_marked_reliable_by_quoted_text_is_refused(tmp_path: Path) -> None:
+    """reliable: "false" (quoted) is no YAML boolean: it passed as reliable (the calibrate
+    stage refuses an unreliable extrinsic only when the mark is False)."""
+    T = np.eye(4)
+    path = tmp_path / "ext.yaml"
+    for mark, ok in (("false", False), (False, True), (True, True)):
+        path.write_text(yaml.safe_dump({"T_camera_laser": T.tolist(), "reliable": mark}))
+        if ok:
+            assert read_extrinsic(path)[1] == {"reliable": mark}
+            continue
+        with pytest.raises(CalibrationFileError, match=r"ext.yaml: field 'reliable' is "
+                           r"'false', not a YAML boolean"):
+            read_extrinsic(path)
 
 
 def test_scan_name_stamps_and_degree_angles(tmp_path: Path) -> None:
