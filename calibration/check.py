@@ -159,6 +159,11 @@ def edge_alignment(edges: np.ndarray, proj: Projection, weights: np.ndarray) -> 
 # ---------------------------------------------------------------------------- frames
 
 
+def name_list(names: list[str], most: int = 5) -> str:
+    """The first ``most`` of ``names``, comma-separated, "..." when there are more."""
+    return ", ".join(names[:most]) + (", ..." if len(names) > most else "")
+
+
 @dataclass
 class CheckFrame:
     """One image with the scan nearest in time, already in the image's time."""
@@ -167,6 +172,7 @@ class CheckFrame:
     image: np.ndarray  # [H, W, 3] RGB uint8
     points: np.ndarray  # [N, 3] laser points moved to the image's time (laser frame)
     depth: np.ndarray | None = None  # [H, W] metres, when known
+    scan_source: str = ""  # the scan's file (and index), for messages
     _edges: np.ndarray | None = field(default=None, repr=False)
     _jumps: np.ndarray | None = field(default=None, repr=False)
 
@@ -224,9 +230,8 @@ def score_frames(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: P
     if kind == "depth" and missing:
         raise CheckError(
             f"the depth score needs a depth map for every frame, and {len(missing)} of "
-            f"{len(frames)} have none ({', '.join(missing[:5])}"
-            f"{', ...' if len(missing) > 5 else ''}). Give metric depth maps with --depth DIR "
-            "(<image stem> or <index:06d>, .npy or .png), or use --score edges.")
+            f"{len(frames)} have none ({name_list(missing)}). Give metric depth maps with "
+            "--depth DIR (<image stem> or <index:06d>, .npy or .png), or use --score edges.")
     vals, n = [], 0
     for f in frames:
         proj = project_scan(f.points, T_camera_laser, camera)
@@ -276,7 +281,12 @@ def _why_unscored(frames: list[CheckFrame], T_camera_laser: np.ndarray, camera: 
     pts = [np.asarray(f.points, np.float64) for f in frames]
     total = sum(len(q) for q in pts)
     if total == 0:
-        return f"{head}: the scans of these frames hold no points."
+        # The scans' fault, not the extrinsic's: named by their files.
+        return (f"only 0 scan points of {len(frames)} frames can be scored: the scans of "
+                f"these frames hold no finite points "
+                f"({name_list(list(dict.fromkeys(f.scan_source or f.name for f in frames)))}):"
+                " every value is NaN, infinite or at the laser. Check how the scans were "
+                "exported (a lidar's no-return value written for every beam?)")
     causes = []
     offset = float(np.linalg.norm(T_camera_laser[:3, 3]))
     T_m = T_camera_laser.copy()

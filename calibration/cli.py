@@ -8,6 +8,7 @@ anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import signal
 import sys
@@ -175,6 +176,10 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
     run.skipped = {**skipped, **run.skipped}
     summary = run.summary()
     _print_extrinsic(run.result.T_camera_laser, summary, args.allow_unreliable)
+    if args.out and args.json:
+        # Written second, an earlier run's JSON would stand beside this rig if the run
+        # stopped between the two: gone first, a stop leaves the rig without a JSON.
+        Path(args.json).unlink(missing_ok=True)
     if args.out:
         rig = rig_for_extrinsic(camera, run.result.T_camera_laser, base)
         out_path = Path(args.out)
@@ -314,6 +319,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     source = args.extrinsic or args.rig or str(Path(args.sequence) / "rig.yaml")
     scores = sensitivity(frames, T, camera, args.perturb_deg, args.score, source)
     out.mkdir(parents=True, exist_ok=True)
+    earlier = _earlier_overlays(out / "check.json")
     written = []
     for f in frames:
         img = overlay(f.image, project_scan(f.points, T, camera))
@@ -334,9 +340,26 @@ def cmd_check(args: argparse.Namespace) -> int:
     if scores.kind == "edges":
         print("note: the edge score judges rotation about the camera's vertical axis (ry) "
               "only; give depth maps (--depth) to judge tilts too")
+    # An earlier run's overlays of other frames stood beside these while check.json listed
+    # only these. Only the files that run's check.json lists go: never a user's.
+    for name in sorted(earlier - set(written)):
+        (out / name).unlink(missing_ok=True)
     atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written})
     print(f"wrote {len(written)} overlays and check.json to {out}")
     return 0
+
+
+def _earlier_overlays(path: Path) -> set[str]:
+    """Overlay file names an earlier ``check`` listed in its ``path`` (check.json): plain
+    ``*_overlay.png`` names only; none when the file is missing or not such a listing."""
+    try:
+        listed = json.loads(path.read_text()).get("overlays", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    if not isinstance(listed, list):
+        return set()
+    return {n for n in listed if isinstance(n, str) and n.endswith("_overlay.png")
+            and Path(n).name == n and (path.parent / n).is_file()}
 
 
 # ---------------------------------------------------------------------------- time offset
@@ -544,7 +567,8 @@ def _add_stamp_unit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stamp-unit", default="auto", choices=("auto", "s", "ms", "us", "ns"),
                    help="unit of the stamps in image and scan file names; auto (default): "
                         "integers of 10, 13, 16 or 19 digits are Unix times in s, ms, us or "
-                        "ns, decimals and shorter integers are seconds")
+                        "ns, decimals and shorter integers are seconds; <sec>_<nsec> names "
+                        "take auto or s")
 
 
 def _models() -> dict[str, str]:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from toolkit.camera import PinholeCamera, plumb_bob_distortion
+from toolkit.camera import PinholeCamera, distortion_values, plumb_bob_distortion
 from toolkit.geometry import checked_rigid, inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.yaml_file import load_yaml
@@ -52,15 +52,15 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
         if "camera_matrix" in d or "image_width" in d:
             # ROS camera_calibration output (camera_info YAML).
             K = np.asarray(d["camera_matrix"]["data"], dtype=np.float64).reshape(3, 3)
-            dist = np.asarray((d.get("distortion_coefficients") or {}).get("data") or [],
-                              dtype=np.float64).reshape(-1)
+            dist = distortion_values((d.get("distortion_coefficients") or {}).get("data"),
+                                     "distortion_coefficients")
             dist = _plumb_bob(d.get("distortion_model"), dist, source,
                               "distortion_coefficients")
             return PinholeCamera.from_K(K, int(d["image_width"]), int(d["image_height"]), dist)
         if ("k" in d or "K" in d) and "fx" not in d:
             # ``ros2 topic echo --once .../camera_info`` (ROS 2: k, d; ROS 1: K, D).
             K = np.asarray(d.get("k", d.get("K")), dtype=np.float64).reshape(3, 3)
-            dist = np.asarray(d.get("d", d.get("D")) or [], dtype=np.float64).reshape(-1)
+            dist = distortion_values(d.get("d", d.get("D")), "d" if "d" in d else "D")
             dist = _plumb_bob(d.get("distortion_model"), dist, source, "d")
             return PinholeCamera.from_K(K, int(d["width"]), int(d["height"]), dist)
         # Named here: PinholeCamera's KeyError text, wrapped below, read as one odd field
@@ -73,9 +73,8 @@ def camera_from_mapping(d: Any, source: str) -> PinholeCamera:
         # "pinhole"); COLMAP-style names such as OPENCV_FISHEYE mean another lens.
         model = d.get("distortion_model", d.get("model"))
         if model is not None and str(model).strip().lower() != "pinhole":
-            d = {**d, "distortion": _plumb_bob(model,
-                                               np.asarray(d.get("distortion", []), np.float64)
-                                               .reshape(-1), source, "distortion",
+            d = {**d, "distortion": _plumb_bob(model, distortion_values(d.get("distortion")),
+                                               source, "distortion",
                                                "distortion_model" if "distortion_model" in d
                                                else "model")}
         return PinholeCamera.from_dict(d)
@@ -336,6 +335,12 @@ def read_extrinsic(path: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
     block = data.get("calibration", data)
     if not isinstance(block, dict) or "reliable" not in block:
         return T, None
+    if not isinstance(block["reliable"], bool):
+        # A quoted "false" is not False: the calibrate stage took such an extrinsic as
+        # reliable, without the refusal --allow-unreliable lifts.
+        raise CalibrationFileError(
+            f"{path}: field 'reliable' is {block['reliable']!r}, not a YAML boolean; write "
+            "reliable: true or reliable: false (unquoted)")
     marks = {k: block[k] for k in ("reliable", "unreliable_because") if k in block}
     warn_if_unreliable(path, {"calibration": marks})
     return T, marks

@@ -332,7 +332,10 @@ def build_views(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeCam
     for c in cands:
         plane_view = make_view(c.name, c.detection.corners, board, camera, np.zeros((0, 2)))
         check_board_distance(c.name, plane_view.plane.distance, board)
-        if T_camera_laser is None:
+        if len(c.scan.points) == 0:
+            # All NaN, infinite or at the origin: no board search or plane can say more.
+            pts, why = None, "no finite points in the file"
+        elif T_camera_laser is None:
             pts, why = _points_from_segments(c, plane_view.plane, board, search, guess)
         else:
             pts = _points_from_prediction(c, plane_view.plane, board, T_camera_laser, tol_m,
@@ -426,6 +429,15 @@ def run_extrinsic(cands: list[ViewCandidate], board: BoardSpec, camera: PinholeC
     if len(views) < opts.min_views:
         detail = "; ".join(f"{k}: {v}" for k, v in skipped.items())
         ranges = [np.linalg.norm(c.scan.points, axis=1) for c in cands if len(c.scan.points)]
+        if not ranges:
+            from calibration.check import name_list
+
+            raise ExtrinsicError(
+                f"none of the {len(cands)} paired scans holds a finite point "
+                f"({name_list([Path(c.scan.source).name for c in cands])}): every value "
+                "is NaN, "
+                "infinite or at the laser. Check how the scans were exported (a lidar's "
+                "no-return value written for every beam?)")
         median = float(np.median(np.concatenate(ranges))) if ranges else 0.0
         # Millimetres read as metres put every board 1000x too far: nothing else says so.
         units = (f" The scans' median range is {median:.0f}: are they in millimetres? "
@@ -552,10 +564,10 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
         traj = seq.groundtruth.poses_base
     T_bc = seq.rig.T_base_camera
     T_bl = T_bc @ T_camera_laser
-    scans = [seq.scans[seq.scan_index_at(seq.frames[i].stamp)] for i in pick]
-    scans = _deskewed(scans, traj, T_bl, root)
+    scan_index = [seq.scan_index_at(seq.frames[i].stamp) for i in pick]
+    scans = _deskewed([seq.scans[j] for j in scan_index], traj, T_bl, root)
     frames = []
-    for i, s in zip(pick, scans, strict=True):
+    for i, j, s in zip(pick, scan_index, scans, strict=True):
         f = seq.frames[i]
         p = s.points_3d()
         if traj is not None and len(traj) > 1:
@@ -576,7 +588,7 @@ def check_frames_from_sequence(root: Path, T_camera_laser: np.ndarray, max_frame
             _check_depth_size(depth, img, depth_dir, name)
         elif use_gt_depth and seq.groundtruth is not None and seq.groundtruth.depth_paths:
             depth = seq.groundtruth.depth(i)
-        frames.append(CheckFrame(name, img, p, depth))
+        frames.append(CheckFrame(name, img, p, depth, scan_source=f"{root / 'scans.npz'}[{j}]"))
     return frames, seq
 
 
@@ -677,5 +689,6 @@ def check_frames_from_pairs(images_dir: Path, scans_src: Path, camera: PinholeCa
         if depth_dir is not None:
             depth = _depth_for(Path(depth_dir), path, p.image_index, read_depth)
             _check_depth_size(depth, img, depth_dir, path.name)
-        frames.append(CheckFrame(path.name, img, np.c_[pts, np.zeros(len(pts))], depth))
+        frames.append(CheckFrame(path.name, img, np.c_[pts, np.zeros(len(pts))], depth,
+                                 scan_source=scans[p.scan_index].source))
     return frames

@@ -57,7 +57,8 @@ def stamp_from_name(path: Path, unit: str = "auto") -> float:
 
     ``unit`` "auto" reads an integer by its digit count (10 s, 13 ms, 16 us, 19 ns: a Unix
     time in each), and up to 9 digits or a decimal number as seconds; "s", "ms", "us" or
-    "ns" scale whatever number the name holds.
+    "ns" scale whatever number the name holds. A ``<sec>_<nsec>`` name (ROS's fields) is
+    read as such with "auto" or "s" and refused with another unit.
     """
     if unit != "auto" and unit not in STAMP_UNITS:
         raise ValueError(f"stamp unit {unit!r}: use auto, {', '.join(STAMP_UNITS)}")
@@ -65,8 +66,16 @@ def stamp_from_name(path: Path, unit: str = "auto") -> float:
     # <seconds>_<nanoseconds> (ROS's sec and nsec fields, nanoseconds zero-padded to 9
     # digits): the first run of digits alone would drop the fraction.
     pair = re.search(r"(?<!\d)(\d{9,10})[_-](\d{9})(?!\d)", stem)
-    if pair is not None and unit == "auto":
+    if pair is not None and unit in ("auto", "s"):
         return int(pair.group(1)) + int(pair.group(2)) * 1e-9
+    if pair is not None:
+        # The digit run alone in the unit given read the seconds 1700000000 as
+        # nanoseconds: 1.7 s.
+        raise ScanFormatError(
+            f"{path}: the name holds <seconds>_<nanoseconds> ({pair.group(0)}), whose unit is "
+            f"its form, but the stamp unit given is {unit!r}, which would read "
+            f"{pair.group(1)} alone as {unit}. Fix: drop --stamp-unit (auto) or pass "
+            "--stamp-unit s")
     # A bare number, or a Unix time inside a name with its decimals (cam_1700000000.990:
     # the integer part alone paired it with a scan 0.9 s away, reported as 0 ms).
     m = re.fullmatch(r"\d+(\.\d*)?", stem) or re.search(r"(?<!\d)\d{10,}(\.\d+)?", stem)

@@ -114,7 +114,9 @@ class CalibrateStage(Stage):
     #    left out (a focal length 3.5 % off left 3 good views out and hid the scale)
     # 9: a board distance scale 0.4-1.5 % off and sure (5 sd) is a warning (a focal length
     #    1 % long moved the extrinsic 1 cm without a word)
-    version = 9
+    # 10: a view whose scan holds no finite point is skipped as such (the summary said "no
+    #     segment matches the board")
+    version = 10
 
     config: CalibrateConfig
 

@@ -164,7 +164,10 @@ def frames_to_use(n: int, max_frames: int = 3000, block: int = 100) -> np.ndarra
         return np.arange(n)
     # Runs no longer than max_frames: --max-frames 50 on 80 frames read one run of 100,
     # indices past the recording's last frame (an IndexError before any image was read).
-    block = max(min(block, max_frames), 1)
+    # Runs shorter than block when max_frames holds fewer than two: --max-frames 150 read
+    # one run of 100 from the start, none of the rest of the recording. A run needs two
+    # frames to measure a rotation.
+    block = min(max(min(block, max_frames // 2), 2), max_frames)
     runs = max(max_frames // block, 1)
     starts = np.linspace(0, n - block, runs).round().astype(int)
     return np.unique((starts[:, None] + np.arange(block)).ravel())

@@ -545,6 +545,17 @@ def test_check_on_image_folders_takes_frames_spread_evenly(capture: tuple[Path, 
     images = sorted((cap_dir / "images").glob("*.png"))
     chk = json.loads((tmp_path / "chk" / "check.json").read_text())
     assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 4, 7)]
+    # Again into the same folder with other frames: the first run's overlays of frames
+    # this one does not draw stood beside the new ones, which check.json alone listed.
+    # Files check.json does not list (a user's, even of the same pattern) stay.
+    (tmp_path / "chk" / "mine_overlay.png").write_bytes(b"a user's")
+    assert main(["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+                 "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--frames",
+                 "2", "--out", str(tmp_path / "chk")]) == 0
+    chk = json.loads((tmp_path / "chk" / "check.json").read_text())
+    assert chk["overlays"] == [f"{images[k].stem}_overlay.png" for k in (0, 7)]
+    assert sorted(p.name for p in (tmp_path / "chk").iterdir()) == sorted(
+        ["check.json", "mine_overlay.png", *chk["overlays"]])
 
 
 def test_check_that_scores_no_point_fails_naming_the_slip(capture: tuple[Path, object],
@@ -573,6 +584,58 @@ def test_check_that_scores_no_point_fails_naming_the_slip(capture: tuple[Path, o
     assert main(_args(cap_dir, "--init", str(tmp_path / "mm.yaml"))) == 2
     err = capsys.readouterr().err
     assert "beyond --max-offset 0.5 m" in err and "millimetres" in err, err
+
+
+def test_scans_of_only_nan_points_are_named_not_the_extrinsic(
+        capture: tuple[Path, object], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Scan files of only NaN points: check blamed the extrinsic's file ("ext.yaml: only 0
+    scan points ... hold no points") and extrinsic advised --angle-window, --mount and the
+    rest for "no segment matches the board"; both now name the scan files."""
+    from calibration.synthetic import write_pcd
+
+    src, cap = capture
+    cap_dir = Path(shutil.copytree(src, tmp_path / "cap"))
+    lasers = sorted((cap_dir / "lasers").glob("*.pcd"))
+    for p in lasers:
+        write_pcd(p, np.full((50, 3), np.nan))
+    ext = tmp_path / "ext.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": np.asarray(
+        cap.T_camera_laser).tolist()}))  # type: ignore[attr-defined]
+    assert main(["check", "--images", str(cap_dir / "images"), "--scans",
+                 str(cap_dir / "lasers"), "--camera", str(cap_dir / "camera.yaml"),
+                 "--extrinsic", str(ext), "--out", str(tmp_path / "chk")]) == 2
+    err = capsys.readouterr().err
+    assert "hold no finite points" in err and str(lasers[0]) in err and str(ext) not in err, err
+    assert main(_args(cap_dir)) == 2
+    err = capsys.readouterr().err
+    assert f"none of the 8 paired scans holds a finite point ({lasers[0].name}" in err, err
+    assert "--angle-window" not in err, err
+    # One such scan among good ones: the view is left out saying why (it said "no segment
+    # matches the board", or "no scan points near the predicted board plane").
+    shutil.rmtree(cap_dir / "lasers")
+    shutil.copytree(src / "lasers", cap_dir / "lasers")
+    write_pcd(lasers[2], np.full((50, 3), np.nan))
+    assert main(_args(cap_dir, "--no-loo", "--json", str(tmp_path / "r.json"))) == 0
+    skipped = json.loads((tmp_path / "r.json").read_text())["images_skipped"]
+    assert list(skipped.values()) == [f"scan {lasers[2].name}: no finite points in the file"]
+
+
+def test_a_stop_between_rig_and_json_leaves_no_earlier_json_beside_the_new_rig(
+        capture: tuple[Path, object], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--out then --json: a run stopped between the two writes left the previous run's JSON
+    beside the new rig, a pair that disagrees."""
+    import toolkit.io.atomic
+
+    cap_dir, _ = capture
+    rig, js = tmp_path / "rig.yaml", tmp_path / "r.json"
+    js.write_text(json.dumps({"T_camera_laser": "of an earlier run"}))
+
+    def stopped(*_: object, **__: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(toolkit.io.atomic, "atomic_write_json", stopped)
+    assert main(_args(cap_dir, "--no-loo", "--out", str(rig), "--json", str(js))) != 0
+    assert rig.exists() and not js.exists()
 
 
 def test_bench_markdown_says_the_real_result_is_unreliable() -> None:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial.transform import Rotation
 
 from calibration.board import BoardError, BoardSpec, Detection, detect_corners
@@ -28,6 +29,7 @@ from calibration.files import (
     camera_from_mapping,
     extrinsic_from_mapping,
     extrinsic_to_mapping,
+    read_extrinsic,
 )
 from calibration.pipeline import BoardSearch, _expectation, mount_guess
 from calibration.scans import (
@@ -701,10 +703,30 @@ def test_camera_body_frame_in_a_tf_entry_is_refused() -> None:
     assert np.allclose(extrinsic_from_mapping(plain, "r.yaml"), T_true, atol=1e-12)
 
 
+def test_an_extrinsic_marked_reliable_by_quoted_text_is_refused(tmp_path: Path) -> None:
+    """reliable: "false" (quoted) is no YAML boolean: it passed as reliable (the calibrate
+    stage refuses an unreliable extrinsic only when the mark is False)."""
+    T = np.eye(4)
+    path = tmp_path / "ext.yaml"
+    for mark, ok in (("false", False), (False, True), (True, True)):
+        path.write_text(yaml.safe_dump({"T_camera_laser": T.tolist(), "reliable": mark}))
+        if ok:
+            assert read_extrinsic(path)[1] == {"reliable": mark}
+            continue
+        with pytest.raises(CalibrationFileError, match=r"ext.yaml: field 'reliable' is "
+                           r"'false', not a YAML boolean"):
+            read_extrinsic(path)
+
+
 def test_scan_name_stamps_and_degree_angles(tmp_path: Path) -> None:
     # ROS's sec_nsec naming: the nanoseconds are the fraction, not dropped
     for name in ("1773380642_900000000.pcd", "frame_1773380642-900000000.png"):
         assert stamp_from_name(Path(name)) == pytest.approx(1773380642.9, abs=1e-6)
+        assert stamp_from_name(Path(name), "s") == pytest.approx(1773380642.9, abs=1e-6)
+        # The seconds' digits alone in the unit given: 1773380642 ns read as 1.77 s.
+        with pytest.raises(ScanFormatError, match=r"holds <seconds>_<nanoseconds> "
+                           r"\(1773380642.900000000\).*'ns'.*drop --stamp-unit"):
+            stamp_from_name(Path(name), "ns")
     path = tmp_path / "deg.csv"
     path.write_text("angle,range\n-135,1.0\n0,2.0\n135,1.5\n")
     with pytest.raises(ScanFormatError, match="look like degrees"):
@@ -727,6 +749,18 @@ def test_camera_files_of_other_lenses_and_message_dumps() -> None:
                             "cam.yaml")
     with pytest.raises(CalibrationFileError, match="missing field 'camera_matrix' "):
         camera_from_mapping({"image_width": 640, "image_height": 480}, "ros.yaml")
+    # Three coefficients (k1 k2 k3 to some tools) were read as k1 k2 p1: refused in every
+    # layout, naming the file and field.
+    for d, field in (({**echo, "d": [-0.1, 0.02, 0.001]}, "d"),
+                     ({"image_width": 640, "image_height": 480, "distortion_model": "plumb_bob",
+                       "camera_matrix": {"data": echo["k"]},
+                       "distortion_coefficients": {"data": [-0.1, 0.02, 0.001]}},
+                      "distortion_coefficients"),
+                     ({**fisheye, "model": "pinhole", "distortion": [-0.1, 0.02, 0.001]},
+                      "distortion")):
+        with pytest.raises(CalibrationFileError, match=rf"cam.yaml: .*field '{field}' has 3 "
+                           r"coefficients \[-0.1, 0.02, 0.001\]; OpenCV's distortion takes 4"):
+            camera_from_mapping(d, "cam.yaml")
 
 
 def test_angle_window_across_the_back_of_the_laser() -> None:

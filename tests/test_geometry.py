@@ -188,6 +188,11 @@ def test_trajectory_covers_its_span_but_not_its_gaps():
                                        False, False]
     assert traj.covers(q, slack_s=0.2).tolist()[0] and traj.covers(q, slack_s=0.2)[-2]
     assert traj.covers(np.array([15.0]), max_gap_s=25.0)[0]  # a gap one accepts
+    # Within slack_s of an end that a long gap follows: interpolation takes the end pose
+    # there, so the gap does not matter (both were refused).
+    ends = Trajectory(np.array([0.0, 20.0, 20.1, 40.0]), np.tile(np.eye(4), (4, 1, 1)))
+    assert ends.covers(np.array([-0.1, 40.1, 10.0]), max_gap_s=1.0, slack_s=0.2).tolist() == [
+        True, True, False]
 
 
 def test_a_weaving_drive_is_aligned_by_its_positions_not_its_orientations() -> None:

@@ -693,3 +693,35 @@ def test_a_file_given_as_the_sequence_folder_is_not_called_missing(tmp_path: Pat
         read_sequence(f)
     with pytest.raises(SequenceFormatError, match=r"nowhere: sequence folder not found"):
         read_sequence(tmp_path / "nowhere")
+
+
+@pytest.mark.parametrize("distortion", [[0.1, -0.05, 0.01], [[0.1], [-0.05], [0.0], [0.0]]])
+def test_rig_distortion_lists_opencv_does_not_take_are_refused(
+        tmp_path: Path, distortion: list) -> None:
+    """A 3-list (k1 k2 k3 to tools that give radial terms only) was read as k1 k2 p1, and a
+    nested list was flattened: both read without a word; now the file and field are named."""
+    write_small(tmp_path)
+    rig = yaml.safe_load((tmp_path / "rig.yaml").read_text())
+    rig["camera"]["distortion"] = distortion
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    with pytest.raises(SequenceFormatError, match=r"rig.yaml: field 'camera': field "
+                       r"'distortion' (has 3 coefficients|is \[\[)"):
+        read_sequence(tmp_path)
+    rig["camera"]["distortion"] = [0.1, -0.05, 0.0, 0.0]  # k1 k2 p1 p2: OpenCV's 4
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    assert read_sequence(tmp_path).rig.camera.dist.tolist() == [0.1, -0.05, 0.0, 0.0, 0.0]
+
+
+@pytest.mark.parametrize("key", ["has_camera", "check_image_size"])
+def test_meta_flags_are_yaml_booleans_only(tmp_path: Path, key: str) -> None:
+    """A quoted "false" was read with bool() (or as truthy): True, so a lidar-only
+    recording counted as having a camera."""
+    write_small(tmp_path)
+    meta_path = tmp_path / "meta.yaml"
+    meta = yaml.safe_load(meta_path.read_text())
+    meta_path.write_text(yaml.safe_dump({**meta, key: "false"}))
+    with pytest.raises(SequenceFormatError, match=rf"meta.yaml: field '{key}' is 'false', "
+                       rf"not a YAML boolean; write {key}: true or {key}: false"):
+        read_sequence(tmp_path)
+    meta_path.write_text(yaml.safe_dump({**meta, key: False}))
+    assert read_sequence(tmp_path).meta[key] is False

@@ -238,6 +238,11 @@ def test_a_long_recording_is_read_in_runs_of_frames(delayed: Path, tmp_path: Pat
     use = frames_to_use(36_000)
     assert len(use) == 3000 and use[0] == 0 and use[-1] == 35_999
     assert int((np.diff(use) > 1).sum()) == 29  # 30 runs
+    # Fewer than two runs' worth: two shorter runs at both ends (it was one run of 100
+    # from the start, none of the rest of the recording).
+    use = frames_to_use(36_000, 150)
+    assert len(use) == 150 and use[0] == 0 and use[-1] == 35_999
+    assert int((np.diff(use) > 1).sum()) == 1
     seq = read_sequence(delayed)
     pick = np.r_[0:3, 10:12]  # two runs
     images = [seq.frames[k].image for k in pick]

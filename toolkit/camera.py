@@ -58,6 +58,32 @@ def plumb_bob_distortion(model: Any, dist: np.ndarray) -> np.ndarray | None:
     return dist if name in PLUMB_BOB_NAMES else None
 
 
+# How many coefficients OpenCV takes (k1 k2 p1 p2[ k3[ k4 k5 k6[ s1..s4[ tx ty]]]]). Other
+# counts are refused rather than padded with zeros: a 3-list is k1 k2 k3 to tools that give
+# radial terms only and was read as k1 k2 p1.
+OPENCV_DIST_COUNTS = (4, 5, 8, 12, 14)
+
+
+def distortion_values(value: Any, field: str = "distortion") -> np.ndarray:
+    """[N] coefficients of a camera file's distortion list ``value`` (None or empty: none),
+    N one of ``OPENCV_DIST_COUNTS``; a ``ValueError`` naming ``field`` for any other count
+    or a nested list (``[[k1], [k2], ...]`` was flattened as if it were one row)."""
+    if value is None:
+        return np.zeros(0)
+    arr = np.asarray(value, dtype=np.float64) if not isinstance(value, (str, bytes, dict)) \
+        else None
+    if arr is None or arr.ndim != 1:
+        raise ValueError(f"field '{field}' is {value!r}: give one flat list of numbers "
+                         "[k1, k2, p1, p2, k3] (OpenCV order)")
+    if len(arr) and len(arr) not in OPENCV_DIST_COUNTS:
+        raise ValueError(
+            f"field '{field}' has {len(arr)} coefficients {arr.tolist()}; OpenCV's distortion "
+            "takes 4, 5, 8, 12 or 14 (k1 k2 p1 p2 k3 ...), and other counts are ambiguous "
+            "(3 values are k1 k2 k3 to some tools, k1 k2 p1 to others). Fix: write them in "
+            "OpenCV order with zeros, e.g. [k1, k2, 0, 0, k3] for radial k1 k2 k3")
+    return arr
+
+
 # Lower-cased names other tools give the lens distortion or the intrinsic matrix (ROS
 # camera_info's D and K, Kalibr / ORB-SLAM's separate coefficients): refused in a camera
 # mapping, which reads them only as 'distortion' and fx, fy, cx, cy.
@@ -155,8 +181,7 @@ class PinholeCamera:
                 "intrinsics from fx, fy, cx, cy; under other names the lens would be taken "
                 "as undistorted. Fix: write them there (e.g. 'D: [...]' or 'k1: .., k2: .., "
                 "p1: .., p2: ..' as 'distortion: [k1, k2, p1, p2, k3]')")
-        given = d.get("distortion")
-        dist = np.asarray([] if given is None else given, dtype=np.float64).reshape(-1)
+        dist = distortion_values(d.get("distortion"))
         key = "distortion_model" if "distortion_model" in d else "model"
         model = d.get(key)
         coefficients = plumb_bob_distortion(model, dist)

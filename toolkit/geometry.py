@@ -352,7 +352,8 @@ class Trajectory:
         """[Q] bool: stamps an interpolated pose can be trusted at - within the span (give
         or take ``slack_s``) and between two samples at most ``max_gap_s`` apart (default:
         5 times the median spacing, at least 1 s). Across a longer gap (a blocked lidar,
-        dropped scans) a straight line between its ends is a guess, metres off."""
+        dropped scans) a straight line between its ends is a guess, metres off. A stamp in
+        the slack outside the span takes the end pose, whatever gap follows it."""
         q = np.atleast_1d(np.asarray(query, dtype=np.float64))
         st = self.stamps
         if len(st) == 0:
@@ -364,7 +365,10 @@ class Trajectory:
             max_gap_s = self.gap_limit_s()
         j = np.clip(np.searchsorted(st, q), 1, len(st) - 1)
         on_sample = (st[j] == q) | (st[j - 1] == q)
-        return ok & (on_sample | (st[j] - st[j - 1] <= max_gap_s))
+        # Outside the span (within slack_s) j is the first or last gap, which interpolation
+        # there does not cross.
+        outside = (q < st[0]) | (q > st[-1])
+        return ok & (on_sample | outside | (st[j] - st[j - 1] <= max_gap_s))
 
     def transform(self, T_left: np.ndarray | None = None, T_right: np.ndarray | None = None) -> (
         Trajectory

@@ -194,7 +194,9 @@ class TSDFStage(Stage):
     # frames without valid depth skipped; no geometry score without an alignment
     # 6: the alignment fits on the frames the ground truth covers, no end slack
     # 7: a straight path's alignment turns about the reference's line, not the estimate's
-    version = 7
+    # 8: frames within the end slack outside the trajectory's span get its end pose even
+    #    when a long gap follows that end (Trajectory.covers refused them)
+    version = 8
 
     def run(self, ctx: StageContext) -> None:
         import cv2
@@ -868,7 +870,9 @@ class CameraOnlyStage(Stage):
     # 7: SfM points nearer than 5 % of the model's median depth are not depth observations
     # (points triangulated while turning on the spot gave one frame 1 % of the true depth)
     # 8: a straight path's alignment turns about the reference's line, not the estimate's
-    version = 8
+    # 9: frames within the end slack outside the trajectory's span get its end pose even
+    #    when a long gap follows that end (Trajectory.covers refused them)
+    version = 9
 
     def run(self, ctx: StageContext) -> None:
         from toolkit.baselines.camera_only import CameraOnlySettings, camera_only_reconstruction

@@ -442,6 +442,10 @@ def _sequences_below(root: Path) -> list[Path]:
     return [p for p in found if (p / "rig.yaml").is_file()]
 
 
+# meta.yaml's yes/no fields, read as YAML booleans only.
+_META_FLAGS = ("has_camera", "check_image_size", "rectified_images")
+
+
 def check_sequence_folder(root: Path) -> None:
     """Raise ``SequenceFormatError`` naming the sequence inside ``root`` when ``root`` is a
     run or stage folder holding one rather than a sequence folder itself."""
@@ -502,6 +506,13 @@ def read_sequence(root: Path | str) -> Sequence:
         if version > FORMAT_VERSION:
             raise SequenceFormatError(f"{meta_path}: field 'version' {meta['version']} is newer "
                                       f"than this toolkit reads ({FORMAT_VERSION}); upgrade it")
+        for key in _META_FLAGS:
+            # bool() of a quoted "false" is True: a lidar-only recording was taken to
+            # have a camera.
+            if key in meta and not isinstance(meta[key], bool):
+                raise SequenceFormatError(
+                    f"{meta_path}: field '{key}' is {meta[key]!r}, not a YAML boolean; write "
+                    f"{key}: true or {key}: false (unquoted)")
     rig = read_rig(root / "rig.yaml")
     cam_dir = root / "camera"
     frames_csv = cam_dir / "frames.csv"

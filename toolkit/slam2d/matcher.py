@@ -101,7 +101,10 @@ def correlative_search(
     The score of a pose is mean_n P(cell under point n), times
     ``exp(-(translation_cost * |dt| + rotation_cost * |dtheta|)^2)`` when the costs are
     non-zero (Cartographer's real-time correlative matcher). Windows are half-widths; the
-    linear one is clamped to the window the pyramid was padded for.
+    linear one is clamped to the window the pyramid was padded for. The pose's angle is
+    ``initial_pose``'s plus the offset found, not wrapped: ``refine``, which takes it next,
+    pulls towards its rotation prior by plain difference, so an angle wrapped across +-pi
+    would start it 2 pi from the prior (callers wrap the refined pose).
     """
     pts = np.asarray(points, dtype=np.float64)
     x0, y0, th0 = (float(v) for v in initial_pose)

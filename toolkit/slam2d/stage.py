@@ -80,7 +80,9 @@ class Slam2DStage(Stage):
     # 8: full-turn scans with a beam at both -pi and pi de-skewed a turn (not n beams)
     #    apart; the map YAML holds map_saver's thresholds (unknown cells read as unknown)
     # 9: zero ranges are no returns with scan.min_range 0 too (they were walls at the laser)
-    version = 9
+    # 10: a camera frame within END_SLACK_S outside the scans' span gets the end pose even
+    #     when a long gap follows that end (Trajectory.covers refused it)
+    version = 10
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
