@@ -13,6 +13,13 @@ from scipy.spatial.transform import Rotation
 
 from calibration.board import BoardSpec, Detection
 from calibration.intrinsics import IntrinsicsError, calibrate_intrinsics
+from toolkit.geometry import se2_between, se2_compose
+from toolkit.slam2d.config import LoopClosureOptions
+from toolkit.slam2d.corridor import cast_rays
+from toolkit.slam2d.grid import ProbabilityGrid
+from toolkit.slam2d.loop_closure import LoopCloser
+from toolkit.slam2d.slam import Node
+from toolkit.slam2d.submaps import Submap
 
 seeds = st.integers(0, 2**31 - 1)
 few = settings(max_examples=10, deadline=None)
@@ -99,3 +106,58 @@ def test_intrinsics_refuse_parallel_tilted_boards_with_a_free_principal_point(
     rv = np.tile([tilt * np.cos(axis), tilt * np.sin(axis), 0.0], (n, 1))
     with pytest.raises(IntrinsicsError, match="differ by at most"):
         calibrate_intrinsics(_views(rng, K, dist, n, rv), BOARD, "opencv")
+
+
+# ---------------------------------------------------------------------------- loop closure
+
+# A room with two obstacles, no symmetry a match could slide or turn along.
+ROOM = np.array([
+    [0.0, 0.0, 9.0, 0.0], [9.0, 0.0, 9.0, 6.0], [9.0, 6.0, 0.0, 6.0], [0.0, 6.0, 0.0, 0.0],
+    [2.0, 2.0, 3.5, 2.0], [3.5, 2.0, 3.5, 3.0], [6.0, 4.0, 7.5, 5.2],
+])  # [S, 4] segments x0 y0 x1 y1
+
+
+def _moved_walls(M: np.ndarray) -> np.ndarray:
+    """ROOM [S, 4] moved by the rigid motion ``M`` (x, y, theta)."""
+    ends = ROOM.reshape(-1, 2)
+    c, s = np.cos(M[2]), np.sin(M[2])
+    return (ends @ np.array([[c, s], [-s, c]]) + M[:2]).reshape(-1, 4)
+
+
+def _hits(walls: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """[B, 2] returns of a 1-degree 360-degree scan at ``pose``, in the laser frame."""
+    ang = np.radians(np.arange(360.0)) - np.pi
+    r = cast_rays(walls, pose, ang, 30.0)
+    return np.stack([r * np.cos(ang), r * np.sin(ang)], 1)[np.isfinite(r) & (r < 30)]
+
+
+@few
+@given(seeds)
+def test_loop_closure_recovers_a_known_relative_pose_under_any_rigid_motion(seed: int) -> None:
+    """A submap of three scans and a node elsewhere in the room, the whole moved by a
+    random rigid motion (any heading: the submap grid stays axis-aligned, so the room lies
+    differently on its cells) and the guess 0.5 m / 5 deg off: the wide search finds the
+    node's true pose in the submap frame within a centimetre and a fifth of a degree
+    (20 seeds: 0.41 cm and 0.065 deg at worst)."""
+    rng = np.random.default_rng(seed)
+    M = np.r_[rng.uniform(-50, 50, 2), rng.uniform(-np.pi, np.pi)]
+    walls = _moved_walls(M)
+    at = [se2_compose(M, np.r_[x, y, rng.uniform(-np.pi, np.pi)])
+          for x, y in ((1.2, 4.5), (4.8, 1.0), (7.8, 2.5))]
+    node_pose = se2_compose(M, np.r_[rng.uniform(4.5, 5.5), rng.uniform(3.5, 4.5),
+                                     rng.uniform(-np.pi, np.pi)])
+    grid = ProbabilityGrid(0.05, center=tuple(at[0][:2]))
+    for p in at:
+        c, s = np.cos(p[2]), np.sin(p[2])
+        grid.insert(p[:2], _hits(walls, p) @ np.array([[c, s], [-s, c]]) + p[:2])
+    submap = Submap(0, np.r_[at[0][:2], 0.0], grid)  # submap frames are axis-aligned
+    hits = _hits(walls, node_pose)
+    node = Node(5, 0.0, node_pose, 0, hits.astype(np.float32), np.zeros((0, 2), np.float32),
+                hits[:: max(1, len(hits) // 120)], None)
+    truth = se2_between(submap.local_pose, node_pose)
+    guess = truth + np.r_[rng.uniform(-0.35, 0.35, 2), np.radians(rng.uniform(-5, 5))]
+    closer = LoopCloser(LoopClosureOptions(), 0.05, 0.1)
+    found = closer.search(node, submap, guess)
+    assert found is not None
+    err = se2_between(truth, found.relative_pose)
+    assert np.hypot(*err[:2]) < 0.01 and abs(err[2]) < np.radians(0.2)
