@@ -7,13 +7,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from calibration.board import BoardSpec, Detection
 from calibration.intrinsics import IntrinsicsError, calibrate_intrinsics
 from toolkit.deskew import deskew_scans
+from toolkit.fusion.exposure import ExposureOptions, GainEdges, gain_edges, solve_gains
 from toolkit.geometry import Trajectory, se2_between, se2_compose, se2_to_se3
 from toolkit.sensors import LaserScan
 from toolkit.slam2d.config import LoopClosureOptions
@@ -222,3 +223,57 @@ def test_deskew_along_an_accelerating_turn_with_an_offset_laser(seed: int,
     edge = gap | np.roll(gap, 1) | np.roll(gap, -1)
     assert gap.sum() < 0.05 * n
     np.testing.assert_allclose(out.ranges[~edge], want[~edge], atol=8e-3)
+
+
+# ---------------------------------------------------------------------------- exposure
+
+
+def _exposure_edges(albedo: np.ndarray, log_gain: np.ndarray, cells: list[np.ndarray]) -> (
+        GainEdges):
+    """Exact observations (no noise, no outliers): frame f sees ``cells[f]`` at log gain
+    ``log_gain[f]`` [3]; ``albedo`` [C, 3] log colours at gain 1."""
+    frames = np.concatenate([np.full(len(c), f, np.int32) for f, c in enumerate(cells)])
+    keys = np.concatenate(cells).astype(np.int64)
+    log_rgb = np.concatenate([albedo[c] + log_gain[f] for f, c in enumerate(cells)])
+    return gain_edges(frames, keys, log_rgb.astype(np.float32), ExposureOptions())
+
+
+def test_exposure_pull_does_not_move_frames_whose_overlaps_fix_them() -> None:
+    """Ten frames, each sharing 40 cells with the next, exposure jumping 2x from frame to
+    frame (auto exposure between a window and a dark corridor, or every n-th frame of a
+    long drive solved): the edges fix every gain exactly. The pull between consecutive
+    frames, meant for frames that share nothing, took 2.6 % off each jump (log 0.0260 off
+    at full weight; 0.0008 when it gives way like the edges)."""
+    rng = np.random.default_rng(0)
+    n, share = 10, 40
+    albedo = np.log(rng.uniform(30, 200, ((n + 1) * share, 3)))
+    truth = np.where(np.arange(n) % 2, 0.35, -0.35)[:, None] * np.ones(3)  # [F, 3]
+    cells = [np.arange(f * share, (f + 2) * share) for f in range(n)]
+    edges = _exposure_edges(albedo, truth, cells)
+    assert len(edges.a) == n - 1
+    got = np.log(solve_gains(edges, n, ExposureOptions()).gains)
+    np.testing.assert_allclose(got, truth, atol=0.005)
+
+
+@few
+@given(seeds)
+@example(seed=2)
+def test_exposure_gains_of_exactly_observed_frames_come_back(seed: int) -> None:
+    """Frames seeing random subsets of 400 cells at random gains (per channel, log sd
+    0.3), observed exactly: the gains of the frames in edges come back up to the common
+    factor. The pull between consecutive frames held its full weight while the Huber
+    rounds took the edges' down, and then pulled frames together: seed 2 came out 0.74
+    off in log gain (2.1x); 40 seeds: 0.68 worst, 0.048 median, now 0.071 and 0.012."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 60))
+    albedo = np.log(rng.uniform(30, 200, (400, 3)))
+    truth = rng.normal(0, 0.3, (n, 3))
+    cells = [rng.choice(400, int(rng.integers(60, 200)), replace=False) for _ in range(n)]
+    edges = _exposure_edges(albedo, truth, cells)
+    sol = solve_gains(edges, n, ExposureOptions())
+    linked = np.zeros(n, bool)
+    linked[edges.a] = linked[edges.b] = True
+    assume(sol.groups == 1 and linked.sum() >= 3)  # else the pull sets groups' offsets
+    err = (np.log(sol.gains) - truth)[linked]
+    err -= err.mean(0)
+    assert np.abs(err).max() < 0.15

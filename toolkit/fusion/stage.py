@@ -427,7 +427,9 @@ class FuseStage(Stage):
     # 14: full-turn scans with a beam at both -pi and pi de-skewed a turn apart
     #     an image's nearest scans searched among the usable ones (next to scans without
     #     a trustworthy pose it got farther scans, or none)
-    version = 14
+    # 15: the exposure solve's pull between consecutive frames is Huber-reweighted like the
+    #     edges (at full weight it moved frames whose overlaps fixed their gains)
+    version = 15
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
