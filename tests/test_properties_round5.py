@@ -4,18 +4,33 @@ test_properties_slam_io.py) did not reach. Known answers come from construction.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from test_ingest_rosbag import (  # the tests folder is on sys.path
+    T_BASE_CAMLINK,
+    T_BASE_LASER,
+    T_CAMLINK_OPT,
+    BagBuilder,
+    make_content,
+    standard_messages,
+    write_bag,
+)
+from test_ingest_rosbag import ns as bag_ns
 
 from calibration.board import BoardSpec, Detection
 from calibration.intrinsics import IntrinsicsError, calibrate_intrinsics
 from toolkit.deskew import deskew_scans
 from toolkit.fusion.exposure import ExposureOptions, GainEdges, gain_edges, solve_gains
 from toolkit.geometry import Trajectory, se2_between, se2_compose, se2_to_se3
+from toolkit.ingest.convert import convert
+from toolkit.io.rosbag import RosbagFrames, RosbagOptions, read_rosbag
+from toolkit.io.sequence import read_sequence
 from toolkit.sensors import LaserScan
 from toolkit.slam2d.config import LoopClosureOptions
 from toolkit.slam2d.corridor import cast_rays
@@ -277,3 +292,45 @@ def test_exposure_gains_of_exactly_observed_frames_come_back(seed: int) -> None:
     err = (np.log(sol.gains) - truth)[linked]
     err -= err.mean(0)
     assert np.abs(err).max() < 0.15
+
+
+# ---------------------------------------------------------------------------- bags
+
+
+class _UnicodeFrames(BagBuilder):
+    """The test bags' messages with non-ASCII frame ids (tf names are any UTF-8)."""
+
+    NAMES = {"laser": "lasér/ü", "camera_optical": "カメラ_optical", "base_link": "basé_link",
+             "/base_link": "/basé_link", "camera_link": "caméra_link"}
+
+    def header(self, t: float, frame: str):  # noqa: ANN201 (a rosbags message)
+        return super().header(t, self.NAMES.get(frame, frame))
+
+    def transform(self, t: float, parent: str, child: str, T: np.ndarray):  # noqa: ANN201
+        return super().transform(t, parent, self.NAMES.get(child, child), T)
+
+
+@pytest.mark.parametrize("fmt, t0", [("ros1", 1.0), ("sqlite3", 2**31 - 10.0),
+                                     ("mcap", 1_700_000_000.123456789)])
+def test_bags_keep_odd_stamps_and_unicode_frame_ids(tmp_path: Path, fmt: str,
+                                                    t0: float) -> None:
+    """Stamps a second after the epoch, ten seconds before ROS 1's signed 32-bit seconds
+    end, and with nanoseconds; frame ids in UTF-8 (accents, kana, a slash): scans and
+    images keep their stamps to the nanosecond, the rig its transforms."""
+    c = make_content(n_scans=6, n_images=3)
+    c.scan_t = [t0 + 0.1 * i for i in range(6)]
+    c.image_t = [t0 + 0.013 + 0.2 * i for i in range(3)]
+    c.depth_t = [t0 + 0.016 + 0.2 * i for i in range(3)]
+    c.odom_t = [t0 + 0.05 * i for i in range(12)]
+    b = _UnicodeFrames(fmt == "ros1")
+    bag = write_bag(tmp_path / "run", fmt, standard_messages(b, c))
+    rec = read_rosbag(bag, RosbagOptions(frames=RosbagFrames(base="basé_link")))
+    convert(rec, tmp_path / "seq")
+    seq = read_sequence(tmp_path / "seq")
+    assert [s.stamp for s in seq.scans] == [bag_ns(t) / 1e9 for t in c.scan_t]
+    assert [f.stamp for f in seq.frames] == [bag_ns(t) / 1e9 for t in c.image_t]
+    assert seq.meta["frames"] == {"base": "basé_link", "camera": "カメラ_optical",
+                                  "laser": "lasér/ü"}
+    np.testing.assert_allclose(seq.rig.T_base_laser, T_BASE_LASER, atol=1e-12)
+    np.testing.assert_allclose(seq.rig.T_base_camera, T_BASE_CAMLINK @ T_CAMLINK_OPT,
+                               atol=1e-12)
