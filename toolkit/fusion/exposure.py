@@ -265,6 +265,11 @@ class GainSolution:
     cpu_seconds: float = 0.0  # ... and CPU time
 
 
+def _huber(resid: np.ndarray, threshold: float) -> np.ndarray:
+    """Huber weights [E] of residuals [E] (1 up to ``threshold``, falling as 1 / r past it)."""
+    return np.minimum(1.0, threshold / np.maximum(resid, 1e-12))
+
+
 def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainSolution:
     """Log gains by sparse weighted least squares over the edges (Huber-reweighted) and a
     weak pull between consecutive frames; ``n_frames`` gains."""
@@ -278,14 +283,20 @@ def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainS
     base_w = np.minimum(edges.common, opts.max_weight).astype(np.float64)
     w = base_w.copy()
     # Consecutive frames: difference 0 with a weak weight (the exposure moves smoothly;
-    # this ties a frame without overlaps to its neighbours and fixes nothing else).
+    # this ties a frame without overlaps to its neighbours and fixes nothing else). It is
+    # Huber-reweighted like the edges: held at full weight while the rounds took down the
+    # edges that disagreed with it, it pulled frames whose overlaps fixed their gains
+    # together (exact observations, exposure jumping 2x between frames sharing 40 cells:
+    # 2.6 % off each jump; random gains over 400 cells: 0.68 in log gain at worst of 40
+    # drives, 0.071 with the pull reweighted).
     sa = np.arange(n_frames - 1)
     ia = np.concatenate([a, sa])
     ib = np.concatenate([b, sa + 1])
     x = np.zeros((n_frames, 3))
     resid = np.zeros(len(a))
+    pull_w = np.full(len(sa), opts.smooth_weight)
     for _ in range(max(1, opts.iterations)):
-        ww = np.concatenate([w, np.full(len(sa), opts.smooth_weight)])
+        ww = np.concatenate([w, pull_w])
         dd = np.concatenate([edges.diff, np.zeros((len(sa), 3))])
         rows = np.concatenate([ia, ib, ia, ib])
         cols = np.concatenate([ia, ib, ib, ia])
@@ -303,7 +314,8 @@ def solve_gains(edges: GainEdges, n_frames: int, opts: ExposureOptions) -> GainS
         x = splu(N, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                  options={"SymmetricMode": True}).solve(rhs)
         resid = np.abs((x[a] - x[b] - edges.diff).mean(1))  # [E] on the grey level
-        w = base_w * np.minimum(1.0, opts.huber_log / np.maximum(resid, 1e-12))
+        w = base_w * _huber(resid, opts.huber_log)
+        pull_w = opts.smooth_weight * _huber(np.abs((x[sa] - x[sa + 1]).mean(1)), opts.huber_log)
     x -= x.mean(0)
     linked = np.zeros(n_frames, bool)
     linked[a] = True

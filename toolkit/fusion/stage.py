@@ -429,7 +429,9 @@ class FuseStage(Stage):
     #     a trustworthy pose it got farther scans, or none)
     # 15: frames and scans within END_SLACK_S outside the trajectory's span are used even
     #     when a long gap follows that end (Trajectory.covers refused them)
-    version = 15
+    # 16: the exposure solve's pull between consecutive frames is Huber-reweighted like the
+    #     edges (at full weight it moved frames whose overlaps fixed their gains)
+    version = 16
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:
