@@ -355,6 +355,10 @@ class VoxelMap:
         frames."""
         self._check_held()
         self._merge()
+        # The batch buffer is empty now, and its room (1 M entries or more, 80 bytes each)
+        # is freed before the copy below: at the end of a fusion it was beside the map's own
+        # arrays and the copy, at the fuse stage's peak. The next frame makes room again.
+        self._no_pending()
         rows = self._row  # in key order: the map's voxels sorted by their keys
         if min_count > 1 or min_frames > 1:  # every voxel has >= 1 of both
             rows = rows[(self._count[rows] >= min_count) & (self._frames[rows] >= min_frames)]
