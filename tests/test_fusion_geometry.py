@@ -265,6 +265,22 @@ def test_voxel_map_arrays_free_the_batch_buffer_and_the_map_goes_on() -> None:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
+def test_voxel_map_batch_buffer_holds_one_batch_and_a_frame() -> None:
+    """The batch buffer grows by half up to the batch size, and past it only to what the
+    frame that fills the batch needs: growing by half from below the batch made room for
+    1.48 M entries (113 MiB) for batches of 1 M on the quickstart. Merges come at the
+    same frames, so the map is the same."""
+    rng = np.random.default_rng(4)
+    vm, batch, per_frame = VoxelMap(0.02, batch_entries=100_000), 100_000, 30_000
+    most = 0
+    for f in range(12):
+        pts = rng.uniform(-3, 3, (per_frame, 3))  # [N, 3] about one voxel each
+        vm.integrate(pts, np.zeros((per_frame, 3), np.uint8), f)
+        most = max(most, vm._p_keys.shape[-1])
+    assert batch <= most <= batch + per_frame
+    assert len(vm) == len(np.unique(vm._keys)) > 11 * per_frame * 0.99
+
+
 def test_voxel_map_arrays_take_little_beyond_their_result() -> None:
     """``arrays`` of a large map (the fuse stage's peak, taken while the map still holds its
     own arrays) needs little memory beyond the arrays it returns (55 bytes a voxel): 89
