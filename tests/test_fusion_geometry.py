@@ -239,6 +239,48 @@ def test_voxel_map_release_frees_its_arrays_and_keeps_what_was_taken() -> None:
             use()
 
 
+def test_voxel_map_arrays_free_the_batch_buffer_and_the_map_goes_on() -> None:
+    """``arrays`` merges the frames waiting in the batch buffer and frees its room (1 M
+    entries or more, 80 bytes each: at the fuse stage's peak beside the map's own arrays
+    and their copy); frames integrated after it make room again, and the map is the one
+    of a map read only at the end."""
+    def pending(vm: VoxelMap) -> int:
+        return sum(getattr(vm, n).nbytes for n in VoxelMap._PENDING)
+
+    rng = np.random.default_rng(3)
+    frames = [(rng.uniform(-2, 2, (40_000, 3)), rng.integers(0, 256, (40_000, 3)).astype(
+        np.uint8)) for _ in range(4)]  # [N, 3] points and colours of each frame
+    read, once = VoxelMap(0.02), VoxelMap(0.02)
+    for f, (pts, col) in enumerate(frames[:3]):
+        read.integrate(pts, col, f)
+        once.integrate(pts, col, f)
+    assert pending(read) > 3 * 40_000 * 64  # all three frames wait in the buffer
+    first = read.arrays()
+    assert pending(read) == 0
+    assert len(first) == len(read)
+    read.integrate(*frames[3], 3)
+    once.integrate(*frames[3], 3)
+    a, b = read.arrays(), once.arrays()
+    for name in ("points", "colors", "count", "frames", "first", "last", "label", "near"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_voxel_map_batch_buffer_holds_one_batch_and_a_frame() -> None:
+    """The batch buffer grows by half up to the batch size, and past it only to what the
+    frame that fills the batch needs: growing by half from below the batch made room for
+    1.48 M entries (113 MiB) for batches of 1 M on the quickstart. Merges come at the
+    same frames, so the map is the same."""
+    rng = np.random.default_rng(4)
+    vm, batch, per_frame = VoxelMap(0.02, batch_entries=100_000), 100_000, 30_000
+    most = 0
+    for f in range(12):
+        pts = rng.uniform(-3, 3, (per_frame, 3))  # [N, 3] about one voxel each
+        vm.integrate(pts, np.zeros((per_frame, 3), np.uint8), f)
+        most = max(most, vm._p_keys.shape[-1])
+    assert batch <= most <= batch + per_frame
+    assert len(vm) == len(np.unique(vm._keys)) > 11 * per_frame * 0.99
+
+
 def test_voxel_map_arrays_take_little_beyond_their_result() -> None:
     """``arrays`` of a large map (the fuse stage's peak, taken while the map still holds its
     own arrays) needs little memory beyond the arrays it returns (55 bytes a voxel): 89

@@ -501,6 +501,44 @@ def test_consensus_without_a_surface_is_empty_not_an_error() -> None:
     assert c.frames == 1 and c.surface().ndim == 2 and c.surface().shape[1] == 3
 
 
+def test_consensus_volumes_hold_room_for_the_blocks_they_use(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A direction volume starts with room for 1024 blocks (4 MiB), not 4096, and grows as
+    its frames need: the quickstart's four held 64 MiB of room for 27 MiB of blocks. One
+    that grows past its start judges points as one that never had to."""
+    from toolkit.fusion import consensus
+
+    cam = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    # A floor 1.2 m below a camera looking level along world x: 1.4 m to 6 m ahead.
+    with np.errstate(divide="ignore"):
+        floor = np.where(v > 239.5, 1.2 * 525.0 / (v - 239.5), 0.0)
+    floor = np.where(floor <= 6.0, floor, 0.0).astype(np.float32)  # [H, W] metres
+    R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical z = world x
+
+    def surface_of(frames: int) -> consensus.ConsensusSurface:
+        c = consensus.ConsensusSurface(cam)
+        for k in range(frames):
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, (0.0, 1.0 * k, 1.2)  # stepping sideways
+            c.integrate(floor, T)
+        return c
+
+    one = surface_of(1).volumes[0]
+    assert one is not None
+    hm = one.grid.hashmap()
+    assert hm.size() <= hm.capacity() <= 1024
+    grown = surface_of(20)
+    hm = grown.volumes[0].grid.hashmap()  # type: ignore[union-attr]
+    assert 1024 < hm.size() <= hm.capacity() < 2 * hm.size() + 1024
+    points = np.random.default_rng(5).uniform((0, -1, -0.2), (7, 7, 0.2), (20_000, 3))
+    monkeypatch.setattr(consensus, "INITIAL_BLOCKS", 4096)
+    roomy = surface_of(20)
+    assert roomy.volumes[0].grid.hashmap().capacity() == 4096  # type: ignore[union-attr]
+    np.testing.assert_array_equal(grown.off_surface(points, 0.03),
+                                  roomy.off_surface(points, 0.03))
+
+
 @pytest.mark.parametrize("kill_in", ["frame_pairs", "exposure_observations", "integrate"])
 def test_fuse_stage_resumes_from_its_checkpoint(box_room: Path, tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch,

@@ -31,6 +31,12 @@ from toolkit.io.voxel_grid import GridCheckpoint
 # The band each view writes around the surface it sees, in voxels (FusionConfig's
 # consensus_trunc_voxels; why 4: there).
 TRUNC_VOXELS = 4.0
+# Blocks a direction volume has room for at first (8^3 voxels of 4 bytes tsdf + 4 weight:
+# 4 KiB each). 4096 held 64 MiB for the quickstart's four volumes, of which their 1102 to
+# 2502 blocks used 27; from 1024, doubling as needed, three of them stop at 2048 (40 MiB).
+# Sizing them once from every frame's blocks, as the tsdf stage does, would need the
+# frames' refined depth before the map pass makes it.
+INITIAL_BLOCKS = 1024
 
 
 class ConsensusSurface:
@@ -125,11 +131,12 @@ class DirectionVolume(GridCheckpoint):
         # Depth units per metre for the uint16 depth image (Open3D's integrator wants it).
         self.depth_scale = float(min(5000.0, np.floor(65535.0 / (1.001 * depth_max_m))))
         # 8^3 blocks: a truncation band of 24 cm touched fewer voxels than with 16^3
-        # blocks (measured 6.4 vs 8.9 ms per frame).
+        # blocks (measured 6.4 vs 8.9 ms per frame). Room for INITIAL_BLOCKS at first, which
+        # Open3D doubles when a frame needs more.
         self.grid = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
             attr_channels=((1), (1)), voxel_size=float(voxel_size_m), block_resolution=8,
-            block_count=4096, device=o3c.Device("CPU:0"))
+            block_count=INITIAL_BLOCKS, device=o3c.Device("CPU:0"))
         self.voxel_size_m = float(voxel_size_m)
         self.frames = 0
         self._surface: np.ndarray | None = None

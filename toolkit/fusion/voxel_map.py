@@ -194,7 +194,9 @@ class VoxelMap:
         uk, inv = unique_voxels(points, self.voxel_size, self._table)
         m = len(uk)
         a, b = self._pending_n, self._pending_n + m
-        self._grow(self._PENDING, a, b)
+        # Growing by half stops at the batch size: the buffer never holds more than a batch
+        # and the frame that fills it (1.48 M entries of room, 113 MiB, on the quickstart).
+        self._grow(self._PENDING, a, b, limit=self.batch_entries)
         self._p_keys[a:b] = uk
         # Sums stored column by column ([7, m], x y z r g b label): the batch merge adds them
         # with one bincount per column instead of permuting an [n, 7] array.
@@ -292,13 +294,16 @@ class VoxelMap:
         """Room for ``rows`` value rows."""
         self._grow(self._VALUES, self._n, rows)
 
-    def _grow(self, names: tuple[str, ...], used: int, rows: int) -> None:
+    def _grow(self, names: tuple[str, ...], used: int, rows: int,
+              limit: int | None = None) -> None:
         """Room for ``rows`` entries in the arrays ``names`` (the entry axis last), of which
-        the first ``used`` are kept; growing by half, so appending is amortised O(1)."""
+        the first ``used`` are kept; growing by half, so appending is amortised O(1), but
+        to no more than ``limit`` entries beyond ``rows`` (None: no limit)."""
         have = getattr(self, names[0]).shape[-1]
         if rows <= have:
             return
-        cap = max(rows, have * 3 // 2, 1024)
+        spare = max(have * 3 // 2, 1024)
+        cap = max(rows, spare if limit is None else min(spare, limit))
         for name in names:
             old = getattr(self, name)
             grown = np.empty((*old.shape[:-1], cap), old.dtype)
@@ -355,6 +360,10 @@ class VoxelMap:
         frames."""
         self._check_held()
         self._merge()
+        # The batch buffer is empty now, and its room (1 M entries or more, 80 bytes each)
+        # is freed before the copy below: at the end of a fusion it was beside the map's own
+        # arrays and the copy, at the fuse stage's peak. The next frame makes room again.
+        self._no_pending()
         rows = self._row  # in key order: the map's voxels sorted by their keys
         if min_count > 1 or min_frames > 1:  # every voxel has >= 1 of both
             rows = rows[(self._count[rows] >= min_count) & (self._frames[rows] >= min_frames)]

@@ -64,7 +64,7 @@ from toolkit.io.atomic import (
     to_jsonable,
 )
 from toolkit.recipe import registry, report
-from toolkit.recipe.memory import PeakMemory, StagePeak
+from toolkit.recipe.memory import PeakMemory, StagePeak, release_freed_memory
 from toolkit.recipe.report import StageSummary
 from toolkit.recipe.schema import (
     Recipe,
@@ -703,6 +703,9 @@ class _Run:
         try:
             with _blas_limit(self.blas_threads):
                 stage.run(ctx)
+            # The stage's locals are gone: what they held goes back to the system, not to
+            # the next stage's starting point (release_freed_memory).
+            release_freed_memory()
             ctx.check_provided()
             # A kill before this run left half-written temporaries in the folder (a resumed
             # fuse's scaled depth): the finished folder holds outputs only.
