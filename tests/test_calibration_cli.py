@@ -668,6 +668,9 @@ _KILL_AT_SECOND_OVERLAY = """
 import os, signal, sys
 import cv2
 from calibration.cli import main
+# Ctrl-C as in a terminal: a job started in the background by a non-interactive shell
+# (nohup, `cmd &`) inherits SIGINT ignored, and the signal below did nothing.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 real, written = cv2.imwrite, []
 def imwrite(path, img, *args):
     ok = real(path, img, *args)  # the temporary of an atomic write, whole on disk
