@@ -444,6 +444,47 @@ def test_observed_mask_leaves_non_finite_points_unseen_and_the_others_alone() ->
     np.testing.assert_array_equal(seen, [True] * len(wall) + [False, False])
 
 
+def test_pinhole_pixels_are_projects_bit_for_bit() -> None:
+    """The reference's views place samples with ``_pinhole_pixels``: the pixels and depths
+    of ``PinholeCamera.project`` to the bit wherever z > 0 (samples behind the camera and
+    in its plane included in the input, dropped by z by the caller)."""
+    from toolkit.baselines.common import _pinhole_pixels
+
+    rng = np.random.default_rng(11)
+    cam = PinholeCamera(640, 480, 525.3, 524.7, 319.61, 239.37)
+    rotated = rng.uniform(-7.0, 7.0, (20000, 3))  # [N, 3]
+    rotated[:50, 2] = 0.0
+    t = np.array([0.123456789, -1.7, 0.3])
+    u, v, z = _pinhole_pixels(cam, rotated, t)
+    uv, zp = cam.project(rotated + t)
+    front = zp > 0
+    assert 0.3 < front.mean() < 0.7
+    np.testing.assert_array_equal(z, zp)
+    np.testing.assert_array_equal(u[front], uv[front, 0])
+    np.testing.assert_array_equal(v[front], uv[front, 1])
+    with pytest.raises(ValueError, match="dist="):
+        _pinhole_pixels(PinholeCamera(64, 48, 50.0, 50.0, 31.5, 23.5,
+                                      np.array([-0.1, 0.0, 0.0, 0.0, 0.0])), rotated, t)
+
+
+def test_corner_extreme_is_the_min_and_max_of_each_2x2_block() -> None:
+    """``_corner_extreme`` against the four cells' min / max taken one block at a time,
+    with infinities (the reference's holes) among the values."""
+    from toolkit.baselines.common import _corner_extreme
+
+    rng = np.random.default_rng(12)
+    img = rng.uniform(0.5, 6.0, (9, 13)).astype(np.float32)  # [rows, row]
+    img[rng.random(img.shape) < 0.2] = np.inf
+    lo = _corner_extreme(img.reshape(-1), 13, np.minimum)
+    hi = _corner_extreme(-img.reshape(-1), 13, np.maximum)
+    assert lo.shape == hi.shape == (9 * 13 - 14,) and lo.dtype == np.float32
+    for r in range(8):
+        for c in range(12):
+            block = img[r:r + 2, c:c + 2]
+            assert lo[r * 13 + c] == block.min()
+            assert hi[r * 13 + c] == (-block).max()
+
+
 def test_a_grazing_floor_is_observed_where_it_is_visible() -> None:
     """The depth of a floor seen at a grazing angle changes by more than the tolerance
     from one pixel to the next: compared with the nearest pixel's alone, a fifth of the
