@@ -309,7 +309,10 @@ class PinholeCamera:
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """[N] bool: pixel centres inside the image (pixel (0,0) spans [-0.5, 0.5])."""
-        u, v = uv[:, 0], uv[:, 1]
+        return self.in_image_uv(uv[:, 0], uv[:, 1], margin)
+
+    def in_image_uv(self, u: np.ndarray, v: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """``in_image`` of pixel columns ``u`` [N] and rows ``v`` [N] given apart."""
         with np.errstate(invalid="ignore"):
             return (
                 (u >= -0.5 + margin)

@@ -257,11 +257,8 @@ def _observed_mask_one_blas_thread(points: np.ndarray, camera: PinholeCamera,
         pc = P @ T_cw[:3, :3].T  # [N, 3]
         if pinhole:
             u, v, zc = _pinhole_pixels(camera, pc, T_cw[:3, 3])  # [N] each
-            keep = zc > 0  # where project gives NaN pixels
-            keep &= u >= -0.5  # in_image's bounds
-            keep &= u < W - 0.5
-            keep &= v >= -0.5
-            keep &= v < H - 0.5
+            keep = camera.in_image_uv(u, v)
+            keep &= zc > 0  # where project gives NaN pixels
         else:
             pc += T_cw[:3, 3]
             uv, zc = camera.project(pc)  # [N, 2], [N]; NaN pixels behind the camera
