@@ -55,9 +55,17 @@ class BoardSpec:
         if self.cols < 2 or self.rows < 2:
             raise BoardError(f"board {self.cols}x{self.rows}: a checkerboard needs at least "
                              "2x2 inner corners (--board counts inner corners, e.g. 11x8)")
-        if not self.square > 0:
-            raise BoardError(f"board square size must be positive metres, got {self.square}")
+        if not 0 < self.square < np.inf:
+            raise BoardError(f"board square size must be positive metres, got {self.square} "
+                             "(--square, the calibrate stage's square_m)")
         if self.size is not None:
+            # NaN passed the "smaller than the pattern" test below (every comparison with it
+            # is False): the scan's segments were then all "wrong length", and an infinite
+            # side made the joint refinement's outline residuals NaN.
+            if not all(0 < v < np.inf for v in self.size):
+                raise BoardError(f"board size {self.size[0]:g} x {self.size[1]:g} m: both sides "
+                                 "must be finite positive metres (--board-size W H, the "
+                                 "calibrate stage's board_size_m)")
             w, h = self.pattern_extent
             if self.size[0] < w - 1e-9 or self.size[1] < h - 1e-9:
                 raise BoardError(f"board size {self.size[0]:g} x {self.size[1]:g} m is smaller "

@@ -26,6 +26,11 @@ ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (and bound the f
 ALPHA_MAX = 0.999  # a single Gaussian never makes a pixel fully opaque
 T_MIN = 1e-4  # a pixel stops accumulating once its transmittance would drop to this
 MAX_EXTEND = 3.33  # footprint cap in standard deviations (gsplat's)
+# Footprint half-extents are stored as int32 no larger than this: a box this wide covers the
+# image from any centre within 2^30 - width pixels of it, and a radius past 2^31 wrapped to
+# -2^31 in the cast (a Gaussian of scale e^18 m 1 m in front of the camera covered no pixel
+# at all, while listed as visible).
+MAX_RADIUS_PX = float(1 << 30)
 
 
 @dataclass
@@ -201,7 +206,7 @@ def project(
             & torch.isfinite(rx) & torch.isfinite(ry)
         )
         sel = torch.nonzero(keep).squeeze(1)
-        radii = torch.stack([rx[sel], ry[sel]], -1).to(torch.int32)
+        radii = torch.stack([rx[sel], ry[sel]], -1).clamp(max=MAX_RADIUS_PX).to(torch.int32)
 
     # One gather of everything per visible Gaussian; the culled ones' det may be <= 0, so
     # divide only after selecting.

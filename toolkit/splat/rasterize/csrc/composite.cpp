@@ -35,6 +35,9 @@ namespace {
 
 constexpr int kLanes = 8;  // pixels per inner loop: one AVX2 register of floats
 constexpr double kMaxExtend = 3.33;  // footprint cap in standard deviations (gsplat's)
+// Largest stored footprint half-extent (common.MAX_RADIUS_PX): the int32 cast of a radius
+// past 2^31 is undefined (it gave -2^31, and the Gaussian covered no pixel).
+constexpr double kMaxRadius = 1073741824.0;  // 2^30
 constexpr int kGradWidth = 6;  // mean x, mean y, conic a, b, c, opacity (+ C feature grads)
 
 struct Tiling {
@@ -737,8 +740,8 @@ inline bool project_one(const ProjCam<S>& cm, const S* m, const S* q4, const S* 
   o.con[2] = f.a / det;
   o.z = f.z;
   o.op = op;
-  o.rx = int32_t(rx);
-  o.ry = int32_t(ry);
+  o.rx = int32_t(std::min(rx, S(kMaxRadius)));
+  o.ry = int32_t(std::min(ry, S(kMaxRadius)));
   return true;
 }
 
