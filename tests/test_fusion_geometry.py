@@ -475,6 +475,63 @@ def test_depth_errors_values() -> None:
     assert with_inf == e and type(e.delta1) is float
 
 
+def _errors_as_defined(pred: np.ndarray, ref: np.ndarray, ok: np.ndarray) -> tuple:
+    """The figures of depth_errors written out on the valid pairs ``ok``, float64."""
+    p, r = pred[ok].astype(np.float64), ref[ok].astype(np.float64)
+    n = len(p)
+    e = p - r
+    d1 = np.count_nonzero((p < 1.25 * r) & (r < 1.25 * p))
+    return (float(np.sqrt(np.dot(e, e) / n)), float(np.abs(e).sum() / n),
+            float((np.abs(e) / r).sum() / n), float(d1 / n), n)
+
+
+def test_a_depth_reference_scores_each_prediction_as_depth_errors() -> None:
+    """DepthReference (the reference tested and widened once, for the fuse stage's three
+    depths per frame) gives each prediction the figures depth_errors gives it, to the bit,
+    as do an ErrorAccumulator fed with it and a depth kind's values in place of its
+    as_depth(1, 0); the caller's arrays are left as they were."""
+    from toolkit.depth.protocol import DepthPrediction
+    from toolkit.eval.depth import DepthReference, ErrorAccumulator
+
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0.2, 12.0, (48, 64)).astype(np.float32)
+    ref.reshape(-1)[rng.choice(ref.size, 300, replace=False)] = np.float32(np.nan)
+    ref[0, :5] = [0.0, np.inf, -1.0, 10.0, np.nextafter(np.float32(10), np.float32(11))]
+    mask = rng.uniform(size=ref.shape) < 0.9
+    preds = [ref * np.float32(s) for s in (0.8, 1.0, 1.3)]
+    preds.append(rng.uniform(-1.0, 13.0, ref.shape).astype(np.float32))
+    preds[-1][5, :4] = [np.nan, np.inf, -np.inf, 0.0]
+    preds.append(preds[0].astype(np.float64))
+    before = [p.copy() for p in preds]
+    for m, cap in ((None, None), (None, 10.0), (mask, 10.0), (mask, None)):
+        reference = DepthReference(ref, m, cap)
+        ok_ref = (np.isfinite(ref) & (ref > 0) & (True if cap is None else ref <= cap)
+                  & (True if m is None else m))
+        for p in preds:
+            ok = ok_ref & (p > 0) & np.isfinite(p)
+            want = _errors_as_defined(p, ref, ok)
+            assert tuple(reference.errors(p).as_dict().values()) == want
+            assert tuple(depth_errors(p, ref, m, cap).as_dict().values()) == want
+    for p, b in zip(preds, before, strict=True):
+        np.testing.assert_array_equal(p, b)
+    # Pooled: the same sums with the reference made once or per call.
+    reference = DepthReference(ref, max_depth=10.0)
+    a, b = ErrorAccumulator(), ErrorAccumulator()
+    for p in preds:
+        a.add(p, ref, max_depth=10.0)
+        b.add(p, reference)
+    assert a.result() == b.result()
+    # The stage scores a depth kind's values as its unscaled depth.
+    values = preds[-2]
+    pred = DepthPrediction(values, "relative_depth")
+    assert reference.errors(pred.values) == reference.errors(pred.as_depth(1.0, 0.0))
+    with pytest.raises(ValueError, match="prediction of 10 values for a reference of 3072"):
+        reference.errors(np.ones(10))
+    with pytest.raises(ValueError, match="has its mask and max_depth"):
+        a.add(preds[0], reference, max_depth=10.0)
+    assert DepthReference(np.full(4, np.nan)).errors(np.ones(4)).count == 0
+
+
 def test_inverse_transform_consistency() -> None:
     rig = _rig()
     T = rig.T_camera_laser

@@ -141,9 +141,10 @@ def test_moving_pixels_cover_the_walking_box_at_full_resolution(box_room: Path) 
 
 
 def test_moving_pixels_are_the_per_pixel_cylinder_test(box_room: Path) -> None:
-    """moving_pixels (gathered by flat index for speed) is bit for bit the cylinder test on
-    every valid pixel's world point taken with a 2-D mask: the scaled depth files the fuse
-    stage writes must not change with how the pixels are gathered."""
+    """moving_pixels (gathered by flat index for speed; a depth valid everywhere, the usual
+    scaled depth, not gathered at all) is bit for bit the cylinder test on every valid
+    pixel's world point taken with a 2-D mask: the scaled depth files the fuse stage
+    writes must not change with how the pixels are gathered."""
     from toolkit.fusion.cloud import RayCache
     from toolkit.fusion.dynamic import cylinder_mask
 
@@ -153,22 +154,25 @@ def test_moving_pixels_are_the_per_pixel_cylinder_test(box_room: Path) -> None:
     cfg = FusionConfig(scale="none")
     fu = Fusion(seq, cfg, fp, sp)
     rays = RayCache(seq.rig.camera, 1).rays  # [H, W, 3]
-    frames_with_hits = 0
+    frames_with_hits = {True: 0, False: 0}  # by whether every pixel is valid
     for i in range(len(seq.frames)):
-        d = gt.depth(i)
-        depth = np.where(d > 0, d, np.nan).astype(np.float32)  # [H, W]
-        m = fu.moving_pixels(i, depth)
-        if m is None:
-            continue
-        frames_with_hits += 1
-        T = fu.T_world_camera(i).astype(np.float32)
-        ok = np.isfinite(depth) & (depth > 0)
-        world = (rays[ok] * depth[ok][:, None]) @ T[:3, :3].T + T[:3, 3]  # [N, 3]
-        ref = np.zeros(depth.shape, bool)
-        ref[ok] = cylinder_mask(world, fu.dynamic_hits(i), cfg.dynamic_radius_m,
-                                cfg.dynamic_height_m)
-        assert np.array_equal(m, ref)
-    assert frames_with_hits > 3
+        full = np.where(gt.depth(i) > 0, gt.depth(i), 3.0).astype(np.float32)  # [H, W]
+        holes = full.copy()
+        holes[::7, ::5] = np.nan
+        holes[1::9, ::4] = 0.0
+        for depth in (full, holes):
+            m = fu.moving_pixels(i, depth)
+            if m is None:
+                continue
+            T = fu.T_world_camera(i).astype(np.float32)
+            ok = np.isfinite(depth) & (depth > 0)
+            frames_with_hits[bool(ok.all())] += 1
+            world = (rays[ok] * depth[ok][:, None]) @ T[:3, :3].T + T[:3, 3]  # [N, 3]
+            ref = np.zeros(depth.shape, bool)
+            ref[ok] = cylinder_mask(world, fu.dynamic_hits(i), cfg.dynamic_radius_m,
+                                    cfg.dynamic_height_m)
+            assert np.array_equal(m, ref)
+    assert min(frames_with_hits.values()) > 3, frames_with_hits
 
 
 def test_depth_and_fuse_stages_run_and_report(box_room: Path, tmp_path: Path,

@@ -33,28 +33,57 @@ def depth_errors(pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = No
                  max_depth: float | None = None) -> DepthErrors:
     """Errors of ``pred`` against ``ref`` (same shape, metres; NaN, 0 and +inf invalid in
     either: +inf is a lidar beam without return, not a range)."""
-    # The validity test in the arrays' own precision and float64 for the valid pairs only:
-    # this runs on three whole images per fused frame.
-    p = np.asarray(pred).reshape(-1)
-    r = np.asarray(ref).reshape(-1)
-    with np.errstate(invalid="ignore"):
-        # Comparisons are False for NaN, so these also drop NaN.
-        ok = (p > 0) & (p < np.inf) & (r > 0) & (r < np.inf)
-        if max_depth is not None:
-            ok &= r <= max_depth
-    if mask is not None:
-        ok &= np.asarray(mask, bool).reshape(-1)
-    n = int(np.count_nonzero(ok))
-    if n == 0:
-        return NAN_ERRORS
-    p = p[ok].astype(np.float64)
-    r = r[ok].astype(np.float64)
-    e = p - r
-    ae = np.abs(e)
-    # max(p / r, r / p) < 1.25 without the two divisions (p, r > 0).
-    d1 = np.count_nonzero((p < 1.25 * r) & (r < 1.25 * p))
-    return DepthErrors(float(np.sqrt(np.dot(e, e) / n)), float(ae.sum() / n),
-                       float((ae / r).sum() / n), float(d1 / n), n)
+    return DepthReference(ref, mask, max_depth).errors(pred)
+
+
+class DepthReference:
+    """A reference depth [any shape] made ready once to score several predictions of its
+    pixels (``errors``): its validity test and its valid values in float64 are the same
+    for each (the fuse stage scores three depths of every frame against its true depth).
+    ``mask`` and ``max_depth`` as for ``depth_errors``."""
+
+    def __init__(self, ref: np.ndarray, mask: np.ndarray | None = None,
+                 max_depth: float | None = None) -> None:
+        r = np.asarray(ref).reshape(-1)
+        with np.errstate(invalid="ignore"):
+            # Comparisons are False for NaN, so these also drop NaN.
+            ok = (r > 0) & (r < np.inf)  # [P]
+            if max_depth is not None:
+                ok &= r <= max_depth
+        if mask is not None:
+            ok &= np.asarray(mask, bool).reshape(-1)
+        self.size = r.size
+        # None: every pixel is valid, and a prediction needs no gather to line up with it.
+        self._ok: np.ndarray | None = None if ok.all() else ok
+        self._ref = r[ok].astype(np.float64)  # [R] the valid values, in pixel order
+        # max(p / r, r / p) < 1.25 without the two divisions (p, r > 0): 1.25 r is exact in
+        # float64 for a float32 r, and the same for every prediction.
+        self._ref_125 = 1.25 * self._ref  # [R]
+
+    def errors(self, pred: np.ndarray) -> DepthErrors:
+        """Errors of ``pred`` (the reference's size; NaN, 0 and +inf invalid) against it."""
+        p = np.asarray(pred).reshape(-1)
+        if p.size != self.size:
+            raise ValueError(f"prediction of {p.size} values for a reference of {self.size}")
+        # The validity test in the prediction's own precision and float64 for the valid
+        # pairs only: this runs on three whole images per fused frame.
+        if self._ok is not None:
+            p = p[self._ok]  # [R]
+        with np.errstate(invalid="ignore"):
+            ok = (p > 0) & (p < np.inf)  # [R]
+        n = int(np.count_nonzero(ok))
+        if n == 0:
+            return NAN_ERRORS
+        r, r_125 = self._ref, self._ref_125
+        if n < len(p):
+            p, r, r_125 = p[ok], r[ok], r_125[ok]
+        p = p.astype(np.float64)  # a copy of its own: the arithmetic below reuses it
+        d1 = np.count_nonzero((p < r_125) & (r < 1.25 * p))
+        e = np.subtract(p, r, out=p)
+        se = np.dot(e, e)
+        ae = np.abs(e, out=e)
+        return DepthErrors(float(np.sqrt(se / n)), float(ae.sum() / n),
+                           float(np.divide(ae, r, out=ae).sum() / n), float(d1 / n), n)
 
 
 class ErrorAccumulator:
@@ -67,9 +96,16 @@ class ErrorAccumulator:
         self.rel = 0.0
         self.d1 = 0
 
-    def add(self, pred: np.ndarray, ref: np.ndarray, mask: np.ndarray | None = None,
-            max_depth: float | None = None) -> DepthErrors:
-        e = depth_errors(pred, ref, mask, max_depth)
+    def add(self, pred: np.ndarray, ref: np.ndarray | DepthReference,
+            mask: np.ndarray | None = None, max_depth: float | None = None) -> DepthErrors:
+        """Pool ``pred``'s pairs with ``ref`` (``depth_errors``; a ``DepthReference``
+        comes with its own mask and depth cap) and return their errors."""
+        if isinstance(ref, DepthReference):
+            if mask is not None or max_depth is not None:
+                raise ValueError("a DepthReference has its mask and max_depth already")
+            e = ref.errors(pred)
+        else:
+            e = depth_errors(pred, ref, mask, max_depth)
         if e.count:
             self.n += e.count
             self.se += e.rmse_m**2 * e.count

@@ -26,7 +26,7 @@ from pydantic import Field
 from toolkit.depth.protocol import DepthPrediction
 from toolkit.depth.store import DepthStore
 from toolkit.deskew import deskew_sequence
-from toolkit.eval.depth import ErrorAccumulator, depth_errors, scale_error
+from toolkit.eval.depth import DepthReference, ErrorAccumulator, depth_errors, scale_error
 from toolkit.eval.map_accuracy import MeshDistance
 from toolkit.fusion.cloud import valid_pixels
 from toolkit.fusion.exposure import (
@@ -177,10 +177,13 @@ class FuseProgress:
                        np.clip(px[:, 0], 0, valid.shape[1] - 1)]
             self.lid_valid.add(z[ok], unscaled_pairs[ok], scaled_pairs[ok])
         if g is not None:
-            self.acc_un.add(pred.as_depth(1.0, 0.0), g, max_depth=cap)
-            self.acc_sc.add(scaled, g, max_depth=cap)
+            ref = DepthReference(g, max_depth=cap)  # tested and widened once, used 3 times
+            # A depth kind's values are its unscaled depth: as_depth(1, 0) only copies them
+            # and puts NaN where they are not > 0, which the errors leave out anyway.
+            self.acc_un.add(pred.as_depth(1.0, 0.0) if pred.is_disparity else pred.values, ref)
+            self.acc_sc.add(scaled, ref)
             if refined is not None:
-                self.acc_ref.add(refined, g, max_depth=cap)
+                self.acc_ref.add(refined, ref)
 
 
 def _depth_metrics(cfg: FuseConfig, st: FuseProgress, refined: bool, has_gt_depth: bool,
