@@ -202,6 +202,38 @@ def test_depth_targets_sample_each_training_pixel_at_its_centre() -> None:
                                atol=1e-6)
 
 
+@pytest.mark.parametrize("dist", [None, [0.12, -0.05, 0.0, 0.0, 0.0]])
+def test_depth_targets_take_non_finite_source_pixels_as_zero(dist: list[float] | None) -> None:
+    """NaN and inf depths of the source become 0 wherever a target pixel samples them, the
+    other pixels keep their values exactly: the same target as a map cleaned first, for a
+    pinhole and a distorted camera, and again from the maps made once (the second call)."""
+    import cv2
+
+    from toolkit.camera import PinholeCamera
+    from toolkit.splat.stage import prepare_depth
+
+    cam = PinholeCamera(640, 480, 500.0, 500.0, 319.5, 239.5,
+                        None if dist is None else np.array(dist))
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(0.5, 6.0, (480, 640)).astype(np.float32)
+    depth[rng.random((480, 640)) < 0.2] = np.nan
+    depth[rng.random((480, 640)) < 0.05] = np.inf
+    depth[:40, :60] = -np.inf
+    clean = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+    target = cam.undistorted().scaled(160, 120)
+    m1, m2 = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, target.K, (160, 120),
+                                         cv2.CV_32FC1)
+    expected = cv2.remap(clean, m1, m2, cv2.INTER_NEAREST)
+    for _ in range(2):
+        small = prepare_depth(depth, cam, (160, 120))
+        assert small.dtype == np.float32 and np.isfinite(small).all()
+        np.testing.assert_array_equal(small, expected)
+        assert (small == 0).mean() > 0.15
+    # The training size itself, no distortion: only cleaned.
+    if dist is None:
+        np.testing.assert_array_equal(prepare_depth(depth, cam, (640, 480)), clean)
+
+
 def test_lens_corners_without_a_source_are_neither_fitted_nor_scored() -> None:
     """Undistorting a pincushion lens (k1 > 0) leaves black corners: a render that is right
     everywhere else must score as right, and those pixels must carry no loss."""

@@ -249,13 +249,31 @@ def prepare_depth(depth: np.ndarray, camera: PinholeCamera, size: tuple[int, int
     in one remap that samples each target pixel's centre: the training camera
     (``camera.undistorted().scaled``) puts pixel x at (x + 0.5) s - 0.5 of the full image,
     where ``cv2.resize``'s nearest takes floor(s x), 1.5 pixels off at 4x."""
-    d = np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    if not camera.has_distortion and (d.shape[1], d.shape[0]) == size:
-        return d
-    target = camera.undistorted().scaled(*size)
-    m1, m2 = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, target.K, size,
-                                         cv2.CV_32FC1)
-    return cv2.remap(d, m1, m2, cv2.INTER_NEAREST)
+    d = np.asarray(depth, dtype=np.float32)
+    if camera.has_distortion or (d.shape[1], d.shape[0]) != size:
+        # Nearest sampling copies values, NaN and inf too: cleaned on the target's pixels
+        # (a 16th of the quickstart's), not the source's, the same values; the maps made
+        # once per camera and size, not once per view.
+        d = cv2.remap(d, *_depth_maps(camera, size), cv2.INTER_NEAREST)
+    return np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _depth_maps(camera: PinholeCamera, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``prepare_depth``'s remap: x and y [h, w] float32 of each target pixel's centre in
+    the full image."""
+    key = (camera.width, camera.height, *np.ravel(camera.K).tolist(),
+           *np.ravel(camera.dist).tolist(), *size)
+    maps = _DEPTH_MAPS.get(key)
+    if maps is None:
+        target = camera.undistorted().scaled(*size)
+        maps = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, target.K, size,
+                                           cv2.CV_32FC1)
+        _DEPTH_MAPS.clear()  # one camera at a time in a stage: keep only the latest
+        _DEPTH_MAPS[key] = maps
+    return maps
+
+
+_DEPTH_MAPS: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = {}
 
 
 def read_map(path: Path) -> tuple[np.ndarray, np.ndarray]:
