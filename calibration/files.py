@@ -335,14 +335,10 @@ def read_extrinsic(path: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
     block = data.get("calibration", data)
     if not isinstance(block, dict) or "reliable" not in block:
         return T, None
-    if not isinstance(block["reliable"], bool):
-        # A quoted "false" is not False: the calibrate stage took such an extrinsic as
-        # reliable, without the refusal --allow-unreliable lifts.
-        raise CalibrationFileError(
-            f"{path}: field 'reliable' is {block['reliable']!r}, not a YAML boolean; write "
-            "reliable: true or reliable: false (unquoted)")
     marks = {k: block[k] for k in ("reliable", "unreliable_because") if k in block}
-    warn_if_unreliable(path, {"calibration": marks})
+    # A quoted "false" is refused: the calibrate stage took such an extrinsic as reliable,
+    # without the refusal --allow-unreliable lifts.
+    warn_if_unreliable(path, {"calibration": marks}, CalibrationFileError)
     return T, marks
 
 

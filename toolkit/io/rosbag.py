@@ -1038,7 +1038,7 @@ def load_calibration(path: Path | str) -> Calibration:
     if not isinstance(data, dict):
         raise BagError(f"{path}: expected a mapping with camera / T_base_camera / "
                        "T_base_laser / T_camera_laser / transforms")
-    warn_if_unreliable(path, data)
+    warn_if_unreliable(path, data, BagError)
     if data.get("calibration") is not None and data.get("T_camera_laser") is not None:
         # Written by ``python -m calibration``: what it estimated is T_camera_laser. Its
         # T_base_* only place a base_link of its own (at the laser, without a rig given),
