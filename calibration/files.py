@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from toolkit.camera import PinholeCamera, distortion_values, plumb_bob_distortion
+from toolkit.errors import InputError
 from toolkit.geometry import checked_rigid, inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.yaml_file import load_yaml
@@ -26,7 +27,7 @@ from toolkit.sensors import Rig
 DIRECTION = "p_camera_optical = T_camera_laser @ p_laser (maps laser points into the camera)"
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(InputError):
     """A calibration file is missing or malformed; the message names the file and field."""
 
 

@@ -33,12 +33,13 @@ import cv2
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError
 from toolkit.geometry import Trajectory
 
 log = logging.getLogger(__name__)
 
 
-class TimeOffsetError(ValueError):
+class TimeOffsetError(InputError):
     """Input that cannot give a time offset (too few frames, no trajectory over them)."""
 
 

@@ -67,7 +67,7 @@ FORMAT_NAME = "lidarcam-sequence"
 FORMAT_VERSION = 1
 
 
-class SequenceFormatError(ValueError):
+class SequenceFormatError(InputError):
     """A sequence folder is malformed; the message names the file and the field."""
 
 
