@@ -188,6 +188,38 @@ def test_skip_unpaired_uses_the_rest(capture: tuple[Path, object], tmp_path: Pat
     assert res["views_used"] == 6 and len(res["images_skipped"]) == 2
 
 
+def test_extrinsic_overlays_of_a_rerun_leave_no_stale_ones(
+        capture: tuple[Path, object], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """extrinsic --overlays DIR kept an earlier run's overlays of pairs a rerun does not
+    have, looking current beside the new ones (no listing to clean by): now overlays.json
+    lists what a run wrote, and the next run removes those of its listing it does not
+    write again. Files no listing names (a user's, of the same pattern too) stay."""
+    cap_dir, _ = capture
+    ov = tmp_path / "ov"
+    ov.mkdir()
+    (ov / "mine_overlay.png").write_bytes(b"a user's")
+    assert main(_args(cap_dir, "--no-loo", "--overlays", str(ov))) == 0
+    first = [f"{p.stem}_overlay.png" for p in sorted((cap_dir / "images").glob("*.png"))]
+    said = capsys.readouterr().out
+    scans = tmp_path / "lasers"
+    shutil.copytree(cap_dir / "lasers", scans)
+    for p in sorted(scans.glob("*.pcd"))[:3]:
+        p.unlink()
+    args = _args(cap_dir, "--skip-unpaired", "--no-loo", "--overlays", str(ov))
+    args[args.index("--scans") + 1] = str(scans)
+    assert main(args) == 0
+    assert sorted(p.name for p in ov.glob("*_overlay.png")) == sorted(
+        ["mine_overlay.png", *first[3:]])
+    assert sorted(p.name for p in ov.iterdir()) == sorted(
+        ["overlays.json", "mine_overlay.png", *first[3:]])
+    assert json.loads((ov / "overlays.json").read_text())["overlays"] == first[3:]
+    # The file no listing names is counted, so that an older version's overlays are not
+    # taken for this run's.
+    assert "also holds 1 overlay(s) this run did not write" in said
+    assert (ov / "mine_overlay.png").read_bytes() == b"a user's"
+
+
 def _renamed(src: Path, dst: Path, scale: int) -> Path:
     """A copy of a capture folder with the nanosecond file names divided by ``scale``."""
     for sub in ("images", "lasers"):
