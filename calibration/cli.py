@@ -201,7 +201,7 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
         from toolkit.io.atomic import atomic_write_json
 
         atomic_write_json(Path(args.json), {**extrinsic_to_mapping(run.result.T_camera_laser),
-                                            **summary})
+                                            **summary}, clean_stale=True)
         print(f"wrote {args.json}")
     if args.overlays:
         _extrinsic_overlays(Path(args.overlays), run, camera,
@@ -232,7 +232,8 @@ def _extrinsic_overlays(out: Path, run: ExtrinsicRun, camera: PinholeCamera,
     planned = [_overlay_name(c.name) for c in run.candidates]
     # Listed before they are drawn: a run stopped half way leaves every overlay it wrote
     # named for the next run to remove, not unlisted for good.
-    atomic_write_json(listing, {**head, "overlays": sorted(earlier | set(planned))})
+    atomic_write_json(listing, {**head, "overlays": sorted(earlier | set(planned))},
+                      clean_stale=True)
     written = []
     for c in run.candidates:
         path = img_dir / c.name if img_dir else _sequence_image(Path(str(sequence)), c.name)
@@ -366,7 +367,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     # An earlier run's overlays of other frames stood beside these while check.json listed
     # only these.
     _remove_earlier_overlays(out, earlier, written)
-    atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written})
+    atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written},
+                      clean_stale=True)
     print(f"wrote {len(written)} overlays and check.json to {out}")
     return 0
 
@@ -383,7 +385,7 @@ def _save_overlay(out: Path, frame: str, rgb: np.ndarray) -> str:
     from toolkit.io.atomic import atomic_path
 
     name = _overlay_name(frame)
-    with atomic_path(out / name) as tmp:
+    with atomic_path(out / name, clean_stale=True) as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     return name
 
@@ -466,7 +468,7 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         "applied_at_conversion_s": applied,
         "meaning": "image stamp minus exposure time, left after the conversion's "
                    "sync.camera_delay_s (applied_at_conversion_s); the setting to use is "
-                   "their sum"})
+                   "their sum"}, clean_stale=True)
     ms = res.delay_s * 1000
     print(f"camera delay: {ms:+.1f} ms (+- {res.std_s * 1000:.1f} ms; {res.windows} windows "
           f"of {res.frames_per_window} frames, rotations found in {found} of {measured} "

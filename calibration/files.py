@@ -143,7 +143,8 @@ def write_camera(path: Path, camera: PinholeCamera, info: dict[str, Any] | None 
     d["distortion_model"] = "opencv k1 k2 p1 p2 k3"
     if info:
         d["calibration"] = info
-    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False))
+    # Written by the CLI outside run folders: what a killed write left goes here.
+    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False), clean_stale=True)
 
 
 # ---------------------------------------------------------------------------- extrinsic
@@ -383,4 +384,5 @@ def write_rig_with_calibration(path: Path, rig: Rig, info: dict[str, Any]) -> No
     d = rig_to_dict(rig)
     d.update(extrinsic_to_mapping(rig.T_camera_laser))
     d["calibration"] = info
-    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False))
+    # Written by the CLI outside run folders: what a killed write left goes here.
+    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False), clean_stale=True)

@@ -715,6 +715,35 @@ sys.exit(main(sys.argv[2:]))
 """
 
 
+def _check_args(capture: tuple[Path, object], tmp_path: Path) -> tuple[Path, Path, list[str]]:
+    """The capture folder, the output folder and the arguments of a check of the true
+    extrinsic on the capture's 8 pairs."""
+    cap_dir, cap = capture
+    ext = tmp_path / "true.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    out = tmp_path / "chk"
+    return cap_dir, out, [
+        "check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+        "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--out", str(out)]
+
+
+def test_a_temporary_a_sigkill_left_goes_on_the_next_run(
+        capture: tuple[Path, object], tmp_path: Path) -> None:
+    """SIGKILL runs no handler: the overlay being written stayed beside the outputs as a
+    hidden temporary, and no later run removed it (outside run folders nothing did). The
+    next write of that output removes it (its writer's process is gone)."""
+    cap_dir, out, args = _check_args(capture, tmp_path)
+    r = subprocess.run([sys.executable, "-c", _KILL_AT_SECOND_OVERLAY, "SIGKILL", *args],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == -9, (r.returncode, r.stderr[-2000:])
+    left = [p.name for p in out.iterdir() if p.name.startswith(".")]
+    assert len(left) == 1 and left[0].endswith(".tmp.png"), left
+    (out / ".notes").write_text("a user's")
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [".notes"]
+    assert len(list(out.glob("*_overlay.png"))) == 8
+
+
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
 def test_a_check_stopped_while_it_writes_leaves_no_temporary(
         capture: tuple[Path, object], tmp_path: Path, sig: str) -> None:
@@ -722,13 +751,7 @@ def test_a_check_stopped_while_it_writes_leaves_no_temporary(
     stayed beside the outputs as a hidden temporary for good; Ctrl-C printed Python's
     traceback. Now both end as the recipe runner's do: the write in flight removed, one
     line saying what was written, exit 130; a rerun writes everything."""
-    cap_dir, cap = capture
-    ext = tmp_path / "true.yaml"
-    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
-    out = tmp_path / "chk"
-    args = ["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
-            "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--out",
-            str(out)]
+    cap_dir, out, args = _check_args(capture, tmp_path)
     r = subprocess.run([sys.executable, "-c", _KILL_AT_SECOND_OVERLAY, sig, *args], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 130, (r.returncode, r.stderr[-2000:])

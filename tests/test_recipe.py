@@ -1341,6 +1341,41 @@ def test_a_finished_stage_folder_holds_no_leftover_temporaries(tmp_path: Path) -
     assert not any(f.exists() for f in leftovers) and (sub / ".keep").exists()
 
 
+def test_stale_temporaries_of_an_output_go_on_its_next_write(tmp_path: Path) -> None:
+    """Outside run folders nothing removed what a killed write (SIGKILL) left beside its
+    output. atomic_path(clean_stale=True) removes the temporaries of that output whose
+    writer's process is gone, or that are a day old (its id reused); a running writer's
+    (this process's), another output's and a user's files stay."""
+    import os
+    import subprocess
+    import sys
+
+    from toolkit.io.atomic import STALE_TEMP_AGE_S, remove_stale_temps
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead = int(gone.stdout)  # reaped: no process of this id, unless one was given it since
+    alive = os.getpid()
+    out = tmp_path / "rig.yaml"
+    stale = [tmp_path / f".rig.{dead}.0123abcd.tmp.yaml",
+             tmp_path / f".rig.{alive}.89abcdef.tmp.yaml"]  # made old below
+    kept = [tmp_path / f".rig.{alive}.4567cdef.tmp.yaml",  # mid-write, maybe
+            tmp_path / f".rig.unreliable.{dead}.0123abcd.tmp.yaml",  # another output's
+            tmp_path / ".rig.notes.yaml", tmp_path / "rig.old.yaml"]
+    for f in stale + kept:
+        f.write_text("half")
+    old = os.stat(stale[1]).st_mtime - STALE_TEMP_AGE_S - 60
+    os.utime(stale[1], (old, old))
+    atomic_write_text(out, "new", clean_stale=True)
+    assert out.read_text() == "new"
+    assert not any(f.exists() for f in stale) and all(f.exists() for f in kept)
+    # Without clean_stale (writers of thousands of files into one folder) none is looked for.
+    stale[0].write_text("half")
+    atomic_write_text(out, "newer")
+    assert stale[0].exists()
+    assert remove_stale_temps(out) == [stale[0]] and not stale[0].exists()
+
+
 def test_resume_after_sigkill(tmp_path: Path) -> None:
     marker = tmp_path / "killed_once"
     path = _write_recipe(tmp_path, _recipe_data(tmp_path, kill_marker=str(marker)))
