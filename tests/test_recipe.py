@@ -2760,7 +2760,7 @@ def test_a_run_folder_whose_files_cannot_be_replaced_names_the_file_meant(
 
     before = files()
 
-    def read_only(path: Any) -> Any:
+    def read_only(path: Any, **_: Any) -> Any:  # atomic_path(path, clean_stale=...)
         tmp = atomic._temp_name(Path(path))
         raise PermissionError(errno.EPERM, "Operation not permitted", str(tmp))
 
