@@ -14,14 +14,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from toolkit.errors import MissingInputError
+from toolkit.errors import InputError, MissingInputError
 
 # Corner refinement stops when a corner moves less than 1e-3 px or after 50 iterations:
 # the refined corners then sit well below the 0.1 px level that matters for PnP.
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
 
 
-class BoardError(ValueError):
+class BoardError(InputError):
     """A board specification or a detection problem; the message says what to change."""
 
 

@@ -31,10 +31,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError
 from toolkit.geometry import inv_se3, transform_points
 
 
-class CheckError(ValueError):
+class CheckError(InputError):
     """The frames cannot give the requested score; the message says what to pass."""
 
 

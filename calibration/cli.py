@@ -13,7 +13,7 @@ import logging
 import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,6 +30,10 @@ from toolkit.cli_types import (
     positive_int,
     sigterm_as_interrupt,
 )
+
+if TYPE_CHECKING:
+    from calibration.pipeline import ExtrinsicRun
+    from toolkit.camera import PinholeCamera
 
 # The extrinsic was estimated but the views do not pin it down (scripts must not go on).
 EXIT_UNRELIABLE = 3
@@ -197,26 +201,52 @@ def cmd_extrinsic(args: argparse.Namespace) -> int:
         from toolkit.io.atomic import atomic_write_json
 
         atomic_write_json(Path(args.json), {**extrinsic_to_mapping(run.result.T_camera_laser),
-                                            **summary})
+                                            **summary}, clean_stale=True)
         print(f"wrote {args.json}")
     if args.overlays:
-        import cv2
-
-        from calibration.check import overlay, project_scan
-        from toolkit.io.atomic import atomic_path
-        from toolkit.sensors import load_rgb
-
-        out = Path(args.overlays)
-        out.mkdir(parents=True, exist_ok=True)
-        img_dir = Path(args.images) if args.images else None
-        for c in run.candidates:
-            path = (img_dir / c.name) if img_dir else _sequence_image(Path(args.sequence), c.name)
-            img = overlay(load_rgb(path), project_scan(c.scan.points,
-                                                       run.result.T_camera_laser, camera))
-            with atomic_path(out / f"{Path(c.name).stem}_overlay.png") as tmp:
-                cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        print(f"wrote {len(run.candidates)} overlays to {out}")
+        _extrinsic_overlays(Path(args.overlays), run, camera,
+                            Path(args.images) if args.images else None, args.sequence)
     return 0 if summary["reliable"] or args.allow_unreliable else EXIT_UNRELIABLE
+
+
+# What `extrinsic --overlays DIR` wrote into DIR, so that a rerun can remove its own stale
+# overlays (check lists its own in check.json).
+OVERLAYS_LISTING = "overlays.json"
+
+
+def _extrinsic_overlays(out: Path, run: ExtrinsicRun, camera: PinholeCamera,
+                        img_dir: Path | None, sequence: str | None) -> None:
+    """Each pair's scan drawn into its image, in ``out`` as ``<stem>_overlay.png``, listed
+    in ``out/overlays.json``. An earlier run's overlays of pairs this run does not have
+    stood beside these and looked current: the ones the earlier listing names go, files
+    it does not name (a user's, an older version's) stay and are counted."""
+    from calibration.check import overlay, project_scan
+    from toolkit.io.atomic import atomic_write_json
+    from toolkit.sensors import load_rgb
+
+    out.mkdir(parents=True, exist_ok=True)
+    listing = out / OVERLAYS_LISTING
+    earlier = _earlier_overlays(listing)
+    T = run.result.T_camera_laser
+    head = {"written_by": "python -m calibration extrinsic", "T_camera_laser": T}
+    planned = [_overlay_name(c.name) for c in run.candidates]
+    # Listed before they are drawn: a run stopped half way leaves every overlay it wrote
+    # named for the next run to remove, not unlisted for good.
+    atomic_write_json(listing, {**head, "overlays": sorted(earlier | set(planned))},
+                      clean_stale=True)
+    written = []
+    for c in run.candidates:
+        path = img_dir / c.name if img_dir else _sequence_image(Path(str(sequence)), c.name)
+        written.append(_save_overlay(out, c.name, overlay(
+            load_rgb(path), project_scan(c.scan.points, T, camera))))
+    _remove_earlier_overlays(out, earlier, written)
+    atomic_write_json(listing, {**head, "overlays": written})
+    print(f"wrote {len(written)} overlays and {OVERLAYS_LISTING} to {out}")
+    others = sorted(p.name for p in out.glob("*_overlay.png") if p.name not in set(written))
+    if others:
+        print(f"note: {out} also holds {len(others)} overlay(s) this run did not write and "
+              f"no {OVERLAYS_LISTING} listed ({others[0]}{', ...' if len(others) > 1 else ''}"
+              "): left in place; delete them if they are an earlier run's")
 
 
 def unreliable_path(path: Path) -> Path:
@@ -276,12 +306,11 @@ def _print_extrinsic(T: np.ndarray, s: dict[str, Any], allow_unreliable: bool = 
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    import cv2
 
     from calibration.check import SEEN_AXES, overlay, project_scan, sensitivity
     from calibration.files import load_camera, load_extrinsic
     from calibration.pipeline import check_frames_from_pairs, check_frames_from_sequence
-    from toolkit.io.atomic import atomic_path, atomic_write_json
+    from toolkit.io.atomic import atomic_write_json
 
     out = Path(args.out)
     _dir_output(args.out)
@@ -320,13 +349,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     scores = sensitivity(frames, T, camera, args.perturb_deg, args.score, source)
     out.mkdir(parents=True, exist_ok=True)
     earlier = _earlier_overlays(out / "check.json")
-    written = []
-    for f in frames:
-        img = overlay(f.image, project_scan(f.points, T, camera))
-        p = out / f"{Path(f.name).stem}_overlay.png"
-        with atomic_path(p) as tmp:
-            cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        written.append(p.name)
+    written = [_save_overlay(out, f.name, overlay(f.image, project_scan(f.points, T, camera)))
+               for f in frames]
     d = scores.to_dict()
     print(f"{len(frames)} frames, {scores.n_points} points; {scores.kind} score "
           f"{scores.score:.4f}")
@@ -341,17 +365,41 @@ def cmd_check(args: argparse.Namespace) -> int:
         print("note: the edge score judges rotation about the camera's vertical axis (ry) "
               "only; give depth maps (--depth) to judge tilts too")
     # An earlier run's overlays of other frames stood beside these while check.json listed
-    # only these. Only the files that run's check.json lists go: never a user's.
-    for name in sorted(earlier - set(written)):
-        (out / name).unlink(missing_ok=True)
-    atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written})
+    # only these.
+    _remove_earlier_overlays(out, earlier, written)
+    atomic_write_json(out / "check.json", {"T_camera_laser": T, **d, "overlays": written},
+                      clean_stale=True)
     print(f"wrote {len(written)} overlays and check.json to {out}")
     return 0
 
 
+def _overlay_name(frame: str) -> str:
+    return f"{Path(frame).stem}_overlay.png"
+
+
+def _save_overlay(out: Path, frame: str, rgb: np.ndarray) -> str:
+    """Write the overlay ``rgb`` ([H, W, 3] uint8) of image ``frame`` into ``out``; its
+    file name."""
+    import cv2
+
+    from toolkit.io.atomic import atomic_path
+
+    name = _overlay_name(frame)
+    with atomic_path(out / name, clean_stale=True) as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    return name
+
+
+def _remove_earlier_overlays(out: Path, earlier: set[str], written: list[str]) -> None:
+    """Delete the overlays an earlier run listed (``earlier``) that this one did not
+    write: only files that run's listing names go, never a user's."""
+    for name in sorted(earlier - set(written)):
+        (out / name).unlink(missing_ok=True)
+
+
 def _earlier_overlays(path: Path) -> set[str]:
-    """Overlay file names an earlier ``check`` listed in its ``path`` (check.json): plain
-    ``*_overlay.png`` names only; none when the file is missing or not such a listing."""
+    """Overlay file names an earlier run listed in its ``path`` (check.json, overlays.json):
+    plain ``*_overlay.png`` names only; none when the file is missing or not such a listing."""
     try:
         listed = json.loads(path.read_text()).get("overlays", [])
     except (OSError, ValueError, AttributeError):
@@ -420,7 +468,7 @@ def cmd_time_offset(args: argparse.Namespace) -> int:
         "applied_at_conversion_s": applied,
         "meaning": "image stamp minus exposure time, left after the conversion's "
                    "sync.camera_delay_s (applied_at_conversion_s); the setting to use is "
-                   "their sum"})
+                   "their sum"}, clean_stale=True)
     ms = res.delay_s * 1000
     print(f"camera delay: {ms:+.1f} ms (+- {res.std_s * 1000:.1f} ms; {res.windows} windows "
           f"of {res.frames_per_window} frames, rotations found in {found} of {measured} "

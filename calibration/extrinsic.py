@@ -45,6 +45,7 @@ from scipy.spatial.transform import Rotation
 from calibration.board import BoardSpec
 from calibration.board_lines import fit_line
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError
 from toolkit.geometry import rotation_angle, se3
 
 AXIS_NAMES = (
@@ -58,7 +59,7 @@ AXIS_NAMES = (
 SHORT_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 
 
-class ExtrinsicError(ValueError):
+class ExtrinsicError(InputError):
     """The views cannot give an extrinsic; the message says what is missing."""
 
 

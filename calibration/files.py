@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 
 from toolkit.camera import PinholeCamera, distortion_values, plumb_bob_distortion
+from toolkit.errors import InputError
 from toolkit.geometry import checked_rigid, inv_se3, pose_from_xyz_quat, pose_to_xyz_quat
 from toolkit.io.atomic import atomic_write_text
 from toolkit.io.yaml_file import load_yaml
@@ -26,7 +27,7 @@ from toolkit.sensors import Rig
 DIRECTION = "p_camera_optical = T_camera_laser @ p_laser (maps laser points into the camera)"
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(InputError):
     """A calibration file is missing or malformed; the message names the file and field."""
 
 
@@ -142,7 +143,8 @@ def write_camera(path: Path, camera: PinholeCamera, info: dict[str, Any] | None 
     d["distortion_model"] = "opencv k1 k2 p1 p2 k3"
     if info:
         d["calibration"] = info
-    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False))
+    # Written by the CLI outside run folders: what a killed write left goes here.
+    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False), clean_stale=True)
 
 
 # ---------------------------------------------------------------------------- extrinsic
@@ -335,14 +337,10 @@ def read_extrinsic(path: Path) -> tuple[np.ndarray, dict[str, Any] | None]:
     block = data.get("calibration", data)
     if not isinstance(block, dict) or "reliable" not in block:
         return T, None
-    if not isinstance(block["reliable"], bool):
-        # A quoted "false" is not False: the calibrate stage took such an extrinsic as
-        # reliable, without the refusal --allow-unreliable lifts.
-        raise CalibrationFileError(
-            f"{path}: field 'reliable' is {block['reliable']!r}, not a YAML boolean; write "
-            "reliable: true or reliable: false (unquoted)")
     marks = {k: block[k] for k in ("reliable", "unreliable_because") if k in block}
-    warn_if_unreliable(path, {"calibration": marks})
+    # A quoted "false" is refused: the calibrate stage took such an extrinsic as reliable,
+    # without the refusal --allow-unreliable lifts.
+    warn_if_unreliable(path, {"calibration": marks}, CalibrationFileError)
     return T, marks
 
 
@@ -386,4 +384,5 @@ def write_rig_with_calibration(path: Path, rig: Rig, info: dict[str, Any]) -> No
     d = rig_to_dict(rig)
     d.update(extrinsic_to_mapping(rig.T_camera_laser))
     d["calibration"] = info
-    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False))
+    # Written by the CLI outside run folders: what a killed write left goes here.
+    atomic_write_text(path, yaml.safe_dump(d, sort_keys=False), clean_stale=True)

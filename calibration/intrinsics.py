@@ -25,6 +25,7 @@ from calibration.board import (
     read_image,
 )
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError
 
 # Distortion models by name: which of k1 k2 p1 p2 k3 are estimated (COLMAP-like names).
 MODELS = {
@@ -55,7 +56,7 @@ _TILT_HINT = ("Capture views with the board tilted 20-45 deg in different direct
               "right, up, down)")
 
 
-class IntrinsicsError(ValueError):
+class IntrinsicsError(InputError):
     """Too few usable views, or inconsistent images."""
 
 

@@ -19,18 +19,18 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.errors import MissingInputError
+from toolkit.errors import InputError, MissingInputError
 
 SCAN_SUFFIXES = (".pcd", ".csv", ".npz")
 # Beams that return exactly the sensor origin are "no return" in many drivers' PCD output.
 _MIN_RANGE_M = 1e-3
 
 
-class ScanFormatError(ValueError):
+class ScanFormatError(InputError):
     """A scan file is malformed; the message names the file and the field."""
 
 
-class PairingError(ValueError):
+class PairingError(InputError):
     """Images and scans cannot be matched in time; the message lists the offenders."""
 
 

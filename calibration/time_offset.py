@@ -33,12 +33,13 @@ import cv2
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError
 from toolkit.geometry import Trajectory
 
 log = logging.getLogger(__name__)
 
 
-class TimeOffsetError(ValueError):
+class TimeOffsetError(InputError):
     """Input that cannot give a time offset (too few frames, no trajectory over them)."""
 
 
@@ -410,7 +411,7 @@ def write_figure(path: str, result: TimeOffsetResult, frame_stamps: np.ndarray,
     a1.set_xlabel("camera delay tried (ms): image stamp minus exposure")
     a1.set_ylabel("RMS yaw mismatch\nper window (deg)")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
+    with atomic_path(path, clean_stale=True) as tmp:  # the CLI writes outside run folders
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
 

@@ -188,6 +188,38 @@ def test_skip_unpaired_uses_the_rest(capture: tuple[Path, object], tmp_path: Pat
     assert res["views_used"] == 6 and len(res["images_skipped"]) == 2
 
 
+def test_extrinsic_overlays_of_a_rerun_leave_no_stale_ones(
+        capture: tuple[Path, object], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """extrinsic --overlays DIR kept an earlier run's overlays of pairs a rerun does not
+    have, looking current beside the new ones (no listing to clean by): now overlays.json
+    lists what a run wrote, and the next run removes those of its listing it does not
+    write again. Files no listing names (a user's, of the same pattern too) stay."""
+    cap_dir, _ = capture
+    ov = tmp_path / "ov"
+    ov.mkdir()
+    (ov / "mine_overlay.png").write_bytes(b"a user's")
+    assert main(_args(cap_dir, "--no-loo", "--overlays", str(ov))) == 0
+    first = [f"{p.stem}_overlay.png" for p in sorted((cap_dir / "images").glob("*.png"))]
+    said = capsys.readouterr().out
+    scans = tmp_path / "lasers"
+    shutil.copytree(cap_dir / "lasers", scans)
+    for p in sorted(scans.glob("*.pcd"))[:3]:
+        p.unlink()
+    args = _args(cap_dir, "--skip-unpaired", "--no-loo", "--overlays", str(ov))
+    args[args.index("--scans") + 1] = str(scans)
+    assert main(args) == 0
+    assert sorted(p.name for p in ov.glob("*_overlay.png")) == sorted(
+        ["mine_overlay.png", *first[3:]])
+    assert sorted(p.name for p in ov.iterdir()) == sorted(
+        ["overlays.json", "mine_overlay.png", *first[3:]])
+    assert json.loads((ov / "overlays.json").read_text())["overlays"] == first[3:]
+    # The file no listing names is counted, so that an older version's overlays are not
+    # taken for this run's.
+    assert "also holds 1 overlay(s) this run did not write" in said
+    assert (ov / "mine_overlay.png").read_bytes() == b"a user's"
+
+
 def _renamed(src: Path, dst: Path, scale: int) -> Path:
     """A copy of a capture folder with the nanosecond file names divided by ``scale``."""
     for sub in ("images", "lasers"):
@@ -683,6 +715,35 @@ sys.exit(main(sys.argv[2:]))
 """
 
 
+def _check_args(capture: tuple[Path, object], tmp_path: Path) -> tuple[Path, Path, list[str]]:
+    """The capture folder, the output folder and the arguments of a check of the true
+    extrinsic on the capture's 8 pairs."""
+    cap_dir, cap = capture
+    ext = tmp_path / "true.yaml"
+    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
+    out = tmp_path / "chk"
+    return cap_dir, out, [
+        "check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
+        "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--out", str(out)]
+
+
+def test_a_temporary_a_sigkill_left_goes_on_the_next_run(
+        capture: tuple[Path, object], tmp_path: Path) -> None:
+    """SIGKILL runs no handler: the overlay being written stayed beside the outputs as a
+    hidden temporary, and no later run removed it (outside run folders nothing did). The
+    next write of that output removes it (its writer's process is gone)."""
+    cap_dir, out, args = _check_args(capture, tmp_path)
+    r = subprocess.run([sys.executable, "-c", _KILL_AT_SECOND_OVERLAY, "SIGKILL", *args],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == -9, (r.returncode, r.stderr[-2000:])
+    left = [p.name for p in out.iterdir() if p.name.startswith(".")]
+    assert len(left) == 1 and left[0].endswith(".tmp.png"), left
+    (out / ".notes").write_text("a user's")
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [".notes"]
+    assert len(list(out.glob("*_overlay.png"))) == 8
+
+
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
 def test_a_check_stopped_while_it_writes_leaves_no_temporary(
         capture: tuple[Path, object], tmp_path: Path, sig: str) -> None:
@@ -690,13 +751,7 @@ def test_a_check_stopped_while_it_writes_leaves_no_temporary(
     stayed beside the outputs as a hidden temporary for good; Ctrl-C printed Python's
     traceback. Now both end as the recipe runner's do: the write in flight removed, one
     line saying what was written, exit 130; a rerun writes everything."""
-    cap_dir, cap = capture
-    ext = tmp_path / "true.yaml"
-    ext.write_text(yaml.safe_dump({"T_camera_laser": cap.T_camera_laser.tolist()}))  # type: ignore
-    out = tmp_path / "chk"
-    args = ["check", "--images", str(cap_dir / "images"), "--scans", str(cap_dir / "lasers"),
-            "--camera", str(cap_dir / "camera.yaml"), "--extrinsic", str(ext), "--out",
-            str(out)]
+    cap_dir, out, args = _check_args(capture, tmp_path)
     r = subprocess.run([sys.executable, "-c", _KILL_AT_SECOND_OVERLAY, sig, *args], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 130, (r.returncode, r.stderr[-2000:])

@@ -17,6 +17,7 @@ from toolkit.depth.simulated import (
     low_texture_weight,
 )
 from toolkit.depth.store import DepthStore, DepthStoreWriter
+from toolkit.errors import MissingInputError
 
 pytestmark = pytest.mark.filterwarnings(
     "ignore:You are using the legacy TorchScript:DeprecationWarning",
@@ -417,6 +418,11 @@ def test_depth_store_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose(s.latencies(), [0.01, 0.02])
     z = p.as_depth(2.0, 0.1)
     assert z[1, 1] == pytest.approx(1 / (2 * vals[1, 1] + 0.1))
+    # A frame it holds no prediction for: a KeyError naming the folder, shown as a bug.
+    with pytest.raises(MissingInputError, match=re.escape(
+            f"{tmp_path / 'd' / 'index.csv'}: field 'index' lists no frame 1 (it holds 2 "
+            "frames, 0 to 2)") + ".*Fix: run the depth stage again"):
+        s.read(1)
 
 
 def test_depth_store_float16_writes_what_it_cannot_hold_as_invalid_and_counts_it(

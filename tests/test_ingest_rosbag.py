@@ -1339,6 +1339,47 @@ def test_driver_faults_name_topic_field_and_fix(tmp_path, caplog):
         camera_info_to_camera(msg, "topic /cam/camera_info")
 
 
+@pytest.mark.parametrize("model, d, expect", [
+    # A count OpenCV and image_geometry do not take: 3 values were zero-padded as k1 k2 p1
+    # (to other tools they are k1 k2 k3), 6 were cut to 5, both without a word.
+    ("plumb_bob", [0.1, -0.05, 0.01], "field 'D' has 3 coefficients [0.1, -0.05, 0.01], but "
+     "distortion_model 'plumb_bob' takes 5: k1 k2 p1 p2 k3"),
+    ("plumb_bob", [0.1, -0.05, 0, 0, 0.01, 0], "field 'D' has 6 coefficients"),
+    ("rational_polynomial", [0.1, -0.05, 0, 0, 0.01, 0, 0],
+     "field 'D' has 7 coefficients [0.1, -0.05, 0.0, 0.0, 0.01, 0.0, 0.0], but distortion_model "
+     "'rational_polynomial' takes 8: k1 k2 p1 p2 k3 k4 k5 k6"),
+    # A NaN past k3 was reported as a coefficient "non-zero past k1 k2 p1 p2 k3".
+    ("rational_polynomial", [0.1, -0.05, 0, 0, 0.01, 0, float("nan"), 0],
+     "field 'D' holds a non-finite value"),
+    ("equidistant", [0.1, -0.05, 0.01, 0.0], "field 'distortion_model' is 'equidistant' (D "
+     "holds 4: k1 k2 k3 k4 (fisheye)); only plumb_bob"),
+    # What the pinhole model holds: none, k1 k2 p1 p2 (OpenCV's 4), the 5 of plumb_bob, a
+    # rational_polynomial or a longer OpenCV D with nothing past k3, zeros of any count.
+    ("plumb_bob", [], [0, 0, 0, 0, 0]),
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002], [0.1, -0.05, 0.001, 0.002, 0]),
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002, 0.01], [0.1, -0.05, 0.001, 0.002, 0.01]),
+    ("rational_polynomial", [0.1, -0.05, 0.001, 0.002, 0.01, 0, 0, 0],
+     [0.1, -0.05, 0.001, 0.002, 0.01]),
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002, 0.01] + [0] * 9, [0.1, -0.05, 0.001, 0.002, 0.01]),
+    ("plumb_bob", [0, 0, 0], [0, 0, 0, 0, 0]),
+    ("none", [0, 0, 0], [0, 0, 0, 0, 0]),
+])
+def test_camera_info_distortion_counts_follow_the_model(model, d, expect):
+    """CameraInfo's D as ROS's distortion models and OpenCV define it: a count neither
+    takes is refused naming the bag and topic, the field and the fix, not padded or cut."""
+    msg = BagBuilder(False).camera_info(0.0, model=model, d=d)
+    where = "run.db3: topic /cam/camera_info"
+    if isinstance(expect, str):
+        with pytest.raises(BagError) as err:
+            camera_info_to_camera(msg, where)
+        text = str(err.value)
+        assert text.startswith(f"{where}: ") and expect in text, text
+        assert "rosbag.calibration" in text, text
+    else:
+        cam = camera_info_to_camera(msg, where)
+        assert np.allclose(cam.dist, expect, rtol=0, atol=1e-15), cam.dist
+
+
 def test_a_calibrations_body_frame_for_the_camera_is_refused(tmp_path, caplog):
     """A tf-style T_base_camera whose child is camera_link (x forward) was read as the
     optical frame: the view turned up, without a word."""

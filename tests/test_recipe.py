@@ -1121,6 +1121,18 @@ class Fails(Stage):
             _ = np.zeros(3) + np.zeros(4)
         if how == "bug about a file":  # a bug's ValueError that names an existing file
             raise ValueError(f"{path}: expected 3 values, got 2")
+        if how == "internal":  # the project's internal error, which a reader failed to catch
+            from types import SimpleNamespace
+
+            from toolkit.io.rosbag import transform_to_matrix
+
+            xyz = SimpleNamespace(x=0.0, y=0.0, z=0.0)
+            transform_to_matrix(SimpleNamespace(translation=xyz, rotation=SimpleNamespace(
+                x=0.0, y=0.0, z=0.0, w=0.0)))
+        if how == "calibration file":  # an area's own input error (CalibrationFileError)
+            from calibration.files import read_extrinsic
+
+            read_extrinsic(path)
 
 
 @pytest.mark.parametrize("how, shown", [
@@ -1135,6 +1147,9 @@ class Fails(Stage):
     # The class decides, not the message: a path at the start of a ValueError's message
     # took its class name away, a bug's too.
     ("bug about a file", "ValueError: {path}: expected 3 values, got 2"),
+    # Any class defined in the project counted as an input error, internal ones too.
+    ("internal", "NotATransformError: quaternion [0.0, 0.0, 0.0, 0.0] is not a rotation"),
+    ("calibration file", "{path}: field 'reliable' is 'false', not a YAML boolean"),
 ])
 def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
         tmp_path: Path, how: str, shown: str) -> None:
@@ -1146,7 +1161,8 @@ def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
 
     path = {"png": tmp_path / "seq" / "000050.png", "tum": tmp_path / "odometry.tum",
             "no file": tmp_path / "none.tum", "folder": tmp_path / "no_such_sequence",
-            "ply": tmp_path / "splats.ply", "bug about a file": tmp_path / "odometry.tum"}.get(
+            "ply": tmp_path / "splats.ply", "bug about a file": tmp_path / "odometry.tum",
+            "calibration file": tmp_path / "extrinsic.yaml"}.get(
                 how, tmp_path)
     if how == "png":
         path.parent.mkdir()
@@ -1155,6 +1171,9 @@ def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
         path.write_bytes(b"ply\nformat ascii 1.0\nend_header\n")  # a header, no elements
     if how == "bug about a file":
         path.write_text("1.0 0 0 0 0 0 0 1\n")  # the file is there, and sound
+    if how == "calibration file":
+        path.write_text(yaml.safe_dump({"T_camera_laser": np.eye(4).tolist(),
+                                        "reliable": "false"}))
     if how == "tum":
         path.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 zero 0 0 0 1\n")
     result = run_stages(tmp_path, [{"stage": "t_fails", "how": how, "path": str(path)}],
@@ -1162,6 +1181,39 @@ def test_a_stage_failing_on_bad_input_is_shown_without_the_class_name(
     expected = f"stage 't_fails' failed: {shown.format(path=path)}"
     assert (result.error or "").startswith(expected), result.error
     assert "Traceback" in (tmp_path / "run" / "run.log").read_text()
+
+
+def test_input_errors_are_told_from_internal_ones_by_class() -> None:
+    """Every area's error class for bad input is one the runner shows as a message alone
+    (and still the built-in error its callers catch); the project's internal errors are
+    not: any class defined in the project counted as input, NotATransformError too."""
+    from calibration.board import BoardError
+    from calibration.check import CheckError
+    from calibration.extrinsic import ExtrinsicError
+    from calibration.files import CalibrationFileError
+    from calibration.intrinsics import IntrinsicsError
+    from calibration.scans import PairingError, ScanFormatError
+    from calibration.time_offset import TimeOffsetError
+    from toolkit.errors import InputError, MissingInputError, WriteError
+    from toolkit.ingest.recording import IngestError
+    from toolkit.io.carmen import CarmenFormatError
+    from toolkit.io.rosbag import BagError, MissingTransformError, NotATransformError
+    from toolkit.io.sequence import SequenceFormatError
+    from toolkit.recipe.runner import _is_input_error
+    from toolkit.recipe.schema import RecipeError
+
+    for cls in (BoardError, CheckError, ExtrinsicError, CalibrationFileError, IntrinsicsError,
+                PairingError, ScanFormatError, TimeOffsetError, IngestError, CarmenFormatError,
+                BagError, SequenceFormatError, InputError):
+        assert issubclass(cls, ValueError) and _is_input_error(cls("x.yaml: bad")), cls
+    assert _is_input_error(MissingTransformError("no tf from base_link to laser"))
+    for exc in (MissingInputError("x: not found"), WriteError("x: not written"),
+                RecipeError("stages: empty"), FileNotFoundError(2, "No such file", "x.png")):
+        assert _is_input_error(exc), exc
+    for exc in (NotATransformError("rotation", "quaternion [0, 0, 0, 0] is not a rotation"),
+                ValueError("x.yaml: bad"), KeyError("focal"), OSError("no file named"),
+                RuntimeError("x: the reader should have caught this")):
+        assert not _is_input_error(exc), exc
 
 
 def test_the_reason_says_whether_an_interrupted_stage_resumes(tmp_path: Path) -> None:
@@ -1287,6 +1339,41 @@ def test_a_finished_stage_folder_holds_no_leftover_temporaries(tmp_path: Path) -
     (sub / ".keep").write_text("mine")
     assert _run(path).ok
     assert not any(f.exists() for f in leftovers) and (sub / ".keep").exists()
+
+
+def test_stale_temporaries_of_an_output_go_on_its_next_write(tmp_path: Path) -> None:
+    """Outside run folders nothing removed what a killed write (SIGKILL) left beside its
+    output. atomic_path(clean_stale=True) removes the temporaries of that output whose
+    writer's process is gone, or that are a day old (its id reused); a running writer's
+    (this process's), another output's and a user's files stay."""
+    import os
+    import subprocess
+    import sys
+
+    from toolkit.io.atomic import STALE_TEMP_AGE_S, remove_stale_temps
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead = int(gone.stdout)  # reaped: no process of this id, unless one was given it since
+    alive = os.getpid()
+    out = tmp_path / "rig.yaml"
+    stale = [tmp_path / f".rig.{dead}.0123abcd.tmp.yaml",
+             tmp_path / f".rig.{alive}.89abcdef.tmp.yaml"]  # made old below
+    kept = [tmp_path / f".rig.{alive}.4567cdef.tmp.yaml",  # mid-write, maybe
+            tmp_path / f".rig.unreliable.{dead}.0123abcd.tmp.yaml",  # another output's
+            tmp_path / ".rig.notes.yaml", tmp_path / "rig.old.yaml"]
+    for f in stale + kept:
+        f.write_text("half")
+    old = os.stat(stale[1]).st_mtime - STALE_TEMP_AGE_S - 60
+    os.utime(stale[1], (old, old))
+    atomic_write_text(out, "new", clean_stale=True)
+    assert out.read_text() == "new"
+    assert not any(f.exists() for f in stale) and all(f.exists() for f in kept)
+    # Without clean_stale (writers of thousands of files into one folder) none is looked for.
+    stale[0].write_text("half")
+    atomic_write_text(out, "newer")
+    assert stale[0].exists()
+    assert remove_stale_temps(out) == [stale[0]] and not stale[0].exists()
 
 
 def test_resume_after_sigkill(tmp_path: Path) -> None:
@@ -2673,7 +2760,7 @@ def test_a_run_folder_whose_files_cannot_be_replaced_names_the_file_meant(
 
     before = files()
 
-    def read_only(path: Any) -> Any:
+    def read_only(path: Any, **_: Any) -> Any:  # atomic_path(path, clean_stale=...)
         tmp = atomic._temp_name(Path(path))
         raise PermissionError(errno.EPERM, "Operation not permitted", str(tmp))
 

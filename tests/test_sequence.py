@@ -725,3 +725,37 @@ def test_meta_flags_are_yaml_booleans_only(tmp_path: Path, key: str) -> None:
         read_sequence(tmp_path)
     meta_path.write_text(yaml.safe_dump({**meta, key: False}))
     assert read_sequence(tmp_path).meta[key] is False
+
+
+def test_a_rig_marked_reliable_by_quoted_text_is_refused(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """calibration.reliable: "false" (quoted) is no YAML boolean: read_rig and a bag's
+    rosbag.calibration read such a rig without the warning an unreliable extrinsic gets,
+    while read_extrinsic (the calibrate stage's reader) refused it."""
+    import logging
+
+    from toolkit.io.rosbag import BagError, load_calibration
+    from toolkit.io.sequence import read_rig, rig_to_dict
+
+    path = tmp_path / "rig.yaml"
+    base = rig_to_dict(make_rig())
+    for mark in ("false", "no", None, 0):
+        path.write_text(yaml.safe_dump({**base, "calibration": {"reliable": mark}}))
+        with pytest.raises(SequenceFormatError, match=rf"rig.yaml: field 'reliable' is "
+                           rf"{mark!r}, not a YAML boolean; write reliable: true or "
+                           "reliable: false"):
+            read_rig(path)
+        with pytest.raises(BagError, match=r"rig.yaml: field 'reliable' is .*not a YAML "
+                           "boolean"):
+            load_calibration(path)
+    path.write_text(yaml.safe_dump({**base, "calibration": {
+        "reliable": False, "unreliable_because": ["2 views"]}}))
+    with caplog.at_level(logging.WARNING):
+        read_rig(path)
+    assert "its extrinsic was marked unreliable when it was estimated (2 views)" in caplog.text
+    caplog.clear()
+    for calibration in ({"reliable": True}, {"rms_m": 0.01}):
+        path.write_text(yaml.safe_dump({**base, "calibration": calibration}))
+        with caplog.at_level(logging.WARNING):
+            assert np.allclose(read_rig(path).T_base_laser, make_rig().T_base_laser)
+        assert "unreliable" not in caplog.text

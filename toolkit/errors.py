@@ -3,7 +3,12 @@ readers raise them: each message starts with the path it is about and says what 
 and the fix ("<path>[:<line>]: ..."). The recipe runner shows them without the class name,
 and a bug's error (numpy's ValueError, a KeyError) with it, for the bug report
 (``toolkit.recipe.runner._is_input_error``). Each subclasses the built-in error the readers
-raised before, so callers' ``except ValueError`` / ``except OSError`` still catch it."""
+raised before, so callers' ``except ValueError`` / ``except OSError`` still catch it.
+
+An area's own error class for bad input (SequenceFormatError, BagError,
+CalibrationFileError, ...) subclasses one of these, which is how the runner knows it; an
+error class for the project's internal use (NotATransformError, caught and re-raised
+naming the topic) subclasses a built-in error, so that escaping it shows as a bug."""
 
 from __future__ import annotations
 

@@ -194,7 +194,15 @@ class DepthStore:
     def read(self, index: int) -> DepthPrediction:
         row = self._by_index.get(index)
         if row is None:
-            raise KeyError(f"{self.root}: no prediction for frame {index}")
+            # A KeyError, which the runner shows as a bug, named the folder only.
+            held = (f"{len(self.rows)} frames, {self.indices[0]} to {self.indices[-1]}"
+                    if self.rows else "no frames")
+            raise MissingInputError(
+                f"{self.root / 'index.csv'}: field 'index' lists no frame {index} (it holds "
+                f"{held}): this depth folder holds no prediction for a frame that is read "
+                "now. Fix: run the depth stage again for these frames (with every: 1 it "
+                "predicts every frame), or give the reading stage the depth of this "
+                "recording")
         values = np.load(self.root / row["file"]).astype(np.float32)
         extra = {"true_scale": float(row["true_scale"])} if row.get("true_scale") else {}
         return DepthPrediction(values, self.kind, float(row.get("latency_s") or 0.0), extra)

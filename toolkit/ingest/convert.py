@@ -166,8 +166,9 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
                     "angle to %d beams", resampled, len(scans), len(scans[0]))
     scan_stamps = np.array([s.stamp for s in scans], dtype=np.float64)
     if len(scan_stamps) > 1 and np.any(np.diff(scan_stamps) <= 0):
-        raise IngestError(f"{recording.source}: scan stamps are not strictly increasing; "
-                          "the reader should have caught this")
+        # A reader's broken promise, not the recording's fault: shown as the bug it is.
+        raise RuntimeError(f"{recording.source}: scan stamps are not strictly increasing; "
+                           "the reader should have caught this")
     poses = recording.odometry if recording.odometry is not None else recording.groundtruth
     # The whole delay against the raw stamps: a folder converted with a delay already
     # taken out is shifted by the rest only (following the time-offset advice, the whole
@@ -267,8 +268,8 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
                 expected = float(stamps[done + k])
                 stamp = float(np.float64(fd.stamp) - shift)  # as the planned stamps were made
                 if stamp != expected:
-                    raise IngestError(f"{recording.source}: loader returned frame at "
-                                      f"{fd.stamp!r} where {expected + shift!r} was planned")
+                    raise RuntimeError(f"{recording.source}: loader returned frame at "
+                                       f"{fd.stamp!r} where {expected + shift!r} was planned")
                 writer.add_frame(stamp, fd.image, fd.depth, fd.mask, image_path=fd.image_path,
                                  image_jpeg=fd.image_jpeg)
             writer.flush()

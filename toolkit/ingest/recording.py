@@ -20,11 +20,12 @@ from typing import Any
 import numpy as np
 
 from toolkit.camera import PinholeCamera
+from toolkit.errors import InputError
 from toolkit.geometry import Trajectory
 from toolkit.sensors import LaserScan, Rig
 
 
-class IngestError(ValueError):
+class IngestError(InputError):
     """An input cannot be converted. The message names the file, topic or field, and the fix."""
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import hashlib
 import json
 import math
@@ -16,6 +17,7 @@ import os
 import re
 import secrets
 import shutil
+import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -31,6 +33,7 @@ __all__ = [
     "digest_problem",
     "digested_write",
     "remove_leftover_temps",
+    "remove_stale_temps",
     "target_of",
     "to_jsonable",
 ]
@@ -52,8 +55,57 @@ def remove_leftover_temps(path: str | os.PathLike[str]) -> None:
         tmp.unlink(missing_ok=True)
 
 
-# _temp_name's pattern: ".<stem>.<pid>.<8 hex>.tmp<suffix>" (groups: stem, suffix).
-_TEMP_NAME = re.compile(r"\.(.+)\.\d+\.[0-9a-f]{8}\.tmp(\.[^.]*)?")
+# _temp_name's pattern: ".<stem>.<pid>.<8 hex>.tmp<suffix>".
+_TEMP_NAME = re.compile(r"\.(?P<stem>.+)\.(?P<pid>\d+)\.[0-9a-f]{8}\.tmp(?P<suffix>\.[^.]*)?")
+# A temporary this old is stale even where a process of its writer's id runs: that id was
+# reused (one atomic write takes seconds, not a day).
+STALE_TEMP_AGE_S = 24 * 3600.0
+
+
+def _process_runs(pid: int) -> bool:
+    """Whether a process of id ``pid`` runs on this machine (assumed so off POSIX, where
+    signal 0 is no mere probe)."""
+    if os.name != "posix":
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    except (OverflowError, ValueError):  # no process id at all
+        return False
+    return True
+
+
+def remove_stale_temps(path: str | os.PathLike[str],
+                       max_age_s: float = STALE_TEMP_AGE_S) -> list[Path]:
+    """Delete the temporaries that killed writes of ``path`` left beside it (SIGKILL, a
+    power cut: no handler ran), for writers outside run folders, where the runner's
+    cleanup never comes; returns those deleted. Only provably stale ones of this very
+    output go: its name pattern (``.<stem>.<pid>.<hex>.tmp<suffix>``, not another file's
+    such as rig.unreliable.yaml's beside rig.yaml) and a writer whose process id runs no
+    process here, or older than ``max_age_s`` (the id reused). A temporary of a running
+    writer, this process's included, stays: it may be mid-write. A writer of the same
+    file in another PID namespace (a container) sharing the folder is not seen: its write
+    may fail, as two writers of one file would race anyway."""
+    target = Path(path)
+    now = time.time()
+    removed = []
+    pattern = f".{glob.escape(target.stem)}.*.tmp{glob.escape(target.suffix)}"
+    for tmp in target.parent.glob(pattern):
+        m = _TEMP_NAME.fullmatch(tmp.name)
+        if m is None or target_of(tmp) != target:
+            continue
+        try:
+            age = now - tmp.lstat().st_mtime
+        except FileNotFoundError:  # its writer finished meanwhile
+            continue
+        if age < max_age_s and _process_runs(int(m["pid"])):
+            continue
+        remove_path(tmp, ignore_errors=True)
+        removed.append(tmp)
+    return removed
 
 
 def remove_temps_under(folder: str | os.PathLike[str]) -> int:
@@ -73,20 +125,25 @@ def target_of(path: str | os.PathLike[str]) -> Path:
     no such temporary): an error about the temporary is about that file."""
     p = Path(path)
     m = _TEMP_NAME.fullmatch(p.name)
-    return p.with_name(m.group(1) + (m.group(2) or "")) if m else p
+    return p.with_name(m["stem"] + (m["suffix"] or "")) if m else p
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str], *, clean_stale: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it onto ``path``.
 
     The temporary file does not exist yet; the caller's writer creates it. If the block
     raises, the temporary file (or folder) is removed and ``path`` is left untouched. If
     the block ends without having written anything (``cv2.imwrite`` returns False instead
     of raising), ``FileNotFoundError`` is raised rather than silently keeping no file.
+    ``clean_stale``: first delete what killed writes of ``path`` left
+    (``remove_stale_temps``), for a writer outside run folders; it lists the folder, so
+    not for writers of thousands of files into one.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
+    if clean_stale:
+        remove_stale_temps(target)
     tmp = _temp_name(target)
     try:
         yield tmp
@@ -224,13 +281,15 @@ def remove_path(path: Path, ignore_errors: bool = False) -> None:
         path.unlink(missing_ok=True)
 
 
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, *, fsync: bool = False) -> None:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, *, fsync: bool = False,
+                       clean_stale: bool = False) -> None:
     """Write ``data`` to ``path`` atomically.
 
     ``fsync=True`` also survives power loss, not just a killed process; it costs a disk
     flush per file, so it is left to callers writing commit markers rather than every frame.
+    ``clean_stale``: as ``atomic_path``'s.
     """
-    with atomic_path(path) as tmp:
+    with atomic_path(path, clean_stale=clean_stale) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(data)
             if fsync:
@@ -239,10 +298,11 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, *, fsync: bool
 
 
 def atomic_write_text(
-    path: str | os.PathLike[str], text: str, *, encoding: str = "utf-8", fsync: bool = False
+    path: str | os.PathLike[str], text: str, *, encoding: str = "utf-8", fsync: bool = False,
+    clean_stale: bool = False,
 ) -> None:
     """Write ``text`` to ``path`` atomically (UTF-8 by default, no newline translation)."""
-    atomic_write_bytes(path, text.encode(encoding), fsync=fsync)
+    atomic_write_bytes(path, text.encode(encoding), fsync=fsync, clean_stale=clean_stale)
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -271,14 +331,14 @@ def to_jsonable(obj: Any) -> Any:
 
 
 def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, fsync: bool = False,
-                      compact: bool = False) -> None:
+                      compact: bool = False, clean_stale: bool = False) -> None:
     """Write ``obj`` as indented JSON (key order kept, NaN/inf as null) atomically;
     ``compact``: on one line without spaces, for large files that machines read (a list
     item per line made the runner's marker of a 120,000-file output 19.4 MB, 13.4 MB
-    compact: docs/runner.md)."""
+    compact: docs/runner.md); ``clean_stale``: as ``atomic_path``'s."""
     text = json.dumps(
         to_jsonable(obj), indent=None if compact else 2,
         separators=(",", ":") if compact else None, sort_keys=False, ensure_ascii=False,
         allow_nan=False,
     )
-    atomic_write_text(path, text + "\n", fsync=fsync)
+    atomic_write_text(path, text + "\n", fsync=fsync, clean_stale=clean_stale)

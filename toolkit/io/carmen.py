@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toolkit.errors import MissingInputError
+from toolkit.errors import InputError, MissingInputError
 from toolkit.geometry import Trajectory, se2_compose, se2_to_se3
 from toolkit.ingest.sync import longest_increasing
 from toolkit.sensors import LaserScan
@@ -37,7 +37,7 @@ from toolkit.sensors import LaserScan
 log = logging.getLogger(__name__)
 
 
-class CarmenFormatError(ValueError):
+class CarmenFormatError(InputError):
     """A malformed line; the message names the file and the line number."""
 
 

@@ -37,7 +37,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from toolkit.camera import PinholeCamera
+from toolkit.camera import OPENCV_DIST_COUNTS, PinholeCamera
 from toolkit.geometry import (
     Trajectory,
     checked_rigid,
@@ -663,6 +663,13 @@ def camera_info_size(msg: Any) -> tuple[int, int]:
     return (rw, rh) if rw > 0 and rh > 0 else (int(msg.width), int(msg.height))
 
 
+# What ROS's distortion models (sensor_msgs/distortion_models.h) hold in D; of these this
+# pinhole camera represents plumb_bob, and rational_polynomial with k4..k6 = 0.
+_ROS_DIST_TERMS = {"plumb_bob": "5: k1 k2 p1 p2 k3",
+                   "rational_polynomial": "8: k1 k2 p1 p2 k3 k4 k5 k6",
+                   "equidistant": "4: k1 k2 k3 k4 (fisheye)"}
+
+
 def camera_info_to_camera(msg: Any, where: str = "camera_info",
                           rectified: bool = False) -> PinholeCamera:
     """A ``PinholeCamera`` from ``sensor_msgs/CameraInfo`` (plumb_bob or 5-term rational).
@@ -700,7 +707,7 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
         P[1, 2] -= y0
     # The fields the camera model is made of must be numbers: a NaN in K or D failed as a
     # bare ValueError naming neither the bag, the topic nor the field.
-    for name, value in (("P", P[:, :3]),) if rectified else (("K", K), ("D", D[:5])):
+    for name, value in (("P", P[:, :3]),) if rectified else (("K", K), ("D", D)):
         if not np.all(np.isfinite(value)):
             raise BagError(f"{where}: field '{name}' holds a non-finite value "
                            f"({np.round(value, 6).reshape(-1).tolist()}); {fix}")
@@ -713,6 +720,22 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
     if not np.any(K):
         raise BagError(f"{where}: field 'K' is all zero (the camera was not calibrated); {fix}")
     if model in ("plumb_bob", "rational_polynomial", "") or (model == "none" and not D.any()):
+        if model == "" and D.any():
+            raise BagError(f"{where}: field 'D' has {len(D)} coefficients but "
+                           f"'distortion_model' is empty; {fix}")
+        if D.any() and len(D) not in OPENCV_DIST_COUNTS:
+            # image_geometry hands D to OpenCV as it is, which takes these counts only: a
+            # 3-long D (k1 k2 k3 to some tools, k1 k2 p1 to others) was zero-padded as
+            # k1 k2 p1, a 6-long one cut to 5, without a word.
+            raise BagError(
+                f"{where}: field 'D' has {len(D)} coefficients {D.tolist()}, but "
+                f"distortion_model {model!r} takes {_ROS_DIST_TERMS[model]} (OpenCV and "
+                f"ROS's image_geometry take {', '.join(map(str, OPENCV_DIST_COUNTS))}); "
+                "other counts are ambiguous "
+                "(3 values are k1 k2 k3 to some tools, k1 k2 p1 to others) and are not "
+                "guessed. Fix: give the intrinsics in the calibration YAML ('camera: {width, "
+                "height, fx, fy, cx, cy, distortion: [k1, k2, p1, p2, k3]}', zeros for the "
+                "terms the lens lacks) and set rosbag.calibration")
         if np.any(D[5:] != 0):
             # Dropped, the coefficients past k3 left every pixel off by what they add.
             extra = ", ".join(f"D[{i}] = {D[i]:g}" for i in np.flatnonzero(D[5:]) + 5)
@@ -720,13 +743,11 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
                            f"coefficients, non-zero past k1 k2 p1 p2 k3 ({extra}); only the "
                            "5-term (plumb_bob) model is supported. Convert the rectified "
                            "images (image_rect) instead, or " + fix)
-        if model == "" and D.any():
-            raise BagError(f"{where}: field 'D' has {len(D)} coefficients but "
-                           f"'distortion_model' is empty; {fix}")
         return _pinhole(lambda: PinholeCamera.from_K(K, w, h, D[:5]), where, "K", fix)
-    raise BagError(f"{where}: field 'distortion_model' is {model!r}; only plumb_bob (OpenCV "
-                   "k1 k2 p1 p2 k3) is supported. Use the rectified image topic (image_rect, "
-                   "with rosbag.rectified: true) or " + fix)
+    holds = f" (D holds {_ROS_DIST_TERMS[model]})" if model in _ROS_DIST_TERMS else ""
+    raise BagError(f"{where}: field 'distortion_model' is {model!r}{holds}; only plumb_bob "
+                   "(OpenCV k1 k2 p1 p2 k3) is supported. Use the rectified image topic "
+                   "(image_rect, with rosbag.rectified: true) or " + fix)
 
 
 def _pinhole(make: Callable[[], PinholeCamera], where: str, field_name: str,
@@ -1017,7 +1038,7 @@ def load_calibration(path: Path | str) -> Calibration:
     if not isinstance(data, dict):
         raise BagError(f"{path}: expected a mapping with camera / T_base_camera / "
                        "T_base_laser / T_camera_laser / transforms")
-    warn_if_unreliable(path, data)
+    warn_if_unreliable(path, data, BagError)
     if data.get("calibration") is not None and data.get("T_camera_laser") is not None:
         # Written by ``python -m calibration``: what it estimated is T_camera_laser. Its
         # T_base_* only place a base_link of its own (at the laser, without a rig given),

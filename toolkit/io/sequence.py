@@ -67,7 +67,7 @@ FORMAT_NAME = "lidarcam-sequence"
 FORMAT_VERSION = 1
 
 
-class SequenceFormatError(ValueError):
+class SequenceFormatError(InputError):
     """A sequence folder is malformed; the message names the file and the field."""
 
 
@@ -158,11 +158,20 @@ def read_rig(path: Path | str) -> Rig:
     return rig_from_dict(data, str(path))
 
 
-def warn_if_unreliable(path: Path, data: Any) -> None:
+def warn_if_unreliable(path: Path, data: Any,
+                       error: type[Exception] = SequenceFormatError) -> None:
     """Log a warning when a rig / calibration mapping written by ``python -m calibration``
-    says its extrinsic was estimated unreliable (``calibration.reliable: false``)."""
+    says its extrinsic was estimated unreliable (``calibration.reliable: false``); an
+    ``error`` naming the file and field when the mark is no YAML boolean."""
     info = data.get("calibration") if isinstance(data, dict) else None
-    if isinstance(info, dict) and info.get("reliable") is False:
+    if not isinstance(info, dict) or "reliable" not in info:
+        return
+    if not isinstance(info["reliable"], bool):
+        # A quoted "false" is not False: such a rig was read without the warning (and
+        # read_extrinsic, the calibrate stage's reader, refused it).
+        raise error(f"{path}: field 'reliable' is {info['reliable']!r}, not a YAML boolean; "
+                    "write reliable: true or reliable: false (unquoted)")
+    if info["reliable"] is False:
         _log.warning("%s: its extrinsic was marked unreliable when it was estimated (%s); "
                      "calibrate again with more varied board views", path,
                      "; ".join(map(str, info.get("unreliable_because") or [])) or "no reason")

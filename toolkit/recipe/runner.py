@@ -55,6 +55,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from toolkit.errors import InputError, MissingInputError, WriteError
 from toolkit.io.atomic import (
     atomic_write_json,
     atomic_write_text,
@@ -1415,21 +1416,18 @@ def _file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-# The packages whose error classes (SequenceFormatError, CalibrationFileError, IngestError,
-# ...) are raised for bad input, each with a message naming the file and the fix.
-_OWN_PACKAGES = ("toolkit.", "calibration.")
-
-
 def _is_input_error(exc: BaseException) -> bool:
-    """Whether ``exc`` says what is wrong with an input: one of the project's own error
-    classes (``toolkit.errors``' InputError, MissingInputError and WriteError, which the
-    readers raise with "<path>[:<line>]: ..." messages, and each area's own, such as
-    CalibrationFileError), or an OSError naming its file. Anything else is taken for a bug
-    (numpy's "operands could not be broadcast", a KeyError), also a ValueError whose
-    message starts with a path: the class decides, not the message (a bug's ValueError
-    about an existing file lost its class name when a path at the start of any message
-    counted)."""
-    if type(exc).__module__.startswith(_OWN_PACKAGES):
+    """Whether ``exc`` says what is wrong with an input, so that the runner shows its
+    message alone: one of ``toolkit.errors``' classes (InputError, MissingInputError,
+    WriteError; each area's own, such as CalibrationFileError or BagError, subclasses one
+    of them), whose messages start with the path they are about and say the fix; a
+    RecipeError; or an OSError naming its file. Anything else is taken for a bug and keeps
+    its class name beside the traceback in run.log: numpy's "operands could not be
+    broadcast", a KeyError, a ValueError whose message starts with a path (the class
+    decides, not the message), and the project's internal errors (StageError never gets
+    here; NotATransformError, which its readers turn into a BagError naming the topic).
+    Any class defined in the project counted until 2026-11-28, internal ones too."""
+    if isinstance(exc, InputError | MissingInputError | WriteError | RecipeError):
         return True
     return isinstance(exc, OSError) and exc.filename is not None
 
