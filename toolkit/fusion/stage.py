@@ -432,7 +432,8 @@ class FuseStage(Stage):
     # 16: the exposure solve's pull between consecutive frames is Huber-reweighted like the
     #     edges (at full weight it moved frames whose overlaps fixed their gains)
     # 17: swept scans de-skewed with the trajectory's poses inside each sweep (ground
-    #     truth's path samples), beam by beam; constant velocity where it has none
+    #     truth's path samples; a slam2d pose of a next scan stamped before the sweep
+    #     ends), beam by beam; constant velocity where it has none
     version = 17
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
