@@ -116,7 +116,9 @@ class CalibrateStage(Stage):
     #    1 % long moved the extrinsic 1 cm without a word)
     # 10: a view whose scan holds no finite point is skipped as such (the summary said "no
     #     segment matches the board")
-    version = 10
+    # 11: the check de-skews swept scans with the odometry's poses inside each sweep, beam
+    #     by beam (constant velocity between the sweep's ends where it has none)
+    version = 11
 
     config: CalibrateConfig
 

@@ -4,12 +4,14 @@ A spinning 2D lidar measures its beams one after another (ROS ``time_increment``
 robot turning at 1 rad/s under a 10 Hz scanner has turned 0.1 rad between a sweep's first
 beam and its last, which moves the last beam's point 0.5 m at 5 m and bends straight
 walls into spirals. De-skewing moves every beam's point into the laser frame at the
-first beam (the stamp, ROS's convention) with the motion over the sweep, taken at
-constant velocity as ``laser_geometry`` and Cartographer place beams, and resamples the
+first beam (the stamp, ROS's convention) with the motion over the sweep and resamples the
 points onto the scan's own angle grid, so that everything downstream reads an ordinary
-scan. The resampling interpolates the range between neighbouring points of one surface
-(exact on planes to well under a millimetre at 1 degree beams) and takes the nearest
-point across depth jumps.
+scan. The motion is the trajectory's own where it has poses inside the sweep (odometry
+faster than the lidar, the simulator's path samples): each beam's pose is interpolated
+between the poses around its time. Between the sweep's ends alone it is taken at constant
+velocity, as ``laser_geometry`` and Cartographer place beams. The resampling interpolates
+the range between neighbouring points of one surface (exact on planes to well under a
+millimetre at 1 degree beams) and takes the nearest point across depth jumps.
 """
 
 from __future__ import annotations
@@ -39,27 +41,35 @@ def deskew_scan(scan: LaserScan, motion: np.ndarray) -> LaserScan:
     """``scan`` with every beam's point moved into the laser frame at the stamp.
 
     ``motion`` [3]: (x, y, theta) of the laser at the last beam in the laser frame at the
-    first; beam i has moved ``i / (B - 1)`` of it. The result has the same beams
+    first; beam i has moved ``i / (B - 1)`` of it (constant velocity). Or [B, 3]: the
+    laser's pose at every beam in that frame (theta unwrapped along the sweep). The result
+    has the same beams
     (angles, limits) and ``time_increment`` 0. Bins no point lands in keep the original
     beam's value when it had no return (no-return and too-close codes stay), else NaN.
     A range of exactly ``range_max`` is such a code too (CARMEN and many drivers write
     no-return so; the SLAM reads it so): moved, half of them would land just inside the
     limit and read as a wall at range_max.
     """
-    m = np.asarray(motion, np.float64).reshape(3)
     n = len(scan)
+    m = np.asarray(motion, np.float64)
+    if m.ndim == 2 and m.shape != (n, 3):
+        raise ValueError(f"per-beam motion must be [{n}, 3] (x, y, theta at each of the "
+                         f"scan's {n} beams), got {list(m.shape)}")
+    if m.ndim != 2:
+        m = m.reshape(3)
     done = replace(scan, time_increment=0.0)
     if scan.time_increment == 0 or n < 2 or not np.any(m):
         return done
     with np.errstate(invalid="ignore"):
         moves = scan.valid_mask() & (scan.ranges < scan.range_max)  # [B] real returns
     ok = np.flatnonzero(moves)
-    f = ok / (n - 1)  # [V] share of the sweep
+    # [V, 3] the laser's pose at each moved beam (at constant velocity its share of the sweep)
+    at = m[ok] if m.ndim == 2 else (ok / (n - 1))[:, None] * m
     a = scan.angles()[ok]
     r = scan.ranges[ok].astype(np.float64)
-    th = a + f * m[2]
-    qx = r * np.cos(th) + f * m[0]  # [V] point in the first beam's frame
-    qy = r * np.sin(th) + f * m[1]
+    th = a + at[:, 2]
+    qx = r * np.cos(th) + at[:, 0]  # [V] point in the first beam's frame
+    qy = r * np.sin(th) + at[:, 1]
     rho = np.hypot(qx, qy)
     # Fractional beam index of each moved point, unwrapped next to its own beam.
     phi = a + np.angle(np.exp(1j * (np.arctan2(qy, qx) - a)))
@@ -109,13 +119,17 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
                  covered_only: bool = False) -> list[LaserScan]:
     """Every scan with per-beam timing de-skewed with the motion of ``traj`` (T_base in
     any fixed frame: world, odom) over its sweep; scans without timing come back as they
-    are. A sweep reaching outside the trajectory takes the motion of the same length of
-    time at the trajectory's end (constant velocity, as de-skewing assumes within a
-    sweep; clipped to the end poses, the last scan of a trajectory stamped at the scans
-    got no motion at all and stayed skewed: 6.9 cm median, 78 cm worst, turning at
-    1 rad/s), or with ``covered_only`` keeps its timing for someone else to de-skew - as
-    do sweeps in a gap of it then (``Trajectory.covers``: a straight line across a gap
-    is a guess)."""
+    are. Where ``traj`` has poses inside a sweep (odometry faster than the lidar), each
+    beam's pose is interpolated between the poses around its time (the sweep's ends
+    interpolated as before); with none inside, the motion between the sweep's ends is
+    spread at constant velocity (accelerating, turning drives under a 10 Hz lidar: 4.4 mm
+    worst residual skew over 24 drives; 0.07 mm from poses at 200 Hz, 1.2 mm at 20 Hz).
+    A sweep reaching outside the trajectory takes the motion of the same length of time at
+    the trajectory's end at constant velocity (clipped to the end poses, the last scan of
+    a trajectory stamped at the scans got no motion at all and stayed skewed: 6.9 cm
+    median, 78 cm worst, turning at 1 rad/s), or with ``covered_only`` keeps its timing
+    for someone else to de-skew - as do sweeps in a gap of it then (``Trajectory.covers``:
+    a straight line across a gap is a guess)."""
     lo, hi = (traj.stamps[0], traj.stamps[-1]) if len(traj) else (np.inf, -np.inf)
     timed = [k for k, s in enumerate(scans) if is_swept(s)]
     if covered_only and timed and len(traj):
@@ -130,6 +144,11 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
     # Sweeps past an end slide inside the trajectory where it is long enough to hold them.
     start = np.minimum(t0, t1)
     length = np.abs(sweep)
+    # Trajectory samples strictly inside each sweep that lies within the trajectory:
+    # samples [first, last) of traj.stamps; a sweep slid inside keeps constant velocity.
+    first = np.searchsorted(traj.stamps, start, side="right")
+    last = np.searchsorted(traj.stamps, start + length, side="left")
+    inner = (start >= lo) & (start + length <= hi) & (last > first)  # [T]
     fits = length <= hi - lo
     slid = np.where(fits, np.clip(start, lo, hi - np.where(fits, length, 0.0)), start)
     t0 = np.where(sweep >= 0, slid, slid + length)
@@ -139,8 +158,28 @@ def deskew_scans(scans: list[LaserScan], traj: Trajectory, T_base_laser: np.ndar
     motion = planar_motion(T_wl[: len(timed)], T_wl[len(timed):])  # [T, 3]
     out = list(scans)
     for j, k in enumerate(timed):
-        out[k] = deskew_scan(scans[k], motion[j])
+        m = motion[j]
+        if inner[j]:
+            T_in = traj.poses[first[j]:last[j]] @ T_base_laser  # [I, 4, 4]
+            ends = (T_wl[j], T_wl[len(timed) + j])  # at the stamp, at the last beam
+            if sweep[j] < 0:  # the knots in time order: the last beam came first
+                ends = ends[::-1]
+            knots = np.concatenate([ends[0][None], T_in, ends[1][None]])  # [I + 2, 4, 4]
+            knot_t = np.concatenate([[start[j]], traj.stamps[first[j]:last[j]],
+                                     [start[j] + length[j]]])  # [I + 2]
+            m = beam_motion(scans[k], knot_t, planar_motion(T_wl[j], knots))
+        out[k] = deskew_scan(scans[k], m)
     return out
+
+
+def beam_motion(scan: LaserScan, knot_t: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """[B, 3] the laser's (x, y, theta) at each beam of ``scan`` in the laser frame at
+    its stamp, interpolated (SE(2): x, y and theta each linearly) between ``knots`` [K, 3]
+    (poses in that frame) at increasing times ``knot_t`` [K] that span the sweep."""
+    kn = np.array(knots, np.float64)  # [K, 3]
+    kn[:, 2] = np.unwrap(kn[:, 2])  # a sweep turning past +-pi in the stamp's frame
+    tb = scan.stamp + scan.beam_times()  # [B]
+    return np.stack([np.interp(tb, knot_t, kn[:, c]) for c in range(3)], -1)
 
 
 def deskew_sequence(seq: Sequence, traj: Trajectory) -> Sequence:

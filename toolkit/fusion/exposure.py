@@ -53,7 +53,8 @@ class ExposureOptions:
     offsets: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     # Cells two frames must share to make an edge: a median over a few cells can be all
     # outliers (the quickstart's house at stride 4: gains 0.36 % RMS off with 8, 0.05 %
-    # with 30, the truth's spread 9.3 %).
+    # with 30, the truth's spread 9.3 %; re-measured in session 34: 0.065 % with 8,
+    # 0.077 % with 30).
     min_common: int = 30
     max_weight: float = 200.0  # an edge's weight is its cell count up to this
     huber_log: float = 0.03  # Huber threshold on an edge's residual, in log gain
@@ -64,8 +65,9 @@ class ExposureOptions:
     # ``min_cells``, then solves every n-th frame only (``plan``); an hour at 10 Hz would
     # have made 32 M.
     max_observations: int = 2_000_000
-    # Fewer cells per frame lose the far edges: on the auto-exposure house gains 0.06 %
-    # RMS off with all (~900), 0.08 / 0.21 / 0.30 / 1.8 % with 400 / 200 / 100 / 60.
+    # Fewer cells per frame lose the far edges: on the auto-exposure house gains 0.077 %
+    # RMS off with all (~855), 0.081 / 0.108 / 0.365 / 0.90 % with 400 / 200 / 100 / 60
+    # (session 34; docs/depth_fusion.md, "Exposure").
     min_cells: int = 200
 
     def plan(self, n_frames: int) -> tuple[int, int]:
@@ -100,7 +102,8 @@ def cell_keys(points: np.ndarray, origin: np.ndarray, cell_m: float) -> np.ndarr
 
     The quadrant keeps the two sides of a thin wall apart: a 10 cm cell can hold both, and
     a later visit from the other room then compared the rooms' paint, not the exposures
-    (on the quickstart's house at stride 2: gains 7 % RMS off without it, 0.16 % with it).
+    (on the quickstart's house at stride 2: gains 7 % RMS off without it, 0.16 % with it;
+    re-measured in session 34: 2.69 % and 0.068 %).
     """
     return pack_key_columns(cell_key_columns(points, origin, cell_m), _CELL_KEY_BITS)
 

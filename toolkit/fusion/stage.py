@@ -434,7 +434,10 @@ class FuseStage(Stage):
     #     when a long gap follows that end (Trajectory.covers refused them)
     # 16: the exposure solve's pull between consecutive frames is Huber-reweighted like the
     #     edges (at full weight it moved frames whose overlaps fixed their gains)
-    version = 16
+    # 17: swept scans de-skewed with the trajectory's poses inside each sweep (ground
+    #     truth's path samples; a slam2d pose of a next scan stamped before the sweep
+    #     ends), beam by beam; constant velocity where it has none
+    version = 17
     speed_settings = frozenset({"prefetch"})  # reading frames ahead changes no output
 
     def run(self, ctx: StageContext) -> None:

@@ -82,7 +82,9 @@ class Slam2DStage(Stage):
     # 9: zero ranges are no returns with scan.min_range 0 too (they were walls at the laser)
     # 10: a camera frame within END_SLACK_S outside the scans' span gets the end pose even
     #     when a long gap follows that end (Trajectory.covers refused it)
-    version = 10
+    # 11: swept scans de-skewed with the odometry's poses inside each sweep, beam by beam
+    #     (constant velocity between the sweep's ends only where it has none)
+    version = 11
 
     def external_inputs(self) -> list[Path]:
         cfg = self.config
