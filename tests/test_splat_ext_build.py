@@ -110,14 +110,16 @@ def test_a_build_killed_midway_is_built_again_by_the_next_process(tmp_path: Path
     env.pop(cpp_ext.ENV_DISABLE, None)
     code = ("from toolkit.splat.rasterize import cpp_ext; m = cpp_ext.load_extension(); "
             "print('loaded' if m is not None else cpp_ext.extension_error())")
-    first = subprocess.Popen([sys.executable, "-c", code], env=env)
+    # Its own process group, all killed: a compiler left running would build beside the
+    # next process (as after a kill of the process alone) and only slow this test down.
+    first = subprocess.Popen([sys.executable, "-c", code], env=env, start_new_session=True)
     baton = tmp_path / cpp_ext.build_name() / TORCH_LOCK
     t0 = time.monotonic()
     while not baton.exists() and first.poll() is None and time.monotonic() - t0 < 300:
         time.sleep(0.05)
     time.sleep(1.0)  # into the compiler's run
     assert first.poll() is None, "the first build ended before it could be killed"
-    os.kill(first.pid, signal.SIGKILL)
+    os.killpg(first.pid, signal.SIGKILL)
     first.wait()
     assert baton.exists()  # torch's lock, left behind
     second = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
