@@ -32,10 +32,12 @@ __all__ = [
     "atomic_write_text",
     "digest_problem",
     "digested_write",
+    "disk_full",
     "remove_leftover_temps",
     "remove_stale_temps",
     "target_of",
     "to_jsonable",
+    "write_failure",
 ]
 
 
@@ -128,6 +130,25 @@ def target_of(path: str | os.PathLike[str]) -> Path:
     return p.with_name(m["stem"] + (m["suffix"] or "")) if m else p
 
 
+def write_failure(exc: OSError) -> str:
+    """``cannot write <file> (<why>)[: <fix>]`` for ``exc``, an error writing a file that it
+    names: the file meant (not the hidden temporary of its atomic write) and, for a full
+    disk, a permission or a read-only filesystem, what to do."""
+    target = target_of(exc.filename)
+    why = str(exc.strerror or exc)
+    # atomic_path's own words name the file once already
+    why = why.replace(f" (writing {target})", "")
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        fix = f"make {target.parent} writable, then run again"
+    elif exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        fix = "free space on its disk, then run again"
+    elif exc.errno == errno.EISDIR and "folder" not in why:
+        fix = "a folder is in its place: move or delete it, then run again"
+    else:  # the atomic writer's own words already say what to do (a folder in the way)
+        return f"cannot write {target} ({why})"
+    return f"cannot write {target} ({why}): {fix}"
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike[str], *, clean_stale: bool = False) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success move it onto ``path``.
@@ -147,10 +168,20 @@ def atomic_path(path: str | os.PathLike[str], *, clean_stale: bool = False) -> I
     tmp = _temp_name(target)
     try:
         yield tmp
+        if disk_full(target.parent):
+            # cv2.imwrite and Open3D's writers report success on a full disk, having left
+            # an empty or cut-off file (seen on a full tmpfs: a 0-byte PNG, a PLY cut
+            # mid-face), and cv2 gives up without a word on a large image: moved into
+            # place, such a file was a finished stage's output.
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} (writing {target})",
+                          str(target))
         if not tmp.exists():
             raise FileNotFoundError(f"nothing was written for {target} (temporary path {tmp})")
         os.replace(tmp, target)
     except OSError as e:
+        # Before the temporary goes: it may hold what filled the disk.
+        full = type(e) is OSError and e.errno is None and e.filename is None and disk_full(
+            target.parent)
         remove_path(tmp, ignore_errors=True)
         if target.is_dir() and not target.is_symlink():
             # "[Errno 21] Is a directory" named the temporary beside it and no way out.
@@ -161,10 +192,36 @@ def atomic_path(path: str | os.PathLike[str], *, clean_stale: bool = False) -> I
             # A failed write() names no file (a full disk: "[Errno 28] No space left on
             # device"): say which one, so the message is worth reading.
             raise OSError(e.errno, f"{e.strerror} (writing {target})", str(target)) from e
+        if e.filename is None and type(e) is OSError:
+            # numpy's short write names neither file nor cause ("19200 requested and 11232
+            # written", np.save on a full disk).
+            if full:
+                raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: {e}",
+                              str(target)) from e
+            raise OSError(errno.EIO, f"only part of it was written: {e}", str(target)) from e
         raise
-    except BaseException:
+    except BaseException as e:
+        full = isinstance(e, Exception) and disk_full(target.parent)
         remove_path(tmp, ignore_errors=True)
+        if full:
+            # torch.save on a full disk: "RuntimeError: [enforce fail at
+            # inline_container.cc:672] . unexpected pos 2244224 vs 2244176", no file named.
+            why = (str(e).strip().splitlines() or [""])[0]
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: {type(e).__name__}: "
+                          f"{why}", str(target)) from e
         raise
+
+
+def disk_full(folder: str | os.PathLike[str]) -> bool:
+    """True when the filesystem holding ``folder`` has no block left to write to (for
+    root, none of the blocks kept back for it either); False where that cannot be told
+    (no ``statvfs``, or a filesystem that gives no sizes)."""
+    try:
+        st = os.statvfs(folder)
+    except (AttributeError, OSError):  # Windows; a folder that went
+        return False
+    free = st.f_bfree if hasattr(os, "geteuid") and os.geteuid() == 0 else st.f_bavail
+    return st.f_blocks > 0 and free == 0
 
 
 class HashingWriter:

@@ -7,7 +7,6 @@ recipe or the command line is wrong (nothing ran), 130 interrupted.
 from __future__ import annotations
 
 import argparse
-import errno
 import shlex
 import signal
 import sys
@@ -107,19 +106,9 @@ def _write_error(exc: OSError) -> str:
     temporary of its atomic write) and the fix."""
     if not exc.filename:
         return str(exc)
-    from toolkit.io.atomic import target_of
+    from toolkit.io.atomic import write_failure
 
-    target = target_of(exc.filename)
-    why = exc.strerror or str(exc)
-    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-        fix = f"make {target.parent} writable, then run again"
-    elif exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        fix = "free space on its disk, then run again"
-    elif exc.errno == errno.EISDIR and "folder" not in why:
-        fix = "a folder is in its place: move or delete it, then run again"
-    else:  # the atomic writer's own words already say what to do (a folder in the way)
-        return f"cannot write {target} ({why}); the finished stages are kept"
-    return f"cannot write {target} ({why}): {fix}; the finished stages are kept"
+    return f"{write_failure(exc)}; the finished stages are kept"
 
 
 def _resume_advice(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:

@@ -62,7 +62,9 @@ from toolkit.io.atomic import (
     remove_leftover_temps,
     remove_path,
     remove_temps_under,
+    target_of,
     to_jsonable,
+    write_failure,
 )
 from toolkit.recipe import registry, report
 from toolkit.recipe.memory import PeakMemory, StagePeak, release_freed_memory
@@ -853,6 +855,12 @@ class _Run:
             message = str(exc)
             self.log.error("stage %s failed: %s", sid, message, extra=_FILE_ONLY)
             hint = ""
+        elif isinstance(exc, OSError) and _is_write_failure(exc, self.run_dir / sid):
+            # "[Errno 28] No space left on device (writing ...)" named the file, not the
+            # fix; the traceback stays in run.log.
+            message = write_failure(exc)
+            self.log.error("stage %s failed", sid, exc_info=exc, extra=_FILE_ONLY)
+            hint = ""
         else:
             lines = str(exc).strip().splitlines()
             first = lines[0] if lines else ""
@@ -1430,6 +1438,19 @@ def _is_input_error(exc: BaseException) -> bool:
     if isinstance(exc, InputError | MissingInputError | WriteError | RecipeError):
         return True
     return isinstance(exc, OSError) and exc.filename is not None
+
+
+def _is_write_failure(exc: OSError, stage_dir: Path) -> bool:
+    """Whether ``exc`` is a write the user can make work (free space, a permission):
+    a full disk or quota, a read-only filesystem, or no permission in the stage's own
+    folder (elsewhere it may be an input that cannot be read)."""
+    if not exc.filename:
+        return False
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+        return True
+    target = Path(os.path.abspath(target_of(exc.filename)))
+    return exc.errno in (errno.EACCES, errno.EPERM) and Path(
+        os.path.abspath(stage_dir)) in target.parents
 
 
 def _digest_failure(exc: Exception) -> str:

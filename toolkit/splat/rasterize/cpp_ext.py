@@ -18,6 +18,7 @@ so CPU training stays bit-identical run to run.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
@@ -25,6 +26,7 @@ import platform
 import shutil
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -39,6 +41,11 @@ from toolkit.splat.rasterize.common import (
     pixel_rects,
     survivor_colors,
 )
+
+try:
+    import fcntl
+except ImportError:  # Windows
+    fcntl = None  # type: ignore[assignment]
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +113,40 @@ def build_name() -> str:
     return f"toolkit_splat_composite_{h.hexdigest()[:16]}"
 
 
+# torch's own build lock: a file that ``load`` creates (O_EXCL) and deletes when done.
+TORCH_BATON = "lock"
+# Ours beside it, held with flock: the kernel lets go of it when its process dies.
+BUILD_LOCK = ".toolkit_build.lock"
+
+
+@contextlib.contextmanager
+def _build_lock(build_dir: Path) -> Iterator[None]:
+    """Hold the build folder for one process at a time, and clear the lock torch's
+    ``load`` left in it when a process was killed while holding it.
+
+    ``load`` takes the folder by creating its ``lock`` file and deletes it when it is
+    done; a process killed in between (SIGKILL during the first build, which takes a
+    minute or more; a ``timeout``) leaves the file, and every later ``load`` waited for it
+    to go, forever and without a word: a splat stage that never ended. Every build here
+    holds this flock first, so a ``lock`` file found while holding it belongs to no live
+    build of ours and is removed. (A process of a toolkit from before this lock, building
+    the same source at that moment, is not seen.)"""
+    if fcntl is None:  # Windows: torch's file lock alone, as before
+        yield
+        return
+    with open(build_dir / BUILD_LOCK, "a") as handle:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX)  # another build of ours: wait for it
+        try:
+            baton = build_dir / TORCH_BATON
+            if baton.exists():
+                log.warning("C++ rasteriser: removing %s, left by a build that was killed; "
+                            "building again", baton)
+                baton.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+
+
 def load_extension(verbose: bool = False) -> ModuleType | None:
     """The compiled module, building it on the first call; None when it cannot be built."""
     with _lock:
@@ -134,18 +175,19 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
             # clone, a second venv) would otherwise rebuild it (about a minute) each time
             # the two take turns. The folder name already hashes the source's content.
             src = build_dir / SOURCE.name
-            if not src.is_file():
-                from toolkit.io.atomic import atomic_write_bytes
+            with _build_lock(build_dir):
+                if not src.is_file():
+                    from toolkit.io.atomic import atomic_write_bytes
 
-                atomic_write_bytes(src, SOURCE.read_bytes())
-            _state["module"] = load(
-                name=name,
-                sources=[str(src)],
-                extra_cflags=CFLAGS,
-                extra_ldflags=LDFLAGS,
-                build_directory=str(build_dir),
-                verbose=verbose,
-            )
+                    atomic_write_bytes(src, SOURCE.read_bytes())
+                _state["module"] = load(
+                    name=name,
+                    sources=[str(src)],
+                    extra_cflags=CFLAGS,
+                    extra_ldflags=LDFLAGS,
+                    build_directory=str(build_dir),
+                    verbose=verbose,
+                )
         except Exception as exc:  # noqa: BLE001 - any build failure means: fall back
             _state["error"] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1:]}"
             log.warning("C++ rasteriser build failed (%s); falling back to the PyTorch "
