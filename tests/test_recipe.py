@@ -1653,7 +1653,7 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     # Same settings, state of another shape (other code): rejected, not crashed on later.
     assert Checkpoint(path, "key-a", every_s=60).load(lambda s: "rows" in s) is None
     assert Checkpoint(path, "key-a", every_s=1e-9).due()
-    partial = path.parent / ".checkpoint.123.abcd.tmp.pkl"  # a save killed half way
+    partial = path.parent / ".checkpoint.123.0123abcd.tmp.pkl"  # a save killed half way
     partial.write_bytes(b"\x80\x05")
     assert Checkpoint(path, "key-a", every_s=60).load() is not None and not partial.exists()
     path.write_bytes(b"\x80\x05torn")  # not a pickle: start afresh, do not fail
