@@ -102,21 +102,17 @@ def _plumb_bob(model: Any, dist: np.ndarray, source: str, field: str,
         raise CalibrationFileError(f"{source}: field 'distortion_model' is 'none' but field "
                                    f"'{field}' is not all zero; set distortion_model: plumb_bob "
                                    "if those are k1 k2 p1 p2 k3")
-    coefficients = plumb_bob_distortion(model, dist)
+    try:
+        coefficients = plumb_bob_distortion(model, dist, field)
+    except ValueError as e:
+        raise CalibrationFileError(f"{source}: {e}") from None
     if coefficients is None:
-        extra = (f" with k4 k5 k6 = {dist[5:8].tolist()} (only k4 = k5 = k6 = 0 is accepted, "
-                 "the same model)" if name == "rational_polynomial" else "")
         raise CalibrationFileError(
-            f"{source}: field '{model_field}' is {model!r}{extra}; this tool's camera model is "
+            f"{source}: field '{model_field}' is {model!r}; this tool's camera model is "
             "OpenCV's plumb_bob (k1 k2 p1 p2 k3), so those coefficients cannot be used as "
             "they are. Calibrate the camera with that model (python -m calibration "
             "intrinsics --model opencv5), or undistort the images first and give "
             "distortion_model: plumb_bob with zero coefficients.")
-    if len(coefficients) > 5:
-        raise CalibrationFileError(
-            f"{source}: field '{field}' has {len(dist)} coefficients; distortion_model "
-            f"{name or 'plumb_bob'} takes 5 at most (k1 k2 p1 p2 k3). For 8 coefficients set "
-            "distortion_model: rational_polynomial (accepted only with k4 = k5 = k6 = 0).")
     return coefficients
 
 

@@ -141,15 +141,53 @@ def test_camera_mappings_name_their_lens_model():
     cam = PinholeCamera.from_dict({**base, "distortion": [*five, 0, 0, 0],
                                    "distortion_model": "rational_polynomial"})
     assert cam.dist.tolist() == five
-    for key, model in (("distortion_model", "equidistant"), ("model", "OPENCV_FISHEYE"),
-                       ("distortion_model", "rational_polynomial")):
+    for key, model in (("distortion_model", "equidistant"), ("model", "OPENCV_FISHEYE")):
         with pytest.raises(ValueError, match=f"field '{key}' is"):
             PinholeCamera.from_dict({**base, "distortion": [*five, 0.3, 0, 0], key: model})
+    with pytest.raises(ValueError, match=r"non-zero past k1 k2 p1 p2 k3 \(distortion\[5\] = 0.3\)"):
+        PinholeCamera.from_dict({**base, "distortion": [*five, 0.3, 0, 0],
+                                 "distortion_model": "rational_polynomial"})
     cam = PinholeCamera(640, 480, 500, 500, 319.5, 239.5, np.array(five))
     assert PinholeCamera.from_dict(cam.to_dict()) == cam  # round trip
     for key in ("distorsion", "distortion_coeffs", "distortion_coefficients"):
         with pytest.raises(ValueError, match=f"unknown key.*{key}.*'distortion'"):
             PinholeCamera.from_dict({**base, key: five})
+
+
+@pytest.mark.parametrize("model, tail", [
+    ("plumb_bob", [0, 0, 0]), (None, [0, 0, 0]),
+    ("rational_polynomial", [0] * 7), ("rational_polynomial", [0] * 9),
+    ("plumb_bob", [0] * 9),
+])
+def test_camera_mapping_takes_opencv_lists_with_nothing_past_k3(model, tail):
+    """OpenCV's 8-, 12- and 14-term lists with zeros past k3 are the 5-term lens (as the
+    CameraInfo reader takes them): plumb_bob's 8 were refused with "k1 k2 p1 p2 k3 at most",
+    rational_polynomial's 12 and 14 as another lens model."""
+    base = {"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 319.5, "cy": 239.5}
+    five = [0.1, -0.05, 0.001, -0.002, 0.01]
+    cam = PinholeCamera.from_dict({**base, "distortion": [*five, *tail],
+                                   "distortion_model": model})
+    assert cam.dist.tolist() == five
+
+
+@pytest.mark.parametrize("model, d, terms", [
+    ("plumb_bob", [0.1, -0.05, 0, 0, 0.01, 0.3, 0, 0], "distortion[5] = 0.3"),
+    (None, [0.1, -0.05, 0, 0, 0.01, 0, 0, 0.2], "distortion[7] = 0.2"),
+    ("rational_polynomial", [0.1, -0.05, 0, 0, 0.01, 0, 0, 0, 0.004, 0, 0, 0],
+     "distortion[8] = 0.004"),
+    ("radtan", [0.1, -0.05, 0, 0, 0.01] + [0] * 7 + [0.01, 0.02],
+     "distortion[12] = 0.01, distortion[13] = 0.02"),
+])
+def test_camera_mapping_names_the_terms_past_k3(model, d, terms):
+    """A lens with terms past k3 is refused naming the field, the terms and the fix; for
+    plumb_bob's 8 the message was a bare "distortion has 8 coefficients"."""
+    base = {"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 319.5, "cy": 239.5}
+    with pytest.raises(ValueError) as err:
+        PinholeCamera.from_dict({**base, "distortion": d, "distortion_model": model})
+    text = str(err.value)
+    assert text.startswith(f"field 'distortion' has {len(d)} coefficients, non-zero past "
+                           f"k1 k2 p1 p2 k3 ({terms})"), text
+    assert "Fix: calibrate with that model" in text, text
 
 
 def test_projection_and_transforms_refuse_points_of_the_wrong_shape():

@@ -397,6 +397,35 @@ def test_simulated_errors_are_seeded_and_as_documented() -> None:
     assert w[45, 20] == 1.0 and w[45, 100] < 0.1
 
 
+@pytest.mark.parametrize("damage, expect", [
+    (("meta.json", '{"kind": "relative_disp'), r"meta\.json: not a JSON file"),
+    (("meta.json", "[1, 2]"), r"meta\.json: holds list, not a mapping with field 'kind'"),
+    (("index.csv", "stamp,file\n1.5,frames/000000.npy\n"), r"index\.csv: no column 'index'"),
+    (("index.csv", "index,stamp\n0,1.5\n"), r"index\.csv: no column 'file'"),
+    (("index.csv", "index,stamp,file\n0,1.5,frames/000000.npy\nx,1.7,f.npy\n"),
+     r"index\.csv:3: field 'index' is 'x', not a frame number"),
+    (("index.csv", None), r"index\.csv: not there, but .*meta\.json is"),
+])
+def test_depth_store_names_the_damaged_file_and_field(tmp_path: Path, damage, expect) -> None:
+    """A damaged depth folder is an input error naming the file, the field and the fix;
+    a bad meta.json was a JSONDecodeError, an index.csv without its 'index' column a
+    KeyError, both shown by the runner as bugs."""
+    from toolkit.errors import InputError
+
+    w = DepthStoreWriter(tmp_path / "d", "relative_disparity", {"backend": "test"})
+    w.add(0, 1.5, DepthPrediction(np.ones((4, 6), np.float32), "relative_disparity", 0.01))
+    w.close()
+    name, text = damage
+    if text is None:
+        (tmp_path / "d" / name).unlink()
+    else:
+        (tmp_path / "d" / name).write_text(text)
+    with pytest.raises((InputError, MissingInputError), match=expect) as err:
+        DepthStore(tmp_path / "d")
+    assert str(err.value).startswith(str(tmp_path / "d" / name)), err.value
+    assert "Fix: run the depth stage again" in str(err.value), err.value
+
+
 def test_simulated_needs_ground_truth() -> None:
     rgb, _ = _scene()
     with pytest.raises(ValueError, match="ground-truth depth"):

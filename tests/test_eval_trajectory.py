@@ -282,3 +282,14 @@ def test_slam2d_ate_interpolates_a_ground_truth_on_its_own_clock() -> None:
     assert ate["ate_rmse_m"] < 2e-4  # linear interpolation of the weave between samples
     with pytest.raises(ValueError, match="covers 0 of"):
         ate_se2(est, Trajectory(gt_t + 100, _drive(gt_t), "world", "base_link"))
+
+
+@pytest.mark.parametrize("delta", [0, -1, -3, 1.5, True])
+@pytest.mark.parametrize("all_pairs", [False, True])
+def test_pairs_by_frames_refuses_a_delta_that_is_no_frame_count(delta, all_pairs) -> None:
+    """delta 0 paired each pose with itself (an RPE of 0 for any trajectory) or failed
+    inside range(); a negative one paired poses with indices wrapped from the end."""
+    with pytest.raises(ValueError, match=f"delta is {delta!r}: .* 1 or more"):
+        pairs_by_frames(6, delta, all_pairs)
+    assert pairs_by_frames(6, 2) == [(0, 2), (2, 4)]
+    assert pairs_by_frames(4, 1, all_pairs=True) == [(0, 1), (1, 2), (2, 3)]

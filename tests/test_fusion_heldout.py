@@ -52,6 +52,29 @@ def test_held_out_frames_follow_the_posed_frames_not_the_frame_numbers(
     assert heldout_frames(seq, None, "auto", 3, 2) == [0, 6, 12, 18]
 
 
+@pytest.mark.parametrize("before", ["\ufeff", "# a\n# b\n# c\n# d\n# e\n# f\n"])
+def test_camera_trajectory_reads_the_header_as_read_tum_does(
+        box_room: Path, tmp_path: Path, before: str) -> None:
+    """A base_link trajectory in camera_poses.tum whose header comes after a UTF-8 BOM or
+    after 5 other comment lines: read_tum reads its header, camera_trajectory looked for it
+    in the first 5 lines without the BOM stripped and, by the file name, took the base
+    poses for camera poses (off by the rig's camera offset)."""
+    from toolkit.heldout import camera_trajectory
+    from toolkit.io.tum import format_tum
+
+    seq = read_sequence(box_room)
+    gt = seq.groundtruth
+    assert gt is not None and gt.poses_base is not None
+    path = tmp_path / "camera_poses.tum"
+    path.write_text(before + format_tum(gt.poses_base), encoding="utf-8")
+    assert read_tum(path).child == "base_link"
+    traj, source = camera_trajectory(seq, path, "auto")
+    index = traj.extra["frame_index"]
+    expected, _ = camera_trajectory(seq, None, "groundtruth")
+    assert source == "trajectory" and list(index) == list(range(N_FRAMES))
+    np.testing.assert_allclose(traj.poses, expected.poses, atol=1e-9)
+
+
 def test_the_default_leaves_the_settings_as_before() -> None:
     """Off, the hold-out options are not serialised: fuse runs made before them keep their
     cache key. On, they are."""

@@ -1380,6 +1380,43 @@ def test_camera_info_distortion_counts_follow_the_model(model, d, expect):
         assert np.allclose(cam.dist, expect, rtol=0, atol=1e-15), cam.dist
 
 
+@pytest.mark.parametrize("model, d", [
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002, 0.01]),
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002]),
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002, 0.01, 0, 0, 0]),
+    ("plumb_bob", [0.1, -0.05, 0.001, 0.002, 0.01, 0.3, 0, 0]),
+    ("rational_polynomial", [0.1, -0.05, 0.001, 0.002, 0.01, 0, 0, 0]),
+    ("rational_polynomial", [0.1, -0.05, 0.001, 0.002, 0.01, 0, 0, 0.2]),
+    ("rational_polynomial", [0.1, -0.05, 0.001, 0.002, 0.01] + [0] * 7),
+    ("rational_polynomial", [0.1, -0.05, 0.001, 0.002, 0.01] + [0] * 9),
+    ("rational_polynomial", [0.1, -0.05, 0.001, 0.002, 0.01] + [0] * 8 + [0.02]),
+    ("equidistant", [0.1, -0.05, 0.01, 0.0]),
+])
+def test_camera_info_and_camera_mapping_take_the_same_lenses(model, d):
+    """A lens the CameraInfo reader takes, a camera file's mapping takes too, with the same
+    coefficients, and both refuse the rest naming the field: plumb_bob's 8 with a term past
+    k3 were refused by the mapping with a bare "distortion has 8 coefficients", and
+    rational_polynomial's 12 and 14 with nothing past k3 as another lens model."""
+    from toolkit.camera import PinholeCamera
+
+    msg = BagBuilder(False).camera_info(0.0, model=model, d=d)
+    mapping = {"width": W, "height": H, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2],
+               "cy": K[1, 2], "distortion": d, "distortion_model": model}
+    try:
+        from_bag = camera_info_to_camera(msg, "run.db3: topic /cam/camera_info").dist
+    except BagError as e:
+        from_bag = None
+        assert "field 'D'" in str(e) or "field 'distortion_model'" in str(e), str(e)
+    try:
+        from_mapping = PinholeCamera.from_dict(mapping).dist
+    except ValueError as e:
+        from_mapping = None
+        assert "field 'distortion'" in str(e) or "field 'distortion_model'" in str(e), str(e)
+    assert (from_bag is None) == (from_mapping is None), (from_bag, from_mapping)
+    if from_bag is not None:
+        assert from_bag.tolist() == from_mapping.tolist()
+
+
 def test_a_calibrations_body_frame_for_the_camera_is_refused(tmp_path, caplog):
     """A tf-style T_base_camera whose child is camera_link (x forward) was read as the
     optical frame: the view turned up, without a word."""

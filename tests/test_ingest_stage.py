@@ -284,6 +284,24 @@ def test_uniform_scans_resamples_odd_layouts():
         uniform_scans([empty])
 
 
+def test_a_recording_of_empty_scans_names_its_source(tmp_path: Path) -> None:
+    """Every scan message without beams: the error named no file ("all 3 scans have no
+    beams ..."), so a user converting several bags could not tell which one."""
+    from toolkit.camera import PinholeCamera
+    from toolkit.ingest.recording import Recording, optical_mount
+    from toolkit.sensors import Rig
+
+    rig = Rig(PinholeCamera.from_fov(32, 24, 60.0), optical_mount(), np.eye(4))
+    empty = [LaserScan(float(t), np.zeros(0, np.float32), 0.0, 0.1) for t in range(3)]
+    rec = Recording(name="run", source="rosbag run.bag", rig=rig, scans=empty,
+                    frame_stamps=np.arange(3.0), load=lambda i: None)
+    with pytest.raises(IngestError) as err:
+        convert(rec, tmp_path / "seq")
+    text = str(err.value)
+    assert text.startswith("rosbag run.bag: all 3 scans have no beams"), text
+    assert "Fix: name the lidar's scan source" in text, text
+
+
 def test_uniform_scans_keeps_each_scans_bearings():
     """The format keeps each scan's angle_min and step: only the beam count must be shared.
     Scans of the common count with another start bearing were resampled onto the first

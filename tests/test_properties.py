@@ -379,6 +379,8 @@ def test_colmap_models_round_trip_cameras_poses_and_points(tmp_path: Path, seed:
 
 from dataclasses import replace  # noqa: E402
 
+from test_deskew import circle_ranges  # noqa: E402  # the tests folder is on sys.path
+
 from toolkit import deskew as dk  # noqa: E402
 from toolkit.io.sequence import read_sequence, write_sequence  # noqa: E402
 from toolkit.sensors import CameraFrame, LaserScan, Rig, Sequence  # noqa: E402
@@ -438,13 +440,6 @@ def test_scan_at_picks_the_nearest_stamp_at_ends_and_off_midpoints(seed: int, n:
         seq.scan_index_at(float(stamps[-1]) + 0.5, max_dt=0.4)
 
 
-def _circle_ranges(px: np.ndarray, py: np.ndarray, th: np.ndarray, R: float) -> np.ndarray:
-    """[B] distance from (px, py) along heading th to a circle of radius R about 0."""
-    dx, dy = np.cos(th), np.sin(th)
-    b = px * dx + py * dy
-    return -b + np.sqrt(b * b - (px * px + py * py - R * R))
-
-
 @bounded
 @given(seeds, st.booleans(), st.booleans(), st.booleans())
 def test_deskew_undoes_a_constant_velocity_sweep_in_a_round_room(
@@ -458,11 +453,11 @@ def test_deskew_undoes_a_constant_velocity_sweep_in_a_round_room(
     m = np.r_[rng.uniform(-0.1, 0.1, 2), rng.uniform(-0.2, 0.2)]  # [3] motion over the sweep
     f = np.arange(n) / (n - 1)
     ang = a0 + np.arange(n) * inc
-    skewed = _circle_ranges(start[0] + f * m[0], start[1] + f * m[1], f * m[2] + ang, R)
+    skewed = circle_ranges(start[0] + f * m[0], start[1] + f * m[1], f * m[2] + ang, R)
     scan = LaserScan(5.0, skewed, a0, inc, 0.1, 50.0,
                      time_increment=(-1e-4 if back_time else 1e-4))
     out = dk.deskew_scan(scan, m)
-    want = _circle_ranges(np.full(n, start[0]), np.full(n, start[1]), ang, R)
+    want = circle_ranges(np.full(n, start[0]), np.full(n, start[1]), ang, R)
     assert out.time_increment == 0
     # A turn against the beams' direction leaves a wedge no beam looked into: NaN there
     # (widened by the translation's parallax: walls are at least R - 1.5 m away).

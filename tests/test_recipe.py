@@ -1376,6 +1376,27 @@ def test_stale_temporaries_of_an_output_go_on_its_next_write(tmp_path: Path) -> 
     assert remove_stale_temps(out) == [stale[0]] and not stale[0].exists()
 
 
+@pytest.mark.parametrize("name, others", [
+    ("rig.yaml", [".rig.unreliable.4242.0123abcd.tmp.yaml", ".rig.notes.yaml"]),
+    ("[a].npy", [".a.4242.0123abcd.tmp.npy"]),
+    ("*.npy", [".scan.4242.0123abcd.tmp.npy", ".b.4242.0123abcd.tmp.npy"]),
+])
+def test_leftover_temporaries_of_one_output_are_its_own(tmp_path: Path, name, others) -> None:
+    """remove_leftover_temps (the runner's and checkpoints' cleanup of killed writes)
+    deletes that output's temporaries only: its glob was not escaped and not checked
+    against target_of, so rig.yaml's took rig.unreliable.yaml's, '[a]' matched 'a', and
+    '*' every output's."""
+    from toolkit.io.atomic import remove_leftover_temps
+
+    out = tmp_path / name
+    own = tmp_path / f".{out.stem}.4242.89abcdef.tmp{out.suffix}"
+    for f in [own, *(tmp_path / o for o in others)]:
+        f.write_text("half")
+    remove_leftover_temps(out)
+    assert not own.exists()
+    assert all((tmp_path / o).exists() for o in others), sorted(os.listdir(tmp_path))
+
+
 def test_resume_after_sigkill(tmp_path: Path) -> None:
     marker = tmp_path / "killed_once"
     path = _write_recipe(tmp_path, _recipe_data(tmp_path, kill_marker=str(marker)))
@@ -1632,7 +1653,7 @@ def test_checkpoint_loads_only_under_its_key(tmp_path: Path) -> None:
     # Same settings, state of another shape (other code): rejected, not crashed on later.
     assert Checkpoint(path, "key-a", every_s=60).load(lambda s: "rows" in s) is None
     assert Checkpoint(path, "key-a", every_s=1e-9).due()
-    partial = path.parent / ".checkpoint.123.abcd.tmp.pkl"  # a save killed half way
+    partial = path.parent / ".checkpoint.123.0123abcd.tmp.pkl"  # a save killed half way
     partial.write_bytes(b"\x80\x05")
     assert Checkpoint(path, "key-a", every_s=60).load() is not None and not partial.exists()
     path.write_bytes(b"\x80\x05torn")  # not a pickle: start afresh, do not fail

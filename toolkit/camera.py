@@ -47,15 +47,34 @@ def pixel_index(uv: np.ndarray) -> np.ndarray:
     return (f + (uv - f >= 0.5)).astype(np.int64)
 
 
-def plumb_bob_distortion(model: Any, dist: np.ndarray) -> np.ndarray | None:
-    """The coefficients ``dist`` of a lens named ``model`` as this camera's k1 k2 p1 p2 k3,
-    or None for another model (an equidistant fisheye's k1..k4 read as these project
-    hundreds of pixels off at the edge). rational_polynomial with k4 = k5 = k6 = 0 is the
-    same model."""
+def plumb_bob_distortion(model: Any, dist: np.ndarray,
+                         field: str = "distortion") -> np.ndarray | None:
+    """[5] k1 k2 p1 p2 k3 of the coefficients ``dist`` (a count of ``OPENCV_DIST_COUNTS``,
+    or fewer) of a lens named ``model``, or None for another model (an equidistant
+    fisheye's k1..k4 read as these project hundreds of pixels off at the edge).
+
+    OpenCV's longer lists (8, 12, 14: k4 k5 k6, s1..s4, tx ty) are this model when every
+    term past k3 is zero, under a plumb_bob name or rational_polynomial; a non-zero or
+    non-finite one is a ``ValueError`` naming ``field`` and the terms. The one rule of the
+    camera files and ROS CameraInfo readers, so a lens one takes the other takes too.
+    """
     name = "" if model is None else str(model).strip().lower()
-    if name == "rational_polynomial" and len(dist) <= 8 and not np.any(dist[5:]):
-        return dist[:5]
-    return dist if name in PLUMB_BOB_NAMES else None
+    if name != "rational_polynomial" and name not in PLUMB_BOB_NAMES:
+        return None
+    dist = np.asarray(dist, dtype=np.float64).reshape(-1)
+    if not np.isfinite(dist).all():
+        raise ValueError(f"field '{field}' holds a non-finite value ({dist.tolist()})")
+    tail = np.flatnonzero(dist[5:]) + 5
+    if len(tail):
+        # Dropped, the terms past k3 would leave every pixel off by what they add.
+        extra = ", ".join(f"{field}[{i}] = {dist[i]:g}" for i in tail)
+        raise ValueError(
+            f"field '{field}' has {len(dist)} coefficients, non-zero past k1 k2 p1 p2 k3 "
+            f"({extra}), under distortion model {name or '(none given)'!r}; only the 5-term "
+            "plumb_bob model (k1 k2 p1 p2 k3, or a longer OpenCV list with zeros past k3) "
+            "is supported. Fix: calibrate with that model (python -m calibration "
+            "intrinsics) or undistort the images first")
+    return dist[:5]
 
 
 # How many coefficients OpenCV takes (k1 k2 p1 p2[ k3[ k4 k5 k6[ s1..s4[ tx ty]]]]). Other

@@ -41,11 +41,9 @@ def camera_trajectory(seq: Sequence, trajectory: Path | None, poses: PoseSetting
             if not cands:
                 raise StageError(f"{who}: trajectory artifact {path} holds no .tum file")
             path = cands[0]
-        traj = read_tum(path)
-        with path.open() as fh:
-            has_header = any(line.startswith("# T_") for line in fh.readlines()[:5])
-        if not has_header and "camera" in path.name:
-            traj.child = "camera"  # no header: the file name is the only word on it
+        # Without a header the file name is the only word on the poses' frame; the
+        # reader's own header rule (anywhere in the file, after a UTF-8 BOM too) decides.
+        traj = read_tum(path, default_child="camera" if "camera" in path.name else "base_link")
         if traj.child in ("base_link", "base"):
             traj = traj.transform(T_right=seq.rig.T_base_camera)
         elif traj.child == "laser":

@@ -172,14 +172,40 @@ class DepthStore:
         meta_path = self.root / "meta.json"
         if not meta_path.exists():
             raise MissingInputError(f"{meta_path}: not a finished depth folder (no meta.json)")
-        self.meta: dict[str, Any] = json.loads(meta_path.read_text())
+        # A damaged file (a truncated copy, an edit by hand) failed as a JSONDecodeError or
+        # a KeyError, which the runner shows as a bug, naming neither the file nor the field.
+        fix = ("Fix: run the depth stage again (python -m toolkit.recipe run RECIPE --from "
+               "<its id>), or give the reading stage an intact depth folder")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise InputError(f"{meta_path}: not a JSON file ({e}); {fix}") from None
+        if not isinstance(meta, dict):
+            raise InputError(f"{meta_path}: holds {type(meta).__name__}, not a mapping with "
+                             f"field 'kind'; {fix}")
+        self.meta: dict[str, Any] = meta
         kind = self.meta.get("kind")
         if kind not in DEPTH_KINDS:
             raise InputError(f"{meta_path}: field 'kind' is {kind!r}, not one of {DEPTH_KINDS}")
         self.kind: DepthKind = kind
-        with (self.root / "index.csv").open(newline="") as f:
-            self.rows = list(csv.DictReader(f))
-        self._by_index = {int(r["index"]): r for r in self.rows}
+        index_path = self.root / "index.csv"
+        if not index_path.exists():
+            raise MissingInputError(f"{index_path}: not there, but {meta_path} is (the "
+                                    f"folder's frame list is lost); {fix}")
+        with index_path.open(newline="") as f:
+            reader = csv.DictReader(f)
+            missing = [k for k in ("index", "file") if k not in (reader.fieldnames or [])]
+            if missing:
+                raise InputError(f"{index_path}: no column {', '.join(map(repr, missing))} "
+                                 f"(header {reader.fieldnames}); {fix}")
+            self.rows = list(reader)
+        self._by_index = {}
+        for line, r in enumerate(self.rows, start=2):
+            try:
+                self._by_index[int(r["index"])] = r
+            except (TypeError, ValueError):
+                raise InputError(f"{index_path}:{line}: field 'index' is {r['index']!r}, not a "
+                                 f"frame number; {fix}") from None
 
     def __len__(self) -> int:
         return len(self.rows)

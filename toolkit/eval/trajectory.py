@@ -136,7 +136,13 @@ def pairs_by_path(positions: np.ndarray, delta_m: float) -> list[tuple[int, int]
 
 
 def pairs_by_frames(n: int, delta: int, all_pairs: bool = False) -> list[tuple[int, int]]:
-    """Pose pairs ``delta`` indices apart (consecutive blocks, or every start with all_pairs)."""
+    """Pose pairs ``delta`` indices apart (consecutive blocks, or every start with all_pairs);
+    ``delta`` is a whole number of frames, 1 or more (evo's ``delta`` as well)."""
+    # 0 paired each pose with itself (an RPE of 0 whatever the trajectory) or failed in
+    # range(); a negative delta wrapped around the end as negative indices.
+    if isinstance(delta, bool) or not isinstance(delta, (int, np.integer)) or delta < 1:
+        raise ValueError(f"delta is {delta!r}: give the frames between the poses of a pair, "
+                         "a whole number of 1 or more")
     if all_pairs:
         return [(i, i + delta) for i in range(n - delta)]
     ids = list(range(0, n, delta))

@@ -160,7 +160,7 @@ def convert(recording: Recording, out: Path | str, sync: SyncOptions | None = No
     decimate = decimate or DecimateOptions()
     out = Path(out)
     start = time.perf_counter()
-    scans, resampled = uniform_scans(recording.scans)
+    scans, resampled = uniform_scans(recording.scans, recording.source)
     if resampled:
         log.warning("%d of %d scans had another beam count and were resampled by nearest "
                     "angle to %d beams", resampled, len(scans), len(scans[0]))

@@ -172,7 +172,8 @@ def optical_mount(t: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     return T
 
 
-def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
+def uniform_scans(scans: list[LaserScan],
+                  source: str = "the recording") -> tuple[list[LaserScan], int]:
     """Give every scan the most common beam count.
 
     The sequence format stores scans as one [S, B] array, with each scan's own angle_min,
@@ -180,7 +181,8 @@ def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
     count from turn to turn. Scans of the common count are kept as they are, whatever
     their start bearing and step; scans of another count are resampled by nearest bearing
     onto the first common one's beams, which never invents a range between two surfaces
-    (interpolation would). Returns the scans and how many were resampled.
+    (interpolation would). Returns the scans and how many were resampled. ``source``
+    (``Recording.source``) names the input in errors.
     """
     if not scans:
         return scans, 0
@@ -188,7 +190,11 @@ def uniform_scans(scans: list[LaserScan]) -> tuple[list[LaserScan], int]:
     # without returns: it must not set the count, nor be indexed.
     counts = Counter(len(s) for s in scans if len(s))
     if not counts:
-        raise IngestError(f"all {len(scans)} scans have no beams ('ranges' is empty)")
+        raise IngestError(
+            f"{source}: all {len(scans)} scans have no beams (field 'ranges' is empty in "
+            "every one): the lidar sent no measurements. Fix: name the lidar's scan source "
+            "if this is not it (e.g. rosbag.topics.scan), or record again with the lidar "
+            "running")
     common = counts.most_common(1)[0][0]
     ref = next(s for s in scans if len(s) == common)
     target = ref.angles()  # [B]

@@ -52,8 +52,7 @@ def _temp_name(path: Path) -> Path:
 def remove_leftover_temps(path: str | os.PathLike[str]) -> None:
     """Delete the temporary files that writes to ``path`` by killed processes left behind
     (call it where no other process can be writing ``path``)."""
-    target = Path(path)
-    for tmp in target.parent.glob(f".{target.stem}.*.tmp{target.suffix}"):
+    for tmp, _ in _temps_of(Path(path)):
         tmp.unlink(missing_ok=True)
 
 
@@ -91,14 +90,9 @@ def remove_stale_temps(path: str | os.PathLike[str],
     writer, this process's included, stays: it may be mid-write. A writer of the same
     file in another PID namespace (a container) sharing the folder is not seen: its write
     may fail, as two writers of one file would race anyway."""
-    target = Path(path)
     now = time.time()
     removed = []
-    pattern = f".{glob.escape(target.stem)}.*.tmp{glob.escape(target.suffix)}"
-    for tmp in target.parent.glob(pattern):
-        m = _TEMP_NAME.fullmatch(tmp.name)
-        if m is None or target_of(tmp) != target:
-            continue
+    for tmp, m in _temps_of(Path(path)):
         try:
             age = now - tmp.lstat().st_mtime
         except FileNotFoundError:  # its writer finished meanwhile
@@ -108,6 +102,17 @@ def remove_stale_temps(path: str | os.PathLike[str],
         remove_path(tmp, ignore_errors=True)
         removed.append(tmp)
     return removed
+
+
+def _temps_of(target: Path) -> Iterator[tuple[Path, re.Match[str]]]:
+    """The temporaries of atomic writes of ``target`` beside it, with their name's match:
+    only this file's (a glob without escaping read '[' and '*' in the name as patterns,
+    and ".rig.*.tmp.yaml" also takes rig.unreliable.yaml's temporaries)."""
+    pattern = f".{glob.escape(target.stem)}.*.tmp{glob.escape(target.suffix)}"
+    for tmp in target.parent.glob(pattern):
+        m = _TEMP_NAME.fullmatch(tmp.name)
+        if m is not None and target_of(tmp) == target:
+            yield tmp, m
 
 
 def remove_temps_under(folder: str | os.PathLike[str]) -> int:

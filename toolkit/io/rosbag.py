@@ -37,7 +37,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from toolkit.camera import OPENCV_DIST_COUNTS, PinholeCamera
+from toolkit.camera import OPENCV_DIST_COUNTS, PinholeCamera, plumb_bob_distortion
 from toolkit.geometry import (
     Trajectory,
     checked_rigid,
@@ -736,14 +736,12 @@ def camera_info_to_camera(msg: Any, where: str = "camera_info",
                 "guessed. Fix: give the intrinsics in the calibration YAML ('camera: {width, "
                 "height, fx, fy, cx, cy, distortion: [k1, k2, p1, p2, k3]}', zeros for the "
                 "terms the lens lacks) and set rosbag.calibration")
-        if np.any(D[5:] != 0):
-            # Dropped, the coefficients past k3 left every pixel off by what they add.
-            extra = ", ".join(f"D[{i}] = {D[i]:g}" for i in np.flatnonzero(D[5:]) + 5)
-            raise BagError(f"{where}: distortion_model {model or '(empty)'!r} with {len(D)} "
-                           f"coefficients, non-zero past k1 k2 p1 p2 k3 ({extra}); only the "
-                           "5-term (plumb_bob) model is supported. Convert the rectified "
-                           "images (image_rect) instead, or " + fix)
-        return _pinhole(lambda: PinholeCamera.from_K(K, w, h, D[:5]), where, "K", fix)
+        try:
+            coefficients = plumb_bob_distortion(model, D, "D")
+        except ValueError as e:
+            raise BagError(f"{where}: {e}, or convert the rectified images (image_rect) "
+                           f"instead, or {fix}") from None
+        return _pinhole(lambda: PinholeCamera.from_K(K, w, h, coefficients), where, "K", fix)
     holds = f" (D holds {_ROS_DIST_TERMS[model]})" if model in _ROS_DIST_TERMS else ""
     raise BagError(f"{where}: field 'distortion_model' is {model!r}{holds}; only plumb_bob "
                    "(OpenCV k1 k2 p1 p2 k3) is supported. Use the rectified image topic "

@@ -29,15 +29,18 @@ def write_tum(path: Path | str, traj: Trajectory, header: str | None = None) -> 
 
 def read_tum(
     path: Path | str, frame: str | None = None, child: str | None = None,
-    require_monotonic: bool = True,
+    require_monotonic: bool = True, *, default_child: str = "base_link",
 ) -> Trajectory:
-    """Read a TUM file; errors name the file and line. Frames come from our header if present."""
-    return read_tum_with_lines(path, frame, child, require_monotonic)[0]
+    """Read a TUM file; errors name the file and line. Frames come from our header if
+    present (the first ``# T_`` comment line that names them, anywhere in the file),
+    else world and ``default_child``; ``frame`` / ``child`` override both."""
+    return read_tum_with_lines(path, frame, child, require_monotonic,
+                               default_child=default_child)[0]
 
 
 def read_tum_with_lines(
     path: Path | str, frame: str | None = None, child: str | None = None,
-    require_monotonic: bool = True,
+    require_monotonic: bool = True, *, default_child: str = "base_link",
 ) -> tuple[Trajectory, np.ndarray]:
     """``read_tum`` and the file line [N] int of each pose, for callers that check the
     stamps themselves and name the line."""
@@ -71,7 +74,7 @@ def read_tum_with_lines(
                          f"{float(st[bad])!r} {what} {float(st[bad - 1])!r} (line "
                          f"{lines[bad - 1]}); sort the file by stamp and remove repeated "
                          "stamps")
-    hdr_frame, hdr_child = header or ("world", "base_link")
+    hdr_frame, hdr_child = header or ("world", default_child)
     traj = Trajectory(st, np.array(poses).reshape(-1, 4, 4), frame or hdr_frame,
                       child or hdr_child)
     return traj, np.array(lines, dtype=np.int64)
