@@ -306,7 +306,6 @@ def _print_extrinsic(T: np.ndarray, s: dict[str, Any], allow_unreliable: bool = 
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-
     from calibration.check import SEEN_AXES, overlay, project_scan, sensitivity
     from calibration.files import load_camera, load_extrinsic
     from calibration.pipeline import check_frames_from_pairs, check_frames_from_sequence

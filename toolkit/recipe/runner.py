@@ -1433,8 +1433,7 @@ def _is_input_error(exc: BaseException) -> bool:
     its class name beside the traceback in run.log: numpy's "operands could not be
     broadcast", a KeyError, a ValueError whose message starts with a path (the class
     decides, not the message), and the project's internal errors (StageError never gets
-    here; NotATransformError, which its readers turn into a BagError naming the topic).
-    Any class defined in the project counted until 2026-11-28, internal ones too."""
+    here; NotATransformError, which its readers turn into a BagError naming the topic)."""
     if isinstance(exc, InputError | MissingInputError | WriteError | RecipeError):
         return True
     return isinstance(exc, OSError) and exc.filename is not None
