@@ -293,3 +293,13 @@ def test_pairs_by_frames_refuses_a_delta_that_is_no_frame_count(delta, all_pairs
         pairs_by_frames(6, delta, all_pairs)
     assert pairs_by_frames(6, 2) == [(0, 2), (2, 4)]
     assert pairs_by_frames(4, 1, all_pairs=True) == [(0, 1), (1, 2), (2, 3)]
+
+
+@pytest.mark.parametrize("delta_m", [0.0, -1.0, float("nan"), float("inf")])
+def test_pairs_by_path_refuses_a_length_that_is_no_positive_distance(delta_m) -> None:
+    """0 or a negative length marked every pose (neighbours paired whatever was asked);
+    NaN or inf marked none, without a word."""
+    positions = np.cumsum(np.ones((6, 3)), axis=0)  # [6, 3] steps of sqrt(3) m
+    with pytest.raises(ValueError, match="delta_m is .*more than 0"):
+        pairs_by_path(positions, delta_m)
+    assert pairs_by_path(positions, 3.0) == [(2, 4)]

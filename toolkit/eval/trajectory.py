@@ -122,8 +122,13 @@ def pairs_by_path(positions: np.ndarray, delta_m: float) -> list[tuple[int, int]
 
     evo walks the *estimated* trajectory's path; pass ``est.positions`` to reproduce its
     figures. Walk the path; every time the distance accumulated since the last mark reaches delta,
-    mark that pose; pair consecutive marks.
+    mark that pose; pair consecutive marks. ``delta_m`` is a positive, finite length.
     """
+    # 0 or less marked every pose (pairs of neighbours, whatever the length asked for);
+    # NaN marked none (no pairs, no word).
+    if not 0 < delta_m < np.inf:
+        raise ValueError(f"delta_m is {delta_m!r}: give the path length between the poses "
+                         "of a pair, in metres, more than 0")
     steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
     marks = []
     acc = 0.0
