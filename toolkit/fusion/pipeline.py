@@ -704,22 +704,24 @@ class Fusion:
         if self._full_rays.reachable is not None:
             ok &= self._full_rays.reachable
         rays = self._full_rays.rays.reshape(-1, 3)  # [H * W, 3]
-        if ok.all():
+        full = ok.all()
+        if full:
             # The usual scaled depth, valid everywhere: the rays as they are, no gather of
             # them and no scatter of the result (the same points, bit for bit).
             z = depth.reshape(-1).astype(np.float32, copy=False)  # [H * W]
             pc = rays * z[:, None]  # [H * W, 3]
-            return cylinder_mask(pc @ T[:3, :3].T + T[:3, 3], centres,
-                                 self.cfg.dynamic_radius_m,
-                                 self.cfg.dynamic_height_m).reshape(depth.shape)
-        # Flat indices and row gathers (as depth_to_points): a 2-D boolean mask on the
-        # [H, W, 3] rays took 12 of this call's 15 ms a frame on the quickstart.
-        idx = np.flatnonzero(ok)  # [N]
-        z = depth.reshape(-1)[idx].astype(np.float32)  # [N]
-        pc = np.take(rays, idx, axis=0) * z[:, None]  # [N, 3]
+        else:
+            # Flat indices and row gathers (as depth_to_points): a 2-D boolean mask on the
+            # [H, W, 3] rays took 12 of this call's 15 ms a frame on the quickstart.
+            idx = np.flatnonzero(ok)  # [N]
+            z = depth.reshape(-1)[idx].astype(np.float32)  # [N]
+            pc = np.take(rays, idx, axis=0) * z[:, None]  # [N, 3]
+        inside = cylinder_mask(pc @ T[:3, :3].T + T[:3, 3], centres,
+                               self.cfg.dynamic_radius_m, self.cfg.dynamic_height_m)
+        if full:
+            return inside.reshape(depth.shape)
         out = np.zeros(depth.size, bool)
-        out[idx] = cylinder_mask(pc @ T[:3, :3].T + T[:3, 3], centres,
-                                 self.cfg.dynamic_radius_m, self.cfg.dynamic_height_m)
+        out[idx] = inside
         return out.reshape(depth.shape)
 
     def smooth(self, estimates: list[ScaleEstimate], pairs: list[FramePairs] | None = None,
